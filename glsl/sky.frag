@@ -1,0 +1,15 @@
+#version 450
+// Sky gradient behind the terrain, from the view ray's elevation.
+#extension GL_GOOGLE_include_directive : require
+#define USE_FrameUniforms
+#include "layout.glsl"
+
+layout(location = 0) in vec2 v_ndc;
+layout(location = 0) out vec4 out_color;
+
+void main() {
+    vec4 p = frame.inv_view_proj * vec4(v_ndc, 0.5, 1.0);
+    vec3 dir = normalize(p.xyz / p.w - frame.camera_fog.xyz);
+    float t = clamp(dir.y * 2.0, 0.0, 1.0);
+    out_color = vec4(mix(frame.sky_horizon.rgb, frame.sky_zenith.rgb, sqrt(t)), 1.0);
+}

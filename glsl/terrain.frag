@@ -1,0 +1,78 @@
+#version 450
+// Terrain shading: normals from the heightfield, base and detail textures blended as in
+// seed 000 eqs. 9-11 (or a height/slope ramp), a directional light and distance fog.
+#extension GL_GOOGLE_include_directive : require
+#define USE_FrameUniforms
+#include "layout.glsl"
+#include "common.glsl"
+
+layout(set = 0, binding = TERRAIN_BINDING_HEIGHTS) uniform sampler2D heights;
+layout(set = 0, binding = TERRAIN_BINDING_BASE) uniform sampler2D base_tex;
+layout(set = 0, binding = TERRAIN_BINDING_DETAIL) uniform sampler2D detail_tex;
+layout(location = 0) in vec3 v_world;
+layout(location = 1) flat in int v_lod;
+layout(location = 0) out vec4 out_color;
+
+float world_height(ivec2 s) {
+    s = clamp(s, ivec2(0), ivec2(frame.extent.z - 1));
+    return decode_raw(texelFetch(heights, s, 0).r, frame.flags.w) * frame.terrain.y;
+}
+
+vec2 gradient(ivec2 s) {
+    return vec2(world_height(s + ivec2(1, 0)) - world_height(s - ivec2(1, 0)),
+                world_height(s + ivec2(0, 1)) - world_height(s - ivec2(0, 1))) / (2.0 * frame.terrain.x);
+}
+
+vec3 ramp(float t, float slope) {
+    vec3 low = vec3(0.10, 0.22, 0.07);
+    vec3 mid = vec3(0.30, 0.27, 0.14);
+    vec3 high = vec3(0.32, 0.30, 0.28);
+    vec3 snow = vec3(0.85, 0.87, 0.90);
+    vec3 c = t < 0.35 ? mix(low, mid, t / 0.35) : mix(mid, high, clamp((t - 0.35) / 0.35, 0.0, 1.0));
+    c = mix(c, high, smoothstep(0.35, 0.7, slope));
+    return mix(c, snow, smoothstep(0.72, 0.8, t) * (1.0 - smoothstep(0.5, 0.8, slope)));
+}
+
+void main() {
+    float spacing = frame.terrain.x;
+    vec2 p = v_world.xz / spacing;
+    vec2 extent = vec2(frame.extent.xy - 1);
+    // The embedding margin beyond the true extent is never shown.
+    if (p.x > extent.x + 1e-3 || p.y > extent.y + 1e-3) discard;
+
+    ivec2 i0 = ivec2(floor(p));
+    vec2 f = p - vec2(i0);
+    vec2 g = mix(mix(gradient(i0), gradient(i0 + ivec2(1, 0)), f.x),
+                 mix(gradient(i0 + ivec2(0, 1)), gradient(i0 + ivec2(1, 1)), f.x), f.y);
+    vec3 n = normalize(vec3(-g.x, 1.0, -g.y));
+
+    vec3 albedo;
+    vec2 uv = p / max(extent, vec2(1.0));
+    if (frame.flags.x != 0) {
+        albedo = texture(base_tex, uv).rgb;
+        if (frame.flags.y != 0) {
+            vec3 detail = texture(detail_tex, uv * frame.texturing.x).rgb;
+            float alpha = frame.texturing.y;
+            albedo = alpha * albedo + (1.0 - alpha) * detail;
+        }
+    } else {
+        float range = max(frame.terrain.w - frame.terrain.z, 1e-6);
+        float t = clamp((v_world.y - frame.terrain.z) / range, 0.0, 1.0);
+        albedo = ramp(t, 1.0 - n.y);
+        if (frame.flags.y != 0) {
+            vec3 detail = texture(detail_tex, uv * frame.texturing.x).rgb;
+            float alpha = frame.texturing.y;
+            albedo = alpha * albedo + (1.0 - alpha) * detail;
+        }
+    }
+    if (frame.flags.z != 0) {
+        vec3 palette[6] = vec3[6](vec3(1, 0.2, 0.2), vec3(1, 0.7, 0.1), vec3(0.9, 1, 0.2),
+                                  vec3(0.2, 1, 0.3), vec3(0.2, 0.6, 1), vec3(0.7, 0.3, 1));
+        albedo = mix(albedo, palette[v_lod % 6], 0.6);
+    }
+    vec3 l = normalize(frame.light.xyz);
+    vec3 color = albedo * (frame.light.w + (1.0 - frame.light.w) * max(dot(n, l), 0.0));
+    float dist = length(v_world - frame.camera_fog.xyz);
+    float fog = 1.0 - exp(-frame.camera_fog.w * dist);
+    out_color = vec4(mix(color, frame.sky_horizon.rgb, fog), 1.0);
+}

@@ -1,0 +1,161 @@
+//! Checks of a frame's block list (SPEC section 7): the screen-space error audit and the
+//! tiling check. Plain Rust, so that the guarantee is tested without a GPU.
+
+use crate::camera::Camera;
+use crate::heightfield::{Heightfield, MinMaxPyramid};
+use crate::quadtree::{block_vertex, cell_visible, BlockLayout, DrawBlock, Traversal};
+use glam::Vec3;
+
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct AuditResult {
+    /// Largest pixel distance between a true sample and the rendered surface below it.
+    pub max_error_px: f32,
+    /// Samples inside the frustum that were checked.
+    pub samples: u64,
+    /// Visible samples that no drawn block covers (must be 0).
+    pub uncovered: u64,
+    /// Sample where the maximum was found.
+    pub worst: (i64, i64),
+}
+
+/// Index of the drawn block over each finest-grid cell.
+fn block_index_map(layout: &BlockLayout, blocks: &[DrawBlock]) -> Vec<u32> {
+    let cells = layout.cells();
+    let mut map = vec![u32::MAX; cells * cells];
+    for (i, b) in blocks.iter().enumerate() {
+        let span = 1usize << b.lod;
+        let (cx, cz) = (b.bx as usize * span, b.bz as usize * span);
+        for z in cz..cz + span {
+            map[z * cells + cx..z * cells + cx + span].fill(i as u32);
+        }
+    }
+    map
+}
+
+/// Raw height of the rendered (stitched) block surface at integer sample `(x, z)`.
+pub fn rendered_raw(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, x: i64, z: i64) -> Option<f32> {
+    let k = layout.k() as i64;
+    let stride = b.stride() as i64;
+    let (ox, oz) = b.origin(layout);
+    let (lx, lz) = (x - ox as i64, z - oz as i64);
+    let qu = (lx / stride).min(k - 2);
+    let qv = (lz / stride).min(k - 2);
+    let cn = b.coarser;
+    let touches = (qv == 0 && cn[0] > 0) || (qv == k - 2 && cn[2] > 0) || (qu == k - 2 && cn[1] > 0) || (qu == 0 && cn[3] > 0);
+    // Collapsed edge vertices move by up to `ratio` quads along their edge.
+    let reach = if touches {
+        (*cn.iter().max().unwrap() as i64 / stride).min(k - 1)
+    } else {
+        0
+    };
+    let (p_x, p_z) = (x as f64, z as f64);
+    for dv in -reach..=reach {
+        for du in -reach..=reach {
+            let (u, v) = (qu + du, qv + dv);
+            if u < 0 || v < 0 || u > k - 2 || v > k - 2 {
+                continue;
+            }
+            let vert = |uu: i64, vv: i64| block_vertex(hf, layout, b, uu as u32, vv as u32);
+            let a = vert(u, v);
+            let c = vert(u + 1, v);
+            let i = vert(u + 1, v + 1);
+            let g = vert(u, v + 1);
+            for tri in [[a, c, i], [a, i, g]] {
+                if let Some(h) = interpolate(&tri, p_x, p_z) {
+                    return Some(h);
+                }
+            }
+        }
+    }
+    None
+}
+
+/// Barycentric interpolation of a triangle's raw heights at `(px, pz)` if inside.
+fn interpolate(t: &[(i64, i64, f32); 3], px: f64, pz: f64) -> Option<f32> {
+    let (x0, z0) = (t[0].0 as f64, t[0].1 as f64);
+    let (x1, z1) = (t[1].0 as f64, t[1].1 as f64);
+    let (x2, z2) = (t[2].0 as f64, t[2].1 as f64);
+    let det = (x1 - x0) * (z2 - z0) - (x2 - x0) * (z1 - z0);
+    if det.abs() < 1e-12 {
+        return None; // degenerate (collapsed) triangle
+    }
+    let w1 = ((px - x0) * (z2 - z0) - (x2 - x0) * (pz - z0)) / det;
+    let w2 = ((x1 - x0) * (pz - z0) - (px - x0) * (z1 - z0)) / det;
+    let w0 = 1.0 - w1 - w2;
+    let eps = -1e-9;
+    if w0 < eps || w1 < eps || w2 < eps {
+        return None;
+    }
+    Some((w0 * t[0].2 as f64 + w1 * t[1].2 as f64 + w2 * t[2].2 as f64) as f32)
+}
+
+/// For every sample inside the frustum, the pixel distance between the true point and
+/// the rendered surface's point at the same `(x, z)`.
+pub fn audit(hf: &Heightfield, layout: &BlockLayout, traversal: &Traversal, cam: &Camera) -> AuditResult {
+    let frustum = cam.frustum();
+    let vp = cam.view_proj();
+    let map = block_index_map(layout, &traversal.blocks);
+    let cells = layout.cells() as i64;
+    let m = layout.m;
+    let mut r = AuditResult::default();
+    for z in 0..hf.height as i64 {
+        for x in 0..hf.width as i64 {
+            let raw = hf.raw_at(x, z);
+            let p = Vec3::new(x as f32 * hf.spacing, raw * hf.height_scale, z as f32 * hf.spacing);
+            if !frustum.contains_point(p) {
+                continue;
+            }
+            r.samples += 1;
+            let cx = (x >> m).min(cells - 1);
+            let cz = (z >> m).min(cells - 1);
+            let idx = map[(cz * cells + cx) as usize];
+            if idx == u32::MAX {
+                r.uncovered += 1;
+                continue;
+            }
+            let b = &traversal.blocks[idx as usize];
+            let err = match rendered_raw(hf, layout, b, x, z) {
+                Some(rr) => {
+                    let q = Vec3::new(p.x, rr * hf.height_scale, p.z);
+                    match (cam.project(&vp, p), cam.project(&vp, q)) {
+                        (Some(a), Some(b)) => ((a.0 - b.0).powi(2) + (a.1 - b.1).powi(2)).sqrt(),
+                        _ => f32::INFINITY,
+                    }
+                }
+                None => f32::INFINITY,
+            };
+            if err > r.max_error_px {
+                r.max_error_px = err;
+                r.worst = (x, z);
+            }
+        }
+    }
+    r
+}
+
+/// Every visible finest-grid cell is covered by exactly one drawn block, and no cell by
+/// two. Returns a description of the first failure.
+pub fn check_tiling(hf: &Heightfield, mm: &MinMaxPyramid, layout: &BlockLayout, blocks: &[DrawBlock], cam: &Camera) -> Result<(), String> {
+    let cells = layout.cells();
+    let mut count = vec![0u8; cells * cells];
+    for b in blocks {
+        let span = 1usize << b.lod;
+        for z in b.bz as usize * span..(b.bz as usize + 1) * span {
+            for x in b.bx as usize * span..(b.bx as usize + 1) * span {
+                count[z * cells + x] += 1;
+                if count[z * cells + x] > 1 {
+                    return Err(format!("cell ({x}, {z}) is covered twice"));
+                }
+            }
+        }
+    }
+    let frustum = cam.frustum();
+    for z in 0..cells {
+        for x in 0..cells {
+            if count[z * cells + x] == 0 && cell_visible(hf, mm, layout, &frustum, x as u32, z as u32) {
+                return Err(format!("visible cell ({x}, {z}) is not covered"));
+            }
+        }
+    }
+    Ok(())
+}

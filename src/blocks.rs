@@ -1,0 +1,440 @@
+//! The blocks rendering activity's GPU side (SPEC section 5): one k x k vertex/index
+//! buffer, placed per block by push constants, heights fetched in the vertex shader.
+//! This module records and submits frames; the draw thread (see `render`) decides what
+//! to draw.
+
+use crate::camera::Camera;
+use crate::gpu_layout::{self as layout, BlockPush, FrameUniforms};
+use crate::heightfield::Heightfield;
+use crate::quadtree::{BlockLayout, DrawBlock};
+use crate::shaders;
+use crate::terrain_gpu::TerrainGpu;
+use crate::vk::{
+    vk, Buffer, CommandPool, DescriptorPool, DescriptorSetLayout, Device, Fence, GraphicsPipeline, GraphicsPipelineDesc, Image, PipelineLayout, VkResult,
+    VkResultExt,
+};
+use glam::Vec3;
+use std::sync::Arc;
+
+pub const COLOR_FORMAT: vk::Format = vk::Format::R8G8B8A8_SRGB;
+pub const DEPTH_FORMAT: vk::Format = vk::Format::D32_SFLOAT;
+
+/// The shared block mesh: vertex `(u, v)` as two bytes, quads split along the a-i
+/// diagonal (SPEC section 2).
+pub struct BlockMesh {
+    pub vertices: Buffer,
+    pub indices: Buffer,
+    pub index_count: u32,
+    pub index_type: vk::IndexType,
+    pub bytes: u64,
+}
+
+/// Vertex bytes and indices of a k x k block.
+pub fn block_mesh_data(k: u32) -> (Vec<u8>, Vec<u32>) {
+    let mut verts = Vec::with_capacity((k * k * 2) as usize);
+    for v in 0..k {
+        for u in 0..k {
+            verts.push(u as u8);
+            verts.push(v as u8);
+        }
+    }
+    let mut idx = Vec::with_capacity(((k - 1) * (k - 1) * 6) as usize);
+    for v in 0..k - 1 {
+        for u in 0..k - 1 {
+            let a = v * k + u;
+            let c = a + 1;
+            let g = a + k;
+            let i = g + 1;
+            idx.extend_from_slice(&[a, c, i, a, i, g]);
+        }
+    }
+    (verts, idx)
+}
+
+impl BlockMesh {
+    pub fn new(device: &Arc<Device>, k: u32) -> VkResult<Self> {
+        let (verts, idx) = block_mesh_data(k);
+        let (index_bytes, index_type) = if k * k <= 65536 {
+            let v: Vec<u16> = idx.iter().map(|&i| i as u16).collect();
+            (bytemuck::cast_slice(&v).to_vec(), vk::IndexType::UINT16)
+        } else {
+            (bytemuck::cast_slice(&idx).to_vec(), vk::IndexType::UINT32)
+        };
+        let vertices = Buffer::with_data(device, "block vertices", &verts, vk::BufferUsageFlags::VERTEX_BUFFER)?;
+        let indices = Buffer::with_data(device, "block indices", &index_bytes, vk::BufferUsageFlags::INDEX_BUFFER)?;
+        Ok(BlockMesh {
+            bytes: (verts.len() + index_bytes.len()) as u64,
+            vertices,
+            indices,
+            index_count: idx.len() as u32,
+            index_type,
+        })
+    }
+}
+
+/// Shading settings that are not part of the camera.
+#[derive(Clone, Copy, Debug)]
+pub struct Shading {
+    pub fog_density: f32,
+    pub sky: bool,
+    /// Background colour when `sky` is off (the crack test looks for it).
+    pub background: [f32; 3],
+    pub colour_by_lod: bool,
+    pub wireframe: bool,
+    pub detail_tiling: f32,
+    pub detail_weight: f32,
+}
+
+impl Default for Shading {
+    fn default() -> Self {
+        Shading {
+            fog_density: 0.0,
+            sky: true,
+            background: [1.0, 0.0, 1.0],
+            colour_by_lod: false,
+            wireframe: false,
+            detail_tiling: 64.0,
+            detail_weight: 1.0,
+        }
+    }
+}
+
+const SKY_ZENITH: [f32; 3] = [0.16, 0.33, 0.66];
+const SKY_HORIZON: [f32; 3] = [0.62, 0.72, 0.84];
+
+/// Offscreen colour + depth targets and their readback buffer.
+pub struct Target {
+    pub color: Image,
+    pub depth: Image,
+    pub readback: Buffer,
+    pub width: u32,
+    pub height: u32,
+}
+
+impl Target {
+    pub fn new(device: &Arc<Device>, width: u32, height: u32) -> VkResult<Self> {
+        let extent = vk::Extent2D { width, height };
+        Ok(Target {
+            color: Image::new(device, "colour target", extent, COLOR_FORMAT, 1, vk::ImageUsageFlags::COLOR_ATTACHMENT | vk::ImageUsageFlags::TRANSFER_SRC, false)?,
+            depth: Image::new(device, "depth target", extent, DEPTH_FORMAT, 1, vk::ImageUsageFlags::DEPTH_STENCIL_ATTACHMENT, false)?,
+            readback: Buffer::new(device, "frame readback", width as u64 * height as u64 * 4, vk::BufferUsageFlags::TRANSFER_DST, gpu_allocator::MemoryLocation::GpuToCpu)?,
+            width,
+            height,
+        })
+    }
+}
+
+/// Frame statistics of one draw.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct DrawStats {
+    pub draw_calls: u64,
+    pub triangles: u64,
+}
+
+/// Pipelines and per-frame state of the block renderer. Owned by the draw thread.
+pub struct BlocksRenderer {
+    device: Arc<Device>,
+    pub layout: BlockLayout,
+    pub mesh: BlockMesh,
+    set_layout: DescriptorSetLayout,
+    pipeline_layout: PipelineLayout,
+    terrain_pipeline: GraphicsPipeline,
+    wire_pipeline: Option<GraphicsPipeline>,
+    sky_pipeline: GraphicsPipeline,
+    _pool: DescriptorPool,
+    set: vk::DescriptorSet,
+    uniforms: Buffer,
+    commands: CommandPool,
+    cmd: vk::CommandBuffer,
+    fence: Fence,
+}
+
+impl BlocksRenderer {
+    pub fn new(device: &Arc<Device>, terrain: &TerrainGpu, block_layout: BlockLayout, color_format: vk::Format) -> VkResult<Self> {
+        let stages = vk::ShaderStageFlags::VERTEX | vk::ShaderStageFlags::FRAGMENT;
+        let sampler = vk::DescriptorType::COMBINED_IMAGE_SAMPLER;
+        let set_layout = DescriptorSetLayout::new(
+            device,
+            &[
+                (layout::TERRAIN_BINDING_HEIGHTS, sampler, stages),
+                (layout::TERRAIN_BINDING_FRAME, vk::DescriptorType::UNIFORM_BUFFER, stages),
+                (layout::TERRAIN_BINDING_BASE, sampler, vk::ShaderStageFlags::FRAGMENT),
+                (layout::TERRAIN_BINDING_DETAIL, sampler, vk::ShaderStageFlags::FRAGMENT),
+            ],
+        )?;
+        let pipeline_layout = PipelineLayout::new(device, &set_layout, std::mem::size_of::<BlockPush>() as u32, vk::ShaderStageFlags::VERTEX)?;
+        let desc = |polygon_mode| GraphicsPipelineDesc {
+            vert: shaders::TERRAIN_VERT,
+            frag: shaders::TERRAIN_FRAG,
+            vertex_attribute: Some((2, vk::Format::R8G8_UINT)),
+            color_format,
+            depth_format: Some(DEPTH_FORMAT),
+            depth_test: true,
+            polygon_mode,
+            layout: &pipeline_layout,
+        };
+        let terrain_pipeline = GraphicsPipeline::new(device, &desc(vk::PolygonMode::FILL))?;
+        let wire_pipeline = if device.features.wireframe {
+            Some(GraphicsPipeline::new(device, &desc(vk::PolygonMode::LINE))?)
+        } else {
+            None
+        };
+        let sky_pipeline = GraphicsPipeline::new(
+            device,
+            &GraphicsPipelineDesc {
+                vert: shaders::FULLSCREEN_VERT,
+                frag: shaders::SKY_FRAG,
+                vertex_attribute: None,
+                color_format,
+                depth_format: Some(DEPTH_FORMAT),
+                depth_test: false,
+                polygon_mode: vk::PolygonMode::FILL,
+                layout: &pipeline_layout,
+            },
+        )?;
+        let pool = DescriptorPool::new(device, 1, &[(sampler, 3), (vk::DescriptorType::UNIFORM_BUFFER, 1)])?;
+        let set = pool.allocate(&set_layout)?;
+        let ubo_size = std::mem::size_of::<FrameUniforms>() as u64;
+        let uniforms = Buffer::new(device, "frame uniforms", ubo_size, vk::BufferUsageFlags::UNIFORM_BUFFER, gpu_allocator::MemoryLocation::CpuToGpu)?;
+        pool.write(
+            set,
+            &[
+                (layout::TERRAIN_BINDING_HEIGHTS, terrain.heights.view, terrain.nearest.handle),
+                (layout::TERRAIN_BINDING_BASE, terrain.base.view, terrain.linear.handle),
+                (layout::TERRAIN_BINDING_DETAIL, terrain.detail.view, terrain.linear.handle),
+            ],
+            &[(layout::TERRAIN_BINDING_FRAME, uniforms.handle, ubo_size)],
+        );
+        let commands = CommandPool::new(device, device.draw_queue.family)?;
+        let cmd = commands.allocate()?;
+        Ok(BlocksRenderer {
+            device: device.clone(),
+            layout: block_layout,
+            mesh: BlockMesh::new(device, block_layout.k())?,
+            set_layout,
+            pipeline_layout,
+            terrain_pipeline,
+            wire_pipeline,
+            sky_pipeline,
+            _pool: pool,
+            set,
+            uniforms,
+            commands,
+            cmd,
+            fence: Fence::new(device, true)?,
+        })
+    }
+
+    fn frame_uniforms(&self, hf: &Heightfield, terrain: &TerrainGpu, cam: &Camera, shading: &Shading) -> FrameUniforms {
+        let vp = cam.view_proj();
+        let sky = if shading.sky { 1.0 } else { 0.0 };
+        let horizon = if shading.sky { SKY_HORIZON } else { shading.background };
+        let light = Vec3::new(-0.5, 0.8, -0.3).normalize();
+        FrameUniforms {
+            view_proj: vp.to_cols_array_2d(),
+            inv_view_proj: vp.inverse().to_cols_array_2d(),
+            camera_fog: [cam.position.x, cam.position.y, cam.position.z, shading.fog_density],
+            terrain: [hf.spacing, hf.height_scale, terrain.raw_range[0] * hf.height_scale, terrain.raw_range[1] * hf.height_scale],
+            light: [light.x, light.y, light.z, 0.25],
+            texturing: [shading.detail_tiling, shading.detail_weight, 0.0, 0.0],
+            extent: [hf.width as i32, hf.height as i32, hf.side() as i32, self.layout.k() as i32],
+            flags: [
+                terrain.has_base as i32,
+                terrain.has_detail as i32,
+                shading.colour_by_lod as i32,
+                (hf.format == crate::heightfield::HeightFormat::Unorm16) as i32,
+            ],
+            sky_zenith: [SKY_ZENITH[0], SKY_ZENITH[1], SKY_ZENITH[2], sky],
+            sky_horizon: [horizon[0], horizon[1], horizon[2], 1.0],
+        }
+    }
+
+    /// Records the sky and every block into `cmd`, inside dynamic rendering on `color`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn record(
+        &self,
+        cmd: vk::CommandBuffer,
+        color_view: vk::ImageView,
+        depth_view: vk::ImageView,
+        extent: vk::Extent2D,
+        blocks: &[DrawBlock],
+        shading: &Shading,
+        clear: [f32; 3],
+    ) -> DrawStats {
+        let d = &self.device.raw;
+        let color_att = [vk::RenderingAttachmentInfo::default()
+            .image_view(color_view)
+            .image_layout(vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL)
+            .load_op(vk::AttachmentLoadOp::CLEAR)
+            .store_op(vk::AttachmentStoreOp::STORE)
+            .clear_value(vk::ClearValue {
+                color: vk::ClearColorValue {
+                    float32: [clear[0], clear[1], clear[2], 1.0],
+                },
+            })];
+        let depth_att = vk::RenderingAttachmentInfo::default()
+            .image_view(depth_view)
+            .image_layout(vk::ImageLayout::DEPTH_ATTACHMENT_OPTIMAL)
+            .load_op(vk::AttachmentLoadOp::CLEAR)
+            .store_op(vk::AttachmentStoreOp::DONT_CARE)
+            .clear_value(vk::ClearValue {
+                depth_stencil: vk::ClearDepthStencilValue { depth: 0.0, stencil: 0 },
+            });
+        let area = vk::Rect2D {
+            offset: vk::Offset2D::default(),
+            extent,
+        };
+        let rendering = vk::RenderingInfo::default()
+            .render_area(area)
+            .layer_count(1)
+            .color_attachments(&color_att)
+            .depth_attachment(&depth_att);
+        let viewport = vk::Viewport {
+            x: 0.0,
+            y: 0.0,
+            width: extent.width as f32,
+            height: extent.height as f32,
+            min_depth: 0.0,
+            max_depth: 1.0,
+        };
+        let mut stats = DrawStats::default();
+        // SAFETY: `cmd` is recording on this thread; every bound object outlives the
+        // submission (the caller waits before reuse or drop).
+        unsafe {
+            d.cmd_begin_rendering(cmd, &rendering);
+            d.cmd_set_viewport(cmd, 0, &[viewport]);
+            d.cmd_set_scissor(cmd, 0, &[area]);
+            d.cmd_bind_descriptor_sets(cmd, vk::PipelineBindPoint::GRAPHICS, self.pipeline_layout.handle, 0, &[self.set], &[]);
+            if shading.sky {
+                d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, self.sky_pipeline.handle);
+                d.cmd_draw(cmd, 3, 1, 0, 0);
+            }
+            let pipeline = match (&self.wire_pipeline, shading.wireframe) {
+                (Some(w), true) => w.handle,
+                _ => self.terrain_pipeline.handle,
+            };
+            d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, pipeline);
+            d.cmd_bind_vertex_buffers(cmd, 0, &[self.mesh.vertices.handle], &[0]);
+            d.cmd_bind_index_buffer(cmd, self.mesh.indices.handle, 0, self.mesh.index_type);
+            for b in blocks {
+                let (ox, oz) = b.origin(&self.layout);
+                let push = BlockPush {
+                    block: [ox as i32, oz as i32, b.stride() as i32, b.lod as i32],
+                    coarser_neighbour_stride: [b.coarser[0] as i32, b.coarser[1] as i32, b.coarser[2] as i32, b.coarser[3] as i32],
+                };
+                d.cmd_push_constants(cmd, self.pipeline_layout.handle, vk::ShaderStageFlags::VERTEX, 0, bytemuck::bytes_of(&push));
+                d.cmd_draw_indexed(cmd, self.mesh.index_count, 1, 0, 0, 0);
+            }
+            d.cmd_end_rendering(cmd);
+        }
+        stats.draw_calls = blocks.len() as u64 + shading.sky as u64;
+        stats.triangles = blocks.len() as u64 * self.layout.triangles_per_block();
+        stats
+    }
+
+    /// Writes the per-frame uniforms. Only call when no submitted frame is pending.
+    pub fn set_frame(&mut self, hf: &Heightfield, terrain: &TerrainGpu, cam: &Camera, shading: &Shading) -> VkResult<()> {
+        let u = self.frame_uniforms(hf, terrain, cam, shading);
+        self.uniforms.mapped_mut()?[..std::mem::size_of::<FrameUniforms>()].copy_from_slice(bytemuck::bytes_of(&u));
+        Ok(())
+    }
+
+    /// Renders one frame into `target` and reads it back as RGBA8 (sRGB).
+    pub fn render_offscreen(
+        &mut self,
+        hf: &Heightfield,
+        terrain: &TerrainGpu,
+        target: &Target,
+        cam: &Camera,
+        blocks: &[DrawBlock],
+        shading: &Shading,
+    ) -> VkResult<(Vec<u8>, DrawStats)> {
+        self.set_frame(hf, terrain, cam, shading)?;
+        let d = self.device.raw.clone();
+        let cmd = self.cmd;
+        let extent = vk::Extent2D {
+            width: target.width,
+            height: target.height,
+        };
+        let clear = if shading.sky { SKY_HORIZON } else { shading.background };
+        // SAFETY: the previous use of `cmd` finished (fence waited below every time).
+        unsafe {
+            d.reset_command_buffer(cmd, vk::CommandBufferResetFlags::empty()).vk("vkResetCommandBuffer")?;
+            d.begin_command_buffer(cmd, &vk::CommandBufferBeginInfo::default().flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT))
+                .vk("vkBeginCommandBuffer")?;
+            let to_attach = [
+                vk::ImageMemoryBarrier2::default()
+                    .src_stage_mask(vk::PipelineStageFlags2::COPY)
+                    .src_access_mask(vk::AccessFlags2::TRANSFER_READ)
+                    .dst_stage_mask(vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT)
+                    .dst_access_mask(vk::AccessFlags2::COLOR_ATTACHMENT_WRITE)
+                    .old_layout(vk::ImageLayout::UNDEFINED)
+                    .new_layout(vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL)
+                    .image(target.color.handle)
+                    .subresource_range(target.color.range(0, 1)),
+                vk::ImageMemoryBarrier2::default()
+                    .src_stage_mask(vk::PipelineStageFlags2::EARLY_FRAGMENT_TESTS | vk::PipelineStageFlags2::LATE_FRAGMENT_TESTS)
+                    .src_access_mask(vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_WRITE)
+                    .dst_stage_mask(vk::PipelineStageFlags2::EARLY_FRAGMENT_TESTS | vk::PipelineStageFlags2::LATE_FRAGMENT_TESTS)
+                    .dst_access_mask(vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_WRITE | vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_READ)
+                    .old_layout(vk::ImageLayout::UNDEFINED)
+                    .new_layout(vk::ImageLayout::DEPTH_ATTACHMENT_OPTIMAL)
+                    .image(target.depth.handle)
+                    .subresource_range(target.depth.range(0, 1)),
+            ];
+            d.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().image_memory_barriers(&to_attach));
+        }
+        let stats = self.record(cmd, target.color.view, target.depth.view, extent, blocks, shading, clear);
+        // SAFETY: as above.
+        unsafe {
+            let to_src = [vk::ImageMemoryBarrier2::default()
+                .src_stage_mask(vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT)
+                .src_access_mask(vk::AccessFlags2::COLOR_ATTACHMENT_WRITE)
+                .dst_stage_mask(vk::PipelineStageFlags2::COPY)
+                .dst_access_mask(vk::AccessFlags2::TRANSFER_READ)
+                .old_layout(vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL)
+                .new_layout(vk::ImageLayout::TRANSFER_SRC_OPTIMAL)
+                .image(target.color.handle)
+                .subresource_range(target.color.range(0, 1))];
+            d.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().image_memory_barriers(&to_src));
+            let region = vk::BufferImageCopy::default()
+                .image_subresource(vk::ImageSubresourceLayers {
+                    aspect_mask: vk::ImageAspectFlags::COLOR,
+                    mip_level: 0,
+                    base_array_layer: 0,
+                    layer_count: 1,
+                })
+                .image_extent(vk::Extent3D {
+                    width: target.width,
+                    height: target.height,
+                    depth: 1,
+                });
+            d.cmd_copy_image_to_buffer(cmd, target.color.handle, vk::ImageLayout::TRANSFER_SRC_OPTIMAL, target.readback.handle, &[region]);
+            let to_host = [vk::BufferMemoryBarrier2::default()
+                .src_stage_mask(vk::PipelineStageFlags2::COPY)
+                .src_access_mask(vk::AccessFlags2::TRANSFER_WRITE)
+                .dst_stage_mask(vk::PipelineStageFlags2::HOST)
+                .dst_access_mask(vk::AccessFlags2::HOST_READ)
+                .buffer(target.readback.handle)
+                .size(vk::WHOLE_SIZE)];
+            d.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().buffer_memory_barriers(&to_host));
+            d.end_command_buffer(cmd).vk("vkEndCommandBuffer")?;
+        }
+        self.fence.reset()?;
+        let cmds = [vk::CommandBufferSubmitInfo::default().command_buffer(cmd)];
+        let submit = [vk::SubmitInfo2::default().command_buffer_infos(&cmds)];
+        self.device.draw_queue.submit(&self.device, &submit, self.fence.handle)?;
+        self.fence.wait(u64::MAX)?;
+        let pixels = target.readback.mapped()?[..(target.width * target.height * 4) as usize].to_vec();
+        Ok((pixels, stats))
+    }
+}
+
+impl Drop for BlocksRenderer {
+    fn drop(&mut self) {
+        // Wait for the last frame before the command pool, pipelines and buffers go.
+        let _ = self.fence.wait(u64::MAX);
+        let _ = &self.set_layout;
+        self.commands.free(self.cmd);
+    }
+}

@@ -1,0 +1,160 @@
+//! Command-line options shared by every subcommand (same names, same meanings).
+
+use crate::camera::Camera;
+use crate::gie::ErrorMode;
+use crate::heightfield::{self, Heightfield, LoadOptions};
+use crate::vk::QueueRequest;
+use clap::{Args, ValueEnum};
+use glam::Vec3;
+use std::path::PathBuf;
+
+/// An error in the user's input (exit code 2), as opposed to a runtime failure.
+#[derive(Debug, thiserror::Error)]
+#[error("{0}")]
+pub struct InputError(pub String);
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum OnOff {
+    On,
+    Off,
+}
+
+fn parse_size(s: &str) -> Result<(u32, u32), String> {
+    let (w, h) = s.split_once(['x', 'X']).ok_or_else(|| format!("'{s}': expected WIDTHxHEIGHT, e.g. 1280x720"))?;
+    let w: u32 = w.trim().parse().map_err(|_| format!("'{s}': width is not a whole number"))?;
+    let h: u32 = h.trim().parse().map_err(|_| format!("'{s}': height is not a whole number"))?;
+    if w == 0 || h == 0 {
+        return Err(format!("'{s}': width and height must be at least 1"));
+    }
+    Ok((w, h))
+}
+
+fn parse_vec3(s: &str) -> Result<Vec3, String> {
+    let parts: Vec<&str> = s.split(',').collect();
+    if parts.len() != 3 {
+        return Err(format!("'{s}': expected X,Y,Z"));
+    }
+    let mut v = [0.0f32; 3];
+    for (i, p) in parts.iter().enumerate() {
+        v[i] = p.trim().parse().map_err(|_| format!("'{s}': '{p}' is not a number"))?;
+        if !v[i].is_finite() {
+            return Err(format!("'{s}': coordinates must be finite numbers"));
+        }
+    }
+    Ok(Vec3::from_array(v))
+}
+
+fn parse_positive(s: &str) -> Result<f32, String> {
+    let v: f32 = s.parse().map_err(|_| format!("'{s}' is not a number"))?;
+    if !(v.is_finite() && v > 0.0) {
+        return Err(format!("'{s}': must be a finite number greater than 0"));
+    }
+    Ok(v)
+}
+
+fn parse_fovy(s: &str) -> Result<f32, String> {
+    let v = parse_positive(s)?;
+    if v >= 179.0 {
+        return Err(format!("'{s}': the field of view must be below 179 degrees"));
+    }
+    Ok(v)
+}
+
+/// Options every subcommand shares.
+#[derive(Args, Clone, Debug)]
+pub struct CommonArgs {
+    /// Heightfield file (.png, .jpg, .tif/.tiff, .r16, .f32, .hgt). Default: the built-in
+    /// procedural terrain (2049 x 2049, 30 m spacing).
+    #[arg(long, value_name = "FILE")]
+    pub heightmap: Option<PathBuf>,
+    /// Size of a raw .r16/.f32 heightfield.
+    #[arg(long, value_name = "WxH", value_parser = parse_size)]
+    pub raw_size: Option<(u32, u32)>,
+    /// Metres between samples (default depends on the file; see README).
+    #[arg(long, value_name = "M", value_parser = parse_positive)]
+    pub spacing: Option<f32>,
+    /// Metres per height unit (default depends on the file; see README).
+    #[arg(long, value_name = "M", value_parser = parse_positive)]
+    pub height_scale: Option<f32>,
+    /// Viewport size in pixels.
+    #[arg(long, value_name = "WxH", value_parser = parse_size)]
+    pub size: Option<(u32, u32)>,
+    /// Camera position in world units (x east, y up, z south). Default: above one edge,
+    /// seeing the whole terrain.
+    #[arg(long, value_name = "X,Y,Z", value_parser = parse_vec3, allow_hyphen_values = true)]
+    pub camera: Option<Vec3>,
+    /// Point the camera looks at. Default: the terrain's centre.
+    #[arg(long, value_name = "X,Y,Z", value_parser = parse_vec3, allow_hyphen_values = true)]
+    pub look_at: Option<Vec3>,
+    /// Vertical field of view in degrees.
+    #[arg(long, value_name = "DEG", default_value = "60", value_parser = parse_fovy)]
+    pub fovy: f32,
+    /// Block side k = 2^m + 1 vertices.
+    #[arg(long = "block", value_name = "K", default_value_t = 33)]
+    pub block: u32,
+    /// Vulkan validation (with synchronization validation). Default: on in debug builds.
+    #[arg(long, value_enum)]
+    pub validation: Option<OnOff>,
+    /// GPU to use, by index or name substring (default: prefer a discrete GPU).
+    #[arg(long, value_name = "NAME|INDEX")]
+    pub gpu: Option<String>,
+    /// Queue arrangement for the two activities.
+    #[arg(long, value_enum, default_value_t = QueueRequest::Auto)]
+    pub queues: QueueRequest,
+    /// Screen-space error bound: strict (guaranteed) or paper (seed 000 eqs. 2-4).
+    #[arg(long = "error-mode", alias = "mode", value_enum, default_value_t = ErrorMode::Strict)]
+    pub error_mode: ErrorMode,
+}
+
+impl CommonArgs {
+    pub fn validation(&self) -> bool {
+        match self.validation {
+            Some(OnOff::On) => true,
+            Some(OnOff::Off) => false,
+            None => cfg!(debug_assertions),
+        }
+    }
+
+    pub fn load_heightfield(&self) -> Result<Heightfield, InputError> {
+        match &self.heightmap {
+            None => Ok(heightfield::procedural()),
+            Some(path) => {
+                let opts = LoadOptions {
+                    spacing: self.spacing,
+                    height_scale: self.height_scale,
+                    raw_size: self.raw_size.map(|(w, h)| (w as usize, h as usize)),
+                };
+                heightfield::load(path, &opts).map_err(|e| InputError(e.to_string()))
+            }
+        }
+    }
+
+    pub fn camera(&self, hf: &Heightfield, default_size: (u32, u32)) -> Result<Camera, InputError> {
+        let (w, h) = self.size.unwrap_or(default_size);
+        let (pos, target) = default_view(hf);
+        let position = self.camera.unwrap_or(pos);
+        let look_at = self.look_at.unwrap_or(target);
+        if (look_at - position).length() < 1e-6 {
+            return Err(InputError("--look-at must differ from --camera".into()));
+        }
+        Ok(Camera::look_at(position, look_at, self.fovy, w, h, near_plane(hf)))
+    }
+}
+
+/// Near plane: a twentieth of the sample spacing keeps close terrain visible.
+pub fn near_plane(hf: &Heightfield) -> f32 {
+    hf.spacing * 0.05
+}
+
+/// Above the south edge, high enough to see the whole terrain, looking at its centre.
+pub fn default_view(hf: &Heightfield) -> (Vec3, Vec3) {
+    let (wx, wz) = hf.world_extent();
+    let l = wx.max(wz);
+    let (lo, hi) = hf.raw.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), &v| (a.min(v), b.max(v)));
+    let top = hi * hf.height_scale;
+    let bottom = lo * hf.height_scale;
+    (
+        Vec3::new(wx * 0.5, top + 0.6 * l, wz + 0.45 * l),
+        Vec3::new(wx * 0.5, bottom, wz * 0.45),
+    )
+}

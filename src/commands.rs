@@ -1,0 +1,317 @@
+//! The subcommands: `render` (one headless frame) and `errors` (one error generation).
+
+use crate::audit;
+use crate::blocks::{BlocksRenderer, Shading, Target};
+use crate::cli::{CommonArgs, InputError};
+use crate::errors_activity::ErrorsActivity;
+use crate::gie::ErrorParams;
+use crate::heightfield::{Heightfield, MinMaxPyramid};
+use crate::quadtree::{traverse, BlockLayout, LodSelect};
+use crate::terrain_gpu::TerrainGpu;
+use crate::vk::{Device, DeviceOptions, Instance, InstanceOptions};
+use clap::{Args, ValueEnum};
+use serde_json::json;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+/// How block LODs are chosen.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum LodChoice {
+    /// The paper's method: GPU error pyramid, refine while the error exceeds delta.
+    Error,
+    /// Every block at full resolution (brute force; the reference image).
+    Full,
+    /// Distance rings (GeoMipMapping-style baseline).
+    Distance,
+}
+
+#[derive(Args, Debug)]
+pub struct RenderArgs {
+    #[command(flatten)]
+    pub common: CommonArgs,
+    /// LOD selection.
+    #[arg(long, value_enum, default_value_t = LodChoice::Error)]
+    pub lod: LodChoice,
+    /// Screen-space error threshold in pixels.
+    #[arg(long, value_name = "PX", default_value = "1", value_parser = positive)]
+    pub delta: f32,
+    /// Output PNG.
+    #[arg(long, value_name = "FILE.png")]
+    pub out: PathBuf,
+    /// Also audit the block list: the largest screen-space error over every visible sample.
+    #[arg(long)]
+    pub audit: bool,
+    /// Plain background instead of the sky (R,G,B in 0..1).
+    #[arg(long, value_name = "R,G,B")]
+    pub background: Option<String>,
+    /// Tint blocks by LOD.
+    #[arg(long)]
+    pub colour_by_lod: bool,
+    /// Exponential fog density per world unit (0 disables).
+    #[arg(long, value_name = "DENSITY", default_value = "0")]
+    pub fog: f32,
+}
+
+#[derive(Args, Debug)]
+pub struct ErrorsArgs {
+    #[command(flatten)]
+    pub common: CommonArgs,
+    /// Generations to compute (the median update time is reported).
+    #[arg(long, value_name = "N", default_value_t = 1)]
+    pub repeat: u32,
+    /// Write the block-error pyramid as little-endian f32 (see README for the layout).
+    #[arg(long, value_name = "FILE")]
+    pub dump: Option<PathBuf>,
+}
+
+fn positive(s: &str) -> Result<f32, String> {
+    let v: f32 = s.parse().map_err(|_| format!("'{s}' is not a number"))?;
+    if !(v.is_finite() && v > 0.0) {
+        return Err(format!("'{s}': must be a finite number greater than 0"));
+    }
+    Ok(v)
+}
+
+/// Everything a command needs on the GPU.
+pub struct Session {
+    pub hf: Arc<Heightfield>,
+    pub mm: MinMaxPyramid,
+    pub layout: BlockLayout,
+    pub device: Arc<Device>,
+    pub terrain: Arc<TerrainGpu>,
+}
+
+impl Session {
+    pub fn open(common: &CommonArgs) -> anyhow::Result<Self> {
+        let hf = common.load_heightfield()?;
+        let layout = BlockLayout::new(hf.n, common.block).map_err(InputError)?;
+        if layout.k() != common.block {
+            tracing::info!("block {} is larger than the terrain; using k = {}", common.block, layout.k());
+        }
+        let mm = MinMaxPyramid::build(&hf);
+        let instance = Instance::new(&InstanceOptions {
+            validation: common.validation(),
+            extensions: Vec::new(),
+        })?;
+        let device = Device::new(
+            instance,
+            &DeviceOptions {
+                gpu: common.gpu.clone(),
+                queues: common.queues,
+                swapchain: false,
+            },
+        )?;
+        eprintln!("vkterrain: device {}, queue mode {}", device.name, device.queue_mode.as_str());
+        let max = device.max_image_dimension_2d() as usize;
+        if hf.side() > max {
+            return Err(InputError(format!(
+                "{}: the {} x {} grid is larger than the device's maxImageDimension2D ({max})",
+                hf.source,
+                hf.side(),
+                hf.side()
+            ))
+            .into());
+        }
+        let terrain = Arc::new(TerrainGpu::new(&device, &hf, &mm, None, None)?);
+        Ok(Session {
+            hf: Arc::new(hf),
+            mm,
+            layout,
+            device,
+            terrain,
+        })
+    }
+
+    pub fn validation_messages(&self) -> u64 {
+        self.device.instance.validation_messages()
+    }
+}
+
+/// Writes `bytes` to `path` through a temporary file, so that no partial file is left.
+pub fn write_atomic(path: &Path, write: impl FnOnce(&Path) -> anyhow::Result<()>) -> anyhow::Result<()> {
+    let tmp = path.with_extension("partial.tmp");
+    match write(&tmp) {
+        Ok(()) => std::fs::rename(&tmp, path).map_err(|e| anyhow::anyhow!("{}: {e}", path.display())),
+        Err(e) => {
+            let _ = std::fs::remove_file(&tmp);
+            Err(e)
+        }
+    }
+}
+
+pub fn save_png(path: &Path, width: u32, height: u32, rgba: &[u8]) -> anyhow::Result<()> {
+    write_atomic(path, |tmp| {
+        image::save_buffer_with_format(tmp, rgba, width, height, image::ExtendedColorType::Rgba8, image::ImageFormat::Png)
+            .map_err(|e| anyhow::anyhow!("{}: cannot write PNG: {e}", path.display()))
+    })
+}
+
+fn parse_background(s: &str) -> Result<[f32; 3], InputError> {
+    let v: Vec<f32> = s.split(',').filter_map(|p| p.trim().parse().ok()).collect();
+    if v.len() != 3 || v.iter().any(|c| !(0.0..=1.0).contains(c)) {
+        return Err(InputError(format!("--background '{s}': expected R,G,B with each in 0..1")));
+    }
+    Ok([v[0], v[1], v[2]])
+}
+
+pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
+    if args.out.extension().and_then(|e| e.to_str()).map(|e| e.to_lowercase()) != Some("png".into()) {
+        return Err(InputError(format!("--out {}: the output must be a .png file", args.out.display())).into());
+    }
+    let mut shading = Shading {
+        fog_density: args.fog,
+        colour_by_lod: args.colour_by_lod,
+        ..Shading::default()
+    };
+    if let Some(bg) = &args.background {
+        shading.sky = false;
+        shading.background = parse_background(bg)?;
+    }
+    let s = Session::open(&args.common)?;
+    let cam = args.common.camera(&s.hf, (1280, 720))?;
+    let mut renderer = BlocksRenderer::new(&s.device, &s.terrain, s.layout, crate::blocks::COLOR_FORMAT)?;
+    let target = Target::new(&s.device, cam.width, cam.height)?;
+
+    let mut generation = 0;
+    let mut errors_ms = None;
+    let params = ErrorParams::new(&cam, args.common.error_mode);
+    let activity = if args.lod == LodChoice::Error {
+        Some(ErrorsActivity::start(&s.device, s.terrain.clone(), s.hf.clone(), s.layout)?)
+    } else {
+        None
+    };
+    let gen = match &activity {
+        Some(a) => {
+            // `render` waits for the generation computed at its own camera (deterministic).
+            let t = Instant::now();
+            let g = a.wait_for(params, Duration::from_secs(600))?;
+            errors_ms = Some(t.elapsed().as_secs_f64() * 1e3);
+            generation = g.number;
+            Some(g)
+        }
+        None => None,
+    };
+    let select = match (&gen, args.lod) {
+        (Some(g), _) => LodSelect::Errors {
+            errors: &g.errors,
+            computed_at: g.params.camera,
+            delta: args.delta,
+        },
+        (None, LodChoice::Distance) => LodSelect::Distance { factor: 2.0 },
+        _ => LodSelect::Full,
+    };
+    let t = Instant::now();
+    let trav = traverse(&s.hf, &s.mm, &s.layout, &cam, select);
+    let traverse_ms = t.elapsed().as_secs_f64() * 1e3;
+    let t = Instant::now();
+    let (pixels, stats) = renderer.render_offscreen(&s.hf, &s.terrain, &target, &cam, &trav.blocks, &shading)?;
+    let frame_ms = t.elapsed().as_secs_f64() * 1e3;
+    save_png(&args.out, cam.width, cam.height, &pixels)?;
+    let audited = args.audit.then(|| audit::audit(&s.hf, &s.layout, &trav, &cam));
+    if let Some(a) = activity {
+        a.stop()?;
+    }
+    drop(renderer);
+    drop(target);
+    let mut out = json!({
+        "width": cam.width,
+        "height": cam.height,
+        "lod": format!("{:?}", args.lod).to_lowercase(),
+        "error_mode": args.common.error_mode.as_str(),
+        "delta": args.delta,
+        "triangles": stats.triangles,
+        "draw_calls": stats.draw_calls,
+        "blocks": trav.blocks.len(),
+        "error_generation": generation,
+        "max_block_error_px": trav.max_block_error,
+        "traverse_ms": traverse_ms,
+        "frame_ms": frame_ms,
+        "geometry_bytes": renderer_geometry_bytes(s.layout.k()),
+        "heightfield_bytes": s.hf.gpu_bytes(),
+        "grid": s.hf.side(),
+        "queue_mode": s.device.queue_mode.as_str(),
+        "device": s.device.name,
+        "camera": [cam.position.x, cam.position.y, cam.position.z],
+        "validation_messages": s.validation_messages(),
+    });
+    if let Some(ms) = errors_ms {
+        out["error_update_ms"] = json!(ms);
+    }
+    if let Some(a) = audited {
+        out["max_audited_error_px"] = json!(a.max_error_px);
+        out["audited_samples"] = json!(a.samples);
+        out["uncovered_samples"] = json!(a.uncovered);
+    }
+    println!("{out}");
+    finish(&s)
+}
+
+/// Bytes of the shared block mesh (vertex + index buffer).
+pub fn renderer_geometry_bytes(k: u32) -> u64 {
+    let (v, i) = crate::blocks::block_mesh_data(k);
+    let index_size = if k * k <= 65536 { 2 } else { 4 };
+    (v.len() + i.len() * index_size) as u64
+}
+
+/// Fails when validation reported anything.
+fn finish(s: &Session) -> anyhow::Result<()> {
+    let n = s.validation_messages();
+    if n > 0 {
+        anyhow::bail!("{n} validation message(s); first: {}", s.device.instance.messages.messages().first().cloned().unwrap_or_default());
+    }
+    Ok(())
+}
+
+pub fn errors(args: &ErrorsArgs) -> anyhow::Result<()> {
+    if args.repeat == 0 {
+        return Err(InputError("--repeat must be at least 1".into()).into());
+    }
+    let s = Session::open(&args.common)?;
+    let cam = args.common.camera(&s.hf, (1280, 720))?;
+    let activity = ErrorsActivity::start(&s.device, s.terrain.clone(), s.hf.clone(), s.layout)?;
+    let base = ErrorParams::new(&cam, args.common.error_mode);
+    let mut times = Vec::new();
+    let mut last = None;
+    for i in 0..args.repeat {
+        // Each repeat moves the camera by a millimetre so that a new generation is needed.
+        let mut p = base;
+        p.camera.x += i as f32 * 1e-3;
+        let t = Instant::now();
+        let g = activity.wait_for(p, Duration::from_secs(600))?;
+        times.push(t.elapsed().as_secs_f64() * 1e3);
+        if i == 0 {
+            last = Some(g);
+        }
+    }
+    let cost = activity.cost;
+    activity.stop()?;
+    times.sort_by(|a, b| a.partial_cmp(b).unwrap());
+    let g = last.expect("at least one generation");
+    if let Some(path) = &args.dump {
+        let bytes: Vec<u8> = g.errors.packed().iter().flat_map(|v| v.to_le_bytes()).collect();
+        write_atomic(path, |tmp| std::fs::write(tmp, &bytes).map_err(|e| anyhow::anyhow!("{}: {e}", path.display())))?;
+    }
+    let n = s.hf.n as u64;
+    let out = json!({
+        "n": n,
+        "grid": s.hf.side(),
+        "levels": cost.levels,
+        "block": s.layout.k(),
+        "block_levels": s.layout.root_lod(),
+        "error_mode": args.common.error_mode.as_str(),
+        "fragments_shaded": cost.fragments_shaded,
+        "naive_fragments_n_4n": n * (1u64 << (2 * n)),
+        "readback_bytes": cost.readback_bytes,
+        "full_error_texture_bytes": (s.hf.side() * s.hf.side() * 4) as u64,
+        "update_ms": times[times.len() / 2],
+        "update_ms_min": times[0],
+        "repeat": args.repeat,
+        "root_error_px": g.errors.root_error(),
+        "queue_mode": s.device.queue_mode.as_str(),
+        "device": s.device.name,
+        "validation_messages": s.validation_messages(),
+    });
+    println!("{out}");
+    finish(&s)
+}

@@ -1,0 +1,602 @@
+//! The errors activity (SPEC section 4, seed 000 section 3.2): its own thread and queue,
+//! fragment-shader passes only. Per generation it rasterizes `GIE_i` for LOD `i = 1..=n`
+//! into mip `i-1` of an R32F image (about `4^n / 3` fragments in all), reduces it to one
+//! error per block, and copies only that block-error pyramid to a host-visible buffer.
+//! Two slots (error images + readback buffers) are used in turn; a timeline semaphore
+//! whose value is the generation number hands each finished one to the draw thread.
+
+use crate::gie::{fragments_per_update, BlockErrors, ErrorParams};
+use crate::gpu_layout::{self as layout, GiePush, ReducePush};
+use crate::heightfield::{HeightFormat, Heightfield};
+use crate::quadtree::BlockLayout;
+use crate::shaders;
+use crate::terrain_gpu::TerrainGpu;
+use crate::vk::{
+    vk, Buffer, CommandPool, DescriptorPool, DescriptorSetLayout, Device, GraphicsPipeline, GraphicsPipelineDesc, Image, ImageView, PipelineLayout, TimelineSemaphore,
+    VkError, VkResult, VkResultExt,
+};
+use std::sync::{Arc, Condvar, Mutex};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+
+const GIE_FORMAT: vk::Format = vk::Format::R32_SFLOAT;
+
+/// One finished generation, copied out of its readback buffer.
+#[derive(Clone, Debug)]
+pub struct Generation {
+    pub number: u64,
+    pub params: ErrorParams,
+    pub errors: BlockErrors,
+    /// CPU time from submission to completion of this update.
+    pub update_ms: f64,
+}
+
+/// Per-update costs, for stats.
+#[derive(Clone, Copy, Debug)]
+pub struct UpdateCost {
+    pub fragments_shaded: u64,
+    pub readback_bytes: u64,
+    pub levels: u32,
+}
+
+#[derive(Clone, Copy, Debug)]
+struct SlotInfo {
+    generation: u64,
+    params: ErrorParams,
+    update_ms: f64,
+}
+
+struct Handoff {
+    /// Generation the reader is copying right now.
+    reading: Option<u64>,
+    slots: [Option<SlotInfo>; 2],
+}
+
+struct Request {
+    params: Option<ErrorParams>,
+    stop: bool,
+}
+
+struct Shared {
+    request: Mutex<Request>,
+    request_cv: Condvar,
+    handoff: Mutex<Handoff>,
+    handoff_cv: Condvar,
+    timeline: TimelineSemaphore,
+    readbacks: [Buffer; 2],
+    failure: Mutex<Option<String>>,
+    root_lod: u32,
+}
+
+/// Handle held by the draw thread.
+pub struct ErrorsActivity {
+    shared: Arc<Shared>,
+    thread: Option<JoinHandle<()>>,
+    pub cost: UpdateCost,
+}
+
+/// GPU objects of one slot.
+struct Slot {
+    gie: Image,
+    gie_mips: Vec<ImageView>,
+    tbe: Option<Image>,
+    tbe_mips: Vec<ImageView>,
+    gie_sets: Vec<vk::DescriptorSet>,
+    reduce_set: vk::DescriptorSet,
+    cmd: vk::CommandBuffer,
+}
+
+/// Everything the errors thread owns on the GPU.
+struct ErrorsGpu {
+    device: Arc<Device>,
+    terrain: Arc<TerrainGpu>,
+    hf: Arc<Heightfield>,
+    layout: BlockLayout,
+    slots: Vec<Slot>,
+    gie_pipeline: GraphicsPipeline,
+    reduce_pipeline: GraphicsPipeline,
+    gie_layout: PipelineLayout,
+    reduce_layout: PipelineLayout,
+    _gie_set_layout: DescriptorSetLayout,
+    _reduce_set_layout: DescriptorSetLayout,
+    _pool: DescriptorPool,
+    _dummy: Image,
+    commands: CommandPool,
+}
+
+fn readback_bytes(root_lod: u32) -> u64 {
+    // Header and trailer words hold the generation number (torn-read check).
+    (BlockErrors::packed_len(root_lod) * 4 + 8) as u64
+}
+
+impl ErrorsGpu {
+    fn new(device: &Arc<Device>, terrain: Arc<TerrainGpu>, hf: Arc<Heightfield>, block_layout: BlockLayout) -> VkResult<Self> {
+        let n = hf.n;
+        let root = block_layout.root_lod();
+        let frag = vk::ShaderStageFlags::FRAGMENT;
+        let sampler = vk::DescriptorType::COMBINED_IMAGE_SAMPLER;
+        let gie_set_layout = DescriptorSetLayout::new(
+            device,
+            &[
+                (layout::GIE_BINDING_HEIGHTS, sampler, frag),
+                (layout::GIE_BINDING_PREV, sampler, frag),
+                (layout::GIE_BINDING_MINMAX, sampler, frag),
+            ],
+        )?;
+        let reduce_set_layout = DescriptorSetLayout::new(device, &[(layout::REDUCE_BINDING_GIE, sampler, frag)])?;
+        let gie_layout = PipelineLayout::new(device, &gie_set_layout, std::mem::size_of::<GiePush>() as u32, frag)?;
+        let reduce_layout = PipelineLayout::new(device, &reduce_set_layout, std::mem::size_of::<ReducePush>() as u32, frag)?;
+        let desc = |fs: &'static [u8], l| GraphicsPipelineDesc {
+            vert: shaders::PASS_VERT,
+            frag: fs,
+            vertex_attribute: None,
+            color_format: GIE_FORMAT,
+            depth_format: None,
+            depth_test: false,
+            polygon_mode: vk::PolygonMode::FILL,
+            layout: l,
+        };
+        let gie_pipeline = GraphicsPipeline::new(device, &desc(shaders::GIE_FRAG, &gie_layout))?;
+        let reduce_pipeline = GraphicsPipeline::new(device, &desc(shaders::BLOCK_REDUCE_FRAG, &reduce_layout))?;
+        let pool = DescriptorPool::new(device, 2 * (n + 1), &[(sampler, 2 * (3 * n + 1))])?;
+        let commands = CommandPool::new(device, device.errors_queue.family)?;
+
+        // GIE of LOD 1 has no previous level; its binding still needs a valid image.
+        let usage_rt = vk::ImageUsageFlags::COLOR_ATTACHMENT | vk::ImageUsageFlags::SAMPLED;
+        let one = vk::Extent2D { width: 1, height: 1 };
+        let dummy = Image::new(device, "GIE placeholder", one, GIE_FORMAT, 1, vk::ImageUsageFlags::SAMPLED | vk::ImageUsageFlags::TRANSFER_DST, false)?;
+        let upload_pool = CommandPool::new(device, device.draw_queue.family)?;
+        crate::terrain_gpu::upload(device, &upload_pool, &dummy, &[&0f32.to_le_bytes()])?;
+
+        let gie_side = 1u32 << (n - 1);
+        let mut slots = Vec::new();
+        for s in 0..2 {
+            let gie = Image::new(
+                device,
+                &format!("GIE pyramid {s}"),
+                vk::Extent2D { width: gie_side, height: gie_side },
+                GIE_FORMAT,
+                n,
+                usage_rt,
+                false,
+            )?;
+            let gie_mips = (0..n).map(|m| gie.mip_view(m, 1)).collect::<VkResult<Vec<_>>>()?;
+            let (tbe, tbe_mips) = if root > 0 {
+                let side = 1u32 << (root - 1);
+                let img = Image::new(
+                    device,
+                    &format!("block errors {s}"),
+                    vk::Extent2D { width: side, height: side },
+                    GIE_FORMAT,
+                    root,
+                    vk::ImageUsageFlags::COLOR_ATTACHMENT | vk::ImageUsageFlags::TRANSFER_SRC,
+                    false,
+                )?;
+                let mips = (0..root).map(|m| img.mip_view(m, 1)).collect::<VkResult<Vec<_>>>()?;
+                (Some(img), mips)
+            } else {
+                (None, Vec::new())
+            };
+            let mut gie_sets = Vec::new();
+            for lod in 1..=n {
+                let set = pool.allocate(&gie_set_layout)?;
+                let prev = if lod == 1 { dummy.view } else { gie_mips[(lod - 2) as usize].handle };
+                pool.write(
+                    set,
+                    &[
+                        (layout::GIE_BINDING_HEIGHTS, terrain.heights.view, terrain.nearest.handle),
+                        (layout::GIE_BINDING_PREV, prev, terrain.nearest.handle),
+                        (layout::GIE_BINDING_MINMAX, terrain.minmax.view, terrain.nearest.handle),
+                    ],
+                    &[],
+                );
+                gie_sets.push(set);
+            }
+            let reduce_set = pool.allocate(&reduce_set_layout)?;
+            pool.write(reduce_set, &[(layout::REDUCE_BINDING_GIE, gie.view, terrain.nearest.handle)], &[]);
+            slots.push(Slot {
+                gie,
+                gie_mips,
+                tbe,
+                tbe_mips,
+                gie_sets,
+                reduce_set,
+                cmd: commands.allocate()?,
+            });
+        }
+        Ok(ErrorsGpu {
+            device: device.clone(),
+            terrain,
+            hf,
+            layout: block_layout,
+            slots,
+            gie_pipeline,
+            reduce_pipeline,
+            gie_layout,
+            reduce_layout,
+            _gie_set_layout: gie_set_layout,
+            _reduce_set_layout: reduce_set_layout,
+            _pool: pool,
+            _dummy: dummy,
+            commands,
+        })
+    }
+
+    /// Draws one full-target triangle into `view` (a `side` x `side` mip).
+    fn pass(&self, cmd: vk::CommandBuffer, view: vk::ImageView, side: u32, pipeline: &GraphicsPipeline, pl: &PipelineLayout, set: vk::DescriptorSet, push: &[u8]) {
+        let d = &self.device.raw;
+        let extent = vk::Extent2D { width: side, height: side };
+        let area = vk::Rect2D {
+            offset: vk::Offset2D::default(),
+            extent,
+        };
+        let att = [vk::RenderingAttachmentInfo::default()
+            .image_view(view)
+            .image_layout(vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL)
+            .load_op(vk::AttachmentLoadOp::DONT_CARE)
+            .store_op(vk::AttachmentStoreOp::STORE)];
+        let info = vk::RenderingInfo::default().render_area(area).layer_count(1).color_attachments(&att);
+        // SAFETY: `cmd` is recording on the errors thread; all objects outlive the submission.
+        unsafe {
+            d.cmd_begin_rendering(cmd, &info);
+            d.cmd_set_viewport(
+                cmd,
+                0,
+                &[vk::Viewport {
+                    x: 0.0,
+                    y: 0.0,
+                    width: side as f32,
+                    height: side as f32,
+                    min_depth: 0.0,
+                    max_depth: 1.0,
+                }],
+            );
+            d.cmd_set_scissor(cmd, 0, &[area]);
+            d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, pipeline.handle);
+            d.cmd_bind_descriptor_sets(cmd, vk::PipelineBindPoint::GRAPHICS, pl.handle, 0, &[set], &[]);
+            d.cmd_push_constants(cmd, pl.handle, vk::ShaderStageFlags::FRAGMENT, 0, push);
+            d.cmd_draw(cmd, 3, 1, 0, 0);
+            d.cmd_end_rendering(cmd);
+        }
+    }
+
+    fn barrier(&self, cmd: vk::CommandBuffer, image: &Image, mip: u32, count: u32, from: (vk::PipelineStageFlags2, vk::AccessFlags2, vk::ImageLayout), to: (vk::PipelineStageFlags2, vk::AccessFlags2, vk::ImageLayout)) {
+        let b = [vk::ImageMemoryBarrier2::default()
+            .src_stage_mask(from.0)
+            .src_access_mask(from.1)
+            .old_layout(from.2)
+            .dst_stage_mask(to.0)
+            .dst_access_mask(to.1)
+            .new_layout(to.2)
+            .image(image.handle)
+            .subresource_range(image.range(mip, count))];
+        // SAFETY: recording on this thread.
+        unsafe { self.device.raw.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().image_memory_barriers(&b)) };
+    }
+
+    /// Records generation `g` into its slot's command buffer.
+    fn record(&self, slot_index: usize, g: u64, p: &ErrorParams, readback: &Buffer) -> VkResult<vk::CommandBuffer> {
+        let slot = &self.slots[slot_index];
+        let d = &self.device.raw;
+        let cmd = slot.cmd;
+        let n = self.hf.n;
+        let root = self.layout.root_lod();
+        // SAFETY: the slot's previous submission (generation g-2) has completed: the
+        // errors thread waits for each generation before starting the next.
+        unsafe {
+            d.reset_command_buffer(cmd, vk::CommandBufferResetFlags::empty()).vk("vkResetCommandBuffer")?;
+            d.begin_command_buffer(cmd, &vk::CommandBufferBeginInfo::default().flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT))
+                .vk("vkBeginCommandBuffer")?;
+        }
+        let frag = vk::PipelineStageFlags2::FRAGMENT_SHADER;
+        let color = vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT;
+        let copy = vk::PipelineStageFlags2::COPY;
+        let read = vk::AccessFlags2::SHADER_SAMPLED_READ;
+        let write = vk::AccessFlags2::COLOR_ATTACHMENT_WRITE;
+        let rt = vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL;
+        let ro = vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL;
+        // Earlier generations on this queue read (GIE) or copied (TBE) these images.
+        self.barrier(cmd, &slot.gie, 0, n, (frag | color, write, vk::ImageLayout::UNDEFINED), (color, write, rt));
+        let unorm = (self.hf.format == HeightFormat::Unorm16) as i32;
+        for lod in 1..=n {
+            let side = 1u32 << (n - lod);
+            let push = GiePush {
+                level: [lod as i32, n as i32, (p.mode == crate::gie::ErrorMode::Strict) as i32, unorm],
+                extent: [self.hf.width as i32, self.hf.height as i32, side as i32, 0],
+                camera: [p.camera.x, p.camera.y, p.camera.z, p.kappa],
+                params: [self.hf.spacing, self.hf.height_scale, p.near, p.inv_cos2],
+            };
+            self.pass(
+                cmd,
+                slot.gie_mips[(lod - 1) as usize].handle,
+                side,
+                &self.gie_pipeline,
+                &self.gie_layout,
+                slot.gie_sets[(lod - 1) as usize],
+                bytemuck::bytes_of(&push),
+            );
+            self.barrier(cmd, &slot.gie, lod - 1, 1, (color, write, rt), (frag, read, ro));
+        }
+        let data_bytes = BlockErrors::packed_len(root) as u64 * 4;
+        if let Some(tbe) = &slot.tbe {
+            self.barrier(cmd, tbe, 0, root, (copy | color, write, vk::ImageLayout::UNDEFINED), (color, write, rt));
+            for j in 1..=root {
+                let push = ReducePush {
+                    level: [j as i32, j as i32 - 1, (self.layout.k() - 1) as i32, 0],
+                };
+                self.pass(
+                    cmd,
+                    slot.tbe_mips[(j - 1) as usize].handle,
+                    1u32 << (root - j),
+                    &self.reduce_pipeline,
+                    &self.reduce_layout,
+                    slot.reduce_set,
+                    bytemuck::bytes_of(&push),
+                );
+            }
+            self.barrier(cmd, tbe, 0, root, (color, write, rt), (copy, vk::AccessFlags2::TRANSFER_READ, vk::ImageLayout::TRANSFER_SRC_OPTIMAL));
+            let mut regions = Vec::new();
+            let mut at = 4u64;
+            for j in 1..=root {
+                let side = 1u32 << (root - j);
+                regions.push(
+                    vk::BufferImageCopy::default()
+                        .buffer_offset(at)
+                        .image_subresource(vk::ImageSubresourceLayers {
+                            aspect_mask: vk::ImageAspectFlags::COLOR,
+                            mip_level: j - 1,
+                            base_array_layer: 0,
+                            layer_count: 1,
+                        })
+                        .image_extent(vk::Extent3D { width: side, height: side, depth: 1 }),
+                );
+                at += side as u64 * side as u64 * 4;
+            }
+            // SAFETY: recording; the readback slot is not read by the draw thread (the
+            // hand-off protocol guarantees it).
+            unsafe { d.cmd_copy_image_to_buffer(cmd, tbe.handle, vk::ImageLayout::TRANSFER_SRC_OPTIMAL, readback.handle, &regions) };
+        }
+        // SAFETY: recording; fills touch only the header and trailer words.
+        unsafe {
+            let before = [vk::BufferMemoryBarrier2::default()
+                .src_stage_mask(vk::PipelineStageFlags2::HOST)
+                .src_access_mask(vk::AccessFlags2::HOST_READ)
+                .dst_stage_mask(copy | vk::PipelineStageFlags2::CLEAR)
+                .dst_access_mask(vk::AccessFlags2::TRANSFER_WRITE)
+                .buffer(readback.handle)
+                .size(vk::WHOLE_SIZE)];
+            d.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().buffer_memory_barriers(&before));
+            d.cmd_fill_buffer(cmd, readback.handle, 0, 4, g as u32);
+            d.cmd_fill_buffer(cmd, readback.handle, 4 + data_bytes, 4, g as u32);
+            let to_host = [vk::BufferMemoryBarrier2::default()
+                .src_stage_mask(copy | vk::PipelineStageFlags2::CLEAR)
+                .src_access_mask(vk::AccessFlags2::TRANSFER_WRITE)
+                .dst_stage_mask(vk::PipelineStageFlags2::HOST)
+                .dst_access_mask(vk::AccessFlags2::HOST_READ)
+                .buffer(readback.handle)
+                .size(vk::WHOLE_SIZE)];
+            d.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().buffer_memory_barriers(&to_host));
+            d.end_command_buffer(cmd).vk("vkEndCommandBuffer")?;
+        }
+        Ok(cmd)
+    }
+}
+
+impl Drop for ErrorsGpu {
+    fn drop(&mut self) {
+        for s in &self.slots {
+            self.commands.free(s.cmd);
+        }
+        let _ = &self.terrain;
+    }
+}
+
+impl ErrorsActivity {
+    /// Starts the errors thread. Nothing is computed until [`ErrorsActivity::request`].
+    pub fn start(device: &Arc<Device>, terrain: Arc<TerrainGpu>, hf: Arc<Heightfield>, block_layout: BlockLayout) -> VkResult<Self> {
+        let root = block_layout.root_lod();
+        let bytes = readback_bytes(root);
+        let rb = |i: usize| Buffer::new(device, &format!("block-error readback {i}"), bytes, vk::BufferUsageFlags::TRANSFER_DST, gpu_allocator::MemoryLocation::GpuToCpu);
+        let shared = Arc::new(Shared {
+            request: Mutex::new(Request { params: None, stop: false }),
+            request_cv: Condvar::new(),
+            handoff: Mutex::new(Handoff {
+                reading: None,
+                slots: [None, None],
+            }),
+            handoff_cv: Condvar::new(),
+            timeline: TimelineSemaphore::new(device, 0)?,
+            readbacks: [rb(0)?, rb(1)?],
+            failure: Mutex::new(None),
+            root_lod: root,
+        });
+        let cost = UpdateCost {
+            fragments_shaded: fragments_per_update(hf.n, block_layout.m),
+            readback_bytes: bytes,
+            levels: hf.n,
+        };
+        // The GPU objects are created here so that set-up errors reach the caller; the
+        // thread then owns them (and its own command pool) exclusively.
+        let gpu = ErrorsGpu::new(device, terrain, hf, block_layout)?;
+        let thread_shared = shared.clone();
+        let thread = std::thread::Builder::new()
+            .name("errors-activity".into())
+            .spawn(move || {
+                if let Err(e) = run(gpu, &thread_shared) {
+                    *thread_shared.failure.lock().unwrap() = Some(format!("errors activity: {e}"));
+                    thread_shared.handoff_cv.notify_all();
+                }
+            })
+            .map_err(|e| VkError::Setup(format!("cannot start the errors thread: {e}")))?;
+        Ok(ErrorsActivity {
+            shared,
+            thread: Some(thread),
+            cost,
+        })
+    }
+
+    /// Asks for a generation computed with `params`; does nothing if the latest request
+    /// already has them (a camera standing still starts no work).
+    pub fn request(&self, params: ErrorParams) {
+        let mut r = self.shared.request.lock().unwrap();
+        if r.params != Some(params) {
+            r.params = Some(params);
+            self.shared.request_cv.notify_all();
+        }
+    }
+
+    fn check_failure(&self) -> VkResult<()> {
+        match &*self.shared.failure.lock().unwrap() {
+            Some(msg) => Err(VkError::Setup(msg.clone())),
+            None => Ok(()),
+        }
+    }
+
+    /// The newest finished generation newer than `after`, copied out; never blocks on
+    /// the GPU (reads the timeline counter on the CPU).
+    pub fn latest(&self, after: u64) -> VkResult<Option<Generation>> {
+        self.check_failure()?;
+        let s = &self.shared;
+        let (g, info) = {
+            let mut h = s.handoff.lock().unwrap();
+            let g = s.timeline.value()?;
+            if g <= after || g == 0 {
+                return Ok(None);
+            }
+            h.reading = Some(g);
+            (g, h.slots[(g % 2) as usize])
+        };
+        let slot = (g % 2) as usize;
+        let bytes = s.readbacks[slot].mapped()?;
+        let len = BlockErrors::packed_len(s.root_lod);
+        let header = u32::from_le_bytes(bytes[0..4].try_into().unwrap());
+        let data: Vec<f32> = bytemuck::pod_collect_to_vec(&bytes[4..4 + len * 4]);
+        let trailer = u32::from_le_bytes(bytes[4 + len * 4..8 + len * 4].try_into().unwrap());
+        {
+            let mut h = s.handoff.lock().unwrap();
+            h.reading = None;
+            s.handoff_cv.notify_all();
+        }
+        let info = info.filter(|i| i.generation == g);
+        match info {
+            Some(info) if header == g as u32 && trailer == g as u32 => Ok(Some(Generation {
+                number: g,
+                params: info.params,
+                errors: BlockErrors::from_packed(s.root_lod, &data),
+                update_ms: info.update_ms,
+            })),
+            _ => Err(VkError::Setup(format!(
+                "hand-off broken: generation {g} read as header {header}, trailer {trailer}"
+            ))),
+        }
+    }
+
+    /// Requests `params` and blocks until a generation computed with them is finished.
+    pub fn wait_for(&self, params: ErrorParams, timeout: Duration) -> VkResult<Generation> {
+        self.request(params);
+        let start = Instant::now();
+        let mut after = 0;
+        loop {
+            if let Some(g) = self.latest(after)? {
+                if g.params == params {
+                    return Ok(g);
+                }
+                after = g.number;
+            }
+            if start.elapsed() > timeout {
+                return Err(VkError::Setup(format!(
+                    "errors activity produced no generation for this camera within {:.0} s",
+                    timeout.as_secs_f64()
+                )));
+            }
+            self.shared.timeline.wait(after + 1, 50_000_000)?;
+        }
+    }
+
+    /// The generation counter (timeline value).
+    pub fn counter(&self) -> VkResult<u64> {
+        self.shared.timeline.value()
+    }
+
+    /// Stops and joins the errors thread; reports its failure if it had one.
+    pub fn stop(mut self) -> VkResult<()> {
+        self.shutdown();
+        self.check_failure()
+    }
+
+    fn shutdown(&mut self) {
+        {
+            let mut r = self.shared.request.lock().unwrap();
+            r.stop = true;
+            self.shared.request_cv.notify_all();
+        }
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+impl Drop for ErrorsActivity {
+    fn drop(&mut self) {
+        self.shutdown();
+    }
+}
+
+/// The errors thread: waits for a request with new parameters, computes it, signals.
+fn run(gpu: ErrorsGpu, s: &Shared) -> VkResult<()> {
+    let mut last: Option<ErrorParams> = None;
+    let mut g = 0u64;
+    loop {
+        let params = {
+            let mut r = s.request.lock().unwrap();
+            loop {
+                if r.stop {
+                    return Ok(());
+                }
+                match r.params {
+                    Some(p) if Some(p) != last => break p,
+                    _ => r = s.request_cv.wait(r).unwrap(),
+                }
+            }
+        };
+        g += 1;
+        let slot = (g % 2) as usize;
+        {
+            // Generation g-1 is finished (we waited for it), so the reader will never
+            // pick g-2 again; wait only if it is copying g-2 right now.
+            let mut h = s.handoff.lock().unwrap();
+            while h.reading == Some(g.wrapping_sub(2)) {
+                h = s.handoff_cv.wait(h).unwrap();
+            }
+            h.slots[slot] = Some(SlotInfo {
+                generation: g,
+                params,
+                update_ms: 0.0,
+            });
+        }
+        let start = Instant::now();
+        let cmd = gpu.record(slot, g, &params, &s.readbacks[slot])?;
+        let cmds = [vk::CommandBufferSubmitInfo::default().command_buffer(cmd)];
+        let signal = [vk::SemaphoreSubmitInfo::default()
+            .semaphore(s.timeline.handle)
+            .value(g)
+            .stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)];
+        let submit = [vk::SubmitInfo2::default().command_buffer_infos(&cmds).signal_semaphore_infos(&signal)];
+        gpu.device.errors_queue.submit(&gpu.device, &submit, vk::Fence::null())?;
+        // One generation in flight: wait (on the CPU) until it is done.
+        while !s.timeline.wait(g, 100_000_000)? {
+            if s.request.lock().unwrap().stop {
+                // Still let the GPU finish before the objects it uses are destroyed.
+                s.timeline.wait(g, u64::MAX)?;
+                return Ok(());
+            }
+        }
+        let ms = start.elapsed().as_secs_f64() * 1e3;
+        if let Some(info) = s.handoff.lock().unwrap().slots[slot].as_mut() {
+            if info.generation == g {
+                info.update_ms = ms;
+            }
+        }
+        last = Some(params);
+    }
+}

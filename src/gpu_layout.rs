@@ -1,0 +1,194 @@
+//! The ONE definition of every push-constant block, uniform block and descriptor binding
+//! shared by Rust and GLSL.
+//!
+//! `build.rs` includes this very file, writes a GLSL header (`layout.glsl` in OUT_DIR)
+//! with an explicit `layout(offset = N)` on every member, and after compiling each
+//! shader checks the member offsets found in the SPIR-V against the Rust offsets below.
+//! A field that is misaligned for its GLSL type fails the build, so neither side can
+//! drift from the other.
+
+/// One member of a block: Rust name, GLSL type, byte offset, byte size.
+#[derive(Clone, Copy, Debug)]
+pub struct Field {
+    pub name: &'static str,
+    pub glsl: &'static str,
+    pub offset: usize,
+    pub size: usize,
+}
+
+/// How a block is bound in GLSL.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum BlockKind {
+    PushConstant,
+    Uniform { set: u32, binding: u32 },
+}
+
+/// A `#[repr(C)]` struct that also exists as a GLSL block.
+pub trait GpuBlock {
+    const NAME: &'static str;
+    const INSTANCE: &'static str;
+    const KIND: BlockKind;
+    const FIELDS: &'static [Field];
+    const SIZE: usize;
+}
+
+macro_rules! gpu_block {
+    ($(#[$meta:meta])* $kind:ident $(($set:expr, $binding:expr))? $name:ident as $inst:ident {
+        $($(#[$fmeta:meta])* $field:ident : $ty:ty => $glsl:literal,)*
+    }) => {
+        $(#[$meta])*
+        #[repr(C)]
+        #[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+        pub struct $name {
+            $($(#[$fmeta])* pub $field: $ty,)*
+        }
+        impl GpuBlock for $name {
+            const NAME: &'static str = stringify!($name);
+            const INSTANCE: &'static str = stringify!($inst);
+            const KIND: BlockKind = gpu_block!(@kind $kind $(($set, $binding))?);
+            const FIELDS: &'static [Field] = &[$(Field {
+                name: stringify!($field),
+                glsl: $glsl,
+                offset: core::mem::offset_of!($name, $field),
+                size: core::mem::size_of::<$ty>(),
+            },)*];
+            const SIZE: usize = core::mem::size_of::<$name>();
+        }
+    };
+    (@kind push_constant) => { BlockKind::PushConstant };
+    (@kind uniform ($set:expr, $binding:expr)) => { BlockKind::Uniform { set: $set, binding: $binding } };
+}
+
+// Descriptor bindings. Every pipeline uses set 0.
+
+/// Terrain pipeline: the heightfield (R16_UNORM or R32_SFLOAT), texelFetch only.
+pub const TERRAIN_BINDING_HEIGHTS: u32 = 0;
+/// Terrain pipeline: per-frame uniforms ([`FrameUniforms`]).
+pub const TERRAIN_BINDING_FRAME: u32 = 1;
+/// Terrain pipeline: base colour texture (a 1x1 white texel when none is given).
+pub const TERRAIN_BINDING_BASE: u32 = 2;
+/// Terrain pipeline: detail texture (a 1x1 white texel when none is given).
+pub const TERRAIN_BINDING_DETAIL: u32 = 3;
+
+/// GIE pass: the heightfield.
+pub const GIE_BINDING_HEIGHTS: u32 = 0;
+/// GIE pass: the previous LOD's group errors (one mip of the error image).
+pub const GIE_BINDING_PREV: u32 = 1;
+/// GIE pass: the min/max height pyramid (RG32F, LOD L in mip L-1).
+pub const GIE_BINDING_MINMAX: u32 = 2;
+
+/// Block reduction pass: the whole GIE mip chain.
+pub const REDUCE_BINDING_GIE: u32 = 0;
+
+gpu_block! {
+    /// Per-draw constants of the terrain block pipeline (paper eq. 5/6: `t` and `s`).
+    push_constant BlockPush as block_pc {
+        /// origin x, origin z (integer samples), stride 2^j, LOD j.
+        block: [i32; 4] => "ivec4",
+        /// Stride of the neighbour across each edge, or 0 when it is not coarser:
+        /// x: -z (north), y: +x (east), z: +z (south), w: -x (west).
+        coarser_neighbour_stride: [i32; 4] => "ivec4",
+    }
+}
+
+gpu_block! {
+    /// Per-frame constants of the terrain pipeline.
+    uniform(0, TERRAIN_BINDING_FRAME) FrameUniforms as frame {
+        view_proj: [[f32; 4]; 4] => "mat4",
+        inv_view_proj: [[f32; 4]; 4] => "mat4",
+        /// xyz: camera position, w: fog density.
+        camera_fog: [f32; 4] => "vec4",
+        /// spacing, height_scale, min height, max height (world units).
+        terrain: [f32; 4] => "vec4",
+        /// xyz: direction towards the light, w: ambient.
+        light: [f32; 4] => "vec4",
+        /// detail tiling factor (DTF), base weight alpha, unused, unused.
+        texturing: [f32; 4] => "vec4",
+        /// true extent in samples (x, z), grid side N, block side k.
+        extent: [i32; 4] => "ivec4",
+        /// has base texture, has detail texture, colour by LOD, heights are unorm16 (1).
+        flags: [i32; 4] => "ivec4",
+        /// Sky: zenith colour (rgb), w: 1 = draw the sky gradient, 0 = plain background.
+        sky_zenith: [f32; 4] => "vec4",
+        /// Sky: horizon colour (rgb) which is also the fog colour.
+        sky_horizon: [f32; 4] => "vec4",
+    }
+}
+
+gpu_block! {
+    /// Constants of one GIE pass (Algorithm 1 for LOD `i`).
+    push_constant GiePush as gie_pc {
+        /// LOD i, n, mode (0 paper, 1 strict), heights are unorm16 (1) or float (0).
+        level: [i32; 4] => "ivec4",
+        /// true extent in samples (x, z), groups per side at this LOD, unused.
+        extent: [i32; 4] => "ivec4",
+        /// xyz: camera position, w: kappa (pixels per unit of tangent).
+        camera: [f32; 4] => "vec4",
+        /// spacing, height_scale, near, 1 / cos^2(theta_max) (strict mode).
+        params: [f32; 4] => "vec4",
+    }
+}
+
+gpu_block! {
+    /// Constants of one block-error reduction pass.
+    push_constant ReducePush as reduce_pc {
+        /// block LOD j, GIE mip to read (j - 1), groups per block side (k - 1), unused.
+        level: [i32; 4] => "ivec4",
+    }
+}
+
+/// The integer constants the GLSL header defines, by name.
+pub const GLSL_CONSTANTS: &[(&str, u32)] = &[
+    ("TERRAIN_BINDING_HEIGHTS", TERRAIN_BINDING_HEIGHTS),
+    ("TERRAIN_BINDING_FRAME", TERRAIN_BINDING_FRAME),
+    ("TERRAIN_BINDING_BASE", TERRAIN_BINDING_BASE),
+    ("TERRAIN_BINDING_DETAIL", TERRAIN_BINDING_DETAIL),
+    ("GIE_BINDING_HEIGHTS", GIE_BINDING_HEIGHTS),
+    ("GIE_BINDING_PREV", GIE_BINDING_PREV),
+    ("GIE_BINDING_MINMAX", GIE_BINDING_MINMAX),
+    ("REDUCE_BINDING_GIE", REDUCE_BINDING_GIE),
+];
+
+/// Every block, for the header generator and the SPIR-V check.
+pub fn all_blocks() -> Vec<BlockInfo> {
+    vec![
+        BlockInfo::of::<BlockPush>(),
+        BlockInfo::of::<FrameUniforms>(),
+        BlockInfo::of::<GiePush>(),
+        BlockInfo::of::<ReducePush>(),
+    ]
+}
+
+/// A block's description as plain data.
+#[derive(Clone, Debug)]
+pub struct BlockInfo {
+    pub name: &'static str,
+    pub instance: &'static str,
+    pub kind: BlockKind,
+    pub fields: &'static [Field],
+    pub size: usize,
+}
+
+impl BlockInfo {
+    pub fn of<T: GpuBlock>() -> Self {
+        BlockInfo {
+            name: T::NAME,
+            instance: T::INSTANCE,
+            kind: T::KIND,
+            fields: T::FIELDS,
+            size: T::SIZE,
+        }
+    }
+}
+
+/// Base alignment and size of a GLSL type under std140/std430 (the types used here
+/// have the same rules in both).
+pub fn glsl_align_size(glsl: &str) -> Option<(usize, usize)> {
+    Some(match glsl {
+        "float" | "int" | "uint" => (4, 4),
+        "vec2" | "ivec2" | "uvec2" => (8, 8),
+        "vec4" | "ivec4" | "uvec4" => (16, 16),
+        "mat4" => (16, 64),
+        _ => return None,
+    })
+}

@@ -1,0 +1,318 @@
+//! The heightfield (SPEC section 1): raw samples embedded in a `2^n + 1` grid, the true
+//! extent, the min/max height pyramid, and a CPU height query.
+
+mod load;
+mod procedural;
+
+pub use load::{load, LoadOptions};
+pub use procedural::{procedural, procedural_sized};
+
+use thiserror::Error;
+
+/// Largest grid side we accept from a file header before allocating (2^15 + 1).
+pub const MAX_SIDE: usize = 32769;
+
+/// Why a heightfield could not be loaded. Every message names the file.
+#[derive(Debug, Error)]
+pub enum HeightfieldError {
+    #[error("{path}: {message}")]
+    Invalid { path: String, message: String },
+    #[error("{path}: {source}")]
+    Io {
+        path: String,
+        #[source]
+        source: std::io::Error,
+    },
+}
+
+impl HeightfieldError {
+    pub fn invalid(path: &str, message: impl Into<String>) -> Self {
+        HeightfieldError::Invalid {
+            path: path.to_string(),
+            message: message.into(),
+        }
+    }
+}
+
+/// How heights are stored on the GPU.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum HeightFormat {
+    /// Integer samples 0..=65535 in an R16_UNORM image (16- and 8-bit inputs).
+    Unorm16,
+    /// Anything else (signed, float) in an R32_SFLOAT image.
+    Float32,
+}
+
+/// A heightfield embedded in a square grid of side `2^n + 1`.
+#[derive(Clone, Debug)]
+pub struct Heightfield {
+    /// `n` of the grid side `2^n + 1`.
+    pub n: u32,
+    /// Raw samples (the file's units), row-major: index `z * side + x`.
+    pub raw: Vec<f32>,
+    /// True extent in samples (columns, rows); the rest is the clamped margin.
+    pub width: usize,
+    pub height: usize,
+    /// Metres (world units) between samples.
+    pub spacing: f32,
+    /// World units per raw unit.
+    pub height_scale: f32,
+    pub format: HeightFormat,
+    /// Where the data came from, for messages and stats.
+    pub source: String,
+}
+
+impl Heightfield {
+    /// Embeds `width x height` raw samples (row-major) in the smallest `2^n + 1` grid,
+    /// clamping to the edge.
+    pub fn embed(
+        source: &str,
+        width: usize,
+        height: usize,
+        samples: &[f32],
+        format: HeightFormat,
+        spacing: f32,
+        height_scale: f32,
+    ) -> Result<Self, HeightfieldError> {
+        if width < 3 || height < 3 {
+            return Err(HeightfieldError::invalid(
+                source,
+                format!("{width} x {height} is too small: a heightfield needs at least 3 x 3 samples"),
+            ));
+        }
+        if width > MAX_SIDE || height > MAX_SIDE {
+            return Err(HeightfieldError::invalid(
+                source,
+                format!("{width} x {height} is larger than the supported {MAX_SIDE} samples a side"),
+            ));
+        }
+        if samples.len() != width * height {
+            return Err(HeightfieldError::invalid(
+                source,
+                format!("expected {} samples, found {}", width * height, samples.len()),
+            ));
+        }
+        if let Some(i) = samples.iter().position(|v| !v.is_finite()) {
+            return Err(HeightfieldError::invalid(
+                source,
+                format!("sample at column {}, row {} is not a finite number", i % width, i / width),
+            ));
+        }
+        let side_needed = width.max(height);
+        let mut n = 1;
+        while (1usize << n) + 1 < side_needed {
+            n += 1;
+        }
+        let side = (1usize << n) + 1;
+        let mut raw = vec![0.0f32; side * side];
+        for z in 0..side {
+            let sz = z.min(height - 1);
+            for x in 0..side {
+                raw[z * side + x] = samples[sz * width + x.min(width - 1)];
+            }
+        }
+        Ok(Heightfield {
+            n,
+            raw,
+            width,
+            height,
+            spacing,
+            height_scale,
+            format,
+            source: source.to_string(),
+        })
+    }
+
+    /// Grid side `2^n + 1`.
+    pub fn side(&self) -> usize {
+        (1usize << self.n) + 1
+    }
+
+    /// Raw sample at integer coordinates (clamped to the grid).
+    #[inline]
+    pub fn raw_at(&self, x: i64, z: i64) -> f32 {
+        let s = self.side() as i64;
+        let x = x.clamp(0, s - 1) as usize;
+        let z = z.clamp(0, s - 1) as usize;
+        self.raw[z * self.side() + x]
+    }
+
+    /// World height of a sample, computed as the shaders do (raw * scale in f32).
+    #[inline]
+    pub fn height_at(&self, x: i64, z: i64) -> f32 {
+        self.raw_at(x, z) * self.height_scale
+    }
+
+    /// Height of the full-resolution surface the renderer draws at world `(wx, wz)`:
+    /// each quad is split along the diagonal from `(x, z)` to `(x+1, z+1)`.
+    pub fn surface_height(&self, wx: f32, wz: f32) -> f32 {
+        let max = (self.side() - 1) as f32;
+        let px = (wx / self.spacing).clamp(0.0, max);
+        let pz = (wz / self.spacing).clamp(0.0, max);
+        let x0 = (px.floor() as i64).min(self.side() as i64 - 2);
+        let z0 = (pz.floor() as i64).min(self.side() as i64 - 2);
+        let fx = px - x0 as f32;
+        let fz = pz - z0 as f32;
+        let h00 = self.height_at(x0, z0);
+        let h10 = self.height_at(x0 + 1, z0);
+        let h01 = self.height_at(x0, z0 + 1);
+        let h11 = self.height_at(x0 + 1, z0 + 1);
+        if fx >= fz {
+            h00 + fx * (h10 - h00) + fz * (h11 - h10)
+        } else {
+            h00 + fz * (h01 - h00) + fx * (h11 - h01)
+        }
+    }
+
+    /// World size of the true extent (x, z).
+    pub fn world_extent(&self) -> (f32, f32) {
+        (
+            (self.width - 1) as f32 * self.spacing,
+            (self.height - 1) as f32 * self.spacing,
+        )
+    }
+
+    /// Bytes of the heightfield image on the GPU.
+    pub fn gpu_bytes(&self) -> usize {
+        let texel = match self.format {
+            HeightFormat::Unorm16 => 2,
+            HeightFormat::Float32 => 4,
+        };
+        self.side() * self.side() * texel
+    }
+}
+
+/// Min/max raw heights per group cell: level `L` (1..=n) has `2^(n-L)` cells a side, cell
+/// `(a, b)` covering samples `[2^L a, 2^L (a+1)]` in x and z, both ends included.
+#[derive(Clone, Debug)]
+pub struct MinMaxPyramid {
+    pub n: u32,
+    /// `levels[L - 1]`, row-major `[min, max]`.
+    pub levels: Vec<Vec<[f32; 2]>>,
+}
+
+impl MinMaxPyramid {
+    pub fn build(hf: &Heightfield) -> Self {
+        let n = hf.n;
+        let mut levels: Vec<Vec<[f32; 2]>> = Vec::with_capacity(n as usize);
+        for l in 1..=n {
+            let cells = 1usize << (n - l);
+            let mut level = vec![[0.0f32; 2]; cells * cells];
+            if l == 1 {
+                for b in 0..cells {
+                    for a in 0..cells {
+                        let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
+                        for dz in 0..=2 {
+                            for dx in 0..=2 {
+                                let v = hf.raw_at((2 * a + dx) as i64, (2 * b + dz) as i64);
+                                lo = lo.min(v);
+                                hi = hi.max(v);
+                            }
+                        }
+                        level[b * cells + a] = [lo, hi];
+                    }
+                }
+            } else {
+                let prev = &levels[(l - 2) as usize];
+                let pc = cells * 2;
+                for b in 0..cells {
+                    for a in 0..cells {
+                        let mut m = [f32::INFINITY, f32::NEG_INFINITY];
+                        for (cx, cz) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
+                            let c = prev[(2 * b + cz) * pc + 2 * a + cx];
+                            m[0] = m[0].min(c[0]);
+                            m[1] = m[1].max(c[1]);
+                        }
+                        level[b * cells + a] = m;
+                    }
+                }
+            }
+            levels.push(level);
+        }
+        MinMaxPyramid { n, levels }
+    }
+
+    /// Cells a side at level `l`.
+    pub fn cells(&self, l: u32) -> usize {
+        1usize << (self.n - l)
+    }
+
+    /// `[min, max]` raw height of cell `(a, b)` at level `l` (1..=n).
+    pub fn get(&self, l: u32, a: usize, b: usize) -> [f32; 2] {
+        self.levels[(l - 1) as usize][b * self.cells(l) + a]
+    }
+
+    /// Min and max over the whole grid.
+    pub fn range(&self) -> [f32; 2] {
+        self.get(self.n, 0, 0)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn field(w: usize, h: usize, f: impl Fn(usize, usize) -> f32) -> Heightfield {
+        let s: Vec<f32> = (0..w * h).map(|i| f(i % w, i / w)).collect();
+        Heightfield::embed("test", w, h, &s, HeightFormat::Float32, 1.0, 1.0).unwrap()
+    }
+
+    #[test]
+    fn embeds_in_smallest_grid_with_clamped_margin() {
+        let hf = field(5, 3, |x, z| (x + 10 * z) as f32);
+        assert_eq!(hf.side(), 5);
+        assert_eq!((hf.width, hf.height), (5, 3));
+        assert_eq!(hf.raw_at(4, 4), hf.raw_at(4, 2));
+        let hf = field(6, 3, |x, _| x as f32);
+        assert_eq!(hf.side(), 9);
+        assert_eq!(hf.raw_at(8, 0), 5.0);
+        let hf = field(1201, 1201, |_, _| 0.0);
+        assert_eq!(hf.side(), 2049);
+    }
+
+    #[test]
+    fn rejects_tiny_and_non_finite() {
+        let e = Heightfield::embed("f.r16", 2, 2, &[0.0; 4], HeightFormat::Float32, 1.0, 1.0);
+        assert!(e.unwrap_err().to_string().starts_with("f.r16: 2 x 2 is too small"));
+        let mut s = vec![0.0; 9];
+        s[4] = f32::NAN;
+        let e = Heightfield::embed("g.tif", 3, 3, &s, HeightFormat::Float32, 1.0, 1.0);
+        assert!(e.unwrap_err().to_string().contains("column 1, row 1 is not a finite"));
+    }
+
+    #[test]
+    fn surface_height_uses_the_a_i_diagonal() {
+        // Only the far corner is raised: the a-i diagonal split puts the centre at 0.5.
+        let hf = field(3, 3, |x, z| if x >= 1 && z >= 1 { if x == 1 && z == 1 { 1.0 } else { 0.0 } } else { 0.0 });
+        assert_eq!(hf.surface_height(0.5, 0.5), 0.5);
+        // On the b-h (anti-)diagonal the answer would differ: check a point off the diagonal.
+        assert_eq!(hf.surface_height(0.75, 0.25), 0.25);
+        assert_eq!(hf.surface_height(1.0, 1.0), 1.0);
+    }
+
+    #[test]
+    fn minmax_pyramid_covers_inclusive_cells() {
+        let hf = field(9, 9, |x, z| (x * 3 + z) as f32);
+        let mm = MinMaxPyramid::build(&hf);
+        assert_eq!(mm.levels.len(), 3);
+        assert_eq!(mm.get(1, 0, 0), [0.0, 8.0]);
+        assert_eq!(mm.get(1, 3, 3), [6.0 * 3.0 + 6.0, 32.0]);
+        assert_eq!(mm.get(3, 0, 0), [0.0, 32.0]);
+        for l in 1..=3 {
+            for b in 0..mm.cells(l) {
+                for a in 0..mm.cells(l) {
+                    let s = 1usize << l;
+                    let mut lo = f32::INFINITY;
+                    let mut hi = f32::NEG_INFINITY;
+                    for z in b * s..=(b + 1) * s {
+                        for x in a * s..=(a + 1) * s {
+                            lo = lo.min(hf.raw_at(x as i64, z as i64));
+                            hi = hi.max(hf.raw_at(x as i64, z as i64));
+                        }
+                    }
+                    assert_eq!(mm.get(l, a, b), [lo, hi]);
+                }
+            }
+        }
+    }
+}

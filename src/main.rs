@@ -1,0 +1,44 @@
+use clap::{Parser, Subcommand};
+use std::process::ExitCode;
+use vkterrain::cli::InputError;
+use vkterrain::commands::{self, ErrorsArgs, RenderArgs};
+
+/// vkterrain: a Vulkan terrain renderer with a GPU-rasterized screen-space error
+/// quadtree (Yusuf, Mostafa and Elarif), run as two activities on two queues.
+#[derive(Parser)]
+#[command(name = "vkterrain", version, about, long_about = None)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Render one frame headless to a PNG and print stats as JSON.
+    Render(RenderArgs),
+    /// Compute error generations on the GPU and print their cost as JSON.
+    Errors(ErrorsArgs),
+}
+
+fn main() -> ExitCode {
+    tracing_subscriber::fmt()
+        .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into()))
+        .with_writer(std::io::stderr)
+        .init();
+    let cli = Cli::parse();
+    let result = match &cli.command {
+        Command::Render(a) => commands::render(a),
+        Command::Errors(a) => commands::errors(a),
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("vkterrain: {e:#}");
+            if e.downcast_ref::<InputError>().is_some() {
+                ExitCode::from(2)
+            } else {
+                ExitCode::from(1)
+            }
+        }
+    }
+}

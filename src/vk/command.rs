@@ -1,0 +1,128 @@
+//! Command pools (one per thread), fences and timeline semaphores.
+
+use super::{Device, VkResult, VkResultExt};
+use ash::vk;
+use std::sync::Arc;
+
+/// A command pool; owned by one thread (command pools are externally synchronized).
+pub struct CommandPool {
+    device: Arc<Device>,
+    pub handle: vk::CommandPool,
+}
+
+impl CommandPool {
+    pub fn new(device: &Arc<Device>, family: u32) -> VkResult<Self> {
+        let info = vk::CommandPoolCreateInfo::default()
+            .queue_family_index(family)
+            .flags(vk::CommandPoolCreateFlags::RESET_COMMAND_BUFFER);
+        // SAFETY: valid create info.
+        let handle = unsafe { device.raw.create_command_pool(&info, None) }.vk("vkCreateCommandPool")?;
+        Ok(CommandPool {
+            device: device.clone(),
+            handle,
+        })
+    }
+
+    pub fn allocate(&self) -> VkResult<vk::CommandBuffer> {
+        let info = vk::CommandBufferAllocateInfo::default()
+            .command_pool(self.handle)
+            .level(vk::CommandBufferLevel::PRIMARY)
+            .command_buffer_count(1);
+        // SAFETY: the pool is live and used by this thread only.
+        Ok(unsafe { self.device.raw.allocate_command_buffers(&info) }.vk("vkAllocateCommandBuffers")?[0])
+    }
+
+    pub fn free(&self, cmd: vk::CommandBuffer) {
+        // SAFETY: callers free a command buffer only after its submission completed.
+        unsafe { self.device.raw.free_command_buffers(self.handle, &[cmd]) };
+    }
+}
+
+impl Drop for CommandPool {
+    fn drop(&mut self) {
+        // SAFETY: the owner has waited for its submissions; destroying the pool frees its
+        // command buffers.
+        unsafe { self.device.raw.destroy_command_pool(self.handle, None) };
+    }
+}
+
+pub struct Fence {
+    device: Arc<Device>,
+    pub handle: vk::Fence,
+}
+
+impl Fence {
+    pub fn new(device: &Arc<Device>, signaled: bool) -> VkResult<Self> {
+        let flags = if signaled { vk::FenceCreateFlags::SIGNALED } else { vk::FenceCreateFlags::empty() };
+        // SAFETY: valid create info.
+        let handle = unsafe { device.raw.create_fence(&vk::FenceCreateInfo::default().flags(flags), None) }.vk("vkCreateFence")?;
+        Ok(Fence {
+            device: device.clone(),
+            handle,
+        })
+    }
+
+    pub fn wait(&self, timeout_ns: u64) -> VkResult<()> {
+        // SAFETY: live fence.
+        unsafe { self.device.raw.wait_for_fences(&[self.handle], true, timeout_ns) }.vk("vkWaitForFences")
+    }
+
+    pub fn reset(&self) -> VkResult<()> {
+        // SAFETY: the fence is not in use by a pending submission (waited first).
+        unsafe { self.device.raw.reset_fences(&[self.handle]) }.vk("vkResetFences")
+    }
+}
+
+impl Drop for Fence {
+    fn drop(&mut self) {
+        // SAFETY: callers wait on the fence before dropping it.
+        unsafe { self.device.raw.destroy_fence(self.handle, None) };
+    }
+}
+
+/// A timeline semaphore: its value is a generation counter.
+pub struct TimelineSemaphore {
+    device: Arc<Device>,
+    pub handle: vk::Semaphore,
+}
+
+impl TimelineSemaphore {
+    pub fn new(device: &Arc<Device>, initial: u64) -> VkResult<Self> {
+        let mut t = vk::SemaphoreTypeCreateInfo::default()
+            .semaphore_type(vk::SemaphoreType::TIMELINE)
+            .initial_value(initial);
+        let info = vk::SemaphoreCreateInfo::default().push_next(&mut t);
+        // SAFETY: valid create info.
+        let handle = unsafe { device.raw.create_semaphore(&info, None) }.vk("vkCreateSemaphore")?;
+        Ok(TimelineSemaphore {
+            device: device.clone(),
+            handle,
+        })
+    }
+
+    /// The current value, read on the CPU (never a GPU wait).
+    pub fn value(&self) -> VkResult<u64> {
+        // SAFETY: live timeline semaphore.
+        unsafe { self.device.raw.get_semaphore_counter_value(self.handle) }.vk("vkGetSemaphoreCounterValue")
+    }
+
+    /// Waits on the CPU until the value reaches `value`; false on timeout.
+    pub fn wait(&self, value: u64, timeout_ns: u64) -> VkResult<bool> {
+        let sems = [self.handle];
+        let values = [value];
+        let info = vk::SemaphoreWaitInfo::default().semaphores(&sems).values(&values);
+        // SAFETY: live semaphore; arrays outlive the call.
+        match unsafe { self.device.raw.wait_semaphores(&info, timeout_ns) } {
+            Ok(()) => Ok(true),
+            Err(vk::Result::TIMEOUT) => Ok(false),
+            Err(e) => Err(e).vk("vkWaitSemaphores"),
+        }
+    }
+}
+
+impl Drop for TimelineSemaphore {
+    fn drop(&mut self) {
+        // SAFETY: owners wait for the last signal before dropping.
+        unsafe { self.device.raw.destroy_semaphore(self.handle, None) };
+    }
+}

@@ -1,0 +1,318 @@
+//! Physical device selection, the logical device, its queues (SPEC section 6) and the
+//! memory allocator.
+
+use super::instance::c_name;
+use super::{CommandPool, Fence, Instance, VkError, VkResult, VkResultExt};
+use ash::vk;
+use gpu_allocator::vulkan::{Allocator, AllocatorCreateDesc};
+use std::mem::ManuallyDrop;
+use std::sync::{Arc, Mutex, MutexGuard};
+
+/// How the two activities get their queues.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default, clap::ValueEnum)]
+pub enum QueueRequest {
+    /// Two graphics queues when the device has them, else one shared queue.
+    #[default]
+    Auto,
+    /// One queue for both activities, behind a mutex.
+    Shared,
+    /// Two queues, or an error if the device has only one.
+    Separate,
+}
+
+/// The queue arrangement in use; printed at start-up and in every stats output.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum QueueMode {
+    /// Both activities submit to one queue, serialized by a mutex.
+    Shared,
+    /// Two queues of one family.
+    SeparateSameFamily,
+    /// Two queues of different families; shared images use CONCURRENT sharing.
+    SeparateFamilies,
+}
+
+impl QueueMode {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            QueueMode::Shared => "shared",
+            QueueMode::SeparateSameFamily => "separate-same-family",
+            QueueMode::SeparateFamilies => "separate-families",
+        }
+    }
+}
+
+/// A queue; submission is externally synchronized through `lock`, which is the same
+/// mutex for both activities when they share one queue.
+#[derive(Clone)]
+pub struct Queue {
+    pub handle: vk::Queue,
+    pub family: u32,
+    lock: Arc<Mutex<()>>,
+}
+
+impl Queue {
+    /// Submits under the queue's lock (vkQueueSubmit2 needs external synchronization).
+    pub fn submit(&self, device: &Device, submits: &[vk::SubmitInfo2<'_>], fence: vk::Fence) -> VkResult<()> {
+        let _guard = self.lock.lock().unwrap_or_else(|e| e.into_inner());
+        // SAFETY: the queue belongs to `device`; access is serialized by the lock.
+        unsafe { device.raw.queue_submit2(self.handle, submits, fence) }.vk("vkQueueSubmit2")
+    }
+
+    /// Locks the queue for calls like vkQueuePresentKHR.
+    pub fn lock(&self) -> MutexGuard<'_, ()> {
+        self.lock.lock().unwrap_or_else(|e| e.into_inner())
+    }
+}
+
+#[derive(Clone, Debug, Default)]
+pub struct DeviceOptions {
+    /// Device name substring or index (`--gpu`).
+    pub gpu: Option<String>,
+    pub queues: QueueRequest,
+    /// Needed for a window.
+    pub swapchain: bool,
+}
+
+/// Optional features found on the device.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct DeviceFeatures {
+    pub wireframe: bool,
+    pub pipeline_statistics: bool,
+    /// Nanoseconds per timestamp tick, when the draw queue has timestamps.
+    pub timestamp_period: Option<f32>,
+}
+
+pub struct Device {
+    pub instance: Arc<Instance>,
+    pub physical: vk::PhysicalDevice,
+    pub raw: ash::Device,
+    pub name: String,
+    pub properties: vk::PhysicalDeviceProperties,
+    pub features: DeviceFeatures,
+    pub draw_queue: Queue,
+    pub errors_queue: Queue,
+    pub queue_mode: QueueMode,
+    /// Families that use images shared by both activities (for CONCURRENT sharing).
+    pub families: Vec<u32>,
+    allocator: ManuallyDrop<Mutex<Allocator>>,
+}
+
+fn device_type_rank(t: vk::PhysicalDeviceType) -> u32 {
+    match t {
+        vk::PhysicalDeviceType::DISCRETE_GPU => 0,
+        vk::PhysicalDeviceType::INTEGRATED_GPU => 1,
+        vk::PhysicalDeviceType::VIRTUAL_GPU => 2,
+        vk::PhysicalDeviceType::CPU => 3,
+        _ => 4,
+    }
+}
+
+impl Device {
+    pub fn new(instance: Arc<Instance>, opts: &DeviceOptions) -> VkResult<Arc<Self>> {
+        let inst = &instance.raw;
+        // SAFETY: enumeration and property queries on a live instance.
+        let physicals = unsafe { inst.enumerate_physical_devices() }.vk("vkEnumeratePhysicalDevices")?;
+        if physicals.is_empty() {
+            return Err(VkError::Setup(
+                "no Vulkan device found; install a driver (mesa-vulkan-drivers provides lavapipe)".into(),
+            ));
+        }
+        let described: Vec<(vk::PhysicalDevice, vk::PhysicalDeviceProperties)> = physicals
+            .iter()
+            // SAFETY: `p` comes from this instance.
+            .map(|&p| (p, unsafe { inst.get_physical_device_properties(p) }))
+            .collect();
+        let names: Vec<String> = described.iter().map(|(_, pr)| c_name(&pr.device_name)).collect();
+        let chosen = match &opts.gpu {
+            Some(sel) => {
+                let idx = sel
+                    .parse::<usize>()
+                    .ok()
+                    .filter(|&i| i < described.len())
+                    .or_else(|| names.iter().position(|n| n.to_lowercase().contains(&sel.to_lowercase())));
+                idx.ok_or_else(|| VkError::Setup(format!("--gpu {sel}: no such device; available: {}", names.join(", "))))?
+            }
+            None => (0..described.len())
+                .filter(|&i| described[i].1.api_version >= vk::API_VERSION_1_3)
+                .min_by_key(|&i| device_type_rank(described[i].1.device_type))
+                .ok_or_else(|| VkError::Setup(format!("no Vulkan 1.3 device among: {}", names.join(", "))))?,
+        };
+        let (physical, properties) = described[chosen];
+        let name = names[chosen].clone();
+        if properties.api_version < vk::API_VERSION_1_3 {
+            return Err(VkError::Setup(format!("{name} does not support Vulkan 1.3")));
+        }
+
+        // SAFETY: query on a live physical device.
+        let families = unsafe { inst.get_physical_device_queue_family_properties(physical) };
+        let graphics: Vec<u32> = (0..families.len() as u32)
+            .filter(|&i| families[i as usize].queue_flags.contains(vk::QueueFlags::GRAPHICS))
+            .collect();
+        let first = *graphics
+            .first()
+            .ok_or_else(|| VkError::Setup(format!("{name} has no graphics queue")))?;
+        let two_in_one = graphics.iter().copied().find(|&f| families[f as usize].queue_count >= 2);
+        let mode_plan = match opts.queues {
+            QueueRequest::Shared => (QueueMode::Shared, first, first),
+            _ => match (two_in_one, graphics.get(1)) {
+                (Some(f), _) => (QueueMode::SeparateSameFamily, f, f),
+                (None, Some(&second)) => (QueueMode::SeparateFamilies, first, second),
+                (None, None) if opts.queues == QueueRequest::Separate => {
+                    return Err(VkError::Setup(format!(
+                        "--queues separate: {name} has only one graphics queue; use --queues auto or shared"
+                    )))
+                }
+                (None, None) => (QueueMode::Shared, first, first),
+            },
+        };
+        let (queue_mode, draw_family, errors_family) = mode_plan;
+        let priorities = [1.0f32, 1.0];
+        let mut queue_infos = vec![vk::DeviceQueueCreateInfo::default()
+            .queue_family_index(draw_family)
+            .queue_priorities(if queue_mode == QueueMode::SeparateSameFamily { &priorities[..2] } else { &priorities[..1] })];
+        if queue_mode == QueueMode::SeparateFamilies {
+            queue_infos.push(
+                vk::DeviceQueueCreateInfo::default()
+                    .queue_family_index(errors_family)
+                    .queue_priorities(&priorities[..1]),
+            );
+        }
+
+        // SAFETY: feature query on a live physical device.
+        let supported = unsafe { inst.get_physical_device_features(physical) };
+        let mut f12 = vk::PhysicalDeviceVulkan12Features::default();
+        let mut f13 = vk::PhysicalDeviceVulkan13Features::default();
+        let mut f2 = vk::PhysicalDeviceFeatures2::default().push_next(&mut f12).push_next(&mut f13);
+        // SAFETY: as above; the chain points at locals.
+        unsafe { inst.get_physical_device_features2(physical, &mut f2) };
+        // Core in 1.3, but each must be enabled; `discard` compiles to demote-to-helper.
+        if f12.timeline_semaphore == 0 || f13.synchronization2 == 0 || f13.dynamic_rendering == 0 || f13.shader_demote_to_helper_invocation == 0 {
+            return Err(VkError::Setup(format!(
+                "{name} lacks timeline semaphores, synchronization2, dynamic rendering or shader demote-to-helper"
+            )));
+        }
+        let features = DeviceFeatures {
+            wireframe: supported.fill_mode_non_solid != 0,
+            pipeline_statistics: supported.pipeline_statistics_query != 0,
+            timestamp_period: (families[draw_family as usize].timestamp_valid_bits > 0)
+                .then_some(properties.limits.timestamp_period),
+        };
+        let enabled = vk::PhysicalDeviceFeatures::default()
+            .fill_mode_non_solid(features.wireframe)
+            .pipeline_statistics_query(features.pipeline_statistics);
+        let mut e12 = vk::PhysicalDeviceVulkan12Features::default().timeline_semaphore(true);
+        let mut e13 = vk::PhysicalDeviceVulkan13Features::default()
+            .synchronization2(true)
+            .dynamic_rendering(true)
+            .shader_demote_to_helper_invocation(true);
+        let mut exts: Vec<*const i8> = Vec::new();
+        if opts.swapchain {
+            exts.push(ash::khr::swapchain::NAME.as_ptr());
+        }
+        let info = vk::DeviceCreateInfo::default()
+            .queue_create_infos(&queue_infos)
+            .enabled_features(&enabled)
+            .enabled_extension_names(&exts)
+            .push_next(&mut e12)
+            .push_next(&mut e13);
+        // SAFETY: `info` only points at locals that outlive the call.
+        let raw = unsafe { inst.create_device(physical, &info, None) }.vk("vkCreateDevice")?;
+        // SAFETY: these queues were requested in `queue_infos`.
+        let (draw_q, errors_q) = unsafe {
+            match queue_mode {
+                QueueMode::Shared => {
+                    let q = raw.get_device_queue(draw_family, 0);
+                    (q, q)
+                }
+                QueueMode::SeparateSameFamily => (raw.get_device_queue(draw_family, 0), raw.get_device_queue(draw_family, 1)),
+                QueueMode::SeparateFamilies => (raw.get_device_queue(draw_family, 0), raw.get_device_queue(errors_family, 0)),
+            }
+        };
+        let draw_lock = Arc::new(Mutex::new(()));
+        let errors_lock = if queue_mode == QueueMode::Shared { draw_lock.clone() } else { Arc::new(Mutex::new(())) };
+        let allocator = Allocator::new(&AllocatorCreateDesc {
+            instance: inst.clone(),
+            device: raw.clone(),
+            physical_device: physical,
+            debug_settings: Default::default(),
+            buffer_device_address: false,
+            allocation_sizes: Default::default(),
+        })
+        .map_err(|e| VkError::Alloc {
+            what: "the allocator".into(),
+            message: e.to_string(),
+        })?;
+        let mut fams = vec![draw_family];
+        if errors_family != draw_family {
+            fams.push(errors_family);
+        }
+        Ok(Arc::new(Device {
+            instance,
+            physical,
+            raw,
+            name,
+            properties,
+            features,
+            draw_queue: Queue {
+                handle: draw_q,
+                family: draw_family,
+                lock: draw_lock,
+            },
+            errors_queue: Queue {
+                handle: errors_q,
+                family: errors_family,
+                lock: errors_lock,
+            },
+            queue_mode,
+            families: fams,
+            allocator: ManuallyDrop::new(Mutex::new(allocator)),
+        }))
+    }
+
+    pub fn allocator(&self) -> MutexGuard<'_, Allocator> {
+        self.allocator.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    pub fn max_image_dimension_2d(&self) -> u32 {
+        self.properties.limits.max_image_dimension2_d
+    }
+
+    /// Records commands into a one-time command buffer, submits them on the draw queue
+    /// and waits (used for uploads before the activities start).
+    pub fn one_shot(self: &Arc<Self>, pool: &CommandPool, record: impl FnOnce(vk::CommandBuffer)) -> VkResult<()> {
+        let cmd = pool.allocate()?;
+        let begin = vk::CommandBufferBeginInfo::default().flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT);
+        // SAFETY: `cmd` was just allocated from `pool`, which this thread owns.
+        unsafe { self.raw.begin_command_buffer(cmd, &begin) }.vk("vkBeginCommandBuffer")?;
+        record(cmd);
+        // SAFETY: as above.
+        unsafe { self.raw.end_command_buffer(cmd) }.vk("vkEndCommandBuffer")?;
+        let fence = Fence::new(self, false)?;
+        let cmds = [vk::CommandBufferSubmitInfo::default().command_buffer(cmd)];
+        let submit = [vk::SubmitInfo2::default().command_buffer_infos(&cmds)];
+        self.draw_queue.submit(self, &submit, fence.handle)?;
+        fence.wait(u64::MAX)?;
+        pool.free(cmd);
+        Ok(())
+    }
+
+    pub fn wait_idle(&self) -> VkResult<()> {
+        let _a = self.draw_queue.lock();
+        let _b = if self.queue_mode == QueueMode::Shared { None } else { Some(self.errors_queue.lock()) };
+        // SAFETY: both queues are locked, so no submission races with the wait.
+        unsafe { self.raw.device_wait_idle() }.vk("vkDeviceWaitIdle")
+    }
+}
+
+impl Drop for Device {
+    fn drop(&mut self) {
+        // SAFETY: every child holds an Arc<Device>, so all are gone; the allocator frees
+        // its memory blocks before the device is destroyed.
+        unsafe {
+            let _ = self.raw.device_wait_idle();
+            ManuallyDrop::drop(&mut self.allocator);
+            self.raw.destroy_device(None);
+        }
+    }
+}
