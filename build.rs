@@ -79,7 +79,10 @@ fn main() {
         };
         let words = artifact.as_binary();
         if let Err(e) = check_spirv_layouts(words, &blocks) {
-            fail(&format!("{}: layout mismatch with src/gpu_layout.rs: {e}", path.display()));
+            fail(&format!(
+                "{}: layout mismatch with src/gpu_layout.rs: {e}",
+                path.display()
+            ));
         }
         let spv_name = format!("{name}.spv");
         std::fs::write(out_dir.join(&spv_name), artifact.as_binary_u8()).unwrap();
@@ -112,7 +115,10 @@ fn generate_header(blocks: &[BlockInfo]) -> Result<String, String> {
         match b.kind {
             BlockKind::PushConstant => {
                 if b.size > 128 {
-                    return Err(format!("{} is {} bytes; push constants are limited to 128", b.name, b.size));
+                    return Err(format!(
+                        "{} is {} bytes; push constants are limited to 128",
+                        b.name, b.size
+                    ));
                 }
                 writeln!(s, "layout(push_constant, std430) uniform {} {{", b.name).unwrap()
             }
@@ -124,8 +130,9 @@ fn generate_header(blocks: &[BlockInfo]) -> Result<String, String> {
             .unwrap(),
         }
         for f in b.fields {
-            let (align, size) = glsl_align_size(f.glsl)
-                .ok_or_else(|| format!("{}.{}: unsupported GLSL type {}", b.name, f.name, f.glsl))?;
+            let (align, size) = glsl_align_size(f.glsl).ok_or_else(|| {
+                format!("{}.{}: unsupported GLSL type {}", b.name, f.name, f.glsl)
+            })?;
             if size != f.size {
                 return Err(format!(
                     "{}.{}: Rust size {} but GLSL {} is {} bytes",
@@ -139,13 +146,24 @@ fn generate_header(blocks: &[BlockInfo]) -> Result<String, String> {
                 ));
             }
             if f.offset < end {
-                return Err(format!("{}.{}: overlaps the previous member", b.name, f.name));
+                return Err(format!(
+                    "{}.{}: overlaps the previous member",
+                    b.name, f.name
+                ));
             }
             end = f.offset + size;
-            writeln!(s, "    layout(offset = {}) {} {};", f.offset, f.glsl, f.name).unwrap();
+            writeln!(
+                s,
+                "    layout(offset = {}) {} {};",
+                f.offset, f.glsl, f.name
+            )
+            .unwrap();
         }
         if end != b.size {
-            return Err(format!("{}: Rust size {} but members end at {}", b.name, b.size, end));
+            return Err(format!(
+                "{}: Rust size {} but members end at {}",
+                b.name, b.size, end
+            ));
         }
         writeln!(s, "}} {};\n#endif", b.instance).unwrap();
     }
@@ -177,8 +195,12 @@ fn check_spirv_layouts(words: &[u32], blocks: &[BlockInfo]) -> Result<(), String
         i += count;
     }
     for (id, name) in &names {
-        let Some(block) = blocks.iter().find(|b| b.name == name) else { continue };
-        let Some(found) = offsets.get(id) else { continue };
+        let Some(block) = blocks.iter().find(|b| b.name == name) else {
+            continue;
+        };
+        let Some(found) = offsets.get(id) else {
+            continue;
+        };
         let mut found = found.clone();
         found.sort();
         if found.len() != block.fields.len() {

@@ -33,7 +33,13 @@ fn block_index_map(layout: &BlockLayout, blocks: &[DrawBlock]) -> Vec<u32> {
 }
 
 /// Raw height of the rendered (stitched) block surface at integer sample `(x, z)`.
-pub fn rendered_raw(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, x: i64, z: i64) -> Option<f32> {
+pub fn rendered_raw(
+    hf: &Heightfield,
+    layout: &BlockLayout,
+    b: &DrawBlock,
+    x: i64,
+    z: i64,
+) -> Option<f32> {
     let k = layout.k() as i64;
     let stride = b.stride() as i64;
     let (ox, oz) = b.origin(layout);
@@ -41,7 +47,10 @@ pub fn rendered_raw(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, x: i6
     let qu = (lx / stride).min(k - 2);
     let qv = (lz / stride).min(k - 2);
     let cn = b.coarser;
-    let touches = (qv == 0 && cn[0] > 0) || (qv == k - 2 && cn[2] > 0) || (qu == k - 2 && cn[1] > 0) || (qu == 0 && cn[3] > 0);
+    let touches = (qv == 0 && cn[0] > 0)
+        || (qv == k - 2 && cn[2] > 0)
+        || (qu == k - 2 && cn[1] > 0)
+        || (qu == 0 && cn[3] > 0);
     // Collapsed edge vertices move by up to `ratio` quads along their edge.
     let reach = if touches {
         (*cn.iter().max().unwrap() as i64 / stride).min(k - 1)
@@ -91,7 +100,12 @@ fn interpolate(t: &[(i64, i64, f32); 3], px: f64, pz: f64) -> Option<f32> {
 
 /// For every sample inside the frustum, the pixel distance between the true point and
 /// the rendered surface's point at the same `(x, z)`.
-pub fn audit(hf: &Heightfield, layout: &BlockLayout, traversal: &Traversal, cam: &Camera) -> AuditResult {
+pub fn audit(
+    hf: &Heightfield,
+    layout: &BlockLayout,
+    traversal: &Traversal,
+    cam: &Camera,
+) -> AuditResult {
     let frustum = cam.frustum();
     let vp = cam.view_proj();
     let map = block_index_map(layout, &traversal.blocks);
@@ -101,14 +115,27 @@ pub fn audit(hf: &Heightfield, layout: &BlockLayout, traversal: &Traversal, cam:
     for z in 0..hf.height as i64 {
         for x in 0..hf.width as i64 {
             let raw = hf.raw_at(x, z);
-            let p = Vec3::new(x as f32 * hf.spacing, raw * hf.height_scale, z as f32 * hf.spacing);
+            let p = Vec3::new(
+                x as f32 * hf.spacing,
+                raw * hf.height_scale,
+                z as f32 * hf.spacing,
+            );
             if !frustum.contains_point(p) {
                 continue;
             }
             r.samples += 1;
-            let cx = (x >> m).min(cells - 1);
-            let cz = (z >> m).min(cells - 1);
-            let idx = map[(cz * cells + cx) as usize];
+            // A sample on a cell boundary belongs to the cells on both sides: any drawn one
+            // covers it (the other may be culled or in the margin).
+            let mut idx = u32::MAX;
+            'find: for cz in [z >> m, (z - 1).max(0) >> m] {
+                for cx in [x >> m, (x - 1).max(0) >> m] {
+                    let (cx, cz) = (cx.min(cells - 1), cz.min(cells - 1));
+                    idx = map[(cz * cells + cx) as usize];
+                    if idx != u32::MAX {
+                        break 'find;
+                    }
+                }
+            }
             if idx == u32::MAX {
                 r.uncovered += 1;
                 continue;
@@ -135,7 +162,13 @@ pub fn audit(hf: &Heightfield, layout: &BlockLayout, traversal: &Traversal, cam:
 
 /// Every visible finest-grid cell is covered by exactly one drawn block, and no cell by
 /// two. Returns a description of the first failure.
-pub fn check_tiling(hf: &Heightfield, mm: &MinMaxPyramid, layout: &BlockLayout, blocks: &[DrawBlock], cam: &Camera) -> Result<(), String> {
+pub fn check_tiling(
+    hf: &Heightfield,
+    mm: &MinMaxPyramid,
+    layout: &BlockLayout,
+    blocks: &[DrawBlock],
+    cam: &Camera,
+) -> Result<(), String> {
     let cells = layout.cells();
     let mut count = vec![0u8; cells * cells];
     for b in blocks {
@@ -152,7 +185,9 @@ pub fn check_tiling(hf: &Heightfield, mm: &MinMaxPyramid, layout: &BlockLayout, 
     let frustum = cam.frustum();
     for z in 0..cells {
         for x in 0..cells {
-            if count[z * cells + x] == 0 && cell_visible(hf, mm, layout, &frustum, x as u32, z as u32) {
+            if count[z * cells + x] == 0
+                && cell_visible(hf, mm, layout, &frustum, x as u32, z as u32)
+            {
                 return Err(format!("visible cell ({x}, {z}) is not covered"));
             }
         }

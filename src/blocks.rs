@@ -10,8 +10,8 @@ use crate::quadtree::{BlockLayout, DrawBlock};
 use crate::shaders;
 use crate::terrain_gpu::TerrainGpu;
 use crate::vk::{
-    vk, Buffer, CommandPool, DescriptorPool, DescriptorSetLayout, Device, Fence, GraphicsPipeline, GraphicsPipelineDesc, Image, PipelineLayout, VkResult,
-    VkResultExt,
+    vk, Buffer, CommandPool, DescriptorPool, DescriptorSetLayout, Device, Fence, GraphicsPipeline,
+    GraphicsPipelineDesc, Image, PipelineLayout, VkResult, VkResultExt,
 };
 use glam::Vec3;
 use std::sync::Arc;
@@ -60,8 +60,18 @@ impl BlockMesh {
         } else {
             (bytemuck::cast_slice(&idx).to_vec(), vk::IndexType::UINT32)
         };
-        let vertices = Buffer::with_data(device, "block vertices", &verts, vk::BufferUsageFlags::VERTEX_BUFFER)?;
-        let indices = Buffer::with_data(device, "block indices", &index_bytes, vk::BufferUsageFlags::INDEX_BUFFER)?;
+        let vertices = Buffer::with_data(
+            device,
+            "block vertices",
+            &verts,
+            vk::BufferUsageFlags::VERTEX_BUFFER,
+        )?;
+        let indices = Buffer::with_data(
+            device,
+            "block indices",
+            &index_bytes,
+            vk::BufferUsageFlags::INDEX_BUFFER,
+        )?;
         Ok(BlockMesh {
             bytes: (verts.len() + index_bytes.len()) as u64,
             vertices,
@@ -115,9 +125,31 @@ impl Target {
     pub fn new(device: &Arc<Device>, width: u32, height: u32) -> VkResult<Self> {
         let extent = vk::Extent2D { width, height };
         Ok(Target {
-            color: Image::new(device, "colour target", extent, COLOR_FORMAT, 1, vk::ImageUsageFlags::COLOR_ATTACHMENT | vk::ImageUsageFlags::TRANSFER_SRC, false)?,
-            depth: Image::new(device, "depth target", extent, DEPTH_FORMAT, 1, vk::ImageUsageFlags::DEPTH_STENCIL_ATTACHMENT, false)?,
-            readback: Buffer::new(device, "frame readback", width as u64 * height as u64 * 4, vk::BufferUsageFlags::TRANSFER_DST, gpu_allocator::MemoryLocation::GpuToCpu)?,
+            color: Image::new(
+                device,
+                "colour target",
+                extent,
+                COLOR_FORMAT,
+                1,
+                vk::ImageUsageFlags::COLOR_ATTACHMENT | vk::ImageUsageFlags::TRANSFER_SRC,
+                false,
+            )?,
+            depth: Image::new(
+                device,
+                "depth target",
+                extent,
+                DEPTH_FORMAT,
+                1,
+                vk::ImageUsageFlags::DEPTH_STENCIL_ATTACHMENT,
+                false,
+            )?,
+            readback: Buffer::new(
+                device,
+                "frame readback",
+                width as u64 * height as u64 * 4,
+                vk::BufferUsageFlags::TRANSFER_DST,
+                gpu_allocator::MemoryLocation::GpuToCpu,
+            )?,
             width,
             height,
         })
@@ -150,19 +182,41 @@ pub struct BlocksRenderer {
 }
 
 impl BlocksRenderer {
-    pub fn new(device: &Arc<Device>, terrain: &TerrainGpu, block_layout: BlockLayout, color_format: vk::Format) -> VkResult<Self> {
+    pub fn new(
+        device: &Arc<Device>,
+        terrain: &TerrainGpu,
+        block_layout: BlockLayout,
+        color_format: vk::Format,
+    ) -> VkResult<Self> {
         let stages = vk::ShaderStageFlags::VERTEX | vk::ShaderStageFlags::FRAGMENT;
         let sampler = vk::DescriptorType::COMBINED_IMAGE_SAMPLER;
         let set_layout = DescriptorSetLayout::new(
             device,
             &[
                 (layout::TERRAIN_BINDING_HEIGHTS, sampler, stages),
-                (layout::TERRAIN_BINDING_FRAME, vk::DescriptorType::UNIFORM_BUFFER, stages),
-                (layout::TERRAIN_BINDING_BASE, sampler, vk::ShaderStageFlags::FRAGMENT),
-                (layout::TERRAIN_BINDING_DETAIL, sampler, vk::ShaderStageFlags::FRAGMENT),
+                (
+                    layout::TERRAIN_BINDING_FRAME,
+                    vk::DescriptorType::UNIFORM_BUFFER,
+                    stages,
+                ),
+                (
+                    layout::TERRAIN_BINDING_BASE,
+                    sampler,
+                    vk::ShaderStageFlags::FRAGMENT,
+                ),
+                (
+                    layout::TERRAIN_BINDING_DETAIL,
+                    sampler,
+                    vk::ShaderStageFlags::FRAGMENT,
+                ),
             ],
         )?;
-        let pipeline_layout = PipelineLayout::new(device, &set_layout, std::mem::size_of::<BlockPush>() as u32, vk::ShaderStageFlags::VERTEX)?;
+        let pipeline_layout = PipelineLayout::new(
+            device,
+            &set_layout,
+            std::mem::size_of::<BlockPush>() as u32,
+            vk::ShaderStageFlags::VERTEX,
+        )?;
         let desc = |polygon_mode| GraphicsPipelineDesc {
             vert: shaders::TERRAIN_VERT,
             frag: shaders::TERRAIN_FRAG,
@@ -192,16 +246,38 @@ impl BlocksRenderer {
                 layout: &pipeline_layout,
             },
         )?;
-        let pool = DescriptorPool::new(device, 1, &[(sampler, 3), (vk::DescriptorType::UNIFORM_BUFFER, 1)])?;
+        let pool = DescriptorPool::new(
+            device,
+            1,
+            &[(sampler, 3), (vk::DescriptorType::UNIFORM_BUFFER, 1)],
+        )?;
         let set = pool.allocate(&set_layout)?;
         let ubo_size = std::mem::size_of::<FrameUniforms>() as u64;
-        let uniforms = Buffer::new(device, "frame uniforms", ubo_size, vk::BufferUsageFlags::UNIFORM_BUFFER, gpu_allocator::MemoryLocation::CpuToGpu)?;
+        let uniforms = Buffer::new(
+            device,
+            "frame uniforms",
+            ubo_size,
+            vk::BufferUsageFlags::UNIFORM_BUFFER,
+            gpu_allocator::MemoryLocation::CpuToGpu,
+        )?;
         pool.write(
             set,
             &[
-                (layout::TERRAIN_BINDING_HEIGHTS, terrain.heights.view, terrain.nearest.handle),
-                (layout::TERRAIN_BINDING_BASE, terrain.base.view, terrain.linear.handle),
-                (layout::TERRAIN_BINDING_DETAIL, terrain.detail.view, terrain.linear.handle),
+                (
+                    layout::TERRAIN_BINDING_HEIGHTS,
+                    terrain.heights.view,
+                    terrain.nearest.handle,
+                ),
+                (
+                    layout::TERRAIN_BINDING_BASE,
+                    terrain.base.view,
+                    terrain.linear.handle,
+                ),
+                (
+                    layout::TERRAIN_BINDING_DETAIL,
+                    terrain.detail.view,
+                    terrain.linear.handle,
+                ),
             ],
             &[(layout::TERRAIN_BINDING_FRAME, uniforms.handle, ubo_size)],
         );
@@ -225,19 +301,44 @@ impl BlocksRenderer {
         })
     }
 
-    fn frame_uniforms(&self, hf: &Heightfield, terrain: &TerrainGpu, cam: &Camera, shading: &Shading) -> FrameUniforms {
+    fn frame_uniforms(
+        &self,
+        hf: &Heightfield,
+        terrain: &TerrainGpu,
+        cam: &Camera,
+        shading: &Shading,
+    ) -> FrameUniforms {
         let vp = cam.view_proj();
         let sky = if shading.sky { 1.0 } else { 0.0 };
-        let horizon = if shading.sky { SKY_HORIZON } else { shading.background };
+        let horizon = if shading.sky {
+            SKY_HORIZON
+        } else {
+            shading.background
+        };
         let light = Vec3::new(-0.5, 0.8, -0.3).normalize();
         FrameUniforms {
             view_proj: vp.to_cols_array_2d(),
             inv_view_proj: vp.inverse().to_cols_array_2d(),
-            camera_fog: [cam.position.x, cam.position.y, cam.position.z, shading.fog_density],
-            terrain: [hf.spacing, hf.height_scale, terrain.raw_range[0] * hf.height_scale, terrain.raw_range[1] * hf.height_scale],
+            camera_fog: [
+                cam.position.x,
+                cam.position.y,
+                cam.position.z,
+                shading.fog_density,
+            ],
+            terrain: [
+                hf.spacing,
+                hf.height_scale,
+                terrain.raw_range[0] * hf.height_scale,
+                terrain.raw_range[1] * hf.height_scale,
+            ],
             light: [light.x, light.y, light.z, 0.25],
             texturing: [shading.detail_tiling, shading.detail_weight, 0.0, 0.0],
-            extent: [hf.width as i32, hf.height as i32, hf.side() as i32, self.layout.k() as i32],
+            extent: [
+                hf.width as i32,
+                hf.height as i32,
+                hf.side() as i32,
+                self.layout.k() as i32,
+            ],
             flags: [
                 terrain.has_base as i32,
                 terrain.has_detail as i32,
@@ -278,7 +379,10 @@ impl BlocksRenderer {
             .load_op(vk::AttachmentLoadOp::CLEAR)
             .store_op(vk::AttachmentStoreOp::DONT_CARE)
             .clear_value(vk::ClearValue {
-                depth_stencil: vk::ClearDepthStencilValue { depth: 0.0, stencil: 0 },
+                depth_stencil: vk::ClearDepthStencilValue {
+                    depth: 0.0,
+                    stencil: 0,
+                },
             });
         let area = vk::Rect2D {
             offset: vk::Offset2D::default(),
@@ -304,9 +408,20 @@ impl BlocksRenderer {
             d.cmd_begin_rendering(cmd, &rendering);
             d.cmd_set_viewport(cmd, 0, &[viewport]);
             d.cmd_set_scissor(cmd, 0, &[area]);
-            d.cmd_bind_descriptor_sets(cmd, vk::PipelineBindPoint::GRAPHICS, self.pipeline_layout.handle, 0, &[self.set], &[]);
+            d.cmd_bind_descriptor_sets(
+                cmd,
+                vk::PipelineBindPoint::GRAPHICS,
+                self.pipeline_layout.handle,
+                0,
+                &[self.set],
+                &[],
+            );
             if shading.sky {
-                d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, self.sky_pipeline.handle);
+                d.cmd_bind_pipeline(
+                    cmd,
+                    vk::PipelineBindPoint::GRAPHICS,
+                    self.sky_pipeline.handle,
+                );
                 d.cmd_draw(cmd, 3, 1, 0, 0);
             }
             let pipeline = match (&self.wire_pipeline, shading.wireframe) {
@@ -320,9 +435,20 @@ impl BlocksRenderer {
                 let (ox, oz) = b.origin(&self.layout);
                 let push = BlockPush {
                     block: [ox as i32, oz as i32, b.stride() as i32, b.lod as i32],
-                    coarser_neighbour_stride: [b.coarser[0] as i32, b.coarser[1] as i32, b.coarser[2] as i32, b.coarser[3] as i32],
+                    coarser_neighbour_stride: [
+                        b.coarser[0] as i32,
+                        b.coarser[1] as i32,
+                        b.coarser[2] as i32,
+                        b.coarser[3] as i32,
+                    ],
                 };
-                d.cmd_push_constants(cmd, self.pipeline_layout.handle, vk::ShaderStageFlags::VERTEX, 0, bytemuck::bytes_of(&push));
+                d.cmd_push_constants(
+                    cmd,
+                    self.pipeline_layout.handle,
+                    vk::ShaderStageFlags::VERTEX,
+                    0,
+                    bytemuck::bytes_of(&push),
+                );
                 d.cmd_draw_indexed(cmd, self.mesh.index_count, 1, 0, 0, 0);
             }
             d.cmd_end_rendering(cmd);
@@ -333,9 +459,16 @@ impl BlocksRenderer {
     }
 
     /// Writes the per-frame uniforms. Only call when no submitted frame is pending.
-    pub fn set_frame(&mut self, hf: &Heightfield, terrain: &TerrainGpu, cam: &Camera, shading: &Shading) -> VkResult<()> {
+    pub fn set_frame(
+        &mut self,
+        hf: &Heightfield,
+        terrain: &TerrainGpu,
+        cam: &Camera,
+        shading: &Shading,
+    ) -> VkResult<()> {
         let u = self.frame_uniforms(hf, terrain, cam, shading);
-        self.uniforms.mapped_mut()?[..std::mem::size_of::<FrameUniforms>()].copy_from_slice(bytemuck::bytes_of(&u));
+        self.uniforms.mapped_mut()?[..std::mem::size_of::<FrameUniforms>()]
+            .copy_from_slice(bytemuck::bytes_of(&u));
         Ok(())
     }
 
@@ -356,12 +489,21 @@ impl BlocksRenderer {
             width: target.width,
             height: target.height,
         };
-        let clear = if shading.sky { SKY_HORIZON } else { shading.background };
+        let clear = if shading.sky {
+            SKY_HORIZON
+        } else {
+            shading.background
+        };
         // SAFETY: the previous use of `cmd` finished (fence waited below every time).
         unsafe {
-            d.reset_command_buffer(cmd, vk::CommandBufferResetFlags::empty()).vk("vkResetCommandBuffer")?;
-            d.begin_command_buffer(cmd, &vk::CommandBufferBeginInfo::default().flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT))
-                .vk("vkBeginCommandBuffer")?;
+            d.reset_command_buffer(cmd, vk::CommandBufferResetFlags::empty())
+                .vk("vkResetCommandBuffer")?;
+            d.begin_command_buffer(
+                cmd,
+                &vk::CommandBufferBeginInfo::default()
+                    .flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT),
+            )
+            .vk("vkBeginCommandBuffer")?;
             let to_attach = [
                 vk::ImageMemoryBarrier2::default()
                     .src_stage_mask(vk::PipelineStageFlags2::COPY)
@@ -373,18 +515,38 @@ impl BlocksRenderer {
                     .image(target.color.handle)
                     .subresource_range(target.color.range(0, 1)),
                 vk::ImageMemoryBarrier2::default()
-                    .src_stage_mask(vk::PipelineStageFlags2::EARLY_FRAGMENT_TESTS | vk::PipelineStageFlags2::LATE_FRAGMENT_TESTS)
+                    .src_stage_mask(
+                        vk::PipelineStageFlags2::EARLY_FRAGMENT_TESTS
+                            | vk::PipelineStageFlags2::LATE_FRAGMENT_TESTS,
+                    )
                     .src_access_mask(vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_WRITE)
-                    .dst_stage_mask(vk::PipelineStageFlags2::EARLY_FRAGMENT_TESTS | vk::PipelineStageFlags2::LATE_FRAGMENT_TESTS)
-                    .dst_access_mask(vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_WRITE | vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_READ)
+                    .dst_stage_mask(
+                        vk::PipelineStageFlags2::EARLY_FRAGMENT_TESTS
+                            | vk::PipelineStageFlags2::LATE_FRAGMENT_TESTS,
+                    )
+                    .dst_access_mask(
+                        vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_WRITE
+                            | vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_READ,
+                    )
                     .old_layout(vk::ImageLayout::UNDEFINED)
                     .new_layout(vk::ImageLayout::DEPTH_ATTACHMENT_OPTIMAL)
                     .image(target.depth.handle)
                     .subresource_range(target.depth.range(0, 1)),
             ];
-            d.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().image_memory_barriers(&to_attach));
+            d.cmd_pipeline_barrier2(
+                cmd,
+                &vk::DependencyInfo::default().image_memory_barriers(&to_attach),
+            );
         }
-        let stats = self.record(cmd, target.color.view, target.depth.view, extent, blocks, shading, clear);
+        let stats = self.record(
+            cmd,
+            target.color.view,
+            target.depth.view,
+            extent,
+            blocks,
+            shading,
+            clear,
+        );
         // SAFETY: as above.
         unsafe {
             let to_src = [vk::ImageMemoryBarrier2::default()
@@ -396,7 +558,10 @@ impl BlocksRenderer {
                 .new_layout(vk::ImageLayout::TRANSFER_SRC_OPTIMAL)
                 .image(target.color.handle)
                 .subresource_range(target.color.range(0, 1))];
-            d.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().image_memory_barriers(&to_src));
+            d.cmd_pipeline_barrier2(
+                cmd,
+                &vk::DependencyInfo::default().image_memory_barriers(&to_src),
+            );
             let region = vk::BufferImageCopy::default()
                 .image_subresource(vk::ImageSubresourceLayers {
                     aspect_mask: vk::ImageAspectFlags::COLOR,
@@ -409,7 +574,13 @@ impl BlocksRenderer {
                     height: target.height,
                     depth: 1,
                 });
-            d.cmd_copy_image_to_buffer(cmd, target.color.handle, vk::ImageLayout::TRANSFER_SRC_OPTIMAL, target.readback.handle, &[region]);
+            d.cmd_copy_image_to_buffer(
+                cmd,
+                target.color.handle,
+                vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
+                target.readback.handle,
+                &[region],
+            );
             let to_host = [vk::BufferMemoryBarrier2::default()
                 .src_stage_mask(vk::PipelineStageFlags2::COPY)
                 .src_access_mask(vk::AccessFlags2::TRANSFER_WRITE)
@@ -417,15 +588,21 @@ impl BlocksRenderer {
                 .dst_access_mask(vk::AccessFlags2::HOST_READ)
                 .buffer(target.readback.handle)
                 .size(vk::WHOLE_SIZE)];
-            d.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().buffer_memory_barriers(&to_host));
+            d.cmd_pipeline_barrier2(
+                cmd,
+                &vk::DependencyInfo::default().buffer_memory_barriers(&to_host),
+            );
             d.end_command_buffer(cmd).vk("vkEndCommandBuffer")?;
         }
         self.fence.reset()?;
         let cmds = [vk::CommandBufferSubmitInfo::default().command_buffer(cmd)];
         let submit = [vk::SubmitInfo2::default().command_buffer_infos(&cmds)];
-        self.device.draw_queue.submit(&self.device, &submit, self.fence.handle)?;
+        self.device
+            .draw_queue
+            .submit(&self.device, &submit, self.fence.handle)?;
         self.fence.wait(u64::MAX)?;
-        let pixels = target.readback.mapped()?[..(target.width * target.height * 4) as usize].to_vec();
+        let pixels =
+            target.readback.mapped()?[..(target.width * target.height * 4) as usize].to_vec();
         Ok((pixels, stats))
     }
 }

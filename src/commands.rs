@@ -87,7 +87,11 @@ impl Session {
         let hf = common.load_heightfield()?;
         let layout = BlockLayout::new(hf.n, common.block).map_err(InputError)?;
         if layout.k() != common.block {
-            tracing::info!("block {} is larger than the terrain; using k = {}", common.block, layout.k());
+            tracing::info!(
+                "block {} is larger than the terrain; using k = {}",
+                common.block,
+                layout.k()
+            );
         }
         let mm = MinMaxPyramid::build(&hf);
         let instance = Instance::new(&InstanceOptions {
@@ -102,7 +106,11 @@ impl Session {
                 swapchain: false,
             },
         )?;
-        eprintln!("vkterrain: device {}, queue mode {}", device.name, device.queue_mode.as_str());
+        eprintln!(
+            "vkterrain: device {}, queue mode {}",
+            device.name,
+            device.queue_mode.as_str()
+        );
         let max = device.max_image_dimension_2d() as usize;
         if hf.side() > max {
             return Err(InputError(format!(
@@ -129,10 +137,15 @@ impl Session {
 }
 
 /// Writes `bytes` to `path` through a temporary file, so that no partial file is left.
-pub fn write_atomic(path: &Path, write: impl FnOnce(&Path) -> anyhow::Result<()>) -> anyhow::Result<()> {
+pub fn write_atomic(
+    path: &Path,
+    write: impl FnOnce(&Path) -> anyhow::Result<()>,
+) -> anyhow::Result<()> {
     let tmp = path.with_extension("partial.tmp");
     match write(&tmp) {
-        Ok(()) => std::fs::rename(&tmp, path).map_err(|e| anyhow::anyhow!("{}: {e}", path.display())),
+        Ok(()) => {
+            std::fs::rename(&tmp, path).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))
+        }
         Err(e) => {
             let _ = std::fs::remove_file(&tmp);
             Err(e)
@@ -142,22 +155,41 @@ pub fn write_atomic(path: &Path, write: impl FnOnce(&Path) -> anyhow::Result<()>
 
 pub fn save_png(path: &Path, width: u32, height: u32, rgba: &[u8]) -> anyhow::Result<()> {
     write_atomic(path, |tmp| {
-        image::save_buffer_with_format(tmp, rgba, width, height, image::ExtendedColorType::Rgba8, image::ImageFormat::Png)
-            .map_err(|e| anyhow::anyhow!("{}: cannot write PNG: {e}", path.display()))
+        image::save_buffer_with_format(
+            tmp,
+            rgba,
+            width,
+            height,
+            image::ExtendedColorType::Rgba8,
+            image::ImageFormat::Png,
+        )
+        .map_err(|e| anyhow::anyhow!("{}: cannot write PNG: {e}", path.display()))
     })
 }
 
 fn parse_background(s: &str) -> Result<[f32; 3], InputError> {
     let v: Vec<f32> = s.split(',').filter_map(|p| p.trim().parse().ok()).collect();
     if v.len() != 3 || v.iter().any(|c| !(0.0..=1.0).contains(c)) {
-        return Err(InputError(format!("--background '{s}': expected R,G,B with each in 0..1")));
+        return Err(InputError(format!(
+            "--background '{s}': expected R,G,B with each in 0..1"
+        )));
     }
     Ok([v[0], v[1], v[2]])
 }
 
 pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
-    if args.out.extension().and_then(|e| e.to_str()).map(|e| e.to_lowercase()) != Some("png".into()) {
-        return Err(InputError(format!("--out {}: the output must be a .png file", args.out.display())).into());
+    if args
+        .out
+        .extension()
+        .and_then(|e| e.to_str())
+        .map(|e| e.to_lowercase())
+        != Some("png".into())
+    {
+        return Err(InputError(format!(
+            "--out {}: the output must be a .png file",
+            args.out.display()
+        ))
+        .into());
     }
     let mut shading = Shading {
         fog_density: args.fog,
@@ -170,14 +202,20 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
     }
     let s = Session::open(&args.common)?;
     let cam = args.common.camera(&s.hf, (1280, 720))?;
-    let mut renderer = BlocksRenderer::new(&s.device, &s.terrain, s.layout, crate::blocks::COLOR_FORMAT)?;
+    let mut renderer =
+        BlocksRenderer::new(&s.device, &s.terrain, s.layout, crate::blocks::COLOR_FORMAT)?;
     let target = Target::new(&s.device, cam.width, cam.height)?;
 
     let mut generation = 0;
     let mut errors_ms = None;
     let params = ErrorParams::new(&cam, args.common.error_mode);
     let activity = if args.lod == LodChoice::Error {
-        Some(ErrorsActivity::start(&s.device, s.terrain.clone(), s.hf.clone(), s.layout)?)
+        Some(ErrorsActivity::start(
+            &s.device,
+            s.terrain.clone(),
+            s.hf.clone(),
+            s.layout,
+        )?)
     } else {
         None
     };
@@ -205,10 +243,13 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
     let trav = traverse(&s.hf, &s.mm, &s.layout, &cam, select);
     let traverse_ms = t.elapsed().as_secs_f64() * 1e3;
     let t = Instant::now();
-    let (pixels, stats) = renderer.render_offscreen(&s.hf, &s.terrain, &target, &cam, &trav.blocks, &shading)?;
+    let (pixels, stats) =
+        renderer.render_offscreen(&s.hf, &s.terrain, &target, &cam, &trav.blocks, &shading)?;
     let frame_ms = t.elapsed().as_secs_f64() * 1e3;
     save_png(&args.out, cam.width, cam.height, &pixels)?;
-    let audited = args.audit.then(|| audit::audit(&s.hf, &s.layout, &trav, &cam));
+    let audited = args
+        .audit
+        .then(|| audit::audit(&s.hf, &s.layout, &trav, &cam));
     if let Some(a) = activity {
         a.stop()?;
     }
@@ -258,7 +299,16 @@ pub fn renderer_geometry_bytes(k: u32) -> u64 {
 fn finish(s: &Session) -> anyhow::Result<()> {
     let n = s.validation_messages();
     if n > 0 {
-        anyhow::bail!("{n} validation message(s); first: {}", s.device.instance.messages.messages().first().cloned().unwrap_or_default());
+        anyhow::bail!(
+            "{n} validation message(s); first: {}",
+            s.device
+                .instance
+                .messages
+                .messages()
+                .first()
+                .cloned()
+                .unwrap_or_default()
+        );
     }
     Ok(())
 }
@@ -289,8 +339,15 @@ pub fn errors(args: &ErrorsArgs) -> anyhow::Result<()> {
     times.sort_by(|a, b| a.partial_cmp(b).unwrap());
     let g = last.expect("at least one generation");
     if let Some(path) = &args.dump {
-        let bytes: Vec<u8> = g.errors.packed().iter().flat_map(|v| v.to_le_bytes()).collect();
-        write_atomic(path, |tmp| std::fs::write(tmp, &bytes).map_err(|e| anyhow::anyhow!("{}: {e}", path.display())))?;
+        let bytes: Vec<u8> = g
+            .errors
+            .packed()
+            .iter()
+            .flat_map(|v| v.to_le_bytes())
+            .collect();
+        write_atomic(path, |tmp| {
+            std::fs::write(tmp, &bytes).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))
+        })?;
     }
     let n = s.hf.n as u64;
     let out = json!({

@@ -5,15 +5,16 @@
 //! Two slots (error images + readback buffers) are used in turn; a timeline semaphore
 //! whose value is the generation number hands each finished one to the draw thread.
 
-use crate::gie::{fragments_per_update, BlockErrors, ErrorParams};
+use crate::gie::{fragments_per_update, BlockErrors, ErrorParams, GroupErrors};
 use crate::gpu_layout::{self as layout, GiePush, ReducePush};
 use crate::heightfield::{HeightFormat, Heightfield};
 use crate::quadtree::BlockLayout;
 use crate::shaders;
 use crate::terrain_gpu::TerrainGpu;
 use crate::vk::{
-    vk, Buffer, CommandPool, DescriptorPool, DescriptorSetLayout, Device, GraphicsPipeline, GraphicsPipelineDesc, Image, ImageView, PipelineLayout, TimelineSemaphore,
-    VkError, VkResult, VkResultExt,
+    vk, Buffer, CommandPool, DescriptorPool, DescriptorSetLayout, Device, GraphicsPipeline,
+    GraphicsPipelineDesc, Image, ImageView, PipelineLayout, TimelineSemaphore, VkError, VkResult,
+    VkResultExt,
 };
 use std::sync::{Arc, Condvar, Mutex};
 use std::thread::JoinHandle;
@@ -110,7 +111,12 @@ fn readback_bytes(root_lod: u32) -> u64 {
 }
 
 impl ErrorsGpu {
-    fn new(device: &Arc<Device>, terrain: Arc<TerrainGpu>, hf: Arc<Heightfield>, block_layout: BlockLayout) -> VkResult<Self> {
+    fn new(
+        device: &Arc<Device>,
+        terrain: Arc<TerrainGpu>,
+        hf: Arc<Heightfield>,
+        block_layout: BlockLayout,
+    ) -> VkResult<Self> {
         let n = hf.n;
         let root = block_layout.root_lod();
         let frag = vk::ShaderStageFlags::FRAGMENT;
@@ -123,9 +129,20 @@ impl ErrorsGpu {
                 (layout::GIE_BINDING_MINMAX, sampler, frag),
             ],
         )?;
-        let reduce_set_layout = DescriptorSetLayout::new(device, &[(layout::REDUCE_BINDING_GIE, sampler, frag)])?;
-        let gie_layout = PipelineLayout::new(device, &gie_set_layout, std::mem::size_of::<GiePush>() as u32, frag)?;
-        let reduce_layout = PipelineLayout::new(device, &reduce_set_layout, std::mem::size_of::<ReducePush>() as u32, frag)?;
+        let reduce_set_layout =
+            DescriptorSetLayout::new(device, &[(layout::REDUCE_BINDING_GIE, sampler, frag)])?;
+        let gie_layout = PipelineLayout::new(
+            device,
+            &gie_set_layout,
+            std::mem::size_of::<GiePush>() as u32,
+            frag,
+        )?;
+        let reduce_layout = PipelineLayout::new(
+            device,
+            &reduce_set_layout,
+            std::mem::size_of::<ReducePush>() as u32,
+            frag,
+        )?;
         let desc = |fs: &'static [u8], l| GraphicsPipelineDesc {
             vert: shaders::PASS_VERT,
             frag: fs,
@@ -137,14 +154,28 @@ impl ErrorsGpu {
             layout: l,
         };
         let gie_pipeline = GraphicsPipeline::new(device, &desc(shaders::GIE_FRAG, &gie_layout))?;
-        let reduce_pipeline = GraphicsPipeline::new(device, &desc(shaders::BLOCK_REDUCE_FRAG, &reduce_layout))?;
+        let reduce_pipeline =
+            GraphicsPipeline::new(device, &desc(shaders::BLOCK_REDUCE_FRAG, &reduce_layout))?;
         let pool = DescriptorPool::new(device, 2 * (n + 1), &[(sampler, 2 * (3 * n + 1))])?;
         let commands = CommandPool::new(device, device.errors_queue.family)?;
 
         // GIE of LOD 1 has no previous level; its binding still needs a valid image.
-        let usage_rt = vk::ImageUsageFlags::COLOR_ATTACHMENT | vk::ImageUsageFlags::SAMPLED;
-        let one = vk::Extent2D { width: 1, height: 1 };
-        let dummy = Image::new(device, "GIE placeholder", one, GIE_FORMAT, 1, vk::ImageUsageFlags::SAMPLED | vk::ImageUsageFlags::TRANSFER_DST, false)?;
+        let usage_rt = vk::ImageUsageFlags::COLOR_ATTACHMENT
+            | vk::ImageUsageFlags::SAMPLED
+            | vk::ImageUsageFlags::TRANSFER_SRC;
+        let one = vk::Extent2D {
+            width: 1,
+            height: 1,
+        };
+        let dummy = Image::new(
+            device,
+            "GIE placeholder",
+            one,
+            GIE_FORMAT,
+            1,
+            vk::ImageUsageFlags::SAMPLED | vk::ImageUsageFlags::TRANSFER_DST,
+            false,
+        )?;
         let upload_pool = CommandPool::new(device, device.draw_queue.family)?;
         crate::terrain_gpu::upload(device, &upload_pool, &dummy, &[&0f32.to_le_bytes()])?;
 
@@ -154,25 +185,35 @@ impl ErrorsGpu {
             let gie = Image::new(
                 device,
                 &format!("GIE pyramid {s}"),
-                vk::Extent2D { width: gie_side, height: gie_side },
+                vk::Extent2D {
+                    width: gie_side,
+                    height: gie_side,
+                },
                 GIE_FORMAT,
                 n,
                 usage_rt,
                 false,
             )?;
-            let gie_mips = (0..n).map(|m| gie.mip_view(m, 1)).collect::<VkResult<Vec<_>>>()?;
+            let gie_mips = (0..n)
+                .map(|m| gie.mip_view(m, 1))
+                .collect::<VkResult<Vec<_>>>()?;
             let (tbe, tbe_mips) = if root > 0 {
                 let side = 1u32 << (root - 1);
                 let img = Image::new(
                     device,
                     &format!("block errors {s}"),
-                    vk::Extent2D { width: side, height: side },
+                    vk::Extent2D {
+                        width: side,
+                        height: side,
+                    },
                     GIE_FORMAT,
                     root,
                     vk::ImageUsageFlags::COLOR_ATTACHMENT | vk::ImageUsageFlags::TRANSFER_SRC,
                     false,
                 )?;
-                let mips = (0..root).map(|m| img.mip_view(m, 1)).collect::<VkResult<Vec<_>>>()?;
+                let mips = (0..root)
+                    .map(|m| img.mip_view(m, 1))
+                    .collect::<VkResult<Vec<_>>>()?;
                 (Some(img), mips)
             } else {
                 (None, Vec::new())
@@ -180,20 +221,36 @@ impl ErrorsGpu {
             let mut gie_sets = Vec::new();
             for lod in 1..=n {
                 let set = pool.allocate(&gie_set_layout)?;
-                let prev = if lod == 1 { dummy.view } else { gie_mips[(lod - 2) as usize].handle };
+                let prev = if lod == 1 {
+                    dummy.view
+                } else {
+                    gie_mips[(lod - 2) as usize].handle
+                };
                 pool.write(
                     set,
                     &[
-                        (layout::GIE_BINDING_HEIGHTS, terrain.heights.view, terrain.nearest.handle),
+                        (
+                            layout::GIE_BINDING_HEIGHTS,
+                            terrain.heights.view,
+                            terrain.nearest.handle,
+                        ),
                         (layout::GIE_BINDING_PREV, prev, terrain.nearest.handle),
-                        (layout::GIE_BINDING_MINMAX, terrain.minmax.view, terrain.nearest.handle),
+                        (
+                            layout::GIE_BINDING_MINMAX,
+                            terrain.minmax.view,
+                            terrain.nearest.handle,
+                        ),
                     ],
                     &[],
                 );
                 gie_sets.push(set);
             }
             let reduce_set = pool.allocate(&reduce_set_layout)?;
-            pool.write(reduce_set, &[(layout::REDUCE_BINDING_GIE, gie.view, terrain.nearest.handle)], &[]);
+            pool.write(
+                reduce_set,
+                &[(layout::REDUCE_BINDING_GIE, gie.view, terrain.nearest.handle)],
+                &[],
+            );
             slots.push(Slot {
                 gie,
                 gie_mips,
@@ -223,9 +280,21 @@ impl ErrorsGpu {
     }
 
     /// Draws one full-target triangle into `view` (a `side` x `side` mip).
-    fn pass(&self, cmd: vk::CommandBuffer, view: vk::ImageView, side: u32, pipeline: &GraphicsPipeline, pl: &PipelineLayout, set: vk::DescriptorSet, push: &[u8]) {
+    fn pass(
+        &self,
+        cmd: vk::CommandBuffer,
+        view: vk::ImageView,
+        side: u32,
+        pipeline: &GraphicsPipeline,
+        pl: &PipelineLayout,
+        set: vk::DescriptorSet,
+        push: &[u8],
+    ) {
         let d = &self.device.raw;
-        let extent = vk::Extent2D { width: side, height: side };
+        let extent = vk::Extent2D {
+            width: side,
+            height: side,
+        };
         let area = vk::Rect2D {
             offset: vk::Offset2D::default(),
             extent,
@@ -235,7 +304,10 @@ impl ErrorsGpu {
             .image_layout(vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL)
             .load_op(vk::AttachmentLoadOp::DONT_CARE)
             .store_op(vk::AttachmentStoreOp::STORE)];
-        let info = vk::RenderingInfo::default().render_area(area).layer_count(1).color_attachments(&att);
+        let info = vk::RenderingInfo::default()
+            .render_area(area)
+            .layer_count(1)
+            .color_attachments(&att);
         // SAFETY: `cmd` is recording on the errors thread; all objects outlive the submission.
         unsafe {
             d.cmd_begin_rendering(cmd, &info);
@@ -253,14 +325,29 @@ impl ErrorsGpu {
             );
             d.cmd_set_scissor(cmd, 0, &[area]);
             d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, pipeline.handle);
-            d.cmd_bind_descriptor_sets(cmd, vk::PipelineBindPoint::GRAPHICS, pl.handle, 0, &[set], &[]);
+            d.cmd_bind_descriptor_sets(
+                cmd,
+                vk::PipelineBindPoint::GRAPHICS,
+                pl.handle,
+                0,
+                &[set],
+                &[],
+            );
             d.cmd_push_constants(cmd, pl.handle, vk::ShaderStageFlags::FRAGMENT, 0, push);
             d.cmd_draw(cmd, 3, 1, 0, 0);
             d.cmd_end_rendering(cmd);
         }
     }
 
-    fn barrier(&self, cmd: vk::CommandBuffer, image: &Image, mip: u32, count: u32, from: (vk::PipelineStageFlags2, vk::AccessFlags2, vk::ImageLayout), to: (vk::PipelineStageFlags2, vk::AccessFlags2, vk::ImageLayout)) {
+    fn barrier(
+        &self,
+        cmd: vk::CommandBuffer,
+        image: &Image,
+        mip: u32,
+        count: u32,
+        from: (vk::PipelineStageFlags2, vk::AccessFlags2, vk::ImageLayout),
+        to: (vk::PipelineStageFlags2, vk::AccessFlags2, vk::ImageLayout),
+    ) {
         let b = [vk::ImageMemoryBarrier2::default()
             .src_stage_mask(from.0)
             .src_access_mask(from.1)
@@ -271,11 +358,23 @@ impl ErrorsGpu {
             .image(image.handle)
             .subresource_range(image.range(mip, count))];
         // SAFETY: recording on this thread.
-        unsafe { self.device.raw.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().image_memory_barriers(&b)) };
+        unsafe {
+            self.device.raw.cmd_pipeline_barrier2(
+                cmd,
+                &vk::DependencyInfo::default().image_memory_barriers(&b),
+            )
+        };
     }
 
     /// Records generation `g` into its slot's command buffer.
-    fn record(&self, slot_index: usize, g: u64, p: &ErrorParams, readback: &Buffer) -> VkResult<vk::CommandBuffer> {
+    fn record(
+        &self,
+        slot_index: usize,
+        g: u64,
+        p: &ErrorParams,
+        readback: &Buffer,
+        gie_dump: Option<&Buffer>,
+    ) -> VkResult<vk::CommandBuffer> {
         let slot = &self.slots[slot_index];
         let d = &self.device.raw;
         let cmd = slot.cmd;
@@ -284,9 +383,14 @@ impl ErrorsGpu {
         // SAFETY: the slot's previous submission (generation g-2) has completed: the
         // errors thread waits for each generation before starting the next.
         unsafe {
-            d.reset_command_buffer(cmd, vk::CommandBufferResetFlags::empty()).vk("vkResetCommandBuffer")?;
-            d.begin_command_buffer(cmd, &vk::CommandBufferBeginInfo::default().flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT))
-                .vk("vkBeginCommandBuffer")?;
+            d.reset_command_buffer(cmd, vk::CommandBufferResetFlags::empty())
+                .vk("vkResetCommandBuffer")?;
+            d.begin_command_buffer(
+                cmd,
+                &vk::CommandBufferBeginInfo::default()
+                    .flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT),
+            )
+            .vk("vkBeginCommandBuffer")?;
         }
         let frag = vk::PipelineStageFlags2::FRAGMENT_SHADER;
         let color = vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT;
@@ -296,12 +400,28 @@ impl ErrorsGpu {
         let rt = vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL;
         let ro = vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL;
         // Earlier generations on this queue read (GIE) or copied (TBE) these images.
-        self.barrier(cmd, &slot.gie, 0, n, (frag | color, write, vk::ImageLayout::UNDEFINED), (color, write, rt));
+        self.barrier(
+            cmd,
+            &slot.gie,
+            0,
+            n,
+            (
+                frag | color | vk::PipelineStageFlags2::COPY,
+                write,
+                vk::ImageLayout::UNDEFINED,
+            ),
+            (color, write, rt),
+        );
         let unorm = (self.hf.format == HeightFormat::Unorm16) as i32;
         for lod in 1..=n {
             let side = 1u32 << (n - lod);
             let push = GiePush {
-                level: [lod as i32, n as i32, (p.mode == crate::gie::ErrorMode::Strict) as i32, unorm],
+                level: [
+                    lod as i32,
+                    n as i32,
+                    (p.mode == crate::gie::ErrorMode::Strict) as i32,
+                    unorm,
+                ],
                 extent: [self.hf.width as i32, self.hf.height as i32, side as i32, 0],
                 camera: [p.camera.x, p.camera.y, p.camera.z, p.kappa],
                 params: [self.hf.spacing, self.hf.height_scale, p.near, p.inv_cos2],
@@ -315,11 +435,25 @@ impl ErrorsGpu {
                 slot.gie_sets[(lod - 1) as usize],
                 bytemuck::bytes_of(&push),
             );
-            self.barrier(cmd, &slot.gie, lod - 1, 1, (color, write, rt), (frag, read, ro));
+            self.barrier(
+                cmd,
+                &slot.gie,
+                lod - 1,
+                1,
+                (color, write, rt),
+                (frag, read, ro),
+            );
         }
         let data_bytes = BlockErrors::packed_len(root) as u64 * 4;
         if let Some(tbe) = &slot.tbe {
-            self.barrier(cmd, tbe, 0, root, (copy | color, write, vk::ImageLayout::UNDEFINED), (color, write, rt));
+            self.barrier(
+                cmd,
+                tbe,
+                0,
+                root,
+                (copy | color, write, vk::ImageLayout::UNDEFINED),
+                (color, write, rt),
+            );
             for j in 1..=root {
                 let push = ReducePush {
                     level: [j as i32, j as i32 - 1, (self.layout.k() - 1) as i32, 0],
@@ -334,7 +468,18 @@ impl ErrorsGpu {
                     bytemuck::bytes_of(&push),
                 );
             }
-            self.barrier(cmd, tbe, 0, root, (color, write, rt), (copy, vk::AccessFlags2::TRANSFER_READ, vk::ImageLayout::TRANSFER_SRC_OPTIMAL));
+            self.barrier(
+                cmd,
+                tbe,
+                0,
+                root,
+                (color, write, rt),
+                (
+                    copy,
+                    vk::AccessFlags2::TRANSFER_READ,
+                    vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
+                ),
+            );
             let mut regions = Vec::new();
             let mut at = 4u64;
             for j in 1..=root {
@@ -348,13 +493,82 @@ impl ErrorsGpu {
                             base_array_layer: 0,
                             layer_count: 1,
                         })
-                        .image_extent(vk::Extent3D { width: side, height: side, depth: 1 }),
+                        .image_extent(vk::Extent3D {
+                            width: side,
+                            height: side,
+                            depth: 1,
+                        }),
                 );
                 at += side as u64 * side as u64 * 4;
             }
             // SAFETY: recording; the readback slot is not read by the draw thread (the
             // hand-off protocol guarantees it).
-            unsafe { d.cmd_copy_image_to_buffer(cmd, tbe.handle, vk::ImageLayout::TRANSFER_SRC_OPTIMAL, readback.handle, &regions) };
+            unsafe {
+                d.cmd_copy_image_to_buffer(
+                    cmd,
+                    tbe.handle,
+                    vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
+                    readback.handle,
+                    &regions,
+                )
+            };
+        }
+        if let Some(dump) = gie_dump {
+            // Tests compare every GIE texel with the reference: copy all mips, LOD 1 first.
+            self.barrier(
+                cmd,
+                &slot.gie,
+                0,
+                n,
+                (frag, read, ro),
+                (
+                    copy,
+                    vk::AccessFlags2::TRANSFER_READ,
+                    vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
+                ),
+            );
+            let mut regions = Vec::new();
+            let mut at = 0u64;
+            for lod in 1..=n {
+                let side = 1u32 << (n - lod);
+                regions.push(
+                    vk::BufferImageCopy::default()
+                        .buffer_offset(at)
+                        .image_subresource(vk::ImageSubresourceLayers {
+                            aspect_mask: vk::ImageAspectFlags::COLOR,
+                            mip_level: lod - 1,
+                            base_array_layer: 0,
+                            layer_count: 1,
+                        })
+                        .image_extent(vk::Extent3D {
+                            width: side,
+                            height: side,
+                            depth: 1,
+                        }),
+                );
+                at += side as u64 * side as u64 * 4;
+            }
+            let to_host = [vk::BufferMemoryBarrier2::default()
+                .src_stage_mask(copy)
+                .src_access_mask(vk::AccessFlags2::TRANSFER_WRITE)
+                .dst_stage_mask(vk::PipelineStageFlags2::HOST)
+                .dst_access_mask(vk::AccessFlags2::HOST_READ)
+                .buffer(dump.handle)
+                .size(vk::WHOLE_SIZE)];
+            // SAFETY: recording; `dump` is owned by the caller, who waits for completion.
+            unsafe {
+                d.cmd_copy_image_to_buffer(
+                    cmd,
+                    slot.gie.handle,
+                    vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
+                    dump.handle,
+                    &regions,
+                );
+                d.cmd_pipeline_barrier2(
+                    cmd,
+                    &vk::DependencyInfo::default().buffer_memory_barriers(&to_host),
+                );
+            }
         }
         // SAFETY: recording; fills touch only the header and trailer words.
         unsafe {
@@ -365,7 +579,10 @@ impl ErrorsGpu {
                 .dst_access_mask(vk::AccessFlags2::TRANSFER_WRITE)
                 .buffer(readback.handle)
                 .size(vk::WHOLE_SIZE)];
-            d.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().buffer_memory_barriers(&before));
+            d.cmd_pipeline_barrier2(
+                cmd,
+                &vk::DependencyInfo::default().buffer_memory_barriers(&before),
+            );
             d.cmd_fill_buffer(cmd, readback.handle, 0, 4, g as u32);
             d.cmd_fill_buffer(cmd, readback.handle, 4 + data_bytes, 4, g as u32);
             let to_host = [vk::BufferMemoryBarrier2::default()
@@ -375,7 +592,10 @@ impl ErrorsGpu {
                 .dst_access_mask(vk::AccessFlags2::HOST_READ)
                 .buffer(readback.handle)
                 .size(vk::WHOLE_SIZE)];
-            d.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().buffer_memory_barriers(&to_host));
+            d.cmd_pipeline_barrier2(
+                cmd,
+                &vk::DependencyInfo::default().buffer_memory_barriers(&to_host),
+            );
             d.end_command_buffer(cmd).vk("vkEndCommandBuffer")?;
         }
         Ok(cmd)
@@ -391,14 +611,88 @@ impl Drop for ErrorsGpu {
     }
 }
 
+/// Computes one generation synchronously on the errors queue and returns every GIE
+/// texel as well as the block errors (for tests and `errors --dump-gie`).
+pub fn compute_once(
+    device: &Arc<Device>,
+    terrain: Arc<TerrainGpu>,
+    hf: Arc<Heightfield>,
+    block_layout: BlockLayout,
+    params: &ErrorParams,
+) -> VkResult<(GroupErrors, BlockErrors)> {
+    let n = hf.n;
+    let root = block_layout.root_lod();
+    let gpu = ErrorsGpu::new(device, terrain, hf, block_layout)?;
+    let readback = Buffer::new(
+        device,
+        "block-error readback",
+        readback_bytes(root),
+        vk::BufferUsageFlags::TRANSFER_DST,
+        gpu_allocator::MemoryLocation::GpuToCpu,
+    )?;
+    let texels: u64 = (1..=n).map(|i| 1u64 << (2 * (n - i))).sum();
+    let dump = Buffer::new(
+        device,
+        "GIE dump",
+        texels * 4,
+        vk::BufferUsageFlags::TRANSFER_DST,
+        gpu_allocator::MemoryLocation::GpuToCpu,
+    )?;
+    let timeline = TimelineSemaphore::new(device, 0)?;
+    let cmd = gpu.record(1, 1, params, &readback, Some(&dump))?;
+    let cmds = [vk::CommandBufferSubmitInfo::default().command_buffer(cmd)];
+    let signal = [vk::SemaphoreSubmitInfo::default()
+        .semaphore(timeline.handle)
+        .value(1)
+        .stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)];
+    let submit = [vk::SubmitInfo2::default()
+        .command_buffer_infos(&cmds)
+        .signal_semaphore_infos(&signal)];
+    device
+        .errors_queue
+        .submit(device, &submit, vk::Fence::null())?;
+    timeline.wait(1, u64::MAX)?;
+    let data: Vec<f32> = bytemuck::pod_collect_to_vec(dump.mapped()?);
+    let mut levels = Vec::new();
+    let mut at = 0;
+    for lod in 1..=n {
+        let len = 1usize << (2 * (n - lod));
+        levels.push(data[at..at + len].to_vec());
+        at += len;
+    }
+    let rb = readback.mapped()?;
+    let len = BlockErrors::packed_len(root);
+    let blocks: Vec<f32> = bytemuck::pod_collect_to_vec(&rb[4..4 + len * 4]);
+    Ok((
+        GroupErrors { n, levels },
+        BlockErrors::from_packed(root, &blocks),
+    ))
+}
+
 impl ErrorsActivity {
     /// Starts the errors thread. Nothing is computed until [`ErrorsActivity::request`].
-    pub fn start(device: &Arc<Device>, terrain: Arc<TerrainGpu>, hf: Arc<Heightfield>, block_layout: BlockLayout) -> VkResult<Self> {
+    pub fn start(
+        device: &Arc<Device>,
+        terrain: Arc<TerrainGpu>,
+        hf: Arc<Heightfield>,
+        block_layout: BlockLayout,
+    ) -> VkResult<Self> {
         let root = block_layout.root_lod();
         let bytes = readback_bytes(root);
-        let rb = |i: usize| Buffer::new(device, &format!("block-error readback {i}"), bytes, vk::BufferUsageFlags::TRANSFER_DST, gpu_allocator::MemoryLocation::GpuToCpu);
+        let rb = |i: usize| {
+            Buffer::new(
+                device,
+                &format!("block-error readback {i}"),
+                bytes,
+                vk::BufferUsageFlags::TRANSFER_DST,
+                gpu_allocator::MemoryLocation::GpuToCpu,
+            )
+        };
         let shared = Arc::new(Shared {
-            request: Mutex::new(Request { params: None, stop: false }),
+            request: Mutex::new(Request {
+                params: None,
+                stop: false,
+            }),
             request_cv: Condvar::new(),
             handoff: Mutex::new(Handoff {
                 reading: None,
@@ -575,14 +869,18 @@ fn run(gpu: ErrorsGpu, s: &Shared) -> VkResult<()> {
             });
         }
         let start = Instant::now();
-        let cmd = gpu.record(slot, g, &params, &s.readbacks[slot])?;
+        let cmd = gpu.record(slot, g, &params, &s.readbacks[slot], None)?;
         let cmds = [vk::CommandBufferSubmitInfo::default().command_buffer(cmd)];
         let signal = [vk::SemaphoreSubmitInfo::default()
             .semaphore(s.timeline.handle)
             .value(g)
             .stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)];
-        let submit = [vk::SubmitInfo2::default().command_buffer_infos(&cmds).signal_semaphore_infos(&signal)];
-        gpu.device.errors_queue.submit(&gpu.device, &submit, vk::Fence::null())?;
+        let submit = [vk::SubmitInfo2::default()
+            .command_buffer_infos(&cmds)
+            .signal_semaphore_infos(&signal)];
+        gpu.device
+            .errors_queue
+            .submit(&gpu.device, &submit, vk::Fence::null())?;
         // One generation in flight: wait (on the CPU) until it is done.
         while !s.timeline.wait(g, 100_000_000)? {
             if s.request.lock().unwrap().stop {

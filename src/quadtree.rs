@@ -19,10 +19,14 @@ impl BlockLayout {
     /// the terrain.
     pub fn new(n: u32, k: u32) -> Result<Self, String> {
         if k < 3 || !(k - 1).is_power_of_two() {
-            return Err(format!("--block {k}: the block side must be 2^m + 1 (3, 5, 9, 17, 33, 65, ...)"));
+            return Err(format!(
+                "--block {k}: the block side must be 2^m + 1 (3, 5, 9, 17, 33, 65, ...)"
+            ));
         }
         if k > 257 {
-            return Err(format!("--block {k}: at most 257 (vertex coordinates are 8-bit)"));
+            return Err(format!(
+                "--block {k}: at most 257 (vertex coordinates are 8-bit)"
+            ));
         }
         let m = (k - 1).trailing_zeros().min(n);
         Ok(BlockLayout { n, m })
@@ -96,13 +100,24 @@ pub struct Traversal {
 }
 
 /// World-space AABB of a block.
-pub fn block_aabb(hf: &Heightfield, mm: &MinMaxPyramid, layout: &BlockLayout, lod: u32, bx: u32, bz: u32) -> (Vec3, Vec3) {
+pub fn block_aabb(
+    hf: &Heightfield,
+    mm: &MinMaxPyramid,
+    layout: &BlockLayout,
+    lod: u32,
+    bx: u32,
+    bz: u32,
+) -> (Vec3, Vec3) {
     let level = layout.m + lod;
     let s = layout.block_samples(lod) as f32 * hf.spacing;
     let [lo, hi] = mm.get(level, bx as usize, bz as usize);
     (
         Vec3::new(bx as f32 * s, lo * hf.height_scale, bz as f32 * s),
-        Vec3::new((bx + 1) as f32 * s, hi * hf.height_scale, (bz + 1) as f32 * s),
+        Vec3::new(
+            (bx + 1) as f32 * s,
+            hi * hf.height_scale,
+            (bz + 1) as f32 * s,
+        ),
     )
 }
 
@@ -118,7 +133,10 @@ pub fn traverse(
     let mut out = Traversal::default();
     let mut stack = vec![(layout.root_lod(), 0u32, 0u32)];
     while let Some((lod, bx, bz)) = stack.pop() {
-        let (ox, oz) = (bx * layout.block_samples(lod), bz * layout.block_samples(lod));
+        let (ox, oz) = (
+            bx * layout.block_samples(lod),
+            bz * layout.block_samples(lod),
+        );
         if ox as usize >= hf.width - 1 || oz as usize >= hf.height - 1 {
             continue; // wholly in the embedding margin
         }
@@ -136,7 +154,13 @@ pub fn traverse(
                     computed_at,
                     delta,
                 } => {
-                    let e = stale_corrected(errors.get(lod, bx as usize, bz as usize), computed_at, cam.position, min, max);
+                    let e = stale_corrected(
+                        errors.get(lod, bx as usize, bz as usize),
+                        computed_at,
+                        cam.position,
+                        min,
+                        max,
+                    );
                     (e <= delta, e)
                 }
                 LodSelect::Distance { factor } => {
@@ -205,7 +229,12 @@ fn assign_neighbours(layout: &BlockLayout, blocks: &mut [DrawBlock], map: &[i8])
     for b in blocks.iter_mut() {
         let span = 1i64 << b.lod;
         let (cx, cz) = (b.bx as i64 * span, b.bz as i64 * span);
-        let across = [at(cx, cz - 1), at(cx + span, cz), at(cx, cz + span), at(cx - 1, cz)];
+        let across = [
+            at(cx, cz - 1),
+            at(cx + span, cz),
+            at(cx, cz + span),
+            at(cx - 1, cz),
+        ];
         for (i, l) in across.iter().enumerate() {
             b.coarser[i] = if *l > b.lod as i8 { 1u32 << *l } else { 0 };
         }
@@ -214,7 +243,13 @@ fn assign_neighbours(layout: &BlockLayout, blocks: &mut [DrawBlock], map: &[i8])
 
 /// The vertex shader's placement of block vertex `(u, v)`, in plain Rust: the sample it
 /// lands on and its raw height (SPEC section 5, cracks). Must match `glsl/terrain.vert`.
-pub fn block_vertex(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, u: u32, v: u32) -> (i64, i64, f32) {
+pub fn block_vertex(
+    hf: &Heightfield,
+    layout: &BlockLayout,
+    b: &DrawBlock,
+    u: u32,
+    v: u32,
+) -> (i64, i64, f32) {
     let k = layout.k();
     let stride = b.stride() as i64;
     let (ox, oz) = b.origin(layout);
@@ -264,7 +299,14 @@ pub fn block_vertex(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, u: u3
 }
 
 /// Frustum-visible test for the finest cell `(cx, cz)` (used by the tiling check).
-pub fn cell_visible(hf: &Heightfield, mm: &MinMaxPyramid, layout: &BlockLayout, frustum: &Frustum, cx: u32, cz: u32) -> bool {
+pub fn cell_visible(
+    hf: &Heightfield,
+    mm: &MinMaxPyramid,
+    layout: &BlockLayout,
+    frustum: &Frustum,
+    cx: u32,
+    cz: u32,
+) -> bool {
     let s = layout.block_samples(0);
     if (cx * s) as usize >= hf.width - 1 || (cz * s) as usize >= hf.height - 1 {
         return false;

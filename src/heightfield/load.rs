@@ -48,7 +48,10 @@ pub fn load(path: &Path, opts: &LoadOptions) -> Result<Heightfield, HeightfieldE
         source,
     })?;
     if meta.is_dir() {
-        return Err(HeightfieldError::invalid(&shown, "is a directory, not a heightfield file"));
+        return Err(HeightfieldError::invalid(
+            &shown,
+            "is a directory, not a heightfield file",
+        ));
     }
     let bytes = std::fs::read(path).map_err(|source| HeightfieldError::Io {
         path: shown.clone(),
@@ -66,14 +69,18 @@ pub fn load(path: &Path, opts: &LoadOptions) -> Result<Heightfield, HeightfieldE
         "tif" | "tiff" => decode_tiff(&shown, &bytes)?,
         "r16" | "f32" => decode_raw(&shown, &bytes, &ext, opts.raw_size)?,
         "hgt" => decode_hgt(&shown, &bytes)?,
-        _ => {
-            return Err(HeightfieldError::invalid(
-                &shown,
-                format!("unknown extension '{ext}': expected .png, .jpg, .tif, .tiff, .r16, .f32 or .hgt"),
-            ))
-        }
+        _ => return Err(HeightfieldError::invalid(
+            &shown,
+            format!(
+                "unknown extension '{ext}': expected .png, .jpg, .tif, .tiff, .r16, .f32 or .hgt"
+            ),
+        )),
     };
-    let (dspacing, dscale) = defaults(&shown, decoded.bits, decoded.format == HeightFormat::Float32);
+    let (dspacing, dscale) = defaults(
+        &shown,
+        decoded.bits,
+        decoded.format == HeightFormat::Float32,
+    );
     let spacing = opts.spacing.unwrap_or(dspacing);
     let height_scale = opts.height_scale.unwrap_or(dscale);
     Heightfield::embed(
@@ -97,7 +104,10 @@ struct Decoded {
 
 fn check_dims(path: &str, w: usize, h: usize) -> Result<(), HeightfieldError> {
     if w == 0 || h == 0 {
-        return Err(HeightfieldError::invalid(path, format!("image is {w} x {h}: no samples")));
+        return Err(HeightfieldError::invalid(
+            path,
+            format!("image is {w} x {h}: no samples"),
+        ));
     }
     if w > MAX_SIDE || h > MAX_SIDE {
         return Err(HeightfieldError::invalid(
@@ -135,7 +145,10 @@ fn decode_image(path: &str, bytes: &[u8]) -> Result<Decoded, HeightfieldError> {
         _ => {
             return Err(HeightfieldError::invalid(
                 path,
-                format!("unsupported pixel format {:?}: expected 8- or 16-bit grayscale", img.color()),
+                format!(
+                    "unsupported pixel format {:?}: expected 8- or 16-bit grayscale",
+                    img.color()
+                ),
             ))
         }
     };
@@ -176,7 +189,8 @@ fn equal_channels<T: Copy + Into<f32> + PartialEq>(
 fn decode_tiff(path: &str, bytes: &[u8]) -> Result<Decoded, HeightfieldError> {
     use tiff::decoder::{Decoder, DecodingResult as R};
     use tiff::tags::Tag;
-    let terr = |e: tiff::TiffError| HeightfieldError::invalid(path, format!("cannot decode TIFF: {e}"));
+    let terr =
+        |e: tiff::TiffError| HeightfieldError::invalid(path, format!("cannot decode TIFF: {e}"));
     let mut dec = Decoder::new(std::io::Cursor::new(bytes)).map_err(terr)?;
     let (w, h) = dec.dimensions().map_err(terr)?;
     let (w, h) = (w as usize, h as usize);
@@ -235,7 +249,9 @@ fn decode_tiff(path: &str, bytes: &[u8]) -> Result<Decoded, HeightfieldError> {
     }
     if let Some(nd) = nodata {
         let nd = nd as f32;
-        fill_voids(path, &mut samples, w, h, |v| v == nd || (v.is_nan() && nan_is_void))?;
+        fill_voids(path, &mut samples, w, h, |v| {
+            v == nd || (v.is_nan() && nan_is_void)
+        })?;
     }
     Ok(Decoded {
         width: w,
@@ -253,7 +269,10 @@ fn decode_raw(
     size: Option<(usize, usize)>,
 ) -> Result<Decoded, HeightfieldError> {
     let Some((w, h)) = size else {
-        return Err(HeightfieldError::invalid(path, "raw heightfields need --raw-size WxH"));
+        return Err(HeightfieldError::invalid(
+            path,
+            "raw heightfields need --raw-size WxH",
+        ));
     };
     check_dims(path, w, h)?;
     let bpp = if ext == "r16" { 2 } else { 4 };
@@ -269,7 +288,10 @@ fn decode_raw(
     }
     let (samples, format, bits) = if bpp == 2 {
         (
-            bytes.chunks_exact(2).map(|c| u16::from_le_bytes([c[0], c[1]]) as f32).collect(),
+            bytes
+                .chunks_exact(2)
+                .map(|c| u16::from_le_bytes([c[0], c[1]]) as f32)
+                .collect(),
             HeightFormat::Unorm16,
             16,
         )
@@ -336,7 +358,10 @@ pub(crate) fn fill_voids(
         return Ok(0);
     }
     if total == samples.len() {
-        return Err(HeightfieldError::invalid(path, "every sample is a void (nodata)"));
+        return Err(HeightfieldError::invalid(
+            path,
+            "every sample is a void (nodata)",
+        ));
     }
     let mut frontier: Vec<usize> = (0..samples.len()).filter(|&i| void[i]).collect();
     while !frontier.is_empty() {
@@ -384,7 +409,9 @@ mod tests {
 
     #[test]
     fn voids_are_filled_from_neighbours() {
-        let mut s = vec![1.0, -32768.0, 3.0, -32768.0, -32768.0, -32768.0, 7.0, 8.0, 9.0];
+        let mut s = vec![
+            1.0, -32768.0, 3.0, -32768.0, -32768.0, -32768.0, 7.0, 8.0, 9.0,
+        ];
         let n = fill_voids("t", &mut s, 3, 3, |v| v == -32768.0).unwrap();
         assert_eq!(n, 4);
         assert_eq!(s[1], 2.0);

@@ -77,25 +77,37 @@ impl Heightfield {
         if width < 3 || height < 3 {
             return Err(HeightfieldError::invalid(
                 source,
-                format!("{width} x {height} is too small: a heightfield needs at least 3 x 3 samples"),
+                format!(
+                    "{width} x {height} is too small: a heightfield needs at least 3 x 3 samples"
+                ),
             ));
         }
         if width > MAX_SIDE || height > MAX_SIDE {
             return Err(HeightfieldError::invalid(
                 source,
-                format!("{width} x {height} is larger than the supported {MAX_SIDE} samples a side"),
+                format!(
+                    "{width} x {height} is larger than the supported {MAX_SIDE} samples a side"
+                ),
             ));
         }
         if samples.len() != width * height {
             return Err(HeightfieldError::invalid(
                 source,
-                format!("expected {} samples, found {}", width * height, samples.len()),
+                format!(
+                    "expected {} samples, found {}",
+                    width * height,
+                    samples.len()
+                ),
             ));
         }
         if let Some(i) = samples.iter().position(|v| !v.is_finite()) {
             return Err(HeightfieldError::invalid(
                 source,
-                format!("sample at column {}, row {} is not a finite number", i % width, i / width),
+                format!(
+                    "sample at column {}, row {} is not a finite number",
+                    i % width,
+                    i / width
+                ),
             ));
         }
         let side_needed = width.max(height);
@@ -273,17 +285,33 @@ mod tests {
     #[test]
     fn rejects_tiny_and_non_finite() {
         let e = Heightfield::embed("f.r16", 2, 2, &[0.0; 4], HeightFormat::Float32, 1.0, 1.0);
-        assert!(e.unwrap_err().to_string().starts_with("f.r16: 2 x 2 is too small"));
+        assert!(e
+            .unwrap_err()
+            .to_string()
+            .starts_with("f.r16: 2 x 2 is too small"));
         let mut s = vec![0.0; 9];
         s[4] = f32::NAN;
         let e = Heightfield::embed("g.tif", 3, 3, &s, HeightFormat::Float32, 1.0, 1.0);
-        assert!(e.unwrap_err().to_string().contains("column 1, row 1 is not a finite"));
+        assert!(e
+            .unwrap_err()
+            .to_string()
+            .contains("column 1, row 1 is not a finite"));
     }
 
     #[test]
     fn surface_height_uses_the_a_i_diagonal() {
         // Only the far corner is raised: the a-i diagonal split puts the centre at 0.5.
-        let hf = field(3, 3, |x, z| if x >= 1 && z >= 1 { if x == 1 && z == 1 { 1.0 } else { 0.0 } } else { 0.0 });
+        let hf = field(3, 3, |x, z| {
+            if x >= 1 && z >= 1 {
+                if x == 1 && z == 1 {
+                    1.0
+                } else {
+                    0.0
+                }
+            } else {
+                0.0
+            }
+        });
         assert_eq!(hf.surface_height(0.5, 0.5), 0.5);
         // On the b-h (anti-)diagonal the answer would differ: check a point off the diagonal.
         assert_eq!(hf.surface_height(0.75, 0.25), 0.25);

@@ -16,7 +16,8 @@ impl CommandPool {
             .queue_family_index(family)
             .flags(vk::CommandPoolCreateFlags::RESET_COMMAND_BUFFER);
         // SAFETY: valid create info.
-        let handle = unsafe { device.raw.create_command_pool(&info, None) }.vk("vkCreateCommandPool")?;
+        let handle =
+            unsafe { device.raw.create_command_pool(&info, None) }.vk("vkCreateCommandPool")?;
         Ok(CommandPool {
             device: device.clone(),
             handle,
@@ -29,7 +30,8 @@ impl CommandPool {
             .level(vk::CommandBufferLevel::PRIMARY)
             .command_buffer_count(1);
         // SAFETY: the pool is live and used by this thread only.
-        Ok(unsafe { self.device.raw.allocate_command_buffers(&info) }.vk("vkAllocateCommandBuffers")?[0])
+        Ok(unsafe { self.device.raw.allocate_command_buffers(&info) }
+            .vk("vkAllocateCommandBuffers")?[0])
     }
 
     pub fn free(&self, cmd: vk::CommandBuffer) {
@@ -53,9 +55,18 @@ pub struct Fence {
 
 impl Fence {
     pub fn new(device: &Arc<Device>, signaled: bool) -> VkResult<Self> {
-        let flags = if signaled { vk::FenceCreateFlags::SIGNALED } else { vk::FenceCreateFlags::empty() };
+        let flags = if signaled {
+            vk::FenceCreateFlags::SIGNALED
+        } else {
+            vk::FenceCreateFlags::empty()
+        };
         // SAFETY: valid create info.
-        let handle = unsafe { device.raw.create_fence(&vk::FenceCreateInfo::default().flags(flags), None) }.vk("vkCreateFence")?;
+        let handle = unsafe {
+            device
+                .raw
+                .create_fence(&vk::FenceCreateInfo::default().flags(flags), None)
+        }
+        .vk("vkCreateFence")?;
         Ok(Fence {
             device: device.clone(),
             handle,
@@ -64,7 +75,12 @@ impl Fence {
 
     pub fn wait(&self, timeout_ns: u64) -> VkResult<()> {
         // SAFETY: live fence.
-        unsafe { self.device.raw.wait_for_fences(&[self.handle], true, timeout_ns) }.vk("vkWaitForFences")
+        unsafe {
+            self.device
+                .raw
+                .wait_for_fences(&[self.handle], true, timeout_ns)
+        }
+        .vk("vkWaitForFences")
     }
 
     pub fn reset(&self) -> VkResult<()> {
@@ -103,14 +119,17 @@ impl TimelineSemaphore {
     /// The current value, read on the CPU (never a GPU wait).
     pub fn value(&self) -> VkResult<u64> {
         // SAFETY: live timeline semaphore.
-        unsafe { self.device.raw.get_semaphore_counter_value(self.handle) }.vk("vkGetSemaphoreCounterValue")
+        unsafe { self.device.raw.get_semaphore_counter_value(self.handle) }
+            .vk("vkGetSemaphoreCounterValue")
     }
 
     /// Waits on the CPU until the value reaches `value`; false on timeout.
     pub fn wait(&self, value: u64, timeout_ns: u64) -> VkResult<bool> {
         let sems = [self.handle];
         let values = [value];
-        let info = vk::SemaphoreWaitInfo::default().semaphores(&sems).values(&values);
+        let info = vk::SemaphoreWaitInfo::default()
+            .semaphores(&sems)
+            .values(&values);
         // SAFETY: live semaphore; arrays outlive the call.
         match unsafe { self.device.raw.wait_semaphores(&info, timeout_ns) } {
             Ok(()) => Ok(true),

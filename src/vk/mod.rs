@@ -11,7 +11,9 @@ mod resources;
 pub use command::{CommandPool, Fence, TimelineSemaphore};
 pub use device::{Device, DeviceOptions, Queue, QueueMode, QueueRequest};
 pub use instance::{Instance, InstanceOptions, MessageCounter};
-pub use pipeline::{DescriptorPool, DescriptorSetLayout, GraphicsPipeline, GraphicsPipelineDesc, PipelineLayout};
+pub use pipeline::{
+    DescriptorPool, DescriptorSetLayout, GraphicsPipeline, GraphicsPipelineDesc, PipelineLayout,
+};
 pub use resources::{Buffer, Image, ImageView, Sampler};
 
 pub use ash::vk;
@@ -37,7 +39,13 @@ pub enum VkError {
 impl VkError {
     /// True when the device was lost (the caller names the stage and stops).
     pub fn is_device_lost(&self) -> bool {
-        matches!(self, VkError::Call { result: vk::Result::ERROR_DEVICE_LOST, .. })
+        matches!(
+            self,
+            VkError::Call {
+                result: vk::Result::ERROR_DEVICE_LOST,
+                ..
+            }
+        )
     }
 }
 

@@ -11,7 +11,10 @@ pub struct DescriptorSetLayout {
 }
 
 impl DescriptorSetLayout {
-    pub fn new(device: &Arc<Device>, bindings: &[(u32, vk::DescriptorType, vk::ShaderStageFlags)]) -> VkResult<Self> {
+    pub fn new(
+        device: &Arc<Device>,
+        bindings: &[(u32, vk::DescriptorType, vk::ShaderStageFlags)],
+    ) -> VkResult<Self> {
         let b: Vec<vk::DescriptorSetLayoutBinding> = bindings
             .iter()
             .map(|&(binding, ty, stages)| {
@@ -24,9 +27,10 @@ impl DescriptorSetLayout {
             .collect();
         // SAFETY: `b` outlives the call.
         let handle = unsafe {
-            device
-                .raw
-                .create_descriptor_set_layout(&vk::DescriptorSetLayoutCreateInfo::default().bindings(&b), None)
+            device.raw.create_descriptor_set_layout(
+                &vk::DescriptorSetLayoutCreateInfo::default().bindings(&b),
+                None,
+            )
         }
         .vk("vkCreateDescriptorSetLayout")?;
         Ok(DescriptorSetLayout {
@@ -39,7 +43,11 @@ impl DescriptorSetLayout {
 impl Drop for DescriptorSetLayout {
     fn drop(&mut self) {
         // SAFETY: pipelines and sets created from it are gone or idle.
-        unsafe { self.device.raw.destroy_descriptor_set_layout(self.handle, None) };
+        unsafe {
+            self.device
+                .raw
+                .destroy_descriptor_set_layout(self.handle, None)
+        };
     }
 }
 
@@ -49,14 +57,24 @@ pub struct DescriptorPool {
 }
 
 impl DescriptorPool {
-    pub fn new(device: &Arc<Device>, max_sets: u32, sizes: &[(vk::DescriptorType, u32)]) -> VkResult<Self> {
+    pub fn new(
+        device: &Arc<Device>,
+        max_sets: u32,
+        sizes: &[(vk::DescriptorType, u32)],
+    ) -> VkResult<Self> {
         let s: Vec<vk::DescriptorPoolSize> = sizes
             .iter()
-            .map(|&(ty, n)| vk::DescriptorPoolSize { ty, descriptor_count: n })
+            .map(|&(ty, n)| vk::DescriptorPoolSize {
+                ty,
+                descriptor_count: n,
+            })
             .collect();
-        let info = vk::DescriptorPoolCreateInfo::default().max_sets(max_sets).pool_sizes(&s);
+        let info = vk::DescriptorPoolCreateInfo::default()
+            .max_sets(max_sets)
+            .pool_sizes(&s);
         // SAFETY: `s` outlives the call.
-        let handle = unsafe { device.raw.create_descriptor_pool(&info, None) }.vk("vkCreateDescriptorPool")?;
+        let handle = unsafe { device.raw.create_descriptor_pool(&info, None) }
+            .vk("vkCreateDescriptorPool")?;
         Ok(DescriptorPool {
             device: device.clone(),
             handle,
@@ -69,11 +87,17 @@ impl DescriptorPool {
             .descriptor_pool(self.handle)
             .set_layouts(&layouts);
         // SAFETY: the pool is owned by one thread.
-        Ok(unsafe { self.device.raw.allocate_descriptor_sets(&info) }.vk("vkAllocateDescriptorSets")?[0])
+        Ok(unsafe { self.device.raw.allocate_descriptor_sets(&info) }
+            .vk("vkAllocateDescriptorSets")?[0])
     }
 
     /// Writes combined image samplers and uniform buffers into `set`.
-    pub fn write(&self, set: vk::DescriptorSet, images: &[(u32, vk::ImageView, vk::Sampler)], buffers: &[(u32, vk::Buffer, u64)]) {
+    pub fn write(
+        &self,
+        set: vk::DescriptorSet,
+        images: &[(u32, vk::ImageView, vk::Sampler)],
+        buffers: &[(u32, vk::Buffer, u64)],
+    ) {
         let image_infos: Vec<[vk::DescriptorImageInfo; 1]> = images
             .iter()
             .map(|&(_, view, sampler)| {
@@ -86,7 +110,13 @@ impl DescriptorPool {
             .collect();
         let buffer_infos: Vec<[vk::DescriptorBufferInfo; 1]> = buffers
             .iter()
-            .map(|&(_, buffer, range)| [vk::DescriptorBufferInfo { buffer, offset: 0, range }])
+            .map(|&(_, buffer, range)| {
+                [vk::DescriptorBufferInfo {
+                    buffer,
+                    offset: 0,
+                    range,
+                }]
+            })
             .collect();
         let mut writes = Vec::new();
         for (i, &(binding, _, _)) in images.iter().enumerate() {
@@ -125,7 +155,12 @@ pub struct PipelineLayout {
 }
 
 impl PipelineLayout {
-    pub fn new(device: &Arc<Device>, set: &DescriptorSetLayout, push_bytes: u32, push_stages: vk::ShaderStageFlags) -> VkResult<Self> {
+    pub fn new(
+        device: &Arc<Device>,
+        set: &DescriptorSetLayout,
+        push_bytes: u32,
+        push_stages: vk::ShaderStageFlags,
+    ) -> VkResult<Self> {
         let sets = [set.handle];
         let ranges = [vk::PushConstantRange {
             stage_flags: push_stages,
@@ -137,7 +172,8 @@ impl PipelineLayout {
             info = info.push_constant_ranges(&ranges);
         }
         // SAFETY: arrays outlive the call.
-        let handle = unsafe { device.raw.create_pipeline_layout(&info, None) }.vk("vkCreatePipelineLayout")?;
+        let handle = unsafe { device.raw.create_pipeline_layout(&info, None) }
+            .vk("vkCreatePipelineLayout")?;
         Ok(PipelineLayout {
             device: device.clone(),
             handle,
@@ -172,9 +208,15 @@ pub struct GraphicsPipeline {
 }
 
 fn shader_module(device: &Device, spirv: &[u8]) -> VkResult<vk::ShaderModule> {
-    let words = ash::util::read_spv(&mut std::io::Cursor::new(spirv)).map_err(|e| super::VkError::Setup(format!("bad SPIR-V: {e}")))?;
+    let words = ash::util::read_spv(&mut std::io::Cursor::new(spirv))
+        .map_err(|e| super::VkError::Setup(format!("bad SPIR-V: {e}")))?;
     // SAFETY: `words` is SPIR-V produced by build.rs.
-    unsafe { device.raw.create_shader_module(&vk::ShaderModuleCreateInfo::default().code(&words), None) }.vk("vkCreateShaderModule")
+    unsafe {
+        device
+            .raw
+            .create_shader_module(&vk::ShaderModuleCreateInfo::default().code(&words), None)
+    }
+    .vk("vkCreateShaderModule")
 }
 
 impl GraphicsPipeline {
@@ -183,8 +225,14 @@ impl GraphicsPipeline {
         let fs = shader_module(device, d.frag)?;
         let entry = c"main";
         let stages = [
-            vk::PipelineShaderStageCreateInfo::default().stage(vk::ShaderStageFlags::VERTEX).module(vs).name(entry),
-            vk::PipelineShaderStageCreateInfo::default().stage(vk::ShaderStageFlags::FRAGMENT).module(fs).name(entry),
+            vk::PipelineShaderStageCreateInfo::default()
+                .stage(vk::ShaderStageFlags::VERTEX)
+                .module(vs)
+                .name(entry),
+            vk::PipelineShaderStageCreateInfo::default()
+                .stage(vk::ShaderStageFlags::FRAGMENT)
+                .module(fs)
+                .name(entry),
         ];
         let bindings;
         let attributes;
@@ -205,24 +253,30 @@ impl GraphicsPipeline {
                 .vertex_binding_descriptions(&bindings)
                 .vertex_attribute_descriptions(&attributes);
         }
-        let assembly = vk::PipelineInputAssemblyStateCreateInfo::default().topology(vk::PrimitiveTopology::TRIANGLE_LIST);
-        let viewport = vk::PipelineViewportStateCreateInfo::default().viewport_count(1).scissor_count(1);
+        let assembly = vk::PipelineInputAssemblyStateCreateInfo::default()
+            .topology(vk::PrimitiveTopology::TRIANGLE_LIST);
+        let viewport = vk::PipelineViewportStateCreateInfo::default()
+            .viewport_count(1)
+            .scissor_count(1);
         let raster = vk::PipelineRasterizationStateCreateInfo::default()
             .polygon_mode(d.polygon_mode)
             .cull_mode(vk::CullModeFlags::NONE)
             .line_width(1.0);
-        let multisample = vk::PipelineMultisampleStateCreateInfo::default().rasterization_samples(vk::SampleCountFlags::TYPE_1);
+        let multisample = vk::PipelineMultisampleStateCreateInfo::default()
+            .rasterization_samples(vk::SampleCountFlags::TYPE_1);
         // Reversed Z: nearer is greater.
         let depth = vk::PipelineDepthStencilStateCreateInfo::default()
             .depth_test_enable(d.depth_test)
             .depth_write_enable(d.depth_test)
             .depth_compare_op(vk::CompareOp::GREATER);
-        let attachments = [vk::PipelineColorBlendAttachmentState::default().color_write_mask(vk::ColorComponentFlags::RGBA)];
+        let attachments = [vk::PipelineColorBlendAttachmentState::default()
+            .color_write_mask(vk::ColorComponentFlags::RGBA)];
         let blend = vk::PipelineColorBlendStateCreateInfo::default().attachments(&attachments);
         let dynamic_states = [vk::DynamicState::VIEWPORT, vk::DynamicState::SCISSOR];
         let dynamic = vk::PipelineDynamicStateCreateInfo::default().dynamic_states(&dynamic_states);
         let color_formats = [d.color_format];
-        let mut rendering = vk::PipelineRenderingCreateInfo::default().color_attachment_formats(&color_formats);
+        let mut rendering =
+            vk::PipelineRenderingCreateInfo::default().color_attachment_formats(&color_formats);
         if let Some(df) = d.depth_format {
             rendering = rendering.depth_attachment_format(df);
         }
@@ -239,7 +293,11 @@ impl GraphicsPipeline {
             .layout(d.layout.handle)
             .push_next(&mut rendering);
         // SAFETY: every pointer in `info` refers to locals that outlive the call.
-        let result = unsafe { device.raw.create_graphics_pipelines(vk::PipelineCache::null(), &[info], None) };
+        let result = unsafe {
+            device
+                .raw
+                .create_graphics_pipelines(vk::PipelineCache::null(), &[info], None)
+        };
         // SAFETY: modules are not needed once the pipeline exists (or failed).
         unsafe {
             device.raw.destroy_shader_module(vs, None);

@@ -21,7 +21,13 @@ pub struct Buffer {
 }
 
 impl Buffer {
-    pub fn new(device: &Arc<Device>, name: &str, size: u64, usage: vk::BufferUsageFlags, location: MemoryLocation) -> VkResult<Self> {
+    pub fn new(
+        device: &Arc<Device>,
+        name: &str,
+        size: u64,
+        usage: vk::BufferUsageFlags,
+        location: MemoryLocation,
+    ) -> VkResult<Self> {
         let info = vk::BufferCreateInfo::default()
             .size(size.max(4))
             .usage(usage)
@@ -45,7 +51,12 @@ impl Buffer {
                 alloc_err(name, e)
             })?;
         // SAFETY: the allocation satisfies `requirements`; memory and offset come from it.
-        unsafe { device.raw.bind_buffer_memory(handle, allocation.memory(), allocation.offset()) }.vk("vkBindBufferMemory")?;
+        unsafe {
+            device
+                .raw
+                .bind_buffer_memory(handle, allocation.memory(), allocation.offset())
+        }
+        .vk("vkBindBufferMemory")?;
         Ok(Buffer {
             device: device.clone(),
             handle,
@@ -55,8 +66,19 @@ impl Buffer {
     }
 
     /// A host-visible buffer filled with `data`.
-    pub fn with_data(device: &Arc<Device>, name: &str, data: &[u8], usage: vk::BufferUsageFlags) -> VkResult<Self> {
-        let mut b = Buffer::new(device, name, data.len() as u64, usage, MemoryLocation::CpuToGpu)?;
+    pub fn with_data(
+        device: &Arc<Device>,
+        name: &str,
+        data: &[u8],
+        usage: vk::BufferUsageFlags,
+    ) -> VkResult<Self> {
+        let mut b = Buffer::new(
+            device,
+            name,
+            data.len() as u64,
+            usage,
+            MemoryLocation::CpuToGpu,
+        )?;
         b.mapped_mut()?[..data.len()].copy_from_slice(data);
         Ok(b)
     }
@@ -134,7 +156,8 @@ impl Image {
             .usage(usage)
             .initial_layout(vk::ImageLayout::UNDEFINED);
         info = if concurrent {
-            info.sharing_mode(vk::SharingMode::CONCURRENT).queue_family_indices(&device.families)
+            info.sharing_mode(vk::SharingMode::CONCURRENT)
+                .queue_family_indices(&device.families)
         } else {
             info.sharing_mode(vk::SharingMode::EXCLUSIVE)
         };
@@ -157,7 +180,12 @@ impl Image {
                 alloc_err(name, e)
             })?;
         // SAFETY: allocation satisfies the requirements.
-        unsafe { device.raw.bind_image_memory(handle, allocation.memory(), allocation.offset()) }.vk("vkBindImageMemory")?;
+        unsafe {
+            device
+                .raw
+                .bind_image_memory(handle, allocation.memory(), allocation.offset())
+        }
+        .vk("vkBindImageMemory")?;
         let aspect = aspect_of(format);
         let view = create_view(device, handle, format, aspect, 0, mip_levels)?;
         Ok(Image {
@@ -175,7 +203,14 @@ impl Image {
     pub fn mip_view(&self, base: u32, count: u32) -> VkResult<ImageView> {
         Ok(ImageView {
             device: self.device.clone(),
-            handle: create_view(&self.device, self.handle, self.format, aspect_of(self.format), base, count)?,
+            handle: create_view(
+                &self.device,
+                self.handle,
+                self.format,
+                aspect_of(self.format),
+                base,
+                count,
+            )?,
         })
     }
 
@@ -197,7 +232,14 @@ fn aspect_of(format: vk::Format) -> vk::ImageAspectFlags {
     }
 }
 
-fn create_view(device: &Device, image: vk::Image, format: vk::Format, aspect: vk::ImageAspectFlags, base: u32, count: u32) -> VkResult<vk::ImageView> {
+fn create_view(
+    device: &Device,
+    image: vk::Image,
+    format: vk::Format,
+    aspect: vk::ImageAspectFlags,
+    base: u32,
+    count: u32,
+) -> VkResult<vk::ImageView> {
     let info = vk::ImageViewCreateInfo::default()
         .image(image)
         .view_type(vk::ImageViewType::TYPE_2D)
@@ -244,7 +286,11 @@ pub struct Sampler {
 }
 
 impl Sampler {
-    pub fn new(device: &Arc<Device>, filter: vk::Filter, address: vk::SamplerAddressMode) -> VkResult<Self> {
+    pub fn new(
+        device: &Arc<Device>,
+        filter: vk::Filter,
+        address: vk::SamplerAddressMode,
+    ) -> VkResult<Self> {
         let info = vk::SamplerCreateInfo::default()
             .mag_filter(filter)
             .min_filter(filter)

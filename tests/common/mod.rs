@@ -1,0 +1,83 @@
+//! Shared helpers for the integration tests. Every GPU test creates its device through
+//! `gpu()`, which turns on validation with synchronization validation, and ends with
+//! `assert_clean`, which fails on any validation message.
+#![allow(dead_code)]
+
+use std::path::PathBuf;
+use std::sync::Arc;
+use vkterrain::heightfield::{HeightFormat, Heightfield};
+use vkterrain::vk::{Device, DeviceOptions, Instance, InstanceOptions, QueueRequest};
+
+/// `../shared/data` next to the repository. Tests that need it fail (not skip) when it
+/// is missing: CI always has it.
+pub fn data(rel: &str) -> PathBuf {
+    let p = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../shared/data")
+        .join(rel);
+    assert!(
+        p.exists(),
+        "test data {} is missing (expected ../shared/data beside the repository)",
+        p.display()
+    );
+    p
+}
+
+pub fn gpu_with(queues: QueueRequest) -> Arc<Device> {
+    // Lavapipe's loader looks for a runtime dir; a private one keeps stderr quiet.
+    if std::env::var_os("XDG_RUNTIME_DIR").is_none() {
+        let dir = std::env::temp_dir().join(format!("vkterrain-xdg-{}", std::process::id()));
+        let _ = std::fs::create_dir_all(&dir);
+        std::env::set_var("XDG_RUNTIME_DIR", dir);
+    }
+    let instance = Instance::new(&InstanceOptions {
+        validation: true,
+        extensions: Vec::new(),
+    })
+    .expect("Vulkan instance with validation (install vulkan-validationlayers)");
+    Device::new(
+        instance,
+        &DeviceOptions {
+            gpu: None,
+            queues,
+            swapchain: false,
+        },
+    )
+    .expect("Vulkan device")
+}
+
+pub fn gpu() -> Arc<Device> {
+    gpu_with(QueueRequest::Auto)
+}
+
+pub fn assert_clean(device: &Device) {
+    let n = device.instance.validation_messages();
+    assert_eq!(
+        n,
+        0,
+        "validation messages: {:#?}",
+        device.instance.messages.messages()
+    );
+}
+
+/// A crafted float heightfield.
+pub fn field(w: usize, h: usize, spacing: f32, f: impl Fn(usize, usize) -> f32) -> Heightfield {
+    let s: Vec<f32> = (0..w * h).map(|i| f(i % w, i / w)).collect();
+    Heightfield::embed("crafted", w, h, &s, HeightFormat::Float32, spacing, 1.0).unwrap()
+}
+
+/// A crafted 16-bit heightfield (stored as R16_UNORM on the GPU).
+pub fn field16(
+    w: usize,
+    h: usize,
+    spacing: f32,
+    scale: f32,
+    f: impl Fn(usize, usize) -> u16,
+) -> Heightfield {
+    let s: Vec<f32> = (0..w * h).map(|i| f(i % w, i / w) as f32).collect();
+    Heightfield::embed("crafted16", w, h, &s, HeightFormat::Unorm16, spacing, scale).unwrap()
+}
+
+/// Relative comparison used for GPU-vs-reference checks.
+pub fn close(a: f32, b: f32, rel: f32) -> bool {
+    a == b || (a - b).abs() <= rel * a.abs().max(b.abs())
+}
