@@ -225,6 +225,9 @@ impl BlocksRenderer {
             depth_format: Some(DEPTH_FORMAT),
             depth_test: true,
             polygon_mode,
+            // A heightfield is seen from above only: culling its underside lets a crack
+            // show the background instead of hiding behind back faces, and saves work.
+            cull_back: true,
             layout: &pipeline_layout,
         };
         let terrain_pipeline = GraphicsPipeline::new(device, &desc(vk::PolygonMode::FILL))?;
@@ -243,6 +246,7 @@ impl BlocksRenderer {
                 depth_format: Some(DEPTH_FORMAT),
                 depth_test: false,
                 polygon_mode: vk::PolygonMode::FILL,
+                cull_back: false,
                 layout: &pipeline_layout,
             },
         )?;

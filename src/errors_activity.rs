@@ -151,6 +151,7 @@ impl ErrorsGpu {
             depth_format: None,
             depth_test: false,
             polygon_mode: vk::PolygonMode::FILL,
+            cull_back: false,
             layout: l,
         };
         let gie_pipeline = GraphicsPipeline::new(device, &desc(shaders::GIE_FRAG, &gie_layout))?;

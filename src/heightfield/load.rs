@@ -69,12 +69,14 @@ pub fn load(path: &Path, opts: &LoadOptions) -> Result<Heightfield, HeightfieldE
         "tif" | "tiff" => decode_tiff(&shown, &bytes)?,
         "r16" | "f32" => decode_raw(&shown, &bytes, &ext, opts.raw_size)?,
         "hgt" => decode_hgt(&shown, &bytes)?,
-        _ => return Err(HeightfieldError::invalid(
-            &shown,
-            format!(
+        _ => {
+            return Err(HeightfieldError::invalid(
+                &shown,
+                format!(
                 "unknown extension '{ext}': expected .png, .jpg, .tif, .tiff, .r16, .f32 or .hgt"
             ),
-        )),
+            ))
+        }
     };
     let (dspacing, dscale) = defaults(
         &shown,

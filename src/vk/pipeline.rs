@@ -188,8 +188,8 @@ impl Drop for PipelineLayout {
     }
 }
 
-/// What a graphics pipeline needs; everything else is fixed (triangle lists, no
-/// culling, one colour attachment, dynamic viewport and scissor).
+/// What a graphics pipeline needs; everything else is fixed (triangle lists, one colour
+/// attachment, dynamic viewport and scissor).
 pub struct GraphicsPipelineDesc<'a> {
     pub vert: &'a [u8],
     pub frag: &'a [u8],
@@ -199,6 +199,9 @@ pub struct GraphicsPipelineDesc<'a> {
     pub depth_format: Option<vk::Format>,
     pub depth_test: bool,
     pub polygon_mode: vk::PolygonMode,
+    /// Cull back faces. Front faces are clockwise in framebuffer space: the block mesh
+    /// winds a -> c -> i counter-clockwise seen from +y, and the projection flips y.
+    pub cull_back: bool,
     pub layout: &'a PipelineLayout,
 }
 
@@ -260,7 +263,12 @@ impl GraphicsPipeline {
             .scissor_count(1);
         let raster = vk::PipelineRasterizationStateCreateInfo::default()
             .polygon_mode(d.polygon_mode)
-            .cull_mode(vk::CullModeFlags::NONE)
+            .cull_mode(if d.cull_back {
+                vk::CullModeFlags::BACK
+            } else {
+                vk::CullModeFlags::NONE
+            })
+            .front_face(vk::FrontFace::CLOCKWISE)
             .line_width(1.0);
         let multisample = vk::PipelineMultisampleStateCreateInfo::default()
             .rasterization_samples(vk::SampleCountFlags::TYPE_1);
