@@ -286,8 +286,7 @@ impl ErrorsGpu {
         cmd: vk::CommandBuffer,
         view: vk::ImageView,
         side: u32,
-        pipeline: &GraphicsPipeline,
-        pl: &PipelineLayout,
+        (pipeline, pl): (&GraphicsPipeline, &PipelineLayout),
         set: vk::DescriptorSet,
         push: &[u8],
     ) {
@@ -431,8 +430,7 @@ impl ErrorsGpu {
                 cmd,
                 slot.gie_mips[(lod - 1) as usize].handle,
                 side,
-                &self.gie_pipeline,
-                &self.gie_layout,
+                (&self.gie_pipeline, &self.gie_layout),
                 slot.gie_sets[(lod - 1) as usize],
                 bytemuck::bytes_of(&push),
             );
@@ -463,8 +461,7 @@ impl ErrorsGpu {
                     cmd,
                     slot.tbe_mips[(j - 1) as usize].handle,
                     1u32 << (root - j),
-                    &self.reduce_pipeline,
-                    &self.reduce_layout,
+                    (&self.reduce_pipeline, &self.reduce_layout),
                     slot.reduce_set,
                     bytemuck::bytes_of(&push),
                 );

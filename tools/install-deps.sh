@@ -8,7 +8,7 @@ set -euo pipefail
 need=()
 have_pkg() { dpkg-query -W -f='${Status}' "$1" 2>/dev/null | grep -q "install ok installed"; }
 for p in libvulkan1 mesa-vulkan-drivers vulkan-validationlayers vulkan-tools \
-         xvfb xauth cmake ninja-build python3 g++ pkg-config libx11-dev libxkbcommon-x11-0 \
+         xvfb xauth cmake ninja-build python3 g++ pkg-config curl ca-certificates libx11-dev libxkbcommon-x11-0 \
          libwayland-client0 libxcursor1 libxrandr2 libxi6; do
   have_pkg "$p" || need+=("$p")
 done
@@ -25,4 +25,11 @@ fi
 if ! command -v cargo >/dev/null 2>&1 && [ ! -x "$HOME/.cargo/bin/cargo" ]; then
   echo "install-deps: installing the Rust toolchain (rustup, stable)" >&2
   curl --proto '=https' --tlsv1.2 -sSf https://sh.rustup.rs | sh -s -- -y --profile minimal -c rustfmt,clippy >&2
+fi
+export PATH="$HOME/.cargo/bin:$PATH"
+if command -v rustup >/dev/null 2>&1; then
+  installed=$(rustup component list --installed 2>/dev/null || true)
+  for c in rustfmt clippy; do
+    echo "$installed" | grep -q "^$c" || rustup component add "$c" >&2
+  done
 fi

@@ -1,0 +1,237 @@
+//! A loader test per format, with the real files in ../shared/data and generated files
+//! for the formats the data set lacks.
+
+mod common;
+use common::data;
+use std::path::{Path, PathBuf};
+use tiff::encoder::{colortype, TiffEncoder};
+use tiff::tags::Tag;
+use vkterrain::heightfield::{load, HeightFormat, Heightfield, LoadOptions};
+
+fn tmp(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("vkterrain-loaders-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    dir.join(name)
+}
+
+fn range(hf: &Heightfield) -> (f32, f32) {
+    let mut lo = f32::INFINITY;
+    let mut hi = f32::NEG_INFINITY;
+    let side = hf.side();
+    for z in 0..hf.height {
+        for x in 0..hf.width {
+            let v = hf.raw[z * side + x];
+            lo = lo.min(v);
+            hi = hi.max(v);
+        }
+    }
+    (lo, hi)
+}
+
+fn load_default(p: &Path) -> Heightfield {
+    load(p, &LoadOptions::default()).unwrap_or_else(|e| panic!("{e}"))
+}
+
+#[test]
+fn puget_sound_16bit_png() {
+    let hf = load_default(&data("puget_sound/ps_height_1k.png"));
+    assert_eq!(
+        (hf.width, hf.height, hf.side(), hf.n),
+        (1025, 1025, 1025, 10)
+    );
+    assert_eq!(hf.format, HeightFormat::Unorm16);
+    assert_eq!(range(&hf), (0.0, 43798.0));
+    assert_eq!((hf.spacing, hf.height_scale), (160.0, 0.1));
+    assert_eq!(hf.raw.iter().filter(|&&v| v == 0.0).count(), 39_421);
+}
+
+#[test]
+fn srtm_geotiffs_with_voids_are_filled() {
+    for (name, lo, hi) in [
+        ("mt_rainier_90m.tif", 263.0, 4371.0),
+        ("mt_fuji_90m.tif", -16.0, 3742.0),
+        ("mt_everest_90m.tif", 192.0, 8642.0),
+    ] {
+        let hf = load_default(&data(&format!("srtm3/{name}")));
+        assert_eq!(
+            (hf.width, hf.height, hf.side()),
+            (1201, 1201, 2049),
+            "{name}"
+        );
+        assert_eq!(hf.format, HeightFormat::Float32);
+        let (a, b) = range(&hf);
+        // Voids are filled from valid neighbours, so the range stays the valid range.
+        assert!(
+            a >= lo && b <= hi && a < lo + 1.0 && b > hi - 1.0,
+            "{name}: {a}..{b}"
+        );
+        assert!(!hf.raw.contains(&-32768.0));
+    }
+}
+
+#[test]
+fn grand_canyon_rgb_png_with_equal_channels() {
+    let hf = load_default(&data("grand_canyon/gcanyon_height_4k2k.png"));
+    assert_eq!((hf.width, hf.height, hf.side()), (4097, 2049, 4097));
+    assert_eq!(range(&hf), (13.0, 187.0));
+    assert_eq!((hf.spacing, hf.height_scale), (60.0, 10.0));
+    // The margin below row 2048 repeats the last row.
+    assert_eq!(hf.raw_at(100, 4096), hf.raw_at(100, 2048));
+}
+
+#[test]
+fn puget_sound_4096_jpeg_embeds_in_4097() {
+    let hf = load_default(&data("puget_sound/ps_height_4k.jpg"));
+    assert_eq!(
+        (hf.width, hf.height, hf.side(), hf.n),
+        (4096, 4096, 4097, 12)
+    );
+    let (_, hi) = range(&hf);
+    assert!((160.0..=180.0).contains(&hi), "max {hi}");
+}
+
+#[test]
+fn generated_png_8_and_16_bit_and_colour() {
+    let p8 = tmp("g8.png");
+    image::GrayImage::from_fn(5, 4, |x, y| image::Luma([(x * 10 + y) as u8]))
+        .save(&p8)
+        .unwrap();
+    let hf = load_default(&p8);
+    assert_eq!((hf.width, hf.height, hf.raw_at(4, 3)), (5, 4, 43.0));
+    let p16 = tmp("g16.png");
+    image::ImageBuffer::<image::Luma<u16>, _>::from_fn(3, 3, |x, y| {
+        image::Luma([(x * 1000 + y * 30000) as u16])
+    })
+    .save(&p16)
+    .unwrap();
+    assert_eq!(load_default(&p16).raw_at(2, 2), 62000.0);
+    let pc = tmp("colour.png");
+    image::RgbImage::from_fn(4, 4, |x, _| image::Rgb([x as u8, 0, 0]))
+        .save(&pc)
+        .unwrap();
+    let e = load(&pc, &LoadOptions::default()).unwrap_err().to_string();
+    assert!(
+        e.contains("colour.png") && e.contains("colour image"),
+        "{e}"
+    );
+}
+
+#[test]
+fn generated_tiffs_unsigned_signed_float_and_nodata() {
+    let p = tmp("u16.tif");
+    let data16: Vec<u16> = (0..12).map(|i| i * 100).collect();
+    TiffEncoder::new(std::fs::File::create(&p).unwrap())
+        .unwrap()
+        .write_image::<colortype::Gray16>(4, 3, &data16)
+        .unwrap();
+    let hf = load_default(&p);
+    assert_eq!(
+        (hf.format, hf.raw_at(3, 2)),
+        (HeightFormat::Unorm16, 1100.0)
+    );
+
+    let p = tmp("f32.tif");
+    let dataf: Vec<f32> = (0..16).map(|i| i as f32 * 0.5 - 2.0).collect();
+    TiffEncoder::new(std::fs::File::create(&p).unwrap())
+        .unwrap()
+        .write_image::<colortype::Gray32Float>(4, 4, &dataf)
+        .unwrap();
+    let hf = load_default(&p);
+    assert_eq!(
+        (hf.format, hf.raw_at(0, 0), hf.raw_at(3, 3)),
+        (HeightFormat::Float32, -2.0, 5.5)
+    );
+
+    // Signed 16-bit with a GDAL_NODATA tag of -9999: the void becomes its neighbours' mean.
+    let p = tmp("i16.tif");
+    let mut datai: Vec<i16> = vec![10; 9];
+    datai[4] = -9999;
+    datai[1] = 20;
+    {
+        let mut enc = TiffEncoder::new(std::fs::File::create(&p).unwrap()).unwrap();
+        let mut img = enc.new_image::<colortype::GrayI16>(3, 3).unwrap();
+        img.encoder()
+            .write_tag(Tag::Unknown(42113), "-9999")
+            .unwrap();
+        img.write_data(&datai).unwrap();
+    }
+    let hf = load_default(&p);
+    assert_eq!(hf.raw_at(1, 1), 12.5);
+
+    // NaN in a float TIFF that declares no NaN nodata is an error naming the sample.
+    let p = tmp("nan.tif");
+    let mut datan = vec![1.0f32; 9];
+    datan[5] = f32::NAN;
+    TiffEncoder::new(std::fs::File::create(&p).unwrap())
+        .unwrap()
+        .write_image::<colortype::Gray32Float>(3, 3, &datan)
+        .unwrap();
+    let e = load(&p, &LoadOptions::default()).unwrap_err().to_string();
+    assert!(
+        e.contains("nan.tif") && e.contains("column 2, row 1"),
+        "{e}"
+    );
+}
+
+#[test]
+fn raw_r16_and_f32_need_a_matching_size() {
+    let p = tmp("h.r16");
+    let v: Vec<u8> = (0..20u16).flat_map(|i| (i * 3).to_le_bytes()).collect();
+    std::fs::write(&p, &v).unwrap();
+    let opts = LoadOptions {
+        raw_size: Some((5, 4)),
+        ..Default::default()
+    };
+    let hf = load(&p, &opts).unwrap();
+    assert_eq!((hf.format, hf.raw_at(4, 3)), (HeightFormat::Unorm16, 57.0));
+    let e = load(
+        &p,
+        &LoadOptions {
+            raw_size: Some((5, 5)),
+            ..Default::default()
+        },
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(
+        e.contains("h.r16") && e.contains("needs 50 bytes") && e.contains("has 40"),
+        "{e}"
+    );
+    assert!(load(&p, &LoadOptions::default())
+        .unwrap_err()
+        .to_string()
+        .contains("--raw-size"));
+
+    let p = tmp("h.f32");
+    let v: Vec<u8> = (0..9)
+        .flat_map(|i| (i as f32 - 4.5).to_le_bytes())
+        .collect();
+    std::fs::write(&p, &v).unwrap();
+    let hf = load(
+        &p,
+        &LoadOptions {
+            raw_size: Some((3, 3)),
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    assert_eq!((hf.format, hf.raw_at(2, 2)), (HeightFormat::Float32, 3.5));
+}
+
+#[test]
+fn srtm_hgt_big_endian_with_voids() {
+    let p = tmp("N00E000.hgt");
+    let mut v = vec![0u8; 1201 * 1201 * 2];
+    for i in 0..1201 * 1201 {
+        let h: i16 = if i == 5000 { -32768 } else { (i % 3000) as i16 };
+        v[2 * i..2 * i + 2].copy_from_slice(&h.to_be_bytes());
+    }
+    std::fs::write(&p, &v).unwrap();
+    let hf = load_default(&p);
+    assert_eq!((hf.width, hf.height, hf.side()), (1201, 1201, 2049));
+    assert_eq!(hf.raw_at(1, 0), 1.0);
+    assert_ne!(hf.raw_at(5000 % 1201, 5000 / 1201), -32768.0);
+    std::fs::write(&p, &v[..1000]).unwrap();
+    let e = load(&p, &LoadOptions::default()).unwrap_err().to_string();
+    assert!(e.contains("N00E000.hgt") && e.contains("1000 bytes"), "{e}");
+}
