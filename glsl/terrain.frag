@@ -59,6 +59,10 @@ void main() {
         float range = max(frame.terrain.w - frame.terrain.z, 1e-6);
         float t = clamp((v_world.y - frame.terrain.z) / range, 0.0, 1.0);
         albedo = ramp(t, 1.0 - n.y);
+        // Level ground at the lowest height is water (sea level in most DEMs).
+        if (v_world.y <= frame.terrain.z + 1e-3 * range && n.y > 0.9999) {
+            albedo = vec3(0.05, 0.16, 0.30);
+        }
         if (frame.flags.y != 0) {
             vec3 detail = texture(detail_tex, uv * frame.texturing.x).rgb;
             float alpha = frame.texturing.y;

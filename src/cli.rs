@@ -144,7 +144,7 @@ impl CommonArgs {
 
     pub fn camera(&self, hf: &Heightfield, default_size: (u32, u32)) -> Result<Camera, InputError> {
         let (w, h) = self.size.unwrap_or(default_size);
-        let (pos, target) = default_view(hf);
+        let (pos, target) = default_view(hf, self.fovy, w, h);
         let position = self.camera.unwrap_or(pos);
         let look_at = self.look_at.unwrap_or(target);
         if (look_at - position).length() < 1e-6 {
@@ -166,8 +166,9 @@ pub fn near_plane(hf: &Heightfield) -> f32 {
     hf.spacing * 0.05
 }
 
-/// Above the south edge, high enough to see the whole terrain, looking at its centre.
-pub fn default_view(hf: &Heightfield) -> (Vec3, Vec3) {
+/// Above the south edge looking at the terrain's centre, backed away along that
+/// direction until the whole terrain (its bounding box) fits in the frame.
+pub fn default_view(hf: &Heightfield, fovy_deg: f32, width: u32, height: u32) -> (Vec3, Vec3) {
     let (wx, wz) = hf.world_extent();
     let l = wx.max(wz);
     let (lo, hi) = hf
@@ -176,10 +177,34 @@ pub fn default_view(hf: &Heightfield) -> (Vec3, Vec3) {
         .fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), &v| {
             (a.min(v), b.max(v))
         });
-    let top = hi * hf.height_scale;
-    let bottom = lo * hf.height_scale;
-    (
-        Vec3::new(wx * 0.5, top + 0.6 * l, wz + 0.45 * l),
-        Vec3::new(wx * 0.5, bottom, wz * 0.45),
-    )
+    let (bottom, top) = (lo * hf.height_scale, hi * hf.height_scale);
+    let target = Vec3::new(wx * 0.5, bottom, wz * 0.5);
+    // About 35 degrees down, from the south.
+    let dir = Vec3::new(0.0, 0.7, 1.0).normalize();
+    let corners: Vec<Vec3> = (0..8)
+        .map(|i| {
+            Vec3::new(
+                if i & 1 == 0 { 0.0 } else { wx },
+                if i & 2 == 0 { bottom } else { top },
+                if i & 4 == 0 { 0.0 } else { wz },
+            )
+        })
+        .collect();
+    let mut dist = 0.3 * l + (top - bottom);
+    for _ in 0..200 {
+        let pos = target + dir * dist;
+        let cam = Camera::look_at(pos, target, fovy_deg, width, height, near_plane(hf));
+        let vp = cam.view_proj();
+        let fits = corners.iter().all(|&c| {
+            cam.project(&vp, c).is_some_and(|(x, y)| {
+                let (fx, fy) = (x / width as f32, y / height as f32);
+                (0.03..=0.97).contains(&fx) && (0.03..=0.97).contains(&fy)
+            })
+        });
+        if fits {
+            return (pos, target);
+        }
+        dist *= 1.05;
+    }
+    (target + dir * dist, target)
 }

@@ -324,9 +324,10 @@ pub fn errors(args: &ErrorsArgs) -> anyhow::Result<()> {
     let mut times = Vec::new();
     let mut last = None;
     for i in 0..args.repeat {
-        // Each repeat moves the camera by a millimetre so that a new generation is needed.
+        // Each repeat moves the camera by a hundredth of the sample spacing (well above f32
+        // resolution at terrain coordinates) so that a new generation is needed.
         let mut p = base;
-        p.camera.x += i as f32 * 1e-3;
+        p.camera.x += i as f32 * s.hf.spacing * 0.01;
         let t = Instant::now();
         let g = activity.wait_for(p, Duration::from_secs(600))?;
         times.push(t.elapsed().as_secs_f64() * 1e3);
