@@ -33,13 +33,7 @@ fn block_index_map(layout: &BlockLayout, blocks: &[DrawBlock]) -> Vec<u32> {
 }
 
 /// Raw height of the rendered (stitched) block surface at integer sample `(x, z)`.
-pub fn rendered_raw(
-    hf: &Heightfield,
-    layout: &BlockLayout,
-    b: &DrawBlock,
-    x: i64,
-    z: i64,
-) -> Option<f32> {
+pub fn rendered_raw(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, x: i64, z: i64) -> Option<f32> {
     let k = layout.k() as i64;
     let stride = b.stride() as i64;
     let (ox, oz) = b.origin(layout);
@@ -47,16 +41,10 @@ pub fn rendered_raw(
     let qu = (lx / stride).min(k - 2);
     let qv = (lz / stride).min(k - 2);
     let cn = b.coarser;
-    let touches = (qv == 0 && cn[0] > 0)
-        || (qv == k - 2 && cn[2] > 0)
-        || (qu == k - 2 && cn[1] > 0)
-        || (qu == 0 && cn[3] > 0);
+    let touches =
+        (qv == 0 && cn[0] > 0) || (qv == k - 2 && cn[2] > 0) || (qu == k - 2 && cn[1] > 0) || (qu == 0 && cn[3] > 0);
     // Collapsed edge vertices move by up to `ratio` quads along their edge.
-    let reach = if touches {
-        (*cn.iter().max().unwrap() as i64 / stride).min(k - 1)
-    } else {
-        0
-    };
+    let reach = if touches { (*cn.iter().max().unwrap() as i64 / stride).min(k - 1) } else { 0 };
     let (p_x, p_z) = (x as f64, z as f64);
     for dv in -reach..=reach {
         for du in -reach..=reach {
@@ -100,12 +88,7 @@ fn interpolate(t: &[(i64, i64, f32); 3], px: f64, pz: f64) -> Option<f32> {
 
 /// For every sample inside the frustum, the pixel distance between the true point and
 /// the rendered surface's point at the same `(x, z)`.
-pub fn audit(
-    hf: &Heightfield,
-    layout: &BlockLayout,
-    traversal: &Traversal,
-    cam: &Camera,
-) -> AuditResult {
+pub fn audit(hf: &Heightfield, layout: &BlockLayout, traversal: &Traversal, cam: &Camera) -> AuditResult {
     let frustum = cam.frustum();
     let vp = cam.view_proj();
     let map = block_index_map(layout, &traversal.blocks);
@@ -115,11 +98,7 @@ pub fn audit(
     for z in 0..hf.height as i64 {
         for x in 0..hf.width as i64 {
             let raw = hf.raw_at(x, z);
-            let p = Vec3::new(
-                x as f32 * hf.spacing,
-                raw * hf.height_scale,
-                z as f32 * hf.spacing,
-            );
+            let p = Vec3::new(x as f32 * hf.spacing, raw * hf.height_scale, z as f32 * hf.spacing);
             if !frustum.contains_point(p) {
                 continue;
             }
@@ -185,9 +164,7 @@ pub fn check_tiling(
     let frustum = cam.frustum();
     for z in 0..cells {
         for x in 0..cells {
-            if count[z * cells + x] == 0
-                && cell_visible(hf, mm, layout, &frustum, x as u32, z as u32)
-            {
+            if count[z * cells + x] == 0 && cell_visible(hf, mm, layout, &frustum, x as u32, z as u32) {
                 return Err(format!("visible cell ({x}, {z}) is not covered"));
             }
         }

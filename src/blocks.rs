@@ -60,18 +60,8 @@ impl BlockMesh {
         } else {
             (bytemuck::cast_slice(&idx).to_vec(), vk::IndexType::UINT32)
         };
-        let vertices = Buffer::with_data(
-            device,
-            "block vertices",
-            &verts,
-            vk::BufferUsageFlags::VERTEX_BUFFER,
-        )?;
-        let indices = Buffer::with_data(
-            device,
-            "block indices",
-            &index_bytes,
-            vk::BufferUsageFlags::INDEX_BUFFER,
-        )?;
+        let vertices = Buffer::with_data(device, "block vertices", &verts, vk::BufferUsageFlags::VERTEX_BUFFER)?;
+        let indices = Buffer::with_data(device, "block indices", &index_bytes, vk::BufferUsageFlags::INDEX_BUFFER)?;
         Ok(BlockMesh {
             bytes: (verts.len() + index_bytes.len()) as u64,
             vertices,
@@ -109,8 +99,10 @@ impl Default for Shading {
     }
 }
 
-const SKY_ZENITH: [f32; 3] = [0.16, 0.33, 0.66];
-const SKY_HORIZON: [f32; 3] = [0.62, 0.72, 0.84];
+/// Sky colour straight up.
+pub const SKY_ZENITH: [f32; 3] = [0.16, 0.33, 0.66];
+/// Sky and fog colour at the horizon (also the clear colour).
+pub const SKY_HORIZON: [f32; 3] = [0.62, 0.72, 0.84];
 
 /// Offscreen colour + depth targets and their readback buffer.
 pub struct Target {
@@ -174,8 +166,9 @@ pub struct BlocksRenderer {
     wire_pipeline: Option<GraphicsPipeline>,
     sky_pipeline: GraphicsPipeline,
     _pool: DescriptorPool,
-    set: vk::DescriptorSet,
-    uniforms: Buffer,
+    /// One uniform buffer and descriptor set per frame in flight.
+    sets: Vec<vk::DescriptorSet>,
+    uniforms: Vec<Buffer>,
     commands: CommandPool,
     cmd: vk::CommandBuffer,
     fence: Fence,
@@ -187,6 +180,7 @@ impl BlocksRenderer {
         terrain: &TerrainGpu,
         block_layout: BlockLayout,
         color_format: vk::Format,
+        frames_in_flight: usize,
     ) -> VkResult<Self> {
         let stages = vk::ShaderStageFlags::VERTEX | vk::ShaderStageFlags::FRAGMENT;
         let sampler = vk::DescriptorType::COMBINED_IMAGE_SAMPLER;
@@ -194,21 +188,9 @@ impl BlocksRenderer {
             device,
             &[
                 (layout::TERRAIN_BINDING_HEIGHTS, sampler, stages),
-                (
-                    layout::TERRAIN_BINDING_FRAME,
-                    vk::DescriptorType::UNIFORM_BUFFER,
-                    stages,
-                ),
-                (
-                    layout::TERRAIN_BINDING_BASE,
-                    sampler,
-                    vk::ShaderStageFlags::FRAGMENT,
-                ),
-                (
-                    layout::TERRAIN_BINDING_DETAIL,
-                    sampler,
-                    vk::ShaderStageFlags::FRAGMENT,
-                ),
+                (layout::TERRAIN_BINDING_FRAME, vk::DescriptorType::UNIFORM_BUFFER, stages),
+                (layout::TERRAIN_BINDING_BASE, sampler, vk::ShaderStageFlags::FRAGMENT),
+                (layout::TERRAIN_BINDING_DETAIL, sampler, vk::ShaderStageFlags::FRAGMENT),
             ],
         )?;
         let pipeline_layout = PipelineLayout::new(
@@ -250,41 +232,32 @@ impl BlocksRenderer {
                 layout: &pipeline_layout,
             },
         )?;
-        let pool = DescriptorPool::new(
-            device,
-            1,
-            &[(sampler, 3), (vk::DescriptorType::UNIFORM_BUFFER, 1)],
-        )?;
-        let set = pool.allocate(&set_layout)?;
+        let n = frames_in_flight.max(1) as u32;
+        let pool = DescriptorPool::new(device, n, &[(sampler, 3 * n), (vk::DescriptorType::UNIFORM_BUFFER, n)])?;
         let ubo_size = std::mem::size_of::<FrameUniforms>() as u64;
-        let uniforms = Buffer::new(
-            device,
-            "frame uniforms",
-            ubo_size,
-            vk::BufferUsageFlags::UNIFORM_BUFFER,
-            gpu_allocator::MemoryLocation::CpuToGpu,
-        )?;
-        pool.write(
-            set,
-            &[
-                (
-                    layout::TERRAIN_BINDING_HEIGHTS,
-                    terrain.heights.view,
-                    terrain.nearest.handle,
-                ),
-                (
-                    layout::TERRAIN_BINDING_BASE,
-                    terrain.base.view,
-                    terrain.linear.handle,
-                ),
-                (
-                    layout::TERRAIN_BINDING_DETAIL,
-                    terrain.detail.view,
-                    terrain.linear.handle,
-                ),
-            ],
-            &[(layout::TERRAIN_BINDING_FRAME, uniforms.handle, ubo_size)],
-        );
+        let mut sets = Vec::new();
+        let mut uniforms = Vec::new();
+        for i in 0..n {
+            let set = pool.allocate(&set_layout)?;
+            let ubo = Buffer::new(
+                device,
+                &format!("frame uniforms {i}"),
+                ubo_size,
+                vk::BufferUsageFlags::UNIFORM_BUFFER,
+                gpu_allocator::MemoryLocation::CpuToGpu,
+            )?;
+            pool.write(
+                set,
+                &[
+                    (layout::TERRAIN_BINDING_HEIGHTS, terrain.heights.view, terrain.nearest.handle),
+                    (layout::TERRAIN_BINDING_BASE, terrain.base.view, terrain.linear.handle),
+                    (layout::TERRAIN_BINDING_DETAIL, terrain.detail.view, terrain.linear.handle),
+                ],
+                &[(layout::TERRAIN_BINDING_FRAME, ubo.handle, ubo_size)],
+            );
+            sets.push(set);
+            uniforms.push(ubo);
+        }
         let commands = CommandPool::new(device, device.draw_queue.family)?;
         let cmd = commands.allocate()?;
         Ok(BlocksRenderer {
@@ -297,7 +270,7 @@ impl BlocksRenderer {
             wire_pipeline,
             sky_pipeline,
             _pool: pool,
-            set,
+            sets,
             uniforms,
             commands,
             cmd,
@@ -305,30 +278,15 @@ impl BlocksRenderer {
         })
     }
 
-    fn frame_uniforms(
-        &self,
-        hf: &Heightfield,
-        terrain: &TerrainGpu,
-        cam: &Camera,
-        shading: &Shading,
-    ) -> FrameUniforms {
+    fn frame_uniforms(&self, hf: &Heightfield, terrain: &TerrainGpu, cam: &Camera, shading: &Shading) -> FrameUniforms {
         let vp = cam.view_proj();
         let sky = if shading.sky { 1.0 } else { 0.0 };
-        let horizon = if shading.sky {
-            SKY_HORIZON
-        } else {
-            shading.background
-        };
+        let horizon = if shading.sky { SKY_HORIZON } else { shading.background };
         let light = Vec3::new(-0.5, 0.8, -0.3).normalize();
         FrameUniforms {
             view_proj: vp.to_cols_array_2d(),
             inv_view_proj: vp.inverse().to_cols_array_2d(),
-            camera_fog: [
-                cam.position.x,
-                cam.position.y,
-                cam.position.z,
-                shading.fog_density,
-            ],
+            camera_fog: [cam.position.x, cam.position.y, cam.position.z, shading.fog_density],
             terrain: [
                 hf.spacing,
                 hf.height_scale,
@@ -337,12 +295,7 @@ impl BlocksRenderer {
             ],
             light: [light.x, light.y, light.z, 0.25],
             texturing: [shading.detail_tiling, shading.detail_weight, 0.0, 0.0],
-            extent: [
-                hf.width as i32,
-                hf.height as i32,
-                hf.side() as i32,
-                self.layout.k() as i32,
-            ],
+            extent: [hf.width as i32, hf.height as i32, hf.side() as i32, self.layout.k() as i32],
             flags: [
                 terrain.has_base as i32,
                 terrain.has_detail as i32,
@@ -358,6 +311,7 @@ impl BlocksRenderer {
     #[allow(clippy::too_many_arguments)]
     pub fn record(
         &self,
+        slot: usize,
         cmd: vk::CommandBuffer,
         color_view: vk::ImageView,
         depth_view: vk::ImageView,
@@ -373,25 +327,15 @@ impl BlocksRenderer {
             .load_op(vk::AttachmentLoadOp::CLEAR)
             .store_op(vk::AttachmentStoreOp::STORE)
             .clear_value(vk::ClearValue {
-                color: vk::ClearColorValue {
-                    float32: [clear[0], clear[1], clear[2], 1.0],
-                },
+                color: vk::ClearColorValue { float32: [clear[0], clear[1], clear[2], 1.0] },
             })];
         let depth_att = vk::RenderingAttachmentInfo::default()
             .image_view(depth_view)
             .image_layout(vk::ImageLayout::DEPTH_ATTACHMENT_OPTIMAL)
             .load_op(vk::AttachmentLoadOp::CLEAR)
             .store_op(vk::AttachmentStoreOp::DONT_CARE)
-            .clear_value(vk::ClearValue {
-                depth_stencil: vk::ClearDepthStencilValue {
-                    depth: 0.0,
-                    stencil: 0,
-                },
-            });
-        let area = vk::Rect2D {
-            offset: vk::Offset2D::default(),
-            extent,
-        };
+            .clear_value(vk::ClearValue { depth_stencil: vk::ClearDepthStencilValue { depth: 0.0, stencil: 0 } });
+        let area = vk::Rect2D { offset: vk::Offset2D::default(), extent };
         let rendering = vk::RenderingInfo::default()
             .render_area(area)
             .layer_count(1)
@@ -417,15 +361,11 @@ impl BlocksRenderer {
                 vk::PipelineBindPoint::GRAPHICS,
                 self.pipeline_layout.handle,
                 0,
-                &[self.set],
+                &[self.sets[slot]],
                 &[],
             );
             if shading.sky {
-                d.cmd_bind_pipeline(
-                    cmd,
-                    vk::PipelineBindPoint::GRAPHICS,
-                    self.sky_pipeline.handle,
-                );
+                d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, self.sky_pipeline.handle);
                 d.cmd_draw(cmd, 3, 1, 0, 0);
             }
             let pipeline = match (&self.wire_pipeline, shading.wireframe) {
@@ -462,16 +402,17 @@ impl BlocksRenderer {
         stats
     }
 
-    /// Writes the per-frame uniforms. Only call when no submitted frame is pending.
+    /// Writes the uniforms of `slot`. Only call when no pending frame uses that slot.
     pub fn set_frame(
         &mut self,
+        slot: usize,
         hf: &Heightfield,
         terrain: &TerrainGpu,
         cam: &Camera,
         shading: &Shading,
     ) -> VkResult<()> {
         let u = self.frame_uniforms(hf, terrain, cam, shading);
-        self.uniforms.mapped_mut()?[..std::mem::size_of::<FrameUniforms>()]
+        self.uniforms[slot].mapped_mut()?[..std::mem::size_of::<FrameUniforms>()]
             .copy_from_slice(bytemuck::bytes_of(&u));
         Ok(())
     }
@@ -486,26 +427,17 @@ impl BlocksRenderer {
         blocks: &[DrawBlock],
         shading: &Shading,
     ) -> VkResult<(Vec<u8>, DrawStats)> {
-        self.set_frame(hf, terrain, cam, shading)?;
+        self.set_frame(0, hf, terrain, cam, shading)?;
         let d = self.device.raw.clone();
         let cmd = self.cmd;
-        let extent = vk::Extent2D {
-            width: target.width,
-            height: target.height,
-        };
-        let clear = if shading.sky {
-            SKY_HORIZON
-        } else {
-            shading.background
-        };
+        let extent = vk::Extent2D { width: target.width, height: target.height };
+        let clear = if shading.sky { SKY_HORIZON } else { shading.background };
         // SAFETY: the previous use of `cmd` finished (fence waited below every time).
         unsafe {
-            d.reset_command_buffer(cmd, vk::CommandBufferResetFlags::empty())
-                .vk("vkResetCommandBuffer")?;
+            d.reset_command_buffer(cmd, vk::CommandBufferResetFlags::empty()).vk("vkResetCommandBuffer")?;
             d.begin_command_buffer(
                 cmd,
-                &vk::CommandBufferBeginInfo::default()
-                    .flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT),
+                &vk::CommandBufferBeginInfo::default().flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT),
             )
             .vk("vkBeginCommandBuffer")?;
             let to_attach = [
@@ -520,13 +452,11 @@ impl BlocksRenderer {
                     .subresource_range(target.color.range(0, 1)),
                 vk::ImageMemoryBarrier2::default()
                     .src_stage_mask(
-                        vk::PipelineStageFlags2::EARLY_FRAGMENT_TESTS
-                            | vk::PipelineStageFlags2::LATE_FRAGMENT_TESTS,
+                        vk::PipelineStageFlags2::EARLY_FRAGMENT_TESTS | vk::PipelineStageFlags2::LATE_FRAGMENT_TESTS,
                     )
                     .src_access_mask(vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_WRITE)
                     .dst_stage_mask(
-                        vk::PipelineStageFlags2::EARLY_FRAGMENT_TESTS
-                            | vk::PipelineStageFlags2::LATE_FRAGMENT_TESTS,
+                        vk::PipelineStageFlags2::EARLY_FRAGMENT_TESTS | vk::PipelineStageFlags2::LATE_FRAGMENT_TESTS,
                     )
                     .dst_access_mask(
                         vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_WRITE
@@ -537,20 +467,9 @@ impl BlocksRenderer {
                     .image(target.depth.handle)
                     .subresource_range(target.depth.range(0, 1)),
             ];
-            d.cmd_pipeline_barrier2(
-                cmd,
-                &vk::DependencyInfo::default().image_memory_barriers(&to_attach),
-            );
+            d.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().image_memory_barriers(&to_attach));
         }
-        let stats = self.record(
-            cmd,
-            target.color.view,
-            target.depth.view,
-            extent,
-            blocks,
-            shading,
-            clear,
-        );
+        let stats = self.record(0, cmd, target.color.view, target.depth.view, extent, blocks, shading, clear);
         // SAFETY: as above.
         unsafe {
             let to_src = [vk::ImageMemoryBarrier2::default()
@@ -562,10 +481,7 @@ impl BlocksRenderer {
                 .new_layout(vk::ImageLayout::TRANSFER_SRC_OPTIMAL)
                 .image(target.color.handle)
                 .subresource_range(target.color.range(0, 1))];
-            d.cmd_pipeline_barrier2(
-                cmd,
-                &vk::DependencyInfo::default().image_memory_barriers(&to_src),
-            );
+            d.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().image_memory_barriers(&to_src));
             let region = vk::BufferImageCopy::default()
                 .image_subresource(vk::ImageSubresourceLayers {
                     aspect_mask: vk::ImageAspectFlags::COLOR,
@@ -573,11 +489,7 @@ impl BlocksRenderer {
                     base_array_layer: 0,
                     layer_count: 1,
                 })
-                .image_extent(vk::Extent3D {
-                    width: target.width,
-                    height: target.height,
-                    depth: 1,
-                });
+                .image_extent(vk::Extent3D { width: target.width, height: target.height, depth: 1 });
             d.cmd_copy_image_to_buffer(
                 cmd,
                 target.color.handle,
@@ -592,21 +504,15 @@ impl BlocksRenderer {
                 .dst_access_mask(vk::AccessFlags2::HOST_READ)
                 .buffer(target.readback.handle)
                 .size(vk::WHOLE_SIZE)];
-            d.cmd_pipeline_barrier2(
-                cmd,
-                &vk::DependencyInfo::default().buffer_memory_barriers(&to_host),
-            );
+            d.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().buffer_memory_barriers(&to_host));
             d.end_command_buffer(cmd).vk("vkEndCommandBuffer")?;
         }
         self.fence.reset()?;
         let cmds = [vk::CommandBufferSubmitInfo::default().command_buffer(cmd)];
         let submit = [vk::SubmitInfo2::default().command_buffer_infos(&cmds)];
-        self.device
-            .draw_queue
-            .submit(&self.device, &submit, self.fence.handle)?;
+        self.device.draw_queue.submit(&self.device, &submit, self.fence.handle)?;
         self.fence.wait(u64::MAX)?;
-        let pixels =
-            target.readback.mapped()?[..(target.width * target.height * 4) as usize].to_vec();
+        let pixels = target.readback.mapped()?[..(target.width * target.height * 4) as usize].to_vec();
         Ok((pixels, stats))
     }
 }

@@ -16,23 +16,9 @@ pub struct Camera {
 }
 
 impl Camera {
-    pub fn look_at(
-        position: Vec3,
-        target: Vec3,
-        fovy_deg: f32,
-        width: u32,
-        height: u32,
-        near: f32,
-    ) -> Self {
+    pub fn look_at(position: Vec3, target: Vec3, fovy_deg: f32, width: u32, height: u32, near: f32) -> Self {
         let forward = (target - position).try_normalize().unwrap_or(Vec3::NEG_Z);
-        Camera {
-            position,
-            forward,
-            fovy: fovy_deg.to_radians(),
-            width,
-            height,
-            near,
-        }
+        Camera { position, forward, fovy: fovy_deg.to_radians(), width, height, near }
     }
 
     pub fn aspect(&self) -> f32 {
@@ -41,11 +27,7 @@ impl Camera {
 
     /// Camera basis (right, up) for the current forward.
     pub fn basis(&self) -> (Vec3, Vec3) {
-        let world_up = if self.forward.y.abs() > 0.999 {
-            Vec3::Z
-        } else {
-            Vec3::Y
-        };
+        let world_up = if self.forward.y.abs() > 0.999 { Vec3::Z } else { Vec3::Y };
         let right = self.forward.cross(world_up).normalize();
         (right, right.cross(self.forward))
     }
@@ -83,10 +65,7 @@ impl Camera {
         if c.w <= 1e-12 {
             return None;
         }
-        Some((
-            (c.x / c.w * 0.5 + 0.5) * self.width as f32,
-            (c.y / c.w * 0.5 + 0.5) * self.height as f32,
-        ))
+        Some(((c.x / c.w * 0.5 + 0.5) * self.width as f32, (c.y / c.w * 0.5 + 0.5) * self.height as f32))
     }
 
     pub fn frustum(&self) -> Frustum {
@@ -129,9 +108,7 @@ impl Frustum {
     }
 
     pub fn contains_point(&self, p: Vec3) -> bool {
-        self.planes
-            .iter()
-            .all(|pl| pl.truncate().dot(p) + pl.w >= 0.0)
+        self.planes.iter().all(|pl| pl.truncate().dot(p) + pl.w >= 0.0)
     }
 }
 
@@ -146,14 +123,7 @@ mod tests {
 
     #[test]
     fn projection_centre_and_frustum_agree() {
-        let cam = Camera::look_at(
-            Vec3::new(0.0, 10.0, 0.0),
-            Vec3::new(0.0, 10.0, -100.0),
-            60.0,
-            640,
-            480,
-            0.5,
-        );
+        let cam = Camera::look_at(Vec3::new(0.0, 10.0, 0.0), Vec3::new(0.0, 10.0, -100.0), 60.0, 640, 480, 0.5);
         let vp = cam.view_proj();
         let (x, y) = cam.project(&vp, Vec3::new(0.0, 10.0, -50.0)).unwrap();
         assert!((x - 320.0).abs() < 1e-3 && (y - 240.0).abs() < 1e-3);
@@ -169,15 +139,12 @@ mod tests {
         for &(px, py) in &[(1.0f32, 1.0f32), (639.0, 479.0), (1.0, 479.0)] {
             let (r, u) = cam.basis();
             let t = (cam.fovy * 0.5).tan();
-            let dir = cam.forward + r * ((px / 640.0) * 2.0 - 1.0) * t * cam.aspect()
-                - u * ((py / 480.0) * 2.0 - 1.0) * t;
+            let dir =
+                cam.forward + r * ((px / 640.0) * 2.0 - 1.0) * t * cam.aspect() - u * ((py / 480.0) * 2.0 - 1.0) * t;
             let p = cam.position + dir * 30.0;
             assert!(fr.contains_point(p));
             let (qx, qy) = cam.project(&vp, p).unwrap();
-            assert!(
-                (qx - px).abs() < 1e-2 && (qy - py).abs() < 1e-2,
-                "{qx},{qy} vs {px},{py}"
-            );
+            assert!((qx - px).abs() < 1e-2 && (qy - py).abs() < 1e-2, "{qx},{qy} vs {px},{py}");
         }
     }
 }

@@ -20,17 +20,9 @@ pub enum OnOff {
 }
 
 fn parse_size(s: &str) -> Result<(u32, u32), String> {
-    let (w, h) = s
-        .split_once(['x', 'X'])
-        .ok_or_else(|| format!("'{s}': expected WIDTHxHEIGHT, e.g. 1280x720"))?;
-    let w: u32 = w
-        .trim()
-        .parse()
-        .map_err(|_| format!("'{s}': width is not a whole number"))?;
-    let h: u32 = h
-        .trim()
-        .parse()
-        .map_err(|_| format!("'{s}': height is not a whole number"))?;
+    let (w, h) = s.split_once(['x', 'X']).ok_or_else(|| format!("'{s}': expected WIDTHxHEIGHT, e.g. 1280x720"))?;
+    let w: u32 = w.trim().parse().map_err(|_| format!("'{s}': width is not a whole number"))?;
+    let h: u32 = h.trim().parse().map_err(|_| format!("'{s}': height is not a whole number"))?;
     if w == 0 || h == 0 {
         return Err(format!("'{s}': width and height must be at least 1"));
     }
@@ -44,10 +36,7 @@ fn parse_vec3(s: &str) -> Result<Vec3, String> {
     }
     let mut v = [0.0f32; 3];
     for (i, p) in parts.iter().enumerate() {
-        v[i] = p
-            .trim()
-            .parse()
-            .map_err(|_| format!("'{s}': '{p}' is not a number"))?;
+        v[i] = p.trim().parse().map_err(|_| format!("'{s}': '{p}' is not a number"))?;
         if !v[i].is_finite() {
             return Err(format!("'{s}': coordinates must be finite numbers"));
         }
@@ -66,9 +55,7 @@ fn parse_positive(s: &str) -> Result<f32, String> {
 fn parse_fovy(s: &str) -> Result<f32, String> {
     let v = parse_positive(s)?;
     if v >= 179.0 {
-        return Err(format!(
-            "'{s}': the field of view must be below 179 degrees"
-        ));
+        return Err(format!("'{s}': the field of view must be below 179 degrees"));
     }
     Ok(v)
 }
@@ -150,14 +137,7 @@ impl CommonArgs {
         if (look_at - position).length() < 1e-6 {
             return Err(InputError("--look-at must differ from --camera".into()));
         }
-        Ok(Camera::look_at(
-            position,
-            look_at,
-            self.fovy,
-            w,
-            h,
-            near_plane(hf),
-        ))
+        Ok(Camera::look_at(position, look_at, self.fovy, w, h, near_plane(hf)))
     }
 }
 
@@ -171,12 +151,7 @@ pub fn near_plane(hf: &Heightfield) -> f32 {
 pub fn default_view(hf: &Heightfield, fovy_deg: f32, width: u32, height: u32) -> (Vec3, Vec3) {
     let (wx, wz) = hf.world_extent();
     let l = wx.max(wz);
-    let (lo, hi) = hf
-        .raw
-        .iter()
-        .fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), &v| {
-            (a.min(v), b.max(v))
-        });
+    let (lo, hi) = hf.raw.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), &v| (a.min(v), b.max(v)));
     let (bottom, top) = (lo * hf.height_scale, hi * hf.height_scale);
     let target = Vec3::new(wx * 0.5, bottom, wz * 0.5);
     // About 35 degrees down, from the south.

@@ -65,7 +65,8 @@ pub struct ErrorsArgs {
     pub dump: Option<PathBuf>,
 }
 
-fn positive(s: &str) -> Result<f32, String> {
+/// Parses a finite number greater than 0.
+pub fn positive(s: &str) -> Result<f32, String> {
     let v: f32 = s.parse().map_err(|_| format!("'{s}' is not a number"))?;
     if !(v.is_finite() && v > 0.0) {
         return Err(format!("'{s}': must be a finite number greater than 0"));
@@ -87,30 +88,20 @@ impl Session {
         let hf = common.load_heightfield()?;
         let layout = BlockLayout::new(hf.n, common.block).map_err(InputError)?;
         if layout.k() != common.block {
-            tracing::info!(
-                "block {} is larger than the terrain; using k = {}",
-                common.block,
-                layout.k()
-            );
+            tracing::info!("block {} is larger than the terrain; using k = {}", common.block, layout.k());
         }
         let mm = MinMaxPyramid::build(&hf);
-        let instance = Instance::new(&InstanceOptions {
-            validation: common.validation(),
-            extensions: Vec::new(),
-        })?;
-        let device = Device::new(
-            instance,
-            &DeviceOptions {
-                gpu: common.gpu.clone(),
-                queues: common.queues,
-                swapchain: false,
-            },
-        )?;
-        eprintln!(
-            "vkterrain: device {}, queue mode {}",
-            device.name,
-            device.queue_mode.as_str()
-        );
+        let instance = Instance::new(&InstanceOptions { validation: common.validation(), extensions: Vec::new() })?;
+        let device =
+            Device::new(instance, &DeviceOptions { gpu: common.gpu.clone(), queues: common.queues, swapchain: false })?;
+        eprintln!("vkterrain: device {}, queue mode {}", device.name, device.queue_mode.as_str());
+        Session::check_size(&device, &hf)?;
+        let terrain = Arc::new(TerrainGpu::new(&device, &hf, &mm, None, None)?);
+        Ok(Session { hf: Arc::new(hf), mm, layout, device, terrain })
+    }
+
+    /// The heightfield must fit in one image on this device.
+    pub fn check_size(device: &Device, hf: &Heightfield) -> Result<(), InputError> {
         let max = device.max_image_dimension_2d() as usize;
         if hf.side() > max {
             return Err(InputError(format!(
@@ -118,17 +109,9 @@ impl Session {
                 hf.source,
                 hf.side(),
                 hf.side()
-            ))
-            .into());
+            )));
         }
-        let terrain = Arc::new(TerrainGpu::new(&device, &hf, &mm, None, None)?);
-        Ok(Session {
-            hf: Arc::new(hf),
-            mm,
-            layout,
-            device,
-            terrain,
-        })
+        Ok(())
     }
 
     pub fn validation_messages(&self) -> u64 {
@@ -137,15 +120,10 @@ impl Session {
 }
 
 /// Writes `bytes` to `path` through a temporary file, so that no partial file is left.
-pub fn write_atomic(
-    path: &Path,
-    write: impl FnOnce(&Path) -> anyhow::Result<()>,
-) -> anyhow::Result<()> {
+pub fn write_atomic(path: &Path, write: impl FnOnce(&Path) -> anyhow::Result<()>) -> anyhow::Result<()> {
     let tmp = path.with_extension("partial.tmp");
     match write(&tmp) {
-        Ok(()) => {
-            std::fs::rename(&tmp, path).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))
-        }
+        Ok(()) => std::fs::rename(&tmp, path).map_err(|e| anyhow::anyhow!("{}: {e}", path.display())),
         Err(e) => {
             let _ = std::fs::remove_file(&tmp);
             Err(e)
@@ -170,52 +148,30 @@ pub fn save_png(path: &Path, width: u32, height: u32, rgba: &[u8]) -> anyhow::Re
 fn parse_background(s: &str) -> Result<[f32; 3], InputError> {
     let v: Vec<f32> = s.split(',').filter_map(|p| p.trim().parse().ok()).collect();
     if v.len() != 3 || v.iter().any(|c| !(0.0..=1.0).contains(c)) {
-        return Err(InputError(format!(
-            "--background '{s}': expected R,G,B with each in 0..1"
-        )));
+        return Err(InputError(format!("--background '{s}': expected R,G,B with each in 0..1")));
     }
     Ok([v[0], v[1], v[2]])
 }
 
 pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
-    if args
-        .out
-        .extension()
-        .and_then(|e| e.to_str())
-        .map(|e| e.to_lowercase())
-        != Some("png".into())
-    {
-        return Err(InputError(format!(
-            "--out {}: the output must be a .png file",
-            args.out.display()
-        ))
-        .into());
+    if args.out.extension().and_then(|e| e.to_str()).map(|e| e.to_lowercase()) != Some("png".into()) {
+        return Err(InputError(format!("--out {}: the output must be a .png file", args.out.display())).into());
     }
-    let mut shading = Shading {
-        fog_density: args.fog,
-        colour_by_lod: args.colour_by_lod,
-        ..Shading::default()
-    };
+    let mut shading = Shading { fog_density: args.fog, colour_by_lod: args.colour_by_lod, ..Shading::default() };
     if let Some(bg) = &args.background {
         shading.sky = false;
         shading.background = parse_background(bg)?;
     }
     let s = Session::open(&args.common)?;
     let cam = args.common.camera(&s.hf, (1280, 720))?;
-    let mut renderer =
-        BlocksRenderer::new(&s.device, &s.terrain, s.layout, crate::blocks::COLOR_FORMAT)?;
+    let mut renderer = BlocksRenderer::new(&s.device, &s.terrain, s.layout, crate::blocks::COLOR_FORMAT, 1)?;
     let target = Target::new(&s.device, cam.width, cam.height)?;
 
     let mut generation = 0;
     let mut errors_ms = None;
     let params = ErrorParams::new(&cam, args.common.error_mode);
     let activity = if args.lod == LodChoice::Error {
-        Some(ErrorsActivity::start(
-            &s.device,
-            s.terrain.clone(),
-            s.hf.clone(),
-            s.layout,
-        )?)
+        Some(ErrorsActivity::start(&s.device, s.terrain.clone(), s.hf.clone(), s.layout)?)
     } else {
         None
     };
@@ -231,11 +187,7 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
         None => None,
     };
     let select = match (&gen, args.lod) {
-        (Some(g), _) => LodSelect::Errors {
-            errors: &g.errors,
-            computed_at: g.params.camera,
-            delta: args.delta,
-        },
+        (Some(g), _) => LodSelect::Errors { errors: &g.errors, computed_at: g.params.camera, delta: args.delta },
         (None, LodChoice::Distance) => LodSelect::Distance { factor: 2.0 },
         _ => LodSelect::Full,
     };
@@ -243,13 +195,10 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
     let trav = traverse(&s.hf, &s.mm, &s.layout, &cam, select);
     let traverse_ms = t.elapsed().as_secs_f64() * 1e3;
     let t = Instant::now();
-    let (pixels, stats) =
-        renderer.render_offscreen(&s.hf, &s.terrain, &target, &cam, &trav.blocks, &shading)?;
+    let (pixels, stats) = renderer.render_offscreen(&s.hf, &s.terrain, &target, &cam, &trav.blocks, &shading)?;
     let frame_ms = t.elapsed().as_secs_f64() * 1e3;
     save_png(&args.out, cam.width, cam.height, &pixels)?;
-    let audited = args
-        .audit
-        .then(|| audit::audit(&s.hf, &s.layout, &trav, &cam));
+    let audited = args.audit.then(|| audit::audit(&s.hf, &s.layout, &trav, &cam));
     if let Some(a) = activity {
         a.stop()?;
     }
@@ -301,13 +250,7 @@ fn finish(s: &Session) -> anyhow::Result<()> {
     if n > 0 {
         anyhow::bail!(
             "{n} validation message(s); first: {}",
-            s.device
-                .instance
-                .messages
-                .messages()
-                .first()
-                .cloned()
-                .unwrap_or_default()
+            s.device.instance.messages.messages().first().cloned().unwrap_or_default()
         );
     }
     Ok(())
@@ -340,15 +283,8 @@ pub fn errors(args: &ErrorsArgs) -> anyhow::Result<()> {
     times.sort_by(|a, b| a.partial_cmp(b).unwrap());
     let g = last.expect("at least one generation");
     if let Some(path) = &args.dump {
-        let bytes: Vec<u8> = g
-            .errors
-            .packed()
-            .iter()
-            .flat_map(|v| v.to_le_bytes())
-            .collect();
-        write_atomic(path, |tmp| {
-            std::fs::write(tmp, &bytes).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))
-        })?;
+        let bytes: Vec<u8> = g.errors.packed().iter().flat_map(|v| v.to_le_bytes()).collect();
+        write_atomic(path, |tmp| std::fs::write(tmp, &bytes).map_err(|e| anyhow::anyhow!("{}: {e}", path.display())))?;
     }
     let n = s.hf.n as u64;
     let out = json!({

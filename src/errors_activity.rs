@@ -12,9 +12,8 @@ use crate::quadtree::BlockLayout;
 use crate::shaders;
 use crate::terrain_gpu::TerrainGpu;
 use crate::vk::{
-    vk, Buffer, CommandPool, DescriptorPool, DescriptorSetLayout, Device, GraphicsPipeline,
-    GraphicsPipelineDesc, Image, ImageView, PipelineLayout, TimelineSemaphore, VkError, VkResult,
-    VkResultExt,
+    vk, Buffer, CommandPool, DescriptorPool, DescriptorSetLayout, Device, GraphicsPipeline, GraphicsPipelineDesc,
+    Image, ImageView, PipelineLayout, TimelineSemaphore, VkError, VkResult, VkResultExt,
 };
 use std::sync::{Arc, Condvar, Mutex};
 use std::thread::JoinHandle;
@@ -129,20 +128,10 @@ impl ErrorsGpu {
                 (layout::GIE_BINDING_MINMAX, sampler, frag),
             ],
         )?;
-        let reduce_set_layout =
-            DescriptorSetLayout::new(device, &[(layout::REDUCE_BINDING_GIE, sampler, frag)])?;
-        let gie_layout = PipelineLayout::new(
-            device,
-            &gie_set_layout,
-            std::mem::size_of::<GiePush>() as u32,
-            frag,
-        )?;
-        let reduce_layout = PipelineLayout::new(
-            device,
-            &reduce_set_layout,
-            std::mem::size_of::<ReducePush>() as u32,
-            frag,
-        )?;
+        let reduce_set_layout = DescriptorSetLayout::new(device, &[(layout::REDUCE_BINDING_GIE, sampler, frag)])?;
+        let gie_layout = PipelineLayout::new(device, &gie_set_layout, std::mem::size_of::<GiePush>() as u32, frag)?;
+        let reduce_layout =
+            PipelineLayout::new(device, &reduce_set_layout, std::mem::size_of::<ReducePush>() as u32, frag)?;
         let desc = |fs: &'static [u8], l| GraphicsPipelineDesc {
             vert: shaders::PASS_VERT,
             frag: fs,
@@ -155,19 +144,14 @@ impl ErrorsGpu {
             layout: l,
         };
         let gie_pipeline = GraphicsPipeline::new(device, &desc(shaders::GIE_FRAG, &gie_layout))?;
-        let reduce_pipeline =
-            GraphicsPipeline::new(device, &desc(shaders::BLOCK_REDUCE_FRAG, &reduce_layout))?;
+        let reduce_pipeline = GraphicsPipeline::new(device, &desc(shaders::BLOCK_REDUCE_FRAG, &reduce_layout))?;
         let pool = DescriptorPool::new(device, 2 * (n + 1), &[(sampler, 2 * (3 * n + 1))])?;
         let commands = CommandPool::new(device, device.errors_queue.family)?;
 
         // GIE of LOD 1 has no previous level; its binding still needs a valid image.
-        let usage_rt = vk::ImageUsageFlags::COLOR_ATTACHMENT
-            | vk::ImageUsageFlags::SAMPLED
-            | vk::ImageUsageFlags::TRANSFER_SRC;
-        let one = vk::Extent2D {
-            width: 1,
-            height: 1,
-        };
+        let usage_rt =
+            vk::ImageUsageFlags::COLOR_ATTACHMENT | vk::ImageUsageFlags::SAMPLED | vk::ImageUsageFlags::TRANSFER_SRC;
+        let one = vk::Extent2D { width: 1, height: 1 };
         let dummy = Image::new(
             device,
             "GIE placeholder",
@@ -186,35 +170,25 @@ impl ErrorsGpu {
             let gie = Image::new(
                 device,
                 &format!("GIE pyramid {s}"),
-                vk::Extent2D {
-                    width: gie_side,
-                    height: gie_side,
-                },
+                vk::Extent2D { width: gie_side, height: gie_side },
                 GIE_FORMAT,
                 n,
                 usage_rt,
                 false,
             )?;
-            let gie_mips = (0..n)
-                .map(|m| gie.mip_view(m, 1))
-                .collect::<VkResult<Vec<_>>>()?;
+            let gie_mips = (0..n).map(|m| gie.mip_view(m, 1)).collect::<VkResult<Vec<_>>>()?;
             let (tbe, tbe_mips) = if root > 0 {
                 let side = 1u32 << (root - 1);
                 let img = Image::new(
                     device,
                     &format!("block errors {s}"),
-                    vk::Extent2D {
-                        width: side,
-                        height: side,
-                    },
+                    vk::Extent2D { width: side, height: side },
                     GIE_FORMAT,
                     root,
                     vk::ImageUsageFlags::COLOR_ATTACHMENT | vk::ImageUsageFlags::TRANSFER_SRC,
                     false,
                 )?;
-                let mips = (0..root)
-                    .map(|m| img.mip_view(m, 1))
-                    .collect::<VkResult<Vec<_>>>()?;
+                let mips = (0..root).map(|m| img.mip_view(m, 1)).collect::<VkResult<Vec<_>>>()?;
                 (Some(img), mips)
             } else {
                 (None, Vec::new())
@@ -222,45 +196,21 @@ impl ErrorsGpu {
             let mut gie_sets = Vec::new();
             for lod in 1..=n {
                 let set = pool.allocate(&gie_set_layout)?;
-                let prev = if lod == 1 {
-                    dummy.view
-                } else {
-                    gie_mips[(lod - 2) as usize].handle
-                };
+                let prev = if lod == 1 { dummy.view } else { gie_mips[(lod - 2) as usize].handle };
                 pool.write(
                     set,
                     &[
-                        (
-                            layout::GIE_BINDING_HEIGHTS,
-                            terrain.heights.view,
-                            terrain.nearest.handle,
-                        ),
+                        (layout::GIE_BINDING_HEIGHTS, terrain.heights.view, terrain.nearest.handle),
                         (layout::GIE_BINDING_PREV, prev, terrain.nearest.handle),
-                        (
-                            layout::GIE_BINDING_MINMAX,
-                            terrain.minmax.view,
-                            terrain.nearest.handle,
-                        ),
+                        (layout::GIE_BINDING_MINMAX, terrain.minmax.view, terrain.nearest.handle),
                     ],
                     &[],
                 );
                 gie_sets.push(set);
             }
             let reduce_set = pool.allocate(&reduce_set_layout)?;
-            pool.write(
-                reduce_set,
-                &[(layout::REDUCE_BINDING_GIE, gie.view, terrain.nearest.handle)],
-                &[],
-            );
-            slots.push(Slot {
-                gie,
-                gie_mips,
-                tbe,
-                tbe_mips,
-                gie_sets,
-                reduce_set,
-                cmd: commands.allocate()?,
-            });
+            pool.write(reduce_set, &[(layout::REDUCE_BINDING_GIE, gie.view, terrain.nearest.handle)], &[]);
+            slots.push(Slot { gie, gie_mips, tbe, tbe_mips, gie_sets, reduce_set, cmd: commands.allocate()? });
         }
         Ok(ErrorsGpu {
             device: device.clone(),
@@ -291,23 +241,14 @@ impl ErrorsGpu {
         push: &[u8],
     ) {
         let d = &self.device.raw;
-        let extent = vk::Extent2D {
-            width: side,
-            height: side,
-        };
-        let area = vk::Rect2D {
-            offset: vk::Offset2D::default(),
-            extent,
-        };
+        let extent = vk::Extent2D { width: side, height: side };
+        let area = vk::Rect2D { offset: vk::Offset2D::default(), extent };
         let att = [vk::RenderingAttachmentInfo::default()
             .image_view(view)
             .image_layout(vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL)
             .load_op(vk::AttachmentLoadOp::DONT_CARE)
             .store_op(vk::AttachmentStoreOp::STORE)];
-        let info = vk::RenderingInfo::default()
-            .render_area(area)
-            .layer_count(1)
-            .color_attachments(&att);
+        let info = vk::RenderingInfo::default().render_area(area).layer_count(1).color_attachments(&att);
         // SAFETY: `cmd` is recording on the errors thread; all objects outlive the submission.
         unsafe {
             d.cmd_begin_rendering(cmd, &info);
@@ -325,14 +266,7 @@ impl ErrorsGpu {
             );
             d.cmd_set_scissor(cmd, 0, &[area]);
             d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, pipeline.handle);
-            d.cmd_bind_descriptor_sets(
-                cmd,
-                vk::PipelineBindPoint::GRAPHICS,
-                pl.handle,
-                0,
-                &[set],
-                &[],
-            );
+            d.cmd_bind_descriptor_sets(cmd, vk::PipelineBindPoint::GRAPHICS, pl.handle, 0, &[set], &[]);
             d.cmd_push_constants(cmd, pl.handle, vk::ShaderStageFlags::FRAGMENT, 0, push);
             d.cmd_draw(cmd, 3, 1, 0, 0);
             d.cmd_end_rendering(cmd);
@@ -358,12 +292,7 @@ impl ErrorsGpu {
             .image(image.handle)
             .subresource_range(image.range(mip, count))];
         // SAFETY: recording on this thread.
-        unsafe {
-            self.device.raw.cmd_pipeline_barrier2(
-                cmd,
-                &vk::DependencyInfo::default().image_memory_barriers(&b),
-            )
-        };
+        unsafe { self.device.raw.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().image_memory_barriers(&b)) };
     }
 
     /// Records generation `g` into its slot's command buffer.
@@ -383,12 +312,10 @@ impl ErrorsGpu {
         // SAFETY: the slot's previous submission (generation g-2) has completed: the
         // errors thread waits for each generation before starting the next.
         unsafe {
-            d.reset_command_buffer(cmd, vk::CommandBufferResetFlags::empty())
-                .vk("vkResetCommandBuffer")?;
+            d.reset_command_buffer(cmd, vk::CommandBufferResetFlags::empty()).vk("vkResetCommandBuffer")?;
             d.begin_command_buffer(
                 cmd,
-                &vk::CommandBufferBeginInfo::default()
-                    .flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT),
+                &vk::CommandBufferBeginInfo::default().flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT),
             )
             .vk("vkBeginCommandBuffer")?;
         }
@@ -405,23 +332,14 @@ impl ErrorsGpu {
             &slot.gie,
             0,
             n,
-            (
-                frag | color | vk::PipelineStageFlags2::COPY,
-                write,
-                vk::ImageLayout::UNDEFINED,
-            ),
+            (frag | color | vk::PipelineStageFlags2::COPY, write, vk::ImageLayout::UNDEFINED),
             (color, write, rt),
         );
         let unorm = (self.hf.format == HeightFormat::Unorm16) as i32;
         for lod in 1..=n {
             let side = 1u32 << (n - lod);
             let push = GiePush {
-                level: [
-                    lod as i32,
-                    n as i32,
-                    (p.mode == crate::gie::ErrorMode::Strict) as i32,
-                    unorm,
-                ],
+                level: [lod as i32, n as i32, (p.mode == crate::gie::ErrorMode::Strict) as i32, unorm],
                 extent: [self.hf.width as i32, self.hf.height as i32, side as i32, 0],
                 camera: [p.camera.x, p.camera.y, p.camera.z, p.kappa],
                 params: [self.hf.spacing, self.hf.height_scale, p.near, p.inv_cos2],
@@ -434,29 +352,13 @@ impl ErrorsGpu {
                 slot.gie_sets[(lod - 1) as usize],
                 bytemuck::bytes_of(&push),
             );
-            self.barrier(
-                cmd,
-                &slot.gie,
-                lod - 1,
-                1,
-                (color, write, rt),
-                (frag, read, ro),
-            );
+            self.barrier(cmd, &slot.gie, lod - 1, 1, (color, write, rt), (frag, read, ro));
         }
         let data_bytes = BlockErrors::packed_len(root) as u64 * 4;
         if let Some(tbe) = &slot.tbe {
-            self.barrier(
-                cmd,
-                tbe,
-                0,
-                root,
-                (copy | color, write, vk::ImageLayout::UNDEFINED),
-                (color, write, rt),
-            );
+            self.barrier(cmd, tbe, 0, root, (copy | color, write, vk::ImageLayout::UNDEFINED), (color, write, rt));
             for j in 1..=root {
-                let push = ReducePush {
-                    level: [j as i32, j as i32 - 1, (self.layout.k() - 1) as i32, 0],
-                };
+                let push = ReducePush { level: [j as i32, j as i32 - 1, (self.layout.k() - 1) as i32, 0] };
                 self.pass(
                     cmd,
                     slot.tbe_mips[(j - 1) as usize].handle,
@@ -472,11 +374,7 @@ impl ErrorsGpu {
                 0,
                 root,
                 (color, write, rt),
-                (
-                    copy,
-                    vk::AccessFlags2::TRANSFER_READ,
-                    vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
-                ),
+                (copy, vk::AccessFlags2::TRANSFER_READ, vk::ImageLayout::TRANSFER_SRC_OPTIMAL),
             );
             let mut regions = Vec::new();
             let mut at = 4u64;
@@ -491,11 +389,7 @@ impl ErrorsGpu {
                             base_array_layer: 0,
                             layer_count: 1,
                         })
-                        .image_extent(vk::Extent3D {
-                            width: side,
-                            height: side,
-                            depth: 1,
-                        }),
+                        .image_extent(vk::Extent3D { width: side, height: side, depth: 1 }),
                 );
                 at += side as u64 * side as u64 * 4;
             }
@@ -519,11 +413,7 @@ impl ErrorsGpu {
                 0,
                 n,
                 (frag, read, ro),
-                (
-                    copy,
-                    vk::AccessFlags2::TRANSFER_READ,
-                    vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
-                ),
+                (copy, vk::AccessFlags2::TRANSFER_READ, vk::ImageLayout::TRANSFER_SRC_OPTIMAL),
             );
             let mut regions = Vec::new();
             let mut at = 0u64;
@@ -538,11 +428,7 @@ impl ErrorsGpu {
                             base_array_layer: 0,
                             layer_count: 1,
                         })
-                        .image_extent(vk::Extent3D {
-                            width: side,
-                            height: side,
-                            depth: 1,
-                        }),
+                        .image_extent(vk::Extent3D { width: side, height: side, depth: 1 }),
                 );
                 at += side as u64 * side as u64 * 4;
             }
@@ -562,10 +448,7 @@ impl ErrorsGpu {
                     dump.handle,
                     &regions,
                 );
-                d.cmd_pipeline_barrier2(
-                    cmd,
-                    &vk::DependencyInfo::default().buffer_memory_barriers(&to_host),
-                );
+                d.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().buffer_memory_barriers(&to_host));
             }
         }
         // SAFETY: recording; fills touch only the header and trailer words.
@@ -577,10 +460,7 @@ impl ErrorsGpu {
                 .dst_access_mask(vk::AccessFlags2::TRANSFER_WRITE)
                 .buffer(readback.handle)
                 .size(vk::WHOLE_SIZE)];
-            d.cmd_pipeline_barrier2(
-                cmd,
-                &vk::DependencyInfo::default().buffer_memory_barriers(&before),
-            );
+            d.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().buffer_memory_barriers(&before));
             d.cmd_fill_buffer(cmd, readback.handle, 0, 4, g as u32);
             d.cmd_fill_buffer(cmd, readback.handle, 4 + data_bytes, 4, g as u32);
             let to_host = [vk::BufferMemoryBarrier2::default()
@@ -590,10 +470,7 @@ impl ErrorsGpu {
                 .dst_access_mask(vk::AccessFlags2::HOST_READ)
                 .buffer(readback.handle)
                 .size(vk::WHOLE_SIZE)];
-            d.cmd_pipeline_barrier2(
-                cmd,
-                &vk::DependencyInfo::default().buffer_memory_barriers(&to_host),
-            );
+            d.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().buffer_memory_barriers(&to_host));
             d.end_command_buffer(cmd).vk("vkEndCommandBuffer")?;
         }
         Ok(cmd)
@@ -643,12 +520,8 @@ pub fn compute_once(
         .semaphore(timeline.handle)
         .value(1)
         .stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)];
-    let submit = [vk::SubmitInfo2::default()
-        .command_buffer_infos(&cmds)
-        .signal_semaphore_infos(&signal)];
-    device
-        .errors_queue
-        .submit(device, &submit, vk::Fence::null())?;
+    let submit = [vk::SubmitInfo2::default().command_buffer_infos(&cmds).signal_semaphore_infos(&signal)];
+    device.errors_queue.submit(device, &submit, vk::Fence::null())?;
     timeline.wait(1, u64::MAX)?;
     let data: Vec<f32> = bytemuck::pod_collect_to_vec(dump.mapped()?);
     let mut levels = Vec::new();
@@ -661,10 +534,7 @@ pub fn compute_once(
     let rb = readback.mapped()?;
     let len = BlockErrors::packed_len(root);
     let blocks: Vec<f32> = bytemuck::pod_collect_to_vec(&rb[4..4 + len * 4]);
-    Ok((
-        GroupErrors { n, levels },
-        BlockErrors::from_packed(root, &blocks),
-    ))
+    Ok((GroupErrors { n, levels }, BlockErrors::from_packed(root, &blocks)))
 }
 
 impl ErrorsActivity {
@@ -687,15 +557,9 @@ impl ErrorsActivity {
             )
         };
         let shared = Arc::new(Shared {
-            request: Mutex::new(Request {
-                params: None,
-                stop: false,
-            }),
+            request: Mutex::new(Request { params: None, stop: false }),
             request_cv: Condvar::new(),
-            handoff: Mutex::new(Handoff {
-                reading: None,
-                slots: [None, None],
-            }),
+            handoff: Mutex::new(Handoff { reading: None, slots: [None, None] }),
             handoff_cv: Condvar::new(),
             timeline: TimelineSemaphore::new(device, 0)?,
             readbacks: [rb(0)?, rb(1)?],
@@ -720,11 +584,7 @@ impl ErrorsActivity {
                 }
             })
             .map_err(|e| VkError::Setup(format!("cannot start the errors thread: {e}")))?;
-        Ok(ErrorsActivity {
-            shared,
-            thread: Some(thread),
-            cost,
-        })
+        Ok(ErrorsActivity { shared, thread: Some(thread), cost })
     }
 
     /// Asks for a generation computed with `params`; does nothing if the latest request
@@ -860,11 +720,7 @@ fn run(gpu: ErrorsGpu, s: &Shared) -> VkResult<()> {
             while h.reading == Some(g.wrapping_sub(2)) {
                 h = s.handoff_cv.wait(h).unwrap();
             }
-            h.slots[slot] = Some(SlotInfo {
-                generation: g,
-                params,
-                update_ms: 0.0,
-            });
+            h.slots[slot] = Some(SlotInfo { generation: g, params, update_ms: 0.0 });
         }
         let start = Instant::now();
         let cmd = gpu.record(slot, g, &params, &s.readbacks[slot], None)?;
@@ -873,12 +729,8 @@ fn run(gpu: ErrorsGpu, s: &Shared) -> VkResult<()> {
             .semaphore(s.timeline.handle)
             .value(g)
             .stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)];
-        let submit = [vk::SubmitInfo2::default()
-            .command_buffer_infos(&cmds)
-            .signal_semaphore_infos(&signal)];
-        gpu.device
-            .errors_queue
-            .submit(&gpu.device, &submit, vk::Fence::null())?;
+        let submit = [vk::SubmitInfo2::default().command_buffer_infos(&cmds).signal_semaphore_infos(&signal)];
+        gpu.device.errors_queue.submit(&gpu.device, &submit, vk::Fence::null())?;
         // One generation in flight: wait (on the CPU) until it is done.
         while !s.timeline.wait(g, 100_000_000)? {
             if s.request.lock().unwrap().stop {

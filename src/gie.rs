@@ -39,13 +39,7 @@ pub struct ErrorParams {
 
 impl ErrorParams {
     pub fn new(cam: &Camera, mode: ErrorMode) -> Self {
-        ErrorParams {
-            camera: cam.position,
-            kappa: cam.kappa(),
-            inv_cos2: cam.inv_cos2_max(),
-            near: cam.near,
-            mode,
-        }
+        ErrorParams { camera: cam.position, kappa: cam.kappa(), inv_cos2: cam.inv_cos2_max(), near: cam.near, mode }
     }
 }
 
@@ -98,11 +92,7 @@ pub fn group_errors(hf: &Heightfield, mm: &MinMaxPyramid, p: &ErrorParams) -> Gr
                     ErrorMode::Strict => {
                         let [mn, mx] = mm.get(lod, a, b);
                         let bmin = Vec3::new(cx as f32 * spacing, mn * hscale, cz as f32 * spacing);
-                        let bmax = Vec3::new(
-                            (cx + size) as f32 * spacing,
-                            mx * hscale,
-                            (cz + size) as f32 * spacing,
-                        );
+                        let bmax = Vec3::new((cx + size) as f32 * spacing, mx * hscale, (cz + size) as f32 * spacing);
                         let d = distance_to_aabb(p.camera, bmin, bmax).max(p.near);
                         let mut max_wie = 0.0f32;
                         for (k, (ox, oz)) in DROPPED.iter().enumerate() {
@@ -118,8 +108,7 @@ pub fn group_errors(hf: &Heightfield, mm: &MinMaxPyramid, p: &ErrorParams) -> Gr
                             let (sx, sz) = (cx + ox * h, cz + oz * h);
                             let rv = hf.raw_at(sx, sz);
                             let wie = (rv - (lo[k] + hi[k]) * 0.5) * hscale;
-                            let pv =
-                                Vec3::new(sx as f32 * spacing, rv * hscale, sz as f32 * spacing);
+                            let pv = Vec3::new(sx as f32 * spacing, rv * hscale, sz as f32 * spacing);
                             let d = (pv - p.camera).length().max(p.near);
                             e = e.max(wie.abs() * p.kappa / d);
                         }
@@ -233,13 +222,7 @@ mod tests {
     }
 
     fn params(mode: ErrorMode) -> ErrorParams {
-        ErrorParams {
-            camera: Vec3::new(4.0, 20.0, 4.0),
-            kappa: 500.0,
-            inv_cos2: 2.0,
-            near: 0.1,
-            mode,
-        }
+        ErrorParams { camera: Vec3::new(4.0, 20.0, 4.0), kappa: 500.0, inv_cos2: 2.0, near: 0.1, mode }
     }
 
     #[test]
@@ -279,17 +262,11 @@ mod tests {
 
     #[test]
     fn strict_is_never_below_paper() {
-        let h = hf(33, |x, z| {
-            ((x * 7 + z * 13) % 11) as f32 + ((x as f32) * 0.3).sin() * 4.0
-        });
+        let h = hf(33, |x, z| ((x * 7 + z * 13) % 11) as f32 + ((x as f32) * 0.3).sin() * 4.0);
         let mm = MinMaxPyramid::build(&h);
         let mut pp = params(ErrorMode::Paper);
         let mut ps = params(ErrorMode::Strict);
-        for cam in [
-            Vec3::new(16.0, 3.0, 16.0),
-            Vec3::new(-50.0, 40.0, 10.0),
-            Vec3::new(5.0, 0.5, 30.0),
-        ] {
+        for cam in [Vec3::new(16.0, 3.0, 16.0), Vec3::new(-50.0, 40.0, 10.0), Vec3::new(5.0, 0.5, 30.0)] {
             pp.camera = cam;
             ps.camera = cam;
             let a = group_errors(&h, &mm, &pp);
@@ -309,10 +286,7 @@ mod tests {
         let b = block_errors(&g, 2); // k = 5, root LOD 2
         assert_eq!(b.levels.len(), 2);
         assert_eq!(b.side(1), 2);
-        assert_eq!(
-            b.get(2, 0, 0),
-            g.levels[1].iter().cloned().fold(0.0, f32::max)
-        );
+        assert_eq!(b.get(2, 0, 0), g.levels[1].iter().cloned().fold(0.0, f32::max));
         let packed = b.packed();
         assert_eq!(packed.len(), BlockErrors::packed_len(2));
         assert_eq!(BlockErrors::from_packed(2, &packed), b);

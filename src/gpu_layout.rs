@@ -171,13 +171,7 @@ pub struct BlockInfo {
 
 impl BlockInfo {
     pub fn of<T: GpuBlock>() -> Self {
-        BlockInfo {
-            name: T::NAME,
-            instance: T::INSTANCE,
-            kind: T::KIND,
-            fields: T::FIELDS,
-            size: T::SIZE,
-        }
+        BlockInfo { name: T::NAME, instance: T::INSTANCE, kind: T::KIND, fields: T::FIELDS, size: T::SIZE }
     }
 }
 

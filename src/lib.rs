@@ -23,4 +23,5 @@ pub mod cli;
 pub mod commands;
 pub mod errors_activity;
 pub mod terrain_gpu;
+pub mod viewer;
 pub mod vk;

@@ -2,18 +2,24 @@ use clap::{Parser, Subcommand};
 use std::process::ExitCode;
 use vkterrain::cli::InputError;
 use vkterrain::commands::{self, ErrorsArgs, RenderArgs};
+use vkterrain::viewer::ViewArgs;
 
 /// vkterrain: a Vulkan terrain renderer with a GPU-rasterized screen-space error
 /// quadtree (Yusuf, Mostafa and Elarif), run as two activities on two queues.
 #[derive(Parser)]
-#[command(name = "vkterrain", version, about, long_about = None)]
+#[command(name = "vkterrain", version, about, long_about = None, args_conflicts_with_subcommands = true)]
 struct Cli {
     #[command(subcommand)]
-    command: Command,
+    command: Option<Command>,
+    /// With no subcommand: the viewer's options.
+    #[command(flatten)]
+    view: ViewArgs,
 }
 
 #[derive(Subcommand)]
 enum Command {
+    /// Open a window with both activities live (the default).
+    View(ViewArgs),
     /// Render one frame headless to a PNG and print stats as JSON.
     Render(RenderArgs),
     /// Compute error generations on the GPU and print their cost as JSON.
@@ -22,15 +28,15 @@ enum Command {
 
 fn main() -> ExitCode {
     tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into()),
-        )
+        .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into()))
         .with_writer(std::io::stderr)
         .init();
     let cli = Cli::parse();
     let result = match &cli.command {
-        Command::Render(a) => commands::render(a),
-        Command::Errors(a) => commands::errors(a),
+        None => vkterrain::viewer::view(&cli.view),
+        Some(Command::View(a)) => vkterrain::viewer::view(a),
+        Some(Command::Render(a)) => commands::render(a),
+        Some(Command::Errors(a)) => commands::errors(a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -19,14 +19,10 @@ impl BlockLayout {
     /// the terrain.
     pub fn new(n: u32, k: u32) -> Result<Self, String> {
         if k < 3 || !(k - 1).is_power_of_two() {
-            return Err(format!(
-                "--block {k}: the block side must be 2^m + 1 (3, 5, 9, 17, 33, 65, ...)"
-            ));
+            return Err(format!("--block {k}: the block side must be 2^m + 1 (3, 5, 9, 17, 33, 65, ...)"));
         }
         if k > 257 {
-            return Err(format!(
-                "--block {k}: at most 257 (vertex coordinates are 8-bit)"
-            ));
+            return Err(format!("--block {k}: at most 257 (vertex coordinates are 8-bit)"));
         }
         let m = (k - 1).trailing_zeros().min(n);
         Ok(BlockLayout { n, m })
@@ -80,11 +76,7 @@ pub enum LodSelect<'a> {
     Full,
     /// The paper's method: refine while the block error exceeds `delta` pixels. `errors`
     /// were computed for a camera at `computed_at`.
-    Errors {
-        errors: &'a BlockErrors,
-        computed_at: Vec3,
-        delta: f32,
-    },
+    Errors { errors: &'a BlockErrors, computed_at: Vec3, delta: f32 },
     /// Distance rings (the GeoMipMapping-style baseline): refine while the camera is
     /// closer than `factor` times the block's size.
     Distance { factor: f32 },
@@ -113,11 +105,7 @@ pub fn block_aabb(
     let [lo, hi] = mm.get(level, bx as usize, bz as usize);
     (
         Vec3::new(bx as f32 * s, lo * hf.height_scale, bz as f32 * s),
-        Vec3::new(
-            (bx + 1) as f32 * s,
-            hi * hf.height_scale,
-            (bz + 1) as f32 * s,
-        ),
+        Vec3::new((bx + 1) as f32 * s, hi * hf.height_scale, (bz + 1) as f32 * s),
     )
 }
 
@@ -133,10 +121,7 @@ pub fn traverse(
     let mut out = Traversal::default();
     let mut stack = vec![(layout.root_lod(), 0u32, 0u32)];
     while let Some((lod, bx, bz)) = stack.pop() {
-        let (ox, oz) = (
-            bx * layout.block_samples(lod),
-            bz * layout.block_samples(lod),
-        );
+        let (ox, oz) = (bx * layout.block_samples(lod), bz * layout.block_samples(lod));
         if ox as usize >= hf.width - 1 || oz as usize >= hf.height - 1 {
             continue; // wholly in the embedding margin
         }
@@ -149,18 +134,9 @@ pub fn traverse(
         } else {
             match select {
                 LodSelect::Full => (false, 0.0),
-                LodSelect::Errors {
-                    errors,
-                    computed_at,
-                    delta,
-                } => {
-                    let e = stale_corrected(
-                        errors.get(lod, bx as usize, bz as usize),
-                        computed_at,
-                        cam.position,
-                        min,
-                        max,
-                    );
+                LodSelect::Errors { errors, computed_at, delta } => {
+                    let e =
+                        stale_corrected(errors.get(lod, bx as usize, bz as usize), computed_at, cam.position, min, max);
                     (e <= delta, e)
                 }
                 LodSelect::Distance { factor } => {
@@ -171,12 +147,7 @@ pub fn traverse(
         };
         if draw {
             out.max_block_error = out.max_block_error.max(err);
-            out.blocks.push(DrawBlock {
-                lod,
-                bx,
-                bz,
-                coarser: [0; 4],
-            });
+            out.blocks.push(DrawBlock { lod, bx, bz, coarser: [0; 4] });
         } else {
             for (cx, cz) in [(1, 1), (0, 1), (1, 0), (0, 0)] {
                 stack.push((lod - 1, bx * 2 + cx, bz * 2 + cz));
@@ -229,12 +200,7 @@ fn assign_neighbours(layout: &BlockLayout, blocks: &mut [DrawBlock], map: &[i8])
     for b in blocks.iter_mut() {
         let span = 1i64 << b.lod;
         let (cx, cz) = (b.bx as i64 * span, b.bz as i64 * span);
-        let across = [
-            at(cx, cz - 1),
-            at(cx + span, cz),
-            at(cx, cz + span),
-            at(cx - 1, cz),
-        ];
+        let across = [at(cx, cz - 1), at(cx + span, cz), at(cx, cz + span), at(cx - 1, cz)];
         for (i, l) in across.iter().enumerate() {
             b.coarser[i] = if *l > b.lod as i8 { 1u32 << *l } else { 0 };
         }
@@ -243,13 +209,7 @@ fn assign_neighbours(layout: &BlockLayout, blocks: &mut [DrawBlock], map: &[i8])
 
 /// The vertex shader's placement of block vertex `(u, v)`, in plain Rust: the sample it
 /// lands on and its raw height (SPEC section 5, cracks). Must match `glsl/terrain.vert`.
-pub fn block_vertex(
-    hf: &Heightfield,
-    layout: &BlockLayout,
-    b: &DrawBlock,
-    u: u32,
-    v: u32,
-) -> (i64, i64, f32) {
+pub fn block_vertex(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, u: u32, v: u32) -> (i64, i64, f32) {
     let k = layout.k();
     let stride = b.stride() as i64;
     let (ox, oz) = b.origin(layout);

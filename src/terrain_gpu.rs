@@ -37,39 +37,17 @@ impl TerrainGpu {
         let pool = CommandPool::new(device, device.draw_queue.family)?;
         let side = hf.side() as u32;
         let (format, bytes): (vk::Format, Vec<u8>) = match hf.format {
-            HeightFormat::Unorm16 => (
-                vk::Format::R16_UNORM,
-                hf.raw
-                    .iter()
-                    .flat_map(|&v| (v as u16).to_le_bytes())
-                    .collect(),
-            ),
-            HeightFormat::Float32 => (
-                vk::Format::R32_SFLOAT,
-                bytemuck::cast_slice(&hf.raw).to_vec(),
-            ),
+            HeightFormat::Unorm16 => {
+                (vk::Format::R16_UNORM, hf.raw.iter().flat_map(|&v| (v as u16).to_le_bytes()).collect())
+            }
+            HeightFormat::Float32 => (vk::Format::R32_SFLOAT, bytemuck::cast_slice(&hf.raw).to_vec()),
         };
         let usage = vk::ImageUsageFlags::SAMPLED | vk::ImageUsageFlags::TRANSFER_DST;
-        let extent = |w: u32, h: u32| vk::Extent2D {
-            width: w,
-            height: h,
-        };
-        let heights = Image::new(
-            device,
-            "heightfield",
-            extent(side, side),
-            format,
-            1,
-            usage,
-            true,
-        )?;
+        let extent = |w: u32, h: u32| vk::Extent2D { width: w, height: h };
+        let heights = Image::new(device, "heightfield", extent(side, side), format, 1, usage, true)?;
         upload(device, &pool, &heights, &[&bytes])?;
 
-        let mips: Vec<Vec<u8>> = mm
-            .levels
-            .iter()
-            .map(|l| bytemuck::cast_slice(l).to_vec())
-            .collect();
+        let mips: Vec<Vec<u8>> = mm.levels.iter().map(|l| bytemuck::cast_slice(l).to_vec()).collect();
         let mip_refs: Vec<&[u8]> = mips.iter().map(|m| m.as_slice()).collect();
         let mm_side = 1u32 << (hf.n - 1);
         let minmax = Image::new(
@@ -83,21 +61,9 @@ impl TerrainGpu {
         )?;
         upload(device, &pool, &minmax, &mip_refs)?;
 
-        let white = Texture {
-            width: 1,
-            height: 1,
-            rgba: vec![255; 4],
-        };
+        let white = Texture { width: 1, height: 1, rgba: vec![255; 4] };
         let tex = |name: &str, t: &Texture| -> VkResult<Image> {
-            let img = Image::new(
-                device,
-                name,
-                extent(t.width, t.height),
-                vk::Format::R8G8B8A8_SRGB,
-                1,
-                usage,
-                false,
-            )?;
+            let img = Image::new(device, name, extent(t.width, t.height), vk::Format::R8G8B8A8_SRGB, 1, usage, false)?;
             upload(device, &pool, &img, &[&t.rgba])?;
             Ok(img)
         };
@@ -107,11 +73,7 @@ impl TerrainGpu {
         Ok(TerrainGpu {
             heights,
             minmax,
-            nearest: Sampler::new(
-                device,
-                vk::Filter::NEAREST,
-                vk::SamplerAddressMode::CLAMP_TO_EDGE,
-            )?,
+            nearest: Sampler::new(device, vk::Filter::NEAREST, vk::SamplerAddressMode::CLAMP_TO_EDGE)?,
             linear: Sampler::new(device, vk::Filter::LINEAR, vk::SamplerAddressMode::REPEAT)?,
             base: base_img,
             detail: detail_img,
@@ -124,12 +86,7 @@ impl TerrainGpu {
 }
 
 /// Uploads every mip level of `image` and leaves it in SHADER_READ_ONLY_OPTIMAL.
-pub fn upload(
-    device: &Arc<Device>,
-    pool: &CommandPool,
-    image: &Image,
-    mips: &[&[u8]],
-) -> VkResult<()> {
+pub fn upload(device: &Arc<Device>, pool: &CommandPool, image: &Image, mips: &[&[u8]]) -> VkResult<()> {
     let total: usize = mips.iter().map(|m| m.len()).sum();
     let mut staging = Buffer::new(
         device,
@@ -155,11 +112,7 @@ pub fn upload(
                         base_array_layer: 0,
                         layer_count: 1,
                     })
-                    .image_extent(vk::Extent3D {
-                        width: w,
-                        height: h,
-                        depth: 1,
-                    }),
+                    .image_extent(vk::Extent3D { width: w, height: h, depth: 1 }),
             );
             at += data.len();
         }
@@ -177,9 +130,7 @@ pub fn upload(
         let to_read = [vk::ImageMemoryBarrier2::default()
             .src_stage_mask(vk::PipelineStageFlags2::COPY)
             .src_access_mask(vk::AccessFlags2::TRANSFER_WRITE)
-            .dst_stage_mask(
-                vk::PipelineStageFlags2::VERTEX_SHADER | vk::PipelineStageFlags2::FRAGMENT_SHADER,
-            )
+            .dst_stage_mask(vk::PipelineStageFlags2::VERTEX_SHADER | vk::PipelineStageFlags2::FRAGMENT_SHADER)
             .dst_access_mask(vk::AccessFlags2::SHADER_SAMPLED_READ)
             .old_layout(vk::ImageLayout::TRANSFER_DST_OPTIMAL)
             .new_layout(vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL)
@@ -188,10 +139,7 @@ pub fn upload(
         // SAFETY: `cmd` is recording; the staging buffer and image outlive the wait in
         // one_shot.
         unsafe {
-            device.raw.cmd_pipeline_barrier2(
-                cmd,
-                &vk::DependencyInfo::default().image_memory_barriers(&to_dst),
-            );
+            device.raw.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().image_memory_barriers(&to_dst));
             device.raw.cmd_copy_buffer_to_image(
                 cmd,
                 staging.handle,
@@ -199,10 +147,7 @@ pub fn upload(
                 vk::ImageLayout::TRANSFER_DST_OPTIMAL,
                 &regions,
             );
-            device.raw.cmd_pipeline_barrier2(
-                cmd,
-                &vk::DependencyInfo::default().image_memory_barriers(&to_read),
-            );
+            device.raw.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().image_memory_barriers(&to_read));
         }
     })
 }

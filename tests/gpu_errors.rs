@@ -20,19 +20,11 @@ fn check(device: &Arc<vkterrain::vk::Device>, hf: Heightfield, k: u32, cameras: 
     let hf = Arc::new(hf);
     let mut largest = 0.0f32;
     for &pos in cameras {
-        let cam = Camera::look_at(
-            pos,
-            pos + Vec3::new(1.0, -1.0, 1.0),
-            60.0,
-            640,
-            480,
-            hf.spacing * 0.05,
-        );
+        let cam = Camera::look_at(pos, pos + Vec3::new(1.0, -1.0, 1.0), 60.0, 640, 480, hf.spacing * 0.05);
         let mut per_mode = Vec::new();
         for mode in [ErrorMode::Paper, ErrorMode::Strict] {
             let p = ErrorParams::new(&cam, mode);
-            let (gpu_g, gpu_b) =
-                compute_once(device, terrain.clone(), hf.clone(), layout, &p).unwrap();
+            let (gpu_g, gpu_b) = compute_once(device, terrain.clone(), hf.clone(), layout, &p).unwrap();
             let cpu_g = group_errors(&hf, &mm, &p);
             let cpu_b = block_errors(&cpu_g, layout.m);
             for (lod, (a, b)) in gpu_g.levels.iter().zip(&cpu_g.levels).enumerate() {
@@ -76,37 +68,21 @@ fn crafted_fields_match_the_reference() {
     let device = gpu();
     // Flat and planes (along x, along z, along the a-i diagonal): zero everywhere. Slopes
     // are dyadic so that the planes are exact in f32.
-    let planes: [fn(usize, usize) -> f32; 4] = [
-        |_, _| 5.0,
-        |x, _| x as f32 * 0.75,
-        |_, z| z as f32 * 1.25,
-        |x, z| (x + z) as f32 * 0.5,
-    ];
+    let planes: [fn(usize, usize) -> f32; 4] =
+        [|_, _| 5.0, |x, _| x as f32 * 0.75, |_, z| z as f32 * 1.25, |x, z| (x + z) as f32 * 0.5];
     for f in planes {
         let hf = field(33, 33, 1.0, f);
         let largest = check(&device, hf, 5, &cams(32.0, 50.0));
-        assert_eq!(
-            largest, 0.0,
-            "a plane split along the a-i diagonal has no interpolation error"
-        );
+        assert_eq!(largest, 0.0, "a plane split along the a-i diagonal has no interpolation error");
     }
     // A single spike, a checkerboard, a non-square input, and 16-bit data.
-    let spike = field(
-        33,
-        33,
-        2.0,
-        |x, z| if (x, z) == (13, 7) { 40.0 } else { 0.0 },
-    );
+    let spike = field(33, 33, 2.0, |x, z| if (x, z) == (13, 7) { 40.0 } else { 0.0 });
     assert!(check(&device, spike, 5, &cams(64.0, 40.0)) > 0.0);
     let checker = field(17, 17, 1.0, |x, z| ((x + z) % 2) as f32 * 3.0);
     assert!(check(&device, checker, 3, &cams(16.0, 3.0)) > 0.0);
-    let wide = field(41, 19, 1.5, |x, z| {
-        ((x as f32 * 0.4).sin() + (z as f32 * 0.3).cos()) * 6.0
-    });
+    let wide = field(41, 19, 1.5, |x, z| ((x as f32 * 0.4).sin() + (z as f32 * 0.3).cos()) * 6.0);
     assert!(check(&device, wide, 9, &cams(60.0, 6.0)) > 0.0);
-    let sixteen = field16(65, 65, 10.0, 0.1, |x, z| {
-        ((x * 977 + z * 131) % 4000) as u16 + 30000
-    });
+    let sixteen = field16(65, 65, 10.0, 0.1, |x, z| ((x * 977 + z * 131) % 4000) as u16 + 30000);
     assert!(check(&device, sixteen, 17, &cams(640.0, 3400.0)) > 0.0);
     assert_clean(&device);
 }
@@ -114,15 +90,10 @@ fn crafted_fields_match_the_reference() {
 #[test]
 fn real_dems_match_the_reference() {
     let device = gpu();
-    let ps = heightfield::load(
-        &data("puget_sound/ps_height_1k.png"),
-        &LoadOptions::default(),
-    )
-    .unwrap();
+    let ps = heightfield::load(&data("puget_sound/ps_height_1k.png"), &LoadOptions::default()).unwrap();
     let side = 1024.0 * ps.spacing;
     assert!(check(&device, ps, 33, &cams(side, 4380.0)) > 0.0);
-    let rainier =
-        heightfield::load(&data("srtm3/mt_rainier_90m.tif"), &LoadOptions::default()).unwrap();
+    let rainier = heightfield::load(&data("srtm3/mt_rainier_90m.tif"), &LoadOptions::default()).unwrap();
     let side = 1200.0 * rainier.spacing;
     assert!(check(&device, rainier, 33, &cams(side, 4371.0)) > 0.0);
     assert_clean(&device);

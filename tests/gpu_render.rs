@@ -31,24 +31,12 @@ impl Scene {
         let mm = MinMaxPyramid::build(&hf);
         let layout = BlockLayout::new(hf.n, k).unwrap();
         let terrain = Arc::new(TerrainGpu::new(device, &hf, &mm, None, None).unwrap());
-        let renderer = BlocksRenderer::new(device, &terrain, layout, COLOR_FORMAT).unwrap();
-        Scene {
-            device: device.clone(),
-            hf: Arc::new(hf),
-            mm,
-            layout,
-            terrain,
-            renderer,
-        }
+        let renderer = BlocksRenderer::new(device, &terrain, layout, COLOR_FORMAT, 1).unwrap();
+        Scene { device: device.clone(), hf: Arc::new(hf), mm, layout, terrain, renderer }
     }
 
     /// Renders with `--lod full` (errors = None) or the paper's method at `delta`.
-    fn render(
-        &mut self,
-        cam: &Camera,
-        errors: Option<(&ErrorsActivity, f32)>,
-        shading: &Shading,
-    ) -> Vec<u8> {
+    fn render(&mut self, cam: &Camera, errors: Option<(&ErrorsActivity, f32)>, shading: &Shading) -> Vec<u8> {
         self.render_mode(cam, errors, ErrorMode::Strict, shading)
     }
 
@@ -64,34 +52,19 @@ impl Scene {
         let select = match errors {
             None => LodSelect::Full,
             Some((activity, delta)) => {
-                gen = activity
-                    .wait_for(
-                        ErrorParams::new(cam, mode),
-                        std::time::Duration::from_secs(120),
-                    )
-                    .unwrap();
-                LodSelect::Errors {
-                    errors: &gen.errors,
-                    computed_at: gen.params.camera,
-                    delta,
-                }
+                gen = activity.wait_for(ErrorParams::new(cam, mode), std::time::Duration::from_secs(120)).unwrap();
+                LodSelect::Errors { errors: &gen.errors, computed_at: gen.params.camera, delta }
             }
         };
         let t = traverse(&self.hf, &self.mm, &self.layout, cam, select);
-        let (px, _) = self
-            .renderer
-            .render_offscreen(&self.hf, &self.terrain, &target, cam, &t.blocks, shading)
-            .unwrap();
+        let (px, _) =
+            self.renderer.render_offscreen(&self.hf, &self.terrain, &target, cam, &t.blocks, shading).unwrap();
         px
     }
 }
 
 fn plain() -> Shading {
-    Shading {
-        sky: false,
-        background: [1.0, 0.0, 1.0],
-        ..Shading::default()
-    }
+    Shading { sky: false, background: [1.0, 0.0, 1.0], ..Shading::default() }
 }
 
 fn pixel(px: &[u8], w: u32, x: u32, y: u32) -> [u8; 3] {
@@ -103,14 +76,7 @@ fn pixel(px: &[u8], w: u32, x: u32, y: u32) -> [u8; 3] {
 fn flat_plane_covers_exactly_its_projection() {
     let device = gpu();
     let mut scene = Scene::new(&device, field(33, 33, 1.0, |_, _| 0.0), 9);
-    let cam = Camera::look_at(
-        Vec3::new(16.0, 20.0, 40.0),
-        Vec3::new(16.0, 0.0, 16.0),
-        60.0,
-        160,
-        120,
-        0.05,
-    );
+    let cam = Camera::look_at(Vec3::new(16.0, 20.0, 40.0), Vec3::new(16.0, 0.0, 16.0), 60.0, 160, 120, 0.05);
     let px = scene.render(&cam, None, &plain());
     let vp = cam.view_proj();
     // The projected quad of the plane's corners.
@@ -119,9 +85,7 @@ fn flat_plane_covers_exactly_its_projection() {
         .map(|&(x, z)| cam.project(&vp, Vec3::new(x, 0.0, z)).unwrap())
         .collect();
     // Winding of the projected quad, so that the distance is positive inside.
-    let area: f32 = (0..4)
-        .map(|i| corners[i].0 * corners[(i + 1) % 4].1 - corners[(i + 1) % 4].0 * corners[i].1)
-        .sum();
+    let area: f32 = (0..4).map(|i| corners[i].0 * corners[(i + 1) % 4].1 - corners[(i + 1) % 4].0 * corners[i].1).sum();
     let winding = area.signum();
     let inside = |x: f32, y: f32| -> f32 {
         // Signed distance to the convex quad (positive inside), in pixels.
@@ -144,25 +108,16 @@ fn flat_plane_covers_exactly_its_projection() {
             let c = pixel(&px, cam.width, x, y);
             if d > 1.5 {
                 n_in += 1;
-                assert_ne!(
-                    c, MAGENTA,
-                    "pixel ({x},{y}) inside the plane shows background"
-                );
+                assert_ne!(c, MAGENTA, "pixel ({x},{y}) inside the plane shows background");
                 // A flat plane under a directional light has one colour.
                 assert_eq!(*terrain_colour.get_or_insert(c), c, "pixel ({x},{y})");
             } else if d < -1.5 {
                 n_out += 1;
-                assert_eq!(
-                    c, MAGENTA,
-                    "pixel ({x},{y}) outside the plane is not background"
-                );
+                assert_eq!(c, MAGENTA, "pixel ({x},{y}) outside the plane is not background");
             }
         }
     }
-    assert!(
-        n_in > 1000 && n_out > 1000,
-        "{n_in} inside, {n_out} outside"
-    );
+    assert!(n_in > 1000 && n_out > 1000, "{n_in} inside, {n_out} outside");
     drop(scene);
     assert_clean(&device);
 }
@@ -172,21 +127,8 @@ fn spike_appears_where_the_camera_projects_it() {
     let device = gpu();
     let flat = field(65, 65, 1.0, |_, _| 0.0);
     // A spike with a flat 3 x 3 top (a thin tip may fall between pixel centres).
-    let spiky = field(65, 65, 1.0, |x, z| {
-        if (39..=41).contains(&x) && (23..=25).contains(&z) {
-            12.0
-        } else {
-            0.0
-        }
-    });
-    let cam = Camera::look_at(
-        Vec3::new(20.0, 45.0, 70.0),
-        Vec3::new(32.0, 0.0, 30.0),
-        60.0,
-        200,
-        150,
-        0.05,
-    );
+    let spiky = field(65, 65, 1.0, |x, z| if (39..=41).contains(&x) && (23..=25).contains(&z) { 12.0 } else { 0.0 });
+    let cam = Camera::look_at(Vec3::new(20.0, 45.0, 70.0), Vec3::new(32.0, 0.0, 30.0), 60.0, 200, 150, 0.05);
     let a = Scene::new(&device, flat, 17).render(&cam, None, &plain());
     let b = Scene::new(&device, spiky, 17).render(&cam, None, &plain());
     let vp = cam.view_proj();
@@ -197,18 +139,11 @@ fn spike_appears_where_the_camera_projects_it() {
     let mut pts = vec![(tx, ty)];
     for dz in -3..=3 {
         for dx in -3..=3 {
-            pts.push(
-                cam.project(&vp, Vec3::new(40.0 + dx as f32, 0.0, 24.0 + dz as f32))
-                    .unwrap(),
-            );
+            pts.push(cam.project(&vp, Vec3::new(40.0 + dx as f32, 0.0, 24.0 + dz as f32)).unwrap());
         }
     }
-    let (x0, x1) = pts.iter().fold((f32::MAX, f32::MIN), |(lo, hi), p| {
-        (lo.min(p.0), hi.max(p.0))
-    });
-    let (y0, y1) = pts.iter().fold((f32::MAX, f32::MIN), |(lo, hi), p| {
-        (lo.min(p.1), hi.max(p.1))
-    });
+    let (x0, x1) = pts.iter().fold((f32::MAX, f32::MIN), |(lo, hi), p| (lo.min(p.0), hi.max(p.0)));
+    let (y0, y1) = pts.iter().fold((f32::MAX, f32::MIN), |(lo, hi), p| (lo.min(p.1), hi.max(p.1)));
     let mut changed = 0;
     let mut top: Option<(u32, u32)> = None;
     for y in 0..cam.height {
@@ -234,10 +169,7 @@ fn spike_appears_where_the_camera_projects_it() {
         "the top of the spike ({ax},{ay}) did not change"
     );
     let far_edge = cam.project(&vp, Vec3::new(40.0, 12.0, 23.0)).unwrap().1;
-    assert!(
-        top.unwrap().1 as f32 + 0.5 >= far_edge - 1.5,
-        "changed pixel above the spike's top edge"
-    );
+    assert!(top.unwrap().1 as f32 + 0.5 >= far_edge - 1.5, "changed pixel above the spike's top edge");
     assert_clean(&device);
 }
 
@@ -256,11 +188,7 @@ fn downward_poses(hf: &Heightfield, count: usize) -> Vec<Camera> {
             let pos = Vec3::new(x, ground + alt, z);
             let pitch = (65.0f32 + 23.0 * ((f * 5.1).fract())).to_radians();
             let yaw = f * std::f32::consts::TAU * 3.0;
-            let dir = Vec3::new(
-                yaw.cos() * pitch.cos(),
-                -pitch.sin(),
-                yaw.sin() * pitch.cos(),
-            );
+            let dir = Vec3::new(yaw.cos() * pitch.cos(), -pitch.sin(), yaw.sin() * pitch.cos());
             Camera::look_at(pos, pos + dir, 50.0, 200, 150, hf.spacing * 0.05)
         })
         .collect()
@@ -269,22 +197,12 @@ fn downward_poses(hf: &Heightfield, count: usize) -> Vec<Camera> {
 #[test]
 fn no_cracks_when_the_whole_frame_is_terrain() {
     let device = gpu();
-    let hf = heightfield::load(
-        &data("puget_sound/ps_height_1k.png"),
-        &LoadOptions::default(),
-    )
-    .unwrap();
+    let hf = heightfield::load(&data("puget_sound/ps_height_1k.png"), &LoadOptions::default()).unwrap();
     let mut frames = 0;
     // Small blocks put many LOD boundaries in view.
     for k in [9, 33] {
         let mut scene = Scene::new(&device, hf.clone(), k);
-        let activity = ErrorsActivity::start(
-            &device,
-            scene.terrain.clone(),
-            scene.hf.clone(),
-            scene.layout,
-        )
-        .unwrap();
+        let activity = ErrorsActivity::start(&device, scene.terrain.clone(), scene.hf.clone(), scene.layout).unwrap();
         let poses = downward_poses(&scene.hf, 12);
         for cam in &poses {
             // Large deltas put very coarse blocks next to fine ones, where an unstitched
@@ -330,19 +248,9 @@ fn compare(a: &[u8], b: &[u8]) -> (f64, f64) {
 #[test]
 fn fidelity_against_the_full_resolution_render() {
     let device = gpu();
-    let hf = heightfield::load(
-        &data("puget_sound/ps_height_1k.png"),
-        &LoadOptions::default(),
-    )
-    .unwrap();
+    let hf = heightfield::load(&data("puget_sound/ps_height_1k.png"), &LoadOptions::default()).unwrap();
     let mut scene = Scene::new(&device, hf, 33);
-    let activity = ErrorsActivity::start(
-        &device,
-        scene.terrain.clone(),
-        scene.hf.clone(),
-        scene.layout,
-    )
-    .unwrap();
+    let activity = ErrorsActivity::start(&device, scene.terrain.clone(), scene.hf.clone(), scene.layout).unwrap();
     let (wx, wz) = scene.hf.world_extent();
     let views = [
         // The paper's start: from above one edge, the whole terrain visible.
@@ -381,10 +289,7 @@ fn fidelity_against_the_full_resolution_render() {
                 assert!(rmse < 1.5, "delta {delta}: RMSE {rmse}");
                 assert!(share < 0.005, "delta {delta}: {share}");
             }
-            assert!(
-                rmse < 2.78 * delta.max(1.0) as f64,
-                "delta {delta}: RMSE {rmse}"
-            );
+            assert!(rmse < 2.78 * delta.max(1.0) as f64, "delta {delta}: RMSE {rmse}");
         }
     }
     activity.stop().unwrap();

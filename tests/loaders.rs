@@ -35,10 +35,7 @@ fn load_default(p: &Path) -> Heightfield {
 #[test]
 fn puget_sound_16bit_png() {
     let hf = load_default(&data("puget_sound/ps_height_1k.png"));
-    assert_eq!(
-        (hf.width, hf.height, hf.side(), hf.n),
-        (1025, 1025, 1025, 10)
-    );
+    assert_eq!((hf.width, hf.height, hf.side(), hf.n), (1025, 1025, 1025, 10));
     assert_eq!(hf.format, HeightFormat::Unorm16);
     assert_eq!(range(&hf), (0.0, 43798.0));
     assert_eq!((hf.spacing, hf.height_scale), (160.0, 0.1));
@@ -53,18 +50,11 @@ fn srtm_geotiffs_with_voids_are_filled() {
         ("mt_everest_90m.tif", 192.0, 8642.0),
     ] {
         let hf = load_default(&data(&format!("srtm3/{name}")));
-        assert_eq!(
-            (hf.width, hf.height, hf.side()),
-            (1201, 1201, 2049),
-            "{name}"
-        );
+        assert_eq!((hf.width, hf.height, hf.side()), (1201, 1201, 2049), "{name}");
         assert_eq!(hf.format, HeightFormat::Float32);
         let (a, b) = range(&hf);
         // Voids are filled from valid neighbours, so the range stays the valid range.
-        assert!(
-            a >= lo && b <= hi && a < lo + 1.0 && b > hi - 1.0,
-            "{name}: {a}..{b}"
-        );
+        assert!(a >= lo && b <= hi && a < lo + 1.0 && b > hi - 1.0, "{name}: {a}..{b}");
         assert!(!hf.raw.contains(&-32768.0));
     }
 }
@@ -82,10 +72,7 @@ fn grand_canyon_rgb_png_with_equal_channels() {
 #[test]
 fn puget_sound_4096_jpeg_embeds_in_4097() {
     let hf = load_default(&data("puget_sound/ps_height_4k.jpg"));
-    assert_eq!(
-        (hf.width, hf.height, hf.side(), hf.n),
-        (4096, 4096, 4097, 12)
-    );
+    assert_eq!((hf.width, hf.height, hf.side(), hf.n), (4096, 4096, 4097, 12));
     let (_, hi) = range(&hf);
     assert!((160.0..=180.0).contains(&hi), "max {hi}");
 }
@@ -93,27 +80,18 @@ fn puget_sound_4096_jpeg_embeds_in_4097() {
 #[test]
 fn generated_png_8_and_16_bit_and_colour() {
     let p8 = tmp("g8.png");
-    image::GrayImage::from_fn(5, 4, |x, y| image::Luma([(x * 10 + y) as u8]))
-        .save(&p8)
-        .unwrap();
+    image::GrayImage::from_fn(5, 4, |x, y| image::Luma([(x * 10 + y) as u8])).save(&p8).unwrap();
     let hf = load_default(&p8);
     assert_eq!((hf.width, hf.height, hf.raw_at(4, 3)), (5, 4, 43.0));
     let p16 = tmp("g16.png");
-    image::ImageBuffer::<image::Luma<u16>, _>::from_fn(3, 3, |x, y| {
-        image::Luma([(x * 1000 + y * 30000) as u16])
-    })
-    .save(&p16)
-    .unwrap();
+    image::ImageBuffer::<image::Luma<u16>, _>::from_fn(3, 3, |x, y| image::Luma([(x * 1000 + y * 30000) as u16]))
+        .save(&p16)
+        .unwrap();
     assert_eq!(load_default(&p16).raw_at(2, 2), 62000.0);
     let pc = tmp("colour.png");
-    image::RgbImage::from_fn(4, 4, |x, _| image::Rgb([x as u8, 0, 0]))
-        .save(&pc)
-        .unwrap();
+    image::RgbImage::from_fn(4, 4, |x, _| image::Rgb([x as u8, 0, 0])).save(&pc).unwrap();
     let e = load(&pc, &LoadOptions::default()).unwrap_err().to_string();
-    assert!(
-        e.contains("colour.png") && e.contains("colour image"),
-        "{e}"
-    );
+    assert!(e.contains("colour.png") && e.contains("colour image"), "{e}");
 }
 
 #[test]
@@ -125,10 +103,7 @@ fn generated_tiffs_unsigned_signed_float_and_nodata() {
         .write_image::<colortype::Gray16>(4, 3, &data16)
         .unwrap();
     let hf = load_default(&p);
-    assert_eq!(
-        (hf.format, hf.raw_at(3, 2)),
-        (HeightFormat::Unorm16, 1100.0)
-    );
+    assert_eq!((hf.format, hf.raw_at(3, 2)), (HeightFormat::Unorm16, 1100.0));
 
     let p = tmp("f32.tif");
     let dataf: Vec<f32> = (0..16).map(|i| i as f32 * 0.5 - 2.0).collect();
@@ -137,10 +112,7 @@ fn generated_tiffs_unsigned_signed_float_and_nodata() {
         .write_image::<colortype::Gray32Float>(4, 4, &dataf)
         .unwrap();
     let hf = load_default(&p);
-    assert_eq!(
-        (hf.format, hf.raw_at(0, 0), hf.raw_at(3, 3)),
-        (HeightFormat::Float32, -2.0, 5.5)
-    );
+    assert_eq!((hf.format, hf.raw_at(0, 0), hf.raw_at(3, 3)), (HeightFormat::Float32, -2.0, 5.5));
 
     // Signed 16-bit with a GDAL_NODATA tag of -9999: the void becomes its neighbours' mean.
     let p = tmp("i16.tif");
@@ -150,9 +122,7 @@ fn generated_tiffs_unsigned_signed_float_and_nodata() {
     {
         let mut enc = TiffEncoder::new(std::fs::File::create(&p).unwrap()).unwrap();
         let mut img = enc.new_image::<colortype::GrayI16>(3, 3).unwrap();
-        img.encoder()
-            .write_tag(Tag::Unknown(42113), "-9999")
-            .unwrap();
+        img.encoder().write_tag(Tag::Unknown(42113), "-9999").unwrap();
         img.write_data(&datai).unwrap();
     }
     let hf = load_default(&p);
@@ -167,10 +137,7 @@ fn generated_tiffs_unsigned_signed_float_and_nodata() {
         .write_image::<colortype::Gray32Float>(3, 3, &datan)
         .unwrap();
     let e = load(&p, &LoadOptions::default()).unwrap_err().to_string();
-    assert!(
-        e.contains("nan.tif") && e.contains("column 2, row 1"),
-        "{e}"
-    );
+    assert!(e.contains("nan.tif") && e.contains("column 2, row 1"), "{e}");
 }
 
 #[test]
@@ -178,43 +145,17 @@ fn raw_r16_and_f32_need_a_matching_size() {
     let p = tmp("h.r16");
     let v: Vec<u8> = (0..20u16).flat_map(|i| (i * 3).to_le_bytes()).collect();
     std::fs::write(&p, &v).unwrap();
-    let opts = LoadOptions {
-        raw_size: Some((5, 4)),
-        ..Default::default()
-    };
+    let opts = LoadOptions { raw_size: Some((5, 4)), ..Default::default() };
     let hf = load(&p, &opts).unwrap();
     assert_eq!((hf.format, hf.raw_at(4, 3)), (HeightFormat::Unorm16, 57.0));
-    let e = load(
-        &p,
-        &LoadOptions {
-            raw_size: Some((5, 5)),
-            ..Default::default()
-        },
-    )
-    .unwrap_err()
-    .to_string();
-    assert!(
-        e.contains("h.r16") && e.contains("needs 50 bytes") && e.contains("has 40"),
-        "{e}"
-    );
-    assert!(load(&p, &LoadOptions::default())
-        .unwrap_err()
-        .to_string()
-        .contains("--raw-size"));
+    let e = load(&p, &LoadOptions { raw_size: Some((5, 5)), ..Default::default() }).unwrap_err().to_string();
+    assert!(e.contains("h.r16") && e.contains("needs 50 bytes") && e.contains("has 40"), "{e}");
+    assert!(load(&p, &LoadOptions::default()).unwrap_err().to_string().contains("--raw-size"));
 
     let p = tmp("h.f32");
-    let v: Vec<u8> = (0..9)
-        .flat_map(|i| (i as f32 - 4.5).to_le_bytes())
-        .collect();
+    let v: Vec<u8> = (0..9).flat_map(|i| (i as f32 - 4.5).to_le_bytes()).collect();
     std::fs::write(&p, &v).unwrap();
-    let hf = load(
-        &p,
-        &LoadOptions {
-            raw_size: Some((3, 3)),
-            ..Default::default()
-        },
-    )
-    .unwrap();
+    let hf = load(&p, &LoadOptions { raw_size: Some((3, 3)), ..Default::default() }).unwrap();
     assert_eq!((hf.format, hf.raw_at(2, 2)), (HeightFormat::Float32, 3.5));
 }
 

@@ -18,10 +18,7 @@ pub struct LoadOptions {
 
 /// Defaults for data sets we know by name (shared/data/README.md), else by sample type.
 fn defaults(path: &str, bits: u32, signed_or_float: bool) -> (f32, f32) {
-    let name = Path::new(path)
-        .file_name()
-        .map(|n| n.to_string_lossy().to_lowercase())
-        .unwrap_or_default();
+    let name = Path::new(path).file_name().map(|n| n.to_string_lossy().to_lowercase()).unwrap_or_default();
     if name.starts_with("ps_height_1k") {
         (160.0, 0.1)
     } else if name.starts_with("ps_height_4k") && bits == 8 {
@@ -43,27 +40,15 @@ fn defaults(path: &str, bits: u32, signed_or_float: bool) -> (f32, f32) {
 /// Loads a heightfield file; every error names the file and the problem.
 pub fn load(path: &Path, opts: &LoadOptions) -> Result<Heightfield, HeightfieldError> {
     let shown = path.display().to_string();
-    let meta = std::fs::metadata(path).map_err(|source| HeightfieldError::Io {
-        path: shown.clone(),
-        source,
-    })?;
+    let meta = std::fs::metadata(path).map_err(|source| HeightfieldError::Io { path: shown.clone(), source })?;
     if meta.is_dir() {
-        return Err(HeightfieldError::invalid(
-            &shown,
-            "is a directory, not a heightfield file",
-        ));
+        return Err(HeightfieldError::invalid(&shown, "is a directory, not a heightfield file"));
     }
-    let bytes = std::fs::read(path).map_err(|source| HeightfieldError::Io {
-        path: shown.clone(),
-        source,
-    })?;
+    let bytes = std::fs::read(path).map_err(|source| HeightfieldError::Io { path: shown.clone(), source })?;
     if bytes.is_empty() {
         return Err(HeightfieldError::invalid(&shown, "file is empty"));
     }
-    let ext = path
-        .extension()
-        .map(|e| e.to_string_lossy().to_lowercase())
-        .unwrap_or_default();
+    let ext = path.extension().map(|e| e.to_string_lossy().to_lowercase()).unwrap_or_default();
     let decoded = match ext.as_str() {
         "png" | "jpg" | "jpeg" => decode_image(&shown, &bytes)?,
         "tif" | "tiff" => decode_tiff(&shown, &bytes)?,
@@ -72,28 +57,14 @@ pub fn load(path: &Path, opts: &LoadOptions) -> Result<Heightfield, HeightfieldE
         _ => {
             return Err(HeightfieldError::invalid(
                 &shown,
-                format!(
-                "unknown extension '{ext}': expected .png, .jpg, .tif, .tiff, .r16, .f32 or .hgt"
-            ),
+                format!("unknown extension '{ext}': expected .png, .jpg, .tif, .tiff, .r16, .f32 or .hgt"),
             ))
         }
     };
-    let (dspacing, dscale) = defaults(
-        &shown,
-        decoded.bits,
-        decoded.format == HeightFormat::Float32,
-    );
+    let (dspacing, dscale) = defaults(&shown, decoded.bits, decoded.format == HeightFormat::Float32);
     let spacing = opts.spacing.unwrap_or(dspacing);
     let height_scale = opts.height_scale.unwrap_or(dscale);
-    Heightfield::embed(
-        &shown,
-        decoded.width,
-        decoded.height,
-        &decoded.samples,
-        decoded.format,
-        spacing,
-        height_scale,
-    )
+    Heightfield::embed(&shown, decoded.width, decoded.height, &decoded.samples, decoded.format, spacing, height_scale)
 }
 
 struct Decoded {
@@ -106,10 +77,7 @@ struct Decoded {
 
 fn check_dims(path: &str, w: usize, h: usize) -> Result<(), HeightfieldError> {
     if w == 0 || h == 0 {
-        return Err(HeightfieldError::invalid(
-            path,
-            format!("image is {w} x {h}: no samples"),
-        ));
+        return Err(HeightfieldError::invalid(path, format!("image is {w} x {h}: no samples")));
     }
     if w > MAX_SIDE || h > MAX_SIDE {
         return Err(HeightfieldError::invalid(
@@ -125,9 +93,8 @@ fn decode_image(path: &str, bytes: &[u8]) -> Result<Decoded, HeightfieldError> {
     let reader = image::ImageReader::new(std::io::Cursor::new(bytes))
         .with_guessed_format()
         .map_err(|e| HeightfieldError::invalid(path, e.to_string()))?;
-    let (w, h) = reader
-        .into_dimensions()
-        .map_err(|e| HeightfieldError::invalid(path, format!("not a readable image: {e}")))?;
+    let (w, h) =
+        reader.into_dimensions().map_err(|e| HeightfieldError::invalid(path, format!("not a readable image: {e}")))?;
     check_dims(path, w as usize, h as usize)?;
     let img = image::ImageReader::new(std::io::Cursor::new(bytes))
         .with_guessed_format()
@@ -147,20 +114,11 @@ fn decode_image(path: &str, bytes: &[u8]) -> Result<Decoded, HeightfieldError> {
         _ => {
             return Err(HeightfieldError::invalid(
                 path,
-                format!(
-                    "unsupported pixel format {:?}: expected 8- or 16-bit grayscale",
-                    img.color()
-                ),
+                format!("unsupported pixel format {:?}: expected 8- or 16-bit grayscale", img.color()),
             ))
         }
     };
-    Ok(Decoded {
-        width: w,
-        height: h,
-        samples,
-        format: HeightFormat::Unorm16,
-        bits,
-    })
+    Ok(Decoded { width: w, height: h, samples, format: HeightFormat::Unorm16, bits })
 }
 
 /// Published height maps are sometimes saved as RGB with R = G = B; anything else is a
@@ -191,8 +149,7 @@ fn equal_channels<T: Copy + Into<f32> + PartialEq>(
 fn decode_tiff(path: &str, bytes: &[u8]) -> Result<Decoded, HeightfieldError> {
     use tiff::decoder::{Decoder, DecodingResult as R};
     use tiff::tags::Tag;
-    let terr =
-        |e: tiff::TiffError| HeightfieldError::invalid(path, format!("cannot decode TIFF: {e}"));
+    let terr = |e: tiff::TiffError| HeightfieldError::invalid(path, format!("cannot decode TIFF: {e}"));
     let mut dec = Decoder::new(std::io::Cursor::new(bytes)).map_err(terr)?;
     let (w, h) = dec.dimensions().map_err(terr)?;
     let (w, h) = (w as usize, h as usize);
@@ -251,30 +208,14 @@ fn decode_tiff(path: &str, bytes: &[u8]) -> Result<Decoded, HeightfieldError> {
     }
     if let Some(nd) = nodata {
         let nd = nd as f32;
-        fill_voids(path, &mut samples, w, h, |v| {
-            v == nd || (v.is_nan() && nan_is_void)
-        })?;
+        fill_voids(path, &mut samples, w, h, |v| v == nd || (v.is_nan() && nan_is_void))?;
     }
-    Ok(Decoded {
-        width: w,
-        height: h,
-        samples,
-        format,
-        bits,
-    })
+    Ok(Decoded { width: w, height: h, samples, format, bits })
 }
 
-fn decode_raw(
-    path: &str,
-    bytes: &[u8],
-    ext: &str,
-    size: Option<(usize, usize)>,
-) -> Result<Decoded, HeightfieldError> {
+fn decode_raw(path: &str, bytes: &[u8], ext: &str, size: Option<(usize, usize)>) -> Result<Decoded, HeightfieldError> {
     let Some((w, h)) = size else {
-        return Err(HeightfieldError::invalid(
-            path,
-            "raw heightfields need --raw-size WxH",
-        ));
+        return Err(HeightfieldError::invalid(path, "raw heightfields need --raw-size WxH"));
     };
     check_dims(path, w, h)?;
     let bpp = if ext == "r16" { 2 } else { 4 };
@@ -282,38 +223,19 @@ fn decode_raw(
     if bytes.len() != expected {
         return Err(HeightfieldError::invalid(
             path,
-            format!(
-                "--raw-size {w}x{h} needs {expected} bytes of .{ext} data, the file has {}",
-                bytes.len()
-            ),
+            format!("--raw-size {w}x{h} needs {expected} bytes of .{ext} data, the file has {}", bytes.len()),
         ));
     }
     let (samples, format, bits) = if bpp == 2 {
-        (
-            bytes
-                .chunks_exact(2)
-                .map(|c| u16::from_le_bytes([c[0], c[1]]) as f32)
-                .collect(),
-            HeightFormat::Unorm16,
-            16,
-        )
+        (bytes.chunks_exact(2).map(|c| u16::from_le_bytes([c[0], c[1]]) as f32).collect(), HeightFormat::Unorm16, 16)
     } else {
         (
-            bytes
-                .chunks_exact(4)
-                .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
-                .collect(),
+            bytes.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect(),
             HeightFormat::Float32,
             32,
         )
     };
-    Ok(Decoded {
-        width: w,
-        height: h,
-        samples,
-        format,
-        bits,
-    })
+    Ok(Decoded { width: w, height: h, samples, format, bits })
 }
 
 fn decode_hgt(path: &str, bytes: &[u8]) -> Result<Decoded, HeightfieldError> {
@@ -331,18 +253,9 @@ fn decode_hgt(path: &str, bytes: &[u8]) -> Result<Decoded, HeightfieldError> {
             ))
         }
     };
-    let mut samples: Vec<f32> = bytes
-        .chunks_exact(2)
-        .map(|c| i16::from_be_bytes([c[0], c[1]]) as f32)
-        .collect();
+    let mut samples: Vec<f32> = bytes.chunks_exact(2).map(|c| i16::from_be_bytes([c[0], c[1]]) as f32).collect();
     fill_voids(path, &mut samples, side, side, |v| v == -32768.0)?;
-    Ok(Decoded {
-        width: side,
-        height: side,
-        samples,
-        format: HeightFormat::Float32,
-        bits: 16,
-    })
+    Ok(Decoded { width: side, height: side, samples, format: HeightFormat::Float32, bits: 16 })
 }
 
 /// Fills voids in waves from their valid neighbours: each wave gives every void that
@@ -360,10 +273,7 @@ pub(crate) fn fill_voids(
         return Ok(0);
     }
     if total == samples.len() {
-        return Err(HeightfieldError::invalid(
-            path,
-            "every sample is a void (nodata)",
-        ));
+        return Err(HeightfieldError::invalid(path, "every sample is a void (nodata)"));
     }
     let mut frontier: Vec<usize> = (0..samples.len()).filter(|&i| void[i]).collect();
     while !frontier.is_empty() {
@@ -411,9 +321,7 @@ mod tests {
 
     #[test]
     fn voids_are_filled_from_neighbours() {
-        let mut s = vec![
-            1.0, -32768.0, 3.0, -32768.0, -32768.0, -32768.0, 7.0, 8.0, 9.0,
-        ];
+        let mut s = vec![1.0, -32768.0, 3.0, -32768.0, -32768.0, -32768.0, 7.0, 8.0, 9.0];
         let n = fill_voids("t", &mut s, 3, 3, |v| v == -32768.0).unwrap();
         assert_eq!(n, 4);
         assert_eq!(s[1], 2.0);

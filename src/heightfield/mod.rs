@@ -27,10 +27,7 @@ pub enum HeightfieldError {
 
 impl HeightfieldError {
     pub fn invalid(path: &str, message: impl Into<String>) -> Self {
-        HeightfieldError::Invalid {
-            path: path.to_string(),
-            message: message.into(),
-        }
+        HeightfieldError::Invalid { path: path.to_string(), message: message.into() }
     }
 }
 
@@ -77,37 +74,25 @@ impl Heightfield {
         if width < 3 || height < 3 {
             return Err(HeightfieldError::invalid(
                 source,
-                format!(
-                    "{width} x {height} is too small: a heightfield needs at least 3 x 3 samples"
-                ),
+                format!("{width} x {height} is too small: a heightfield needs at least 3 x 3 samples"),
             ));
         }
         if width > MAX_SIDE || height > MAX_SIDE {
             return Err(HeightfieldError::invalid(
                 source,
-                format!(
-                    "{width} x {height} is larger than the supported {MAX_SIDE} samples a side"
-                ),
+                format!("{width} x {height} is larger than the supported {MAX_SIDE} samples a side"),
             ));
         }
         if samples.len() != width * height {
             return Err(HeightfieldError::invalid(
                 source,
-                format!(
-                    "expected {} samples, found {}",
-                    width * height,
-                    samples.len()
-                ),
+                format!("expected {} samples, found {}", width * height, samples.len()),
             ));
         }
         if let Some(i) = samples.iter().position(|v| !v.is_finite()) {
             return Err(HeightfieldError::invalid(
                 source,
-                format!(
-                    "sample at column {}, row {} is not a finite number",
-                    i % width,
-                    i / width
-                ),
+                format!("sample at column {}, row {} is not a finite number", i % width, i / width),
             ));
         }
         let side_needed = width.max(height);
@@ -123,16 +108,7 @@ impl Heightfield {
                 raw[z * side + x] = samples[sz * width + x.min(width - 1)];
             }
         }
-        Ok(Heightfield {
-            n,
-            raw,
-            width,
-            height,
-            spacing,
-            height_scale,
-            format,
-            source: source.to_string(),
-        })
+        Ok(Heightfield { n, raw, width, height, spacing, height_scale, format, source: source.to_string() })
     }
 
     /// Grid side `2^n + 1`.
@@ -178,10 +154,7 @@ impl Heightfield {
 
     /// World size of the true extent (x, z).
     pub fn world_extent(&self) -> (f32, f32) {
-        (
-            (self.width - 1) as f32 * self.spacing,
-            (self.height - 1) as f32 * self.spacing,
-        )
+        ((self.width - 1) as f32 * self.spacing, (self.height - 1) as f32 * self.spacing)
     }
 
     /// Bytes of the heightfield image on the GPU.
@@ -285,17 +258,11 @@ mod tests {
     #[test]
     fn rejects_tiny_and_non_finite() {
         let e = Heightfield::embed("f.r16", 2, 2, &[0.0; 4], HeightFormat::Float32, 1.0, 1.0);
-        assert!(e
-            .unwrap_err()
-            .to_string()
-            .starts_with("f.r16: 2 x 2 is too small"));
+        assert!(e.unwrap_err().to_string().starts_with("f.r16: 2 x 2 is too small"));
         let mut s = vec![0.0; 9];
         s[4] = f32::NAN;
         let e = Heightfield::embed("g.tif", 3, 3, &s, HeightFormat::Float32, 1.0, 1.0);
-        assert!(e
-            .unwrap_err()
-            .to_string()
-            .contains("column 1, row 1 is not a finite"));
+        assert!(e.unwrap_err().to_string().contains("column 1, row 1 is not a finite"));
     }
 
     #[test]

@@ -4,9 +4,8 @@
 use super::{HeightFormat, Heightfield};
 
 fn hash(x: i32, z: i32, seed: u32) -> f32 {
-    let mut h = (x as u32).wrapping_mul(0x8da6_b343)
-        ^ (z as u32).wrapping_mul(0xd816_3841)
-        ^ seed.wrapping_mul(0xcb1a_b31f);
+    let mut h =
+        (x as u32).wrapping_mul(0x8da6_b343) ^ (z as u32).wrapping_mul(0xd816_3841) ^ seed.wrapping_mul(0xcb1a_b31f);
     h ^= h >> 13;
     h = h.wrapping_mul(0x5bd1_e995);
     h ^= h >> 15;
@@ -29,7 +28,7 @@ fn value_noise(x: f32, z: f32, seed: u32) -> f32 {
 
 /// Height in metres at grid coordinates `(x, z)` of a `side`-sample terrain.
 fn height(x: f32, z: f32, side: f32) -> f32 {
-    let (px, pz) = (x / side * 6.0, z / side * 6.0);
+    let (px, pz) = (x / side * 9.0, z / side * 9.0);
     // Domain warp bends the ridges into valleys that wander.
     let wx = px + 0.8 * value_noise(px * 0.5, pz * 0.5, 7);
     let wz = pz + 0.8 * value_noise(px * 0.5 + 11.0, pz * 0.5, 9);
@@ -47,8 +46,8 @@ fn height(x: f32, z: f32, side: f32) -> f32 {
     }
     let base = value_noise(px * 0.35, pz * 0.35, 3);
     // Mountains where the low-frequency base is high, rolling valleys elsewhere.
-    let mountains = ridged * (0.25 + 1.1 * base * base);
-    1800.0 * mountains + 120.0 * base
+    let mountains = ridged * (0.15 + 1.4 * base * base);
+    3200.0 * mountains + 150.0 * base
 }
 
 /// The built-in terrain: 2049 x 2049 samples, 30 m apart, heights in metres.
@@ -58,17 +57,8 @@ pub fn procedural() -> Heightfield {
 
 /// The built-in terrain at another size (tests use small ones).
 pub fn procedural_sized(side: usize) -> Heightfield {
-    let samples: Vec<f32> = (0..side * side)
-        .map(|i| height((i % side) as f32, (i / side) as f32, side as f32))
-        .collect();
-    Heightfield::embed(
-        "built-in terrain",
-        side,
-        side,
-        &samples,
-        HeightFormat::Float32,
-        30.0,
-        1.0,
-    )
-    .expect("the built-in terrain is valid")
+    let samples: Vec<f32> =
+        (0..side * side).map(|i| height((i % side) as f32, (i / side) as f32, side as f32)).collect();
+    Heightfield::embed("built-in terrain", side, side, &samples, HeightFormat::Float32, 30.0, 1.0)
+        .expect("the built-in terrain is valid")
 }

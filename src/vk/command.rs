@@ -16,12 +16,8 @@ impl CommandPool {
             .queue_family_index(family)
             .flags(vk::CommandPoolCreateFlags::RESET_COMMAND_BUFFER);
         // SAFETY: valid create info.
-        let handle =
-            unsafe { device.raw.create_command_pool(&info, None) }.vk("vkCreateCommandPool")?;
-        Ok(CommandPool {
-            device: device.clone(),
-            handle,
-        })
+        let handle = unsafe { device.raw.create_command_pool(&info, None) }.vk("vkCreateCommandPool")?;
+        Ok(CommandPool { device: device.clone(), handle })
     }
 
     pub fn allocate(&self) -> VkResult<vk::CommandBuffer> {
@@ -30,8 +26,7 @@ impl CommandPool {
             .level(vk::CommandBufferLevel::PRIMARY)
             .command_buffer_count(1);
         // SAFETY: the pool is live and used by this thread only.
-        Ok(unsafe { self.device.raw.allocate_command_buffers(&info) }
-            .vk("vkAllocateCommandBuffers")?[0])
+        Ok(unsafe { self.device.raw.allocate_command_buffers(&info) }.vk("vkAllocateCommandBuffers")?[0])
     }
 
     pub fn free(&self, cmd: vk::CommandBuffer) {
@@ -55,32 +50,16 @@ pub struct Fence {
 
 impl Fence {
     pub fn new(device: &Arc<Device>, signaled: bool) -> VkResult<Self> {
-        let flags = if signaled {
-            vk::FenceCreateFlags::SIGNALED
-        } else {
-            vk::FenceCreateFlags::empty()
-        };
+        let flags = if signaled { vk::FenceCreateFlags::SIGNALED } else { vk::FenceCreateFlags::empty() };
         // SAFETY: valid create info.
-        let handle = unsafe {
-            device
-                .raw
-                .create_fence(&vk::FenceCreateInfo::default().flags(flags), None)
-        }
-        .vk("vkCreateFence")?;
-        Ok(Fence {
-            device: device.clone(),
-            handle,
-        })
+        let handle = unsafe { device.raw.create_fence(&vk::FenceCreateInfo::default().flags(flags), None) }
+            .vk("vkCreateFence")?;
+        Ok(Fence { device: device.clone(), handle })
     }
 
     pub fn wait(&self, timeout_ns: u64) -> VkResult<()> {
         // SAFETY: live fence.
-        unsafe {
-            self.device
-                .raw
-                .wait_for_fences(&[self.handle], true, timeout_ns)
-        }
-        .vk("vkWaitForFences")
+        unsafe { self.device.raw.wait_for_fences(&[self.handle], true, timeout_ns) }.vk("vkWaitForFences")
     }
 
     pub fn reset(&self) -> VkResult<()> {
@@ -104,32 +83,25 @@ pub struct TimelineSemaphore {
 
 impl TimelineSemaphore {
     pub fn new(device: &Arc<Device>, initial: u64) -> VkResult<Self> {
-        let mut t = vk::SemaphoreTypeCreateInfo::default()
-            .semaphore_type(vk::SemaphoreType::TIMELINE)
-            .initial_value(initial);
+        let mut t =
+            vk::SemaphoreTypeCreateInfo::default().semaphore_type(vk::SemaphoreType::TIMELINE).initial_value(initial);
         let info = vk::SemaphoreCreateInfo::default().push_next(&mut t);
         // SAFETY: valid create info.
         let handle = unsafe { device.raw.create_semaphore(&info, None) }.vk("vkCreateSemaphore")?;
-        Ok(TimelineSemaphore {
-            device: device.clone(),
-            handle,
-        })
+        Ok(TimelineSemaphore { device: device.clone(), handle })
     }
 
     /// The current value, read on the CPU (never a GPU wait).
     pub fn value(&self) -> VkResult<u64> {
         // SAFETY: live timeline semaphore.
-        unsafe { self.device.raw.get_semaphore_counter_value(self.handle) }
-            .vk("vkGetSemaphoreCounterValue")
+        unsafe { self.device.raw.get_semaphore_counter_value(self.handle) }.vk("vkGetSemaphoreCounterValue")
     }
 
     /// Waits on the CPU until the value reaches `value`; false on timeout.
     pub fn wait(&self, value: u64, timeout_ns: u64) -> VkResult<bool> {
         let sems = [self.handle];
         let values = [value];
-        let info = vk::SemaphoreWaitInfo::default()
-            .semaphores(&sems)
-            .values(&values);
+        let info = vk::SemaphoreWaitInfo::default().semaphores(&sems).values(&values);
         // SAFETY: live semaphore; arrays outlive the call.
         match unsafe { self.device.raw.wait_semaphores(&info, timeout_ns) } {
             Ok(()) => Ok(true),
@@ -142,6 +114,28 @@ impl TimelineSemaphore {
 impl Drop for TimelineSemaphore {
     fn drop(&mut self) {
         // SAFETY: owners wait for the last signal before dropping.
+        unsafe { self.device.raw.destroy_semaphore(self.handle, None) };
+    }
+}
+
+/// A binary semaphore (swapchain acquire).
+pub struct BinarySemaphore {
+    device: Arc<Device>,
+    pub handle: vk::Semaphore,
+}
+
+impl BinarySemaphore {
+    pub fn new(device: &Arc<Device>) -> VkResult<Self> {
+        // SAFETY: valid create info.
+        let handle = unsafe { device.raw.create_semaphore(&vk::SemaphoreCreateInfo::default(), None) }
+            .vk("vkCreateSemaphore")?;
+        Ok(BinarySemaphore { device: device.clone(), handle })
+    }
+}
+
+impl Drop for BinarySemaphore {
+    fn drop(&mut self) {
+        // SAFETY: the owner waits for the device to be idle first.
         unsafe { self.device.raw.destroy_semaphore(self.handle, None) };
     }
 }

@@ -53,12 +53,7 @@ pub struct Queue {
 
 impl Queue {
     /// Submits under the queue's lock (vkQueueSubmit2 needs external synchronization).
-    pub fn submit(
-        &self,
-        device: &Device,
-        submits: &[vk::SubmitInfo2<'_>],
-        fence: vk::Fence,
-    ) -> VkResult<()> {
+    pub fn submit(&self, device: &Device, submits: &[vk::SubmitInfo2<'_>], fence: vk::Fence) -> VkResult<()> {
         let _guard = self.lock.lock().unwrap_or_else(|e| e.into_inner());
         // SAFETY: the queue belongs to `device`; access is serialized by the lock.
         unsafe { device.raw.queue_submit2(self.handle, submits, fence) }.vk("vkQueueSubmit2")
@@ -117,12 +112,10 @@ impl Device {
     pub fn new(instance: Arc<Instance>, opts: &DeviceOptions) -> VkResult<Arc<Self>> {
         let inst = &instance.raw;
         // SAFETY: enumeration and property queries on a live instance.
-        let physicals =
-            unsafe { inst.enumerate_physical_devices() }.vk("vkEnumeratePhysicalDevices")?;
+        let physicals = unsafe { inst.enumerate_physical_devices() }.vk("vkEnumeratePhysicalDevices")?;
         if physicals.is_empty() {
             return Err(VkError::Setup(
-                "no Vulkan device found; install a driver (mesa-vulkan-drivers provides lavapipe)"
-                    .into(),
+                "no Vulkan device found; install a driver (mesa-vulkan-drivers provides lavapipe)".into(),
             ));
         }
         let described: Vec<(vk::PhysicalDevice, vk::PhysicalDeviceProperties)> = physicals
@@ -130,59 +123,36 @@ impl Device {
             // SAFETY: `p` comes from this instance.
             .map(|&p| (p, unsafe { inst.get_physical_device_properties(p) }))
             .collect();
-        let names: Vec<String> = described
-            .iter()
-            .map(|(_, pr)| c_name(&pr.device_name))
-            .collect();
+        let names: Vec<String> = described.iter().map(|(_, pr)| c_name(&pr.device_name)).collect();
         let chosen = match &opts.gpu {
             Some(sel) => {
                 let idx = sel
                     .parse::<usize>()
                     .ok()
                     .filter(|&i| i < described.len())
-                    .or_else(|| {
-                        names
-                            .iter()
-                            .position(|n| n.to_lowercase().contains(&sel.to_lowercase()))
-                    });
+                    .or_else(|| names.iter().position(|n| n.to_lowercase().contains(&sel.to_lowercase())));
                 idx.ok_or_else(|| {
-                    VkError::Setup(format!(
-                        "--gpu {sel}: no such device; available: {}",
-                        names.join(", ")
-                    ))
+                    VkError::Setup(format!("--gpu {sel}: no such device; available: {}", names.join(", ")))
                 })?
             }
             None => (0..described.len())
                 .filter(|&i| described[i].1.api_version >= vk::API_VERSION_1_3)
                 .min_by_key(|&i| device_type_rank(described[i].1.device_type))
-                .ok_or_else(|| {
-                    VkError::Setup(format!("no Vulkan 1.3 device among: {}", names.join(", ")))
-                })?,
+                .ok_or_else(|| VkError::Setup(format!("no Vulkan 1.3 device among: {}", names.join(", "))))?,
         };
         let (physical, properties) = described[chosen];
         let name = names[chosen].clone();
         if properties.api_version < vk::API_VERSION_1_3 {
-            return Err(VkError::Setup(format!(
-                "{name} does not support Vulkan 1.3"
-            )));
+            return Err(VkError::Setup(format!("{name} does not support Vulkan 1.3")));
         }
 
         // SAFETY: query on a live physical device.
         let families = unsafe { inst.get_physical_device_queue_family_properties(physical) };
         let graphics: Vec<u32> = (0..families.len() as u32)
-            .filter(|&i| {
-                families[i as usize]
-                    .queue_flags
-                    .contains(vk::QueueFlags::GRAPHICS)
-            })
+            .filter(|&i| families[i as usize].queue_flags.contains(vk::QueueFlags::GRAPHICS))
             .collect();
-        let first = *graphics
-            .first()
-            .ok_or_else(|| VkError::Setup(format!("{name} has no graphics queue")))?;
-        let two_in_one = graphics
-            .iter()
-            .copied()
-            .find(|&f| families[f as usize].queue_count >= 2);
+        let first = *graphics.first().ok_or_else(|| VkError::Setup(format!("{name} has no graphics queue")))?;
+        let two_in_one = graphics.iter().copied().find(|&f| families[f as usize].queue_count >= 2);
         let mode_plan = match opts.queues {
             QueueRequest::Shared => (QueueMode::Shared, first, first),
             _ => match (two_in_one, graphics.get(1)) {
@@ -198,13 +168,10 @@ impl Device {
         };
         let (queue_mode, draw_family, errors_family) = mode_plan;
         let priorities = [1.0f32, 1.0];
-        let mut queue_infos = vec![vk::DeviceQueueCreateInfo::default()
-            .queue_family_index(draw_family)
-            .queue_priorities(if queue_mode == QueueMode::SeparateSameFamily {
-                &priorities[..2]
-            } else {
-                &priorities[..1]
-            })];
+        let mut queue_infos =
+            vec![vk::DeviceQueueCreateInfo::default().queue_family_index(draw_family).queue_priorities(
+                if queue_mode == QueueMode::SeparateSameFamily { &priorities[..2] } else { &priorities[..1] },
+            )];
         if queue_mode == QueueMode::SeparateFamilies {
             queue_infos.push(
                 vk::DeviceQueueCreateInfo::default()
@@ -217,9 +184,7 @@ impl Device {
         let supported = unsafe { inst.get_physical_device_features(physical) };
         let mut f12 = vk::PhysicalDeviceVulkan12Features::default();
         let mut f13 = vk::PhysicalDeviceVulkan13Features::default();
-        let mut f2 = vk::PhysicalDeviceFeatures2::default()
-            .push_next(&mut f12)
-            .push_next(&mut f13);
+        let mut f2 = vk::PhysicalDeviceFeatures2::default().push_next(&mut f12).push_next(&mut f13);
         // SAFETY: as above; the chain points at locals.
         unsafe { inst.get_physical_device_features2(physical, &mut f2) };
         // Core in 1.3, but each must be enabled; `discard` compiles to demote-to-helper.
@@ -265,22 +230,16 @@ impl Device {
                     let q = raw.get_device_queue(draw_family, 0);
                     (q, q)
                 }
-                QueueMode::SeparateSameFamily => (
-                    raw.get_device_queue(draw_family, 0),
-                    raw.get_device_queue(draw_family, 1),
-                ),
-                QueueMode::SeparateFamilies => (
-                    raw.get_device_queue(draw_family, 0),
-                    raw.get_device_queue(errors_family, 0),
-                ),
+                QueueMode::SeparateSameFamily => {
+                    (raw.get_device_queue(draw_family, 0), raw.get_device_queue(draw_family, 1))
+                }
+                QueueMode::SeparateFamilies => {
+                    (raw.get_device_queue(draw_family, 0), raw.get_device_queue(errors_family, 0))
+                }
             }
         };
         let draw_lock = Arc::new(Mutex::new(()));
-        let errors_lock = if queue_mode == QueueMode::Shared {
-            draw_lock.clone()
-        } else {
-            Arc::new(Mutex::new(()))
-        };
+        let errors_lock = if queue_mode == QueueMode::Shared { draw_lock.clone() } else { Arc::new(Mutex::new(())) };
         let allocator = Allocator::new(&AllocatorCreateDesc {
             instance: inst.clone(),
             device: raw.clone(),
@@ -289,10 +248,7 @@ impl Device {
             buffer_device_address: false,
             allocation_sizes: Default::default(),
         })
-        .map_err(|e| VkError::Alloc {
-            what: "the allocator".into(),
-            message: e.to_string(),
-        })?;
+        .map_err(|e| VkError::Alloc { what: "the allocator".into(), message: e.to_string() })?;
         let mut fams = vec![draw_family];
         if errors_family != draw_family {
             fams.push(errors_family);
@@ -304,16 +260,8 @@ impl Device {
             name,
             properties,
             features,
-            draw_queue: Queue {
-                handle: draw_q,
-                family: draw_family,
-                lock: draw_lock,
-            },
-            errors_queue: Queue {
-                handle: errors_q,
-                family: errors_family,
-                lock: errors_lock,
-            },
+            draw_queue: Queue { handle: draw_q, family: draw_family, lock: draw_lock },
+            errors_queue: Queue { handle: errors_q, family: errors_family, lock: errors_lock },
             queue_mode,
             families: fams,
             allocator: ManuallyDrop::new(Mutex::new(allocator)),
@@ -330,14 +278,9 @@ impl Device {
 
     /// Records commands into a one-time command buffer, submits them on the draw queue
     /// and waits (used for uploads before the activities start).
-    pub fn one_shot(
-        self: &Arc<Self>,
-        pool: &CommandPool,
-        record: impl FnOnce(vk::CommandBuffer),
-    ) -> VkResult<()> {
+    pub fn one_shot(self: &Arc<Self>, pool: &CommandPool, record: impl FnOnce(vk::CommandBuffer)) -> VkResult<()> {
         let cmd = pool.allocate()?;
-        let begin = vk::CommandBufferBeginInfo::default()
-            .flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT);
+        let begin = vk::CommandBufferBeginInfo::default().flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT);
         // SAFETY: `cmd` was just allocated from `pool`, which this thread owns.
         unsafe { self.raw.begin_command_buffer(cmd, &begin) }.vk("vkBeginCommandBuffer")?;
         record(cmd);
@@ -354,11 +297,7 @@ impl Device {
 
     pub fn wait_idle(&self) -> VkResult<()> {
         let _a = self.draw_queue.lock();
-        let _b = if self.queue_mode == QueueMode::Shared {
-            None
-        } else {
-            Some(self.errors_queue.lock())
-        };
+        let _b = if self.queue_mode == QueueMode::Shared { None } else { Some(self.errors_queue.lock()) };
         // SAFETY: both queues are locked, so no submission races with the wait.
         unsafe { self.raw.device_wait_idle() }.vk("vkDeviceWaitIdle")
     }

@@ -61,9 +61,7 @@ unsafe extern "system" fn debug_callback(
         let msg = if data.is_null() || (*data).p_message.is_null() {
             "(no message)".to_string()
         } else {
-            CStr::from_ptr((*data).p_message)
-                .to_string_lossy()
-                .into_owned()
+            CStr::from_ptr((*data).p_message).to_string_lossy().into_owned()
         };
         (msg, &*(user as *const MessageCounter))
     };
@@ -88,11 +86,8 @@ impl Instance {
             ))
         })?;
         // SAFETY: plain enumeration calls on a loaded entry.
-        let layers = unsafe { entry.enumerate_instance_layer_properties() }
-            .vk("vkEnumerateInstanceLayerProperties")?;
-        let has_layer = layers
-            .iter()
-            .any(|l| l.layer_name_as_c_str().is_ok_and(|n| n == VALIDATION_LAYER));
+        let layers = unsafe { entry.enumerate_instance_layer_properties() }.vk("vkEnumerateInstanceLayerProperties")?;
+        let has_layer = layers.iter().any(|l| l.layer_name_as_c_str().is_ok_and(|n| n == VALIDATION_LAYER));
         if opts.validation && !has_layer {
             return Err(VkError::Setup(
                 "validation was requested but VK_LAYER_KHRONOS_validation is not installed (Debian: vulkan-validationlayers); use --validation off to run without it".into(),
@@ -111,8 +106,7 @@ impl Instance {
             ext.push(ash::ext::validation_features::NAME.as_ptr());
         }
         let enables = [vk::ValidationFeatureEnableEXT::SYNCHRONIZATION_VALIDATION];
-        let mut features =
-            vk::ValidationFeaturesEXT::default().enabled_validation_features(&enables);
+        let mut features = vk::ValidationFeaturesEXT::default().enabled_validation_features(&enables);
         let counter = Arc::new(MessageCounter::default());
         let severity = vk::DebugUtilsMessageSeverityFlagsEXT::ERROR
             | vk::DebugUtilsMessageSeverityFlagsEXT::WARNING
@@ -149,13 +143,7 @@ impl Instance {
         } else {
             None
         };
-        Ok(Arc::new(Instance {
-            entry,
-            raw,
-            debug,
-            messages: counter,
-            validation: opts.validation,
-        }))
+        Ok(Arc::new(Instance { entry, raw, debug, messages: counter, validation: opts.validation }))
     }
 
     pub fn validation_messages(&self) -> u64 {
@@ -179,7 +167,5 @@ impl Drop for Instance {
 /// Turns a fixed-size C string from Vulkan into a Rust string.
 pub(crate) fn c_name(raw: &[i8]) -> String {
     // SAFETY: Vulkan guarantees these arrays are NUL-terminated.
-    unsafe { CStr::from_ptr(raw.as_ptr()) }
-        .to_string_lossy()
-        .into_owned()
+    unsafe { CStr::from_ptr(raw.as_ptr()) }.to_string_lossy().into_owned()
 }

@@ -7,14 +7,14 @@ mod device;
 mod instance;
 mod pipeline;
 mod resources;
+mod swapchain;
 
-pub use command::{CommandPool, Fence, TimelineSemaphore};
+pub use command::{BinarySemaphore, CommandPool, Fence, TimelineSemaphore};
 pub use device::{Device, DeviceOptions, Queue, QueueMode, QueueRequest};
 pub use instance::{Instance, InstanceOptions, MessageCounter};
-pub use pipeline::{
-    DescriptorPool, DescriptorSetLayout, GraphicsPipeline, GraphicsPipelineDesc, PipelineLayout,
-};
+pub use pipeline::{DescriptorPool, DescriptorSetLayout, GraphicsPipeline, GraphicsPipelineDesc, PipelineLayout};
 pub use resources::{Buffer, Image, ImageView, Sampler};
+pub use swapchain::{Surface, Swapchain};
 
 pub use ash::vk;
 use std::backtrace::Backtrace;
@@ -39,13 +39,7 @@ pub enum VkError {
 impl VkError {
     /// True when the device was lost (the caller names the stage and stops).
     pub fn is_device_lost(&self) -> bool {
-        matches!(
-            self,
-            VkError::Call {
-                result: vk::Result::ERROR_DEVICE_LOST,
-                ..
-            }
-        )
+        matches!(self, VkError::Call { result: vk::Result::ERROR_DEVICE_LOST, .. })
     }
 }
 
@@ -58,10 +52,6 @@ pub trait VkResultExt<T> {
 
 impl<T> VkResultExt<T> for Result<T, vk::Result> {
     fn vk(self, call: &'static str) -> VkResult<T> {
-        self.map_err(|result| VkError::Call {
-            call,
-            result,
-            trace: Backtrace::capture().to_string(),
-        })
+        self.map_err(|result| VkError::Call { call, result, trace: Backtrace::capture().to_string() })
     }
 }

@@ -11,10 +11,7 @@ pub struct DescriptorSetLayout {
 }
 
 impl DescriptorSetLayout {
-    pub fn new(
-        device: &Arc<Device>,
-        bindings: &[(u32, vk::DescriptorType, vk::ShaderStageFlags)],
-    ) -> VkResult<Self> {
+    pub fn new(device: &Arc<Device>, bindings: &[(u32, vk::DescriptorType, vk::ShaderStageFlags)]) -> VkResult<Self> {
         let b: Vec<vk::DescriptorSetLayoutBinding> = bindings
             .iter()
             .map(|&(binding, ty, stages)| {
@@ -27,27 +24,17 @@ impl DescriptorSetLayout {
             .collect();
         // SAFETY: `b` outlives the call.
         let handle = unsafe {
-            device.raw.create_descriptor_set_layout(
-                &vk::DescriptorSetLayoutCreateInfo::default().bindings(&b),
-                None,
-            )
+            device.raw.create_descriptor_set_layout(&vk::DescriptorSetLayoutCreateInfo::default().bindings(&b), None)
         }
         .vk("vkCreateDescriptorSetLayout")?;
-        Ok(DescriptorSetLayout {
-            device: device.clone(),
-            handle,
-        })
+        Ok(DescriptorSetLayout { device: device.clone(), handle })
     }
 }
 
 impl Drop for DescriptorSetLayout {
     fn drop(&mut self) {
         // SAFETY: pipelines and sets created from it are gone or idle.
-        unsafe {
-            self.device
-                .raw
-                .destroy_descriptor_set_layout(self.handle, None)
-        };
+        unsafe { self.device.raw.destroy_descriptor_set_layout(self.handle, None) };
     }
 }
 
@@ -57,38 +44,20 @@ pub struct DescriptorPool {
 }
 
 impl DescriptorPool {
-    pub fn new(
-        device: &Arc<Device>,
-        max_sets: u32,
-        sizes: &[(vk::DescriptorType, u32)],
-    ) -> VkResult<Self> {
-        let s: Vec<vk::DescriptorPoolSize> = sizes
-            .iter()
-            .map(|&(ty, n)| vk::DescriptorPoolSize {
-                ty,
-                descriptor_count: n,
-            })
-            .collect();
-        let info = vk::DescriptorPoolCreateInfo::default()
-            .max_sets(max_sets)
-            .pool_sizes(&s);
+    pub fn new(device: &Arc<Device>, max_sets: u32, sizes: &[(vk::DescriptorType, u32)]) -> VkResult<Self> {
+        let s: Vec<vk::DescriptorPoolSize> =
+            sizes.iter().map(|&(ty, n)| vk::DescriptorPoolSize { ty, descriptor_count: n }).collect();
+        let info = vk::DescriptorPoolCreateInfo::default().max_sets(max_sets).pool_sizes(&s);
         // SAFETY: `s` outlives the call.
-        let handle = unsafe { device.raw.create_descriptor_pool(&info, None) }
-            .vk("vkCreateDescriptorPool")?;
-        Ok(DescriptorPool {
-            device: device.clone(),
-            handle,
-        })
+        let handle = unsafe { device.raw.create_descriptor_pool(&info, None) }.vk("vkCreateDescriptorPool")?;
+        Ok(DescriptorPool { device: device.clone(), handle })
     }
 
     pub fn allocate(&self, layout: &DescriptorSetLayout) -> VkResult<vk::DescriptorSet> {
         let layouts = [layout.handle];
-        let info = vk::DescriptorSetAllocateInfo::default()
-            .descriptor_pool(self.handle)
-            .set_layouts(&layouts);
+        let info = vk::DescriptorSetAllocateInfo::default().descriptor_pool(self.handle).set_layouts(&layouts);
         // SAFETY: the pool is owned by one thread.
-        Ok(unsafe { self.device.raw.allocate_descriptor_sets(&info) }
-            .vk("vkAllocateDescriptorSets")?[0])
+        Ok(unsafe { self.device.raw.allocate_descriptor_sets(&info) }.vk("vkAllocateDescriptorSets")?[0])
     }
 
     /// Writes combined image samplers and uniform buffers into `set`.
@@ -108,16 +77,8 @@ impl DescriptorPool {
                 }]
             })
             .collect();
-        let buffer_infos: Vec<[vk::DescriptorBufferInfo; 1]> = buffers
-            .iter()
-            .map(|&(_, buffer, range)| {
-                [vk::DescriptorBufferInfo {
-                    buffer,
-                    offset: 0,
-                    range,
-                }]
-            })
-            .collect();
+        let buffer_infos: Vec<[vk::DescriptorBufferInfo; 1]> =
+            buffers.iter().map(|&(_, buffer, range)| [vk::DescriptorBufferInfo { buffer, offset: 0, range }]).collect();
         let mut writes = Vec::new();
         for (i, &(binding, _, _)) in images.iter().enumerate() {
             writes.push(
@@ -162,22 +123,14 @@ impl PipelineLayout {
         push_stages: vk::ShaderStageFlags,
     ) -> VkResult<Self> {
         let sets = [set.handle];
-        let ranges = [vk::PushConstantRange {
-            stage_flags: push_stages,
-            offset: 0,
-            size: push_bytes,
-        }];
+        let ranges = [vk::PushConstantRange { stage_flags: push_stages, offset: 0, size: push_bytes }];
         let mut info = vk::PipelineLayoutCreateInfo::default().set_layouts(&sets);
         if push_bytes > 0 {
             info = info.push_constant_ranges(&ranges);
         }
         // SAFETY: arrays outlive the call.
-        let handle = unsafe { device.raw.create_pipeline_layout(&info, None) }
-            .vk("vkCreatePipelineLayout")?;
-        Ok(PipelineLayout {
-            device: device.clone(),
-            handle,
-        })
+        let handle = unsafe { device.raw.create_pipeline_layout(&info, None) }.vk("vkCreatePipelineLayout")?;
+        Ok(PipelineLayout { device: device.clone(), handle })
     }
 }
 
@@ -214,12 +167,8 @@ fn shader_module(device: &Device, spirv: &[u8]) -> VkResult<vk::ShaderModule> {
     let words = ash::util::read_spv(&mut std::io::Cursor::new(spirv))
         .map_err(|e| super::VkError::Setup(format!("bad SPIR-V: {e}")))?;
     // SAFETY: `words` is SPIR-V produced by build.rs.
-    unsafe {
-        device
-            .raw
-            .create_shader_module(&vk::ShaderModuleCreateInfo::default().code(&words), None)
-    }
-    .vk("vkCreateShaderModule")
+    unsafe { device.raw.create_shader_module(&vk::ShaderModuleCreateInfo::default().code(&words), None) }
+        .vk("vkCreateShaderModule")
 }
 
 impl GraphicsPipeline {
@@ -228,63 +177,41 @@ impl GraphicsPipeline {
         let fs = shader_module(device, d.frag)?;
         let entry = c"main";
         let stages = [
-            vk::PipelineShaderStageCreateInfo::default()
-                .stage(vk::ShaderStageFlags::VERTEX)
-                .module(vs)
-                .name(entry),
-            vk::PipelineShaderStageCreateInfo::default()
-                .stage(vk::ShaderStageFlags::FRAGMENT)
-                .module(fs)
-                .name(entry),
+            vk::PipelineShaderStageCreateInfo::default().stage(vk::ShaderStageFlags::VERTEX).module(vs).name(entry),
+            vk::PipelineShaderStageCreateInfo::default().stage(vk::ShaderStageFlags::FRAGMENT).module(fs).name(entry),
         ];
         let bindings;
         let attributes;
         let mut vertex_input = vk::PipelineVertexInputStateCreateInfo::default();
         if let Some((stride, format)) = d.vertex_attribute {
-            bindings = [vk::VertexInputBindingDescription {
-                binding: 0,
-                stride,
-                input_rate: vk::VertexInputRate::VERTEX,
-            }];
-            attributes = [vk::VertexInputAttributeDescription {
-                location: 0,
-                binding: 0,
-                format,
-                offset: 0,
-            }];
-            vertex_input = vertex_input
-                .vertex_binding_descriptions(&bindings)
-                .vertex_attribute_descriptions(&attributes);
+            bindings =
+                [vk::VertexInputBindingDescription { binding: 0, stride, input_rate: vk::VertexInputRate::VERTEX }];
+            attributes = [vk::VertexInputAttributeDescription { location: 0, binding: 0, format, offset: 0 }];
+            vertex_input =
+                vertex_input.vertex_binding_descriptions(&bindings).vertex_attribute_descriptions(&attributes);
         }
-        let assembly = vk::PipelineInputAssemblyStateCreateInfo::default()
-            .topology(vk::PrimitiveTopology::TRIANGLE_LIST);
-        let viewport = vk::PipelineViewportStateCreateInfo::default()
-            .viewport_count(1)
-            .scissor_count(1);
+        let assembly =
+            vk::PipelineInputAssemblyStateCreateInfo::default().topology(vk::PrimitiveTopology::TRIANGLE_LIST);
+        let viewport = vk::PipelineViewportStateCreateInfo::default().viewport_count(1).scissor_count(1);
         let raster = vk::PipelineRasterizationStateCreateInfo::default()
             .polygon_mode(d.polygon_mode)
-            .cull_mode(if d.cull_back {
-                vk::CullModeFlags::BACK
-            } else {
-                vk::CullModeFlags::NONE
-            })
+            .cull_mode(if d.cull_back { vk::CullModeFlags::BACK } else { vk::CullModeFlags::NONE })
             .front_face(vk::FrontFace::CLOCKWISE)
             .line_width(1.0);
-        let multisample = vk::PipelineMultisampleStateCreateInfo::default()
-            .rasterization_samples(vk::SampleCountFlags::TYPE_1);
+        let multisample =
+            vk::PipelineMultisampleStateCreateInfo::default().rasterization_samples(vk::SampleCountFlags::TYPE_1);
         // Reversed Z: nearer is greater.
         let depth = vk::PipelineDepthStencilStateCreateInfo::default()
             .depth_test_enable(d.depth_test)
             .depth_write_enable(d.depth_test)
             .depth_compare_op(vk::CompareOp::GREATER);
-        let attachments = [vk::PipelineColorBlendAttachmentState::default()
-            .color_write_mask(vk::ColorComponentFlags::RGBA)];
+        let attachments =
+            [vk::PipelineColorBlendAttachmentState::default().color_write_mask(vk::ColorComponentFlags::RGBA)];
         let blend = vk::PipelineColorBlendStateCreateInfo::default().attachments(&attachments);
         let dynamic_states = [vk::DynamicState::VIEWPORT, vk::DynamicState::SCISSOR];
         let dynamic = vk::PipelineDynamicStateCreateInfo::default().dynamic_states(&dynamic_states);
         let color_formats = [d.color_format];
-        let mut rendering =
-            vk::PipelineRenderingCreateInfo::default().color_attachment_formats(&color_formats);
+        let mut rendering = vk::PipelineRenderingCreateInfo::default().color_attachment_formats(&color_formats);
         if let Some(df) = d.depth_format {
             rendering = rendering.depth_attachment_format(df);
         }
@@ -301,21 +228,14 @@ impl GraphicsPipeline {
             .layout(d.layout.handle)
             .push_next(&mut rendering);
         // SAFETY: every pointer in `info` refers to locals that outlive the call.
-        let result = unsafe {
-            device
-                .raw
-                .create_graphics_pipelines(vk::PipelineCache::null(), &[info], None)
-        };
+        let result = unsafe { device.raw.create_graphics_pipelines(vk::PipelineCache::null(), &[info], None) };
         // SAFETY: modules are not needed once the pipeline exists (or failed).
         unsafe {
             device.raw.destroy_shader_module(vs, None);
             device.raw.destroy_shader_module(fs, None);
         }
         let handle = result.map_err(|(_, e)| e).vk("vkCreateGraphicsPipelines")?[0];
-        Ok(GraphicsPipeline {
-            device: device.clone(),
-            handle,
-        })
+        Ok(GraphicsPipeline { device: device.clone(), handle })
     }
 }
 

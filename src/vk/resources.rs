@@ -7,10 +7,7 @@ use gpu_allocator::MemoryLocation;
 use std::sync::Arc;
 
 fn alloc_err(what: &str, e: impl std::fmt::Display) -> VkError {
-    VkError::Alloc {
-        what: what.to_string(),
-        message: e.to_string(),
-    }
+    VkError::Alloc { what: what.to_string(), message: e.to_string() }
 }
 
 pub struct Buffer {
@@ -28,10 +25,8 @@ impl Buffer {
         usage: vk::BufferUsageFlags,
         location: MemoryLocation,
     ) -> VkResult<Self> {
-        let info = vk::BufferCreateInfo::default()
-            .size(size.max(4))
-            .usage(usage)
-            .sharing_mode(vk::SharingMode::EXCLUSIVE);
+        let info =
+            vk::BufferCreateInfo::default().size(size.max(4)).usage(usage).sharing_mode(vk::SharingMode::EXCLUSIVE);
         // SAFETY: valid create info; the buffer is destroyed in Drop.
         let handle = unsafe { device.raw.create_buffer(&info, None) }.vk("vkCreateBuffer")?;
         // SAFETY: `handle` is a live buffer of this device.
@@ -51,34 +46,14 @@ impl Buffer {
                 alloc_err(name, e)
             })?;
         // SAFETY: the allocation satisfies `requirements`; memory and offset come from it.
-        unsafe {
-            device
-                .raw
-                .bind_buffer_memory(handle, allocation.memory(), allocation.offset())
-        }
-        .vk("vkBindBufferMemory")?;
-        Ok(Buffer {
-            device: device.clone(),
-            handle,
-            allocation: Some(allocation),
-            size,
-        })
+        unsafe { device.raw.bind_buffer_memory(handle, allocation.memory(), allocation.offset()) }
+            .vk("vkBindBufferMemory")?;
+        Ok(Buffer { device: device.clone(), handle, allocation: Some(allocation), size })
     }
 
     /// A host-visible buffer filled with `data`.
-    pub fn with_data(
-        device: &Arc<Device>,
-        name: &str,
-        data: &[u8],
-        usage: vk::BufferUsageFlags,
-    ) -> VkResult<Self> {
-        let mut b = Buffer::new(
-            device,
-            name,
-            data.len() as u64,
-            usage,
-            MemoryLocation::CpuToGpu,
-        )?;
+    pub fn with_data(device: &Arc<Device>, name: &str, data: &[u8], usage: vk::BufferUsageFlags) -> VkResult<Self> {
+        let mut b = Buffer::new(device, name, data.len() as u64, usage, MemoryLocation::CpuToGpu)?;
         b.mapped_mut()?[..data.len()].copy_from_slice(data);
         Ok(b)
     }
@@ -144,11 +119,7 @@ impl Image {
         let mut info = vk::ImageCreateInfo::default()
             .image_type(vk::ImageType::TYPE_2D)
             .format(format)
-            .extent(vk::Extent3D {
-                width: extent.width,
-                height: extent.height,
-                depth: 1,
-            })
+            .extent(vk::Extent3D { width: extent.width, height: extent.height, depth: 1 })
             .mip_levels(mip_levels)
             .array_layers(1)
             .samples(vk::SampleCountFlags::TYPE_1)
@@ -156,8 +127,7 @@ impl Image {
             .usage(usage)
             .initial_layout(vk::ImageLayout::UNDEFINED);
         info = if concurrent {
-            info.sharing_mode(vk::SharingMode::CONCURRENT)
-                .queue_family_indices(&device.families)
+            info.sharing_mode(vk::SharingMode::CONCURRENT).queue_family_indices(&device.families)
         } else {
             info.sharing_mode(vk::SharingMode::EXCLUSIVE)
         };
@@ -180,37 +150,18 @@ impl Image {
                 alloc_err(name, e)
             })?;
         // SAFETY: allocation satisfies the requirements.
-        unsafe {
-            device
-                .raw
-                .bind_image_memory(handle, allocation.memory(), allocation.offset())
-        }
-        .vk("vkBindImageMemory")?;
+        unsafe { device.raw.bind_image_memory(handle, allocation.memory(), allocation.offset()) }
+            .vk("vkBindImageMemory")?;
         let aspect = aspect_of(format);
         let view = create_view(device, handle, format, aspect, 0, mip_levels)?;
-        Ok(Image {
-            device: device.clone(),
-            handle,
-            allocation: Some(allocation),
-            format,
-            extent,
-            mip_levels,
-            view,
-        })
+        Ok(Image { device: device.clone(), handle, allocation: Some(allocation), format, extent, mip_levels, view })
     }
 
     /// A view of `count` mips starting at `base`.
     pub fn mip_view(&self, base: u32, count: u32) -> VkResult<ImageView> {
         Ok(ImageView {
             device: self.device.clone(),
-            handle: create_view(
-                &self.device,
-                self.handle,
-                self.format,
-                aspect_of(self.format),
-                base,
-                count,
-            )?,
+            handle: create_view(&self.device, self.handle, self.format, aspect_of(self.format), base, count)?,
         })
     }
 
@@ -286,11 +237,7 @@ pub struct Sampler {
 }
 
 impl Sampler {
-    pub fn new(
-        device: &Arc<Device>,
-        filter: vk::Filter,
-        address: vk::SamplerAddressMode,
-    ) -> VkResult<Self> {
+    pub fn new(device: &Arc<Device>, filter: vk::Filter, address: vk::SamplerAddressMode) -> VkResult<Self> {
         let info = vk::SamplerCreateInfo::default()
             .mag_filter(filter)
             .min_filter(filter)
@@ -301,10 +248,7 @@ impl Sampler {
             .max_lod(vk::LOD_CLAMP_NONE);
         // SAFETY: valid create info.
         let handle = unsafe { device.raw.create_sampler(&info, None) }.vk("vkCreateSampler")?;
-        Ok(Sampler {
-            device: device.clone(),
-            handle,
-        })
+        Ok(Sampler { device: device.clone(), handle })
     }
 }
 

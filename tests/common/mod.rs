@@ -11,14 +11,8 @@ use vkterrain::vk::{Device, DeviceOptions, Instance, InstanceOptions, QueueReque
 /// `../shared/data` next to the repository. Tests that need it fail (not skip) when it
 /// is missing: CI always has it.
 pub fn data(rel: &str) -> PathBuf {
-    let p = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("../shared/data")
-        .join(rel);
-    assert!(
-        p.exists(),
-        "test data {} is missing (expected ../shared/data beside the repository)",
-        p.display()
-    );
+    let p = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data").join(rel);
+    assert!(p.exists(), "test data {} is missing (expected ../shared/data beside the repository)", p.display());
     p
 }
 
@@ -29,20 +23,9 @@ pub fn gpu_with(queues: QueueRequest) -> Arc<Device> {
         let _ = std::fs::create_dir_all(&dir);
         std::env::set_var("XDG_RUNTIME_DIR", dir);
     }
-    let instance = Instance::new(&InstanceOptions {
-        validation: true,
-        extensions: Vec::new(),
-    })
-    .expect("Vulkan instance with validation (install vulkan-validationlayers)");
-    Device::new(
-        instance,
-        &DeviceOptions {
-            gpu: None,
-            queues,
-            swapchain: false,
-        },
-    )
-    .expect("Vulkan device")
+    let instance = Instance::new(&InstanceOptions { validation: true, extensions: Vec::new() })
+        .expect("Vulkan instance with validation (install vulkan-validationlayers)");
+    Device::new(instance, &DeviceOptions { gpu: None, queues, swapchain: false }).expect("Vulkan device")
 }
 
 pub fn gpu() -> Arc<Device> {
@@ -51,12 +34,7 @@ pub fn gpu() -> Arc<Device> {
 
 pub fn assert_clean(device: &Device) {
     let n = device.instance.validation_messages();
-    assert_eq!(
-        n,
-        0,
-        "validation messages: {:#?}",
-        device.instance.messages.messages()
-    );
+    assert_eq!(n, 0, "validation messages: {:#?}", device.instance.messages.messages());
 }
 
 /// A crafted float heightfield.
@@ -66,13 +44,7 @@ pub fn field(w: usize, h: usize, spacing: f32, f: impl Fn(usize, usize) -> f32) 
 }
 
 /// A crafted 16-bit heightfield (stored as R16_UNORM on the GPU).
-pub fn field16(
-    w: usize,
-    h: usize,
-    spacing: f32,
-    scale: f32,
-    f: impl Fn(usize, usize) -> u16,
-) -> Heightfield {
+pub fn field16(w: usize, h: usize, spacing: f32, scale: f32, f: impl Fn(usize, usize) -> u16) -> Heightfield {
     let s: Vec<f32> = (0..w * h).map(|i| f(i % w, i / w) as f32).collect();
     Heightfield::embed("crafted16", w, h, &s, HeightFormat::Unorm16, spacing, scale).unwrap()
 }

@@ -1,0 +1,825 @@
+//! The desktop viewer: a winit window whose event-loop thread is the blocks rendering
+//! activity (traversal and drawing on the draw queue), with the errors activity live on
+//! its own thread and queue.
+
+use crate::blocks::{BlocksRenderer, DrawStats, Shading, DEPTH_FORMAT};
+use crate::camera::Camera;
+use crate::cli::{near_plane, CommonArgs, InputError};
+use crate::commands::{save_png, Session};
+use crate::errors_activity::{ErrorsActivity, Generation};
+use crate::gie::{ErrorMode, ErrorParams};
+use crate::heightfield::{Heightfield, MinMaxPyramid};
+use crate::quadtree::{traverse, BlockLayout, DrawBlock, LodSelect};
+use crate::terrain_gpu::{TerrainGpu, Texture};
+use crate::vk::{
+    vk, BinarySemaphore, Buffer, CommandPool, Device, DeviceOptions, Fence, Image, Instance, InstanceOptions, Surface,
+    Swapchain, VkResultExt,
+};
+use clap::{Args, ValueEnum};
+use glam::Vec3;
+use raw_window_handle::{HasDisplayHandle, HasWindowHandle};
+use std::collections::{HashSet, VecDeque};
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+use winit::application::ApplicationHandler;
+use winit::dpi::PhysicalSize;
+use winit::event::{DeviceEvent, ElementState, MouseButton, MouseScrollDelta, WindowEvent};
+use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop};
+use winit::keyboard::{KeyCode, PhysicalKey};
+use winit::window::{Window, WindowId};
+
+const FRAMES_IN_FLIGHT: usize = 2;
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum PresentMode {
+    Fifo,
+    Mailbox,
+    Immediate,
+}
+
+#[derive(Args, Debug, Clone)]
+pub struct ViewArgs {
+    #[command(flatten)]
+    pub common: CommonArgs,
+    /// Screen-space error threshold in pixels (keys [ and ] halve and double it).
+    #[arg(long, value_name = "PX", default_value = "1", value_parser = crate::commands::positive)]
+    pub delta: f32,
+    /// Base colour texture, stretched over the whole terrain (seed 000 eq. 9).
+    #[arg(long, value_name = "FILE")]
+    pub texture: Option<PathBuf>,
+    /// Detail texture, tiled (eq. 10).
+    #[arg(long, value_name = "FILE")]
+    pub detail: Option<PathBuf>,
+    /// Detail tiling factor DTF: detail coordinates are DTF times the base coordinates.
+    #[arg(long, value_name = "DTF", default_value = "64", value_parser = crate::commands::positive)]
+    pub detail_tiling: f32,
+    /// Weight alpha of the base colour in eq. 11 (1 ignores the detail texture).
+    #[arg(long, value_name = "ALPHA", default_value = "0.7")]
+    pub detail_weight: f32,
+    /// Exponential fog density per world unit (default: a haze at the terrain's scale).
+    #[arg(long, value_name = "DENSITY")]
+    pub fog: Option<f32>,
+    #[arg(long, value_enum, default_value_t = PresentMode::Fifo)]
+    pub present_mode: PresentMode,
+    /// Exit after N frames.
+    #[arg(long, value_name = "N")]
+    pub frames: Option<u64>,
+    /// Fly north from the south edge, three quarters of the way across, over the run
+    /// (with --frames) or every 60 seconds.
+    #[arg(long)]
+    pub flyover: bool,
+    /// Write the last frame to this PNG before exiting.
+    #[arg(long, value_name = "FILE.png")]
+    pub screenshot: Option<PathBuf>,
+    /// Start in walk mode (follow the ground).
+    #[arg(long)]
+    pub walk: bool,
+    /// Resize the window at a frame, e.g. 20:800x600 (repeatable; for tests).
+    #[arg(long, value_name = "FRAME:WxH")]
+    pub resize_at: Vec<String>,
+}
+
+const KEYS: &str = "\
+keys: W/S forward/back, A/D left/right, Q/E down/up, hold a mouse button and move to look,
+      Shift faster, wheel changes speed, G walk/fly, [ and ] halve/double delta,
+      M strict/paper error mode, F wireframe, L colour blocks by LOD, Space freeze the
+      block list, P screenshot, Esc quit";
+
+fn load_texture(path: &PathBuf) -> Result<Texture, InputError> {
+    let img = image::open(path).map_err(|e| InputError(format!("{}: cannot read texture: {e}", path.display())))?;
+    let rgba = img.to_rgba8();
+    Ok(Texture { width: rgba.width(), height: rgba.height(), rgba: rgba.into_raw() })
+}
+
+/// Camera state driven by input or a flyover path.
+struct Controller {
+    position: Vec3,
+    yaw: f32,
+    pitch: f32,
+    speed: f32,
+    walk: bool,
+    held: HashSet<KeyCode>,
+    looking: bool,
+}
+
+impl Controller {
+    fn forward(&self) -> Vec3 {
+        Vec3::new(self.yaw.cos() * self.pitch.cos(), self.pitch.sin(), self.yaw.sin() * self.pitch.cos())
+    }
+
+    fn update(&mut self, hf: &Heightfield, dt: f32) {
+        let fwd = self.forward();
+        let flat = Vec3::new(fwd.x, 0.0, fwd.z).normalize_or_zero();
+        let right = flat.cross(Vec3::Y);
+        let mut v = Vec3::ZERO;
+        let k = |c| self.held.contains(&c);
+        if k(KeyCode::KeyW) {
+            v += if self.walk { flat } else { fwd };
+        }
+        if k(KeyCode::KeyS) {
+            v -= if self.walk { flat } else { fwd };
+        }
+        if k(KeyCode::KeyD) {
+            v += right;
+        }
+        if k(KeyCode::KeyA) {
+            v -= right;
+        }
+        if k(KeyCode::KeyE) {
+            v += Vec3::Y;
+        }
+        if k(KeyCode::KeyQ) {
+            v -= Vec3::Y;
+        }
+        let boost = if k(KeyCode::ShiftLeft) || k(KeyCode::ShiftRight) { 5.0 } else { 1.0 };
+        self.position += v.normalize_or_zero() * self.speed * boost * dt;
+        self.clamp_to_ground(hf);
+    }
+
+    /// Never below the terrain (seed 002); in walk mode, at eye height above it.
+    fn clamp_to_ground(&mut self, hf: &Heightfield) {
+        let (wx, wz) = hf.world_extent();
+        let ground = hf.surface_height(self.position.x.clamp(0.0, wx), self.position.z.clamp(0.0, wz));
+        let eye = (2.0f32).max(near_plane(hf) * 4.0);
+        if self.walk {
+            self.position.y = ground + eye;
+        } else {
+            self.position.y = self.position.y.max(ground + eye);
+        }
+    }
+}
+
+/// Per-frame-in-flight objects.
+struct FrameSlot {
+    cmd: vk::CommandBuffer,
+    fence: Fence,
+    acquired: BinarySemaphore,
+}
+
+/// Everything that lives while the window is open, in drop order.
+struct Gpu {
+    slots: Vec<FrameSlot>,
+    commands: CommandPool,
+    depth: Image,
+    swapchain: Swapchain,
+    renderer: BlocksRenderer,
+    activity: Option<ErrorsActivity>,
+    terrain: Arc<TerrainGpu>,
+    surface: Surface,
+    device: Arc<Device>,
+}
+
+impl Drop for Gpu {
+    fn drop(&mut self) {
+        // Nothing may be destroyed while the GPU still uses it; then stop the errors thread.
+        let _ = self.device.wait_idle();
+        if let Some(a) = self.activity.take() {
+            let _ = a.stop();
+        }
+        for s in &self.slots {
+            self.commands.free(s.cmd);
+        }
+    }
+}
+
+#[derive(Default, serde::Serialize)]
+struct RunStats {
+    frames: u64,
+    seconds: f64,
+    avg_fps: f64,
+    resizes: u64,
+    error_generations: u64,
+    last_triangles: u64,
+    last_draw_calls: u64,
+    last_blocks: usize,
+    queue_mode: String,
+    device: String,
+    validation_messages: u64,
+    screenshot: Option<String>,
+}
+
+struct App {
+    args: ViewArgs,
+    hf: Arc<Heightfield>,
+    mm: MinMaxPyramid,
+    layout: BlockLayout,
+    base: Option<Texture>,
+    detail: Option<Texture>,
+    window: Option<Arc<Window>>,
+    gpu: Option<Gpu>,
+    error: Option<anyhow::Error>,
+    ctl: Controller,
+    shading: Shading,
+    delta: f32,
+    mode: ErrorMode,
+    frozen: Option<Vec<DrawBlock>>,
+    generation: Option<Generation>,
+    recent_cameras: VecDeque<(u64, Vec3)>,
+    frame: u64,
+    slot: usize,
+    swapchain_dirty: bool,
+    minimized: bool,
+    last_frame: Instant,
+    started: Instant,
+    title_at: Instant,
+    fps_frames: u64,
+    last_stats: DrawStats,
+    last_blocks: usize,
+    /// The block list of the last frame (frozen with Space).
+    blocks: Vec<DrawBlock>,
+    screenshot_next: Option<PathBuf>,
+    screenshots_taken: u64,
+    resizes: Vec<(u64, u32, u32)>,
+    stats: RunStats,
+}
+
+pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
+    let hf = args.common.load_heightfield()?;
+    let layout = BlockLayout::new(hf.n, args.common.block).map_err(InputError)?;
+    if !(0.0..=1.0).contains(&args.detail_weight) {
+        return Err(InputError(format!("--detail-weight {}: must be within 0..1", args.detail_weight)).into());
+    }
+    let mut resizes = Vec::new();
+    for r in &args.resize_at {
+        let parsed = r.split_once(':').and_then(|(f, s)| {
+            let (w, h) = s.split_once('x')?;
+            Some((f.parse().ok()?, w.parse().ok()?, h.parse().ok()?))
+        });
+        match parsed {
+            Some((f, w, h)) if w > 0 && h > 0 => resizes.push((f, w, h)),
+            _ => return Err(InputError(format!("--resize-at {r}: expected FRAME:WxH")).into()),
+        }
+    }
+    let base = args.texture.as_ref().map(load_texture).transpose()?;
+    let detail = args.detail.as_ref().map(load_texture).transpose()?;
+    let mm = MinMaxPyramid::build(&hf);
+    let (w, h) = args.common.size.unwrap_or((1280, 720));
+    let cam = args.common.camera(&hf, (w, h))?;
+    let f = cam.forward;
+    let (wx, wz) = hf.world_extent();
+    let l = wx.max(wz);
+    let fog = args.fog.unwrap_or(0.2 / l);
+    let event_loop = EventLoop::new().map_err(|e| {
+        anyhow::anyhow!("cannot open a window ({e}); is DISPLAY set? Use `vkterrain render` for headless output")
+    })?;
+    event_loop.set_control_flow(ControlFlow::Poll);
+    println!("{KEYS}");
+    let now = Instant::now();
+    let mut app = App {
+        args: args.clone(),
+        hf: Arc::new(hf),
+        mm,
+        layout,
+        base,
+        detail,
+        window: None,
+        gpu: None,
+        error: None,
+        ctl: Controller {
+            position: cam.position,
+            yaw: f.z.atan2(f.x),
+            pitch: f.y.clamp(-1.0, 1.0).asin(),
+            speed: l / 60.0,
+            walk: args.walk,
+            held: HashSet::new(),
+            looking: false,
+        },
+        shading: Shading {
+            fog_density: fog,
+            detail_tiling: args.detail_tiling,
+            detail_weight: if args.detail.is_some() { args.detail_weight } else { 1.0 },
+            ..Shading::default()
+        },
+        delta: args.delta,
+        mode: args.common.error_mode,
+        frozen: None,
+        generation: None,
+        recent_cameras: VecDeque::new(),
+        frame: 0,
+        slot: 0,
+        swapchain_dirty: false,
+        minimized: false,
+        last_frame: now,
+        started: now,
+        title_at: now,
+        fps_frames: 0,
+        last_stats: DrawStats::default(),
+        last_blocks: 0,
+        blocks: Vec::new(),
+        screenshot_next: None,
+        screenshots_taken: 0,
+        resizes,
+        stats: RunStats::default(),
+    };
+    event_loop.run_app(&mut app)?;
+    let validation = app.gpu.as_ref().map(|g| g.device.instance.validation_messages());
+    let first_message = app.gpu.as_ref().and_then(|g| g.device.instance.messages.messages().first().cloned());
+    drop(app.gpu.take()); // waits for the GPU, joins the errors thread
+    if let Some(e) = app.error.take() {
+        return Err(e);
+    }
+    let secs = app.started.elapsed().as_secs_f64();
+    app.stats.frames = app.frame;
+    app.stats.seconds = secs;
+    app.stats.avg_fps = app.frame as f64 / secs.max(1e-9);
+    app.stats.validation_messages = validation.unwrap_or(0);
+    println!("{}", serde_json::to_string(&app.stats)?);
+    if let Some(n) = validation.filter(|&n| n > 0) {
+        anyhow::bail!("{n} validation message(s); first: {}", first_message.unwrap_or_default());
+    }
+    Ok(())
+}
+
+impl App {
+    fn fail(&mut self, event_loop: &ActiveEventLoop, e: anyhow::Error) {
+        if self.error.is_none() {
+            self.error = Some(e);
+        }
+        event_loop.exit();
+    }
+
+    fn open(&mut self, event_loop: &ActiveEventLoop) -> anyhow::Result<()> {
+        let (w, h) = self.args.common.size.unwrap_or((1280, 720));
+        let attrs = Window::default_attributes()
+            .with_title(format!("vkterrain: {}", self.hf.source))
+            .with_inner_size(PhysicalSize::new(w, h));
+        let window = Arc::new(event_loop.create_window(attrs)?);
+        let display = window.display_handle()?.as_raw();
+        let exts: Vec<&'static std::ffi::CStr> = ash_window::enumerate_required_extensions(display)
+            .vk("enumerate surface extensions")?
+            .iter()
+            // SAFETY: ash-window returns pointers to static NUL-terminated extension names.
+            .map(|&p| unsafe { std::ffi::CStr::from_ptr(p) })
+            .collect();
+        let instance = Instance::new(&InstanceOptions { validation: self.args.common.validation(), extensions: exts })?;
+        // SAFETY: the window outlives the surface: `Gpu` (holding the surface) is dropped
+        // before `App::window`.
+        let surface = unsafe { Surface::new(&instance, display, window.window_handle()?.as_raw())? };
+        let device = Device::new(
+            instance,
+            &DeviceOptions { gpu: self.args.common.gpu.clone(), queues: self.args.common.queues, swapchain: true },
+        )?;
+        println!("vkterrain: device {}, queue mode {}", device.name, device.queue_mode.as_str());
+        Session::check_size(&device, &self.hf)?;
+        let terrain = Arc::new(TerrainGpu::new(&device, &self.hf, &self.mm, self.base.as_ref(), self.detail.as_ref())?);
+        let size = window.inner_size();
+        let present = match self.args.present_mode {
+            PresentMode::Fifo => vk::PresentModeKHR::FIFO,
+            PresentMode::Mailbox => vk::PresentModeKHR::MAILBOX,
+            PresentMode::Immediate => vk::PresentModeKHR::IMMEDIATE,
+        };
+        let swapchain = Swapchain::new(&device, &surface, (size.width, size.height), present, None)?;
+        let depth = depth_image(&device, swapchain.extent)?;
+        let renderer = BlocksRenderer::new(&device, &terrain, self.layout, swapchain.format, FRAMES_IN_FLIGHT)?;
+        let activity = ErrorsActivity::start(&device, terrain.clone(), self.hf.clone(), self.layout)?;
+        let commands = CommandPool::new(&device, device.draw_queue.family)?;
+        let slots = (0..FRAMES_IN_FLIGHT)
+            .map(|_| {
+                Ok(FrameSlot {
+                    cmd: commands.allocate()?,
+                    fence: Fence::new(&device, true)?,
+                    acquired: BinarySemaphore::new(&device)?,
+                })
+            })
+            .collect::<anyhow::Result<Vec<_>>>()?;
+        self.stats.queue_mode = device.queue_mode.as_str().into();
+        self.stats.device = device.name.clone();
+        self.gpu = Some(Gpu {
+            slots,
+            commands,
+            depth,
+            swapchain,
+            renderer,
+            activity: Some(activity),
+            terrain,
+            surface,
+            device,
+        });
+        self.window = Some(window);
+        Ok(())
+    }
+
+    fn recreate_swapchain(&mut self) -> anyhow::Result<()> {
+        let (Some(gpu), Some(window)) = (self.gpu.as_mut(), self.window.as_ref()) else { return Ok(()) };
+        let size = window.inner_size();
+        if size.width == 0 || size.height == 0 {
+            return Ok(());
+        }
+        gpu.device.wait_idle()?;
+        let present = match self.args.present_mode {
+            PresentMode::Fifo => vk::PresentModeKHR::FIFO,
+            PresentMode::Mailbox => vk::PresentModeKHR::MAILBOX,
+            PresentMode::Immediate => vk::PresentModeKHR::IMMEDIATE,
+        };
+        let new = Swapchain::new(&gpu.device, &gpu.surface, (size.width, size.height), present, Some(&gpu.swapchain))?;
+        gpu.swapchain = new;
+        gpu.depth = depth_image(&gpu.device, gpu.swapchain.extent)?;
+        self.swapchain_dirty = false;
+        self.stats.resizes += 1;
+        Ok(())
+    }
+
+    /// The camera for this frame: the flyover path or the controller.
+    fn camera(&mut self, dt: f32) -> Camera {
+        let gpu = self.gpu.as_ref().unwrap();
+        let extent = gpu.swapchain.extent;
+        if self.args.flyover {
+            let (wx, wz) = self.hf.world_extent();
+            let t = match self.args.frames {
+                Some(n) => self.frame as f32 / n.max(1) as f32,
+                None => (self.started.elapsed().as_secs_f32() / 60.0).fract(),
+            };
+            let top = self.mm.range()[1] * self.hf.height_scale;
+            // South edge to three quarters of the way north, so the view ends on terrain.
+            self.ctl.position = Vec3::new(wx * 0.5, top + 0.05 * wx.max(wz), wz * (1.0 - 0.75 * t));
+            self.ctl.yaw = -std::f32::consts::FRAC_PI_2;
+            self.ctl.pitch = -0.35;
+            self.ctl.clamp_to_ground(&self.hf);
+        } else {
+            self.ctl.update(&self.hf, dt);
+        }
+        let target = self.ctl.position + self.ctl.forward();
+        Camera::look_at(
+            self.ctl.position,
+            target,
+            self.args.common.fovy,
+            extent.width,
+            extent.height,
+            near_plane(&self.hf),
+        )
+    }
+
+    fn draw(&mut self) -> anyhow::Result<()> {
+        if self.swapchain_dirty {
+            self.recreate_swapchain()?;
+        }
+        if self.minimized {
+            return Ok(()); // nothing is rendered while minimized
+        }
+        let now = Instant::now();
+        let dt = (now - self.last_frame).as_secs_f32().min(0.25);
+        self.last_frame = now;
+        let cam = self.camera(dt);
+        let slot_index = self.slot;
+        let gpu = self.gpu.as_mut().unwrap();
+        let d = gpu.device.raw.clone();
+        let slot = &gpu.slots[slot_index];
+        slot.fence.wait(u64::MAX)?;
+
+        // The newest finished error generation (never waits on the errors queue).
+        let activity = gpu.activity.as_ref().unwrap();
+        activity.request(ErrorParams::new(&cam, self.mode));
+        let after = self.generation.as_ref().map_or(0, |g| g.number);
+        if let Some(g) = activity.latest(after)? {
+            self.stats.error_generations = g.number;
+            self.generation = Some(g);
+        }
+        self.recent_cameras.push_back((self.frame, cam.position));
+        if self.recent_cameras.len() > 1024 {
+            self.recent_cameras.pop_front();
+        }
+        // Error data made for a different mode is not used.
+        let usable = self.generation.as_ref().filter(|g| g.params.mode == self.mode);
+        let blocks = match (&self.frozen, usable) {
+            (Some(b), _) => b.clone(),
+            (None, Some(g)) => {
+                let sel = LodSelect::Errors { errors: &g.errors, computed_at: g.params.camera, delta: self.delta };
+                traverse(&self.hf, &self.mm, &self.layout, &cam, sel).blocks
+            }
+            (None, None) => {
+                traverse(&self.hf, &self.mm, &self.layout, &cam, LodSelect::Distance { factor: 2.0 }).blocks
+            }
+        };
+
+        // SAFETY: the swapchain and semaphore are live; the acquire semaphore of this
+        // slot is unsignalled (its previous frame completed: fence waited above).
+        let acquired = unsafe {
+            gpu.swapchain.loader.acquire_next_image(
+                gpu.swapchain.handle,
+                u64::MAX,
+                slot.acquired.handle,
+                vk::Fence::null(),
+            )
+        };
+        let (image_index, suboptimal) = match acquired {
+            Ok(r) => r,
+            Err(vk::Result::ERROR_OUT_OF_DATE_KHR) => {
+                self.swapchain_dirty = true;
+                return Ok(());
+            }
+            Err(e) => return Err(e).vk("vkAcquireNextImageKHR").map_err(Into::into),
+        };
+        let image = gpu.swapchain.images[image_index as usize];
+        let view = gpu.swapchain.views[image_index as usize];
+        let extent = gpu.swapchain.extent;
+        gpu.renderer.set_frame(slot_index, &self.hf, &gpu.terrain, &cam, &self.shading)?;
+        let screenshot = self.screenshot_next.take();
+        let readback = match (&screenshot, gpu.swapchain.can_copy) {
+            (Some(_), true) => Some(Buffer::new(
+                &gpu.device,
+                "screenshot",
+                extent.width as u64 * extent.height as u64 * 4,
+                vk::BufferUsageFlags::TRANSFER_DST,
+                gpu_allocator::MemoryLocation::GpuToCpu,
+            )?),
+            (Some(p), false) => {
+                tracing::warn!("{}: this swapchain cannot be copied from; no screenshot", p.display());
+                None
+            }
+            _ => None,
+        };
+        let cmd = slot.cmd;
+        let color_range = vk::ImageSubresourceRange {
+            aspect_mask: vk::ImageAspectFlags::COLOR,
+            base_mip_level: 0,
+            level_count: 1,
+            base_array_layer: 0,
+            layer_count: 1,
+        };
+        // SAFETY: `cmd` belongs to this slot, whose previous submission completed.
+        unsafe {
+            d.reset_command_buffer(cmd, vk::CommandBufferResetFlags::empty()).vk("vkResetCommandBuffer")?;
+            d.begin_command_buffer(
+                cmd,
+                &vk::CommandBufferBeginInfo::default().flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT),
+            )
+            .vk("vkBeginCommandBuffer")?;
+            let barriers = [
+                vk::ImageMemoryBarrier2::default()
+                    .src_stage_mask(vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT)
+                    .dst_stage_mask(vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT)
+                    .dst_access_mask(vk::AccessFlags2::COLOR_ATTACHMENT_WRITE)
+                    .old_layout(vk::ImageLayout::UNDEFINED)
+                    .new_layout(vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL)
+                    .image(image)
+                    .subresource_range(color_range),
+                vk::ImageMemoryBarrier2::default()
+                    .src_stage_mask(
+                        vk::PipelineStageFlags2::EARLY_FRAGMENT_TESTS | vk::PipelineStageFlags2::LATE_FRAGMENT_TESTS,
+                    )
+                    .src_access_mask(vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_WRITE)
+                    .dst_stage_mask(
+                        vk::PipelineStageFlags2::EARLY_FRAGMENT_TESTS | vk::PipelineStageFlags2::LATE_FRAGMENT_TESTS,
+                    )
+                    .dst_access_mask(
+                        vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_WRITE
+                            | vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_READ,
+                    )
+                    .old_layout(vk::ImageLayout::UNDEFINED)
+                    .new_layout(vk::ImageLayout::DEPTH_ATTACHMENT_OPTIMAL)
+                    .image(gpu.depth.handle)
+                    .subresource_range(gpu.depth.range(0, 1)),
+            ];
+            d.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().image_memory_barriers(&barriers));
+        }
+        let clear = if self.shading.sky { crate::blocks::SKY_HORIZON } else { self.shading.background };
+        let stats = gpu.renderer.record(slot_index, cmd, view, gpu.depth.view, extent, &blocks, &self.shading, clear);
+        // SAFETY: as above.
+        unsafe {
+            let (layout, stage, access) = if readback.is_some() {
+                (vk::ImageLayout::TRANSFER_SRC_OPTIMAL, vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_READ)
+            } else {
+                (vk::ImageLayout::PRESENT_SRC_KHR, vk::PipelineStageFlags2::NONE, vk::AccessFlags2::NONE)
+            };
+            let to = [vk::ImageMemoryBarrier2::default()
+                .src_stage_mask(vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT)
+                .src_access_mask(vk::AccessFlags2::COLOR_ATTACHMENT_WRITE)
+                .dst_stage_mask(stage)
+                .dst_access_mask(access)
+                .old_layout(vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL)
+                .new_layout(layout)
+                .image(image)
+                .subresource_range(color_range)];
+            d.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().image_memory_barriers(&to));
+            if let Some(buf) = &readback {
+                let region = vk::BufferImageCopy::default()
+                    .image_subresource(vk::ImageSubresourceLayers {
+                        aspect_mask: vk::ImageAspectFlags::COLOR,
+                        mip_level: 0,
+                        base_array_layer: 0,
+                        layer_count: 1,
+                    })
+                    .image_extent(vk::Extent3D { width: extent.width, height: extent.height, depth: 1 });
+                d.cmd_copy_image_to_buffer(cmd, image, vk::ImageLayout::TRANSFER_SRC_OPTIMAL, buf.handle, &[region]);
+                let to_present = [vk::ImageMemoryBarrier2::default()
+                    .src_stage_mask(vk::PipelineStageFlags2::COPY)
+                    .src_access_mask(vk::AccessFlags2::TRANSFER_READ)
+                    .dst_stage_mask(vk::PipelineStageFlags2::NONE)
+                    .old_layout(vk::ImageLayout::TRANSFER_SRC_OPTIMAL)
+                    .new_layout(vk::ImageLayout::PRESENT_SRC_KHR)
+                    .image(image)
+                    .subresource_range(color_range)];
+                let to_host = [vk::BufferMemoryBarrier2::default()
+                    .src_stage_mask(vk::PipelineStageFlags2::COPY)
+                    .src_access_mask(vk::AccessFlags2::TRANSFER_WRITE)
+                    .dst_stage_mask(vk::PipelineStageFlags2::HOST)
+                    .dst_access_mask(vk::AccessFlags2::HOST_READ)
+                    .buffer(buf.handle)
+                    .size(vk::WHOLE_SIZE)];
+                d.cmd_pipeline_barrier2(
+                    cmd,
+                    &vk::DependencyInfo::default().image_memory_barriers(&to_present).buffer_memory_barriers(&to_host),
+                );
+            }
+            d.end_command_buffer(cmd).vk("vkEndCommandBuffer")?;
+        }
+        let render_done = gpu.swapchain.render_done[image_index as usize];
+        let waits = [vk::SemaphoreSubmitInfo::default()
+            .semaphore(slot.acquired.handle)
+            .stage_mask(vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT)];
+        let signals = [vk::SemaphoreSubmitInfo::default()
+            .semaphore(render_done)
+            .stage_mask(vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT | vk::PipelineStageFlags2::COPY)];
+        let cmds = [vk::CommandBufferSubmitInfo::default().command_buffer(cmd)];
+        let submit = [vk::SubmitInfo2::default()
+            .wait_semaphore_infos(&waits)
+            .command_buffer_infos(&cmds)
+            .signal_semaphore_infos(&signals)];
+        slot.fence.reset()?;
+        gpu.device.draw_queue.submit(&gpu.device, &submit, slot.fence.handle)?;
+        let swapchains = [gpu.swapchain.handle];
+        let indices = [image_index];
+        let wait_present = [render_done];
+        let present = vk::PresentInfoKHR::default()
+            .wait_semaphores(&wait_present)
+            .swapchains(&swapchains)
+            .image_indices(&indices);
+        let presented = {
+            let _q = gpu.device.draw_queue.lock();
+            // SAFETY: the queue is locked (external synchronization); handles are live.
+            unsafe { gpu.swapchain.loader.queue_present(gpu.device.draw_queue.handle, &present) }
+        };
+        match presented {
+            Ok(sub) => self.swapchain_dirty |= sub || suboptimal,
+            Err(vk::Result::ERROR_OUT_OF_DATE_KHR) => self.swapchain_dirty = true,
+            Err(e) => return Err(e).vk("vkQueuePresentKHR").map_err(Into::into),
+        }
+        if let (Some(path), Some(buf)) = (screenshot, readback) {
+            slot.fence.wait(u64::MAX)?;
+            let mut px = buf.mapped()?[..(extent.width * extent.height * 4) as usize].to_vec();
+            if gpu.swapchain.format == vk::Format::B8G8R8A8_SRGB || gpu.swapchain.format == vk::Format::B8G8R8A8_UNORM {
+                px.chunks_mut(4).for_each(|p| p.swap(0, 2));
+            }
+            save_png(&path, extent.width, extent.height, &px)?;
+            println!("vkterrain: screenshot {}", path.display());
+            self.stats.screenshot = Some(path.display().to_string());
+        }
+        self.last_stats = stats;
+        self.last_blocks = blocks.len();
+        self.blocks = blocks;
+        self.slot = (self.slot + 1) % FRAMES_IN_FLIGHT;
+        self.frame += 1;
+        self.fps_frames += 1;
+        self.stats.last_triangles = stats.triangles;
+        self.stats.last_draw_calls = stats.draw_calls;
+        self.stats.last_blocks = self.last_blocks;
+        self.update_title(&cam);
+        Ok(())
+    }
+
+    /// Live statistics in the title bar, a few times a second.
+    fn update_title(&mut self, cam: &Camera) {
+        let elapsed = self.title_at.elapsed();
+        if elapsed < Duration::from_millis(250) {
+            return;
+        }
+        let fps = self.fps_frames as f64 / elapsed.as_secs_f64();
+        self.title_at = Instant::now();
+        self.fps_frames = 0;
+        let age = self
+            .generation
+            .as_ref()
+            .and_then(|g| {
+                self.recent_cameras.iter().rev().find(|(_, c)| *c == g.params.camera).map(|(f, _)| self.frame - f)
+            })
+            .map_or("-".to_string(), |a| a.to_string());
+        let queue = self.gpu.as_ref().map_or("", |g| g.device.queue_mode.as_str());
+        let title = format!(
+            "vkterrain | {fps:.1} fps {:.1} ms | {} tris {} draws {} blocks | delta {} {} | errors age {age} frames | queue {queue}{}{} | ({:.0}, {:.0}, {:.0})",
+            1000.0 / fps.max(1e-6),
+            self.last_stats.triangles,
+            self.last_stats.draw_calls,
+            self.last_blocks,
+            self.delta,
+            self.mode.as_str(),
+            if self.frozen.is_some() { " | FROZEN" } else { "" },
+            if self.ctl.walk { " | walk" } else { "" },
+            cam.position.x,
+            cam.position.y,
+            cam.position.z,
+        );
+        if let Some(w) = &self.window {
+            w.set_title(&title);
+        }
+    }
+
+    fn key(&mut self, code: KeyCode, event_loop: &ActiveEventLoop) {
+        match code {
+            KeyCode::Escape => event_loop.exit(),
+            KeyCode::BracketRight | KeyCode::Equal | KeyCode::NumpadAdd => self.delta *= 2.0,
+            KeyCode::BracketLeft | KeyCode::Minus | KeyCode::NumpadSubtract => {
+                self.delta = (self.delta * 0.5).max(0.0625)
+            }
+            KeyCode::KeyM => {
+                self.mode = if self.mode == ErrorMode::Strict { ErrorMode::Paper } else { ErrorMode::Strict }
+            }
+            KeyCode::KeyF => {
+                self.shading.wireframe = !self.shading.wireframe;
+                if self.gpu.as_ref().is_some_and(|g| !g.device.features.wireframe) {
+                    println!("vkterrain: this device has no wireframe (fillModeNonSolid)");
+                }
+            }
+            KeyCode::KeyL => self.shading.colour_by_lod = !self.shading.colour_by_lod,
+            KeyCode::Space => self.frozen = if self.frozen.is_some() { None } else { Some(self.blocks.clone()) },
+            KeyCode::KeyG => self.ctl.walk = !self.ctl.walk,
+            KeyCode::KeyP => {
+                self.screenshots_taken += 1;
+                self.screenshot_next = Some(PathBuf::from(format!("vkterrain-{}.png", self.screenshots_taken)));
+            }
+            _ => {}
+        }
+    }
+}
+
+fn depth_image(device: &Arc<Device>, extent: vk::Extent2D) -> anyhow::Result<Image> {
+    Ok(Image::new(device, "depth", extent, DEPTH_FORMAT, 1, vk::ImageUsageFlags::DEPTH_STENCIL_ATTACHMENT, false)?)
+}
+
+impl ApplicationHandler for App {
+    fn resumed(&mut self, event_loop: &ActiveEventLoop) {
+        if self.gpu.is_none() {
+            if let Err(e) = self.open(event_loop) {
+                self.fail(event_loop, e);
+            }
+        }
+    }
+
+    fn window_event(&mut self, event_loop: &ActiveEventLoop, _id: WindowId, event: WindowEvent) {
+        match event {
+            WindowEvent::CloseRequested => event_loop.exit(),
+            WindowEvent::Resized(size) => {
+                self.minimized = size.width == 0 || size.height == 0;
+                self.swapchain_dirty = true;
+            }
+            WindowEvent::KeyboardInput { event, .. } => {
+                if let PhysicalKey::Code(code) = event.physical_key {
+                    if event.state == ElementState::Pressed {
+                        if !event.repeat {
+                            self.key(code, event_loop);
+                        }
+                        self.ctl.held.insert(code);
+                    } else {
+                        self.ctl.held.remove(&code);
+                    }
+                }
+            }
+            WindowEvent::MouseInput { state, button: MouseButton::Left | MouseButton::Right, .. } => {
+                self.ctl.looking = state == ElementState::Pressed;
+            }
+            WindowEvent::MouseWheel { delta, .. } => {
+                let steps = match delta {
+                    MouseScrollDelta::LineDelta(_, y) => y,
+                    MouseScrollDelta::PixelDelta(p) => (p.y / 40.0) as f32,
+                };
+                self.ctl.speed *= 1.25f32.powf(steps);
+            }
+            WindowEvent::RedrawRequested => {
+                if let Some((_, w, h)) = self.resizes.iter().find(|r| r.0 == self.frame).copied() {
+                    if let Some(win) = &self.window {
+                        let _ = win.request_inner_size(PhysicalSize::new(w, h));
+                    }
+                }
+                let last = self.args.frames.is_some_and(|n| self.frame + 1 >= n);
+                if last {
+                    if let Some(p) = self.args.screenshot.clone() {
+                        self.screenshot_next = Some(p);
+                    }
+                }
+                if let Err(e) = self.draw() {
+                    self.fail(event_loop, e);
+                    return;
+                }
+                if self.args.frames.is_some_and(|n| self.frame >= n) {
+                    event_loop.exit();
+                }
+            }
+            _ => {}
+        }
+    }
+
+    fn device_event(&mut self, _el: &ActiveEventLoop, _id: winit::event::DeviceId, event: DeviceEvent) {
+        if let DeviceEvent::MouseMotion { delta } = event {
+            if self.ctl.looking {
+                self.ctl.yaw += delta.0 as f32 * 0.003;
+                self.ctl.pitch = (self.ctl.pitch - delta.1 as f32 * 0.003).clamp(-1.55, 1.55);
+            }
+        }
+    }
+
+    fn about_to_wait(&mut self, _event_loop: &ActiveEventLoop) {
+        if let Some(w) = &self.window {
+            w.request_redraw();
+        }
+    }
+}

@@ -1,0 +1,82 @@
+//! The viewer in a real window under Xvfb on lavapipe: a flyover of a few dozen frames,
+//! resized twice during the run, writes a screenshot and exits cleanly with zero
+//! validation messages. The screenshot shows sky above and terrain below.
+
+use std::process::Command;
+
+fn viewer(args: &[&str]) -> std::process::Output {
+    let bin = env!("CARGO_BIN_EXE_vkterrain");
+    let has_display = std::env::var_os("DISPLAY").is_some();
+    let mut cmd = if has_display {
+        Command::new(bin)
+    } else {
+        // Outside tools/test.sh: start our own X server.
+        let mut c = Command::new("xvfb-run");
+        c.args(["-a", "-s", "-screen 0 1280x1024x24", bin]);
+        c
+    };
+    cmd.args(args).env("RUST_LOG", "error");
+    cmd.output().expect("run the viewer (needs Xvfb: apt-get install xvfb)")
+}
+
+#[test]
+fn flyover_with_resizes_writes_a_screenshot_and_exits_cleanly() {
+    let shot = std::env::temp_dir().join(format!("vkterrain-viewer-{}.png", std::process::id()));
+    let _ = std::fs::remove_file(&shot);
+    let out = viewer(&[
+        "--frames",
+        "36",
+        "--flyover",
+        "--size",
+        "480x360",
+        "--resize-at",
+        "10:640x400",
+        "--resize-at",
+        "22:400x300",
+        "--validation",
+        "on",
+        "--screenshot",
+        shot.to_str().unwrap(),
+    ]);
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "viewer failed: {stderr}\n{stdout}");
+    let json: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
+    assert_eq!(json["frames"], 36);
+    assert_eq!(json["validation_messages"], 0, "{stderr}");
+    assert!(json["resizes"].as_u64().unwrap() >= 2, "{json}");
+    assert!(json["error_generations"].as_u64().unwrap() >= 10, "{json}");
+    assert!(json["last_triangles"].as_u64().unwrap() > 0);
+
+    let img = image::open(&shot).expect("screenshot written").to_rgb8();
+    assert_eq!((img.width(), img.height()), (400, 300), "the screenshot has the resized window's size");
+    let mean = |y0: u32, y1: u32| {
+        let mut s = [0f64; 3];
+        let mut n = 0.0;
+        for y in y0..y1 {
+            for x in 0..img.width() {
+                let p = img.get_pixel(x, y);
+                for c in 0..3 {
+                    s[c] += p[c] as f64;
+                }
+                n += 1.0;
+            }
+        }
+        s.map(|v| v / n)
+    };
+    let top = mean(0, 20);
+    let bottom = mean(img.height() - 40, img.height());
+    // Sky: bright and blue. Terrain: darker, and green/red dominate blue.
+    assert!(top[2] > top[0] && top[2] > 150.0, "top rows are not sky: {top:?}");
+    assert!(bottom[2] < bottom[1] && bottom[1] < 200.0, "bottom rows are not terrain: {bottom:?}");
+    let distinct: std::collections::HashSet<[u8; 3]> = img.pixels().map(|p| p.0).collect();
+    assert!(distinct.len() > 200, "the screenshot is nearly blank ({} colours)", distinct.len());
+    let _ = std::fs::remove_file(&shot);
+}
+
+#[test]
+fn viewer_rejects_bad_options_without_opening_a_window() {
+    let out = viewer(&["--detail-weight", "2"]);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--detail-weight 2"));
+}
