@@ -115,7 +115,9 @@ impl CommonArgs {
         }
     }
 
-    pub fn load_heightfield(&self) -> Result<Heightfield, InputError> {
+    /// Loads `--heightmap` (or the built-in terrain); `max_grid_side` is the device's
+    /// image size limit when the device already exists.
+    pub fn load_heightfield(&self, max_grid_side: Option<usize>) -> Result<Heightfield, InputError> {
         match &self.heightmap {
             None => Ok(heightfield::procedural()),
             Some(path) => {
@@ -123,6 +125,7 @@ impl CommonArgs {
                     spacing: self.spacing,
                     height_scale: self.height_scale,
                     raw_size: self.raw_size.map(|(w, h)| (w as usize, h as usize)),
+                    max_grid_side,
                 };
                 heightfield::load(path, &opts).map_err(|e| InputError(e.to_string()))
             }

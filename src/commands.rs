@@ -34,7 +34,7 @@ pub struct RenderArgs {
     #[arg(long, value_enum, default_value_t = LodChoice::Error)]
     pub lod: LodChoice,
     /// Screen-space error threshold in pixels.
-    #[arg(long, value_name = "PX", default_value = "1", value_parser = positive)]
+    #[arg(long, value_name = "PX", default_value = "1", value_parser = positive, allow_negative_numbers = true)]
     pub delta: f32,
     /// Output PNG.
     #[arg(long, value_name = "FILE.png")]
@@ -85,17 +85,20 @@ pub struct Session {
 
 impl Session {
     pub fn open(common: &CommonArgs) -> anyhow::Result<Self> {
-        let hf = common.load_heightfield()?;
+        // Options first, so that a bad value fails before any file is read.
+        BlockLayout::new(30, common.block).map_err(InputError)?;
+        // The device first: its image size limit bounds what the loader allocates.
+        let instance = Instance::new(&InstanceOptions { validation: common.validation(), extensions: Vec::new() })?;
+        let device =
+            Device::new(instance, &DeviceOptions { gpu: common.gpu.clone(), queues: common.queues, swapchain: false })?;
+        eprintln!("vkterrain: device {}, queue mode {}", device.name, device.queue_mode.as_str());
+        let hf = common.load_heightfield(Some(device.max_image_dimension_2d() as usize))?;
+        Session::check_size(&device, &hf)?;
         let layout = BlockLayout::new(hf.n, common.block).map_err(InputError)?;
         if layout.k() != common.block {
             tracing::info!("block {} is larger than the terrain; using k = {}", common.block, layout.k());
         }
         let mm = MinMaxPyramid::build(&hf);
-        let instance = Instance::new(&InstanceOptions { validation: common.validation(), extensions: Vec::new() })?;
-        let device =
-            Device::new(instance, &DeviceOptions { gpu: common.gpu.clone(), queues: common.queues, swapchain: false })?;
-        eprintln!("vkterrain: device {}, queue mode {}", device.name, device.queue_mode.as_str());
-        Session::check_size(&device, &hf)?;
         let terrain = Arc::new(TerrainGpu::new(&device, &hf, &mm, None, None)?);
         Ok(Session { hf: Arc::new(hf), mm, layout, device, terrain })
     }

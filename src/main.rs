@@ -31,7 +31,21 @@ fn main() -> ExitCode {
         .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into()))
         .with_writer(std::io::stderr)
         .init();
-    let cli = Cli::parse();
+    // Usage errors are one line naming the option, exit code 2; help and version print
+    // as usual.
+    let cli = match Cli::try_parse() {
+        Ok(c) => c,
+        Err(e) if !e.use_stderr() => {
+            let _ = e.print();
+            return ExitCode::SUCCESS;
+        }
+        Err(e) => {
+            let text = e.render().to_string();
+            let first = text.lines().next().unwrap_or("invalid arguments").trim_start_matches("error: ");
+            eprintln!("vkterrain: {first}");
+            return ExitCode::from(2);
+        }
+    };
     let result = match &cli.command {
         None => vkterrain::viewer::view(&cli.view),
         Some(Command::View(a)) => vkterrain::viewer::view(a),

@@ -43,7 +43,7 @@ pub struct ViewArgs {
     #[command(flatten)]
     pub common: CommonArgs,
     /// Screen-space error threshold in pixels (keys [ and ] halve and double it).
-    #[arg(long, value_name = "PX", default_value = "1", value_parser = crate::commands::positive)]
+    #[arg(long, value_name = "PX", default_value = "1", value_parser = crate::commands::positive, allow_negative_numbers = true)]
     pub delta: f32,
     /// Base colour texture, stretched over the whole terrain (seed 000 eq. 9).
     #[arg(long, value_name = "FILE")]
@@ -235,7 +235,7 @@ struct App {
 }
 
 pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
-    let hf = args.common.load_heightfield()?;
+    let hf = args.common.load_heightfield(None)?;
     let layout = BlockLayout::new(hf.n, args.common.block).map_err(InputError)?;
     if !(0.0..=1.0).contains(&args.detail_weight) {
         return Err(InputError(format!("--detail-weight {}: must be within 0..1", args.detail_weight)).into());

@@ -84,7 +84,7 @@ fn crafted_fields_match_the_reference() {
     assert!(check(&device, wide, 9, &cams(60.0, 6.0)) > 0.0);
     let sixteen = field16(65, 65, 10.0, 0.1, |x, z| ((x * 977 + z * 131) % 4000) as u16 + 30000);
     assert!(check(&device, sixteen, 17, &cams(640.0, 3400.0)) > 0.0);
-    assert_clean(&device);
+    finish(device);
 }
 
 #[test]
@@ -96,5 +96,5 @@ fn real_dems_match_the_reference() {
     let rainier = heightfield::load(&data("srtm3/mt_rainier_90m.tif"), &LoadOptions::default()).unwrap();
     let side = 1200.0 * rainier.spacing;
     assert!(check(&device, rainier, 33, &cams(side, 4371.0)) > 0.0);
-    assert_clean(&device);
+    finish(device);
 }

@@ -119,7 +119,7 @@ fn flat_plane_covers_exactly_its_projection() {
     }
     assert!(n_in > 1000 && n_out > 1000, "{n_in} inside, {n_out} outside");
     drop(scene);
-    assert_clean(&device);
+    finish(device);
 }
 
 #[test]
@@ -170,7 +170,7 @@ fn spike_appears_where_the_camera_projects_it() {
     );
     let far_edge = cam.project(&vp, Vec3::new(40.0, 12.0, 23.0)).unwrap().1;
     assert!(top.unwrap().1 as f32 + 0.5 >= far_edge - 1.5, "changed pixel above the spike's top edge");
-    assert_clean(&device);
+    finish(device);
 }
 
 /// Cameras 10 to 40 km above the middle of the terrain looking down at 65 to 88 degrees (oblique, so a
@@ -226,7 +226,7 @@ fn no_cracks_when_the_whole_frame_is_terrain() {
         activity.stop().unwrap();
     }
     assert_eq!(frames, 96);
-    assert_clean(&device);
+    finish(device);
 }
 
 /// Colour RMSE (8-bit) and the share of pixels off by more than 16 levels.
@@ -294,5 +294,5 @@ fn fidelity_against_the_full_resolution_render() {
     }
     activity.stop().unwrap();
     drop(scene);
-    assert_clean(&device);
+    finish(device);
 }

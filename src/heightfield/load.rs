@@ -14,6 +14,9 @@ pub struct LoadOptions {
     pub height_scale: Option<f32>,
     /// Size of a raw `.r16`/`.f32` file.
     pub raw_size: Option<(usize, usize)>,
+    /// The device's maxImageDimension2D, when known: checked before the grid is
+    /// allocated.
+    pub max_grid_side: Option<usize>,
 }
 
 /// Defaults for data sets we know by name (shared/data/README.md), else by sample type.
@@ -61,6 +64,18 @@ pub fn load(path: &Path, opts: &LoadOptions) -> Result<Heightfield, HeightfieldE
             ))
         }
     };
+    if let Some(max) = opts.max_grid_side {
+        let side = super::grid_side(decoded.width.max(decoded.height));
+        if side > max {
+            return Err(HeightfieldError::invalid(
+                &shown,
+                format!(
+                    "{} x {} samples need a {side} x {side} grid, larger than the device's maxImageDimension2D ({max})",
+                    decoded.width, decoded.height
+                ),
+            ));
+        }
+    }
     let (dspacing, dscale) = defaults(&shown, decoded.bits, decoded.format == HeightFormat::Float32);
     let spacing = opts.spacing.unwrap_or(dspacing);
     let height_scale = opts.height_scale.unwrap_or(dscale);

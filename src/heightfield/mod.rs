@@ -31,6 +31,15 @@ impl HeightfieldError {
     }
 }
 
+/// The smallest `2^n + 1` (n >= 1) that is at least `samples`.
+pub fn grid_side(samples: usize) -> usize {
+    let mut n = 1;
+    while (1usize << n) + 1 < samples {
+        n += 1;
+    }
+    (1usize << n) + 1
+}
+
 /// How heights are stored on the GPU.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum HeightFormat {
@@ -95,12 +104,8 @@ impl Heightfield {
                 format!("sample at column {}, row {} is not a finite number", i % width, i / width),
             ));
         }
-        let side_needed = width.max(height);
-        let mut n = 1;
-        while (1usize << n) + 1 < side_needed {
-            n += 1;
-        }
-        let side = (1usize << n) + 1;
+        let side = grid_side(width.max(height));
+        let n = (side - 1).trailing_zeros();
         let mut raw = vec![0.0f32; side * side];
         for z in 0..side {
             let sz = z.min(height - 1);

@@ -32,9 +32,15 @@ pub fn gpu() -> Arc<Device> {
     gpu_with(QueueRequest::Auto)
 }
 
-pub fn assert_clean(device: &Device) {
-    let n = device.instance.validation_messages();
-    assert_eq!(n, 0, "validation messages: {:#?}", device.instance.messages.messages());
+/// Destroys the device (it must be the last reference) and the instance, then fails on
+/// any validation message, including the object tracker's reports of objects still
+/// alive at vkDestroyDevice / vkDestroyInstance (leaks).
+pub fn finish(device: Arc<Device>) {
+    let counter = device.instance.messages.clone();
+    let refs = Arc::strong_count(&device);
+    assert_eq!(refs, 1, "{refs} references to the device remain: its children would leak");
+    drop(device);
+    assert_eq!(counter.count(), 0, "validation messages: {:#?}", counter.messages());
 }
 
 /// A crafted float heightfield.

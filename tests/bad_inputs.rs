@@ -1,0 +1,169 @@
+//! Bad inputs get a clean error: exit code 2, one line naming the file or option and the
+//! problem, no panic, and no output file left behind. The corpus is tests/bad_inputs/.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+fn corpus(name: &str) -> String {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/bad_inputs").join(name).display().to_string()
+}
+
+fn scratch(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("vkterrain-bad-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    dir.join(name)
+}
+
+/// Runs `vkterrain ARGS` and checks the clean failure; `needles` must all appear in the
+/// one error line.
+fn fails_cleanly(args: &[&str], needles: &[&str]) {
+    let out_png = scratch(&format!("out-{}.png", args.join("_").replace(['/', ' '], "_").len()));
+    let _ = std::fs::remove_file(&out_png);
+    let mut full: Vec<String> = args.iter().map(|s| s.to_string()).collect();
+    if args.first() == Some(&"render") && !args.contains(&"--out") {
+        full.extend(["--out".into(), out_png.display().to_string()]);
+    }
+    let out = Command::new(env!("CARGO_BIN_EXE_vkterrain"))
+        .args(&full)
+        .env("RUST_LOG", "error")
+        .output()
+        .expect("run vkterrain");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{full:?}: exit {:?}, stderr: {stderr}", out.status.code());
+    assert!(!stderr.contains("panicked"), "{full:?} panicked: {stderr}");
+    let errors: Vec<&str> =
+        stderr.lines().filter(|l| l.starts_with("vkterrain:") && !l.contains("queue mode")).collect();
+    assert_eq!(errors.len(), 1, "{full:?}: expected one error line, got: {stderr}");
+    for n in needles {
+        assert!(errors[0].contains(n), "{full:?}: '{}' does not mention '{n}'", errors[0]);
+    }
+    assert!(!out_png.exists(), "{full:?} left {}", out_png.display());
+    let partial = out_png.with_extension("partial.tmp");
+    assert!(!partial.exists(), "{full:?} left {}", partial.display());
+}
+
+fn bad_file(name: &str, needles: &[&str]) {
+    let path = corpus(name);
+    let mut n = vec![name];
+    n.extend_from_slice(needles);
+    fails_cleanly(&["render", "--heightmap", &path, "--lod", "full", "--size", "64x48"], &n);
+}
+
+#[test]
+fn truncated_png() {
+    bad_file("truncated.png", &["cannot decode"]);
+}
+#[test]
+fn corrupt_png() {
+    bad_file("corrupt.png", &["cannot decode"]);
+}
+#[test]
+fn colour_png() {
+    bad_file("colour.png", &["colour image"]);
+}
+#[test]
+fn zero_by_zero_png() {
+    bad_file("zero_by_zero.png", &[]);
+}
+#[test]
+fn one_by_one_png() {
+    bad_file("one_by_one.png", &["1 x 1", "too small"]);
+}
+#[test]
+fn two_by_two_png() {
+    bad_file("two_by_two.png", &["2 x 2", "too small"]);
+}
+#[test]
+fn empty_png() {
+    bad_file("empty.png", &["empty"]);
+}
+#[test]
+fn text_named_png() {
+    bad_file("not_an_image.png", &[]);
+}
+#[test]
+fn forged_huge_png_header() {
+    bad_file("forged_huge.png", &["100000 x 100000"]);
+}
+#[test]
+fn truncated_tiff() {
+    bad_file("truncated.tif", &["TIFF"]);
+}
+#[test]
+fn corrupt_tiff() {
+    bad_file("corrupt.tif", &["TIFF"]);
+}
+#[test]
+fn nan_in_float_tiff() {
+    bad_file("nan.tif", &["column 1, row 1", "NaN"]);
+}
+#[test]
+fn infinity_in_float_tiff() {
+    bad_file("infinity.tif", &["column 1, row 2", "inf"]);
+}
+#[test]
+fn raw_size_mismatch() {
+    let p = corpus("wrong_size.r16");
+    fails_cleanly(
+        &["render", "--heightmap", &p, "--raw-size", "20x20"],
+        &["wrong_size.r16", "--raw-size 20x20", "800 bytes", "has 200"],
+    );
+}
+#[test]
+fn raw_without_size() {
+    let p = corpus("wrong_size.r16");
+    fails_cleanly(&["render", "--heightmap", &p], &["wrong_size.r16", "--raw-size"]);
+}
+#[test]
+fn larger_than_max_image_dimension() {
+    let p = corpus("too_big_for_device.r16");
+    fails_cleanly(
+        &["render", "--heightmap", &p, "--raw-size", "16385x3"],
+        &["too_big_for_device.r16", "maxImageDimension2D ("],
+    );
+}
+#[test]
+fn hgt_of_wrong_length() {
+    bad_file("short.hgt", &["10000 bytes", "1201 x 1201"]);
+}
+#[test]
+fn hgt_all_voids() {
+    bad_file("all_void.hgt", &["void"]);
+}
+#[test]
+fn unknown_extension() {
+    bad_file("heights.xyz", &["unknown extension"]);
+}
+#[test]
+fn missing_file() {
+    let p = scratch("does_not_exist.png").display().to_string();
+    fails_cleanly(&["render", "--heightmap", &p], &["does_not_exist.png", "No such file"]);
+}
+#[test]
+fn directory() {
+    let d = scratch("a_directory.png");
+    std::fs::create_dir_all(&d).unwrap();
+    fails_cleanly(&["render", "--heightmap", d.to_str().unwrap()], &["a_directory.png", "directory"]);
+}
+#[test]
+fn unreadable_file() {
+    // Tests often run as root, where permissions do not stop reads: a link to
+    // /proc/self/mem reads back an I/O error at offset 0 for anyone.
+    let p = scratch("unreadable.png");
+    let _ = std::fs::remove_file(&p);
+    std::os::unix::fs::symlink("/proc/self/mem", &p).unwrap();
+    fails_cleanly(&["render", "--heightmap", p.to_str().unwrap()], &["unreadable.png"]);
+}
+
+#[test]
+fn bad_options() {
+    fails_cleanly(&["render", "--delta", "0"], &["--delta", "greater than 0"]);
+    fails_cleanly(&["render", "--delta", "-1"], &["--delta"]);
+    fails_cleanly(&["render", "--block", "10"], &["--block 10", "2^m + 1"]);
+    fails_cleanly(&["render", "--size", "0x480"], &["--size", "at least 1"]);
+    fails_cleanly(&["render", "--camera", "NaN,1,2"], &["--camera", "finite"]);
+    fails_cleanly(&["render", "--fovy", "200"], &["--fovy", "179"]);
+    fails_cleanly(&["frobnicate"], &["frobnicate"]);
+    fails_cleanly(&["render", "--out", &scratch("picture.jpg").display().to_string()], &["--out", ".png"]);
+    fails_cleanly(&["errors", "--repeat", "0"], &["--repeat"]);
+}
