@@ -268,6 +268,7 @@ pub fn errors(args: &ErrorsArgs) -> anyhow::Result<()> {
     let activity = ErrorsActivity::start(&s.device, s.terrain.clone(), s.hf.clone(), s.layout)?;
     let base = ErrorParams::new(&cam, args.common.error_mode);
     let mut times = Vec::new();
+    let mut gpu_times = Vec::new();
     let mut last = None;
     for i in 0..args.repeat {
         // Each repeat moves the camera by a hundredth of the sample spacing (well above f32
@@ -277,6 +278,7 @@ pub fn errors(args: &ErrorsArgs) -> anyhow::Result<()> {
         let t = Instant::now();
         let g = activity.wait_for(p, Duration::from_secs(600))?;
         times.push(t.elapsed().as_secs_f64() * 1e3);
+        gpu_times.extend(g.gpu_ms);
         if i == 0 {
             last = Some(g);
         }
@@ -284,6 +286,7 @@ pub fn errors(args: &ErrorsArgs) -> anyhow::Result<()> {
     let cost = activity.cost;
     activity.stop()?;
     times.sort_by(|a, b| a.partial_cmp(b).unwrap());
+    gpu_times.sort_by(|a, b| a.partial_cmp(b).unwrap());
     let g = last.expect("at least one generation");
     if let Some(path) = &args.dump {
         let bytes: Vec<u8> = g.errors.packed().iter().flat_map(|v| v.to_le_bytes()).collect();
@@ -303,6 +306,8 @@ pub fn errors(args: &ErrorsArgs) -> anyhow::Result<()> {
         "full_error_texture_bytes": (s.hf.side() * s.hf.side() * 4) as u64,
         "update_ms": times[times.len() / 2],
         "update_ms_min": times[0],
+        "update_gpu_ms": gpu_times.get(gpu_times.len() / 2),
+        "validation": s.device.instance.validation,
         "repeat": args.repeat,
         "root_error_px": g.errors.root_error(),
         "queue_mode": s.device.queue_mode.as_str(),

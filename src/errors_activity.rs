@@ -13,7 +13,7 @@ use crate::shaders;
 use crate::terrain_gpu::TerrainGpu;
 use crate::vk::{
     vk, Buffer, CommandPool, DescriptorPool, DescriptorSetLayout, Device, GraphicsPipeline, GraphicsPipelineDesc,
-    Image, ImageView, PipelineLayout, TimelineSemaphore, VkError, VkResult, VkResultExt,
+    Image, ImageView, PipelineLayout, QueryPool, TimelineSemaphore, VkError, VkResult, VkResultExt,
 };
 use std::sync::{Arc, Condvar, Mutex};
 use std::thread::JoinHandle;
@@ -27,8 +27,8 @@ pub struct Generation {
     pub number: u64,
     pub params: ErrorParams,
     pub errors: BlockErrors,
-    /// CPU time from submission to completion of this update.
-    pub update_ms: f64,
+    /// GPU time of this update (timestamp queries), when the device has timestamps.
+    pub gpu_ms: Option<f64>,
 }
 
 /// Per-update costs, for stats.
@@ -43,7 +43,6 @@ pub struct UpdateCost {
 struct SlotInfo {
     generation: u64,
     params: ErrorParams,
-    update_ms: f64,
 }
 
 struct Handoff {
@@ -66,6 +65,10 @@ struct Shared {
     readbacks: [Buffer; 2],
     failure: Mutex<Option<String>>,
     root_lod: u32,
+    /// Two timestamps per slot (start, end of the generation's commands).
+    queries: Option<QueryPool>,
+    /// Generations finished, for watchdogs.
+    finished: std::sync::atomic::AtomicU64,
 }
 
 /// Handle held by the draw thread.
@@ -93,6 +96,8 @@ struct ErrorsGpu {
     hf: Arc<Heightfield>,
     layout: BlockLayout,
     slots: Vec<Slot>,
+    /// Owned by `Shared`, which outlives this (the thread holds an Arc to it).
+    queries: Option<vk::QueryPool>,
     gie_pipeline: GraphicsPipeline,
     reduce_pipeline: GraphicsPipeline,
     gie_layout: PipelineLayout,
@@ -218,6 +223,7 @@ impl ErrorsGpu {
             hf,
             layout: block_layout,
             slots,
+            queries: None,
             gie_pipeline,
             reduce_pipeline,
             gie_layout,
@@ -318,6 +324,14 @@ impl ErrorsGpu {
                 &vk::CommandBufferBeginInfo::default().flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT),
             )
             .vk("vkBeginCommandBuffer")?;
+        }
+        let q0 = 2 * slot_index as u32;
+        if let Some(pool) = self.queries {
+            // SAFETY: recording; these two queries belong to this slot only.
+            unsafe {
+                d.cmd_reset_query_pool(cmd, pool, q0, 2);
+                d.cmd_write_timestamp2(cmd, vk::PipelineStageFlags2::TOP_OF_PIPE, pool, q0);
+            }
         }
         let frag = vk::PipelineStageFlags2::FRAGMENT_SHADER;
         let color = vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT;
@@ -471,6 +485,9 @@ impl ErrorsGpu {
                 .buffer(readback.handle)
                 .size(vk::WHOLE_SIZE)];
             d.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().buffer_memory_barriers(&to_host));
+            if let Some(pool) = self.queries {
+                d.cmd_write_timestamp2(cmd, vk::PipelineStageFlags2::BOTTOM_OF_PIPE, pool, q0 + 1);
+            }
             d.end_command_buffer(cmd).vk("vkEndCommandBuffer")?;
         }
         Ok(cmd)
@@ -556,6 +573,10 @@ impl ErrorsActivity {
                 gpu_allocator::MemoryLocation::GpuToCpu,
             )
         };
+        let queries = QueryPool::timestamps(device, 4)?;
+        if queries.is_none() {
+            tracing::info!("no timestamp queries on this device: error update GPU times are not reported");
+        }
         let shared = Arc::new(Shared {
             request: Mutex::new(Request { params: None, stop: false }),
             request_cv: Condvar::new(),
@@ -565,6 +586,8 @@ impl ErrorsActivity {
             readbacks: [rb(0)?, rb(1)?],
             failure: Mutex::new(None),
             root_lod: root,
+            queries,
+            finished: std::sync::atomic::AtomicU64::new(0),
         });
         let cost = UpdateCost {
             fragments_shaded: fragments_per_update(hf.n, block_layout.m),
@@ -573,7 +596,8 @@ impl ErrorsActivity {
         };
         // The GPU objects are created here so that set-up errors reach the caller; the
         // thread then owns them (and its own command pool) exclusively.
-        let gpu = ErrorsGpu::new(device, terrain, hf, block_layout)?;
+        let mut gpu = ErrorsGpu::new(device, terrain, hf, block_layout)?;
+        gpu.queries = shared.queries.as_ref().map(|q| q.handle);
         let thread_shared = shared.clone();
         let thread = std::thread::Builder::new()
             .name("errors-activity".into())
@@ -624,6 +648,11 @@ impl ErrorsActivity {
         let header = u32::from_le_bytes(bytes[0..4].try_into().unwrap());
         let data: Vec<f32> = bytemuck::pod_collect_to_vec(&bytes[4..4 + len * 4]);
         let trailer = u32::from_le_bytes(bytes[4 + len * 4..8 + len * 4].try_into().unwrap());
+        // Read inside the reading window: the slot's queries are not reset meanwhile.
+        let gpu_ms = match &s.queries {
+            Some(q) => q.elapsed_ms(2 * slot as u32)?,
+            None => None,
+        };
         {
             let mut h = s.handoff.lock().unwrap();
             h.reading = None;
@@ -635,7 +664,7 @@ impl ErrorsActivity {
                 number: g,
                 params: info.params,
                 errors: BlockErrors::from_packed(s.root_lod, &data),
-                update_ms: info.update_ms,
+                gpu_ms,
             })),
             _ => Err(VkError::Setup(format!(
                 "hand-off broken: generation {g} read as header {header}, trailer {trailer}"
@@ -663,6 +692,13 @@ impl ErrorsActivity {
             }
             self.shared.timeline.wait(after + 1, 50_000_000)?;
         }
+    }
+
+    /// Whether a request is waiting for (or in) computation, and generations finished:
+    /// a watchdog's view of this thread's progress.
+    pub fn progress(&self) -> (bool, u64) {
+        let done = self.shared.finished.load(std::sync::atomic::Ordering::SeqCst);
+        (self.shared.request.lock().unwrap().params.is_some(), done)
     }
 
     /// The generation counter (timeline value).
@@ -720,9 +756,8 @@ fn run(gpu: ErrorsGpu, s: &Shared) -> VkResult<()> {
             while h.reading == Some(g.wrapping_sub(2)) {
                 h = s.handoff_cv.wait(h).unwrap();
             }
-            h.slots[slot] = Some(SlotInfo { generation: g, params, update_ms: 0.0 });
+            h.slots[slot] = Some(SlotInfo { generation: g, params });
         }
-        let start = Instant::now();
         let cmd = gpu.record(slot, g, &params, &s.readbacks[slot], None)?;
         let cmds = [vk::CommandBufferSubmitInfo::default().command_buffer(cmd)];
         let signal = [vk::SemaphoreSubmitInfo::default()
@@ -739,12 +774,7 @@ fn run(gpu: ErrorsGpu, s: &Shared) -> VkResult<()> {
                 return Ok(());
             }
         }
-        let ms = start.elapsed().as_secs_f64() * 1e3;
-        if let Some(info) = s.handoff.lock().unwrap().slots[slot].as_mut() {
-            if info.generation == g {
-                info.update_ms = ms;
-            }
-        }
+        s.finished.store(g, std::sync::atomic::Ordering::SeqCst);
         last = Some(params);
     }
 }

@@ -139,3 +139,43 @@ impl Drop for BinarySemaphore {
         unsafe { self.device.raw.destroy_semaphore(self.handle, None) };
     }
 }
+
+/// A timestamp query pool (optional: only on queues with timestamp bits).
+pub struct QueryPool {
+    device: Arc<Device>,
+    pub handle: vk::QueryPool,
+    /// Nanoseconds per tick.
+    pub period_ns: f64,
+}
+
+impl QueryPool {
+    /// `None` when the queue family has no timestamps.
+    pub fn timestamps(device: &Arc<Device>, count: u32) -> VkResult<Option<Self>> {
+        let Some(period) = device.features.timestamp_period else { return Ok(None) };
+        let info = vk::QueryPoolCreateInfo::default().query_type(vk::QueryType::TIMESTAMP).query_count(count);
+        // SAFETY: valid create info.
+        let handle = unsafe { device.raw.create_query_pool(&info, None) }.vk("vkCreateQueryPool")?;
+        Ok(Some(QueryPool { device: device.clone(), handle, period_ns: period as f64 }))
+    }
+
+    /// Milliseconds between timestamps `first` and `first + 1`, once both are written.
+    pub fn elapsed_ms(&self, first: u32) -> VkResult<Option<f64>> {
+        let mut ticks = [0u64; 2];
+        // SAFETY: live pool; the caller reads only queries whose submission completed.
+        let r = unsafe {
+            self.device.raw.get_query_pool_results(self.handle, first, &mut ticks, vk::QueryResultFlags::TYPE_64)
+        };
+        match r {
+            Ok(()) => Ok(Some(ticks[1].wrapping_sub(ticks[0]) as f64 * self.period_ns / 1e6)),
+            Err(vk::Result::NOT_READY) => Ok(None),
+            Err(e) => Err(e).vk("vkGetQueryPoolResults"),
+        }
+    }
+}
+
+impl Drop for QueryPool {
+    fn drop(&mut self) {
+        // SAFETY: the owner waits for the GPU before dropping.
+        unsafe { self.device.raw.destroy_query_pool(self.handle, None) };
+    }
+}

@@ -200,7 +200,8 @@ impl Device {
         let features = DeviceFeatures {
             wireframe: supported.fill_mode_non_solid != 0,
             pipeline_statistics: supported.pipeline_statistics_query != 0,
-            timestamp_period: (families[draw_family as usize].timestamp_valid_bits > 0)
+            timestamp_period: (families[draw_family as usize].timestamp_valid_bits > 0
+                && families[errors_family as usize].timestamp_valid_bits > 0)
                 .then_some(properties.limits.timestamp_period),
         };
         let enabled = vk::PhysicalDeviceFeatures::default()
