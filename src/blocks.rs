@@ -11,7 +11,7 @@ use crate::shaders;
 use crate::terrain_gpu::TerrainGpu;
 use crate::vk::{
     vk, Buffer, CommandPool, DescriptorPool, DescriptorSetLayout, Device, Fence, GraphicsPipeline,
-    GraphicsPipelineDesc, Image, PipelineLayout, VkResult, VkResultExt,
+    GraphicsPipelineDesc, Image, PipelineLayout, QueryPool, VkResult, VkResultExt,
 };
 use glam::Vec3;
 use std::sync::Arc;
@@ -172,6 +172,8 @@ pub struct BlocksRenderer {
     commands: CommandPool,
     cmd: vk::CommandBuffer,
     fence: Fence,
+    /// Start and end timestamps of the offscreen frame, when the queue has them.
+    queries: Option<QueryPool>,
 }
 
 impl BlocksRenderer {
@@ -275,6 +277,7 @@ impl BlocksRenderer {
             commands,
             cmd,
             fence: Fence::new(device, true)?,
+            queries: QueryPool::timestamps(device, 2)?,
         })
     }
 
@@ -427,6 +430,24 @@ impl BlocksRenderer {
         blocks: &[DrawBlock],
         shading: &Shading,
     ) -> VkResult<(Vec<u8>, DrawStats)> {
+        let (pixels, stats, _) = self.render_timed(hf, terrain, target, cam, blocks, shading, true)?;
+        Ok((pixels.unwrap_or_default(), stats))
+    }
+
+    /// Renders one frame into `target` (copying it to host memory, the headless stand-in
+    /// for presenting) and waits; returns the pixels when `read` is set, the stats, and
+    /// the GPU time from timestamps when the device has them.
+    #[allow(clippy::too_many_arguments)]
+    pub fn render_timed(
+        &mut self,
+        hf: &Heightfield,
+        terrain: &TerrainGpu,
+        target: &Target,
+        cam: &Camera,
+        blocks: &[DrawBlock],
+        shading: &Shading,
+        read: bool,
+    ) -> VkResult<(Option<Vec<u8>>, DrawStats, Option<f64>)> {
         self.set_frame(0, hf, terrain, cam, shading)?;
         let d = self.device.raw.clone();
         let cmd = self.cmd;
@@ -440,6 +461,10 @@ impl BlocksRenderer {
                 &vk::CommandBufferBeginInfo::default().flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT),
             )
             .vk("vkBeginCommandBuffer")?;
+            if let Some(q) = &self.queries {
+                d.cmd_reset_query_pool(cmd, q.handle, 0, 2);
+                d.cmd_write_timestamp2(cmd, vk::PipelineStageFlags2::TOP_OF_PIPE, q.handle, 0);
+            }
             let to_attach = [
                 vk::ImageMemoryBarrier2::default()
                     .src_stage_mask(vk::PipelineStageFlags2::COPY)
@@ -505,6 +530,9 @@ impl BlocksRenderer {
                 .buffer(target.readback.handle)
                 .size(vk::WHOLE_SIZE)];
             d.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().buffer_memory_barriers(&to_host));
+            if let Some(q) = &self.queries {
+                d.cmd_write_timestamp2(cmd, vk::PipelineStageFlags2::BOTTOM_OF_PIPE, q.handle, 1);
+            }
             d.end_command_buffer(cmd).vk("vkEndCommandBuffer")?;
         }
         self.fence.reset()?;
@@ -512,8 +540,16 @@ impl BlocksRenderer {
         let submit = [vk::SubmitInfo2::default().command_buffer_infos(&cmds)];
         self.device.draw_queue.submit(&self.device, &submit, self.fence.handle)?;
         self.fence.wait(u64::MAX)?;
-        let pixels = target.readback.mapped()?[..(target.width * target.height * 4) as usize].to_vec();
-        Ok((pixels, stats))
+        let pixels = if read {
+            Some(target.readback.mapped()?[..(target.width * target.height * 4) as usize].to_vec())
+        } else {
+            None
+        };
+        let gpu_ms = match &self.queries {
+            Some(q) => q.elapsed_ms(0)?,
+            None => None,
+        };
+        Ok((pixels, stats, gpu_ms))
     }
 }
 

@@ -11,6 +11,7 @@ use crate::heightfield::{HeightFormat, Heightfield};
 use crate::quadtree::BlockLayout;
 use crate::shaders;
 use crate::terrain_gpu::TerrainGpu;
+use crate::trace::{Trace, ERRORS_TID};
 use crate::vk::{
     vk, Buffer, CommandPool, DescriptorPool, DescriptorSetLayout, Device, GraphicsPipeline, GraphicsPipelineDesc,
     Image, ImageView, PipelineLayout, QueryPool, TimelineSemaphore, VkError, VkResult, VkResultExt,
@@ -69,6 +70,9 @@ struct Shared {
     queries: Option<QueryPool>,
     /// Generations finished, for watchdogs.
     finished: std::sync::atomic::AtomicU64,
+    /// True while the thread waits for a request with new parameters.
+    idle: std::sync::atomic::AtomicBool,
+    trace: Trace,
 }
 
 /// Handle held by the draw thread.
@@ -562,6 +566,17 @@ impl ErrorsActivity {
         hf: Arc<Heightfield>,
         block_layout: BlockLayout,
     ) -> VkResult<Self> {
+        Self::start_traced(device, terrain, hf, block_layout, Trace::off())
+    }
+
+    /// Like [`ErrorsActivity::start`], recording the thread's work into `trace`.
+    pub fn start_traced(
+        device: &Arc<Device>,
+        terrain: Arc<TerrainGpu>,
+        hf: Arc<Heightfield>,
+        block_layout: BlockLayout,
+        trace: Trace,
+    ) -> VkResult<Self> {
         let root = block_layout.root_lod();
         let bytes = readback_bytes(root);
         let rb = |i: usize| {
@@ -588,6 +603,8 @@ impl ErrorsActivity {
             root_lod: root,
             queries,
             finished: std::sync::atomic::AtomicU64::new(0),
+            idle: std::sync::atomic::AtomicBool::new(true),
+            trace,
         });
         let cost = UpdateCost {
             fragments_shaded: fragments_per_update(hf.n, block_layout.m),
@@ -694,11 +711,11 @@ impl ErrorsActivity {
         }
     }
 
-    /// Whether a request is waiting for (or in) computation, and generations finished:
-    /// a watchdog's view of this thread's progress.
+    /// Whether the thread has work (a request with new parameters), and generations
+    /// finished: a watchdog's view of its progress.
     pub fn progress(&self) -> (bool, u64) {
         let done = self.shared.finished.load(std::sync::atomic::Ordering::SeqCst);
-        (self.shared.request.lock().unwrap().params.is_some(), done)
+        (!self.shared.idle.load(std::sync::atomic::Ordering::SeqCst), done)
     }
 
     /// The generation counter (timeline value).
@@ -743,10 +760,15 @@ fn run(gpu: ErrorsGpu, s: &Shared) -> VkResult<()> {
                 }
                 match r.params {
                     Some(p) if Some(p) != last => break p,
-                    _ => r = s.request_cv.wait(r).unwrap(),
+                    _ => {
+                        s.idle.store(true, std::sync::atomic::Ordering::SeqCst);
+                        r = s.request_cv.wait(r).unwrap();
+                    }
                 }
             }
         };
+        s.idle.store(false, std::sync::atomic::Ordering::SeqCst);
+        let started = Instant::now();
         g += 1;
         let slot = (g % 2) as usize;
         {
@@ -766,6 +788,7 @@ fn run(gpu: ErrorsGpu, s: &Shared) -> VkResult<()> {
             .stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)];
         let submit = [vk::SubmitInfo2::default().command_buffer_infos(&cmds).signal_semaphore_infos(&signal)];
         gpu.device.errors_queue.submit(&gpu.device, &submit, vk::Fence::null())?;
+        s.trace.instant(ERRORS_TID, "submit (errors queue)", serde_json::json!({"generation": g, "signals": g}));
         // One generation in flight: wait (on the CPU) until it is done.
         while !s.timeline.wait(g, 100_000_000)? {
             if s.request.lock().unwrap().stop {
@@ -775,6 +798,14 @@ fn run(gpu: ErrorsGpu, s: &Shared) -> VkResult<()> {
             }
         }
         s.finished.store(g, std::sync::atomic::Ordering::SeqCst);
+        s.trace.complete(
+            ERRORS_TID,
+            "generation",
+            started,
+            Instant::now(),
+            serde_json::json!({"generation": g, "slot": slot}),
+        );
+        s.trace.counter("errors timeline (signalled)", g);
         last = Some(params);
     }
 }

@@ -7,6 +7,7 @@
 //! block renderer driven by the draw thread).
 
 pub mod audit;
+pub mod bench;
 pub mod camera;
 pub mod gie;
 pub mod gpu_layout;
@@ -23,5 +24,6 @@ pub mod cli;
 pub mod commands;
 pub mod errors_activity;
 pub mod terrain_gpu;
+pub mod trace;
 pub mod viewer;
 pub mod vk;

@@ -24,6 +24,8 @@ enum Command {
     Render(RenderArgs),
     /// Compute error generations on the GPU and print their cost as JSON.
     Errors(ErrorsArgs),
+    /// Run a camera path headless and write frames.csv, summary.json, plot.png, trace.json.
+    Bench(vkterrain::bench::BenchArgs),
 }
 
 fn main() -> ExitCode {
@@ -51,6 +53,7 @@ fn main() -> ExitCode {
         Some(Command::View(a)) => vkterrain::viewer::view(a),
         Some(Command::Render(a)) => commands::render(a),
         Some(Command::Errors(a)) => commands::errors(a),
+        Some(Command::Bench(a)) => vkterrain::bench::bench(a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -1,0 +1,636 @@
+//! `vkterrain bench`: headless runs along a camera path (the paper's flyover, or a
+//! 360-degree turn), writing per-frame figures, a summary, a plot like the paper's
+//! Figure 8, and a Chrome trace of both activities.
+
+use crate::blocks::{BlocksRenderer, DrawStats, Shading, Target};
+use crate::camera::Camera;
+use crate::cli::{near_plane, CommonArgs, InputError};
+use crate::commands::{positive, write_atomic, LodChoice, Session};
+use crate::errors_activity::{ErrorsActivity, Generation};
+use crate::gie::ErrorParams;
+use crate::quadtree::{traverse, DrawBlock, LodSelect};
+use crate::trace::{Trace, DRAW_TID};
+use clap::{Args, ValueEnum};
+use glam::Vec3;
+use serde_json::{json, Value};
+use std::collections::VecDeque;
+use std::io::{IsTerminal, Write};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum CameraPath {
+    /// From the centre of the south edge straight to the centre of the north edge at
+    /// 3600 km/h (simulated), 5% of the terrain's size above its highest sample,
+    /// pitched down so that the far edge is just inside the top of the view.
+    PaperFlyover,
+    /// A stationary full turn above the terrain's centre, pitched 20 degrees down.
+    Rotate360,
+}
+
+#[derive(Args, Debug)]
+pub struct BenchArgs {
+    #[command(flatten)]
+    pub common: CommonArgs,
+    /// Camera path.
+    #[arg(long, value_enum, default_value_t = CameraPath::PaperFlyover)]
+    pub path: CameraPath,
+    /// Frames, evenly spaced in simulated time along the path.
+    #[arg(long, value_name = "N", default_value_t = 600)]
+    pub frames: u64,
+    /// Output directory (frames.csv, summary.json, plot.png, trace.json).
+    #[arg(long, value_name = "DIR")]
+    pub out: PathBuf,
+    /// Screen-space error threshold in pixels.
+    #[arg(long, value_name = "PX", default_value = "1", value_parser = positive, allow_negative_numbers = true)]
+    pub delta: f32,
+    /// LOD selection of the main run.
+    #[arg(long, value_enum, default_value_t = LodChoice::Error)]
+    pub lod: LodChoice,
+    /// Also run the same path with --lod full and --lod distance, and the rasterizer
+    /// ceiling, and report the ratios.
+    #[arg(long)]
+    pub compare: bool,
+    /// Skip the fidelity measurements (RMSE against --lod full at fixed views).
+    #[arg(long)]
+    pub no_fidelity: bool,
+    /// Fail the run when a thread makes no progress for this many seconds.
+    #[arg(long, value_name = "SECS", default_value = "10", value_parser = positive)]
+    pub watchdog: f32,
+}
+
+/// One row of frames.csv.
+#[derive(Clone, Debug, Default)]
+struct Row {
+    time_s: f64,
+    frame_ms: f64,
+    traverse_ms: f64,
+    gpu_ms: Option<f64>,
+    triangles: u64,
+    draw_calls: u64,
+    blocks: usize,
+    error_generation: u64,
+    error_age_frames: Option<u64>,
+    error_update_ms: Option<f64>,
+}
+
+const CSV_HEADER: &str =
+    "time_s,frame_ms,traverse_ms,gpu_ms,triangles,draw_calls,blocks,error_generation,error_age_frames,error_update_ms";
+
+fn opt<T: std::fmt::Display>(v: Option<T>) -> String {
+    v.map_or(String::new(), |v| v.to_string())
+}
+
+impl Row {
+    fn csv(&self) -> String {
+        format!(
+            "{:.4},{:.3},{:.3},{},{},{},{},{},{},{}",
+            self.time_s,
+            self.frame_ms,
+            self.traverse_ms,
+            opt(self.gpu_ms.map(|v| format!("{v:.3}"))),
+            self.triangles,
+            self.draw_calls,
+            self.blocks,
+            self.error_generation,
+            opt(self.error_age_frames),
+            opt(self.error_update_ms.map(|v| format!("{v:.3}")))
+        )
+    }
+}
+
+/// Camera and simulated time of frame `i` of `n`.
+fn path_camera(s: &Session, path: CameraPath, i: u64, n: u64, fovy: f32, size: (u32, u32)) -> (Camera, f64) {
+    let hf = &s.hf;
+    let (wx, wz) = hf.world_extent();
+    let l = wx.max(wz);
+    let [lo, hi] = s.mm.range();
+    let (bottom, top) = (lo * hf.height_scale, hi * hf.height_scale);
+    let f = if n > 1 { i as f64 / (n - 1) as f64 } else { 0.0 };
+    match path {
+        CameraPath::PaperFlyover => {
+            let alt = top + 0.05 * l;
+            let duration = wz as f64 / 1000.0; // 3600 km/h = 1000 m/s
+            let t = f * duration;
+            let pos = Vec3::new(wx * 0.5, alt, wz - (t * 1000.0) as f32);
+            // Far edge 5% of the field of view below the top of the image.
+            let below = ((alt - bottom) / wz).atan();
+            let pitch = below + fovy.to_radians() * 0.45;
+            let dir = Vec3::new(0.0, -pitch.sin(), -pitch.cos());
+            (Camera::look_at(pos, pos + dir, fovy, size.0, size.1, near_plane(hf)), t)
+        }
+        CameraPath::Rotate360 => {
+            let ground = hf.surface_height(wx * 0.5, wz * 0.5);
+            let pos = Vec3::new(wx * 0.5, ground.max(top * 0.5) + 0.03 * l, wz * 0.5);
+            let yaw = f as f32 * std::f32::consts::TAU;
+            let pitch = 20f32.to_radians();
+            let dir = Vec3::new(yaw.cos() * pitch.cos(), -pitch.sin(), yaw.sin() * pitch.cos());
+            // 10 degrees per simulated second.
+            (Camera::look_at(pos, pos + dir, fovy, size.0, size.1, near_plane(hf)), f * 36.0)
+        }
+    }
+}
+
+/// Resident set size in MiB (Linux).
+pub fn rss_mib() -> Option<f64> {
+    let statm = std::fs::read_to_string("/proc/self/statm").ok()?;
+    let pages: f64 = statm.split_whitespace().nth(1)?.parse().ok()?;
+    Some(pages * 4096.0 / (1024.0 * 1024.0))
+}
+
+/// Progress on stderr: a bar on a terminal, a line per 10% otherwise.
+struct Progress {
+    label: String,
+    total: u64,
+    start: Instant,
+    last: Instant,
+    tty: bool,
+    last_decile: u64,
+}
+
+impl Progress {
+    fn new(label: &str, total: u64) -> Self {
+        let now = Instant::now();
+        Progress {
+            label: label.into(),
+            total,
+            start: now,
+            last: now,
+            tty: std::io::stderr().is_terminal(),
+            last_decile: 0,
+        }
+    }
+
+    fn tick(&mut self, done: u64) {
+        let elapsed = self.start.elapsed();
+        if elapsed < Duration::from_secs(2) && done < self.total {
+            return; // only runs longer than a couple of seconds show progress
+        }
+        let fps = done as f64 / elapsed.as_secs_f64().max(1e-9);
+        if self.tty {
+            if self.last.elapsed() < Duration::from_millis(200) && done < self.total {
+                return;
+            }
+            self.last = Instant::now();
+            let width = 30;
+            let filled = (done * width / self.total.max(1)) as usize;
+            eprint!(
+                "\r{:>10} [{}{}] {done}/{} frames, {fps:.1} fps ",
+                self.label,
+                "#".repeat(filled),
+                ".".repeat(width as usize - filled),
+                self.total
+            );
+            if done >= self.total {
+                eprintln!();
+            }
+        } else {
+            let decile = done * 10 / self.total.max(1);
+            if decile > self.last_decile {
+                self.last_decile = decile;
+                eprintln!("{}: {done}/{} frames ({}%), {fps:.1} fps", self.label, self.total, decile * 10);
+            }
+        }
+        let _ = std::io::stderr().flush();
+    }
+}
+
+/// Everything one run along the path produced.
+struct Run {
+    rows: Vec<Row>,
+    /// Block lists per frame, kept for the rasterizer ceiling.
+    blocks: Vec<Vec<DrawBlock>>,
+    generations: Vec<u64>,
+    update_gpu_ms: Vec<f64>,
+    interrupted: bool,
+}
+
+struct Bench<'a> {
+    s: &'a Session,
+    args: &'a BenchArgs,
+    renderer: BlocksRenderer,
+    target: Target,
+    trace: Trace,
+    stop: Arc<AtomicBool>,
+    /// Frames drawn, for the watchdog.
+    frames_done: Arc<AtomicU64>,
+    size: (u32, u32),
+}
+
+impl Bench<'_> {
+    fn camera(&self, i: u64) -> (Camera, f64) {
+        path_camera(self.s, self.args.path, i, self.args.frames, self.args.common.fovy, self.size)
+    }
+
+    /// Runs the whole path with one LOD mode (`ceiling`: replay given block lists with no
+    /// traversal and no errors activity).
+    fn run(
+        &mut self,
+        lod: LodChoice,
+        activity: Option<&ErrorsActivity>,
+        ceiling: Option<&[Vec<DrawBlock>]>,
+        keep: bool,
+    ) -> anyhow::Result<Run> {
+        let label = match (ceiling, lod) {
+            (Some(_), _) => "ceiling",
+            (None, LodChoice::Error) => "error",
+            (None, LodChoice::Full) => "full",
+            (None, LodChoice::Distance) => "distance",
+        };
+        let mut progress = Progress::new(label, self.args.frames);
+        let shading = Shading::default();
+        let mut run = Run {
+            rows: Vec::new(),
+            blocks: Vec::new(),
+            generations: Vec::new(),
+            update_gpu_ms: Vec::new(),
+            interrupted: false,
+        };
+        let mut current: Option<Generation> = None;
+        let mut recent: VecDeque<(u64, Vec3)> = VecDeque::new();
+        for i in 0..self.args.frames {
+            if self.stop.load(Ordering::SeqCst) {
+                run.interrupted = true;
+                break;
+            }
+            let (cam, time_s) = self.camera(i);
+            let frame_start = Instant::now();
+            let mut row = Row { time_s, ..Row::default() };
+            let blocks: Vec<DrawBlock> = if let Some(replay) = ceiling {
+                replay.get(i as usize).cloned().unwrap_or_default()
+            } else {
+                if let Some(a) = activity {
+                    a.request(ErrorParams::new(&cam, self.args.common.error_mode));
+                    let after = current.as_ref().map_or(0, |g| g.number);
+                    // The first frame waits for data at its camera; later frames take the
+                    // newest finished generation without waiting (the paper's method).
+                    let newest = if current.is_none() {
+                        Some(a.wait_for(ErrorParams::new(&cam, self.args.common.error_mode), Duration::from_secs(600))?)
+                    } else {
+                        a.latest(after)?
+                    };
+                    if let Some(g) = newest {
+                        self.trace.instant(DRAW_TID, "observed generation", json!({"generation": g.number}));
+                        self.trace.counter("errors timeline (observed by draw thread)", g.number);
+                        if let Some(ms) = g.gpu_ms {
+                            run.update_gpu_ms.push(ms);
+                        }
+                        run.generations.push(g.number);
+                        current = Some(g);
+                    }
+                }
+                recent.push_back((i, cam.position));
+                if recent.len() > 4096 {
+                    recent.pop_front();
+                }
+                let t = Instant::now();
+                let select = match (&current, lod) {
+                    (Some(g), LodChoice::Error) => {
+                        LodSelect::Errors { errors: &g.errors, computed_at: g.params.camera, delta: self.args.delta }
+                    }
+                    (_, LodChoice::Distance) => LodSelect::Distance { factor: 2.0 },
+                    _ => LodSelect::Full,
+                };
+                let tr = traverse(&self.s.hf, &self.s.mm, &self.s.layout, &cam, select);
+                row.traverse_ms = t.elapsed().as_secs_f64() * 1e3;
+                self.trace.complete(DRAW_TID, "traverse", t, Instant::now(), json!({"frame": i}));
+                if let Some(g) = &current {
+                    row.error_generation = g.number;
+                    row.error_update_ms = g.gpu_ms;
+                    row.error_age_frames = recent.iter().rev().find(|(_, c)| *c == g.params.camera).map(|(f, _)| i - f);
+                }
+                tr.blocks
+            };
+            let t = Instant::now();
+            let (_, stats, gpu_ms): (_, DrawStats, _) = self.renderer.render_timed(
+                &self.s.hf,
+                &self.s.terrain,
+                &self.target,
+                &cam,
+                &blocks,
+                &shading,
+                false,
+            )?;
+            self.trace.instant(DRAW_TID, "submit (draw queue)", json!({"frame": i}));
+            self.trace.complete(
+                DRAW_TID,
+                "record + submit + GPU",
+                t,
+                Instant::now(),
+                json!({"frame": i, "blocks": blocks.len()}),
+            );
+            row.frame_ms = frame_start.elapsed().as_secs_f64() * 1e3;
+            self.trace.complete(DRAW_TID, label, frame_start, Instant::now(), json!({"frame": i}));
+            row.gpu_ms = gpu_ms;
+            row.triangles = stats.triangles;
+            row.draw_calls = stats.draw_calls;
+            row.blocks = blocks.len();
+            if keep {
+                run.blocks.push(blocks);
+            }
+            run.rows.push(row);
+            self.frames_done.fetch_add(1, Ordering::SeqCst);
+            progress.tick(i + 1);
+        }
+        Ok(run)
+    }
+}
+
+fn percentile(sorted: &[f64], p: f64) -> f64 {
+    if sorted.is_empty() {
+        return 0.0;
+    }
+    sorted[((sorted.len() - 1) as f64 * p).round() as usize]
+}
+
+fn median(v: &[f64]) -> Option<f64> {
+    let mut s = v.to_vec();
+    s.sort_by(|a, b| a.partial_cmp(b).unwrap());
+    (!s.is_empty()).then(|| percentile(&s, 0.5))
+}
+
+/// The per-run figures of summary.json.
+fn summarize(run: &Run) -> Value {
+    let mut ms: Vec<f64> = run.rows.iter().map(|r| r.frame_ms).collect();
+    ms.sort_by(|a, b| a.partial_cmp(b).unwrap());
+    let total_s: f64 = ms.iter().sum::<f64>() / 1e3;
+    let tris: u64 = run.rows.iter().map(|r| r.triangles).sum();
+    let n = run.rows.len().max(1) as f64;
+    let distinct = run.generations.len();
+    json!({
+        "frames": run.rows.len(),
+        "avg_fps": run.rows.len() as f64 / total_s.max(1e-9),
+        "median_frame_ms": percentile(&ms, 0.5),
+        "p99_frame_ms": percentile(&ms, 0.99),
+        "mean_triangles": tris as f64 / n,
+        "mtriangles_per_s": tris as f64 / total_s.max(1e-9) / 1e6,
+        "mean_draw_calls": run.rows.iter().map(|r| r.draw_calls).sum::<u64>() as f64 / n,
+        "median_traverse_ms": median(&run.rows.iter().map(|r| r.traverse_ms).collect::<Vec<_>>()),
+        "median_gpu_ms": median(&run.rows.iter().filter_map(|r| r.gpu_ms).collect::<Vec<_>>()),
+        "error_updates": distinct,
+        "median_error_update_ms": median(&run.update_gpu_ms),
+        "triangles_first_frame": run.rows.first().map(|r| r.triangles),
+    })
+}
+
+fn write_csv(path: &Path, rows: &[Row]) -> anyhow::Result<()> {
+    let mut text = String::from(CSV_HEADER);
+    text.push('\n');
+    for r in rows {
+        text.push_str(&r.csv());
+        text.push('\n');
+    }
+    write_atomic(path, |tmp| std::fs::write(tmp, &text).map_err(|e| anyhow::anyhow!("{}: {e}", path.display())))
+}
+
+/// Frame rate and triangles against time, like the paper's Figure 8.
+fn plot(path: &Path, rows: &[Row], title: &str) -> anyhow::Result<()> {
+    use plotters::prelude::*;
+    static FONT: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    let have_font = *FONT.get_or_init(|| {
+        ["/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf", "/usr/share/fonts/TTF/DejaVuSans.ttf"]
+            .iter()
+            .find_map(|p| std::fs::read(p).ok())
+            .map(|bytes| {
+                plotters::style::register_font("sans-serif", FontStyle::Normal, Box::leak(bytes.into_boxed_slice()))
+                    .is_ok()
+            })
+            .unwrap_or(false)
+    });
+    if !have_font {
+        tracing::warn!("no DejaVuSans.ttf (Debian: fonts-dejavu-core): plot.png has no labels");
+    }
+    let tmp = path.with_extension("partial.png");
+    {
+        let root = BitMapBackend::new(&tmp, (960, 640)).into_drawing_area();
+        root.fill(&WHITE).map_err(|e| anyhow::anyhow!("plot: {e}"))?;
+        let (upper, lower) = root.split_vertically(320);
+        let t_max = rows.last().map_or(1.0, |r| r.time_s).max(1e-3);
+        let fps: Vec<(f64, f64)> = rows.iter().map(|r| (r.time_s, 1000.0 / r.frame_ms.max(1e-6))).collect();
+        let tris: Vec<(f64, f64)> = rows.iter().map(|r| (r.time_s, r.triangles as f64 / 1e6)).collect();
+        for (area, data, label, color) in
+            [(upper, fps, "frame rate (fps)", RED), (lower, tris, "triangles per frame (millions)", BLUE)]
+        {
+            let y_max = data.iter().map(|p| p.1).fold(0.0f64, f64::max).max(1e-6) * 1.1;
+            let mut chart = ChartBuilder::on(&area);
+            chart.margin(12);
+            if have_font {
+                chart
+                    .caption(format!("{title}: {label}"), ("sans-serif", 18))
+                    .x_label_area_size(30)
+                    .y_label_area_size(50);
+            }
+            let mut chart =
+                chart.build_cartesian_2d(0.0..t_max, 0.0..y_max).map_err(|e| anyhow::anyhow!("plot: {e}"))?;
+            let mut mesh = chart.configure_mesh();
+            if have_font {
+                mesh.x_desc("simulated time (s)");
+            } else {
+                mesh.disable_x_mesh().disable_y_mesh();
+            }
+            mesh.draw().map_err(|e| anyhow::anyhow!("plot: {e}"))?;
+            chart
+                .draw_series(LineSeries::new(data, color.stroke_width(2)))
+                .map_err(|e| anyhow::anyhow!("plot: {e}"))?;
+        }
+        root.present().map_err(|e| anyhow::anyhow!("plot: {e}"))?;
+    }
+    std::fs::rename(&tmp, path).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))
+}
+
+/// RMSE (8-bit) and the share of pixels off by more than 16 levels.
+pub fn image_difference(a: &[u8], b: &[u8]) -> (f64, f64) {
+    let (mut se, mut off, mut n) = (0.0f64, 0usize, 0usize);
+    for (p, q) in a.chunks(4).zip(b.chunks(4)) {
+        let mut worst = 0i32;
+        for c in 0..3 {
+            let d = p[c] as i32 - q[c] as i32;
+            se += (d * d) as f64;
+            worst = worst.max(d.abs());
+        }
+        off += (worst > 16) as usize;
+        n += 1;
+    }
+    ((se / (3 * n.max(1)) as f64).sqrt(), off as f64 / n.max(1) as f64)
+}
+
+pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
+    if args.frames == 0 {
+        return Err(InputError("--frames must be at least 1".into()).into());
+    }
+    if args.out.exists() && !args.out.is_dir() {
+        return Err(InputError(format!("--out {}: exists and is not a directory", args.out.display())).into());
+    }
+    let s = Session::open(&args.common)?;
+    std::fs::create_dir_all(&args.out).map_err(|e| anyhow::anyhow!("{}: {e}", args.out.display()))?;
+    let size = args.common.size.unwrap_or((640, 480));
+    let stop = Arc::new(AtomicBool::new(false));
+    {
+        let stop = stop.clone();
+        // Ctrl-C stops the run cleanly; what was measured so far is written.
+        let _ = ctrlc::set_handler(move || stop.store(true, Ordering::SeqCst));
+    }
+    let trace = Trace::on();
+    let rss_start = rss_mib();
+    let started = Instant::now();
+    let activity = ErrorsActivity::start_traced(&s.device, s.terrain.clone(), s.hf.clone(), s.layout, trace.clone())?;
+    let frames_done = Arc::new(AtomicU64::new(0));
+    let failed = Arc::new(AtomicBool::new(false));
+    let mut bench = Bench {
+        s: &s,
+        args,
+        renderer: BlocksRenderer::new(&s.device, &s.terrain, s.layout, crate::blocks::COLOR_FORMAT, 1)?,
+        target: Target::new(&s.device, size.0, size.1)?,
+        trace: trace.clone(),
+        stop: stop.clone(),
+        frames_done: frames_done.clone(),
+        size,
+    };
+
+    let result = std::thread::scope(|scope| -> anyhow::Result<Value> {
+        // Watchdog: the draw thread must finish a frame, and the errors thread a pending
+        // generation, at least every `--watchdog` seconds.
+        let limit = Duration::from_secs_f32(args.watchdog);
+        let watch_stop = Arc::new(AtomicBool::new(false));
+        {
+            let (frames_done, failed, stop, watch_stop) =
+                (frames_done.clone(), failed.clone(), stop.clone(), watch_stop.clone());
+            let activity = &activity;
+            scope.spawn(move || {
+                let (mut last_f, mut last_f_at) = (0, Instant::now());
+                let (mut last_g, mut last_g_at) = (0, Instant::now());
+                while !watch_stop.load(Ordering::SeqCst) {
+                    std::thread::sleep(Duration::from_millis(100));
+                    let f = frames_done.load(Ordering::SeqCst);
+                    if f != last_f {
+                        (last_f, last_f_at) = (f, Instant::now());
+                    }
+                    let (busy, g) = activity.progress();
+                    if g != last_g || !busy {
+                        (last_g, last_g_at) = (g, Instant::now());
+                    }
+                    let stuck = if last_f_at.elapsed() > limit {
+                        Some("draw thread")
+                    } else if last_g_at.elapsed() > limit {
+                        Some("errors activity")
+                    } else {
+                        None
+                    };
+                    if let Some(who) = stuck {
+                        eprintln!("vkterrain: watchdog: the {who} made no progress for {:.0} s", limit.as_secs_f64());
+                        failed.store(true, Ordering::SeqCst);
+                        stop.store(true, Ordering::SeqCst);
+                        return;
+                    }
+                }
+            });
+        }
+        let out = (|| -> anyhow::Result<Value> {
+            let main = bench.run(args.lod, (args.lod == LodChoice::Error).then_some(&activity), None, args.compare)?;
+            write_csv(&args.out.join("frames.csv"), &main.rows)?;
+            // A generation is recorded only when a newer one is observed.
+            let increasing = main.generations.windows(2).all(|w| w[0] < w[1]);
+            let mut summary = summarize(&main);
+            summary["generations_strictly_increasing"] = json!(increasing);
+            summary["interrupted"] = json!(main.interrupted);
+            if args.compare && !main.interrupted {
+                let full = bench.run(LodChoice::Full, None, None, false)?;
+                let distance = bench.run(LodChoice::Distance, None, None, false)?;
+                let ceiling = bench.run(LodChoice::Full, None, Some(&main.blocks), false)?;
+                let (sm, sf, sd, sc) = (summarize(&main), summarize(&full), summarize(&distance), summarize(&ceiling));
+                let ratio =
+                    |a: &Value, b: &Value, k: &str| a[k].as_f64().zip(b[k].as_f64()).map(|(x, y)| x / y.max(1e-12));
+                summary["compare"] = json!({
+                    "error": sm, "full": sf, "distance": sd, "ceiling": sc,
+                    "fps_error_over_full": ratio(&sm, &sf, "avg_fps"),
+                    "fps_error_over_distance": ratio(&sm, &sd, "avg_fps"),
+                    "triangles_full_over_error": ratio(&sf, &sm, "mean_triangles"),
+                    "triangles_distance_over_error": ratio(&sd, &sm, "mean_triangles"),
+                    "share_of_ceiling_fps": ratio(&sm, &sc, "avg_fps"),
+                });
+            }
+            if !args.no_fidelity && !stop.load(Ordering::SeqCst) {
+                summary["fidelity"] = fidelity(&mut bench, &activity)?;
+            }
+            plot(&args.out.join("plot.png"), &main.rows, &format!("{:?}", args.path))?;
+            Ok(summary)
+        })();
+        watch_stop.store(true, Ordering::SeqCst);
+        out
+    });
+    let mut summary = result?;
+    drop(bench);
+    activity.stop()?;
+    let secs = started.elapsed().as_secs_f64();
+    summary["duration_s"] = json!(secs);
+    summary["rss_start_mib"] = json!(rss_start);
+    summary["rss_end_mib"] = json!(rss_mib());
+    summary["path"] = json!(format!("{:?}", args.path));
+    summary["lod"] = json!(format!("{:?}", args.lod).to_lowercase());
+    summary["delta"] = json!(args.delta);
+    summary["size"] = json!([size.0, size.1]);
+    summary["heightmap"] = json!(s.hf.source);
+    summary["readback_bytes_per_update"] = json!(crate::gie::BlockErrors::packed_len(s.layout.root_lod()) * 4 + 8);
+    summary["geometry_bytes"] = json!(crate::commands::renderer_geometry_bytes(s.layout.k()));
+    summary["heightfield_bytes"] = json!(s.hf.gpu_bytes());
+    summary["queue_mode"] = json!(s.device.queue_mode.as_str());
+    summary["device"] = json!(s.device.name);
+    summary["validation"] = json!(s.device.instance.validation);
+    summary["validation_messages"] = json!(s.validation_messages());
+    trace
+        .write(&args.out.join("trace.json"))
+        .map_err(|e| anyhow::anyhow!("{}: {e}", args.out.join("trace.json").display()))?;
+    let text = serde_json::to_string_pretty(&summary)?;
+    let path = args.out.join("summary.json");
+    write_atomic(&path, |tmp| std::fs::write(tmp, &text).map_err(|e| anyhow::anyhow!("{}: {e}", path.display())))?;
+    println!("{}", serde_json::to_string(&summary)?);
+    if summary["generations_strictly_increasing"] == json!(false) {
+        anyhow::bail!("generations observed out of order (see {})", path.display());
+    }
+    if failed.load(Ordering::SeqCst) {
+        anyhow::bail!(
+            "watchdog: a thread made no progress for {} s (partial results in {})",
+            args.watchdog,
+            args.out.display()
+        );
+    }
+    if stop.load(Ordering::SeqCst) {
+        eprintln!("vkterrain: interrupted; partial results in {}", args.out.display());
+    }
+    let n = s.validation_messages();
+    if n > 0 {
+        anyhow::bail!("{n} validation message(s)");
+    }
+    Ok(())
+}
+
+/// RMSE against the full-resolution image at three fixed views along the path, for
+/// delta = 0.5, 1, 2, 5 (seed 004 section 5.3).
+fn fidelity(bench: &mut Bench, activity: &ErrorsActivity) -> anyhow::Result<Value> {
+    let mut out = Vec::new();
+    for frac in [0.0f64, 0.5, 0.9] {
+        let i = ((bench.args.frames - 1) as f64 * frac).round() as u64;
+        let (cam, time_s) = bench.camera(i);
+        let shading = Shading::default();
+        let s = bench.s;
+        let full_blocks = traverse(&s.hf, &s.mm, &s.layout, &cam, LodSelect::Full).blocks;
+        let (full, _, _) =
+            bench.renderer.render_timed(&s.hf, &s.terrain, &bench.target, &cam, &full_blocks, &shading, true)?;
+        let full = full.unwrap_or_default();
+        let g = activity.wait_for(ErrorParams::new(&cam, bench.args.common.error_mode), Duration::from_secs(600))?;
+        for delta in [0.5f32, 1.0, 2.0, 5.0] {
+            let sel = LodSelect::Errors { errors: &g.errors, computed_at: g.params.camera, delta };
+            let blocks = traverse(&s.hf, &s.mm, &s.layout, &cam, sel).blocks;
+            let (img, stats, _) =
+                bench.renderer.render_timed(&s.hf, &s.terrain, &bench.target, &cam, &blocks, &shading, true)?;
+            let (rmse, share) = image_difference(&full, &img.unwrap_or_default());
+            out.push(json!({
+                "time_s": time_s, "delta": delta, "rmse": rmse, "share_off_by_more_than_16": share,
+                "triangles": stats.triangles, "full_triangles": full_blocks.len() as u64 * s.layout.triangles_per_block(),
+            }));
+        }
+    }
+    Ok(Value::Array(out))
+}

@@ -1,0 +1,125 @@
+//! A short bench run on a small field writes every documented file with its columns and
+//! keys, under validation with zero messages; and a short soak keeps error generations
+//! flowing with bounded memory.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+fn small_field() -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("vkterrain-bench-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let p = dir.join("hills.f32");
+    let bytes: Vec<u8> = (0..257 * 257)
+        .flat_map(|i| {
+            let (x, z) = ((i % 257) as f32, (i / 257) as f32);
+            ((x * 0.07).sin() * (z * 0.05).cos() * 40.0 + (x * 0.31).sin() * 3.0).to_le_bytes()
+        })
+        .collect();
+    std::fs::write(&p, bytes).unwrap();
+    p
+}
+
+fn bench(out: &Path, extra: &[&str]) -> serde_json::Value {
+    let field = small_field();
+    let mut args = vec![
+        "bench".to_string(),
+        "--heightmap".into(),
+        field.display().to_string(),
+        "--raw-size".into(),
+        "257x257".into(),
+        "--spacing".into(),
+        "10".into(),
+        "--block".into(),
+        "9".into(),
+        "--size".into(),
+        "160x120".into(),
+        "--validation".into(),
+        "on".into(),
+        "--out".into(),
+        out.display().to_string(),
+    ];
+    args.extend(extra.iter().map(|s| s.to_string()));
+    let o = Command::new(env!("CARGO_BIN_EXE_vkterrain")).args(&args).env("RUST_LOG", "error").output().unwrap();
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "bench failed: {stderr}");
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
+    assert_eq!(summary["validation"], true);
+    assert_eq!(summary["validation_messages"], 0, "{stderr}");
+    summary
+}
+
+#[test]
+fn short_bench_writes_every_file_with_documented_fields() {
+    let out = std::env::temp_dir().join(format!("vkterrain-bench-out-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&out);
+    let s = bench(&out, &["--path", "paper-flyover", "--frames", "24", "--compare"]);
+    let csv = std::fs::read_to_string(out.join("frames.csv")).unwrap();
+    let mut lines = csv.lines();
+    assert_eq!(
+        lines.next().unwrap(),
+        "time_s,frame_ms,traverse_ms,gpu_ms,triangles,draw_calls,blocks,error_generation,error_age_frames,error_update_ms"
+    );
+    let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
+    assert_eq!(rows.len(), 24);
+    assert!(rows.iter().all(|r| r.len() == 10));
+    // Terrain is ahead for the first three quarters of the path (at the far edge the
+    // camera looks out past it, as at the end of the paper's Figure 8).
+    assert!(rows[..18].iter().all(|r| r[4].parse::<u64>().unwrap() > 0), "frames with terrain ahead draw triangles");
+    for key in [
+        "avg_fps",
+        "median_frame_ms",
+        "p99_frame_ms",
+        "mean_triangles",
+        "mtriangles_per_s",
+        "error_updates",
+        "median_error_update_ms",
+        "readback_bytes_per_update",
+        "geometry_bytes",
+        "heightfield_bytes",
+        "queue_mode",
+        "device",
+        "validation_messages",
+        "fidelity",
+        "compare",
+    ] {
+        assert!(!s[key].is_null() || key == "median_error_update_ms", "summary.json lacks {key}: {s}");
+    }
+    assert_eq!(s["generations_strictly_increasing"], true);
+    assert!(s["error_updates"].as_u64().unwrap() >= 2);
+    for run in ["error", "full", "distance", "ceiling"] {
+        assert_eq!(s["compare"][run]["frames"], 24, "{run}");
+    }
+    // LOD selection never draws more than full resolution.
+    assert!(s["compare"]["triangles_full_over_error"].as_f64().unwrap() >= 1.0);
+    assert_eq!(s["fidelity"].as_array().unwrap().len(), 12);
+    let plot = image::open(out.join("plot.png")).unwrap();
+    assert!(plot.width() >= 640);
+    let trace: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("trace.json")).unwrap()).unwrap();
+    let events = trace["traceEvents"].as_array().unwrap();
+    let has = |name: &str| events.iter().any(|e| e["name"] == name);
+    for name in [
+        "generation",
+        "submit (errors queue)",
+        "submit (draw queue)",
+        "observed generation",
+        "errors timeline (signalled)",
+        "traverse",
+    ] {
+        assert!(has(name), "trace.json has no '{name}' event");
+    }
+}
+
+#[test]
+fn short_soak_keeps_generations_flowing() {
+    let out = std::env::temp_dir().join(format!("vkterrain-soak-out-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&out);
+    let s = bench(&out, &["--path", "paper-flyover", "--frames", "400", "--no-fidelity"]);
+    assert_eq!(s["frames"], 400);
+    assert_eq!(s["generations_strictly_increasing"], true);
+    // A fast camera: generations keep coming all along the run.
+    assert!(s["error_updates"].as_u64().unwrap() >= 100, "{}", s["error_updates"]);
+    let (a, b) = (s["rss_start_mib"].as_f64().unwrap(), s["rss_end_mib"].as_f64().unwrap());
+    assert!(b - a < 64.0, "resident memory grew from {a:.1} to {b:.1} MiB");
+}
