@@ -578,7 +578,12 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     summary["queue_mode"] = json!(s.device.queue_mode.as_str());
     summary["device"] = json!(s.device.name);
     summary["validation"] = json!(s.device.instance.validation);
-    summary["validation_messages"] = json!(s.validation_messages());
+    // Destroy everything first, so that the object tracker's reports of leaked objects
+    // (at vkDestroyDevice and vkDestroyInstance) are counted too.
+    let messages = s.device.instance.messages.clone();
+    drop(s);
+    summary["validation_messages"] = json!(messages.count());
+    summary["validation_counted_after_device_destruction"] = json!(true);
     trace
         .write(&args.out.join("trace.json"))
         .map_err(|e| anyhow::anyhow!("{}: {e}", args.out.join("trace.json").display()))?;
@@ -599,7 +604,7 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     if stop.load(Ordering::SeqCst) {
         eprintln!("vkterrain: interrupted; partial results in {}", args.out.display());
     }
-    let n = s.validation_messages();
+    let n = messages.count();
     if n > 0 {
         anyhow::bail!("{n} validation message(s)");
     }

@@ -237,7 +237,7 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
         out["uncovered_samples"] = json!(a.uncovered);
     }
     println!("{out}");
-    finish(&s)
+    finish(s)
 }
 
 /// Bytes of the shared block mesh (vertex + index buffer).
@@ -247,14 +247,14 @@ pub fn renderer_geometry_bytes(k: u32) -> u64 {
     (v.len() + i.len() * index_size) as u64
 }
 
-/// Fails when validation reported anything.
-fn finish(s: &Session) -> anyhow::Result<()> {
-    let n = s.validation_messages();
+/// Destroys the session, then fails when validation reported anything, including the
+/// object tracker's leak reports at vkDestroyDevice / vkDestroyInstance.
+fn finish(s: Session) -> anyhow::Result<()> {
+    let messages = s.device.instance.messages.clone();
+    drop(s);
+    let n = messages.count();
     if n > 0 {
-        anyhow::bail!(
-            "{n} validation message(s); first: {}",
-            s.device.instance.messages.messages().first().cloned().unwrap_or_default()
-        );
+        anyhow::bail!("{n} validation message(s); first: {}", messages.messages().first().cloned().unwrap_or_default());
     }
     Ok(())
 }
@@ -315,5 +315,5 @@ pub fn errors(args: &ErrorsArgs) -> anyhow::Result<()> {
         "validation_messages": s.validation_messages(),
     });
     println!("{out}");
-    finish(&s)
+    finish(s)
 }

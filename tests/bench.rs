@@ -123,3 +123,41 @@ fn short_soak_keeps_generations_flowing() {
     let (a, b) = (s["rss_start_mib"].as_f64().unwrap(), s["rss_end_mib"].as_f64().unwrap());
     assert!(b - a < 64.0, "resident memory grew from {a:.1} to {b:.1} MiB");
 }
+
+#[test]
+fn ctrl_c_stops_cleanly_and_keeps_what_was_measured() {
+    let out = std::env::temp_dir().join(format!("vkterrain-ctrlc-out-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&out);
+    let field = small_field();
+    let mut child = Command::new(env!("CARGO_BIN_EXE_vkterrain"))
+        .args(["bench", "--heightmap", field.to_str().unwrap(), "--raw-size", "257x257", "--spacing", "10"])
+        .args(["--block", "9", "--size", "160x120", "--frames", "1000000", "--validation", "on"])
+        .arg("--out")
+        .arg(&out)
+        .env("RUST_LOG", "error")
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    std::thread::sleep(std::time::Duration::from_secs(4));
+    let killed = Command::new("kill").args(["-INT", &child.id().to_string()]).status().unwrap();
+    assert!(killed.success());
+    let start = std::time::Instant::now();
+    let status = loop {
+        if let Some(s) = child.try_wait().unwrap() {
+            break s;
+        }
+        assert!(start.elapsed() < std::time::Duration::from_secs(60), "bench did not stop after Ctrl-C");
+        std::thread::sleep(std::time::Duration::from_millis(100));
+    };
+    assert!(status.success(), "exit {status:?}");
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
+    assert_eq!(summary["interrupted"], true);
+    assert_eq!(summary["validation_messages"], 0);
+    let frames = summary["frames"].as_u64().unwrap();
+    assert!(frames > 0 && frames < 1_000_000);
+    let rows = std::fs::read_to_string(out.join("frames.csv")).unwrap().lines().count() as u64 - 1;
+    assert_eq!(rows, frames);
+    assert!(out.join("plot.png").exists() && out.join("trace.json").exists());
+}
