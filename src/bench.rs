@@ -205,6 +205,8 @@ struct Run {
     generations: Vec<u64>,
     update_gpu_ms: Vec<f64>,
     interrupted: bool,
+    /// (frame, resident MiB) every 250 frames: a leak grows without bound, a cache levels off.
+    rss: Vec<(u64, f64)>,
 }
 
 struct Bench<'a> {
@@ -247,6 +249,7 @@ impl Bench<'_> {
             generations: Vec::new(),
             update_gpu_ms: Vec::new(),
             interrupted: false,
+            rss: Vec::new(),
         };
         let mut current: Option<Generation> = None;
         let mut recent: VecDeque<(u64, Vec3)> = VecDeque::new();
@@ -332,6 +335,9 @@ impl Bench<'_> {
             }
             run.rows.push(row);
             self.frames_done.fetch_add(1, Ordering::SeqCst);
+            if (i + 1) % 250 == 0 {
+                run.rss.extend(rss_mib().map(|m| (i + 1, m)));
+            }
             progress.tick(i + 1);
         }
         Ok(run)
@@ -534,6 +540,7 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
             let increasing = main.generations.windows(2).all(|w| w[0] < w[1]);
             let mut summary = summarize(&main);
             summary["generations_strictly_increasing"] = json!(increasing);
+            summary["rss_samples_mib"] = json!(main.rss);
             summary["interrupted"] = json!(main.interrupted);
             if args.compare && !main.interrupted {
                 let full = bench.run(LodChoice::Full, None, None, false)?;

@@ -465,34 +465,8 @@ impl BlocksRenderer {
                 d.cmd_reset_query_pool(cmd, q.handle, 0, 2);
                 d.cmd_write_timestamp2(cmd, vk::PipelineStageFlags2::TOP_OF_PIPE, q.handle, 0);
             }
-            let to_attach = [
-                vk::ImageMemoryBarrier2::default()
-                    .src_stage_mask(vk::PipelineStageFlags2::COPY)
-                    .src_access_mask(vk::AccessFlags2::TRANSFER_READ)
-                    .dst_stage_mask(vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT)
-                    .dst_access_mask(vk::AccessFlags2::COLOR_ATTACHMENT_WRITE)
-                    .old_layout(vk::ImageLayout::UNDEFINED)
-                    .new_layout(vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL)
-                    .image(target.color.handle)
-                    .subresource_range(target.color.range(0, 1)),
-                vk::ImageMemoryBarrier2::default()
-                    .src_stage_mask(
-                        vk::PipelineStageFlags2::EARLY_FRAGMENT_TESTS | vk::PipelineStageFlags2::LATE_FRAGMENT_TESTS,
-                    )
-                    .src_access_mask(vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_WRITE)
-                    .dst_stage_mask(
-                        vk::PipelineStageFlags2::EARLY_FRAGMENT_TESTS | vk::PipelineStageFlags2::LATE_FRAGMENT_TESTS,
-                    )
-                    .dst_access_mask(
-                        vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_WRITE
-                            | vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_READ,
-                    )
-                    .old_layout(vk::ImageLayout::UNDEFINED)
-                    .new_layout(vk::ImageLayout::DEPTH_ATTACHMENT_OPTIMAL)
-                    .image(target.depth.handle)
-                    .subresource_range(target.depth.range(0, 1)),
-            ];
-            d.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().image_memory_barriers(&to_attach));
+            let last_use = (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_READ);
+            attachment_barriers(&d, cmd, target.color.handle, last_use, &target.depth);
         }
         let stats = self.record(0, cmd, target.color.view, target.depth.view, extent, blocks, shading, clear);
         // SAFETY: as above.
@@ -507,29 +481,8 @@ impl BlocksRenderer {
                 .image(target.color.handle)
                 .subresource_range(target.color.range(0, 1))];
             d.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().image_memory_barriers(&to_src));
-            let region = vk::BufferImageCopy::default()
-                .image_subresource(vk::ImageSubresourceLayers {
-                    aspect_mask: vk::ImageAspectFlags::COLOR,
-                    mip_level: 0,
-                    base_array_layer: 0,
-                    layer_count: 1,
-                })
-                .image_extent(vk::Extent3D { width: target.width, height: target.height, depth: 1 });
-            d.cmd_copy_image_to_buffer(
-                cmd,
-                target.color.handle,
-                vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
-                target.readback.handle,
-                &[region],
-            );
-            let to_host = [vk::BufferMemoryBarrier2::default()
-                .src_stage_mask(vk::PipelineStageFlags2::COPY)
-                .src_access_mask(vk::AccessFlags2::TRANSFER_WRITE)
-                .dst_stage_mask(vk::PipelineStageFlags2::HOST)
-                .dst_access_mask(vk::AccessFlags2::HOST_READ)
-                .buffer(target.readback.handle)
-                .size(vk::WHOLE_SIZE)];
-            d.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().buffer_memory_barriers(&to_host));
+            let extent = vk::Extent2D { width: target.width, height: target.height };
+            copy_image_to_host(&d, cmd, target.color.handle, extent, target.readback.handle);
             if let Some(q) = &self.queries {
                 d.cmd_write_timestamp2(cmd, vk::PipelineStageFlags2::BOTTOM_OF_PIPE, q.handle, 1);
             }
@@ -552,6 +505,89 @@ impl BlocksRenderer {
         Ok((pixels, stats, gpu_ms))
     }
 }
+
+/// Records barriers that make `color` (its old contents discarded) and `depth` writable
+/// attachments; `last_use` is the stage and access that last touched `color`.
+///
+/// # Safety
+/// `cmd` must be a command buffer of `d` in the recording state, and both images must
+/// stay alive until its submission completes.
+pub unsafe fn attachment_barriers(
+    d: &ash::Device,
+    cmd: vk::CommandBuffer,
+    color: vk::Image,
+    last_use: (vk::PipelineStageFlags2, vk::AccessFlags2),
+    depth: &Image,
+) {
+    let fragment_tests = vk::PipelineStageFlags2::EARLY_FRAGMENT_TESTS | vk::PipelineStageFlags2::LATE_FRAGMENT_TESTS;
+    let barriers = [
+        vk::ImageMemoryBarrier2::default()
+            .src_stage_mask(last_use.0)
+            .src_access_mask(last_use.1)
+            .dst_stage_mask(vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT)
+            .dst_access_mask(vk::AccessFlags2::COLOR_ATTACHMENT_WRITE)
+            .old_layout(vk::ImageLayout::UNDEFINED)
+            .new_layout(vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL)
+            .image(color)
+            .subresource_range(COLOR_RANGE),
+        vk::ImageMemoryBarrier2::default()
+            .src_stage_mask(fragment_tests)
+            .src_access_mask(vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_WRITE)
+            .dst_stage_mask(fragment_tests)
+            .dst_access_mask(
+                vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_WRITE | vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_READ,
+            )
+            .old_layout(vk::ImageLayout::UNDEFINED)
+            .new_layout(vk::ImageLayout::DEPTH_ATTACHMENT_OPTIMAL)
+            .image(depth.handle)
+            .subresource_range(depth.range(0, 1)),
+    ];
+    // SAFETY: guaranteed by the caller (see above).
+    unsafe { d.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().image_memory_barriers(&barriers)) };
+}
+
+/// Records a copy of a whole colour image (in TRANSFER_SRC_OPTIMAL) into `buffer`, then
+/// a barrier that makes the bytes visible to the host after the submission's fence.
+///
+/// # Safety
+/// As for [`attachment_barriers`]; `buffer` must hold `extent` RGBA8 texels.
+pub unsafe fn copy_image_to_host(
+    d: &ash::Device,
+    cmd: vk::CommandBuffer,
+    image: vk::Image,
+    extent: vk::Extent2D,
+    buffer: vk::Buffer,
+) {
+    let region = vk::BufferImageCopy::default()
+        .image_subresource(vk::ImageSubresourceLayers {
+            aspect_mask: vk::ImageAspectFlags::COLOR,
+            mip_level: 0,
+            base_array_layer: 0,
+            layer_count: 1,
+        })
+        .image_extent(vk::Extent3D { width: extent.width, height: extent.height, depth: 1 });
+    let to_host = [vk::BufferMemoryBarrier2::default()
+        .src_stage_mask(vk::PipelineStageFlags2::COPY)
+        .src_access_mask(vk::AccessFlags2::TRANSFER_WRITE)
+        .dst_stage_mask(vk::PipelineStageFlags2::HOST)
+        .dst_access_mask(vk::AccessFlags2::HOST_READ)
+        .buffer(buffer)
+        .size(vk::WHOLE_SIZE)];
+    // SAFETY: guaranteed by the caller (see above).
+    unsafe {
+        d.cmd_copy_image_to_buffer(cmd, image, vk::ImageLayout::TRANSFER_SRC_OPTIMAL, buffer, &[region]);
+        d.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().buffer_memory_barriers(&to_host));
+    }
+}
+
+/// The single mip and layer of a colour target.
+pub const COLOR_RANGE: vk::ImageSubresourceRange = vk::ImageSubresourceRange {
+    aspect_mask: vk::ImageAspectFlags::COLOR,
+    base_mip_level: 0,
+    level_count: 1,
+    base_array_layer: 0,
+    layer_count: 1,
+};
 
 impl Drop for BlocksRenderer {
     fn drop(&mut self) {

@@ -2,7 +2,9 @@
 //! activity (traversal and drawing on the draw queue), with the errors activity live on
 //! its own thread and queue.
 
-use crate::blocks::{BlocksRenderer, DrawStats, Shading, DEPTH_FORMAT};
+use crate::blocks::{
+    attachment_barriers, copy_image_to_host, BlocksRenderer, DrawStats, Shading, COLOR_RANGE, DEPTH_FORMAT,
+};
 use crate::camera::Camera;
 use crate::cli::{near_plane, CommonArgs, InputError};
 use crate::commands::{save_png, Session};
@@ -530,13 +532,6 @@ impl App {
             _ => None,
         };
         let cmd = slot.cmd;
-        let color_range = vk::ImageSubresourceRange {
-            aspect_mask: vk::ImageAspectFlags::COLOR,
-            base_mip_level: 0,
-            level_count: 1,
-            base_array_layer: 0,
-            layer_count: 1,
-        };
         // SAFETY: `cmd` belongs to this slot, whose previous submission completed.
         unsafe {
             d.reset_command_buffer(cmd, vk::CommandBufferResetFlags::empty()).vk("vkResetCommandBuffer")?;
@@ -545,33 +540,9 @@ impl App {
                 &vk::CommandBufferBeginInfo::default().flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT),
             )
             .vk("vkBeginCommandBuffer")?;
-            let barriers = [
-                vk::ImageMemoryBarrier2::default()
-                    .src_stage_mask(vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT)
-                    .dst_stage_mask(vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT)
-                    .dst_access_mask(vk::AccessFlags2::COLOR_ATTACHMENT_WRITE)
-                    .old_layout(vk::ImageLayout::UNDEFINED)
-                    .new_layout(vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL)
-                    .image(image)
-                    .subresource_range(color_range),
-                vk::ImageMemoryBarrier2::default()
-                    .src_stage_mask(
-                        vk::PipelineStageFlags2::EARLY_FRAGMENT_TESTS | vk::PipelineStageFlags2::LATE_FRAGMENT_TESTS,
-                    )
-                    .src_access_mask(vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_WRITE)
-                    .dst_stage_mask(
-                        vk::PipelineStageFlags2::EARLY_FRAGMENT_TESTS | vk::PipelineStageFlags2::LATE_FRAGMENT_TESTS,
-                    )
-                    .dst_access_mask(
-                        vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_WRITE
-                            | vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_READ,
-                    )
-                    .old_layout(vk::ImageLayout::UNDEFINED)
-                    .new_layout(vk::ImageLayout::DEPTH_ATTACHMENT_OPTIMAL)
-                    .image(gpu.depth.handle)
-                    .subresource_range(gpu.depth.range(0, 1)),
-            ];
-            d.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().image_memory_barriers(&barriers));
+            // The acquire semaphore orders this after the presentation engine's read.
+            let last_use = (vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT, vk::AccessFlags2::NONE);
+            attachment_barriers(&d, cmd, image, last_use, &gpu.depth);
         }
         let clear = if self.shading.sky { crate::blocks::SKY_HORIZON } else { self.shading.background };
         let stats = gpu.renderer.record(slot_index, cmd, view, gpu.depth.view, extent, &blocks, &self.shading, clear);
@@ -590,18 +561,10 @@ impl App {
                 .old_layout(vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL)
                 .new_layout(layout)
                 .image(image)
-                .subresource_range(color_range)];
+                .subresource_range(COLOR_RANGE)];
             d.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().image_memory_barriers(&to));
             if let Some(buf) = &readback {
-                let region = vk::BufferImageCopy::default()
-                    .image_subresource(vk::ImageSubresourceLayers {
-                        aspect_mask: vk::ImageAspectFlags::COLOR,
-                        mip_level: 0,
-                        base_array_layer: 0,
-                        layer_count: 1,
-                    })
-                    .image_extent(vk::Extent3D { width: extent.width, height: extent.height, depth: 1 });
-                d.cmd_copy_image_to_buffer(cmd, image, vk::ImageLayout::TRANSFER_SRC_OPTIMAL, buf.handle, &[region]);
+                copy_image_to_host(&d, cmd, image, extent, buf.handle);
                 let to_present = [vk::ImageMemoryBarrier2::default()
                     .src_stage_mask(vk::PipelineStageFlags2::COPY)
                     .src_access_mask(vk::AccessFlags2::TRANSFER_READ)
@@ -609,18 +572,8 @@ impl App {
                     .old_layout(vk::ImageLayout::TRANSFER_SRC_OPTIMAL)
                     .new_layout(vk::ImageLayout::PRESENT_SRC_KHR)
                     .image(image)
-                    .subresource_range(color_range)];
-                let to_host = [vk::BufferMemoryBarrier2::default()
-                    .src_stage_mask(vk::PipelineStageFlags2::COPY)
-                    .src_access_mask(vk::AccessFlags2::TRANSFER_WRITE)
-                    .dst_stage_mask(vk::PipelineStageFlags2::HOST)
-                    .dst_access_mask(vk::AccessFlags2::HOST_READ)
-                    .buffer(buf.handle)
-                    .size(vk::WHOLE_SIZE)];
-                d.cmd_pipeline_barrier2(
-                    cmd,
-                    &vk::DependencyInfo::default().image_memory_barriers(&to_present).buffer_memory_barriers(&to_host),
-                );
+                    .subresource_range(COLOR_RANGE)];
+                d.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().image_memory_barriers(&to_present));
             }
             d.end_command_buffer(cmd).vk("vkEndCommandBuffer")?;
         }

@@ -6,6 +6,7 @@ mod common;
 use common::*;
 use glam::Vec3;
 use std::sync::Arc;
+use vkterrain::bench::image_difference;
 use vkterrain::blocks::{BlocksRenderer, Shading, Target, COLOR_FORMAT};
 use vkterrain::camera::Camera;
 use vkterrain::errors_activity::ErrorsActivity;
@@ -229,22 +230,6 @@ fn no_cracks_when_the_whole_frame_is_terrain() {
     finish(device);
 }
 
-/// Colour RMSE (8-bit) and the share of pixels off by more than 16 levels.
-fn compare(a: &[u8], b: &[u8]) -> (f64, f64) {
-    let (mut se, mut off, mut n) = (0.0f64, 0usize, 0usize);
-    for (p, q) in a.chunks(4).zip(b.chunks(4)) {
-        let mut worst = 0i32;
-        for c in 0..3 {
-            let d = p[c] as i32 - q[c] as i32;
-            se += (d * d) as f64;
-            worst = worst.max(d.abs());
-        }
-        off += (worst > 16) as usize;
-        n += 1;
-    }
-    ((se / (3 * n) as f64).sqrt(), off as f64 / n as f64)
-}
-
 #[test]
 fn fidelity_against_the_full_resolution_render() {
     let device = gpu();
@@ -276,7 +261,7 @@ fn fidelity_against_the_full_resolution_render() {
         let full = scene.render(cam, None, &Shading::default());
         for delta in [0.5f32, 1.0, 2.0, 5.0] {
             let lod = scene.render(cam, Some((&activity, delta)), &Shading::default());
-            let (rmse, share) = compare(&full, &lod);
+            let (rmse, share) = image_difference(&full, &lod);
             println!(
                 "camera {:?} delta {delta}: RMSE {rmse:.3}, {:.3}% of pixels off by > 16",
                 cam.position,
