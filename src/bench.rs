@@ -59,6 +59,11 @@ pub struct BenchArgs {
     /// Fail the run when a thread makes no progress for this many seconds.
     #[arg(long, value_name = "SECS", default_value = "10", value_parser = positive)]
     pub watchdog: f32,
+    /// Fault injection for tests: `errors-device-lost:G` (the errors thread loses the
+    /// device at generation G) or `draw-out-of-memory:F` (the draw thread runs out of
+    /// device memory at frame F).
+    #[arg(long, value_name = "FAULT:N", hide = true)]
+    pub inject_fault: Option<String>,
 }
 
 /// One row of frames.csv.
@@ -219,6 +224,7 @@ struct Bench<'a> {
     /// Frames drawn, for the watchdog.
     frames_done: Arc<AtomicU64>,
     size: (u32, u32),
+    draw_oom_at: Option<u64>,
 }
 
 impl Bench<'_> {
@@ -307,6 +313,14 @@ impl Bench<'_> {
                 tr.blocks
             };
             let t = Instant::now();
+            if self.draw_oom_at == Some(i) {
+                return Err(crate::vk::VkError::Call {
+                    call: "vkAllocateMemory (injected fault)",
+                    result: ash::vk::Result::ERROR_OUT_OF_DEVICE_MEMORY,
+                    trace: String::new(),
+                })
+                .map_err(|e| anyhow::anyhow!("draw thread, frame {i}: {e}"));
+            }
             let (_, stats, gpu_ms): (_, DrawStats, _) = self.renderer.render_timed(
                 &self.s.hf,
                 &self.s.terrain,
@@ -493,7 +507,26 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
         stop: stop.clone(),
         frames_done: frames_done.clone(),
         size,
+        draw_oom_at: None,
     };
+    match args.inject_fault.as_deref().and_then(|f| f.split_once(':')) {
+        None if args.inject_fault.is_some() => {
+            return Err(InputError(format!(
+                "--inject-fault {}: expected FAULT:N",
+                args.inject_fault.as_deref().unwrap_or("")
+            ))
+            .into())
+        }
+        None => {}
+        Some((kind, n)) => {
+            let n: u64 = n.parse().map_err(|_| InputError(format!("--inject-fault {kind}:{n}: N is not a number")))?;
+            match kind {
+                "errors-device-lost" => activity.inject_device_lost_at(n),
+                "draw-out-of-memory" => bench.draw_oom_at = Some(n),
+                _ => return Err(InputError(format!("--inject-fault {kind}: unknown fault")).into()),
+            }
+        }
+    }
 
     let result = std::thread::scope(|scope| -> anyhow::Result<Value> {
         // Watchdog: the draw thread must finish a frame, and the errors thread a pending

@@ -92,6 +92,9 @@ impl Session {
         let device =
             Device::new(instance, &DeviceOptions { gpu: common.gpu.clone(), queues: common.queues, swapchain: false })?;
         eprintln!("vkterrain: device {}, queue mode {}", device.name, device.queue_mode.as_str());
+        for note in device.notes() {
+            eprintln!("vkterrain: note: {note}");
+        }
         let hf = common.load_heightfield(Some(device.max_image_dimension_2d() as usize))?;
         Session::check_size(&device, &hf)?;
         let layout = BlockLayout::new(hf.n, common.block).map_err(InputError)?;

@@ -72,6 +72,8 @@ struct Shared {
     finished: std::sync::atomic::AtomicU64,
     /// True while the thread waits for a request with new parameters.
     idle: std::sync::atomic::AtomicBool,
+    /// Test hook: fail with ERROR_DEVICE_LOST when this generation is submitted (0: never).
+    inject_device_lost_at: std::sync::atomic::AtomicU64,
     trace: Trace,
 }
 
@@ -604,6 +606,7 @@ impl ErrorsActivity {
             queries,
             finished: std::sync::atomic::AtomicU64::new(0),
             idle: std::sync::atomic::AtomicBool::new(true),
+            inject_device_lost_at: std::sync::atomic::AtomicU64::new(0),
             trace,
         });
         let cost = UpdateCost {
@@ -711,6 +714,12 @@ impl ErrorsActivity {
         }
     }
 
+    /// Test hook: the errors thread fails as if the device were lost when it is about to
+    /// submit generation `g`.
+    pub fn inject_device_lost_at(&self, g: u64) {
+        self.shared.inject_device_lost_at.store(g, std::sync::atomic::Ordering::SeqCst);
+    }
+
     /// Whether the thread has work (a request with new parameters), and generations
     /// finished: a watchdog's view of its progress.
     pub fn progress(&self) -> (bool, u64) {
@@ -779,6 +788,11 @@ fn run(gpu: ErrorsGpu, s: &Shared) -> VkResult<()> {
                 h = s.handoff_cv.wait(h).unwrap();
             }
             h.slots[slot] = Some(SlotInfo { generation: g, params });
+        }
+        if s.inject_device_lost_at.load(std::sync::atomic::Ordering::SeqCst) == g {
+            return Err(vk::Result::ERROR_DEVICE_LOST)
+                .vk("vkQueueSubmit2 (injected fault)")
+                .map_err(|e| VkError::Setup(format!("generation {g}: {e}")));
         }
         let cmd = gpu.record(slot, g, &params, &s.readbacks[slot], None)?;
         let cmds = [vk::CommandBufferSubmitInfo::default().command_buffer(cmd)];

@@ -363,6 +363,9 @@ impl App {
             &DeviceOptions { gpu: self.args.common.gpu.clone(), queues: self.args.common.queues, swapchain: true },
         )?;
         println!("vkterrain: device {}, queue mode {}", device.name, device.queue_mode.as_str());
+        for note in device.notes() {
+            println!("vkterrain: note: {note}");
+        }
         Session::check_size(&device, &self.hf)?;
         let terrain = Arc::new(TerrainGpu::new(&device, &self.hf, &self.mm, self.base.as_ref(), self.detail.as_ref())?);
         let size = window.inner_size();

@@ -31,8 +31,10 @@ fn fails_cleanly(args: &[&str], needles: &[&str]) {
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert_eq!(out.status.code(), Some(2), "{full:?}: exit {:?}, stderr: {stderr}", out.status.code());
     assert!(!stderr.contains("panicked"), "{full:?} panicked: {stderr}");
-    let errors: Vec<&str> =
-        stderr.lines().filter(|l| l.starts_with("vkterrain:") && !l.contains("queue mode")).collect();
+    let errors: Vec<&str> = stderr
+        .lines()
+        .filter(|l| l.starts_with("vkterrain:") && !l.contains("queue mode") && !l.starts_with("vkterrain: note:"))
+        .collect();
     assert_eq!(errors.len(), 1, "{full:?}: expected one error line, got: {stderr}");
     for n in needles {
         assert!(errors[0].contains(n), "{full:?}: '{}' does not mention '{n}'", errors[0]);

@@ -161,3 +161,46 @@ fn ctrl_c_stops_cleanly_and_keeps_what_was_measured() {
     assert_eq!(rows, frames);
     assert!(out.join("plot.png").exists() && out.join("trace.json").exists());
 }
+
+/// Runs a bench with an injected fault; it must exit with 1 (not hang, not panic), one
+/// error line naming the stage and the Vulkan result, both threads joined.
+fn faulted(fault: &str, needles: &[&str]) {
+    let out = std::env::temp_dir().join(format!("vkterrain-fault-{}-{}", fault.replace(':', "-"), std::process::id()));
+    let field = small_field();
+    let mut child = Command::new(env!("CARGO_BIN_EXE_vkterrain"))
+        .args(["bench", "--heightmap", field.to_str().unwrap(), "--raw-size", "257x257", "--spacing", "10"])
+        .args(["--block", "9", "--size", "160x120", "--frames", "200", "--validation", "on", "--inject-fault", fault])
+        .arg("--out")
+        .arg(&out)
+        .env("RUST_LOG", "error")
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let start = std::time::Instant::now();
+    while child.try_wait().unwrap().is_none() {
+        assert!(start.elapsed() < std::time::Duration::from_secs(60), "{fault}: the run hangs");
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    let o = child.wait_with_output().unwrap();
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{fault}: {stderr}");
+    assert!(!stderr.contains("panicked"), "{stderr}");
+    let line = stderr
+        .lines()
+        .find(|l| l.starts_with("vkterrain:") && !l.contains("queue mode") && !l.starts_with("vkterrain: note:"))
+        .expect("an error line");
+    for n in needles {
+        assert!(line.contains(n), "{fault}: '{line}' does not mention '{n}'");
+    }
+}
+
+#[test]
+fn device_loss_in_the_errors_activity_fails_cleanly() {
+    faulted("errors-device-lost:5", &["errors activity", "generation 5", "ERROR_DEVICE_LOST"]);
+}
+
+#[test]
+fn out_of_memory_in_the_draw_thread_fails_cleanly() {
+    faulted("draw-out-of-memory:3", &["draw thread, frame 3", "ERROR_OUT_OF_DEVICE_MEMORY"]);
+}

@@ -269,6 +269,21 @@ impl Device {
         }))
     }
 
+    /// One line per optional feature this device lacks, and what degrades.
+    pub fn notes(&self) -> Vec<String> {
+        let mut n = Vec::new();
+        if self.queue_mode == QueueMode::Shared {
+            n.push(format!("{} has one graphics queue: both activities share it behind a mutex", self.name));
+        }
+        if self.features.timestamp_period.is_none() {
+            n.push("no timestamp queries: GPU times are not reported".into());
+        }
+        if !self.features.wireframe {
+            n.push("no fillModeNonSolid: wireframe is unavailable".into());
+        }
+        n
+    }
+
     pub fn allocator(&self) -> MutexGuard<'_, Allocator> {
         self.allocator.lock().unwrap_or_else(|e| e.into_inner())
     }
