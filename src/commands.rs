@@ -90,7 +90,8 @@ impl Session {
         // The device first: its image size limit bounds what the loader allocates.
         let instance = Instance::new(&InstanceOptions { validation: common.validation(), extensions: Vec::new() })?;
         let device =
-            Device::new(instance, &DeviceOptions { gpu: common.gpu.clone(), queues: common.queues, swapchain: false })?;
+            Device::new(instance, &DeviceOptions { gpu: common.gpu.clone(), queues: common.queues, swapchain: false })
+                .map_err(option_error)?;
         eprintln!("vkterrain: device {}, queue mode {}", device.name, device.queue_mode.as_str());
         for note in device.notes() {
             eprintln!("vkterrain: note: {note}");
@@ -122,6 +123,14 @@ impl Session {
 
     pub fn validation_messages(&self) -> u64 {
         self.device.instance.validation_messages()
+    }
+}
+
+/// A device that cannot satisfy `--gpu` or `--queues` is a bad option (exit code 2).
+pub fn option_error(e: crate::vk::VkError) -> anyhow::Error {
+    match e {
+        crate::vk::VkError::Setup(m) if m.starts_with("--") => InputError(m).into(),
+        e => e.into(),
     }
 }
 

@@ -361,7 +361,8 @@ impl App {
         let device = Device::new(
             instance,
             &DeviceOptions { gpu: self.args.common.gpu.clone(), queues: self.args.common.queues, swapchain: true },
-        )?;
+        )
+        .map_err(crate::commands::option_error)?;
         println!("vkterrain: device {}, queue mode {}", device.name, device.queue_mode.as_str());
         for note in device.notes() {
             println!("vkterrain: note: {note}");
