@@ -492,7 +492,8 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
         // Ctrl-C stops the run cleanly; what was measured so far is written.
         let _ = ctrlc::set_handler(move || stop.store(true, Ordering::SeqCst));
     }
-    let trace = Trace::on();
+    let trace_path = args.out.join("trace.json");
+    let trace = Trace::to_file(&trace_path).map_err(|e| anyhow::anyhow!("{}: {e}", trace_path.display()))?;
     let rss_start = rss_mib();
     let started = Instant::now();
     let activity = ErrorsActivity::start_traced(&s.device, s.terrain.clone(), s.hf.clone(), s.layout, trace.clone())?;
@@ -600,9 +601,13 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
         watch_stop.store(true, Ordering::SeqCst);
         out
     });
-    let mut summary = result?;
     drop(bench);
-    activity.stop()?;
+    let stopped = activity.stop();
+    // The trace holds what was measured even when the run failed.
+    let traced = trace.finish().map_err(|e| anyhow::anyhow!("{}: {e}", trace_path.display()));
+    let mut summary = result?;
+    stopped?;
+    traced?;
     let secs = started.elapsed().as_secs_f64();
     summary["duration_s"] = json!(secs);
     summary["rss_start_mib"] = json!(rss_start);
@@ -624,9 +629,6 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     drop(s);
     summary["validation_messages"] = json!(messages.count());
     summary["validation_counted_after_device_destruction"] = json!(true);
-    trace
-        .write(&args.out.join("trace.json"))
-        .map_err(|e| anyhow::anyhow!("{}: {e}", args.out.join("trace.json").display()))?;
     let text = serde_json::to_string_pretty(&summary)?;
     let path = args.out.join("summary.json");
     write_atomic(&path, |tmp| std::fs::write(tmp, &text).map_err(|e| anyhow::anyhow!("{}: {e}", path.display())))?;
