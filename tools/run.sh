@@ -9,7 +9,7 @@ source tools/env.sh
 cargo build --quiet
 bin="$CARGO_TARGET_DIR/debug/vkterrain"
 if [ $# -eq 0 ]; then
-  if [ -n "${DISPLAY:-}${WAYLAND_DISPLAY:-}" ] && "$bin" view --help >/dev/null 2>&1; then
+  if [ -n "${DISPLAY:-}${WAYLAND_DISPLAY:-}" ]; then
     exec "$bin" view
   fi
   echo "run: no display; rendering the built-in terrain to vkterrain.png" >&2
