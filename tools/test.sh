@@ -11,4 +11,13 @@ echo "== cargo clippy --all-targets -- -D warnings" >&2
 cargo clippy --all-targets --quiet -- -D warnings
 echo "== cargo test (lavapipe, validation + synchronization validation)" >&2
 # Window tests need an X server; everything else is headless.
-exec xvfb-run -a -s "-screen 0 1280x1024x24" cargo test "$@"
+log=$(mktemp)
+trap 'rm -f "$log"' EXIT
+set +e
+xvfb-run -a -s "-screen 0 1280x1024x24" cargo test "$@" 2>&1 | tee "$log"
+status=${PIPESTATUS[0]}
+set -e
+# One closing line over every test binary.
+awk '/^test result:/ { for (i = 1; i <= NF; i++) { if ($i ~ /^passed;?$/) p += $(i-1); if ($i ~ /^failed;?$/) f += $(i-1) } }
+     END { printf "tests: %d passed, %d failed\n", p, f }' "$log"
+exit "$status"
