@@ -10,7 +10,7 @@ use crate::quadtree::{BlockLayout, DrawBlock};
 use crate::shaders;
 use crate::terrain_gpu::TerrainGpu;
 use crate::vk::{
-    vk, Buffer, CommandPool, DescriptorPool, DescriptorSetLayout, Device, Fence, GraphicsPipeline,
+    begin_one_time, vk, Buffer, CommandPool, DescriptorPool, DescriptorSetLayout, Device, Fence, GraphicsPipeline,
     GraphicsPipelineDesc, Image, PipelineLayout, QueryPool, VkResult, VkResultExt,
 };
 use glam::Vec3;
@@ -455,12 +455,7 @@ impl BlocksRenderer {
         let clear = if shading.sky { SKY_HORIZON } else { shading.background };
         // SAFETY: the previous use of `cmd` finished (fence waited below every time).
         unsafe {
-            d.reset_command_buffer(cmd, vk::CommandBufferResetFlags::empty()).vk("vkResetCommandBuffer")?;
-            d.begin_command_buffer(
-                cmd,
-                &vk::CommandBufferBeginInfo::default().flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT),
-            )
-            .vk("vkBeginCommandBuffer")?;
+            begin_one_time(&d, cmd)?;
             if let Some(q) = &self.queries {
                 d.cmd_reset_query_pool(cmd, q.handle, 0, 2);
                 d.cmd_write_timestamp2(cmd, vk::PipelineStageFlags2::TOP_OF_PIPE, q.handle, 0);

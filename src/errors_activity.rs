@@ -13,8 +13,9 @@ use crate::shaders;
 use crate::terrain_gpu::TerrainGpu;
 use crate::trace::{Trace, ERRORS_TID};
 use crate::vk::{
-    vk, Buffer, CommandPool, DescriptorPool, DescriptorSetLayout, Device, GraphicsPipeline, GraphicsPipelineDesc,
-    Image, ImageView, PipelineLayout, QueryPool, TimelineSemaphore, VkError, VkResult, VkResultExt,
+    begin_one_time, vk, Buffer, CommandPool, DescriptorPool, DescriptorSetLayout, Device, GraphicsPipeline,
+    GraphicsPipelineDesc, Image, ImageView, PipelineLayout, QueryPool, TimelineSemaphore, VkError, VkResult,
+    VkResultExt,
 };
 use std::sync::{Arc, Condvar, Mutex};
 use std::thread::JoinHandle;
@@ -324,12 +325,7 @@ impl ErrorsGpu {
         // SAFETY: the slot's previous submission (generation g-2) has completed: the
         // errors thread waits for each generation before starting the next.
         unsafe {
-            d.reset_command_buffer(cmd, vk::CommandBufferResetFlags::empty()).vk("vkResetCommandBuffer")?;
-            d.begin_command_buffer(
-                cmd,
-                &vk::CommandBufferBeginInfo::default().flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT),
-            )
-            .vk("vkBeginCommandBuffer")?;
+            begin_one_time(d, cmd)?;
         }
         let q0 = 2 * slot_index as u32;
         if let Some(pool) = self.queries {

@@ -14,8 +14,8 @@ use crate::heightfield::{Heightfield, MinMaxPyramid};
 use crate::quadtree::{traverse, BlockLayout, DrawBlock, LodSelect};
 use crate::terrain_gpu::{TerrainGpu, Texture};
 use crate::vk::{
-    vk, BinarySemaphore, Buffer, CommandPool, Device, DeviceOptions, Fence, Image, Instance, InstanceOptions, Surface,
-    Swapchain, VkResultExt,
+    begin_one_time, vk, BinarySemaphore, Buffer, CommandPool, Device, DeviceOptions, Fence, Image, Instance,
+    InstanceOptions, Surface, Swapchain, VkResultExt,
 };
 use clap::{Args, ValueEnum};
 use glam::Vec3;
@@ -538,12 +538,7 @@ impl App {
         let cmd = slot.cmd;
         // SAFETY: `cmd` belongs to this slot, whose previous submission completed.
         unsafe {
-            d.reset_command_buffer(cmd, vk::CommandBufferResetFlags::empty()).vk("vkResetCommandBuffer")?;
-            d.begin_command_buffer(
-                cmd,
-                &vk::CommandBufferBeginInfo::default().flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT),
-            )
-            .vk("vkBeginCommandBuffer")?;
+            begin_one_time(&d, cmd)?;
             // The acquire semaphore orders this after the presentation engine's read.
             let last_use = (vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT, vk::AccessFlags2::NONE);
             attachment_barriers(&d, cmd, image, last_use, &gpu.depth);

@@ -118,6 +118,20 @@ impl Drop for TimelineSemaphore {
     }
 }
 
+/// Resets `cmd` and begins recording it for one submission.
+///
+/// # Safety
+/// `cmd` must belong to a pool with RESET_COMMAND_BUFFER, be used by this thread only,
+/// and its previous submission must have completed.
+pub unsafe fn begin_one_time(d: &ash::Device, cmd: vk::CommandBuffer) -> VkResult<()> {
+    // SAFETY: guaranteed by the caller (see above).
+    unsafe {
+        d.reset_command_buffer(cmd, vk::CommandBufferResetFlags::empty()).vk("vkResetCommandBuffer")?;
+        let begin = vk::CommandBufferBeginInfo::default().flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT);
+        d.begin_command_buffer(cmd, &begin).vk("vkBeginCommandBuffer")
+    }
+}
+
 /// A binary semaphore (swapchain acquire).
 pub struct BinarySemaphore {
     device: Arc<Device>,

@@ -9,7 +9,7 @@ mod pipeline;
 mod resources;
 mod swapchain;
 
-pub use command::{BinarySemaphore, CommandPool, Fence, QueryPool, TimelineSemaphore};
+pub use command::{begin_one_time, BinarySemaphore, CommandPool, Fence, QueryPool, TimelineSemaphore};
 pub use device::{Device, DeviceOptions, Queue, QueueMode, QueueRequest};
 pub use instance::{Instance, InstanceOptions, MessageCounter};
 pub use pipeline::{DescriptorPool, DescriptorSetLayout, GraphicsPipeline, GraphicsPipelineDesc, PipelineLayout};
