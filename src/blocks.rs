@@ -203,9 +203,10 @@ impl BlocksRenderer {
         )?;
         let desc = |polygon_mode| GraphicsPipelineDesc {
             vert: shaders::TERRAIN_VERT,
-            frag: shaders::TERRAIN_FRAG,
+            frag: Some(shaders::TERRAIN_FRAG),
+            rasterizer_discard: false,
             vertex_attribute: Some((2, vk::Format::R8G8_UINT)),
-            color_format,
+            color_format: Some(color_format),
             depth_format: Some(DEPTH_FORMAT),
             depth_test: true,
             polygon_mode,
@@ -224,9 +225,10 @@ impl BlocksRenderer {
             device,
             &GraphicsPipelineDesc {
                 vert: shaders::FULLSCREEN_VERT,
-                frag: shaders::SKY_FRAG,
+                frag: Some(shaders::SKY_FRAG),
+                rasterizer_discard: false,
                 vertex_attribute: None,
-                color_format,
+                color_format: Some(color_format),
                 depth_format: Some(DEPTH_FORMAT),
                 depth_test: false,
                 polygon_mode: vk::PolygonMode::FILL,
@@ -379,16 +381,7 @@ impl BlocksRenderer {
             d.cmd_bind_vertex_buffers(cmd, 0, &[self.mesh.vertices.handle], &[0]);
             d.cmd_bind_index_buffer(cmd, self.mesh.indices.handle, 0, self.mesh.index_type);
             for b in blocks {
-                let (ox, oz) = b.origin(&self.layout);
-                let push = BlockPush {
-                    block: [ox as i32, oz as i32, b.stride() as i32, b.lod as i32],
-                    coarser_neighbour_stride: [
-                        b.coarser[0] as i32,
-                        b.coarser[1] as i32,
-                        b.coarser[2] as i32,
-                        b.coarser[3] as i32,
-                    ],
-                };
+                let push = block_push(&self.layout, b);
                 d.cmd_push_constants(
                     cmd,
                     self.pipeline_layout.handle,
@@ -498,6 +491,137 @@ impl BlocksRenderer {
             None => None,
         };
         Ok((pixels, stats, gpu_ms))
+    }
+}
+
+impl BlocksRenderer {
+    /// Test hook: the world position the vertex shader gives every vertex of `blocks`
+    /// (`k * k` per block, row-major), computed by glsl/capture.vert with the same
+    /// placement code as the terrain pipeline. Needs vertexPipelineStoresAndAtomics.
+    pub fn capture_vertices(
+        &mut self,
+        hf: &Heightfield,
+        terrain: &TerrainGpu,
+        cam: &Camera,
+        blocks: &[DrawBlock],
+    ) -> VkResult<Vec<[f32; 4]>> {
+        let device = self.device.clone();
+        if !device.features.vertex_stores {
+            return Err(crate::vk::VkError::Setup("vertex capture needs vertexPipelineStoresAndAtomics".into()));
+        }
+        let k = self.layout.k() as usize;
+        let vertex = vk::ShaderStageFlags::VERTEX;
+        let set_layout = DescriptorSetLayout::new(
+            &device,
+            &[
+                (layout::TERRAIN_BINDING_HEIGHTS, vk::DescriptorType::COMBINED_IMAGE_SAMPLER, vertex),
+                (layout::TERRAIN_BINDING_FRAME, vk::DescriptorType::UNIFORM_BUFFER, vertex),
+                (layout::CAPTURE_BINDING_POSITIONS, vk::DescriptorType::STORAGE_BUFFER, vertex),
+            ],
+        )?;
+        let pipeline_layout =
+            PipelineLayout::new(&device, &set_layout, std::mem::size_of::<BlockPush>() as u32, vertex)?;
+        let pipeline = GraphicsPipeline::new(
+            &device,
+            &GraphicsPipelineDesc {
+                vert: shaders::CAPTURE_VERT,
+                frag: None,
+                rasterizer_discard: true,
+                vertex_attribute: Some((2, vk::Format::R8G8_UINT)),
+                color_format: None,
+                depth_format: None,
+                depth_test: false,
+                polygon_mode: vk::PolygonMode::FILL,
+                cull_back: false,
+                layout: &pipeline_layout,
+            },
+        )?;
+        let pool = DescriptorPool::new(
+            &device,
+            1,
+            &[
+                (vk::DescriptorType::COMBINED_IMAGE_SAMPLER, 1),
+                (vk::DescriptorType::UNIFORM_BUFFER, 1),
+                (vk::DescriptorType::STORAGE_BUFFER, 1),
+            ],
+        )?;
+        let set = pool.allocate(&set_layout)?;
+        let bytes = (blocks.len().max(1) * k * k * 16) as u64;
+        let positions = Buffer::new(
+            &device,
+            "captured vertices",
+            bytes,
+            vk::BufferUsageFlags::STORAGE_BUFFER,
+            gpu_allocator::MemoryLocation::GpuToCpu,
+        )?;
+        self.set_frame(0, hf, terrain, cam, &Shading::default())?;
+        let ubo_size = std::mem::size_of::<FrameUniforms>() as u64;
+        pool.write(
+            set,
+            &[(layout::TERRAIN_BINDING_HEIGHTS, terrain.heights.view, terrain.nearest.handle)],
+            &[(layout::TERRAIN_BINDING_FRAME, self.uniforms[0].handle, ubo_size)],
+        );
+        let storage = [vk::DescriptorBufferInfo { buffer: positions.handle, offset: 0, range: vk::WHOLE_SIZE }];
+        let write = vk::WriteDescriptorSet::default()
+            .dst_set(set)
+            .dst_binding(layout::CAPTURE_BINDING_POSITIONS)
+            .descriptor_type(vk::DescriptorType::STORAGE_BUFFER)
+            .buffer_info(&storage);
+        let d = device.raw.clone();
+        let cmd = self.cmd;
+        let area = vk::Rect2D { offset: vk::Offset2D::default(), extent: vk::Extent2D { width: 1, height: 1 } };
+        // SAFETY: the set is new and unused; `cmd` is this renderer's, its last submission
+        // completed (fence waited after every use); every object outlives the wait below.
+        unsafe {
+            d.update_descriptor_sets(&[write], &[]);
+            begin_one_time(&d, cmd)?;
+            d.cmd_begin_rendering(cmd, &vk::RenderingInfo::default().render_area(area).layer_count(1));
+            d.cmd_set_viewport(
+                cmd,
+                0,
+                &[vk::Viewport { x: 0.0, y: 0.0, width: 1.0, height: 1.0, min_depth: 0.0, max_depth: 1.0 }],
+            );
+            d.cmd_set_scissor(cmd, 0, &[area]);
+            d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, pipeline.handle);
+            d.cmd_bind_descriptor_sets(cmd, vk::PipelineBindPoint::GRAPHICS, pipeline_layout.handle, 0, &[set], &[]);
+            d.cmd_bind_vertex_buffers(cmd, 0, &[self.mesh.vertices.handle], &[0]);
+            d.cmd_bind_index_buffer(cmd, self.mesh.indices.handle, 0, self.mesh.index_type);
+            for (i, b) in blocks.iter().enumerate() {
+                let push = block_push(&self.layout, b);
+                d.cmd_push_constants(cmd, pipeline_layout.handle, vertex, 0, bytemuck::bytes_of(&push));
+                d.cmd_draw_indexed(cmd, self.mesh.index_count, 1, 0, 0, i as u32);
+            }
+            d.cmd_end_rendering(cmd);
+            let to_host = [vk::BufferMemoryBarrier2::default()
+                .src_stage_mask(vk::PipelineStageFlags2::VERTEX_SHADER)
+                .src_access_mask(vk::AccessFlags2::SHADER_STORAGE_WRITE)
+                .dst_stage_mask(vk::PipelineStageFlags2::HOST)
+                .dst_access_mask(vk::AccessFlags2::HOST_READ)
+                .buffer(positions.handle)
+                .size(vk::WHOLE_SIZE)];
+            d.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().buffer_memory_barriers(&to_host));
+            d.end_command_buffer(cmd).vk("vkEndCommandBuffer")?;
+        }
+        self.fence.reset()?;
+        let cmds = [vk::CommandBufferSubmitInfo::default().command_buffer(cmd)];
+        device.draw_queue.submit(
+            &device,
+            &[vk::SubmitInfo2::default().command_buffer_infos(&cmds)],
+            self.fence.handle,
+        )?;
+        self.fence.wait(u64::MAX)?;
+        let floats: Vec<f32> = bytemuck::pod_collect_to_vec(&positions.mapped()?[..blocks.len() * k * k * 16]);
+        Ok(floats.chunks(4).map(|c| [c[0], c[1], c[2], c[3]]).collect())
+    }
+}
+
+/// Push constants of one block draw.
+fn block_push(layout: &BlockLayout, b: &DrawBlock) -> BlockPush {
+    let (ox, oz) = b.origin(layout);
+    let c = b.coarser;
+    BlockPush {
+        block: [ox as i32, oz as i32, b.stride() as i32, b.lod as i32],
+        coarser_neighbour_stride: [c[0] as i32, c[1] as i32, c[2] as i32, c[3] as i32],
     }
 }
 

@@ -146,9 +146,10 @@ impl ErrorsGpu {
             PipelineLayout::new(device, &reduce_set_layout, std::mem::size_of::<ReducePush>() as u32, frag)?;
         let desc = |fs: &'static [u8], l| GraphicsPipelineDesc {
             vert: shaders::PASS_VERT,
-            frag: fs,
+            frag: Some(fs),
+            rasterizer_discard: false,
             vertex_attribute: None,
-            color_format: GIE_FORMAT,
+            color_format: Some(GIE_FORMAT),
             depth_format: None,
             depth_test: false,
             polygon_mode: vk::PolygonMode::FILL,

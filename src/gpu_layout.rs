@@ -70,6 +70,9 @@ pub const TERRAIN_BINDING_BASE: u32 = 2;
 /// Terrain pipeline: detail texture (a 1x1 white texel when none is given).
 pub const TERRAIN_BINDING_DETAIL: u32 = 3;
 
+/// Vertex capture (tests): world positions written by capture.vert.
+pub const CAPTURE_BINDING_POSITIONS: u32 = 4;
+
 /// GIE pass: the heightfield.
 pub const GIE_BINDING_HEIGHTS: u32 = 0;
 /// GIE pass: the previous LOD's group errors (one mip of the error image).
@@ -143,6 +146,7 @@ pub const GLSL_CONSTANTS: &[(&str, u32)] = &[
     ("TERRAIN_BINDING_FRAME", TERRAIN_BINDING_FRAME),
     ("TERRAIN_BINDING_BASE", TERRAIN_BINDING_BASE),
     ("TERRAIN_BINDING_DETAIL", TERRAIN_BINDING_DETAIL),
+    ("CAPTURE_BINDING_POSITIONS", CAPTURE_BINDING_POSITIONS),
     ("GIE_BINDING_HEIGHTS", GIE_BINDING_HEIGHTS),
     ("GIE_BINDING_PREV", GIE_BINDING_PREV),
     ("GIE_BINDING_MINMAX", GIE_BINDING_MINMAX),

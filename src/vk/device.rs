@@ -78,6 +78,8 @@ pub struct DeviceOptions {
 #[derive(Clone, Copy, Debug, Default)]
 pub struct DeviceFeatures {
     pub wireframe: bool,
+    /// Vertex shaders may write storage buffers (used by the vertex-capture test hook).
+    pub vertex_stores: bool,
     pub pipeline_statistics: bool,
     /// Nanoseconds per timestamp tick, when the draw queue has timestamps.
     pub timestamp_period: Option<f32>,
@@ -199,6 +201,7 @@ impl Device {
         }
         let features = DeviceFeatures {
             wireframe: supported.fill_mode_non_solid != 0,
+            vertex_stores: supported.vertex_pipeline_stores_and_atomics != 0,
             pipeline_statistics: supported.pipeline_statistics_query != 0,
             timestamp_period: (families[draw_family as usize].timestamp_valid_bits > 0
                 && families[errors_family as usize].timestamp_valid_bits > 0)
@@ -206,6 +209,7 @@ impl Device {
         };
         let enabled = vk::PhysicalDeviceFeatures::default()
             .fill_mode_non_solid(features.wireframe)
+            .vertex_pipeline_stores_and_atomics(features.vertex_stores)
             .pipeline_statistics_query(features.pipeline_statistics);
         let mut e12 = vk::PhysicalDeviceVulkan12Features::default().timeline_semaphore(true);
         let mut e13 = vk::PhysicalDeviceVulkan13Features::default()

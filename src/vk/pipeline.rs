@@ -145,10 +145,12 @@ impl Drop for PipelineLayout {
 /// attachment, dynamic viewport and scissor).
 pub struct GraphicsPipelineDesc<'a> {
     pub vert: &'a [u8],
-    pub frag: &'a [u8],
+    /// `None` with `rasterizer_discard` for vertex-only pipelines.
+    pub frag: Option<&'a [u8]>,
+    pub rasterizer_discard: bool,
     /// Stride and format of a single per-vertex attribute at location 0.
     pub vertex_attribute: Option<(u32, vk::Format)>,
-    pub color_format: vk::Format,
+    pub color_format: Option<vk::Format>,
     pub depth_format: Option<vk::Format>,
     pub depth_test: bool,
     pub polygon_mode: vk::PolygonMode,
@@ -174,12 +176,20 @@ fn shader_module(device: &Device, spirv: &[u8]) -> VkResult<vk::ShaderModule> {
 impl GraphicsPipeline {
     pub fn new(device: &Arc<Device>, d: &GraphicsPipelineDesc<'_>) -> VkResult<Self> {
         let vs = shader_module(device, d.vert)?;
-        let fs = shader_module(device, d.frag)?;
+        let fs = d.frag.map(|f| shader_module(device, f)).transpose()?;
         let entry = c"main";
-        let stages = [
-            vk::PipelineShaderStageCreateInfo::default().stage(vk::ShaderStageFlags::VERTEX).module(vs).name(entry),
-            vk::PipelineShaderStageCreateInfo::default().stage(vk::ShaderStageFlags::FRAGMENT).module(fs).name(entry),
-        ];
+        let mut stages = vec![vk::PipelineShaderStageCreateInfo::default()
+            .stage(vk::ShaderStageFlags::VERTEX)
+            .module(vs)
+            .name(entry)];
+        if let Some(fs) = fs {
+            stages.push(
+                vk::PipelineShaderStageCreateInfo::default()
+                    .stage(vk::ShaderStageFlags::FRAGMENT)
+                    .module(fs)
+                    .name(entry),
+            );
+        }
         let bindings;
         let attributes;
         let mut vertex_input = vk::PipelineVertexInputStateCreateInfo::default();
@@ -194,6 +204,7 @@ impl GraphicsPipeline {
             vk::PipelineInputAssemblyStateCreateInfo::default().topology(vk::PrimitiveTopology::TRIANGLE_LIST);
         let viewport = vk::PipelineViewportStateCreateInfo::default().viewport_count(1).scissor_count(1);
         let raster = vk::PipelineRasterizationStateCreateInfo::default()
+            .rasterizer_discard_enable(d.rasterizer_discard)
             .polygon_mode(d.polygon_mode)
             .cull_mode(if d.cull_back { vk::CullModeFlags::BACK } else { vk::CullModeFlags::NONE })
             .front_face(vk::FrontFace::CLOCKWISE)
@@ -210,7 +221,7 @@ impl GraphicsPipeline {
         let blend = vk::PipelineColorBlendStateCreateInfo::default().attachments(&attachments);
         let dynamic_states = [vk::DynamicState::VIEWPORT, vk::DynamicState::SCISSOR];
         let dynamic = vk::PipelineDynamicStateCreateInfo::default().dynamic_states(&dynamic_states);
-        let color_formats = [d.color_format];
+        let color_formats: Vec<vk::Format> = d.color_format.into_iter().collect();
         let mut rendering = vk::PipelineRenderingCreateInfo::default().color_attachment_formats(&color_formats);
         if let Some(df) = d.depth_format {
             rendering = rendering.depth_attachment_format(df);
@@ -232,7 +243,9 @@ impl GraphicsPipeline {
         // SAFETY: modules are not needed once the pipeline exists (or failed).
         unsafe {
             device.raw.destroy_shader_module(vs, None);
-            device.raw.destroy_shader_module(fs, None);
+            if let Some(fs) = fs {
+                device.raw.destroy_shader_module(fs, None);
+            }
         }
         let handle = result.map_err(|(_, e)| e).vk("vkCreateGraphicsPipelines")?[0];
         Ok(GraphicsPipeline { device: device.clone(), handle })

@@ -1,0 +1,24 @@
+#version 450
+// Test hook: runs the terrain vertex placement (block_vertex.glsl) and writes every
+// vertex's world position to a storage buffer, so that tests can compare the GPU
+// stitching with its plain-Rust mirror. Drawn with rasterizer discard; the draw's
+// firstInstance is the block's index.
+#extension GL_GOOGLE_include_directive : require
+#define USE_BlockPush
+#define USE_FrameUniforms
+#include "layout.glsl"
+#include "common.glsl"
+
+layout(set = 0, binding = TERRAIN_BINDING_HEIGHTS) uniform sampler2D heights;
+#include "block_vertex.glsl"
+
+layout(set = 0, binding = CAPTURE_BINDING_POSITIONS, std430) writeonly buffer Captured {
+    vec4 positions[];
+};
+layout(location = 0) in uvec2 in_local;
+
+void main() {
+    int k = frame.extent.w;
+    positions[gl_InstanceIndex * k * k + gl_VertexIndex] = vec4(place_block_vertex(ivec2(in_local)), 1.0);
+    gl_Position = vec4(0.0, 0.0, 0.0, 1.0);
+}
