@@ -8,7 +8,7 @@ set -euo pipefail
 need=()
 have_pkg() { dpkg-query -W -f='${Status}' "$1" 2>/dev/null | grep -q "install ok installed"; }
 for p in libvulkan1 mesa-vulkan-drivers vulkan-validationlayers vulkan-tools \
-         xvfb xauth cmake ninja-build python3 g++ pkg-config curl ca-certificates fonts-dejavu-core libx11-dev libxkbcommon-x11-0 \
+         xvfb xauth cmake ninja-build python3 g++ pkg-config curl ca-certificates fonts-dejavu-core procps libx11-dev libxkbcommon-x11-0 \
          libwayland-client0 libxcursor1 libxrandr2 libxi6; do
   have_pkg "$p" || need+=("$p")
 done
