@@ -486,6 +486,7 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     let s = Session::open(&args.common)?;
     std::fs::create_dir_all(&args.out).map_err(|e| anyhow::anyhow!("{}: {e}", args.out.display()))?;
     let size = args.common.size.unwrap_or((640, 480));
+    s.check_viewport(size)?;
     let stop = Arc::new(AtomicBool::new(false));
     {
         let stop = stop.clone();

@@ -107,6 +107,15 @@ impl Session {
         Ok(Session { hf: Arc::new(hf), mm, layout, device, terrain })
     }
 
+    /// The viewport must fit in one image on this device.
+    pub fn check_viewport(&self, (w, h): (u32, u32)) -> Result<(), InputError> {
+        let max = self.device.max_image_dimension_2d();
+        if w > max || h > max {
+            return Err(InputError(format!("--size {w}x{h}: larger than the device's maxImageDimension2D ({max})")));
+        }
+        Ok(())
+    }
+
     /// The heightfield must fit in one image on this device.
     pub fn check_size(device: &Device, hf: &Heightfield) -> Result<(), InputError> {
         let max = device.max_image_dimension_2d() as usize;
@@ -179,6 +188,7 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
     }
     let s = Session::open(&args.common)?;
     let cam = args.common.camera(&s.hf, (1280, 720))?;
+    s.check_viewport((cam.width, cam.height))?;
     let mut renderer = BlocksRenderer::new(&s.device, &s.terrain, s.layout, crate::blocks::COLOR_FORMAT, 1)?;
     let target = Target::new(&s.device, cam.width, cam.height)?;
 

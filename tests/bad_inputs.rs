@@ -169,4 +169,5 @@ fn bad_options() {
     fails_cleanly(&["render", "--out", &scratch("picture.jpg").display().to_string()], &["--out", ".png"]);
     fails_cleanly(&["errors", "--repeat", "0"], &["--repeat"]);
     fails_cleanly(&["render", "--gpu", "no-such-gpu"], &["--gpu no-such-gpu", "no such device"]);
+    fails_cleanly(&["render", "--size", "20000x100"], &["--size 20000x100", "maxImageDimension2D"]);
 }
