@@ -325,6 +325,7 @@ pub fn errors(args: &ErrorsArgs) -> anyhow::Result<()> {
         "fragments_shaded": cost.fragments_shaded,
         "naive_fragments_n_4n": n * (1u64 << (2 * n)),
         "readback_bytes": cost.readback_bytes,
+        "geometry_bytes": renderer_geometry_bytes(s.layout.k()),
         "full_error_texture_bytes": (s.hf.side() * s.hf.side() * 4) as u64,
         "update_ms": times[times.len() / 2],
         "update_ms_min": times[0],

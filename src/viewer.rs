@@ -197,6 +197,7 @@ struct RunStats {
     last_blocks: usize,
     queue_mode: String,
     device: String,
+    geometry_bytes: u64,
     validation_messages: u64,
     screenshot: Option<String>,
 }
@@ -315,9 +316,12 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
         stats: RunStats::default(),
     };
     event_loop.run_app(&mut app)?;
-    let validation = app.gpu.as_ref().map(|g| g.device.instance.validation_messages());
-    let first_message = app.gpu.as_ref().and_then(|g| g.device.instance.messages.messages().first().cloned());
-    drop(app.gpu.take()); // waits for the GPU, joins the errors thread
+    let counter = app.gpu.as_ref().map(|g| g.device.instance.messages.clone());
+    // Waits for the GPU, joins the errors thread, destroys the device and instance, so
+    // that the object tracker's leak reports are counted below.
+    drop(app.gpu.take());
+    let validation = counter.as_ref().map(|c| c.count());
+    let first_message = counter.as_ref().and_then(|c| c.messages().first().cloned());
     if let Some(e) = app.error.take() {
         return Err(e);
     }
@@ -390,6 +394,7 @@ impl App {
             })
             .collect::<anyhow::Result<Vec<_>>>()?;
         self.stats.queue_mode = device.queue_mode.as_str().into();
+        self.stats.geometry_bytes = crate::commands::renderer_geometry_bytes(self.layout.k());
         self.stats.device = device.name.clone();
         self.gpu = Some(Gpu {
             slots,
