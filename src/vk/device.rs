@@ -100,6 +100,28 @@ pub struct Device {
     allocator: ManuallyDrop<Mutex<Allocator>>,
 }
 
+/// Chooses the queue arrangement (SPEC section 6) from each family's flags and queue
+/// count: (mode, draw family, errors family).
+pub fn plan_queues(families: &[(vk::QueueFlags, u32)], request: QueueRequest) -> Result<(QueueMode, u32, u32), String> {
+    let graphics: Vec<u32> =
+        (0..families.len() as u32).filter(|&i| families[i as usize].0.contains(vk::QueueFlags::GRAPHICS)).collect();
+    let first = *graphics.first().ok_or("no graphics queue")?;
+    let two_in_one = graphics.iter().copied().find(|&f| families[f as usize].1 >= 2);
+    Ok(match request {
+        QueueRequest::Shared => (QueueMode::Shared, first, first),
+        _ => match (two_in_one, graphics.get(1)) {
+            (Some(f), _) => (QueueMode::SeparateSameFamily, f, f),
+            (None, Some(&second)) => (QueueMode::SeparateFamilies, first, second),
+            (None, None) if request == QueueRequest::Separate => {
+                return Err(
+                    "--queues separate: the device has only one graphics queue; use --queues auto or shared".into()
+                )
+            }
+            (None, None) => (QueueMode::Shared, first, first),
+        },
+    })
+}
+
 fn device_type_rank(t: vk::PhysicalDeviceType) -> u32 {
     match t {
         vk::PhysicalDeviceType::DISCRETE_GPU => 0,
@@ -150,24 +172,10 @@ impl Device {
 
         // SAFETY: query on a live physical device.
         let families = unsafe { inst.get_physical_device_queue_family_properties(physical) };
-        let graphics: Vec<u32> = (0..families.len() as u32)
-            .filter(|&i| families[i as usize].queue_flags.contains(vk::QueueFlags::GRAPHICS))
-            .collect();
-        let first = *graphics.first().ok_or_else(|| VkError::Setup(format!("{name} has no graphics queue")))?;
-        let two_in_one = graphics.iter().copied().find(|&f| families[f as usize].queue_count >= 2);
-        let mode_plan = match opts.queues {
-            QueueRequest::Shared => (QueueMode::Shared, first, first),
-            _ => match (two_in_one, graphics.get(1)) {
-                (Some(f), _) => (QueueMode::SeparateSameFamily, f, f),
-                (None, Some(&second)) => (QueueMode::SeparateFamilies, first, second),
-                (None, None) if opts.queues == QueueRequest::Separate => {
-                    return Err(VkError::Setup(format!(
-                        "--queues separate: {name} has only one graphics queue; use --queues auto or shared"
-                    )))
-                }
-                (None, None) => (QueueMode::Shared, first, first),
-            },
-        };
+        let flags_counts: Vec<(vk::QueueFlags, u32)> =
+            families.iter().map(|f| (f.queue_flags, f.queue_count)).collect();
+        let mode_plan =
+            plan_queues(&flags_counts, opts.queues).map_err(|e| VkError::Setup(e.replace("the device", &name)))?;
         let (queue_mode, draw_family, errors_family) = mode_plan;
         let priorities = [1.0f32, 1.0];
         let mut queue_infos =
@@ -332,5 +340,27 @@ impl Drop for Device {
             ManuallyDrop::drop(&mut self.allocator);
             self.raw.destroy_device(None);
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    const G: vk::QueueFlags = vk::QueueFlags::GRAPHICS;
+    const C: vk::QueueFlags = vk::QueueFlags::COMPUTE;
+    const T: vk::QueueFlags = vk::QueueFlags::TRANSFER;
+
+    #[test]
+    fn queue_plans_follow_spec_section_6() {
+        use QueueRequest::*;
+        // lavapipe: one family, one queue.
+        assert_eq!(plan_queues(&[(G | C | T, 1)], Auto), Ok((QueueMode::Shared, 0, 0)));
+        assert!(plan_queues(&[(G | C | T, 1)], Separate).unwrap_err().starts_with("--queues separate"));
+        // NVIDIA-like: 16 queues in the graphics family.
+        assert_eq!(plan_queues(&[(G | C | T, 16), (T, 2), (C, 8)], Auto), Ok((QueueMode::SeparateSameFamily, 0, 0)));
+        assert_eq!(plan_queues(&[(G | C | T, 16)], Shared), Ok((QueueMode::Shared, 0, 0)));
+        // Two single-queue graphics families.
+        assert_eq!(plan_queues(&[(C, 4), (G | C, 1), (G, 1)], Separate), Ok((QueueMode::SeparateFamilies, 1, 2)));
+        assert!(plan_queues(&[(C | T, 2)], Auto).is_err());
     }
 }
