@@ -116,6 +116,28 @@ struct ErrorsGpu {
     commands: CommandPool,
 }
 
+/// Copy regions for every mip of a square R32F image, packed one after another from
+/// `offset` (mip 0 first, rows tightly packed): the block-error layout of the README.
+fn mip_copy_regions(image: &Image, offset: u64) -> Vec<vk::BufferImageCopy> {
+    let mut at = offset;
+    (0..image.mip_levels)
+        .map(|mip| {
+            let side = (image.extent.width >> mip).max(1);
+            let region = vk::BufferImageCopy::default()
+                .buffer_offset(at)
+                .image_subresource(vk::ImageSubresourceLayers {
+                    aspect_mask: vk::ImageAspectFlags::COLOR,
+                    mip_level: mip,
+                    base_array_layer: 0,
+                    layer_count: 1,
+                })
+                .image_extent(vk::Extent3D { width: side, height: side, depth: 1 });
+            at += side as u64 * side as u64 * 4;
+            region
+        })
+        .collect()
+}
+
 fn readback_bytes(root_lod: u32) -> u64 {
     // Header and trailer words hold the generation number (torn-read check).
     (BlockErrors::packed_len(root_lod) * 4 + 8) as u64
@@ -393,23 +415,8 @@ impl ErrorsGpu {
                 (color, write, rt),
                 (copy, vk::AccessFlags2::TRANSFER_READ, vk::ImageLayout::TRANSFER_SRC_OPTIMAL),
             );
-            let mut regions = Vec::new();
-            let mut at = 4u64;
-            for j in 1..=root {
-                let side = 1u32 << (root - j);
-                regions.push(
-                    vk::BufferImageCopy::default()
-                        .buffer_offset(at)
-                        .image_subresource(vk::ImageSubresourceLayers {
-                            aspect_mask: vk::ImageAspectFlags::COLOR,
-                            mip_level: j - 1,
-                            base_array_layer: 0,
-                            layer_count: 1,
-                        })
-                        .image_extent(vk::Extent3D { width: side, height: side, depth: 1 }),
-                );
-                at += side as u64 * side as u64 * 4;
-            }
+            // After the generation header word.
+            let regions = mip_copy_regions(tbe, 4);
             // SAFETY: recording; the readback slot is not read by the draw thread (the
             // hand-off protocol guarantees it).
             unsafe {
@@ -432,23 +439,7 @@ impl ErrorsGpu {
                 (frag, read, ro),
                 (copy, vk::AccessFlags2::TRANSFER_READ, vk::ImageLayout::TRANSFER_SRC_OPTIMAL),
             );
-            let mut regions = Vec::new();
-            let mut at = 0u64;
-            for lod in 1..=n {
-                let side = 1u32 << (n - lod);
-                regions.push(
-                    vk::BufferImageCopy::default()
-                        .buffer_offset(at)
-                        .image_subresource(vk::ImageSubresourceLayers {
-                            aspect_mask: vk::ImageAspectFlags::COLOR,
-                            mip_level: lod - 1,
-                            base_array_layer: 0,
-                            layer_count: 1,
-                        })
-                        .image_extent(vk::Extent3D { width: side, height: side, depth: 1 }),
-                );
-                at += side as u64 * side as u64 * 4;
-            }
+            let regions = mip_copy_regions(&slot.gie, 0);
             let to_host = [vk::BufferMemoryBarrier2::default()
                 .src_stage_mask(copy)
                 .src_access_mask(vk::AccessFlags2::TRANSFER_WRITE)
