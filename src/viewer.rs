@@ -482,7 +482,13 @@ impl App {
         let activity = gpu.activity.as_ref().unwrap();
         activity.request(ErrorParams::new(&cam, self.mode));
         let after = self.generation.as_ref().map_or(0, |g| g.number);
-        if let Some(g) = activity.latest(after)? {
+        // The first frame waits for error data at its camera, so that the bound holds from
+        // the start; later frames take the newest finished generation without waiting.
+        let newest = match &self.generation {
+            None => Some(activity.wait_for(ErrorParams::new(&cam, self.mode), Duration::from_secs(600))?),
+            Some(_) => activity.latest(after)?,
+        };
+        if let Some(g) = newest {
             self.stats.error_generations = g.number;
             self.generation = Some(g);
         }
