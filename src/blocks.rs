@@ -10,8 +10,8 @@ use crate::quadtree::{BlockLayout, DrawBlock};
 use crate::shaders;
 use crate::terrain_gpu::TerrainGpu;
 use crate::vk::{
-    begin_one_time, vk, Buffer, CommandPool, DescriptorPool, DescriptorSetLayout, Device, Fence, GraphicsPipeline,
-    GraphicsPipelineDesc, Image, PipelineLayout, QueryPool, VkResult, VkResultExt,
+    begin_one_time, image_barrier, vk, Buffer, CommandPool, DescriptorPool, DescriptorSetLayout, Device, Fence,
+    GraphicsPipeline, GraphicsPipelineDesc, Image, PipelineLayout, QueryPool, VkResult, VkResultExt,
 };
 use glam::Vec3;
 use std::sync::Arc;
@@ -459,16 +459,14 @@ impl BlocksRenderer {
         let stats = self.record(0, cmd, target.color.view, target.depth.view, extent, blocks, shading, clear);
         // SAFETY: as above.
         unsafe {
-            let to_src = [vk::ImageMemoryBarrier2::default()
-                .src_stage_mask(vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT)
-                .src_access_mask(vk::AccessFlags2::COLOR_ATTACHMENT_WRITE)
-                .dst_stage_mask(vk::PipelineStageFlags2::COPY)
-                .dst_access_mask(vk::AccessFlags2::TRANSFER_READ)
-                .old_layout(vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL)
-                .new_layout(vk::ImageLayout::TRANSFER_SRC_OPTIMAL)
-                .image(target.color.handle)
-                .subresource_range(target.color.range(0, 1))];
-            d.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().image_memory_barriers(&to_src));
+            let rendered = (
+                vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT,
+                vk::AccessFlags2::COLOR_ATTACHMENT_WRITE,
+                vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL,
+            );
+            let copied =
+                (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_READ, vk::ImageLayout::TRANSFER_SRC_OPTIMAL);
+            image_barrier(&d, cmd, target.color.handle, COLOR_RANGE, rendered, copied);
             let extent = vk::Extent2D { width: target.width, height: target.height };
             copy_image_to_host(&d, cmd, target.color.handle, extent, target.readback.handle);
             if let Some(q) = &self.queries {

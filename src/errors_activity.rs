@@ -13,9 +13,9 @@ use crate::shaders;
 use crate::terrain_gpu::TerrainGpu;
 use crate::trace::{Trace, ERRORS_TID};
 use crate::vk::{
-    begin_one_time, vk, Buffer, CommandPool, DescriptorPool, DescriptorSetLayout, Device, GraphicsPipeline,
-    GraphicsPipelineDesc, Image, ImageView, PipelineLayout, QueryPool, TimelineSemaphore, VkError, VkResult,
-    VkResultExt,
+    begin_one_time, image_barrier, vk, Buffer, CommandPool, DescriptorPool, DescriptorSetLayout, Device,
+    GraphicsPipeline, GraphicsPipelineDesc, Image, ImageUse, ImageView, PipelineLayout, QueryPool, TimelineSemaphore,
+    VkError, VkResult, VkResultExt,
 };
 use std::sync::{Arc, Condvar, Mutex};
 use std::thread::JoinHandle;
@@ -309,26 +309,9 @@ impl ErrorsGpu {
         }
     }
 
-    fn barrier(
-        &self,
-        cmd: vk::CommandBuffer,
-        image: &Image,
-        mip: u32,
-        count: u32,
-        from: (vk::PipelineStageFlags2, vk::AccessFlags2, vk::ImageLayout),
-        to: (vk::PipelineStageFlags2, vk::AccessFlags2, vk::ImageLayout),
-    ) {
-        let b = [vk::ImageMemoryBarrier2::default()
-            .src_stage_mask(from.0)
-            .src_access_mask(from.1)
-            .old_layout(from.2)
-            .dst_stage_mask(to.0)
-            .dst_access_mask(to.1)
-            .new_layout(to.2)
-            .image(image.handle)
-            .subresource_range(image.range(mip, count))];
-        // SAFETY: recording on this thread.
-        unsafe { self.device.raw.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().image_memory_barriers(&b)) };
+    fn barrier(&self, cmd: vk::CommandBuffer, image: &Image, mip: u32, count: u32, from: ImageUse, to: ImageUse) {
+        // SAFETY: recording on this thread; the slot's images outlive the submission.
+        unsafe { image_barrier(&self.device.raw, cmd, image.handle, image.range(mip, count), from, to) };
     }
 
     /// Records generation `g` into its slot's command buffer.

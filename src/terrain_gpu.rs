@@ -2,7 +2,7 @@
 //! the min/max pyramid, samplers and the colour textures.
 
 use crate::heightfield::{HeightFormat, Heightfield, MinMaxPyramid};
-use crate::vk::{vk, Buffer, CommandPool, Device, Image, Sampler, VkResult};
+use crate::vk::{image_barrier, vk, Buffer, CommandPool, Device, Image, Sampler, VkResult};
 use std::sync::Arc;
 
 pub struct TerrainGpu {
@@ -119,27 +119,18 @@ pub fn upload(device: &Arc<Device>, pool: &CommandPool, image: &Image, mips: &[&
     }
     let range = image.range(0, image.mip_levels);
     device.one_shot(pool, |cmd| {
-        let to_dst = [vk::ImageMemoryBarrier2::default()
-            .src_stage_mask(vk::PipelineStageFlags2::NONE)
-            .dst_stage_mask(vk::PipelineStageFlags2::COPY)
-            .dst_access_mask(vk::AccessFlags2::TRANSFER_WRITE)
-            .old_layout(vk::ImageLayout::UNDEFINED)
-            .new_layout(vk::ImageLayout::TRANSFER_DST_OPTIMAL)
-            .image(image.handle)
-            .subresource_range(range)];
-        let to_read = [vk::ImageMemoryBarrier2::default()
-            .src_stage_mask(vk::PipelineStageFlags2::COPY)
-            .src_access_mask(vk::AccessFlags2::TRANSFER_WRITE)
-            .dst_stage_mask(vk::PipelineStageFlags2::VERTEX_SHADER | vk::PipelineStageFlags2::FRAGMENT_SHADER)
-            .dst_access_mask(vk::AccessFlags2::SHADER_SAMPLED_READ)
-            .old_layout(vk::ImageLayout::TRANSFER_DST_OPTIMAL)
-            .new_layout(vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL)
-            .image(image.handle)
-            .subresource_range(range)];
+        let undefined = (vk::PipelineStageFlags2::NONE, vk::AccessFlags2::NONE, vk::ImageLayout::UNDEFINED);
+        let written =
+            (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_WRITE, vk::ImageLayout::TRANSFER_DST_OPTIMAL);
+        let sampled = (
+            vk::PipelineStageFlags2::VERTEX_SHADER | vk::PipelineStageFlags2::FRAGMENT_SHADER,
+            vk::AccessFlags2::SHADER_SAMPLED_READ,
+            vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
+        );
         // SAFETY: `cmd` is recording; the staging buffer and image outlive the wait in
         // one_shot.
         unsafe {
-            device.raw.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().image_memory_barriers(&to_dst));
+            image_barrier(&device.raw, cmd, image.handle, range, undefined, written);
             device.raw.cmd_copy_buffer_to_image(
                 cmd,
                 staging.handle,
@@ -147,7 +138,7 @@ pub fn upload(device: &Arc<Device>, pool: &CommandPool, image: &Image, mips: &[&
                 vk::ImageLayout::TRANSFER_DST_OPTIMAL,
                 &regions,
             );
-            device.raw.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().image_memory_barriers(&to_read));
+            image_barrier(&device.raw, cmd, image.handle, range, written, sampled);
         }
     })
 }

@@ -14,8 +14,8 @@ use crate::heightfield::{Heightfield, MinMaxPyramid};
 use crate::quadtree::{traverse, BlockLayout, DrawBlock, LodSelect};
 use crate::terrain_gpu::{TerrainGpu, Texture};
 use crate::vk::{
-    begin_one_time, vk, BinarySemaphore, Buffer, CommandPool, Device, DeviceOptions, Fence, Image, Instance,
-    InstanceOptions, Surface, Swapchain, VkResultExt,
+    begin_one_time, image_barrier, vk, BinarySemaphore, Buffer, CommandPool, Device, DeviceOptions, Fence, Image,
+    Instance, InstanceOptions, Surface, Swapchain, VkResultExt,
 };
 use clap::{Args, ValueEnum};
 use glam::Vec3;
@@ -558,32 +558,23 @@ impl App {
         let stats = gpu.renderer.record(slot_index, cmd, view, gpu.depth.view, extent, &blocks, &self.shading, clear);
         // SAFETY: as above.
         unsafe {
-            let (layout, stage, access) = if readback.is_some() {
-                (vk::ImageLayout::TRANSFER_SRC_OPTIMAL, vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_READ)
-            } else {
-                (vk::ImageLayout::PRESENT_SRC_KHR, vk::PipelineStageFlags2::NONE, vk::AccessFlags2::NONE)
-            };
-            let to = [vk::ImageMemoryBarrier2::default()
-                .src_stage_mask(vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT)
-                .src_access_mask(vk::AccessFlags2::COLOR_ATTACHMENT_WRITE)
-                .dst_stage_mask(stage)
-                .dst_access_mask(access)
-                .old_layout(vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL)
-                .new_layout(layout)
-                .image(image)
-                .subresource_range(COLOR_RANGE)];
-            d.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().image_memory_barriers(&to));
+            let rendered = (
+                vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT,
+                vk::AccessFlags2::COLOR_ATTACHMENT_WRITE,
+                vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL,
+            );
+            let present = (vk::PipelineStageFlags2::NONE, vk::AccessFlags2::NONE, vk::ImageLayout::PRESENT_SRC_KHR);
             if let Some(buf) = &readback {
+                let copied = (
+                    vk::PipelineStageFlags2::COPY,
+                    vk::AccessFlags2::TRANSFER_READ,
+                    vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
+                );
+                image_barrier(&d, cmd, image, COLOR_RANGE, rendered, copied);
                 copy_image_to_host(&d, cmd, image, extent, buf.handle);
-                let to_present = [vk::ImageMemoryBarrier2::default()
-                    .src_stage_mask(vk::PipelineStageFlags2::COPY)
-                    .src_access_mask(vk::AccessFlags2::TRANSFER_READ)
-                    .dst_stage_mask(vk::PipelineStageFlags2::NONE)
-                    .old_layout(vk::ImageLayout::TRANSFER_SRC_OPTIMAL)
-                    .new_layout(vk::ImageLayout::PRESENT_SRC_KHR)
-                    .image(image)
-                    .subresource_range(COLOR_RANGE)];
-                d.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().image_memory_barriers(&to_present));
+                image_barrier(&d, cmd, image, COLOR_RANGE, copied, present);
+            } else {
+                image_barrier(&d, cmd, image, COLOR_RANGE, rendered, present);
             }
             d.end_command_buffer(cmd).vk("vkEndCommandBuffer")?;
         }

@@ -132,6 +132,35 @@ pub unsafe fn begin_one_time(d: &ash::Device, cmd: vk::CommandBuffer) -> VkResul
     }
 }
 
+/// Where an image was last used, or will be used next: stage, access and layout.
+pub type ImageUse = (vk::PipelineStageFlags2, vk::AccessFlags2, vk::ImageLayout);
+
+/// Records one image barrier from `from` to `to` over `range`.
+///
+/// # Safety
+/// `cmd` must be a command buffer of `d` in the recording state, used by this thread only,
+/// and `image` must stay alive until its submission completes.
+pub unsafe fn image_barrier(
+    d: &ash::Device,
+    cmd: vk::CommandBuffer,
+    image: vk::Image,
+    range: vk::ImageSubresourceRange,
+    from: ImageUse,
+    to: ImageUse,
+) {
+    let b = [vk::ImageMemoryBarrier2::default()
+        .src_stage_mask(from.0)
+        .src_access_mask(from.1)
+        .old_layout(from.2)
+        .dst_stage_mask(to.0)
+        .dst_access_mask(to.1)
+        .new_layout(to.2)
+        .image(image)
+        .subresource_range(range)];
+    // SAFETY: guaranteed by the caller (see above).
+    unsafe { d.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().image_memory_barriers(&b)) };
+}
+
 /// A binary semaphore (swapchain acquire).
 pub struct BinarySemaphore {
     device: Arc<Device>,

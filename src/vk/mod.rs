@@ -9,7 +9,9 @@ mod pipeline;
 mod resources;
 mod swapchain;
 
-pub use command::{begin_one_time, BinarySemaphore, CommandPool, Fence, QueryPool, TimelineSemaphore};
+pub use command::{
+    begin_one_time, image_barrier, BinarySemaphore, CommandPool, Fence, ImageUse, QueryPool, TimelineSemaphore,
+};
 pub use device::{Device, DeviceOptions, Queue, QueueMode, QueueRequest};
 pub use instance::{Instance, InstanceOptions, MessageCounter};
 pub use pipeline::{DescriptorPool, DescriptorSetLayout, GraphicsPipeline, GraphicsPipelineDesc, PipelineLayout};
