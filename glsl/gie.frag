@@ -9,6 +9,7 @@
 layout(set = 0, binding = GIE_BINDING_HEIGHTS) uniform sampler2D heights;
 layout(set = 0, binding = GIE_BINDING_PREV) uniform sampler2D prev_gie;
 layout(set = 0, binding = GIE_BINDING_MINMAX) uniform sampler2D minmax;
+layout(set = 0, binding = GIE_BINDING_DEVIATION) uniform sampler2D deviation;
 layout(location = 0) out float out_gie;
 
 float raw_at(ivec2 s) {
@@ -33,6 +34,21 @@ void main() {
     vec3 cam = gie_pc.camera.xyz;
     float kappa = gie_pc.camera.w;
 
+    if (strict_mode != 0) {
+        // SPEC 3, strict: the exact deviation D_i of the group from its LOD mesh (computed
+        // once per heightfield) over the distance to the group's box. No nesting: D_i is
+        // measured against the full-resolution surface. The traversal applies the block's
+        // own 1 / cos^2, so this data does not depend on the camera's rotation.
+        vec2 mm = texelFetch(minmax, g, lod - 1).rg;
+        vec3 bmin = vec3(float(corner.x) * spacing, mm.x * hscale, float(corner.y) * spacing);
+        vec3 bmax = vec3(float(corner.x + size) * spacing, mm.y * hscale, float(corner.y + size) * spacing);
+        vec3 dv = max(max(bmin - cam, cam - bmax), vec3(0.0));
+        float d = max(length(dv), near_d);
+        float dev = texelFetch(deviation, g, lod - 1).r;
+        out_gie = dev * hscale * kappa / d;
+        return;
+    }
+
     float ra = raw_at(corner);
     float rc = raw_at(corner + ivec2(2 * h, 0));
     float rg = raw_at(corner + ivec2(0, 2 * h));
@@ -43,29 +59,13 @@ void main() {
     float hi[5] = float[5](rc, rg, ri, ri, ri);
 
     float level_err = 0.0;
-    if (strict_mode != 0) {
-        // Distance from the camera to the group's AABB, divided by cos^2(theta_max).
-        vec2 mm = texelFetch(minmax, g, lod - 1).rg;
-        vec3 bmin = vec3(float(corner.x) * spacing, mm.x * hscale, float(corner.y) * spacing);
-        vec3 bmax = vec3(float(corner.x + size) * spacing, mm.y * hscale, float(corner.y + size) * spacing);
-        vec3 dv = max(max(bmin - cam, cam - bmax), vec3(0.0));
-        float d = max(length(dv), near_d);
-        float max_wie = 0.0;
-        for (int k = 0; k < 5; k++) {
-            precise float rv = raw_at(corner + offs[k] * h);
-            precise float wie = (rv - (lo[k] + hi[k]) * 0.5) * hscale;
-            max_wie = max(max_wie, abs(wie));
-        }
-        level_err = max_wie * kappa * gie_pc.params.w / d;
-    } else {
-        for (int k = 0; k < 5; k++) {
-            ivec2 s = corner + offs[k] * h;
-            precise float rv = raw_at(s);
-            precise float wie = (rv - (lo[k] + hi[k]) * 0.5) * hscale;
-            vec3 p = vec3(float(s.x) * spacing, rv * hscale, float(s.y) * spacing);
-            float d = max(length(p - cam), near_d);
-            level_err = max(level_err, abs(wie) * kappa / d);
-        }
+    for (int k = 0; k < 5; k++) {
+        ivec2 s = corner + offs[k] * h;
+        precise float rv = raw_at(s);
+        precise float wie = (rv - (lo[k] + hi[k]) * 0.5) * hscale;
+        vec3 p = vec3(float(s.x) * spacing, rv * hscale, float(s.y) * spacing);
+        float d = max(length(p - cam), near_d);
+        level_err = max(level_err, abs(wie) * kappa / d);
     }
 
     float child = 0.0;
@@ -74,6 +74,6 @@ void main() {
         child = max(max(texelFetch(prev_gie, c, 0).r, texelFetch(prev_gie, c + ivec2(1, 0), 0).r),
                     max(texelFetch(prev_gie, c + ivec2(0, 1), 0).r, texelFetch(prev_gie, c + ivec2(1, 1), 0).r));
     }
-    // Paper eq. 4 takes the max; strict mode adds, because nested errors accumulate.
-    out_gie = strict_mode != 0 ? child + level_err : max(child, level_err);
+    // Paper eq. 4: the max over the group and its children.
+    out_gie = max(child, level_err);
 }

@@ -68,7 +68,7 @@ pub fn rendered_raw(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, x: i6
 }
 
 /// Barycentric interpolation of a triangle's raw heights at `(px, pz)` if inside.
-fn interpolate(t: &[(i64, i64, f32); 3], px: f64, pz: f64) -> Option<f32> {
+pub(crate) fn interpolate(t: &[(i64, i64, f32); 3], px: f64, pz: f64) -> Option<f32> {
     let (x0, z0) = (t[0].0 as f64, t[0].1 as f64);
     let (x1, z1) = (t[1].0 as f64, t[1].1 as f64);
     let (x2, z2) = (t[2].0 as f64, t[2].1 as f64);

@@ -8,6 +8,7 @@ use crate::cli::{near_plane, CommonArgs, InputError};
 use crate::commands::{positive, write_atomic, LodChoice, Session};
 use crate::errors_activity::{ErrorsActivity, Generation};
 use crate::gie::ErrorParams;
+use crate::heightfield::{Heightfield, MinMaxPyramid};
 use crate::quadtree::{traverse, DrawBlock, LodSelect};
 use crate::trace::{Trace, DRAW_TID};
 use clap::{Args, ValueEnum};
@@ -107,11 +108,18 @@ impl Row {
 }
 
 /// Camera and simulated time of frame `i` of `n`.
-fn path_camera(s: &Session, path: CameraPath, i: u64, n: u64, fovy: f32, size: (u32, u32)) -> (Camera, f64) {
-    let hf = &s.hf;
+pub fn path_camera(
+    hf: &Heightfield,
+    mm: &MinMaxPyramid,
+    path: CameraPath,
+    i: u64,
+    n: u64,
+    fovy: f32,
+    size: (u32, u32),
+) -> (Camera, f64) {
     let (wx, wz) = hf.world_extent();
     let l = wx.max(wz);
-    let [lo, hi] = s.mm.range();
+    let [lo, hi] = mm.range();
     let (bottom, top) = (lo * hf.height_scale, hi * hf.height_scale);
     let f = if n > 1 { i as f64 / (n - 1) as f64 } else { 0.0 };
     match path {
@@ -229,7 +237,7 @@ struct Bench<'a> {
 
 impl Bench<'_> {
     fn camera(&self, i: u64) -> (Camera, f64) {
-        path_camera(self.s, self.args.path, i, self.args.frames, self.args.common.fovy, self.size)
+        path_camera(&self.s.hf, &self.s.mm, self.args.path, i, self.args.frames, self.args.common.fovy, self.size)
     }
 
     /// Runs the whole path with one LOD mode (`ceiling`: replay given block lists with no
@@ -297,7 +305,7 @@ impl Bench<'_> {
                 let t = Instant::now();
                 let select = match (&current, lod) {
                     (Some(g), LodChoice::Error) => {
-                        LodSelect::Errors { errors: &g.errors, computed_at: g.params.camera, delta: self.args.delta }
+                        LodSelect::errors(&g.errors, g.params.camera, self.args.delta, g.params.mode)
                     }
                     (_, LodChoice::Distance) => LodSelect::Distance { factor: 2.0 },
                     _ => LodSelect::Full,
@@ -405,9 +413,9 @@ fn write_csv(path: &Path, rows: &[Row]) -> anyhow::Result<()> {
     write_atomic(path, |tmp| std::fs::write(tmp, &text).map_err(|e| anyhow::anyhow!("{}: {e}", path.display())))
 }
 
-/// Frame rate and triangles against time, like the paper's Figure 8.
-fn plot(path: &Path, rows: &[Row], title: &str) -> anyhow::Result<()> {
-    use plotters::prelude::*;
+/// Registers DejaVu Sans for plotters once; false (and a warning) when it is missing.
+pub fn plot_font() -> bool {
+    use plotters::prelude::FontStyle;
     static FONT: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
     let have_font = *FONT.get_or_init(|| {
         ["/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf", "/usr/share/fonts/TTF/DejaVuSans.ttf"]
@@ -420,8 +428,15 @@ fn plot(path: &Path, rows: &[Row], title: &str) -> anyhow::Result<()> {
             .unwrap_or(false)
     });
     if !have_font {
-        tracing::warn!("no DejaVuSans.ttf (Debian: fonts-dejavu-core): plot.png has no labels");
+        tracing::warn!("no DejaVuSans.ttf (Debian: fonts-dejavu-core): plots have no labels");
     }
+    have_font
+}
+
+/// Frame rate and triangles against time, like the paper's Figure 8.
+fn plot(path: &Path, rows: &[Row], title: &str) -> anyhow::Result<()> {
+    use plotters::prelude::*;
+    let have_font = plot_font();
     let tmp = path.with_extension("partial.png");
     {
         let root = BitMapBackend::new(&tmp, (960, 640)).into_drawing_area();
@@ -669,7 +684,7 @@ fn fidelity(bench: &mut Bench, activity: &ErrorsActivity) -> anyhow::Result<Valu
         let full = full.unwrap_or_default();
         let g = activity.wait_for(ErrorParams::new(&cam, bench.args.common.error_mode), Duration::from_secs(600))?;
         for delta in [0.5f32, 1.0, 2.0, 5.0] {
-            let sel = LodSelect::Errors { errors: &g.errors, computed_at: g.params.camera, delta };
+            let sel = LodSelect::errors(&g.errors, g.params.camera, delta, g.params.mode);
             let blocks = traverse(&s.hf, &s.mm, &s.layout, &cam, sel).blocks;
             let (img, stats, _) =
                 bench.renderer.render_timed(&s.hf, &s.terrain, &bench.target, &cam, &blocks, &shading, true)?;

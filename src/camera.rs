@@ -59,6 +59,55 @@ impl Camera {
         1.0 + t * t * (1.0 + self.aspect() * self.aspect())
     }
 
+    /// `1 / cos^2(theta_b)`, `theta_b` the largest off-axis angle of the box `[min, max]`
+    /// seen from the camera, clamped to the frustum corner's (SPEC section 3): what the
+    /// projection can magnify a world deviation inside the box by. The angle is
+    /// quasi-convex over the half-space in front of the eye, so the box's worst point is
+    /// a corner; a box reaching behind the eye plane gets the frustum corner's value.
+    pub fn inv_cos2_aabb(&self, min: Vec3, max: Vec3) -> f32 {
+        let limit = self.inv_cos2_max();
+        let (right, up) = self.basis();
+        let tv = (self.fovy * 0.5).tan();
+        let th = tv * self.aspect();
+        let (mut worst, mut tx, mut ty) = (1.0f32, 0.0f32, 0.0f32);
+        for i in 0..8 {
+            let c = Vec3::new(
+                if i & 1 == 0 { min.x } else { max.x },
+                if i & 2 == 0 { min.y } else { max.y },
+                if i & 4 == 0 { min.z } else { max.z },
+            );
+            let v = c - self.position;
+            let along = v.dot(self.forward);
+            if along <= 0.0 {
+                return limit;
+            }
+            // 1 / cos^2 = |v|^2 / along^2 = 1 + tan^2.
+            worst = worst.max(v.length_squared() / (along * along));
+            tx = tx.max(v.dot(right).abs() / along);
+            ty = ty.max(v.dot(up).abs() / along);
+        }
+        // Only the part of the box inside the frustum is seen: each of the two screen
+        // tangents is also at most the frustum's (both are extreme at corners too).
+        let (tx, ty) = (tx.min(th), ty.min(tv));
+        worst.min(1.0 + tx * tx + ty * ty).min(limit)
+    }
+
+    /// Largest `cos(beta)` over the box, `beta` the elevation of the ray from the eye to
+    /// a point of the box. A deviation of the drawn surface is vertical, and only its part
+    /// across the ray shows on screen: `|v| cos(beta)` for a vertical `v`. The ray is
+    /// flattest at the largest horizontal distance and the smallest height difference.
+    pub fn vertical_factor_aabb(&self, min: Vec3, max: Vec3) -> f32 {
+        let p = self.position;
+        let dy = (min.y - p.y).max(p.y - max.y).max(0.0);
+        if dy == 0.0 {
+            return 1.0;
+        }
+        let hx = (p.x - min.x).abs().max((max.x - p.x).abs());
+        let hz = (p.z - min.z).abs().max((max.z - p.z).abs());
+        let h2 = hx * hx + hz * hz;
+        (h2 / (h2 + dy * dy)).sqrt()
+    }
+
     /// Pixel coordinates (x right, y down) of a world point, or `None` behind the eye.
     pub fn project(&self, view_proj: &Mat4, p: Vec3) -> Option<(f32, f32)> {
         let c = *view_proj * p.extend(1.0);
@@ -120,6 +169,53 @@ pub fn distance_to_aabb(p: Vec3, min: Vec3, max: Vec3) -> f32 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn vertical_factor_bounds_the_foreshortening_of_every_ray_into_the_box() {
+        let cam = Camera::look_at(Vec3::new(0.0, 50.0, 0.0), Vec3::new(0.0, 0.0, -10.0), 60.0, 640, 480, 0.5);
+        // Straight below: a vertical deviation is seen end-on.
+        assert!(cam.vertical_factor_aabb(Vec3::new(-0.1, 0.0, -0.1), Vec3::new(0.1, 1.0, 0.1)) < 0.01);
+        // A box level with the eye: no saving.
+        assert_eq!(cam.vertical_factor_aabb(Vec3::new(5.0, 40.0, 5.0), Vec3::new(6.0, 60.0, 6.0)), 1.0);
+        let (lo, hi) = (Vec3::new(-30.0, 0.0, -80.0), Vec3::new(10.0, 12.0, -20.0));
+        let f = cam.vertical_factor_aabb(lo, hi);
+        assert!(f < 1.0);
+        for t in 0..2000u32 {
+            let r = |k: u32| ((t * 7919 + k * 104729) % 1000) as f32 / 1000.0;
+            let q = lo + (hi - lo) * Vec3::new(r(1), r(2), r(3));
+            let w = (q - cam.position).normalize();
+            let cos_beta = (1.0 - w.y * w.y).sqrt();
+            assert!(cos_beta <= f * (1.0 + 1e-5), "{cos_beta} > {f}");
+        }
+    }
+
+    #[test]
+    fn off_axis_factor_is_one_on_axis_and_the_corner_value_at_most() {
+        let cam = Camera::look_at(Vec3::ZERO, Vec3::new(0.0, 0.0, -1.0), 60.0, 640, 480, 0.5);
+        let on_axis = cam.inv_cos2_aabb(Vec3::new(-0.01, -0.01, -100.0), Vec3::new(0.01, 0.01, -99.0));
+        assert!((on_axis - 1.0).abs() < 1e-4, "{on_axis}");
+        // A point to the right at tan = 0.5: 1/cos^2 = 1.25.
+        let side = cam.inv_cos2_aabb(Vec3::new(5.0, 0.0, -10.0), Vec3::new(5.0, 0.0, -10.0));
+        assert!((side - 1.25).abs() < 1e-4, "{side}");
+        // Wider than the frustum, or reaching behind the eye: the corner value.
+        let corner = cam.inv_cos2_max();
+        let wide = cam.inv_cos2_aabb(Vec3::new(100.0, -100.0, -1.0), Vec3::new(101.0, 100.0, -0.5));
+        assert!((wide - corner).abs() < 1e-5, "{wide} vs {corner}");
+        assert!((cam.inv_cos2_aabb(Vec3::new(-1.0, -1.0, -1.0), Vec3::new(1.0, 1.0, 1.0)) - corner).abs() < 1e-5);
+        // Far to the right but level with the eye: only the horizontal tangent is clamped.
+        let th = (cam.fovy * 0.5).tan() * cam.aspect();
+        let right = cam.inv_cos2_aabb(Vec3::new(100.0, -0.01, -1.0), Vec3::new(101.0, 0.01, -0.5));
+        assert!((right - (1.0 + th * th)).abs() < 1e-3, "{right}");
+        // Every point inside the frustum has its own factor below the box's.
+        let b = (Vec3::new(-3.0, -2.0, -9.0), Vec3::new(2.0, 1.0, -4.0));
+        let f = cam.inv_cos2_aabb(b.0, b.1);
+        for t in 0..1000 {
+            let r = |k: u32| ((t * 7919 + k * 104729) % 1000) as f32 / 1000.0;
+            let p = b.0 + (b.1 - b.0) * Vec3::new(r(1), r(2), r(3));
+            let c = p.normalize().dot(cam.forward);
+            assert!(1.0 / (c * c) <= f * (1.0 + 1e-5));
+        }
+    }
 
     #[test]
     fn projection_centre_and_frustum_agree() {

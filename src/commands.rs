@@ -102,7 +102,13 @@ impl Session {
         if layout.k() != common.block {
             tracing::info!("block {} is larger than the terrain; using k = {}", common.block, layout.k());
         }
+        let t = Instant::now();
         let mm = MinMaxPyramid::build(&hf);
+        eprintln!(
+            "vkterrain: group pyramid (min/max and exact deviation, {} levels) in {:.0} ms",
+            hf.n,
+            t.elapsed().as_secs_f64() * 1e3
+        );
         let terrain = Arc::new(TerrainGpu::new(&device, &hf, &mm, None, None)?);
         Ok(Session { hf: Arc::new(hf), mm, layout, device, terrain })
     }
@@ -212,7 +218,7 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
         None => None,
     };
     let select = match (&gen, args.lod) {
-        (Some(g), _) => LodSelect::Errors { errors: &g.errors, computed_at: g.params.camera, delta: args.delta },
+        (Some(g), _) => LodSelect::errors(&g.errors, g.params.camera, args.delta, g.params.mode),
         (None, LodChoice::Distance) => LodSelect::Distance { factor: 2.0 },
         _ => LodSelect::Full,
     };
@@ -240,6 +246,7 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
         "blocks": trav.blocks.len(),
         "error_generation": generation,
         "max_block_error_px": trav.max_block_error,
+        "stitch_splits": trav.stitch_splits,
         "traverse_ms": traverse_ms,
         "frame_ms": frame_ms,
         "geometry_bytes": renderer_geometry_bytes(s.layout.k()),
@@ -255,6 +262,7 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
     }
     if let Some(a) = audited {
         out["max_audited_error_px"] = json!(a.max_error_px);
+        out["audited_over_delta"] = json!(a.max_error_px / args.delta);
         out["audited_samples"] = json!(a.samples);
         out["uncovered_samples"] = json!(a.uncovered);
     }

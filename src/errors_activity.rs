@@ -160,6 +160,7 @@ impl ErrorsGpu {
                 (layout::GIE_BINDING_HEIGHTS, sampler, frag),
                 (layout::GIE_BINDING_PREV, sampler, frag),
                 (layout::GIE_BINDING_MINMAX, sampler, frag),
+                (layout::GIE_BINDING_DEVIATION, sampler, frag),
             ],
         )?;
         let reduce_set_layout = DescriptorSetLayout::new(device, &[(layout::REDUCE_BINDING_GIE, sampler, frag)])?;
@@ -180,7 +181,7 @@ impl ErrorsGpu {
         };
         let gie_pipeline = GraphicsPipeline::new(device, &desc(shaders::GIE_FRAG, &gie_layout))?;
         let reduce_pipeline = GraphicsPipeline::new(device, &desc(shaders::BLOCK_REDUCE_FRAG, &reduce_layout))?;
-        let pool = DescriptorPool::new(device, 2 * (n + 1), &[(sampler, 2 * (3 * n + 1))])?;
+        let pool = DescriptorPool::new(device, 2 * (n + 1), &[(sampler, 2 * (4 * n + 1))])?;
         let commands = CommandPool::new(device, device.errors_queue.family)?;
 
         // GIE of LOD 1 has no previous level; its binding still needs a valid image.
@@ -238,6 +239,7 @@ impl ErrorsGpu {
                         (layout::GIE_BINDING_HEIGHTS, terrain.heights.view, terrain.nearest.handle),
                         (layout::GIE_BINDING_PREV, prev, terrain.nearest.handle),
                         (layout::GIE_BINDING_MINMAX, terrain.minmax.view, terrain.nearest.handle),
+                        (layout::GIE_BINDING_DEVIATION, terrain.deviation.view, terrain.nearest.handle),
                     ],
                     &[],
                 );
@@ -364,7 +366,7 @@ impl ErrorsGpu {
                 level: [lod as i32, n as i32, (p.mode == crate::gie::ErrorMode::Strict) as i32, unorm],
                 extent: [self.hf.width as i32, self.hf.height as i32, side as i32, 0],
                 camera: [p.camera.x, p.camera.y, p.camera.z, p.kappa],
-                params: [self.hf.spacing, self.hf.height_scale, p.near, p.inv_cos2],
+                params: [self.hf.spacing, self.hf.height_scale, p.near, 0.0],
             };
             self.pass(
                 cmd,

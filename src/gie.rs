@@ -12,8 +12,9 @@ use glam::Vec3;
 pub enum ErrorMode {
     /// The paper's eqs. 2-4: per-vertex distance, max over nested levels.
     Paper,
-    /// A bound that holds for every camera orientation: group AABB distance,
-    /// 1 / cos^2 of the half-diagonal field of view, nested errors added.
+    /// A bound on the surface actually drawn: the exact deviation of each group from its
+    /// LOD mesh over the distance to the group's box; the traversal adds the block's own
+    /// 1 / cos^2 and the stitched strips.
     #[default]
     Strict,
 }
@@ -27,20 +28,33 @@ impl ErrorMode {
     }
 }
 
-/// Everything an error generation depends on besides the heightfield.
+/// Everything an error generation depends on besides the heightfield. Strict mode's
+/// data depends on the camera's position only, not on its rotation.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct ErrorParams {
     pub camera: Vec3,
     pub kappa: f32,
-    pub inv_cos2: f32,
     pub near: f32,
     pub mode: ErrorMode,
 }
 
 impl ErrorParams {
     pub fn new(cam: &Camera, mode: ErrorMode) -> Self {
-        ErrorParams { camera: cam.position, kappa: cam.kappa(), inv_cos2: cam.inv_cos2_max(), near: cam.near, mode }
+        ErrorParams { camera: cam.position, kappa: cam.kappa(), near: cam.near, mode }
     }
+}
+
+/// The world-space part of strict mode. Only [`WorldPart::Exact`] is used by the
+/// renderer; the others exist to measure what it buys and to show that the audit
+/// catches a bound that is too small (mutation tests).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum WorldPart {
+    /// `D_i = max |H - L_i|` over the group (SPEC section 3).
+    Exact,
+    /// `max(children) + max |WIE|`: valid but loose (the first wave's bound).
+    NestedSum,
+    /// `max(children, max |WIE|)`: the paper's eq. 4 in world units; NOT a bound.
+    NestedMax,
 }
 
 /// `GIE_i` for every group of every LOD `i = 1..=n`: `levels[i-1]` is row-major with
@@ -64,17 +78,25 @@ impl GroupErrors {
 /// interpolates (eq. 1): b=(a+c)/2, d=(a+g)/2, e=(a+i)/2, f=(c+i)/2, h=(g+i)/2.
 const DROPPED: [(i64, i64); 5] = [(1, 0), (0, 1), (1, 1), (2, 1), (1, 2)];
 
-/// Group errors of every LOD (eqs. 1-4, or strict mode).
+/// Group errors of every LOD (eqs. 1-4, or strict mode): what the GPU computes.
 pub fn group_errors(hf: &Heightfield, mm: &MinMaxPyramid, p: &ErrorParams) -> GroupErrors {
+    group_errors_with(hf, mm, p, WorldPart::Exact)
+}
+
+/// [`group_errors`] with a chosen world part for strict mode (see [`WorldPart`]).
+pub fn group_errors_with(hf: &Heightfield, mm: &MinMaxPyramid, p: &ErrorParams, world: WorldPart) -> GroupErrors {
     let n = hf.n;
     let spacing = hf.spacing;
     let hscale = hf.height_scale;
     let mut levels: Vec<Vec<f32>> = Vec::with_capacity(n as usize);
+    // Nested world deviations (raw units) of the previous LOD, for the mutation variants.
+    let mut nested_prev: Vec<f32> = Vec::new();
     for lod in 1..=n {
         let side = 1usize << (n - lod);
         let size = 1i64 << lod;
         let h = size >> 1;
         let mut level = vec![0.0f32; side * side];
+        let mut nested = vec![0.0f32; if world == WorldPart::Exact { 0 } else { side * side }];
         for b in 0..side {
             for a in 0..side {
                 let cx = a as i64 * size;
@@ -88,19 +110,34 @@ pub fn group_errors(hf: &Heightfield, mm: &MinMaxPyramid, p: &ErrorParams) -> Gr
                 let ri = hf.raw_at(cx + 2 * h, cz + 2 * h);
                 let lo = [ra, ra, ra, rc, rg];
                 let hi = [rc, rg, ri, ri, ri];
-                let level_err = match p.mode {
+                let child = |v: &[f32]| -> f32 {
+                    if lod == 1 {
+                        return 0.0;
+                    }
+                    let (ps, pa, pb) = (side * 2, 2 * a, 2 * b);
+                    v[pb * ps + pa].max(v[pb * ps + pa + 1]).max(v[(pb + 1) * ps + pa]).max(v[(pb + 1) * ps + pa + 1])
+                };
+                level[b * side + a] = match p.mode {
                     ErrorMode::Strict => {
                         let [mn, mx] = mm.get(lod, a, b);
                         let bmin = Vec3::new(cx as f32 * spacing, mn * hscale, cz as f32 * spacing);
                         let bmax = Vec3::new((cx + size) as f32 * spacing, mx * hscale, (cz + size) as f32 * spacing);
                         let d = distance_to_aabb(p.camera, bmin, bmax).max(p.near);
-                        let mut max_wie = 0.0f32;
-                        for (k, (ox, oz)) in DROPPED.iter().enumerate() {
-                            let rv = hf.raw_at(cx + ox * h, cz + oz * h);
-                            let wie = (rv - (lo[k] + hi[k]) * 0.5) * hscale;
-                            max_wie = max_wie.max(wie.abs());
-                        }
-                        max_wie * p.kappa * p.inv_cos2 / d
+                        let dev = match world {
+                            WorldPart::Exact => mm.deviation(lod, a, b),
+                            WorldPart::NestedSum | WorldPart::NestedMax => {
+                                let mut max_wie = 0.0f32;
+                                for (k, (ox, oz)) in DROPPED.iter().enumerate() {
+                                    let rv = hf.raw_at(cx + ox * h, cz + oz * h);
+                                    max_wie = max_wie.max((rv - (lo[k] + hi[k]) * 0.5).abs());
+                                }
+                                let c = child(&nested_prev);
+                                let v = if world == WorldPart::NestedSum { c + max_wie } else { c.max(max_wie) };
+                                nested[b * side + a] = v;
+                                v
+                            }
+                        };
+                        dev * hscale * p.kappa / d
                     }
                     ErrorMode::Paper => {
                         let mut e = 0.0f32;
@@ -112,27 +149,14 @@ pub fn group_errors(hf: &Heightfield, mm: &MinMaxPyramid, p: &ErrorParams) -> Gr
                             let d = (pv - p.camera).length().max(p.near);
                             e = e.max(wie.abs() * p.kappa / d);
                         }
-                        e
+                        // Eq. 4: the max with the four child groups.
+                        child(levels.last().map_or(&[][..], |v| v)).max(e)
                     }
-                };
-                let child = if lod > 1 {
-                    let prev = &levels[(lod - 2) as usize];
-                    let ps = side * 2;
-                    let (pa, pb) = (2 * a, 2 * b);
-                    prev[pb * ps + pa]
-                        .max(prev[pb * ps + pa + 1])
-                        .max(prev[(pb + 1) * ps + pa])
-                        .max(prev[(pb + 1) * ps + pa + 1])
-                } else {
-                    0.0
-                };
-                level[b * side + a] = match p.mode {
-                    ErrorMode::Strict => child + level_err,
-                    ErrorMode::Paper => child.max(level_err),
                 };
             }
         }
         levels.push(level);
+        nested_prev = nested;
     }
     GroupErrors { n, levels }
 }
@@ -222,7 +246,7 @@ mod tests {
     }
 
     fn params(mode: ErrorMode) -> ErrorParams {
-        ErrorParams { camera: Vec3::new(4.0, 20.0, 4.0), kappa: 500.0, inv_cos2: 2.0, near: 0.1, mode }
+        ErrorParams { camera: Vec3::new(4.0, 20.0, 4.0), kappa: 500.0, near: 0.1, mode }
     }
 
     #[test]
@@ -261,21 +285,30 @@ mod tests {
     }
 
     #[test]
-    fn strict_is_never_below_paper() {
+    fn exact_world_part_lies_between_the_wie_and_the_nested_sum() {
         let h = hf(33, |x, z| ((x * 7 + z * 13) % 11) as f32 + ((x as f32) * 0.3).sin() * 4.0);
         let mm = MinMaxPyramid::build(&h);
-        let mut pp = params(ErrorMode::Paper);
         let mut ps = params(ErrorMode::Strict);
         for cam in [Vec3::new(16.0, 3.0, 16.0), Vec3::new(-50.0, 40.0, 10.0), Vec3::new(5.0, 0.5, 30.0)] {
-            pp.camera = cam;
             ps.camera = cam;
-            let a = group_errors(&h, &mm, &pp);
-            let b = group_errors(&h, &mm, &ps);
-            for (la, lb) in a.levels.iter().zip(&b.levels) {
-                for (x, y) in la.iter().zip(lb) {
-                    assert!(y >= x, "strict {y} < paper {x}");
+            let exact = group_errors(&h, &mm, &ps);
+            let sum = group_errors_with(&h, &mm, &ps, WorldPart::NestedSum);
+            let max = group_errors_with(&h, &mm, &ps, WorldPart::NestedMax);
+            // LOD 1: a group's samples are its nine vertices, so all three agree (up to the
+            // rounding of two ways to interpolate).
+            for other in [&sum, &max] {
+                for (e, o) in exact.levels[0].iter().zip(&other.levels[0]) {
+                    assert!((e - o).abs() <= 1e-5 * e.abs().max(1.0), "LOD 1: {e} vs {o}");
                 }
             }
+            let mut tighter = 0;
+            for (le, ls) in exact.levels.iter().zip(&sum.levels) {
+                for (e, s) in le.iter().zip(ls) {
+                    assert!(*e <= s * (1.0 + 1e-6), "exact {e} above the nested sum {s}");
+                    tighter += (e < s) as usize;
+                }
+            }
+            assert!(tighter > 0, "the exact deviation never beat the nested sum");
         }
     }
 

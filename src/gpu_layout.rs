@@ -79,6 +79,8 @@ pub const GIE_BINDING_HEIGHTS: u32 = 0;
 pub const GIE_BINDING_PREV: u32 = 1;
 /// GIE pass: the min/max height pyramid (RG32F, LOD L in mip L-1).
 pub const GIE_BINDING_MINMAX: u32 = 2;
+/// GIE pass: the exact group deviation `D_L` (R32F raw units, LOD L in mip L-1).
+pub const GIE_BINDING_DEVIATION: u32 = 3;
 
 /// Block reduction pass: the whole GIE mip chain.
 pub const REDUCE_BINDING_GIE: u32 = 0;
@@ -127,7 +129,7 @@ gpu_block! {
         extent: [i32; 4] => "ivec4",
         /// xyz: camera position, w: kappa (pixels per unit of tangent).
         camera: [f32; 4] => "vec4",
-        /// spacing, height_scale, near, 1 / cos^2(theta_max) (strict mode).
+        /// spacing, height_scale, near, unused.
         params: [f32; 4] => "vec4",
     }
 }
@@ -150,6 +152,7 @@ pub const GLSL_CONSTANTS: &[(&str, u32)] = &[
     ("GIE_BINDING_HEIGHTS", GIE_BINDING_HEIGHTS),
     ("GIE_BINDING_PREV", GIE_BINDING_PREV),
     ("GIE_BINDING_MINMAX", GIE_BINDING_MINMAX),
+    ("GIE_BINDING_DEVIATION", GIE_BINDING_DEVIATION),
     ("REDUCE_BINDING_GIE", REDUCE_BINDING_GIE),
 ];
 

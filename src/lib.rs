@@ -9,10 +9,13 @@
 pub mod audit;
 pub mod bench;
 pub mod camera;
+pub mod deviation;
 pub mod gie;
 pub mod gpu_layout;
 pub mod heightfield;
 pub mod quadtree;
+pub mod quality;
+pub mod stitch;
 
 /// SPIR-V of every shader in `glsl/`, compiled by build.rs.
 pub mod shaders {

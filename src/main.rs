@@ -26,6 +26,9 @@ enum Command {
     Errors(ErrorsArgs),
     /// Run a camera path headless and write frames.csv, summary.json, plot.png, trace.json.
     Bench(vkterrain::bench::BenchArgs),
+    /// Sweep delta and the distance factor on CPU along a path: triangles against the
+    /// audited maximum error (quality.csv, quality.json, quality.png).
+    Quality(vkterrain::quality::QualityArgs),
 }
 
 fn main() -> ExitCode {
@@ -54,6 +57,7 @@ fn main() -> ExitCode {
         Some(Command::Render(a)) => commands::render(a),
         Some(Command::Errors(a)) => commands::errors(a),
         Some(Command::Bench(a)) => vkterrain::bench::bench(a),
+        Some(Command::Quality(a)) => vkterrain::quality::quality(a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

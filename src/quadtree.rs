@@ -2,9 +2,10 @@
 //! draw, at which LOD, with their neighbours' LODs for crack-free stitching.
 
 use crate::camera::{distance_to_aabb, Camera, Frustum};
-use crate::gie::BlockErrors;
+use crate::gie::{BlockErrors, ErrorMode};
 use crate::heightfield::{Heightfield, MinMaxPyramid};
 use glam::Vec3;
+use std::collections::HashSet;
 
 /// Block geometry: `k = 2^m + 1` vertices a side; a block of LOD `j` covers `2^(m+j)`
 /// samples; the root is at LOD `n - m`.
@@ -75,20 +76,34 @@ pub enum LodSelect<'a> {
     /// Every visible block at LOD 0 (the brute-force reference).
     Full,
     /// The paper's method: refine while the block error exceeds `delta` pixels. `errors`
-    /// were computed for a camera at `computed_at`.
-    Errors { errors: &'a BlockErrors, computed_at: Vec3, delta: f32 },
+    /// were computed for a camera at `computed_at`. In strict mode the traversal also
+    /// applies each block's own `1 / cos^2` and, with `stitch_bound`, the deviation of
+    /// its stitched strips (splitting coarser neighbours until they fit): see
+    /// [`LodSelect::errors`].
+    Errors { errors: &'a BlockErrors, computed_at: Vec3, delta: f32, mode: ErrorMode, stitch_bound: bool },
     /// Distance rings (the GeoMipMapping-style baseline): refine while the camera is
     /// closer than `factor` times the block's size.
     Distance { factor: f32 },
 }
 
+impl<'a> LodSelect<'a> {
+    /// Error-driven selection as the renderer uses it: in strict mode the stitched
+    /// strips are paid for in the bound.
+    pub fn errors(errors: &'a BlockErrors, computed_at: Vec3, delta: f32, mode: ErrorMode) -> Self {
+        LodSelect::Errors { errors, computed_at, delta, mode, stitch_bound: mode == ErrorMode::Strict }
+    }
+}
+
 #[derive(Clone, Debug, Default)]
 pub struct Traversal {
     pub blocks: Vec<DrawBlock>,
-    /// Largest (stale-corrected) error among drawn blocks of LOD > 0.
+    /// Largest error (pixels) the traversal accepted for a drawn block: stale-corrected,
+    /// with the block's off-axis factor and stitched strips in strict mode.
     pub max_block_error: f32,
     /// LOD of the drawn block over each finest-grid cell, -1 where nothing is drawn.
     pub lod_map: Vec<i8>,
+    /// Blocks split only because a finer neighbour's stitched strip exceeded delta.
+    pub stitch_splits: usize,
 }
 
 /// World-space AABB of a block.
@@ -110,12 +125,82 @@ pub fn block_aabb(
 }
 
 /// Traverses the quadtree top-down from the root (culling before splitting or drawing).
+/// In strict mode with the stitch bound, a block whose stitched strip along a coarser
+/// neighbour exceeds delta forces that neighbour to split; the traversal is repeated
+/// until no strip exceeds delta (each block is forced at most once, so it ends).
 pub fn traverse(
     hf: &Heightfield,
     mm: &MinMaxPyramid,
     layout: &BlockLayout,
     cam: &Camera,
     select: LodSelect,
+) -> Traversal {
+    let mut forced = HashSet::new();
+    loop {
+        let mut out = traverse_once(hf, mm, layout, cam, select, &forced);
+        out.stitch_splits = forced.len();
+        let delta = match select {
+            LodSelect::Errors { delta, mode: ErrorMode::Strict, stitch_bound: true, .. } => delta,
+            _ => return out,
+        };
+        let before = forced.len();
+        let cells = layout.cells() as i64;
+        for b in &out.blocks {
+            if b.coarser == [0; 4] {
+                continue;
+            }
+            let strips = mm.stitch.get(hf, layout, b);
+            let (mut min, mut max) = block_aabb(hf, mm, layout, b.lod, b.bx, b.bz);
+            min.y = min.y.min(strips.lo * hf.height_scale);
+            max.y = max.y.max(strips.hi * hf.height_scale);
+            let px_per_world = world_to_pixels(cam, min, max);
+            let span = 1i64 << b.lod;
+            let (cx, cz) = (b.bx as i64 * span, b.bz as i64 * span);
+            for (e, (nx, nz)) in [(cx, cz - 1), (cx + span, cz), (cx, cz + span), (cx - 1, cz)].into_iter().enumerate()
+            {
+                if b.coarser[e] == 0 {
+                    continue;
+                }
+                let err = strips.edge[e] * hf.height_scale * px_per_world;
+                if err <= delta {
+                    out.max_block_error = out.max_block_error.max(err);
+                    continue;
+                }
+                if nx >= 0 && nz >= 0 && nx < cells && nz < cells {
+                    let lod = out.lod_map[(nz * cells + nx) as usize];
+                    if lod > 0 {
+                        forced.insert((lod as u32, (nx >> lod) as u32, (nz >> lod) as u32));
+                    }
+                }
+            }
+        }
+        if forced.len() == before {
+            return out;
+        }
+    }
+}
+
+/// Pixels per world unit of a vertical deviation inside the box `[min, max]` for this
+/// camera: `kappa cos(beta_b) / (cos^2(theta_b) * distance)`, see [`angular_factor`].
+pub fn world_to_pixels(cam: &Camera, min: Vec3, max: Vec3) -> f32 {
+    cam.kappa() * angular_factor(cam, min, max) / distance_to_aabb(cam.position, min, max).max(cam.near)
+}
+
+/// What the camera's orientation does to a vertical deviation inside the box, on top of
+/// `kappa / distance` (the GPU data): the projection magnifies by up to
+/// `1 / cos^2(theta_b)` off the optical axis, and only the part of a vertical segment
+/// across the ray shows, at most `cos(beta_b)` of it (SPEC section 3).
+pub fn angular_factor(cam: &Camera, min: Vec3, max: Vec3) -> f32 {
+    cam.inv_cos2_aabb(min, max) * cam.vertical_factor_aabb(min, max)
+}
+
+fn traverse_once(
+    hf: &Heightfield,
+    mm: &MinMaxPyramid,
+    layout: &BlockLayout,
+    cam: &Camera,
+    select: LodSelect,
+    forced: &HashSet<(u32, u32, u32)>,
 ) -> Traversal {
     let frustum = cam.frustum();
     let mut out = Traversal::default();
@@ -131,12 +216,18 @@ pub fn traverse(
         }
         let (draw, err) = if lod == 0 {
             (true, 0.0)
+        } else if forced.contains(&(lod, bx, bz)) {
+            (false, 0.0)
         } else {
             match select {
                 LodSelect::Full => (false, 0.0),
-                LodSelect::Errors { errors, computed_at, delta } => {
-                    let e =
+                LodSelect::Errors { errors, computed_at, delta, mode, .. } => {
+                    let mut e =
                         stale_corrected(errors.get(lod, bx as usize, bz as usize), computed_at, cam.position, min, max);
+                    if mode == ErrorMode::Strict {
+                        // The GPU data holds D * kappa / distance; the angles are this frame's.
+                        e *= angular_factor(cam, min, max);
+                    }
                     (e <= delta, e)
                 }
                 LodSelect::Distance { factor } => {

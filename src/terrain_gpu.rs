@@ -8,6 +8,8 @@ use std::sync::Arc;
 pub struct TerrainGpu {
     pub heights: Image,
     pub minmax: Image,
+    /// Exact group deviations `D_L` (R32F, LOD L in mip L-1): strict mode's world part.
+    pub deviation: Image,
     pub nearest: Sampler,
     pub linear: Sampler,
     pub base: Image,
@@ -60,6 +62,17 @@ impl TerrainGpu {
             true,
         )?;
         upload(device, &pool, &minmax, &mip_refs)?;
+        let dev_mips: Vec<&[u8]> = mm.dev.iter().map(|l| bytemuck::cast_slice(l)).collect();
+        let deviation = Image::new(
+            device,
+            "group deviation pyramid",
+            extent(mm_side, mm_side),
+            vk::Format::R32_SFLOAT,
+            hf.n,
+            usage,
+            true,
+        )?;
+        upload(device, &pool, &deviation, &dev_mips)?;
 
         let white = Texture { width: 1, height: 1, rgba: vec![255; 4] };
         let tex = |name: &str, t: &Texture| -> VkResult<Image> {
@@ -69,10 +82,13 @@ impl TerrainGpu {
         };
         let base_img = tex("base texture", base.unwrap_or(&white))?;
         let detail_img = tex("detail texture", detail.unwrap_or(&white))?;
-        let total = bytes.len() + mips.iter().map(|m| m.len()).sum::<usize>();
+        let total = bytes.len()
+            + mips.iter().map(|m| m.len()).sum::<usize>()
+            + mm.dev.iter().map(|l| l.len() * 4).sum::<usize>();
         Ok(TerrainGpu {
             heights,
             minmax,
+            deviation,
             nearest: Sampler::new(device, vk::Filter::NEAREST, vk::SamplerAddressMode::CLAMP_TO_EDGE)?,
             linear: Sampler::new(device, vk::Filter::LINEAR, vk::SamplerAddressMode::REPEAT)?,
             base: base_img,

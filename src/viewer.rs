@@ -501,7 +501,7 @@ impl App {
         let blocks = match (&self.frozen, usable) {
             (Some(b), _) => b.clone(),
             (None, Some(g)) => {
-                let sel = LodSelect::Errors { errors: &g.errors, computed_at: g.params.camera, delta: self.delta };
+                let sel = LodSelect::errors(&g.errors, g.params.camera, self.delta, g.params.mode);
                 traverse(&self.hf, &self.mm, &self.layout, &cam, sel).blocks
             }
             (None, None) => {

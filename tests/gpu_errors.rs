@@ -45,11 +45,11 @@ fn check(device: &Arc<vkterrain::vk::Device>, hf: Heightfield, k: u32, cameras: 
             }
             per_mode.push(gpu_g);
         }
-        // Strict mode is never below paper mode.
-        for (a, b) in per_mode[0].levels.iter().zip(&per_mode[1].levels) {
-            for (p, s) in a.iter().zip(b) {
-                assert!(s >= p, "strict {s} < paper {p}");
-            }
+        // At LOD 1 (no nesting yet) strict mode bounds paper mode: the exact deviation
+        // covers every dropped vertex, and the group's box is nearer than the vertex. From
+        // LOD 2 up the paper's nested max may exceed the exact deviation of the parent.
+        for (p, s) in per_mode[0].levels[0].iter().zip(&per_mode[1].levels[0]) {
+            assert!(*s >= p * (1.0 - 1e-5), "LOD 1: strict {s} < paper {p}");
         }
     }
     largest

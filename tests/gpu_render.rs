@@ -54,7 +54,7 @@ impl Scene {
             None => LodSelect::Full,
             Some((activity, delta)) => {
                 gen = activity.wait_for(ErrorParams::new(cam, mode), std::time::Duration::from_secs(120)).unwrap();
-                LodSelect::Errors { errors: &gen.errors, computed_at: gen.params.camera, delta }
+                LodSelect::errors(&gen.errors, gen.params.camera, delta, gen.params.mode)
             }
         };
         let t = traverse(&self.hf, &self.mm, &self.layout, cam, select);

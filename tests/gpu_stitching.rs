@@ -28,8 +28,7 @@ fn compare(
     let (mut n, mut collapsed, mut lerped) = (0, 0, 0);
     for cam in cams {
         let errors = block_errors(&group_errors(hf, &mm, &ErrorParams::new(cam, ErrorMode::Strict)), layout.m);
-        let t =
-            traverse(hf, &mm, &layout, cam, LodSelect::Errors { errors: &errors, computed_at: cam.position, delta });
+        let t = traverse(hf, &mm, &layout, cam, LodSelect::errors(&errors, cam.position, delta, ErrorMode::Strict));
         let gpu = renderer.capture_vertices(hf, &terrain, cam, &t.blocks).unwrap();
         let kk = layout.k();
         for (i, b) in t.blocks.iter().enumerate() {

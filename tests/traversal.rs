@@ -7,7 +7,7 @@ use common::*;
 use glam::Vec3;
 use vkterrain::audit::{audit, check_tiling};
 use vkterrain::camera::Camera;
-use vkterrain::gie::{block_errors, group_errors, ErrorMode, ErrorParams};
+use vkterrain::gie::{block_errors, group_errors_with, ErrorMode, ErrorParams, WorldPart};
 use vkterrain::heightfield::{self, Heightfield, LoadOptions, MinMaxPyramid};
 use vkterrain::quadtree::{block_vertex, traverse, BlockLayout, LodSelect, Traversal};
 
@@ -56,9 +56,39 @@ fn frame(
     mode: ErrorMode,
     delta: f32,
 ) -> Traversal {
+    frame_with(hf, mm, layout, cam, computed_at, mode, delta, Variant::Renderer)
+}
+
+/// What the traversal runs on: the renderer's bound, or one broken on purpose to show
+/// that the audit catches it (mutation tests).
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Variant {
+    Renderer,
+    /// The first wave's stitching: collapsed strips not paid for in the bound.
+    NoStitchBound,
+    /// The paper's nested max in place of the exact world deviation.
+    NestedMax,
+}
+
+#[allow(clippy::too_many_arguments)]
+fn frame_with(
+    hf: &Heightfield,
+    mm: &MinMaxPyramid,
+    layout: &BlockLayout,
+    cam: &Camera,
+    computed_at: &Camera,
+    mode: ErrorMode,
+    delta: f32,
+    variant: Variant,
+) -> Traversal {
     let p = ErrorParams::new(computed_at, mode);
-    let b = block_errors(&group_errors(hf, mm, &p), layout.m);
-    traverse(hf, mm, layout, cam, LodSelect::Errors { errors: &b, computed_at: computed_at.position, delta })
+    let world = if variant == Variant::NestedMax { WorldPart::NestedMax } else { WorldPart::Exact };
+    let b = block_errors(&group_errors_with(hf, mm, &p, world), layout.m);
+    let mut select = LodSelect::errors(&b, computed_at.position, delta, mode);
+    if let LodSelect::Errors { stitch_bound, .. } = &mut select {
+        *stitch_bound &= variant != Variant::NoStitchBound;
+    }
+    traverse(hf, mm, layout, cam, select)
 }
 
 /// Runs `count` random poses of every kind; returns the worst audited error per mode.
@@ -151,6 +181,17 @@ fn stitching_matches_coarser_neighbours() {
                             2 => (t_, kk - 1),
                             _ => (0, t_),
                         };
+                        // At a corner the coarser of the two edges' neighbours decides.
+                        let other = match (u, v) {
+                            (0, 0) => Some(if edge == 0 { 3 } else { 0 }),
+                            (u, 0) if u == kk - 1 => Some(if edge == 0 { 1 } else { 0 }),
+                            (0, v) if v == kk - 1 => Some(if edge == 2 { 3 } else { 2 }),
+                            (u, v) if u == kk - 1 && v == kk - 1 => Some(if edge == 2 { 1 } else { 2 }),
+                            _ => None,
+                        };
+                        if other.is_some_and(|o| b.coarser[o] > ns) {
+                            continue;
+                        }
                         let (sx, sz, raw) = block_vertex(&hf, &layout, b, u, v);
                         let along = if edge % 2 == 0 { sx } else { sz };
                         if ns <= (kk - 1) * b.stride() {
@@ -216,4 +257,278 @@ fn full_lod_draws_every_visible_block_at_lod_0() {
     assert!(t.blocks.iter().all(|b| b.lod == 0));
     assert_eq!(t.blocks.len(), 64);
     check_tiling(&hf, &mm, &layout, &t.blocks, &cam).unwrap();
+}
+
+// ---- Adversarial fields: inputs made to break the strict bound (SPEC section 7) ----
+
+/// A camera near the ground at `(x, z)` (samples), looking along `yaw` and down `pitch`.
+fn cam_at(hf: &Heightfield, x: f32, z: f32, above: f32, yaw: f32, pitch: f32, fovy: f32) -> Camera {
+    let pos = Vec3::new(x * hf.spacing, 0.0, z * hf.spacing);
+    let y = hf.surface_height(pos.x, pos.z) + above * hf.spacing;
+    let pos = Vec3::new(pos.x, y, pos.z);
+    let dir = Vec3::new(yaw.cos() * pitch.cos(), pitch.sin(), yaw.sin() * pitch.cos());
+    Camera::look_at(pos, pos + dir, fovy, 640, 480, hf.spacing * 0.05)
+}
+
+/// Poses that put LOD boundaries of the crafted fields on screen: along and across the
+/// line `x = edge` (in samples), near and far, looking down and along the ground, with
+/// narrow and wide fields of view; plus the random poses of every kind.
+fn adversarial_poses(hf: &Heightfield, edge: f32, count: usize, seed: u64) -> Vec<Camera> {
+    let mut rng = Rng(seed);
+    let mut poses = Vec::new();
+    let side = hf.width.min(hf.height) as f32;
+    for i in 0..count {
+        let kinds = [Pose::NearGround, Pose::High, Pose::LookingDown, Pose::Horizon];
+        if i % 3 == 2 {
+            poses.push(pose(hf, &mut rng, kinds[i % 4]));
+            continue;
+        }
+        let x = edge + (rng.next() - 0.5) * side * 0.3;
+        let z = side * (0.1 + 0.8 * rng.next());
+        let above = [0.5f32, 3.0, 12.0, 60.0][i % 4] * (0.5 + rng.next());
+        let yaw = rng.next() * std::f32::consts::TAU;
+        let pitch = -0.05 - 1.4 * rng.next() * rng.next();
+        let fovy = [30.0f32, 60.0, 90.0][i % 3];
+        poses.push(cam_at(hf, x, z, above, yaw, pitch, fovy));
+    }
+    poses
+}
+
+/// Worst audited error / delta over `poses`, fresh and stale error data alternating.
+/// With `require` the strict bound is asserted on every pose.
+fn worst_ratio(hf: &Heightfield, k: u32, poses: &[Camera], variant: Variant, require: bool) -> f32 {
+    let mm = MinMaxPyramid::build(hf);
+    let layout = BlockLayout::new(hf.n, k).unwrap();
+    let mut worst = 0.0f32;
+    for (i, cam) in poses.iter().enumerate() {
+        let delta = [1.0f32, 0.5, 2.0][i % 3];
+        let old = if i % 2 == 0 {
+            *cam
+        } else {
+            let mut o = *cam;
+            o.position += Vec3::new(3.0, 0.5, -2.0) * hf.spacing;
+            o
+        };
+        let t = frame_with(hf, &mm, &layout, cam, &old, ErrorMode::Strict, delta, variant);
+        let a = audit(hf, &layout, &t, cam);
+        assert_eq!(a.uncovered, 0, "pose {i}: visible samples not covered");
+        if require {
+            check_tiling(hf, &mm, &layout, &t.blocks, cam).unwrap_or_else(|e| panic!("pose {i}: {e}"));
+            assert!(
+                a.max_error_px <= delta * 1.01,
+                "{}, k {k}, pose {i} at {:?} looking {:?}, delta {delta}: audited {} px at {:?} (block errors {})",
+                hf.source,
+                cam.position,
+                cam.forward,
+                a.max_error_px,
+                a.worst,
+                t.max_block_error
+            );
+        }
+        worst = worst.max(a.max_error_px / delta);
+    }
+    worst
+}
+
+/// A flat half next to ridges that run perpendicular to the boundary `x = 128`, built
+/// so that the first wave's bound sees no error at all: the ridge half is exactly
+/// piecewise linear on the LOD-`j` grid (random heights at every `2^j`-th sample, split
+/// along the a-i diagonal), so its blocks at LOD `j` have `D = 0`, and the flat half is
+/// flat. The collapsed strip along the boundary re-triangulates the ridges with fans:
+/// that error is the stitching's alone.
+fn flat_next_to_ridges(j: u32, amplitude: f32) -> Heightfield {
+    let s = 1usize << j;
+    let vertex = |x: usize, z: usize| -> f32 {
+        if x <= 128 {
+            0.0
+        } else {
+            (((x * 7919) ^ (z * 104729)).wrapping_mul(2654435761) % 41) as f32 * amplitude / 40.0
+        }
+    };
+    let mut hf = field(257, 257, 1.0, move |x, z| {
+        let (x0, z0) = (x / s * s, z / s * s);
+        let (x1, z1) = ((x0 + s).min(256), (z0 + s).min(256));
+        let (fx, fz) = ((x - x0) as f32 / s as f32, (z - z0) as f32 / s as f32);
+        let (a, c, g, i) = (vertex(x0, z0), vertex(x1, z0), vertex(x0, z1), vertex(x1, z1));
+        if fx >= fz {
+            a + (c - a) * fx + (i - c) * fz
+        } else {
+            a + (g - a) * fz + (i - g) * fx
+        }
+    });
+    hf.source = format!("flat next to ridges (LOD {j} grid, {amplitude})");
+    hf
+}
+
+/// Spikes in the first interior row and column of every block of side `k - 1` at LOD 0,
+/// and every other sample along the block edges raised: collapsed edge vertices drop
+/// them, the fan triangles spread them.
+fn first_row_spikes(k: usize, amplitude: f32) -> Heightfield {
+    let q = k - 1;
+    let mut hf = field(257, 257, 1.0, move |x, z| {
+        let flat = x < 96 || z < 64;
+        if flat {
+            0.0
+        } else if x % q == 1 || z % q == 1 {
+            if (x + z) % 3 == 0 {
+                amplitude
+            } else {
+                0.0
+            }
+        } else if (x % q == 0 || z % q == 0) && (x + z) % 2 == 1 {
+            amplitude * 0.4
+        } else {
+            0.0
+        }
+    });
+    hf.source = format!("first-row spikes (k {k}, {amplitude})");
+    hf
+}
+
+/// A blancmange surface: tents of every scale, each adding the same interpolation error
+/// at its own level, so the deviation from LOD `i` grows with `i` while every level's
+/// `max |WIE|` stays the same: the paper's nested max misses most of it.
+fn blancmange() -> Heightfield {
+    let b = |x: usize| -> f32 {
+        (1..=8)
+            .map(|k| {
+                let p = 1usize << k;
+                let d = (x % p).min(p - x % p);
+                d as f32 / (p / 2) as f32
+            })
+            .sum::<f32>()
+    };
+    let mut hf = field(257, 257, 1.0, move |x, z| 0.03 * (b(x) + b(z)));
+    hf.source = "blancmange".into();
+    hf
+}
+
+/// Steps parallel to block edges one sample inside them, on one side of the field.
+fn edge_steps(amplitude: f32) -> Heightfield {
+    let mut hf =
+        field(
+            257,
+            257,
+            1.0,
+            |x, z| if x < 128 { 0.0 } else { (x.div_ceil(8) as f32 + (z / 8) as f32 * 0.5) * amplitude },
+        );
+    hf.source = format!("steps ({amplitude})");
+    hf
+}
+
+/// Deterministic noise with a smooth and a rough region (non-square, not 2^n + 1).
+fn rough_and_smooth(seed: u64) -> Heightfield {
+    let mut rng = Rng(seed);
+    let noise: Vec<f32> = (0..300 * 200).map(|_| rng.next()).collect();
+    let mut hf = field(300, 200, 2.0, move |x, z| {
+        let smooth = (x as f32 * 0.03).sin() * 20.0 + (z as f32 * 0.05).cos() * 10.0;
+        if x > 150 {
+            smooth + noise[z * 300 + x] * 25.0
+        } else {
+            smooth
+        }
+    });
+    hf.source = format!("noise {seed}");
+    hf
+}
+
+#[test]
+fn strict_holds_delta_on_adversarial_fields() {
+    let mut report = Vec::new();
+    for (j, amplitude) in [(2, 40.0), (1, 0.5), (2, 0.5), (3, 0.3)] {
+        let ridges = flat_next_to_ridges(j, amplitude);
+        for k in [3u32, 9, 33] {
+            let poses = adversarial_poses(&ridges, 128.0, 40, k as u64 + j as u64);
+            let r = worst_ratio(&ridges, k, &poses, Variant::Renderer, true);
+            report.push(format!("{} k {k}: {r:.3}", ridges.source));
+        }
+    }
+    for (k, amplitude) in [(5usize, 40.0), (17, 40.0), (5, 0.3), (17, 0.3)] {
+        let f = first_row_spikes(k, amplitude);
+        let r = worst_ratio(&f, k as u32, &adversarial_poses(&f, 96.0, 60, 40 + k as u64), Variant::Renderer, true);
+        report.push(format!("{}: {r:.3}", f.source));
+    }
+    for amplitude in [6.0, 0.05] {
+        let steps = edge_steps(amplitude);
+        let r = worst_ratio(&steps, 9, &adversarial_poses(&steps, 128.0, 60, 77), Variant::Renderer, true);
+        report.push(format!("{}: {r:.3}", steps.source));
+    }
+    let tents = blancmange();
+    for k in [5u32, 17] {
+        let r = worst_ratio(&tents, k, &adversarial_poses(&tents, 128.0, 40, 90 + k as u64), Variant::Renderer, true);
+        report.push(format!("{} k {k}: {r:.3}", tents.source));
+    }
+    for seed in [1u64, 2] {
+        let f = rough_and_smooth(seed);
+        let r = worst_ratio(&f, 9, &adversarial_poses(&f, 150.0, 40, seed), Variant::Renderer, true);
+        report.push(format!("{}: {r:.3}", f.source));
+    }
+    println!("strict mode, worst audited / delta: {}", report.join("; "));
+}
+
+/// LOD jumps of 1 to beyond m: a lone spike makes the flat field around it coarse while
+/// its own blocks go to LOD 0, so edges meet neighbours many levels coarser, including
+/// the case where the whole edge lies inside one coarse segment.
+#[test]
+fn strict_holds_delta_across_every_lod_jump() {
+    let lone = field(257, 257, 1.0, |x, z| match (x, z) {
+        (129, 129) => 50.0,
+        (61, 190) => 2.0,
+        (190, 61) => 0.2,
+        (200, 200) => 0.02,
+        (_, 130) if x % 2 == 1 && x > 120 && x < 140 => 8.0,
+        _ => 0.0,
+    });
+    let mm = MinMaxPyramid::build(&lone);
+    let mut jumps = std::collections::BTreeSet::new();
+    for k in [3u32, 5, 9] {
+        let layout = BlockLayout::new(lone.n, k).unwrap();
+        let mut poses = adversarial_poses(&lone, 129.0, 30, k as u64 + 100);
+        poses.extend(adversarial_poses(&lone, 61.0, 20, k as u64 + 200));
+        poses.extend(adversarial_poses(&lone, 190.0, 20, k as u64 + 300));
+        poses.push(Camera::look_at(Vec3::new(128.0, 300.0, 128.0), Vec3::new(128.0, 0.0, 127.0), 70.0, 640, 480, 0.05));
+        for cam in &poses {
+            let t = frame(&lone, &mm, &layout, cam, cam, ErrorMode::Strict, 1.0);
+            for b in &t.blocks {
+                for &ns in b.coarser.iter().filter(|&&ns| ns > 0) {
+                    jumps.insert((ns / b.stride()).trailing_zeros());
+                }
+            }
+        }
+        worst_ratio(&lone, k, &poses, Variant::Renderer, true);
+    }
+    assert!((1..=4).all(|j| jumps.contains(&j)) && jumps.iter().any(|&j| j > 4), "LOD jumps seen: {jumps:?}");
+}
+
+/// Mutation tests: the audit must fail when the bound is wrong. Without the stitched
+/// strips in the bound (the first wave's rule), the ridge field breaks delta; with the
+/// paper's nested max as the world part, real data and the spikes break it.
+#[test]
+fn audit_catches_the_broken_bounds() {
+    let ridges = flat_next_to_ridges(2, 40.0);
+    let poses = adversarial_poses(&ridges, 128.0, 60, 9);
+    let unpaid = worst_ratio(&ridges, 9, &poses, Variant::NoStitchBound, false);
+    assert!(unpaid > 1.5, "collapsed strips not in the bound: worst audited / delta only {unpaid}");
+    let paid = worst_ratio(&ridges, 9, &poses, Variant::Renderer, true);
+    let tents = blancmange();
+    let nested_max = worst_ratio(&tents, 17, &adversarial_poses(&tents, 128.0, 80, 57), Variant::NestedMax, false);
+    assert!(nested_max > 1.01, "the paper's nested max as world part: worst audited / delta only {nested_max}");
+    println!("worst audited / delta: no stitch bound {unpaid:.2}, nested max {nested_max:.2}, strict {paid:.3}");
+}
+
+/// The paper's own bound is not one: on its data set it exceeds delta.
+#[test]
+fn paper_mode_exceeds_delta_on_puget_sound() {
+    let hf = heightfield::load(&data("puget_sound/ps_height_1k.png"), &LoadOptions::default()).unwrap();
+    let mm = MinMaxPyramid::build(&hf);
+    let layout = BlockLayout::new(hf.n, 33).unwrap();
+    let mut rng = Rng(21);
+    let mut worst = 0.0f32;
+    for i in 0..40 {
+        let cam = pose(&hf, &mut rng, [Pose::NearGround, Pose::Horizon][i % 2]);
+        let t = frame(&hf, &mm, &layout, &cam, &cam, ErrorMode::Paper, 1.0);
+        worst = worst.max(audit(&hf, &layout, &t, &cam).max_error_px);
+    }
+    println!("paper mode on Puget Sound 1k, 40 poses, delta 1: worst audited {worst:.3} px");
+    assert!(worst > 1.05, "paper mode stayed within delta ({worst}); the README's claim would be wrong");
 }

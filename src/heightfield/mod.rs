@@ -172,13 +172,19 @@ impl Heightfield {
     }
 }
 
-/// Min/max raw heights per group cell: level `L` (1..=n) has `2^(n-L)` cells a side, cell
-/// `(a, b)` covering samples `[2^L a, 2^L (a+1)]` in x and z, both ends included.
+/// What the traversal and the errors activity know about each group cell without a
+/// camera: min/max raw heights and the exact deviation `D_L = max |H - L_L|` (strict
+/// mode's world part, [`crate::deviation`]). Level `L` (1..=n) has `2^(n-L)` cells a
+/// side, cell `(a, b)` covering samples `[2^L a, 2^L (a+1)]` in x and z, both ends
+/// included. Also caches the stitched strips' deviations ([`crate::stitch`]).
 #[derive(Clone, Debug)]
 pub struct MinMaxPyramid {
     pub n: u32,
     /// `levels[L - 1]`, row-major `[min, max]`.
     pub levels: Vec<Vec<[f32; 2]>>,
+    /// `dev[L - 1]`, row-major, raw height units.
+    pub dev: Vec<Vec<f32>>,
+    pub stitch: crate::stitch::StitchCache,
 }
 
 impl MinMaxPyramid {
@@ -219,7 +225,7 @@ impl MinMaxPyramid {
             }
             levels.push(level);
         }
-        MinMaxPyramid { n, levels }
+        MinMaxPyramid { n, levels, dev: crate::deviation::exact_deviation(hf), stitch: Default::default() }
     }
 
     /// Cells a side at level `l`.
@@ -230,6 +236,11 @@ impl MinMaxPyramid {
     /// `[min, max]` raw height of cell `(a, b)` at level `l` (1..=n).
     pub fn get(&self, l: u32, a: usize, b: usize) -> [f32; 2] {
         self.levels[(l - 1) as usize][b * self.cells(l) + a]
+    }
+
+    /// `D_l` (raw units) of cell `(a, b)` at level `l` (1..=n).
+    pub fn deviation(&self, l: u32, a: usize, b: usize) -> f32 {
+        self.dev[(l - 1) as usize][b * self.cells(l) + a]
     }
 
     /// Min and max over the whole grid.

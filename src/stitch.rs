@@ -1,0 +1,165 @@
+//! What stitching costs in the bound (SPEC section 5, cracks). An edge next to a coarser
+//! block collapses its in-between vertices onto the coarser block's vertices (or, when the
+//! whole edge lies inside one coarse segment, moves them onto it): watertight with no
+//! T-junction, but the first strip of quads along that edge is re-triangulated with fan
+//! triangles whose surface neither block's error covers. This module measures that strip
+//! exactly: `max |H - S|` over the samples under the stitched strip `S`, which depends on
+//! the block and its neighbours' LODs but not on the camera, so it is computed once per
+//! configuration and cached. The traversal projects it like any world-space deviation.
+
+use crate::heightfield::Heightfield;
+use crate::quadtree::{block_vertex, BlockLayout, DrawBlock};
+use std::collections::HashMap;
+use std::sync::Mutex;
+
+/// Deviation of the stitched strips of one block, in raw height units.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct StripDeviation {
+    /// `max |H - S|` over the strip along each edge (north, east, south, west); 0 for
+    /// edges without a coarser neighbour.
+    pub edge: [f32; 4],
+    /// Raw height range of the stitched strips' surface: vertices moved onto a coarse
+    /// segment may leave the block's own min/max (the AABB the bound projects with).
+    pub lo: f32,
+    pub hi: f32,
+}
+
+impl StripDeviation {
+    pub fn max(&self) -> f32 {
+        self.edge.iter().cloned().fold(0.0, f32::max)
+    }
+}
+
+type Key = (u32, u32, u32, [u32; 4]);
+
+/// Strip deviations already computed, by block and neighbour strides.
+#[derive(Default)]
+pub struct StitchCache {
+    map: Mutex<HashMap<Key, StripDeviation>>,
+}
+
+impl std::fmt::Debug for StitchCache {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let len = self.map.lock().map_or(0, |m| m.len());
+        write!(f, "StitchCache({len} configurations)")
+    }
+}
+
+impl Clone for StitchCache {
+    fn clone(&self) -> Self {
+        let map = self.map.lock().map(|m| m.clone()).unwrap_or_default();
+        StitchCache { map: Mutex::new(map) }
+    }
+}
+
+impl StitchCache {
+    /// The strip deviation of `b` with its current neighbours, computed on first use.
+    pub fn get(&self, hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock) -> StripDeviation {
+        let key = (b.lod, b.bx, b.bz, b.coarser);
+        // A poisoned lock only means another thread panicked mid-insert; entries are
+        // whole values, so the map is still consistent.
+        if let Some(d) = self.map.lock().unwrap_or_else(|e| e.into_inner()).get(&key) {
+            return *d;
+        }
+        let d = strip_deviation(hf, layout, b);
+        self.map.lock().unwrap_or_else(|e| e.into_inner()).insert(key, d);
+        d
+    }
+}
+
+/// Exact deviation of the stitched strips of `b` (see the module comment). The strip of
+/// an edge is its first row of quads: only those triangles have a moved vertex.
+pub fn strip_deviation(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock) -> StripDeviation {
+    let mut out = StripDeviation { edge: [0.0; 4], lo: f32::INFINITY, hi: f32::NEG_INFINITY };
+    let last = layout.k() - 2; // last quad index
+    for e in 0..4 {
+        if b.coarser[e] == 0 {
+            continue;
+        }
+        let mut m = 0.0f32;
+        for t in 0..=last {
+            let (u, v) = match e {
+                0 => (t, 0),
+                1 => (last, t),
+                2 => (t, last),
+                _ => (0, t),
+            };
+            let vert = |uu: u32, vv: u32| block_vertex(hf, layout, b, uu, vv);
+            let (a, c, i, g) = (vert(u, v), vert(u + 1, v), vert(u + 1, v + 1), vert(u, v + 1));
+            for tri in [[a, c, i], [a, i, g]] {
+                for p in &tri {
+                    out.lo = out.lo.min(p.2);
+                    out.hi = out.hi.max(p.2);
+                }
+                m = m.max(triangle_deviation(hf, &tri));
+            }
+        }
+        out.edge[e] = m;
+    }
+    if out.lo > out.hi {
+        out.lo = 0.0;
+        out.hi = 0.0;
+    }
+    out
+}
+
+/// `max |H - T|` over the integer samples inside triangle `t` (edges included); 0 for a
+/// degenerate (collapsed) triangle, which covers nothing.
+fn triangle_deviation(hf: &Heightfield, t: &[(i64, i64, f32); 3]) -> f32 {
+    let x0 = t.iter().map(|p| p.0).min().unwrap_or(0);
+    let x1 = t.iter().map(|p| p.0).max().unwrap_or(0);
+    let z0 = t.iter().map(|p| p.1).min().unwrap_or(0);
+    let z1 = t.iter().map(|p| p.1).max().unwrap_or(0);
+    let mut m = 0.0f32;
+    for z in z0..=z1 {
+        for x in x0..=x1 {
+            if let Some(r) = crate::audit::interpolate(t, x as f64, z as f64) {
+                m = m.max((hf.raw_at(x, z) - r).abs());
+            }
+        }
+    }
+    m
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::heightfield::HeightFormat;
+
+    fn field(side: usize, f: impl Fn(usize, usize) -> f32) -> Heightfield {
+        let s: Vec<f32> = (0..side * side).map(|i| f(i % side, i / side)).collect();
+        Heightfield::embed("t", side, side, &s, HeightFormat::Float32, 1.0, 1.0).unwrap()
+    }
+
+    #[test]
+    fn no_coarser_neighbour_costs_nothing() {
+        let hf = field(33, |x, z| ((x * 5 + z * 3) % 7) as f32);
+        let layout = BlockLayout::new(hf.n, 9).unwrap();
+        let b = DrawBlock { lod: 0, bx: 1, bz: 1, coarser: [0; 4] };
+        assert_eq!(strip_deviation(&hf, &layout, &b).max(), 0.0);
+    }
+
+    /// A ridge perpendicular to the north edge, in the first interior row: the collapsed
+    /// fan spreads the ridge's height over the strip, which neither block's error covers
+    /// (the LOD-0 block has none, the coarse block never sees row 1).
+    #[test]
+    fn a_ridge_in_the_first_row_shows_in_the_strip() {
+        let hf = field(33, |x, z| {
+            if z == 8 && x == 3 {
+                10.0
+            } else if z == 9 && x == 3 {
+                50.0
+            } else {
+                0.0
+            }
+        });
+        let layout = BlockLayout::new(hf.n, 9).unwrap();
+        // LOD-0 block (0, 1) spans z = 8..16; its north neighbour is coarser (stride 2).
+        let b = DrawBlock { lod: 0, bx: 0, bz: 1, coarser: [2, 0, 0, 0] };
+        let d = strip_deviation(&hf, &layout, &b);
+        assert!(d.edge[0] > 0.0 && d.edge[1..] == [0.0; 3], "{d:?}");
+        let cache = StitchCache::default();
+        assert_eq!(cache.get(&hf, &layout, &b), d);
+        assert_eq!(cache.get(&hf, &layout, &b), d);
+    }
+}
