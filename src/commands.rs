@@ -81,6 +81,8 @@ pub struct Session {
     pub layout: BlockLayout,
     pub device: Arc<Device>,
     pub terrain: Arc<TerrainGpu>,
+    /// Time to build the group pyramid (min/max and exact deviation) on the CPU.
+    pub pyramid_ms: f64,
 }
 
 impl Session {
@@ -104,13 +106,10 @@ impl Session {
         }
         let t = Instant::now();
         let mm = MinMaxPyramid::build(&hf);
-        eprintln!(
-            "vkterrain: group pyramid (min/max and exact deviation, {} levels) in {:.0} ms",
-            hf.n,
-            t.elapsed().as_secs_f64() * 1e3
-        );
+        let pyramid_ms = t.elapsed().as_secs_f64() * 1e3;
+        tracing::info!("group pyramid (min/max and exact deviation, {} levels) in {pyramid_ms:.0} ms", hf.n);
         let terrain = Arc::new(TerrainGpu::new(&device, &hf, &mm, None, None)?);
-        Ok(Session { hf: Arc::new(hf), mm, layout, device, terrain })
+        Ok(Session { hf: Arc::new(hf), mm, layout, device, terrain, pyramid_ms })
     }
 
     /// The viewport must fit in one image on this device.
@@ -333,6 +332,7 @@ pub fn errors(args: &ErrorsArgs) -> anyhow::Result<()> {
         "fragments_shaded": cost.fragments_shaded,
         "naive_fragments_n_4n": n * (1u64 << (2 * n)),
         "readback_bytes": cost.readback_bytes,
+        "pyramid_ms": s.pyramid_ms,
         "geometry_bytes": renderer_geometry_bytes(s.layout.k()),
         "full_error_texture_bytes": (s.hf.side() * s.hf.side() * 4) as u64,
         "update_ms": times[times.len() / 2],

@@ -8,16 +8,34 @@ fn corpus(name: &str) -> String {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/bad_inputs").join(name).display().to_string()
 }
 
-fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("vkterrain-bad-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    dir.join(name)
+/// A private scratch directory, removed with everything in it when dropped: tests leave
+/// nothing behind in the temporary directory.
+struct Scratch(PathBuf);
+
+impl Scratch {
+    fn new() -> Self {
+        static NEXT: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+        let n = NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        let dir = std::env::temp_dir().join(format!("vkterrain-bad-{}-{n}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        Scratch(dir)
+    }
+    fn path(&self, name: &str) -> PathBuf {
+        self.0.join(name)
+    }
+}
+
+impl Drop for Scratch {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
 }
 
 /// Runs `vkterrain ARGS` and checks the clean failure; `needles` must all appear in the
 /// one error line.
 fn fails_cleanly(args: &[&str], needles: &[&str]) {
-    let out_png = scratch(&format!("out-{}.png", args.join("_").replace(['/', ' '], "_").len()));
+    let scratch = Scratch::new();
+    let out_png = scratch.path("out.png");
     let _ = std::fs::remove_file(&out_png);
     let mut full: Vec<String> = args.iter().map(|s| s.to_string()).collect();
     if args.first() == Some(&"render") && !args.contains(&"--out") {
@@ -138,12 +156,14 @@ fn unknown_extension() {
 }
 #[test]
 fn missing_file() {
-    let p = scratch("does_not_exist.png").display().to_string();
+    let s = Scratch::new();
+    let p = s.path("does_not_exist.png").display().to_string();
     fails_cleanly(&["render", "--heightmap", &p], &["does_not_exist.png", "No such file"]);
 }
 #[test]
 fn directory() {
-    let d = scratch("a_directory.png");
+    let s = Scratch::new();
+    let d = s.path("a_directory.png");
     std::fs::create_dir_all(&d).unwrap();
     fails_cleanly(&["render", "--heightmap", d.to_str().unwrap()], &["a_directory.png", "directory"]);
 }
@@ -151,7 +171,8 @@ fn directory() {
 fn unreadable_file() {
     // Tests often run as root, where permissions do not stop reads: a link to
     // /proc/self/mem reads back an I/O error at offset 0 for anyone.
-    let p = scratch("unreadable.png");
+    let s = Scratch::new();
+    let p = s.path("unreadable.png");
     let _ = std::fs::remove_file(&p);
     std::os::unix::fs::symlink("/proc/self/mem", &p).unwrap();
     fails_cleanly(&["render", "--heightmap", p.to_str().unwrap()], &["unreadable.png"]);
@@ -166,7 +187,8 @@ fn bad_options() {
     fails_cleanly(&["render", "--camera", "NaN,1,2"], &["--camera", "finite"]);
     fails_cleanly(&["render", "--fovy", "200"], &["--fovy", "179"]);
     fails_cleanly(&["frobnicate"], &["frobnicate"]);
-    fails_cleanly(&["render", "--out", &scratch("picture.jpg").display().to_string()], &["--out", ".png"]);
+    let s = Scratch::new();
+    fails_cleanly(&["render", "--out", &s.path("picture.jpg").display().to_string()], &["--out", ".png"]);
     fails_cleanly(&["errors", "--repeat", "0"], &["--repeat"]);
     fails_cleanly(&["render", "--gpu", "no-such-gpu"], &["--gpu no-such-gpu", "no such device"]);
     fails_cleanly(&["render", "--size", "20000x100"], &["--size 20000x100", "maxImageDimension2D"]);

@@ -269,9 +269,12 @@ fn fidelity_against_the_full_resolution_render() {
             );
             // A bound of delta pixels moves silhouettes by at most delta pixels and leaves
             // shading (normals come from the heightfield) unchanged, so differences stay
-            // on a thin band of edges. ATLOD reports RMSE 2.78 for GeoMipMapping.
+            // on a thin band of edges. ATLOD reports RMSE 2.78 for GeoMipMapping: at
+            // delta <= 1 we must stay below it. (The first wave held RMSE < 1.5 here with a
+            // loose bound that left part of delta unused; the exact bound spends more of
+            // it on fewer triangles: measured RMSE 2.17 at delta 1, 1.40 at 0.5.)
             if delta <= 1.0 {
-                assert!(rmse < 1.5, "delta {delta}: RMSE {rmse}");
+                assert!(rmse < 2.78, "delta {delta}: RMSE {rmse}");
                 assert!(share < 0.005, "delta {delta}: {share}");
             }
             assert!(rmse < 2.78 * delta.max(1.0) as f64, "delta {delta}: RMSE {rmse}");
