@@ -129,7 +129,8 @@ pub fn quality(args: &QualityArgs) -> anyhow::Result<()> {
     write_atomic(&json_path, |tmp| {
         std::fs::write(tmp, &text).map_err(|e| anyhow::anyhow!("{}: {e}", json_path.display()))
     })?;
-    plot(&args.out.join("quality.png"), &points, &hf.source)?;
+    let name = std::path::Path::new(&hf.source).file_name().map_or(hf.source.clone(), |n| n.to_string_lossy().into());
+    plot(&args.out.join("quality.png"), &points, &name)?;
     print!("{table}");
     println!("{}", serde_json::to_string(&summary["strict_over_paper_at_equal_error"])?);
     println!("{}", serde_json::to_string(&summary["strict_over_distance_at_equal_error"])?);
@@ -175,7 +176,9 @@ fn plot(path: &Path, points: &[Point], title: &str) -> anyhow::Result<()> {
             .map_err(|e| anyhow::anyhow!("plot: {e}"))?;
         let mut mesh = chart.configure_mesh();
         if have_font {
-            mesh.x_desc("audited max screen-space error (px)").y_desc("triangles (mean over poses)");
+            mesh.x_desc("audited max screen-space error (px)")
+                .y_desc("triangles (mean over poses)")
+                .y_label_formatter(&|v| format!("{:.0}k", v / 1e3));
         }
         mesh.draw().map_err(|e| anyhow::anyhow!("plot: {e}"))?;
         for (method, color) in [("strict", RED), ("paper", BLUE), ("distance", BLACK)] {
