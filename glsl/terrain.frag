@@ -9,6 +9,7 @@
 layout(set = 0, binding = TERRAIN_BINDING_HEIGHTS) uniform sampler2D heights;
 layout(set = 0, binding = TERRAIN_BINDING_BASE) uniform sampler2D base_tex;
 layout(set = 0, binding = TERRAIN_BINDING_DETAIL) uniform sampler2D detail_tex;
+layout(set = 0, binding = TERRAIN_BINDING_GRADIENTS) uniform sampler2D gradients;
 layout(location = 0) in vec3 v_world;
 layout(location = 1) flat in int v_lod;
 layout(location = 0) out vec4 out_color;
@@ -18,9 +19,16 @@ float world_height(ivec2 s) {
     return decode_raw(texelFetch(heights, s, 0).r, frame.flags.w) * frame.terrain.y;
 }
 
+// The per-sample gradient (central differences of world heights). By default it is
+// precomputed at load (Heightfield::gradient_map): one fetch instead of four heights;
+// `--shading heights` keeps the first wave's four fetches, for comparison.
 vec2 gradient(ivec2 s) {
-    return vec2(world_height(s + ivec2(1, 0)) - world_height(s - ivec2(1, 0)),
-                world_height(s + ivec2(0, 1)) - world_height(s - ivec2(0, 1))) / (2.0 * frame.terrain.x);
+    if (frame.texturing.w != 0.0) {
+        return vec2(world_height(s + ivec2(1, 0)) - world_height(s - ivec2(1, 0)),
+                    world_height(s + ivec2(0, 1)) - world_height(s - ivec2(0, 1))) / (2.0 * frame.terrain.x);
+    }
+    s = clamp(s, ivec2(0), ivec2(frame.extent.z - 1));
+    return texelFetch(gradients, s, 0).rg * frame.texturing.z;
 }
 
 vec3 ramp(float t, float slope) {

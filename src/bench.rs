@@ -57,6 +57,10 @@ pub struct BenchArgs {
     /// Skip the fidelity measurements (RMSE against --lod full at fixed views).
     #[arg(long)]
     pub no_fidelity: bool,
+    /// Where normals come from: the gradient map (default) or sixteen height fetches per
+    /// pixel (the first wave's shading), to measure the pixel work side by side.
+    #[arg(long, value_enum, default_value_t = crate::blocks::NormalSource::GradientMap)]
+    pub shading: crate::blocks::NormalSource,
     /// Fail the run when a thread makes no progress for this many seconds.
     #[arg(long, value_name = "SECS", default_value = "10", value_parser = positive)]
     pub watchdog: f32,
@@ -256,7 +260,7 @@ impl Bench<'_> {
             (None, LodChoice::Distance) => "distance",
         };
         let mut progress = Progress::new(label, self.args.frames);
-        let shading = Shading::default();
+        let shading = Shading { normals: self.args.shading, ..Shading::default() };
         let mut run = Run {
             rows: Vec::new(),
             blocks: Vec::new(),

@@ -10,8 +10,8 @@ use crate::quadtree::{BlockLayout, DrawBlock};
 use crate::shaders;
 use crate::terrain_gpu::TerrainGpu;
 use crate::vk::{
-    begin_one_time, image_barrier, vk, Buffer, CommandPool, DescriptorPool, DescriptorSetLayout, Device, Fence,
-    GraphicsPipeline, GraphicsPipelineDesc, Image, PipelineLayout, QueryPool, VkResult, VkResultExt,
+    begin_one_time, image_barrier, vk, Buffer, CommandPool, DepthMode, DescriptorPool, DescriptorSetLayout, Device,
+    Fence, GraphicsPipeline, GraphicsPipelineDesc, Image, PipelineLayout, QueryPool, VkResult, VkResultExt,
 };
 use glam::Vec3;
 use std::sync::Arc;
@@ -83,6 +83,17 @@ pub struct Shading {
     pub wireframe: bool,
     pub detail_tiling: f32,
     pub detail_weight: f32,
+    pub normals: NormalSource,
+}
+
+/// Where the terrain shader's normals come from (the image is the same up to rounding).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
+pub enum NormalSource {
+    /// A per-sample gradient map computed at load: four fetches per pixel.
+    #[default]
+    GradientMap,
+    /// Sixteen height fetches per pixel (the first wave's shading), for comparison.
+    Heights,
 }
 
 impl Default for Shading {
@@ -95,6 +106,7 @@ impl Default for Shading {
             wireframe: false,
             detail_tiling: 64.0,
             detail_weight: 1.0,
+            normals: NormalSource::GradientMap,
         }
     }
 }
@@ -193,6 +205,7 @@ impl BlocksRenderer {
                 (layout::TERRAIN_BINDING_FRAME, vk::DescriptorType::UNIFORM_BUFFER, stages),
                 (layout::TERRAIN_BINDING_BASE, sampler, vk::ShaderStageFlags::FRAGMENT),
                 (layout::TERRAIN_BINDING_DETAIL, sampler, vk::ShaderStageFlags::FRAGMENT),
+                (layout::TERRAIN_BINDING_GRADIENTS, sampler, vk::ShaderStageFlags::FRAGMENT),
             ],
         )?;
         let pipeline_layout = PipelineLayout::new(
@@ -208,7 +221,7 @@ impl BlocksRenderer {
             vertex_attribute: Some((2, vk::Format::R8G8_UINT)),
             color_format: Some(color_format),
             depth_format: Some(DEPTH_FORMAT),
-            depth_test: true,
+            depth: DepthMode::TestWrite,
             polygon_mode,
             // A heightfield is seen from above only: culling its underside lets a crack
             // show the background instead of hiding behind back faces, and saves work.
@@ -230,14 +243,14 @@ impl BlocksRenderer {
                 vertex_attribute: None,
                 color_format: Some(color_format),
                 depth_format: Some(DEPTH_FORMAT),
-                depth_test: false,
+                depth: DepthMode::Background,
                 polygon_mode: vk::PolygonMode::FILL,
                 cull_back: false,
                 layout: &pipeline_layout,
             },
         )?;
         let n = frames_in_flight.max(1) as u32;
-        let pool = DescriptorPool::new(device, n, &[(sampler, 3 * n), (vk::DescriptorType::UNIFORM_BUFFER, n)])?;
+        let pool = DescriptorPool::new(device, n, &[(sampler, 4 * n), (vk::DescriptorType::UNIFORM_BUFFER, n)])?;
         let ubo_size = std::mem::size_of::<FrameUniforms>() as u64;
         let mut sets = Vec::new();
         let mut uniforms = Vec::new();
@@ -256,6 +269,7 @@ impl BlocksRenderer {
                     (layout::TERRAIN_BINDING_HEIGHTS, terrain.heights.view, terrain.nearest.handle),
                     (layout::TERRAIN_BINDING_BASE, terrain.base.view, terrain.linear.handle),
                     (layout::TERRAIN_BINDING_DETAIL, terrain.detail.view, terrain.linear.handle),
+                    (layout::TERRAIN_BINDING_GRADIENTS, terrain.gradients.view, terrain.nearest.handle),
                 ],
                 &[(layout::TERRAIN_BINDING_FRAME, ubo.handle, ubo_size)],
             );
@@ -299,7 +313,12 @@ impl BlocksRenderer {
                 terrain.raw_range[1] * hf.height_scale,
             ],
             light: [light.x, light.y, light.z, 0.25],
-            texturing: [shading.detail_tiling, shading.detail_weight, 0.0, 0.0],
+            texturing: [
+                shading.detail_tiling,
+                shading.detail_weight,
+                terrain.gradient_scale,
+                (shading.normals == NormalSource::Heights) as i32 as f32,
+            ],
             extent: [hf.width as i32, hf.height as i32, hf.side() as i32, self.layout.k() as i32],
             flags: [
                 terrain.has_base as i32,
@@ -369,10 +388,6 @@ impl BlocksRenderer {
                 &[self.sets[slot]],
                 &[],
             );
-            if shading.sky {
-                d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, self.sky_pipeline.handle);
-                d.cmd_draw(cmd, 3, 1, 0, 0);
-            }
             let pipeline = match (&self.wire_pipeline, shading.wireframe) {
                 (Some(w), true) => w.handle,
                 _ => self.terrain_pipeline.handle,
@@ -390,6 +405,12 @@ impl BlocksRenderer {
                     bytemuck::bytes_of(&push),
                 );
                 d.cmd_draw_indexed(cmd, self.mesh.index_count, 1, 0, 0, 0);
+            }
+            // The sky last, only where no terrain was drawn (depth still at the far plane):
+            // hidden sky pixels are never shaded.
+            if shading.sky {
+                d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, self.sky_pipeline.handle);
+                d.cmd_draw(cmd, 3, 1, 0, 0);
             }
             d.cmd_end_rendering(cmd);
         }
@@ -528,7 +549,7 @@ impl BlocksRenderer {
                 vertex_attribute: Some((2, vk::Format::R8G8_UINT)),
                 color_format: None,
                 depth_format: None,
-                depth_test: false,
+                depth: DepthMode::Off,
                 polygon_mode: vk::PolygonMode::FILL,
                 cull_back: false,
                 layout: &pipeline_layout,

@@ -1,7 +1,7 @@
 //! The subcommands: `render` (one headless frame) and `errors` (one error generation).
 
 use crate::audit;
-use crate::blocks::{BlocksRenderer, Shading, Target};
+use crate::blocks::{BlocksRenderer, NormalSource, Shading, Target};
 use crate::cli::{CommonArgs, InputError};
 use crate::errors_activity::ErrorsActivity;
 use crate::gie::ErrorParams;
@@ -51,6 +51,10 @@ pub struct RenderArgs {
     /// Exponential fog density per world unit (0 disables).
     #[arg(long, value_name = "DENSITY", default_value = "0")]
     pub fog: f32,
+    /// Where normals come from: a gradient map made at load (default), or the first
+    /// wave's sixteen height fetches per pixel (same image up to rounding).
+    #[arg(long, value_enum, default_value_t = NormalSource::GradientMap)]
+    pub shading: NormalSource,
 }
 
 #[derive(Args, Debug)]
@@ -186,7 +190,12 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
     if args.out.extension().and_then(|e| e.to_str()).map(|e| e.to_lowercase()) != Some("png".into()) {
         return Err(InputError(format!("--out {}: the output must be a .png file", args.out.display())).into());
     }
-    let mut shading = Shading { fog_density: args.fog, colour_by_lod: args.colour_by_lod, ..Shading::default() };
+    let mut shading = Shading {
+        fog_density: args.fog,
+        colour_by_lod: args.colour_by_lod,
+        normals: args.shading,
+        ..Shading::default()
+    };
     if let Some(bg) = &args.background {
         shading.sky = false;
         shading.background = parse_background(bg)?;

@@ -13,7 +13,7 @@ use crate::shaders;
 use crate::terrain_gpu::TerrainGpu;
 use crate::trace::{Trace, ERRORS_TID};
 use crate::vk::{
-    begin_one_time, image_barrier, vk, Buffer, CommandPool, DescriptorPool, DescriptorSetLayout, Device,
+    begin_one_time, image_barrier, vk, Buffer, CommandPool, DepthMode, DescriptorPool, DescriptorSetLayout, Device,
     GraphicsPipeline, GraphicsPipelineDesc, Image, ImageUse, ImageView, PipelineLayout, QueryPool, TimelineSemaphore,
     VkError, VkResult, VkResultExt,
 };
@@ -174,7 +174,7 @@ impl ErrorsGpu {
             vertex_attribute: None,
             color_format: Some(GIE_FORMAT),
             depth_format: None,
-            depth_test: false,
+            depth: DepthMode::Off,
             polygon_mode: vk::PolygonMode::FILL,
             cull_back: false,
             layout: l,

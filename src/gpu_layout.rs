@@ -70,6 +70,9 @@ pub const TERRAIN_BINDING_BASE: u32 = 2;
 /// Terrain pipeline: detail texture (a 1x1 white texel when none is given).
 pub const TERRAIN_BINDING_DETAIL: u32 = 3;
 
+/// Terrain pipeline: per-sample gradients (R16G16_SNORM) for the normals.
+pub const TERRAIN_BINDING_GRADIENTS: u32 = 5;
+
 /// Vertex capture (tests): world positions written by capture.vert.
 pub const CAPTURE_BINDING_POSITIONS: u32 = 4;
 
@@ -107,7 +110,8 @@ gpu_block! {
         terrain: [f32; 4] => "vec4",
         /// xyz: direction towards the light, w: ambient.
         light: [f32; 4] => "vec4",
-        /// detail tiling factor (DTF), base weight alpha, unused, unused.
+        /// detail tiling factor (DTF), base weight alpha, gradient-map scale, 1 = normals
+        /// from height fetches instead of the gradient map.
         texturing: [f32; 4] => "vec4",
         /// true extent in samples (x, z), grid side N, block side k.
         extent: [i32; 4] => "ivec4",
@@ -148,6 +152,7 @@ pub const GLSL_CONSTANTS: &[(&str, u32)] = &[
     ("TERRAIN_BINDING_FRAME", TERRAIN_BINDING_FRAME),
     ("TERRAIN_BINDING_BASE", TERRAIN_BINDING_BASE),
     ("TERRAIN_BINDING_DETAIL", TERRAIN_BINDING_DETAIL),
+    ("TERRAIN_BINDING_GRADIENTS", TERRAIN_BINDING_GRADIENTS),
     ("CAPTURE_BINDING_POSITIONS", CAPTURE_BINDING_POSITIONS),
     ("GIE_BINDING_HEIGHTS", GIE_BINDING_HEIGHTS),
     ("GIE_BINDING_PREV", GIE_BINDING_PREV),

@@ -245,6 +245,11 @@ fn traverse_once(
             }
         }
     }
+    // Front to back, so that the depth test rejects hidden terrain before it is shaded.
+    out.blocks.sort_by_cached_key(|b| {
+        let (min, max) = block_aabb(hf, mm, layout, b.lod, b.bx, b.bz);
+        distance_to_aabb(cam.position, min, max).to_bits()
+    });
     out.lod_map = lod_map(layout, &out.blocks);
     assign_neighbours(layout, &mut out.blocks, &out.lod_map);
     out

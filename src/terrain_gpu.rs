@@ -10,6 +10,9 @@ pub struct TerrainGpu {
     pub minmax: Image,
     /// Exact group deviations `D_L` (R32F, LOD L in mip L-1): strict mode's world part.
     pub deviation: Image,
+    /// Per-sample gradients (R16G16_SNORM, times `gradient_scale`) for shading.
+    pub gradients: Image,
+    pub gradient_scale: f32,
     pub nearest: Sampler,
     pub linear: Sampler,
     pub base: Image,
@@ -74,6 +77,11 @@ impl TerrainGpu {
         )?;
         upload(device, &pool, &deviation, &dev_mips)?;
 
+        let (grads, gradient_scale) = hf.gradient_map();
+        let gradients =
+            Image::new(device, "gradient map", extent(side, side), vk::Format::R16G16_SNORM, 1, usage, false)?;
+        upload(device, &pool, &gradients, &[bytemuck::cast_slice(&grads)])?;
+
         let white = Texture { width: 1, height: 1, rgba: vec![255; 4] };
         let tex = |name: &str, t: &Texture| -> VkResult<Image> {
             let img = Image::new(device, name, extent(t.width, t.height), vk::Format::R8G8B8A8_SRGB, 1, usage, false)?;
@@ -84,11 +92,14 @@ impl TerrainGpu {
         let detail_img = tex("detail texture", detail.unwrap_or(&white))?;
         let total = bytes.len()
             + mips.iter().map(|m| m.len()).sum::<usize>()
-            + mm.dev.iter().map(|l| l.len() * 4).sum::<usize>();
+            + mm.dev.iter().map(|l| l.len() * 4).sum::<usize>()
+            + grads.len() * 4;
         Ok(TerrainGpu {
             heights,
             minmax,
             deviation,
+            gradients,
+            gradient_scale,
             nearest: Sampler::new(device, vk::Filter::NEAREST, vk::SamplerAddressMode::CLAMP_TO_EDGE)?,
             linear: Sampler::new(device, vk::Filter::LINEAR, vk::SamplerAddressMode::REPEAT)?,
             base: base_img,

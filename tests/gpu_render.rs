@@ -7,7 +7,7 @@ use common::*;
 use glam::Vec3;
 use std::sync::Arc;
 use vkterrain::bench::image_difference;
-use vkterrain::blocks::{BlocksRenderer, Shading, Target, COLOR_FORMAT};
+use vkterrain::blocks::{BlocksRenderer, NormalSource, Shading, Target, COLOR_FORMAT};
 use vkterrain::camera::Camera;
 use vkterrain::errors_activity::ErrorsActivity;
 use vkterrain::gie::{ErrorMode, ErrorParams};
@@ -282,5 +282,67 @@ fn fidelity_against_the_full_resolution_render() {
     }
     activity.stop().unwrap();
     drop(scene);
+    finish(device);
+}
+
+/// The gradient map (four fetches per pixel) shades like the first wave's sixteen
+/// height fetches: the full-resolution reference image does not change beyond 8-bit
+/// rounding, with the sky drawn last behind the depth test, on real data and a steep
+/// crafted field (16-bit and float heights).
+#[test]
+fn gradient_map_shading_matches_height_fetches() {
+    let device = gpu();
+    let ps = heightfield::load(&data("puget_sound/ps_height_1k.png"), &LoadOptions::default()).unwrap();
+    let steep = field(129, 129, 2.0, |x, z| ((x as f32 * 0.3).sin() * (z as f32 * 0.2).cos()) * 40.0 + x as f32);
+    for hf in [ps, steep] {
+        let (wx, wz) = hf.world_extent();
+        let top = hf.raw.iter().cloned().fold(f32::MIN, f32::max) * hf.height_scale;
+        let mut scene = Scene::new(&device, hf, 33);
+        let cams = [
+            Camera::look_at(
+                Vec3::new(wx * 0.5, top + wx * 0.3, wz * 1.2),
+                Vec3::new(wx * 0.5, 0.0, wz * 0.4),
+                60.0,
+                320,
+                240,
+                1.0,
+            ),
+            Camera::look_at(
+                Vec3::new(wx * 0.2, top * 1.1 + 5.0, wz * 0.3),
+                Vec3::new(wx * 0.8, 0.0, wz * 0.7),
+                60.0,
+                320,
+                240,
+                0.1,
+            ),
+        ];
+        for cam in &cams {
+            let new = scene.render(cam, None, &Shading::default());
+            let old = scene.render(cam, None, &Shading { normals: NormalSource::Heights, ..Shading::default() });
+            let (rmse, share) = image_difference(&new, &old);
+            println!(
+                "{}: gradient map vs height fetches: RMSE {rmse:.4}, {:.4}% off by > 16",
+                scene.hf.source,
+                share * 100.0
+            );
+            assert!(rmse < 0.5, "{}: RMSE {rmse}", scene.hf.source);
+            assert_eq!(share, 0.0);
+            // The sky, drawn last, fills exactly the pixels no terrain covers, and leaves
+            // every terrain pixel as it was.
+            let bare = scene.render(cam, None, &plain());
+            let (mut sky, mut terrain) = (0, 0);
+            for (n, b) in new.chunks(4).zip(bare.chunks(4)) {
+                if b[..3] == MAGENTA {
+                    sky += 1;
+                    assert_ne!(n[..3], MAGENTA);
+                } else {
+                    terrain += 1;
+                    assert_eq!(n, b, "a terrain pixel changed under the sky pass");
+                }
+            }
+            assert!(sky > 0 && terrain > 0, "sky {sky}, terrain {terrain}");
+        }
+        drop(scene);
+    }
     finish(device);
 }

@@ -162,6 +162,25 @@ impl Heightfield {
         ((self.width - 1) as f32 * self.spacing, (self.height - 1) as f32 * self.spacing)
     }
 
+    /// The terrain shader's per-sample gradient `(dH/dx, dH/dz)` in world units (central
+    /// differences, edges clamped), computed once so that a pixel fetches four gradients
+    /// instead of sixteen heights. Returned as R16G16_SNORM texels and the scale that
+    /// turns `[-1, 1]` back into gradients.
+    pub fn gradient_map(&self) -> (Vec<[i16; 2]>, f32) {
+        let side = self.side() as i64;
+        let h = |x: i64, z: i64| self.height_at(x.clamp(0, side - 1), z.clamp(0, side - 1));
+        let inv = 1.0 / (2.0 * self.spacing);
+        let grads: Vec<[f32; 2]> = (0..side * side)
+            .map(|i| {
+                let (x, z) = (i % side, i / side);
+                [(h(x + 1, z) - h(x - 1, z)) * inv, (h(x, z + 1) - h(x, z - 1)) * inv]
+            })
+            .collect();
+        let scale = grads.iter().flatten().fold(0.0f32, |m, g| m.max(g.abs())).max(f32::MIN_POSITIVE);
+        let texels = grads.iter().map(|g| g.map(|v| (v / scale * 32767.0).round() as i16)).collect();
+        (texels, scale)
+    }
+
     /// Bytes of the heightfield image on the GPU.
     pub fn gpu_bytes(&self) -> usize {
         let texel = match self.format {

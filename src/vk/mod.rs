@@ -14,7 +14,9 @@ pub use command::{
 };
 pub use device::{Device, DeviceOptions, Queue, QueueMode, QueueRequest};
 pub use instance::{Instance, InstanceOptions, MessageCounter};
-pub use pipeline::{DescriptorPool, DescriptorSetLayout, GraphicsPipeline, GraphicsPipelineDesc, PipelineLayout};
+pub use pipeline::{
+    DepthMode, DescriptorPool, DescriptorSetLayout, GraphicsPipeline, GraphicsPipelineDesc, PipelineLayout,
+};
 pub use resources::{Buffer, Image, ImageView, Sampler};
 pub use swapchain::{Surface, Swapchain};
 

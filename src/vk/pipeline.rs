@@ -152,12 +152,23 @@ pub struct GraphicsPipelineDesc<'a> {
     pub vertex_attribute: Option<(u32, vk::Format)>,
     pub color_format: Option<vk::Format>,
     pub depth_format: Option<vk::Format>,
-    pub depth_test: bool,
+    pub depth: DepthMode,
     pub polygon_mode: vk::PolygonMode,
     /// Cull back faces. Front faces are clockwise in framebuffer space: the block mesh
     /// winds a -> c -> i counter-clockwise seen from +y, and the projection flips y.
     pub cull_back: bool,
     pub layout: &'a PipelineLayout,
+}
+
+/// Depth use of a pipeline (reversed Z: nearer is greater, cleared to 0).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum DepthMode {
+    Off,
+    /// Test and write, nearer wins: the terrain.
+    TestWrite,
+    /// Drawn only where nothing nearer than the far plane was written, no write: a
+    /// background at depth 0 drawn after the scene (the sky), shading only what shows.
+    Background,
 }
 
 pub struct GraphicsPipeline {
@@ -213,9 +224,13 @@ impl GraphicsPipeline {
             vk::PipelineMultisampleStateCreateInfo::default().rasterization_samples(vk::SampleCountFlags::TYPE_1);
         // Reversed Z: nearer is greater.
         let depth = vk::PipelineDepthStencilStateCreateInfo::default()
-            .depth_test_enable(d.depth_test)
-            .depth_write_enable(d.depth_test)
-            .depth_compare_op(vk::CompareOp::GREATER);
+            .depth_test_enable(d.depth != DepthMode::Off)
+            .depth_write_enable(d.depth == DepthMode::TestWrite)
+            .depth_compare_op(if d.depth == DepthMode::Background {
+                vk::CompareOp::GREATER_OR_EQUAL
+            } else {
+                vk::CompareOp::GREATER
+            });
         let attachments =
             [vk::PipelineColorBlendAttachmentState::default().color_write_mask(vk::ColorComponentFlags::RGBA)];
         let blend = vk::PipelineColorBlendStateCreateInfo::default().attachments(&attachments);
