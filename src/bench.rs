@@ -6,7 +6,8 @@ use crate::blocks::{BlocksRenderer, DrawStats, Shading, Target};
 use crate::camera::Camera;
 use crate::cli::{near_plane, CommonArgs, InputError};
 use crate::commands::{positive, write_atomic, LodChoice, Session};
-use crate::errors_activity::{ErrorsActivity, Generation};
+use crate::draw_thread::ErrorFeed;
+use crate::errors_activity::ErrorsActivity;
 use crate::gie::ErrorParams;
 use crate::heightfield::{Heightfield, MinMaxPyramid};
 use crate::quadtree::{traverse, DrawBlock, LodSelect};
@@ -14,7 +15,6 @@ use crate::trace::{Trace, DRAW_TID};
 use clap::{Args, ValueEnum};
 use glam::Vec3;
 use serde_json::{json, Value};
-use std::collections::VecDeque;
 use std::io::{IsTerminal, Write};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -269,8 +269,7 @@ impl Bench<'_> {
             interrupted: false,
             rss: Vec::new(),
         };
-        let mut current: Option<Generation> = None;
-        let mut recent: VecDeque<(u64, Vec3)> = VecDeque::new();
+        let mut feed = ErrorFeed::new(self.args.common.error_mode, self.args.common.refresh());
         for i in 0..self.args.frames {
             if self.stop.load(Ordering::SeqCst) {
                 run.interrupted = true;
@@ -283,44 +282,30 @@ impl Bench<'_> {
                 replay.get(i as usize).cloned().unwrap_or_default()
             } else {
                 if let Some(a) = activity {
-                    a.request(ErrorParams::new(&cam, self.args.common.error_mode));
-                    let after = current.as_ref().map_or(0, |g| g.number);
-                    // The first frame waits for data at its camera; later frames take the
-                    // newest finished generation without waiting (the paper's method).
-                    let newest = if current.is_none() {
-                        Some(a.wait_for(ErrorParams::new(&cam, self.args.common.error_mode), Duration::from_secs(600))?)
-                    } else {
-                        a.latest(after)?
-                    };
-                    if let Some(g) = newest {
-                        self.trace.instant(DRAW_TID, "observed generation", json!({"generation": g.number}));
-                        self.trace.counter("errors timeline (observed by draw thread)", g.number);
+                    if let Some(n) = feed.update(a, &cam, i)? {
+                        self.trace.instant(DRAW_TID, "observed generation", json!({"generation": n}));
+                        self.trace.counter("errors timeline (observed by draw thread)", n);
+                        let g = feed.usable().expect("a generation was just taken");
                         if let Some(ms) = g.gpu_ms {
                             run.update_gpu_ms.push(ms);
                         }
-                        run.generations.push(g.number);
-                        current = Some(g);
+                        run.generations.push(n);
                     }
-                }
-                recent.push_back((i, cam.position));
-                if recent.len() > 4096 {
-                    recent.pop_front();
                 }
                 let t = Instant::now();
-                let select = match (&current, lod) {
-                    (Some(g), LodChoice::Error) => {
-                        LodSelect::errors(&g.errors, g.params.camera, self.args.delta, g.params.mode)
+                let tr = match lod {
+                    LodChoice::Error => feed.traverse(&self.s.hf, &self.s.mm, &self.s.layout, &cam, self.args.delta),
+                    LodChoice::Distance => {
+                        traverse(&self.s.hf, &self.s.mm, &self.s.layout, &cam, LodSelect::Distance { factor: 2.0 })
                     }
-                    (_, LodChoice::Distance) => LodSelect::Distance { factor: 2.0 },
-                    _ => LodSelect::Full,
+                    LodChoice::Full => traverse(&self.s.hf, &self.s.mm, &self.s.layout, &cam, LodSelect::Full),
                 };
-                let tr = traverse(&self.s.hf, &self.s.mm, &self.s.layout, &cam, select);
                 row.traverse_ms = t.elapsed().as_secs_f64() * 1e3;
                 self.trace.complete(DRAW_TID, "traverse", t, Instant::now(), json!({"frame": i}));
-                if let Some(g) = &current {
+                if let Some(g) = feed.usable() {
                     row.error_generation = g.number;
                     row.error_update_ms = g.gpu_ms;
-                    row.error_age_frames = recent.iter().rev().find(|(_, c)| *c == g.params.camera).map(|(f, _)| i - f);
+                    row.error_age_frames = feed.age_frames(i);
                 }
                 tr.blocks
             };

@@ -60,15 +60,20 @@ impl Camera {
     }
 
     /// `1 / cos^2(theta_b)`, `theta_b` the largest off-axis angle of the box `[min, max]`
-    /// seen from the camera, clamped to the frustum corner's (SPEC section 3): what the
-    /// projection can magnify a world deviation inside the box by. The angle is
-    /// quasi-convex over the half-space in front of the eye, so the box's worst point is
-    /// a corner; a box reaching behind the eye plane gets the frustum corner's value.
-    pub fn inv_cos2_aabb(&self, min: Vec3, max: Vec3) -> f32 {
-        let limit = self.inv_cos2_max();
+    /// seen from the camera (SPEC section 3): what the projection can magnify a world
+    /// deviation inside the box by. The two screen tangents `x/z`, `y/z` are extreme at
+    /// corners of a box in front of the eye. They are clamped to the frustum's widened by
+    /// `margin_px / kappa`: a visible sample lies inside the frustum, and as long as its
+    /// drawn point stays within `margin_px` pixels of it (what the caller then checks
+    /// against `margin_px`), every point between the two projects within that widened
+    /// frustum. Without the widening a deviation leaving the frustum near its edge, where
+    /// the gnomonic projection magnifies most, escapes the bound.
+    pub fn inv_cos2_aabb(&self, min: Vec3, max: Vec3, margin_px: f32) -> f32 {
         let (right, up) = self.basis();
-        let tv = (self.fovy * 0.5).tan();
-        let th = tv * self.aspect();
+        let widen = margin_px / self.kappa();
+        let tv = (self.fovy * 0.5).tan() + widen;
+        let th = (self.fovy * 0.5).tan() * self.aspect() + widen;
+        let limit = 1.0 + th * th + tv * tv;
         let (mut worst, mut tx, mut ty) = (1.0f32, 0.0f32, 0.0f32);
         for i in 0..8 {
             let c = Vec3::new(
@@ -86,8 +91,6 @@ impl Camera {
             tx = tx.max(v.dot(right).abs() / along);
             ty = ty.max(v.dot(up).abs() / along);
         }
-        // Only the part of the box inside the frustum is seen: each of the two screen
-        // tangents is also at most the frustum's (both are extreme at corners too).
         let (tx, ty) = (tx.min(th), ty.min(tv));
         worst.min(1.0 + tx * tx + ty * ty).min(limit)
     }
@@ -192,23 +195,29 @@ mod tests {
     #[test]
     fn off_axis_factor_is_one_on_axis_and_the_corner_value_at_most() {
         let cam = Camera::look_at(Vec3::ZERO, Vec3::new(0.0, 0.0, -1.0), 60.0, 640, 480, 0.5);
-        let on_axis = cam.inv_cos2_aabb(Vec3::new(-0.01, -0.01, -100.0), Vec3::new(0.01, 0.01, -99.0));
+        let on_axis = cam.inv_cos2_aabb(Vec3::new(-0.01, -0.01, -100.0), Vec3::new(0.01, 0.01, -99.0), 0.0);
         assert!((on_axis - 1.0).abs() < 1e-4, "{on_axis}");
         // A point to the right at tan = 0.5: 1/cos^2 = 1.25.
-        let side = cam.inv_cos2_aabb(Vec3::new(5.0, 0.0, -10.0), Vec3::new(5.0, 0.0, -10.0));
+        let side = cam.inv_cos2_aabb(Vec3::new(5.0, 0.0, -10.0), Vec3::new(5.0, 0.0, -10.0), 0.0);
         assert!((side - 1.25).abs() < 1e-4, "{side}");
         // Wider than the frustum, or reaching behind the eye: the corner value.
         let corner = cam.inv_cos2_max();
-        let wide = cam.inv_cos2_aabb(Vec3::new(100.0, -100.0, -1.0), Vec3::new(101.0, 100.0, -0.5));
+        let wide = cam.inv_cos2_aabb(Vec3::new(100.0, -100.0, -1.0), Vec3::new(101.0, 100.0, -0.5), 0.0);
         assert!((wide - corner).abs() < 1e-5, "{wide} vs {corner}");
-        assert!((cam.inv_cos2_aabb(Vec3::new(-1.0, -1.0, -1.0), Vec3::new(1.0, 1.0, 1.0)) - corner).abs() < 1e-5);
+        assert!((cam.inv_cos2_aabb(Vec3::new(-1.0, -1.0, -1.0), Vec3::new(1.0, 1.0, 1.0), 0.0) - corner).abs() < 1e-5);
         // Far to the right but level with the eye: only the horizontal tangent is clamped.
         let th = (cam.fovy * 0.5).tan() * cam.aspect();
-        let right = cam.inv_cos2_aabb(Vec3::new(100.0, -0.01, -1.0), Vec3::new(101.0, 0.01, -0.5));
+        let right = cam.inv_cos2_aabb(Vec3::new(100.0, -0.01, -1.0), Vec3::new(101.0, 0.01, -0.5), 0.0);
         assert!((right - (1.0 + th * th)).abs() < 1e-3, "{right}");
         // Every point inside the frustum has its own factor below the box's.
         let b = (Vec3::new(-3.0, -2.0, -9.0), Vec3::new(2.0, 1.0, -4.0));
-        let f = cam.inv_cos2_aabb(b.0, b.1);
+        let f = cam.inv_cos2_aabb(b.0, b.1, 0.0);
+        // A margin widens the clamp: a box far off to the side gets a larger factor.
+        let wide = Vec3::new(100.0, -0.01, -1.0);
+        assert!(
+            cam.inv_cos2_aabb(wide, wide + Vec3::splat(0.5), 50.0)
+                > cam.inv_cos2_aabb(wide, wide + Vec3::splat(0.5), 0.0)
+        );
         for t in 0..1000 {
             let r = |k: u32| ((t * 7919 + k * 104729) % 1000) as f32 / 1000.0;
             let p = b.0 + (b.1 - b.0) * Vec3::new(r(1), r(2), r(3));

@@ -52,6 +52,14 @@ fn parse_positive(s: &str) -> Result<f32, String> {
     Ok(v)
 }
 
+fn parse_fraction(s: &str) -> Result<f32, String> {
+    let v: f32 = s.parse().map_err(|_| format!("'{s}' is not a number"))?;
+    if !(0.0..1.0).contains(&v) {
+        return Err(format!("'{s}': must be at least 0 and below 1"));
+    }
+    Ok(v)
+}
+
 fn parse_fovy(s: &str) -> Result<f32, String> {
     let v = parse_positive(s)?;
     if v >= 179.0 {
@@ -101,12 +109,21 @@ pub struct CommonArgs {
     /// Queue arrangement for the two activities.
     #[arg(long, value_enum, default_value_t = QueueRequest::Auto)]
     pub queues: QueueRequest,
+    /// New error data is requested when the camera has moved this fraction of the
+    /// distance to the nearest drawn terrain since the last request (0: every frame it
+    /// moves). Stale data keeps the bound; this only trades updates for triangles.
+    #[arg(long, value_name = "F", default_value = "0.05", value_parser = parse_fraction)]
+    pub refresh_at: f32,
     /// Screen-space error bound: strict (guaranteed) or paper (seed 000 eqs. 2-4).
     #[arg(long = "error-mode", alias = "mode", value_enum, default_value_t = ErrorMode::Strict)]
     pub error_mode: ErrorMode,
 }
 
 impl CommonArgs {
+    pub fn refresh(&self) -> crate::draw_thread::RefreshPolicy {
+        crate::draw_thread::RefreshPolicy { moved_fraction: self.refresh_at }
+    }
+
     pub fn validation(&self) -> bool {
         match self.validation {
             Some(OnOff::On) => true,

@@ -269,8 +269,12 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
         out["error_update_ms"] = json!(ms);
     }
     if let Some(a) = audited {
+        // JSON has no infinity: a drawn point behind the eye (an unbounded error) is
+        // reported as `audit_unbounded` with null figures.
         out["max_audited_error_px"] = json!(a.max_error_px);
         out["audited_over_delta"] = json!(a.max_error_px / args.delta);
+        out["audit_unbounded"] = json!(!a.max_error_px.is_finite());
+        out["audit_within_delta"] = json!(a.max_error_px <= args.delta * 1.01);
         out["audited_samples"] = json!(a.samples);
         out["uncovered_samples"] = json!(a.uncovered);
     }

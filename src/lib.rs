@@ -25,6 +25,7 @@ pub mod shaders {
 pub mod blocks;
 pub mod cli;
 pub mod commands;
+pub mod draw_thread;
 pub mod errors_activity;
 pub mod terrain_gpu;
 pub mod trace;

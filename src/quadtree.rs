@@ -104,6 +104,8 @@ pub struct Traversal {
     pub lod_map: Vec<i8>,
     /// Blocks split only because a finer neighbour's stitched strip exceeded delta.
     pub stitch_splits: usize,
+    /// Distance from the camera to the nearest drawn block's box.
+    pub nearest: Option<f32>,
 }
 
 /// World-space AABB of a block.
@@ -153,7 +155,7 @@ pub fn traverse(
             let (mut min, mut max) = block_aabb(hf, mm, layout, b.lod, b.bx, b.bz);
             min.y = min.y.min(strips.lo * hf.height_scale);
             max.y = max.y.max(strips.hi * hf.height_scale);
-            let px_per_world = world_to_pixels(cam, min, max);
+            let px_per_world = world_to_pixels(cam, min, max, delta);
             let span = 1i64 << b.lod;
             let (cx, cz) = (b.bx as i64 * span, b.bz as i64 * span);
             for (e, (nx, nz)) in [(cx, cz - 1), (cx + span, cz), (cx, cz + span), (cx - 1, cz)].into_iter().enumerate()
@@ -181,17 +183,20 @@ pub fn traverse(
 }
 
 /// Pixels per world unit of a vertical deviation inside the box `[min, max]` for this
-/// camera: `kappa cos(beta_b) / (cos^2(theta_b) * distance)`, see [`angular_factor`].
-pub fn world_to_pixels(cam: &Camera, min: Vec3, max: Vec3) -> f32 {
-    cam.kappa() * angular_factor(cam, min, max) / distance_to_aabb(cam.position, min, max).max(cam.near)
+/// camera: `kappa cos(beta_b) / (cos^2(theta_b) * distance)`, see [`angular_factor`];
+/// valid for deviations that are then checked against `delta` pixels.
+pub fn world_to_pixels(cam: &Camera, min: Vec3, max: Vec3, delta: f32) -> f32 {
+    cam.kappa() * angular_factor(cam, min, max, delta) / distance_to_aabb(cam.position, min, max).max(cam.near)
 }
 
 /// What the camera's orientation does to a vertical deviation inside the box, on top of
 /// `kappa / distance` (the GPU data): the projection magnifies by up to
 /// `1 / cos^2(theta_b)` off the optical axis, and only the part of a vertical segment
-/// across the ray shows, at most `cos(beta_b)` of it (SPEC section 3).
-pub fn angular_factor(cam: &Camera, min: Vec3, max: Vec3) -> f32 {
-    cam.inv_cos2_aabb(min, max) * cam.vertical_factor_aabb(min, max)
+/// across the ray shows, at most `cos(beta_b)` of it (SPEC section 3). The off-axis
+/// angle is clamped to the frustum widened by `delta` pixels, which is sound for an error
+/// then compared with `delta` ([`Camera::inv_cos2_aabb`]).
+pub fn angular_factor(cam: &Camera, min: Vec3, max: Vec3, delta: f32) -> f32 {
+    cam.inv_cos2_aabb(min, max, delta) * cam.vertical_factor_aabb(min, max)
 }
 
 fn traverse_once(
@@ -226,7 +231,7 @@ fn traverse_once(
                         stale_corrected(errors.get(lod, bx as usize, bz as usize), computed_at, cam.position, min, max);
                     if mode == ErrorMode::Strict {
                         // The GPU data holds D * kappa / distance; the angles are this frame's.
-                        e *= angular_factor(cam, min, max);
+                        e *= angular_factor(cam, min, max, delta);
                     }
                     (e <= delta, e)
                 }
@@ -246,10 +251,12 @@ fn traverse_once(
         }
     }
     // Front to back, so that the depth test rejects hidden terrain before it is shaded.
-    out.blocks.sort_by_cached_key(|b| {
+    let distance = |b: &DrawBlock| {
         let (min, max) = block_aabb(hf, mm, layout, b.lod, b.bx, b.bz);
-        distance_to_aabb(cam.position, min, max).to_bits()
-    });
+        distance_to_aabb(cam.position, min, max)
+    };
+    out.blocks.sort_by_cached_key(|b| distance(b).to_bits());
+    out.nearest = out.blocks.first().map(distance);
     out.lod_map = lod_map(layout, &out.blocks);
     assign_neighbours(layout, &mut out.blocks, &out.lod_map);
     out

@@ -8,10 +8,11 @@ use crate::blocks::{
 use crate::camera::Camera;
 use crate::cli::{near_plane, CommonArgs, InputError};
 use crate::commands::{save_png, Session};
-use crate::errors_activity::{ErrorsActivity, Generation};
-use crate::gie::{ErrorMode, ErrorParams};
+use crate::draw_thread::ErrorFeed;
+use crate::errors_activity::ErrorsActivity;
+use crate::gie::ErrorMode;
 use crate::heightfield::{Heightfield, MinMaxPyramid};
-use crate::quadtree::{traverse, BlockLayout, DrawBlock, LodSelect};
+use crate::quadtree::{BlockLayout, DrawBlock};
 use crate::terrain_gpu::{TerrainGpu, Texture};
 use crate::vk::{
     begin_one_time, image_barrier, vk, BinarySemaphore, Buffer, CommandPool, Device, DeviceOptions, Fence, Image,
@@ -20,7 +21,7 @@ use crate::vk::{
 use clap::{Args, ValueEnum};
 use glam::Vec3;
 use raw_window_handle::{HasDisplayHandle, HasWindowHandle};
-use std::collections::{HashSet, VecDeque};
+use std::collections::HashSet;
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -217,8 +218,7 @@ struct App {
     delta: f32,
     mode: ErrorMode,
     frozen: Option<Vec<DrawBlock>>,
-    generation: Option<Generation>,
-    recent_cameras: VecDeque<(u64, Vec3)>,
+    feed: ErrorFeed,
     frame: u64,
     slot: usize,
     swapchain_dirty: bool,
@@ -297,8 +297,7 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
         delta: args.delta,
         mode: args.common.error_mode,
         frozen: None,
-        generation: None,
-        recent_cameras: VecDeque::new(),
+        feed: ErrorFeed::new(args.common.error_mode, args.common.refresh()),
         frame: 0,
         slot: 0,
         swapchain_dirty: false,
@@ -478,35 +477,16 @@ impl App {
         let slot = &gpu.slots[slot_index];
         slot.fence.wait(u64::MAX)?;
 
-        // The newest finished error generation (never waits on the errors queue).
+        // The newest finished error generation (never waits on the errors queue after the
+        // first frame, which waits for data at its camera so the bound holds from the start).
         let activity = gpu.activity.as_ref().unwrap();
-        activity.request(ErrorParams::new(&cam, self.mode));
-        let after = self.generation.as_ref().map_or(0, |g| g.number);
-        // The first frame waits for error data at its camera, so that the bound holds from
-        // the start; later frames take the newest finished generation without waiting.
-        let newest = match &self.generation {
-            None => Some(activity.wait_for(ErrorParams::new(&cam, self.mode), Duration::from_secs(600))?),
-            Some(_) => activity.latest(after)?,
-        };
-        if let Some(g) = newest {
-            self.stats.error_generations = g.number;
-            self.generation = Some(g);
+        self.feed.set_mode(self.mode);
+        if let Some(n) = self.feed.update(activity, &cam, self.frame)? {
+            self.stats.error_generations = n;
         }
-        self.recent_cameras.push_back((self.frame, cam.position));
-        if self.recent_cameras.len() > 1024 {
-            self.recent_cameras.pop_front();
-        }
-        // Error data made for a different mode is not used.
-        let usable = self.generation.as_ref().filter(|g| g.params.mode == self.mode);
-        let blocks = match (&self.frozen, usable) {
-            (Some(b), _) => b.clone(),
-            (None, Some(g)) => {
-                let sel = LodSelect::errors(&g.errors, g.params.camera, self.delta, g.params.mode);
-                traverse(&self.hf, &self.mm, &self.layout, &cam, sel).blocks
-            }
-            (None, None) => {
-                traverse(&self.hf, &self.mm, &self.layout, &cam, LodSelect::Distance { factor: 2.0 }).blocks
-            }
+        let blocks = match &self.frozen {
+            Some(b) => b.clone(),
+            None => self.feed.traverse(&self.hf, &self.mm, &self.layout, &cam, self.delta).blocks,
         };
 
         // SAFETY: the swapchain and semaphore are live; the acquire semaphore of this
@@ -641,13 +621,7 @@ impl App {
         let fps = self.fps_frames as f64 / elapsed.as_secs_f64();
         self.title_at = Instant::now();
         self.fps_frames = 0;
-        let age = self
-            .generation
-            .as_ref()
-            .and_then(|g| {
-                self.recent_cameras.iter().rev().find(|(_, c)| *c == g.params.camera).map(|(f, _)| self.frame - f)
-            })
-            .map_or("-".to_string(), |a| a.to_string());
+        let age = self.feed.age_frames(self.frame).map_or("-".to_string(), |a| a.to_string());
         let queue = self.gpu.as_ref().map_or("", |g| g.device.queue_mode.as_str());
         let title = format!(
             "vkterrain | {fps:.1} fps {:.1} ms | {} tris {} draws {} blocks | delta {} {} | errors age {age} frames | queue {queue}{}{} | ({:.0}, {:.0}, {:.0})",

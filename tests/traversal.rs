@@ -532,3 +532,36 @@ fn paper_mode_exceeds_delta_on_puget_sound() {
     println!("paper mode on Puget Sound 1k, 40 poses, delta 1: worst audited {worst:.3} px");
     assert!(worst > 1.05, "paper mode stayed within delta ({worst}); the README's claim would be wrong");
 }
+
+/// Cases an independent audit found against the first version of the per-block angular
+/// factor, which clamped the off-axis angle to the frustum: a lone spike seen near the
+/// frustum's edge by a camera pitched up, whose drawn point leaves the frustum where the
+/// projection magnifies most (up to 527x delta). Each must now hold.
+#[test]
+#[allow(clippy::excessive_precision)] // the auditor's figures, as reported
+fn strict_holds_where_the_deviation_leaves_the_frustum() {
+    // (spike height, delta, camera, look-at, fovy, viewport, block)
+    type Case = (f32, f32, [f32; 3], [f32; 3], f32, (u32, u32), u32);
+    let cases: [Case; 5] = [
+        (20.0, 16.846, [257.0, 46.246599, 500.0], [257.0, 473.896224, 200.0], 120.0, (1600, 200), 33),
+        (20.0, 15.7438, [257.0, 46.246599, 500.0], [257.0, 473.896224, 200.0], 120.0, (1600, 200), 9),
+        (53.020845, 100.0, [257.0, 26.510423, 500.0], [257.0, 236.182765, 200.0], 60.0, (640, 480), 3),
+        (340.15521, 1000.0, [257.0, 170.077605, 500.0], [257.0, 678.361723, 200.0], 60.0, (640, 480), 33),
+        (161.27469, 1600.0, [257.0, 80.637347, 500.0], [257.0, 1195.96892, 200.0], 120.0, (640, 480), 3),
+    ];
+    for (height, delta, eye, target, fovy, (w, h), k) in cases {
+        let hf = field(513, 513, 1.0, move |x, z| if (x, z) == (257, 200) { height } else { 0.0 });
+        let mm = MinMaxPyramid::build(&hf);
+        let layout = BlockLayout::new(hf.n, k).unwrap();
+        let cam = Camera::look_at(Vec3::from(eye), Vec3::from(target), fovy, w, h, 0.05);
+        let t = frame(&hf, &mm, &layout, &cam, &cam, ErrorMode::Strict, delta);
+        let a = audit(&hf, &layout, &t, &cam);
+        assert!(a.samples > 0);
+        assert!(
+            a.max_error_px <= delta * 1.01,
+            "spike {height}, delta {delta}, k {k}: audited {} px (block errors {})",
+            a.max_error_px,
+            t.max_block_error
+        );
+    }
+}

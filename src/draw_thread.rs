@@ -1,0 +1,173 @@
+//! The blocks rendering activity's CPU side, shared by `view`, `bench` and `render`: the
+//! error feed (what to ask the errors activity for, which finished generation to draw
+//! with, how old it is) and block selection. One copy, so that the bench measures what
+//! the viewer does.
+
+use crate::camera::Camera;
+use crate::errors_activity::{ErrorsActivity, Generation};
+use crate::gie::{ErrorMode, ErrorParams};
+use crate::heightfield::{Heightfield, MinMaxPyramid};
+use crate::quadtree::{traverse, BlockLayout, LodSelect, Traversal};
+use crate::vk::VkResult;
+use glam::Vec3;
+use std::collections::VecDeque;
+use std::time::Duration;
+
+/// When the draw thread asks for new error data. Stale data keeps the bound (the
+/// traversal scales a block's error by `d / (d - m)` for a camera that moved `m`), so
+/// a new generation only pays once that inflation starts to cost triangles.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RefreshPolicy {
+    /// Request when the camera has moved this fraction of the distance to the nearest
+    /// drawn terrain since the last request (0: every frame the camera moves). At 0.05
+    /// the nearest blocks' errors are inflated by at most about 5 %, farther ones less.
+    pub moved_fraction: f32,
+}
+
+impl Default for RefreshPolicy {
+    fn default() -> Self {
+        RefreshPolicy { moved_fraction: 0.05 }
+    }
+}
+
+impl RefreshPolicy {
+    /// Whether a camera at `now` should request new data, last requested at `requested`,
+    /// with the nearest drawn terrain `nearest` away (None: nothing drawn yet).
+    pub fn should_request(&self, requested: Option<Vec3>, now: Vec3, nearest: Option<f32>) -> bool {
+        match (requested, nearest) {
+            (None, _) | (_, None) => true,
+            (Some(r), Some(d)) => {
+                let moved = (now - r).length();
+                moved > 0.0 && moved >= self.moved_fraction * d
+            }
+        }
+    }
+}
+
+/// The draw thread's view of the errors activity.
+pub struct ErrorFeed {
+    mode: ErrorMode,
+    policy: RefreshPolicy,
+    current: Option<Generation>,
+    requested_at: Option<Vec3>,
+    /// Camera position per recent frame, to tell the age of the data in frames.
+    recent: VecDeque<(u64, Vec3)>,
+    /// Distance to the nearest drawn block in the last frame.
+    nearest: Option<f32>,
+    /// Generations requested so far (requests that repeat the last one are not counted).
+    pub requests: u64,
+}
+
+impl ErrorFeed {
+    pub fn new(mode: ErrorMode, policy: RefreshPolicy) -> Self {
+        ErrorFeed {
+            mode,
+            policy,
+            current: None,
+            requested_at: None,
+            recent: VecDeque::new(),
+            nearest: None,
+            requests: 0,
+        }
+    }
+
+    pub fn mode(&self) -> ErrorMode {
+        self.mode
+    }
+
+    /// Switches the error mode; data made for the other mode is no longer used.
+    pub fn set_mode(&mut self, mode: ErrorMode) {
+        if mode != self.mode {
+            self.mode = mode;
+            self.requested_at = None;
+        }
+    }
+
+    /// Before frame `frame` at `cam`: requests a generation when it pays, then takes the
+    /// newest finished one. Until data for the current mode exists the call waits for a
+    /// generation at this camera, so the bound holds from the first frame; after that it
+    /// never waits. Returns the generation newly taken, if any.
+    pub fn update(&mut self, activity: &ErrorsActivity, cam: &Camera, frame: u64) -> VkResult<Option<u64>> {
+        let params = ErrorParams::new(cam, self.mode);
+        let mut taken = None;
+        if self.usable().is_none() {
+            let g = activity.wait_for(params, Duration::from_secs(600))?;
+            self.requested_at = Some(cam.position);
+            self.requests += 1;
+            taken = Some(g.number);
+            self.current = Some(g);
+        } else {
+            if self.policy.should_request(self.requested_at, cam.position, self.nearest) {
+                activity.request(params);
+                self.requested_at = Some(cam.position);
+                self.requests += 1;
+            }
+            let after = self.current.as_ref().map_or(0, |g| g.number);
+            if let Some(g) = activity.latest(after)? {
+                taken = Some(g.number);
+                self.current = Some(g);
+            }
+        }
+        self.recent.push_back((frame, cam.position));
+        if self.recent.len() > 4096 {
+            self.recent.pop_front();
+        }
+        Ok(taken)
+    }
+
+    /// The generation in use, if it was made for the current mode.
+    pub fn usable(&self) -> Option<&Generation> {
+        self.current.as_ref().filter(|g| g.params.mode == self.mode)
+    }
+
+    /// Frames since the camera was where the data in use was computed.
+    pub fn age_frames(&self, frame: u64) -> Option<u64> {
+        let g = self.usable()?;
+        self.recent.iter().rev().find(|(_, c)| *c == g.params.camera).map(|(f, _)| frame - f)
+    }
+
+    /// Selects this frame's blocks with the data in use (distance LOD until there is
+    /// data), and remembers how near the drawn terrain is for the refresh policy.
+    pub fn traverse(
+        &mut self,
+        hf: &Heightfield,
+        mm: &MinMaxPyramid,
+        layout: &BlockLayout,
+        cam: &Camera,
+        delta: f32,
+    ) -> Traversal {
+        let select = match self.usable() {
+            Some(g) => LodSelect::errors(&g.errors, g.params.camera, delta, g.params.mode),
+            None => LodSelect::Distance { factor: 2.0 },
+        };
+        let t = traverse(hf, mm, layout, cam, select);
+        self.note_drawn(&t);
+        t
+    }
+
+    /// Records how near the drawn terrain is (for traversals made elsewhere).
+    pub fn note_drawn(&mut self, t: &Traversal) {
+        self.nearest = t.nearest;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn refresh_waits_until_the_inflation_would_cost() {
+        let p = RefreshPolicy::default();
+        let at = Vec3::new(0.0, 100.0, 0.0);
+        assert!(p.should_request(None, at, Some(100.0)), "no request yet");
+        assert!(p.should_request(Some(at), at, None), "nothing drawn yet");
+        assert!(!p.should_request(Some(at), at, Some(100.0)), "standing still");
+        assert!(!p.should_request(Some(at), at + Vec3::X * 4.9, Some(100.0)));
+        assert!(p.should_request(Some(at), at + Vec3::X * 5.0, Some(100.0)));
+        // Close to the ground a small move already matters.
+        assert!(p.should_request(Some(at), at + Vec3::X * 0.2, Some(3.0)));
+        let every = RefreshPolicy { moved_fraction: 0.0 };
+        assert!(every.should_request(Some(at), at + Vec3::X * 1e-3, Some(1e6)));
+        assert!(!every.should_request(Some(at), at, Some(1e6)));
+    }
+}
