@@ -35,9 +35,11 @@ pub enum CameraPath {
 pub struct BenchArgs {
     #[command(flatten)]
     pub common: CommonArgs,
-    /// Camera path.
-    #[arg(long, value_enum, default_value_t = CameraPath::PaperFlyover)]
-    pub path: CameraPath,
+    /// Camera path: `paper-flyover`, `rotate360`, or a file of poses, one a line:
+    /// `cx cy cz lx ly lz` (camera position and look-at point in world units; blank lines
+    /// and `#` comments skipped). With a file, frames = poses and --frames is ignored.
+    #[arg(long, value_name = "PATH|FILE", default_value = "paper-flyover", value_parser = parse_path_arg)]
+    pub path: PathArg,
     /// Frames, evenly spaced in simulated time along the path.
     #[arg(long, value_name = "N", default_value_t = 600)]
     pub frames: u64,
@@ -69,6 +71,72 @@ pub struct BenchArgs {
     /// device memory at frame F).
     #[arg(long, value_name = "FAULT:N", hide = true)]
     pub inject_fault: Option<String>,
+}
+
+/// A built-in camera path or a file of poses.
+#[derive(Clone, Debug, PartialEq)]
+pub enum PathArg {
+    Builtin(CameraPath),
+    File(PathBuf),
+}
+
+impl std::fmt::Display for PathArg {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            PathArg::Builtin(p) => {
+                write!(f, "{}", p.to_possible_value().map_or("?".into(), |v| v.get_name().to_string()))
+            }
+            PathArg::File(p) => write!(f, "{}", p.display()),
+        }
+    }
+}
+
+fn parse_path_arg(s: &str) -> Result<PathArg, String> {
+    match CameraPath::from_str(s, false) {
+        Ok(p) => Ok(PathArg::Builtin(p)),
+        Err(_) if s.is_empty() => Err("expected paper-flyover, rotate360 or a pose file".into()),
+        Err(_) => Ok(PathArg::File(PathBuf::from(s))),
+    }
+}
+
+/// Reads a pose file: one `cx cy cz lx ly lz` a line. Errors name the file and line.
+pub fn read_poses(path: &Path) -> Result<Vec<(Vec3, Vec3)>, InputError> {
+    let text = std::fs::read_to_string(path).map_err(|e| InputError(format!("--path {}: {e}", path.display())))?;
+    let mut poses = Vec::new();
+    for (n, line) in text.lines().enumerate() {
+        let line = line.split('#').next().unwrap_or("").trim();
+        if line.is_empty() {
+            continue;
+        }
+        let bad =
+            |what: &str| InputError(format!("{}:{}: {what} (expected: cx cy cz lx ly lz)", path.display(), n + 1));
+        let v: Vec<f32> = line
+            .split_whitespace()
+            .map(|t| t.parse::<f32>().ok().filter(|v| v.is_finite()))
+            .collect::<Option<_>>()
+            .ok_or_else(|| bad("not six finite numbers"))?;
+        if v.len() != 6 {
+            return Err(bad(&format!("{} numbers", v.len())));
+        }
+        let (pos, look) = (Vec3::new(v[0], v[1], v[2]), Vec3::new(v[3], v[4], v[5]));
+        if (look - pos).length() < 1e-6 {
+            return Err(bad("the look-at point equals the position"));
+        }
+        poses.push((pos, look));
+    }
+    if poses.is_empty() {
+        return Err(InputError(format!("--path {}: no poses", path.display())));
+    }
+    Ok(poses)
+}
+
+/// Writes poses in the format [`read_poses`] reads.
+pub fn write_poses(poses: &[(Vec3, Vec3)]) -> String {
+    let mut out = String::from("# vkterrain poses: cx cy cz lx ly lz (world units)\n");
+    for (p, l) in poses {
+        out += &format!("{} {} {} {} {} {}\n", p.x, p.y, p.z, l.x, l.y, l.z);
+    }
+    out
 }
 
 /// One row of frames.csv.
@@ -237,11 +305,30 @@ struct Bench<'a> {
     frames_done: Arc<AtomicU64>,
     size: (u32, u32),
     draw_oom_at: Option<u64>,
+    /// Frames of the run: --frames, or the pose file's length.
+    frames: u64,
+    poses: Option<Vec<(Vec3, Vec3)>>,
 }
 
 impl Bench<'_> {
     fn camera(&self, i: u64) -> (Camera, f64) {
-        path_camera(&self.s.hf, &self.s.mm, self.args.path, i, self.args.frames, self.args.common.fovy, self.size)
+        match &self.poses {
+            // Pose files carry no time: frames are 1/30 s apart.
+            Some(p) => {
+                let (pos, look) = p[i as usize];
+                (
+                    Camera::look_at(pos, look, self.args.common.fovy, self.size.0, self.size.1, near_plane(&self.s.hf)),
+                    i as f64 / 30.0,
+                )
+            }
+            None => {
+                let path = match self.args.path {
+                    PathArg::Builtin(p) => p,
+                    PathArg::File(_) => CameraPath::PaperFlyover,
+                };
+                path_camera(&self.s.hf, &self.s.mm, path, i, self.frames, self.args.common.fovy, self.size)
+            }
+        }
     }
 
     /// Runs the whole path with one LOD mode (`ceiling`: replay given block lists with no
@@ -259,7 +346,7 @@ impl Bench<'_> {
             (None, LodChoice::Full) => "full",
             (None, LodChoice::Distance) => "distance",
         };
-        let mut progress = Progress::new(label, self.args.frames);
+        let mut progress = Progress::new(label, self.frames);
         let shading = Shading { normals: self.args.shading, ..Shading::default() };
         let mut run = Run {
             rows: Vec::new(),
@@ -270,7 +357,7 @@ impl Bench<'_> {
             rss: Vec::new(),
         };
         let mut feed = ErrorFeed::new(self.args.common.error_mode, self.args.common.refresh());
-        for i in 0..self.args.frames {
+        for i in 0..self.frames {
             if self.stop.load(Ordering::SeqCst) {
                 run.interrupted = true;
                 break;
@@ -293,13 +380,7 @@ impl Bench<'_> {
                     }
                 }
                 let t = Instant::now();
-                let tr = match lod {
-                    LodChoice::Error => feed.traverse(&self.s.hf, &self.s.mm, &self.s.layout, &cam, self.args.delta),
-                    LodChoice::Distance => {
-                        traverse(&self.s.hf, &self.s.mm, &self.s.layout, &cam, LodSelect::Distance { factor: 2.0 })
-                    }
-                    LodChoice::Full => traverse(&self.s.hf, &self.s.mm, &self.s.layout, &cam, LodSelect::Full),
-                };
+                let tr = feed.traverse_lod(lod, &self.s.hf, &self.s.mm, &self.s.layout, &cam, self.args.delta);
                 row.traverse_ms = t.elapsed().as_secs_f64() * 1e3;
                 self.trace.complete(DRAW_TID, "traverse", t, Instant::now(), json!({"frame": i}));
                 if let Some(g) = feed.usable() {
@@ -487,6 +568,11 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     if args.out.exists() && !args.out.is_dir() {
         return Err(InputError(format!("--out {}: exists and is not a directory", args.out.display())).into());
     }
+    let poses = match &args.path {
+        PathArg::File(p) => Some(read_poses(p)?),
+        PathArg::Builtin(_) => None,
+    };
+    let frames = poses.as_ref().map_or(args.frames, |p| p.len() as u64);
     let s = Session::open(&args.common)?;
     std::fs::create_dir_all(&args.out).map_err(|e| anyhow::anyhow!("{}: {e}", args.out.display()))?;
     let size = args.common.size.unwrap_or((640, 480));
@@ -514,6 +600,8 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
         frames_done: frames_done.clone(),
         size,
         draw_oom_at: None,
+        frames,
+        poses,
     };
     match args.inject_fault.as_deref().and_then(|f| f.split_once(':')) {
         None if args.inject_fault.is_some() => {
@@ -600,7 +688,7 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
             if !args.no_fidelity && !stop.load(Ordering::SeqCst) {
                 summary["fidelity"] = fidelity(&mut bench, &activity)?;
             }
-            plot(&args.out.join("plot.png"), &main.rows, &format!("{:?}", args.path))?;
+            plot(&args.out.join("plot.png"), &main.rows, &args.path.to_string())?;
             Ok(summary)
         })();
         watch_stop.store(true, Ordering::SeqCst);
@@ -617,7 +705,7 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     summary["duration_s"] = json!(secs);
     summary["rss_start_mib"] = json!(rss_start);
     summary["rss_end_mib"] = json!(rss_mib());
-    summary["path"] = json!(format!("{:?}", args.path));
+    summary["path"] = json!(args.path.to_string());
     summary["lod"] = json!(format!("{:?}", args.lod).to_lowercase());
     summary["delta"] = json!(args.delta);
     summary["size"] = json!([size.0, size.1]);
@@ -663,7 +751,7 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
 fn fidelity(bench: &mut Bench, activity: &ErrorsActivity) -> anyhow::Result<Value> {
     let mut out = Vec::new();
     for frac in [0.0f64, 0.5, 0.9] {
-        let i = ((bench.args.frames - 1) as f64 * frac).round() as u64;
+        let i = ((bench.frames - 1) as f64 * frac).round() as u64;
         let (cam, time_s) = bench.camera(i);
         let shading = Shading::default();
         let s = bench.s;

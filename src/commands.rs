@@ -3,10 +3,11 @@
 use crate::audit;
 use crate::blocks::{BlocksRenderer, NormalSource, Shading, Target};
 use crate::cli::{CommonArgs, InputError};
+use crate::draw_thread::ErrorFeed;
 use crate::errors_activity::ErrorsActivity;
 use crate::gie::ErrorParams;
 use crate::heightfield::{Heightfield, MinMaxPyramid};
-use crate::quadtree::{traverse, BlockLayout, LodSelect};
+use crate::quadtree::BlockLayout;
 use crate::terrain_gpu::TerrainGpu;
 use crate::vk::{Device, DeviceOptions, Instance, InstanceOptions};
 use clap::{Args, ValueEnum};
@@ -208,30 +209,21 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
 
     let mut generation = 0;
     let mut errors_ms = None;
-    let params = ErrorParams::new(&cam, args.common.error_mode);
     let activity = if args.lod == LodChoice::Error {
         Some(ErrorsActivity::start(&s.device, s.terrain.clone(), s.hf.clone(), s.layout)?)
     } else {
         None
     };
-    let gen = match &activity {
-        Some(a) => {
-            // `render` waits for the generation computed at its own camera (deterministic).
-            let t = Instant::now();
-            let g = a.wait_for(params, Duration::from_secs(600))?;
-            errors_ms = Some(t.elapsed().as_secs_f64() * 1e3);
-            generation = g.number;
-            Some(g)
-        }
-        None => None,
-    };
-    let select = match (&gen, args.lod) {
-        (Some(g), _) => LodSelect::errors(&g.errors, g.params.camera, args.delta, g.params.mode),
-        (None, LodChoice::Distance) => LodSelect::Distance { factor: 2.0 },
-        _ => LodSelect::Full,
-    };
+    // `render` is the draw thread's first frame: it waits for the generation computed at
+    // its own camera, so its output is deterministic.
+    let mut feed = ErrorFeed::new(args.common.error_mode, args.common.refresh());
+    if let Some(a) = &activity {
+        let t = Instant::now();
+        generation = feed.update(a, &cam, 0)?.unwrap_or_default();
+        errors_ms = Some(t.elapsed().as_secs_f64() * 1e3);
+    }
     let t = Instant::now();
-    let trav = traverse(&s.hf, &s.mm, &s.layout, &cam, select);
+    let trav = feed.traverse_lod(args.lod, &s.hf, &s.mm, &s.layout, &cam, args.delta);
     let traverse_ms = t.elapsed().as_secs_f64() * 1e3;
     let t = Instant::now();
     let (pixels, stats) = renderer.render_offscreen(&s.hf, &s.terrain, &target, &cam, &trav.blocks, &shading)?;

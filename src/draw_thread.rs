@@ -4,6 +4,7 @@
 //! the viewer does.
 
 use crate::camera::Camera;
+use crate::commands::LodChoice;
 use crate::errors_activity::{ErrorsActivity, Generation};
 use crate::gie::{ErrorMode, ErrorParams};
 use crate::heightfield::{Heightfield, MinMaxPyramid};
@@ -143,6 +144,24 @@ impl ErrorFeed {
         let t = traverse(hf, mm, layout, cam, select);
         self.note_drawn(&t);
         t
+    }
+
+    /// Selects this frame's blocks for a `--lod` choice: the error data in use, the
+    /// distance baseline, or everything at full resolution.
+    pub fn traverse_lod(
+        &mut self,
+        lod: LodChoice,
+        hf: &Heightfield,
+        mm: &MinMaxPyramid,
+        layout: &BlockLayout,
+        cam: &Camera,
+        delta: f32,
+    ) -> Traversal {
+        match lod {
+            LodChoice::Error => self.traverse(hf, mm, layout, cam, delta),
+            LodChoice::Distance => traverse(hf, mm, layout, cam, LodSelect::Distance { factor: 2.0 }),
+            LodChoice::Full => traverse(hf, mm, layout, cam, LodSelect::Full),
+        }
     }
 
     /// Records how near the drawn terrain is (for traversals made elsewhere).

@@ -2,12 +2,13 @@
 //! keys, under validation with zero messages; and a short soak keeps error generations
 //! flowing with bounded memory.
 
+mod common;
+use common::TempDir;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-fn small_field() -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("vkterrain-bench-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
+/// Writes the small test field into `dir`.
+fn small_field(dir: &Path) -> PathBuf {
     let p = dir.join("hills.f32");
     let bytes: Vec<u8> = (0..257 * 257)
         .flat_map(|i| {
@@ -19,8 +20,9 @@ fn small_field() -> PathBuf {
     p
 }
 
+/// Runs a bench into `out` (inside a test's TempDir, which also gets the field).
 fn bench(out: &Path, extra: &[&str]) -> serde_json::Value {
-    let field = small_field();
+    let field = small_field(out.parent().unwrap());
     let mut args = vec![
         "bench".to_string(),
         "--heightmap".into(),
@@ -51,8 +53,8 @@ fn bench(out: &Path, extra: &[&str]) -> serde_json::Value {
 
 #[test]
 fn short_bench_writes_every_file_with_documented_fields() {
-    let out = std::env::temp_dir().join(format!("vkterrain-bench-out-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&out);
+    let tmp = TempDir::new("bench");
+    let out = tmp.path().join("out");
     let s = bench(&out, &["--path", "paper-flyover", "--frames", "24", "--compare"]);
     let csv = std::fs::read_to_string(out.join("frames.csv")).unwrap();
     let mut lines = csv.lines();
@@ -94,7 +96,7 @@ fn short_bench_writes_every_file_with_documented_fields() {
     assert!(s["compare"]["triangles_full_over_error"].as_f64().unwrap() >= 1.0);
     assert_eq!(s["fidelity"].as_array().unwrap().len(), 12);
     let plot = image::open(out.join("plot.png")).unwrap();
-    assert!(plot.width() >= 640);
+    assert_eq!((plot.width(), plot.height()), (960, 640));
     let trace: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("trace.json")).unwrap()).unwrap();
     let events = trace["traceEvents"].as_array().unwrap();
@@ -113,8 +115,8 @@ fn short_bench_writes_every_file_with_documented_fields() {
 
 #[test]
 fn short_soak_keeps_generations_flowing() {
-    let out = std::env::temp_dir().join(format!("vkterrain-soak-out-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&out);
+    let tmp = TempDir::new("soak");
+    let out = tmp.path().join("out");
     let s = bench(&out, &["--path", "paper-flyover", "--frames", "400", "--no-fidelity"]);
     assert_eq!(s["frames"], 400);
     assert_eq!(s["generations_strictly_increasing"], true);
@@ -126,9 +128,9 @@ fn short_soak_keeps_generations_flowing() {
 
 #[test]
 fn ctrl_c_stops_cleanly_and_keeps_what_was_measured() {
-    let out = std::env::temp_dir().join(format!("vkterrain-ctrlc-out-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&out);
-    let field = small_field();
+    let tmp = TempDir::new("ctrlc");
+    let out = tmp.path().join("out");
+    let field = small_field(tmp.path());
     let mut child = Command::new(env!("CARGO_BIN_EXE_vkterrain"))
         .args(["bench", "--heightmap", field.to_str().unwrap(), "--raw-size", "257x257", "--spacing", "10"])
         .args(["--block", "9", "--size", "160x120", "--frames", "1000000", "--validation", "on"])
@@ -165,8 +167,9 @@ fn ctrl_c_stops_cleanly_and_keeps_what_was_measured() {
 /// Runs a bench with an injected fault; it must exit with 1 (not hang, not panic), one
 /// error line naming the stage and the Vulkan result, both threads joined.
 fn faulted(fault: &str, needles: &[&str]) {
-    let out = std::env::temp_dir().join(format!("vkterrain-fault-{}-{}", fault.replace(':', "-"), std::process::id()));
-    let field = small_field();
+    let tmp = TempDir::new("fault");
+    let out = tmp.path().join("out");
+    let field = small_field(tmp.path());
     let mut child = Command::new(env!("CARGO_BIN_EXE_vkterrain"))
         .args(["bench", "--heightmap", field.to_str().unwrap(), "--raw-size", "257x257", "--spacing", "10"])
         .args(["--block", "9", "--size", "160x120", "--frames", "200", "--validation", "on", "--inject-fault", fault])
@@ -203,4 +206,36 @@ fn device_loss_in_the_errors_activity_fails_cleanly() {
 #[test]
 fn out_of_memory_in_the_draw_thread_fails_cleanly() {
     faulted("draw-out-of-memory:3", &["draw thread, frame 3", "ERROR_OUT_OF_DEVICE_MEMORY"]);
+}
+
+/// `--path FILE` replays a pose file (one `cx cy cz lx ly lz` a line): frames = poses;
+/// a malformed file is a one-line input error naming the file and line.
+#[test]
+fn pose_file_replays_as_a_path() {
+    let tmp = TempDir::new("poses");
+    let dir = tmp.path();
+    let poses = dir.join("flight.txt");
+    let mut text = String::from("# a short flight over the small field\n\n");
+    for i in 0..7 {
+        let x = 300.0 + 200.0 * i as f32;
+        text += &format!("{x} 400 2400  {} 0 1200\n", x + 100.0);
+    }
+    std::fs::write(&poses, &text).unwrap();
+    let out = dir.join("out");
+    let s = bench(&out, &["--path", poses.to_str().unwrap(), "--frames", "99", "--no-fidelity"]);
+    let csv = std::fs::read_to_string(out.join("frames.csv")).unwrap();
+    assert_eq!(s["frames"], 7);
+    assert_eq!(csv.lines().count(), 1 + 7);
+    assert_eq!(s["path"], poses.to_str().unwrap());
+    assert!(csv.lines().skip(1).all(|l| l.split(',').nth(4).unwrap().parse::<u64>().unwrap() > 0));
+
+    let bad = dir.join("bad.txt");
+    std::fs::write(&bad, "1 2 3 4 5 6\n1 2 3 4 five 6\n").unwrap();
+    let o = Command::new(env!("CARGO_BIN_EXE_vkterrain"))
+        .args(["bench", "--path", bad.to_str().unwrap(), "--out", out.to_str().unwrap()])
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{stderr}");
+    assert!(stderr.contains("bad.txt:2:"), "{stderr}");
 }

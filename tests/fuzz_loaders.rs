@@ -3,6 +3,8 @@
 //! decoders' limits and our own size checks run before any large allocation). Bounded in
 //! time: a fixed number of cases per format.
 
+mod common;
+use common::TempDir;
 use proptest::prelude::*;
 use std::io::Cursor;
 use std::path::PathBuf;
@@ -38,14 +40,21 @@ fn seed(ext: &str) -> Vec<u8> {
 }
 
 fn try_load(ext: &str, bytes: &[u8], case: u64) {
-    let dir = std::env::temp_dir().join(format!("vkterrain-fuzz-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    let path: PathBuf = dir.join(format!("case{case}.{ext}"));
+    let dir = TempDir::new("fuzz");
+    let path: PathBuf = dir.path().join(format!("case{case}.{ext}"));
     std::fs::write(&path, bytes).unwrap();
     let opts = LoadOptions { raw_size: Some((5, 4)), max_grid_side: Some(4097), ..Default::default() };
-    // Ok or a clean error; a panic fails the property.
-    let _ = load(&path, &opts);
-    let _ = std::fs::remove_file(&path);
+    // A panic fails the property; otherwise a usable heightfield or an error naming the
+    // file.
+    match load(&path, &opts) {
+        Ok(hf) => {
+            assert!(hf.width >= 3 && hf.height >= 3, "case {case}.{ext}: {}x{}", hf.width, hf.height);
+            assert!((hf.side() - 1).is_power_of_two() && hf.side() >= hf.width.max(hf.height));
+            assert_eq!(hf.raw.len(), hf.side() * hf.side());
+            assert!(hf.raw.iter().all(|v| v.is_finite()), "case {case}.{ext}: non-finite heights loaded");
+        }
+        Err(e) => assert!(e.to_string().contains(&format!("case{case}.{ext}")), "case {case}.{ext}: '{e}'"),
+    }
 }
 
 fn mutate(mut base: Vec<u8>, edits: &[(usize, u8)], cut: Option<usize>) -> Vec<u8> {

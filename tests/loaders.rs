@@ -8,10 +8,14 @@ use tiff::encoder::{colortype, TiffEncoder};
 use tiff::tags::Tag;
 use vkterrain::heightfield::{load, HeightFormat, Heightfield, LoadOptions};
 
+/// The loaders' scratch files live in one directory removed when the test binary's
+/// last user of it drops the guard (each test holds it while it runs).
 fn tmp(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("vkterrain-loaders-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    dir.join(name)
+    SCRATCH.with(|d| d.path().join(name))
+}
+
+thread_local! {
+    static SCRATCH: common::TempDir = common::TempDir::new("loaders");
 }
 
 fn range(hf: &Heightfield) -> (f32, f32) {

@@ -59,3 +59,27 @@ pub fn field16(w: usize, h: usize, spacing: f32, scale: f32, f: impl Fn(usize, u
 pub fn close(a: f32, b: f32, rel: f32) -> bool {
     a == b || (a - b).abs() <= rel * a.abs().max(b.abs())
 }
+
+/// A private temporary directory, removed with its contents when dropped, so that tests
+/// leave nothing behind.
+pub struct TempDir(PathBuf);
+
+impl TempDir {
+    pub fn new(tag: &str) -> Self {
+        static NEXT: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+        let n = NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        let dir = std::env::temp_dir().join(format!("vkterrain-{tag}-{}-{n}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        TempDir(dir)
+    }
+    pub fn path(&self) -> &std::path::Path {
+        &self.0
+    }
+}
+
+impl Drop for TempDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
