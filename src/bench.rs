@@ -152,10 +152,12 @@ struct Row {
     error_generation: u64,
     error_age_frames: Option<u64>,
     error_update_ms: Option<f64>,
+    /// Submit-to-done minus the frame's own GPU time: waiting behind other queue work.
+    queue_wait_ms: Option<f64>,
 }
 
-const CSV_HEADER: &str =
-    "time_s,frame_ms,traverse_ms,gpu_ms,triangles,draw_calls,blocks,error_generation,error_age_frames,error_update_ms";
+const CSV_HEADER: &str = "time_s,frame_ms,traverse_ms,gpu_ms,triangles,draw_calls,blocks,error_generation,\
+                          error_age_frames,error_update_ms,queue_wait_ms";
 
 fn opt<T: std::fmt::Display>(v: Option<T>) -> String {
     v.map_or(String::new(), |v| v.to_string())
@@ -164,7 +166,7 @@ fn opt<T: std::fmt::Display>(v: Option<T>) -> String {
 impl Row {
     fn csv(&self) -> String {
         format!(
-            "{:.4},{:.3},{:.3},{},{},{},{},{},{},{}",
+            "{:.4},{:.3},{:.3},{},{},{},{},{},{},{},{}",
             self.time_s,
             self.frame_ms,
             self.traverse_ms,
@@ -174,7 +176,8 @@ impl Row {
             self.blocks,
             self.error_generation,
             opt(self.error_age_frames),
-            opt(self.error_update_ms.map(|v| format!("{v:.3}")))
+            opt(self.error_update_ms.map(|v| format!("{v:.3}"))),
+            opt(self.queue_wait_ms.map(|v| format!("{v:.3}")))
         )
     }
 }
@@ -399,7 +402,7 @@ impl Bench<'_> {
                 })
                 .map_err(|e| anyhow::anyhow!("draw thread, frame {i}: {e}"));
             }
-            let (_, stats, gpu_ms): (_, DrawStats, _) = self.renderer.render_timed(
+            let (_, stats): (_, DrawStats) = self.renderer.render_timed(
                 &self.s.hf,
                 &self.s.terrain,
                 &self.target,
@@ -418,7 +421,8 @@ impl Bench<'_> {
             );
             row.frame_ms = frame_start.elapsed().as_secs_f64() * 1e3;
             self.trace.complete(DRAW_TID, label, frame_start, Instant::now(), json!({"frame": i}));
-            row.gpu_ms = gpu_ms;
+            row.gpu_ms = stats.gpu_ms;
+            row.queue_wait_ms = stats.queue_wait_ms();
             row.triangles = stats.triangles;
             row.draw_calls = stats.draw_calls;
             row.blocks = blocks.len();
@@ -457,6 +461,9 @@ fn summarize(run: &Run) -> Value {
     let tris: u64 = run.rows.iter().map(|r| r.triangles).sum();
     let n = run.rows.len().max(1) as f64;
     let distinct = run.generations.len();
+    let mut waits: Vec<f64> = run.rows.iter().filter_map(|r| r.queue_wait_ms).collect();
+    waits.sort_by(|a, b| a.total_cmp(b));
+    let p99_wait = (!waits.is_empty()).then(|| percentile(&waits, 0.99));
     json!({
         "frames": run.rows.len(),
         "avg_fps": run.rows.len() as f64 / total_s.max(1e-9),
@@ -467,6 +474,8 @@ fn summarize(run: &Run) -> Value {
         "mean_draw_calls": run.rows.iter().map(|r| r.draw_calls).sum::<u64>() as f64 / n,
         "median_traverse_ms": median(&run.rows.iter().map(|r| r.traverse_ms).collect::<Vec<_>>()),
         "median_gpu_ms": median(&run.rows.iter().filter_map(|r| r.gpu_ms).collect::<Vec<_>>()),
+        "median_queue_wait_ms": median(&run.rows.iter().filter_map(|r| r.queue_wait_ms).collect::<Vec<_>>()),
+        "p99_queue_wait_ms": p99_wait,
         "error_updates": distinct,
         "median_error_update_ms": median(&run.update_gpu_ms),
         "triangles_first_frame": run.rows.first().map(|r| r.triangles),
@@ -756,14 +765,14 @@ fn fidelity(bench: &mut Bench, activity: &ErrorsActivity) -> anyhow::Result<Valu
         let shading = Shading::default();
         let s = bench.s;
         let full_blocks = traverse(&s.hf, &s.mm, &s.layout, &cam, LodSelect::Full).blocks;
-        let (full, _, _) =
+        let (full, _) =
             bench.renderer.render_timed(&s.hf, &s.terrain, &bench.target, &cam, &full_blocks, &shading, true)?;
         let full = full.unwrap_or_default();
         let g = activity.wait_for(ErrorParams::new(&cam, bench.args.common.error_mode), Duration::from_secs(600))?;
         for delta in [0.5f32, 1.0, 2.0, 5.0] {
             let sel = LodSelect::errors(&g.errors, g.params.camera, delta, g.params.mode);
             let blocks = traverse(&s.hf, &s.mm, &s.layout, &cam, sel).blocks;
-            let (img, stats, _) =
+            let (img, stats) =
                 bench.renderer.render_timed(&s.hf, &s.terrain, &bench.target, &cam, &blocks, &shading, true)?;
             let (rmse, share) = image_difference(&full, &img.unwrap_or_default());
             out.push(json!({

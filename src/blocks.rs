@@ -165,6 +165,18 @@ impl Target {
 pub struct DrawStats {
     pub draw_calls: u64,
     pub triangles: u64,
+    /// GPU time of the frame's commands (timestamps), when the queue has them.
+    pub gpu_ms: Option<f64>,
+    /// From the submission to its fence: the GPU time plus any wait for work queued
+    /// ahead of it (on a shared queue, error updates).
+    pub submit_to_done_ms: f64,
+}
+
+impl DrawStats {
+    /// How long the frame waited for the queue: submit-to-done minus its own GPU time.
+    pub fn queue_wait_ms(&self) -> Option<f64> {
+        self.gpu_ms.map(|g| (self.submit_to_done_ms - g).max(0.0))
+    }
 }
 
 /// Pipelines and per-frame state of the block renderer. Owned by the draw thread.
@@ -444,13 +456,13 @@ impl BlocksRenderer {
         blocks: &[DrawBlock],
         shading: &Shading,
     ) -> VkResult<(Vec<u8>, DrawStats)> {
-        let (pixels, stats, _) = self.render_timed(hf, terrain, target, cam, blocks, shading, true)?;
+        let (pixels, stats) = self.render_timed(hf, terrain, target, cam, blocks, shading, true)?;
         Ok((pixels.unwrap_or_default(), stats))
     }
 
     /// Renders one frame into `target` (copying it to host memory, the headless stand-in
-    /// for presenting) and waits; returns the pixels when `read` is set, the stats, and
-    /// the GPU time from timestamps when the device has them.
+    /// for presenting) and waits; returns the pixels when `read` is set and the stats
+    /// (with the GPU time from timestamps when the device has them).
     #[allow(clippy::too_many_arguments)]
     pub fn render_timed(
         &mut self,
@@ -461,7 +473,7 @@ impl BlocksRenderer {
         blocks: &[DrawBlock],
         shading: &Shading,
         read: bool,
-    ) -> VkResult<(Option<Vec<u8>>, DrawStats, Option<f64>)> {
+    ) -> VkResult<(Option<Vec<u8>>, DrawStats)> {
         self.set_frame(0, hf, terrain, cam, shading)?;
         let d = self.device.raw.clone();
         let cmd = self.cmd;
@@ -498,18 +510,21 @@ impl BlocksRenderer {
         self.fence.reset()?;
         let cmds = [vk::CommandBufferSubmitInfo::default().command_buffer(cmd)];
         let submit = [vk::SubmitInfo2::default().command_buffer_infos(&cmds)];
+        let submitted = std::time::Instant::now();
         self.device.draw_queue.submit(&self.device, &submit, self.fence.handle)?;
         self.fence.wait(u64::MAX)?;
+        let mut stats = stats;
+        stats.submit_to_done_ms = submitted.elapsed().as_secs_f64() * 1e3;
         let pixels = if read {
             Some(target.readback.mapped()?[..(target.width * target.height * 4) as usize].to_vec())
         } else {
             None
         };
-        let gpu_ms = match &self.queries {
+        stats.gpu_ms = match &self.queries {
             Some(q) => q.elapsed_ms(0)?,
             None => None,
         };
-        Ok((pixels, stats, gpu_ms))
+        Ok((pixels, stats))
     }
 }
 

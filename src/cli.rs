@@ -60,6 +60,14 @@ fn parse_fraction(s: &str) -> Result<f32, String> {
     Ok(v)
 }
 
+fn parse_share(s: &str) -> Result<f32, String> {
+    let v: f32 = s.parse().map_err(|_| format!("'{s}' is not a number"))?;
+    if !(v > 0.0 && v <= 1.0) {
+        return Err(format!("'{s}': must be above 0 and at most 1"));
+    }
+    Ok(v)
+}
+
 fn parse_fovy(s: &str) -> Result<f32, String> {
     let v = parse_positive(s)?;
     if v >= 179.0 {
@@ -114,6 +122,10 @@ pub struct CommonArgs {
     /// moves). Stale data keeps the bound; this only trades updates for triangles.
     #[arg(long, value_name = "F", default_value = "0.05", value_parser = parse_fraction)]
     pub refresh_at: f32,
+    /// Largest share of wall time spent on error updates (1: no cap). After an update of
+    /// u ms the next request waits u (1/share - 1) ms; stale data keeps the bound.
+    #[arg(long, value_name = "SHARE", default_value = "0.15", value_parser = parse_share)]
+    pub update_share: f32,
     /// Screen-space error bound: strict (guaranteed) or paper (seed 000 eqs. 2-4).
     #[arg(long = "error-mode", alias = "mode", value_enum, default_value_t = ErrorMode::Strict)]
     pub error_mode: ErrorMode,
@@ -121,7 +133,7 @@ pub struct CommonArgs {
 
 impl CommonArgs {
     pub fn refresh(&self) -> crate::draw_thread::RefreshPolicy {
-        crate::draw_thread::RefreshPolicy { moved_fraction: self.refresh_at }
+        crate::draw_thread::RefreshPolicy { moved_fraction: self.refresh_at, max_share: self.update_share }
     }
 
     pub fn validation(&self) -> bool {

@@ -12,7 +12,7 @@ use crate::quadtree::{traverse, BlockLayout, LodSelect, Traversal};
 use crate::vk::VkResult;
 use glam::Vec3;
 use std::collections::VecDeque;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 /// When the draw thread asks for new error data. Stale data keeps the bound (the
 /// traversal scales a block's error by `d / (d - m)` for a camera that moved `m`), so
@@ -23,15 +23,29 @@ pub struct RefreshPolicy {
     /// drawn terrain since the last request (0: every frame the camera moves). At 0.05
     /// the nearest blocks' errors are inflated by at most about 5 %, farther ones less.
     pub moved_fraction: f32,
+    /// At most this share of wall time goes to error updates (1: no cap): after an
+    /// update that took `u` ms on the GPU, the next request waits `u (1/share - 1)` ms.
+    /// On a shared queue every update delays the frames behind it; the cap keeps the
+    /// frame rate near the rasterizer's while the stale correction keeps the bound.
+    pub max_share: f32,
 }
 
 impl Default for RefreshPolicy {
     fn default() -> Self {
-        RefreshPolicy { moved_fraction: 0.05 }
+        RefreshPolicy { moved_fraction: 0.05, max_share: 0.15 }
     }
 }
 
 impl RefreshPolicy {
+    /// Milliseconds to leave between requests after an update of `update_ms`.
+    pub fn spacing_ms(&self, update_ms: f64) -> f64 {
+        if self.max_share >= 1.0 {
+            0.0
+        } else {
+            update_ms * (1.0 / self.max_share.max(1e-3) as f64 - 1.0)
+        }
+    }
+
     /// Whether a camera at `now` should request new data, last requested at `requested`,
     /// with the nearest drawn terrain `nearest` away (None: nothing drawn yet).
     pub fn should_request(&self, requested: Option<Vec3>, now: Vec3, nearest: Option<f32>) -> bool {
@@ -55,6 +69,9 @@ pub struct ErrorFeed {
     recent: VecDeque<(u64, Vec3)>,
     /// Distance to the nearest drawn block in the last frame.
     nearest: Option<f32>,
+    /// When the last request was made, and the GPU time of the newest update.
+    requested_when: Option<Instant>,
+    update_ms: Option<f64>,
     /// Generations requested so far (requests that repeat the last one are not counted).
     pub requests: u64,
 }
@@ -68,6 +85,8 @@ impl ErrorFeed {
             requested_at: None,
             recent: VecDeque::new(),
             nearest: None,
+            requested_when: None,
+            update_ms: None,
             requests: 0,
         }
     }
@@ -98,14 +117,20 @@ impl ErrorFeed {
             taken = Some(g.number);
             self.current = Some(g);
         } else {
-            if self.policy.should_request(self.requested_at, cam.position, self.nearest) {
+            let rested = match (self.requested_when, self.update_ms) {
+                (Some(t), Some(u)) => t.elapsed().as_secs_f64() * 1e3 >= self.policy.spacing_ms(u),
+                _ => true,
+            };
+            if rested && self.policy.should_request(self.requested_at, cam.position, self.nearest) {
                 activity.request(params);
                 self.requested_at = Some(cam.position);
+                self.requested_when = Some(Instant::now());
                 self.requests += 1;
             }
             let after = self.current.as_ref().map_or(0, |g| g.number);
             if let Some(g) = activity.latest(after)? {
                 taken = Some(g.number);
+                self.update_ms = g.gpu_ms.or(self.update_ms);
                 self.current = Some(g);
             }
         }
@@ -185,7 +210,9 @@ mod tests {
         assert!(p.should_request(Some(at), at + Vec3::X * 5.0, Some(100.0)));
         // Close to the ground a small move already matters.
         assert!(p.should_request(Some(at), at + Vec3::X * 0.2, Some(3.0)));
-        let every = RefreshPolicy { moved_fraction: 0.0 };
+        let every = RefreshPolicy { moved_fraction: 0.0, max_share: 1.0 };
+        assert_eq!(every.spacing_ms(100.0), 0.0);
+        assert!((p.spacing_ms(150.0) - 850.0).abs() < 1e-3, "15 % of the time: 150 ms on, 850 ms off");
         assert!(every.should_request(Some(at), at + Vec3::X * 1e-3, Some(1e6)));
         assert!(!every.should_request(Some(at), at, Some(1e6)));
     }
