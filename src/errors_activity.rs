@@ -14,8 +14,8 @@ use crate::terrain_gpu::TerrainGpu;
 use crate::trace::{Trace, ERRORS_TID};
 use crate::vk::{
     begin_one_time, image_barrier, vk, Buffer, CommandPool, DepthMode, DescriptorPool, DescriptorSetLayout, Device,
-    GraphicsPipeline, GraphicsPipelineDesc, Image, ImageUse, ImageView, PipelineLayout, QueryPool, TimelineSemaphore,
-    VkError, VkResult, VkResultExt,
+    Fence, GraphicsPipeline, GraphicsPipelineDesc, Image, ImageUse, ImageView, PipelineLayout, QueryPool,
+    TimelineSemaphore, VkError, VkResult, VkResultExt,
 };
 use std::sync::{Arc, Condvar, Mutex};
 use std::thread::JoinHandle;
@@ -45,6 +45,8 @@ pub struct UpdateCost {
 struct SlotInfo {
     generation: u64,
     params: ErrorParams,
+    /// Submissions the generation was split into (timestamp pairs to add up).
+    chunks: u32,
 }
 
 struct Handoff {
@@ -93,8 +95,15 @@ struct Slot {
     tbe_mips: Vec<ImageView>,
     gie_sets: Vec<vk::DescriptorSet>,
     reduce_set: vk::DescriptorSet,
-    cmd: vk::CommandBuffer,
+    /// A generation is recorded into up to [`CHUNKS`] command buffers, submitted one
+    /// after another, so that draw submissions can run in between on a shared queue.
+    cmds: Vec<vk::CommandBuffer>,
 }
+
+/// Submissions a generation is split into, at most (about equal fragment counts).
+const CHUNKS: usize = 4;
+/// Timestamp queries per slot: a pair per submission.
+const QUERIES_PER_SLOT: u32 = 2 * CHUNKS as u32;
 
 /// Everything the errors thread owns on the GPU.
 struct ErrorsGpu {
@@ -113,6 +122,8 @@ struct ErrorsGpu {
     _reduce_set_layout: DescriptorSetLayout,
     _pool: DescriptorPool,
     _dummy: Image,
+    /// Signalled by each submission of a generation but the last.
+    chunk_fence: Fence,
     commands: CommandPool,
 }
 
@@ -247,7 +258,8 @@ impl ErrorsGpu {
             }
             let reduce_set = pool.allocate(&reduce_set_layout)?;
             pool.write(reduce_set, &[(layout::REDUCE_BINDING_GIE, gie.view, terrain.nearest.handle)], &[]);
-            slots.push(Slot { gie, gie_mips, tbe, tbe_mips, gie_sets, reduce_set, cmd: commands.allocate()? });
+            let cmds = (0..CHUNKS).map(|_| commands.allocate()).collect::<VkResult<Vec<_>>>()?;
+            slots.push(Slot { gie, gie_mips, tbe, tbe_mips, gie_sets, reduce_set, cmds });
         }
         Ok(ErrorsGpu {
             device: device.clone(),
@@ -264,23 +276,29 @@ impl ErrorsGpu {
             _reduce_set_layout: reduce_set_layout,
             _pool: pool,
             _dummy: dummy,
+            chunk_fence: Fence::new(device, false)?,
             commands,
         })
     }
 
-    /// Draws one full-target triangle into `view` (a `side` x `side` mip).
+    /// Draws one full-target triangle into `view` (a `side` x `side` mip), shading only
+    /// the rows `rows` (a band of a pass split over several submissions).
+    #[allow(clippy::too_many_arguments)]
     fn pass(
         &self,
         cmd: vk::CommandBuffer,
         view: vk::ImageView,
         side: u32,
+        rows: std::ops::Range<u32>,
         (pipeline, pl): (&GraphicsPipeline, &PipelineLayout),
         set: vk::DescriptorSet,
         push: &[u8],
     ) {
         let d = &self.device.raw;
-        let extent = vk::Extent2D { width: side, height: side };
-        let area = vk::Rect2D { offset: vk::Offset2D::default(), extent };
+        let area = vk::Rect2D {
+            offset: vk::Offset2D { x: 0, y: rows.start as i32 },
+            extent: vk::Extent2D { width: side, height: rows.end - rows.start },
+        };
         let att = [vk::RenderingAttachmentInfo::default()
             .image_view(view)
             .image_layout(vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL)
@@ -316,7 +334,9 @@ impl ErrorsGpu {
         unsafe { image_barrier(&self.device.raw, cmd, image.handle, image.range(mip, count), from, to) };
     }
 
-    /// Records generation `g` into its slot's command buffer.
+    /// Records generation `g` into its slot's command buffers: the GIE passes split in
+    /// row bands over up to [`CHUNKS`] of them, the reduction, readback and timestamps in
+    /// the last. Returns the buffers to submit, in order.
     fn record(
         &self,
         slot_index: usize,
@@ -324,22 +344,25 @@ impl ErrorsGpu {
         p: &ErrorParams,
         readback: &Buffer,
         gie_dump: Option<&Buffer>,
-    ) -> VkResult<vk::CommandBuffer> {
+    ) -> VkResult<Vec<vk::CommandBuffer>> {
         let slot = &self.slots[slot_index];
         let d = &self.device.raw;
-        let cmd = slot.cmd;
+        let mut used = 1;
+        let mut cmd = slot.cmds[0];
         let n = self.hf.n;
         let root = self.layout.root_lod();
-        // SAFETY: the slot's previous submission (generation g-2) has completed: the
+        // SAFETY: the slot's previous submissions (generation g-2) have completed: the
         // errors thread waits for each generation before starting the next.
         unsafe {
             begin_one_time(d, cmd)?;
         }
-        let q0 = 2 * slot_index as u32;
+        // Two timestamps per submission: the update's GPU time is the sum over them,
+        // without the draws that ran in between.
+        let q0 = QUERIES_PER_SLOT * slot_index as u32;
         if let Some(pool) = self.queries {
-            // SAFETY: recording; these two queries belong to this slot only.
+            // SAFETY: recording; these queries belong to this slot only.
             unsafe {
-                d.cmd_reset_query_pool(cmd, pool, q0, 2);
+                d.cmd_reset_query_pool(cmd, pool, q0, QUERIES_PER_SLOT);
                 d.cmd_write_timestamp2(cmd, vk::PipelineStageFlags2::TOP_OF_PIPE, pool, q0);
             }
         }
@@ -360,6 +383,10 @@ impl ErrorsGpu {
             (color, write, rt),
         );
         let unorm = (self.hf.format == HeightFormat::Unorm16) as i32;
+        // About equal fragment counts per submission; one pass may span several.
+        let total: u64 = (1..=n).map(|lod| 1u64 << (2 * (n - lod))).sum();
+        let budget = total.div_ceil(CHUNKS as u64).max(1);
+        let mut in_chunk = 0u64;
         for lod in 1..=n {
             let side = 1u32 << (n - lod);
             let push = GiePush {
@@ -368,14 +395,41 @@ impl ErrorsGpu {
                 camera: [p.camera.x, p.camera.y, p.camera.z, p.kappa],
                 params: [self.hf.spacing, self.hf.height_scale, p.near, 0.0],
             };
-            self.pass(
-                cmd,
-                slot.gie_mips[(lod - 1) as usize].handle,
-                side,
-                (&self.gie_pipeline, &self.gie_layout),
-                slot.gie_sets[(lod - 1) as usize],
-                bytemuck::bytes_of(&push),
-            );
+            let band = ((budget / side as u64).max(1) as u32).min(side);
+            let mut row = 0;
+            while row < side {
+                let rows = row..(row + band).min(side);
+                let fragments = (rows.end - rows.start) as u64 * side as u64;
+                if in_chunk > 0 && in_chunk + fragments > budget && used < slot.cmds.len() {
+                    // SAFETY: `cmd` is recording; the next buffer of this slot is idle
+                    // (same argument as for the first).
+                    unsafe {
+                        let q = q0 + 2 * used as u32;
+                        if let Some(pool) = self.queries {
+                            d.cmd_write_timestamp2(cmd, vk::PipelineStageFlags2::BOTTOM_OF_PIPE, pool, q - 1);
+                        }
+                        d.end_command_buffer(cmd).vk("vkEndCommandBuffer")?;
+                        cmd = slot.cmds[used];
+                        begin_one_time(d, cmd)?;
+                        if let Some(pool) = self.queries {
+                            d.cmd_write_timestamp2(cmd, vk::PipelineStageFlags2::TOP_OF_PIPE, pool, q);
+                        }
+                    }
+                    used += 1;
+                    in_chunk = 0;
+                }
+                self.pass(
+                    cmd,
+                    slot.gie_mips[(lod - 1) as usize].handle,
+                    side,
+                    rows.clone(),
+                    (&self.gie_pipeline, &self.gie_layout),
+                    slot.gie_sets[(lod - 1) as usize],
+                    bytemuck::bytes_of(&push),
+                );
+                in_chunk += fragments;
+                row = rows.end;
+            }
             self.barrier(cmd, &slot.gie, lod - 1, 1, (color, write, rt), (frag, read, ro));
         }
         let data_bytes = BlockErrors::packed_len(root) as u64 * 4;
@@ -387,6 +441,7 @@ impl ErrorsGpu {
                     cmd,
                     slot.tbe_mips[(j - 1) as usize].handle,
                     1u32 << (root - j),
+                    0..1u32 << (root - j),
                     (&self.reduce_pipeline, &self.reduce_layout),
                     slot.reduce_set,
                     bytemuck::bytes_of(&push),
@@ -465,18 +520,21 @@ impl ErrorsGpu {
                 .size(vk::WHOLE_SIZE)];
             d.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().buffer_memory_barriers(&to_host));
             if let Some(pool) = self.queries {
-                d.cmd_write_timestamp2(cmd, vk::PipelineStageFlags2::BOTTOM_OF_PIPE, pool, q0 + 1);
+                let last = q0 + 2 * used as u32 - 1;
+                d.cmd_write_timestamp2(cmd, vk::PipelineStageFlags2::BOTTOM_OF_PIPE, pool, last);
             }
             d.end_command_buffer(cmd).vk("vkEndCommandBuffer")?;
         }
-        Ok(cmd)
+        Ok(slot.cmds[..used].to_vec())
     }
 }
 
 impl Drop for ErrorsGpu {
     fn drop(&mut self) {
         for s in &self.slots {
-            self.commands.free(s.cmd);
+            for &c in &s.cmds {
+                self.commands.free(c);
+            }
         }
         let _ = &self.terrain;
     }
@@ -510,8 +568,11 @@ pub fn compute_once(
         gpu_allocator::MemoryLocation::GpuToCpu,
     )?;
     let timeline = TimelineSemaphore::new(device, 0)?;
-    let cmd = gpu.record(1, 1, params, &readback, Some(&dump))?;
-    let cmds = [vk::CommandBufferSubmitInfo::default().command_buffer(cmd)];
+    let cmds: Vec<_> = gpu
+        .record(1, 1, params, &readback, Some(&dump))?
+        .into_iter()
+        .map(|c| vk::CommandBufferSubmitInfo::default().command_buffer(c))
+        .collect();
     let signal = [vk::SemaphoreSubmitInfo::default()
         .semaphore(timeline.handle)
         .value(1)
@@ -563,7 +624,7 @@ impl ErrorsActivity {
                 gpu_allocator::MemoryLocation::GpuToCpu,
             )
         };
-        let queries = QueryPool::timestamps(device, 4)?;
+        let queries = QueryPool::timestamps(device, 2 * QUERIES_PER_SLOT)?;
         if queries.is_none() {
             tracing::info!("no timestamp queries on this device: error update GPU times are not reported");
         }
@@ -642,9 +703,19 @@ impl ErrorsActivity {
         let data: Vec<f32> = bytemuck::pod_collect_to_vec(&bytes[4..4 + len * 4]);
         let trailer = u32::from_le_bytes(bytes[4 + len * 4..8 + len * 4].try_into().unwrap());
         // Read inside the reading window: the slot's queries are not reset meanwhile.
-        let gpu_ms = match &s.queries {
-            Some(q) => q.elapsed_ms(2 * slot as u32)?,
-            None => None,
+        let gpu_ms = match (&s.queries, &info) {
+            (Some(q), Some(i)) if i.generation == g => {
+                let q0 = QUERIES_PER_SLOT * slot as u32;
+                let mut sum = Some(0.0);
+                for c in 0..i.chunks {
+                    sum = match (sum, q.elapsed_ms(q0 + 2 * c)?) {
+                        (Some(a), Some(b)) => Some(a + b),
+                        _ => None,
+                    };
+                }
+                sum
+            }
+            _ => None,
         };
         {
             let mut h = s.handoff.lock().unwrap();
@@ -760,22 +831,40 @@ fn run(gpu: ErrorsGpu, s: &Shared) -> VkResult<()> {
             while h.reading == Some(g.wrapping_sub(2)) {
                 h = s.handoff_cv.wait(h).unwrap();
             }
-            h.slots[slot] = Some(SlotInfo { generation: g, params });
+            h.slots[slot] = Some(SlotInfo { generation: g, params, chunks: 0 });
         }
         if s.inject_device_lost_at.load(std::sync::atomic::Ordering::SeqCst) == g {
             return Err(vk::Result::ERROR_DEVICE_LOST)
                 .vk("vkQueueSubmit2 (injected fault)")
                 .map_err(|e| VkError::Setup(format!("generation {g}: {e}")));
         }
-        let cmd = gpu.record(slot, g, &params, &s.readbacks[slot], None)?;
-        let cmds = [vk::CommandBufferSubmitInfo::default().command_buffer(cmd)];
+        let chunks = gpu.record(slot, g, &params, &s.readbacks[slot], None)?;
+        // Before submitting: the reader looks at this only once generation g is signalled.
+        if let Some(info) = s.handoff.lock().unwrap().slots[slot].as_mut() {
+            info.chunks = chunks.len() as u32;
+        }
+        let (&last_chunk, first_chunks) = chunks.split_last().expect("at least one command buffer");
+        for &c in first_chunks {
+            // Each chunk waits for the one before on the CPU, so that a draw submitted
+            // meanwhile runs between them instead of behind the whole generation.
+            let cmds = [vk::CommandBufferSubmitInfo::default().command_buffer(c)];
+            gpu.chunk_fence.reset()?;
+            let submit = [vk::SubmitInfo2::default().command_buffer_infos(&cmds)];
+            gpu.device.errors_queue.submit(&gpu.device, &submit, gpu.chunk_fence.handle)?;
+            gpu.chunk_fence.wait(u64::MAX)?;
+        }
+        let cmds = [vk::CommandBufferSubmitInfo::default().command_buffer(last_chunk)];
         let signal = [vk::SemaphoreSubmitInfo::default()
             .semaphore(s.timeline.handle)
             .value(g)
             .stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)];
         let submit = [vk::SubmitInfo2::default().command_buffer_infos(&cmds).signal_semaphore_infos(&signal)];
         gpu.device.errors_queue.submit(&gpu.device, &submit, vk::Fence::null())?;
-        s.trace.instant(ERRORS_TID, "submit (errors queue)", serde_json::json!({"generation": g, "signals": g}));
+        s.trace.instant(
+            ERRORS_TID,
+            "submit (errors queue)",
+            serde_json::json!({"generation": g, "signals": g, "submissions": chunks.len()}),
+        );
         // One generation in flight: wait (on the CPU) until it is done.
         while !s.timeline.wait(g, 100_000_000)? {
             if s.request.lock().unwrap().stop {
