@@ -33,6 +33,8 @@ use winit::keyboard::{KeyCode, PhysicalKey};
 use winit::window::{Window, WindowId};
 
 const FRAMES_IN_FLIGHT: usize = 2;
+/// The largest window side X11 and Wayland accept.
+const MAX_WINDOW_SIDE: u32 = 32767;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
 pub enum PresentMode {
@@ -254,6 +256,17 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
             _ => return Err(InputError(format!("--resize-at {r}: expected FRAME:WxH")).into()),
         }
     }
+    // Window systems take 16-bit signed sizes (winit panics beyond); the device's image
+    // limit is checked once it exists.
+    let sizes = args.common.size.iter().map(|&(w, h)| ("--size".to_string(), w, h));
+    for (opt, w, h) in sizes.chain(resizes.iter().map(|&(f, w, h)| (format!("--resize-at {f}"), w, h))) {
+        if w > MAX_WINDOW_SIDE || h > MAX_WINDOW_SIDE {
+            return Err(InputError(format!(
+                "{opt} {w}x{h}: larger than a window can be ({MAX_WINDOW_SIDE} pixels a side)"
+            ))
+            .into());
+        }
+    }
     let base = args.texture.as_ref().map(load_texture).transpose()?;
     let detail = args.detail.as_ref().map(load_texture).transpose()?;
     let mm = MinMaxPyramid::build(&hf);
@@ -371,6 +384,16 @@ impl App {
             println!("vkterrain: note: {note}");
         }
         Session::check_size(&device, &self.hf)?;
+        let max = device.max_image_dimension_2d();
+        let requested = self.args.common.size.iter().map(|&(w, h)| ("--size".to_string(), w, h));
+        let resizes = self.resizes.iter().map(|&(f, w, h)| (format!("--resize-at {f}"), w, h));
+        for (opt, w, h) in requested.chain(resizes) {
+            if w > max || h > max {
+                return Err(
+                    InputError(format!("{opt} {w}x{h}: larger than the device's maxImageDimension2D ({max})")).into()
+                );
+            }
+        }
         let terrain = Arc::new(TerrainGpu::new(&device, &self.hf, &self.mm, self.base.as_ref(), self.detail.as_ref())?);
         let size = window.inner_size();
         let present = match self.args.present_mode {
@@ -461,6 +484,9 @@ impl App {
     }
 
     fn draw(&mut self) -> anyhow::Result<()> {
+        if self.gpu.is_none() {
+            return Ok(()); // opening failed; the event loop is exiting with that error
+        }
         if self.swapchain_dirty {
             self.recreate_swapchain()?;
         }
@@ -662,8 +688,15 @@ impl App {
             KeyCode::Space => self.frozen = if self.frozen.is_some() { None } else { Some(self.blocks.clone()) },
             KeyCode::KeyG => self.ctl.walk = !self.ctl.walk,
             KeyCode::KeyP => {
-                self.screenshots_taken += 1;
-                self.screenshot_next = Some(PathBuf::from(format!("vkterrain-{}.png", self.screenshots_taken)));
+                // The next free name: screenshots of earlier runs are never overwritten.
+                let path = loop {
+                    self.screenshots_taken += 1;
+                    let p = PathBuf::from(format!("vkterrain-{}.png", self.screenshots_taken));
+                    if !p.exists() {
+                        break p;
+                    }
+                };
+                self.screenshot_next = Some(path);
             }
             _ => {}
         }

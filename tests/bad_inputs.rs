@@ -193,3 +193,14 @@ fn bad_options() {
     fails_cleanly(&["render", "--gpu", "no-such-gpu"], &["--gpu no-such-gpu", "no such device"]);
     fails_cleanly(&["render", "--size", "20000x100"], &["--size 20000x100", "maxImageDimension2D"]);
 }
+
+/// Sizes no window or swapchain can have: one line and exit 2, never a panic (the
+/// window system's limit is checked before the window exists, the device's after).
+/// Needs a display (the test command runs under Xvfb).
+#[test]
+fn view_sizes_beyond_the_limits() {
+    fails_cleanly(&["view", "--size", "100000x100000", "--frames", "2"], &["--size 100000x100000", "window"]);
+    fails_cleanly(&["view", "--size", "40000x100", "--frames", "2"], &["--size 40000x100", "window"]);
+    fails_cleanly(&["view", "--size", "20000x20000", "--frames", "2"], &["--size 20000x20000", "maxImageDimension2D"]);
+    fails_cleanly(&["view", "--frames", "2", "--resize-at", "1:20000x100"], &["--resize-at 1", "maxImageDimension2D"]);
+}
