@@ -148,7 +148,7 @@ impl Session {
 /// A device that cannot satisfy `--gpu` or `--queues` is a bad option (exit code 2).
 pub fn option_error(e: crate::vk::VkError) -> anyhow::Error {
     match e {
-        crate::vk::VkError::Setup(m) if m.starts_with("--") => InputError(m).into(),
+        crate::vk::VkError::Option(m) => InputError(m).into(),
         e => e.into(),
     }
 }

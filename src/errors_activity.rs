@@ -67,7 +67,7 @@ struct Shared {
     handoff_cv: Condvar,
     timeline: TimelineSemaphore,
     readbacks: [Buffer; 2],
-    failure: Mutex<Option<String>>,
+    failure: Mutex<Option<VkError>>,
     root_lod: u32,
     /// Two timestamps per slot (start, end of the generation's commands).
     queries: Option<QueryPool>,
@@ -657,7 +657,8 @@ impl ErrorsActivity {
             .name("errors-activity".into())
             .spawn(move || {
                 if let Err(e) = run(gpu, &thread_shared) {
-                    *thread_shared.failure.lock().unwrap() = Some(format!("errors activity: {e}"));
+                    *thread_shared.failure.lock().unwrap() =
+                        Some(VkError::Thread { stage: "errors activity".into(), source: Box::new(e) });
                     thread_shared.handoff_cv.notify_all();
                 }
             })
@@ -677,7 +678,7 @@ impl ErrorsActivity {
 
     fn check_failure(&self) -> VkResult<()> {
         match &*self.shared.failure.lock().unwrap() {
-            Some(msg) => Err(VkError::Setup(msg.clone())),
+            Some(e) => Err(e.clone()),
             None => Ok(()),
         }
     }
@@ -836,7 +837,7 @@ fn run(gpu: ErrorsGpu, s: &Shared) -> VkResult<()> {
         if s.inject_device_lost_at.load(std::sync::atomic::Ordering::SeqCst) == g {
             return Err(vk::Result::ERROR_DEVICE_LOST)
                 .vk("vkQueueSubmit2 (injected fault)")
-                .map_err(|e| VkError::Setup(format!("generation {g}: {e}")));
+                .map_err(|e| VkError::Thread { stage: format!("generation {g}"), source: Box::new(e) });
         }
         let chunks = gpu.record(slot, g, &params, &s.readbacks[slot], None)?;
         // Before submitting: the reader looks at this only once generation g is signalled.

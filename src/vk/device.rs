@@ -156,7 +156,7 @@ impl Device {
                     .filter(|&i| i < described.len())
                     .or_else(|| names.iter().position(|n| n.to_lowercase().contains(&sel.to_lowercase())));
                 idx.ok_or_else(|| {
-                    VkError::Setup(format!("--gpu {sel}: no such device; available: {}", names.join(", ")))
+                    VkError::Option(format!("--gpu {sel}: no such device; available: {}", names.join(", ")))
                 })?
             }
             None => (0..described.len())
@@ -175,7 +175,7 @@ impl Device {
         let flags_counts: Vec<(vk::QueueFlags, u32)> =
             families.iter().map(|f| (f.queue_flags, f.queue_count)).collect();
         let mode_plan =
-            plan_queues(&flags_counts, opts.queues).map_err(|e| VkError::Setup(e.replace("the device", &name)))?;
+            plan_queues(&flags_counts, opts.queues).map_err(|e| VkError::Option(e.replace("the device", &name)))?;
         let (queue_mode, draw_family, errors_family) = mode_plan;
         let priorities = [1.0f32, 1.0];
         let mut queue_infos =

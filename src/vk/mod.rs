@@ -24,7 +24,7 @@ pub use ash::vk;
 use std::backtrace::Backtrace;
 
 /// A failed Vulkan call or allocation, with where it happened.
-#[derive(Debug, thiserror::Error)]
+#[derive(Clone, Debug, thiserror::Error)]
 pub enum VkError {
     #[error("{call} failed: {result:?}")]
     Call {
@@ -38,16 +38,51 @@ pub enum VkError {
     Alloc { what: String, message: String },
     #[error("{0}")]
     Setup(String),
+    /// The device cannot satisfy a command-line option (`--gpu`, `--queues`): the
+    /// user's input, not a failure of the device (exit code 2).
+    #[error("{0}")]
+    Option(String),
+    /// A failure on another thread (the errors activity), kept whole across the thread
+    /// boundary so that the caller still sees, e.g., the device loss.
+    #[error("{stage}: {source}")]
+    Thread {
+        stage: String,
+        #[source]
+        source: Box<VkError>,
+    },
 }
 
 impl VkError {
     /// True when the device was lost (the caller names the stage and stops).
     pub fn is_device_lost(&self) -> bool {
-        matches!(self, VkError::Call { result: vk::Result::ERROR_DEVICE_LOST, .. })
+        match self {
+            VkError::Call { result, .. } => *result == vk::Result::ERROR_DEVICE_LOST,
+            VkError::Thread { source, .. } => source.is_device_lost(),
+            _ => false,
+        }
     }
 }
 
 pub type VkResult<T> = Result<T, VkError>;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn device_loss_survives_the_thread_boundary() {
+        let lost = Err::<(), _>(vk::Result::ERROR_DEVICE_LOST).vk("vkQueueSubmit2").unwrap_err();
+        let wrapped = VkError::Thread {
+            stage: "errors activity".into(),
+            source: Box::new(VkError::Thread { stage: "generation 5".into(), source: Box::new(lost) }),
+        };
+        assert!(wrapped.is_device_lost());
+        assert_eq!(wrapped.to_string(), "errors activity: generation 5: vkQueueSubmit2 failed: ERROR_DEVICE_LOST");
+        assert!(!VkError::Option("--gpu x".into()).is_device_lost());
+        let anyhow_err = anyhow::Error::from(wrapped.clone());
+        assert!(anyhow_err.downcast_ref::<VkError>().is_some_and(VkError::is_device_lost));
+    }
+}
 
 /// `.vk("vkCall")?` turns an ash result into a [`VkError`] naming the call.
 pub trait VkResultExt<T> {
