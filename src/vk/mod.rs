@@ -65,6 +65,17 @@ impl VkError {
 
 pub type VkResult<T> = Result<T, VkError>;
 
+/// `.vk("vkCall")?` turns an ash result into a [`VkError`] naming the call.
+pub trait VkResultExt<T> {
+    fn vk(self, call: &'static str) -> VkResult<T>;
+}
+
+impl<T> VkResultExt<T> for Result<T, vk::Result> {
+    fn vk(self, call: &'static str) -> VkResult<T> {
+        self.map_err(|result| VkError::Call { call, result, trace: Backtrace::capture().to_string() })
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -81,16 +92,5 @@ mod tests {
         assert!(!VkError::Option("--gpu x".into()).is_device_lost());
         let anyhow_err = anyhow::Error::from(wrapped.clone());
         assert!(anyhow_err.downcast_ref::<VkError>().is_some_and(VkError::is_device_lost));
-    }
-}
-
-/// `.vk("vkCall")?` turns an ash result into a [`VkError`] naming the call.
-pub trait VkResultExt<T> {
-    fn vk(self, call: &'static str) -> VkResult<T>;
-}
-
-impl<T> VkResultExt<T> for Result<T, vk::Result> {
-    fn vk(self, call: &'static str) -> VkResult<T> {
-        self.map_err(|result| VkError::Call { call, result, trace: Backtrace::capture().to_string() })
     }
 }
