@@ -225,6 +225,8 @@ struct App {
     slot: usize,
     swapchain_dirty: bool,
     minimized: bool,
+    /// The window is fully hidden (winit's Occluded): nothing is drawn either.
+    occluded: bool,
     last_frame: Instant,
     started: Instant,
     title_at: Instant,
@@ -315,6 +317,7 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
         slot: 0,
         swapchain_dirty: false,
         minimized: false,
+        occluded: false,
         last_frame: now,
         started: now,
         title_at: now,
@@ -490,8 +493,8 @@ impl App {
         if self.swapchain_dirty {
             self.recreate_swapchain()?;
         }
-        if self.minimized {
-            return Ok(()); // nothing is rendered while minimized
+        if self.minimized || self.occluded {
+            return Ok(()); // nothing is rendered while minimized or hidden
         }
         let now = Instant::now();
         let dt = (now - self.last_frame).as_secs_f32().min(0.25);
@@ -719,6 +722,7 @@ impl ApplicationHandler for App {
     fn window_event(&mut self, event_loop: &ActiveEventLoop, _id: WindowId, event: WindowEvent) {
         match event {
             WindowEvent::CloseRequested => event_loop.exit(),
+            WindowEvent::Occluded(hidden) => self.occluded = hidden,
             WindowEvent::Resized(size) => {
                 self.minimized = size.width == 0 || size.height == 0;
                 self.swapchain_dirty = true;
@@ -779,8 +783,12 @@ impl ApplicationHandler for App {
     }
 
     fn about_to_wait(&mut self, _event_loop: &ActiveEventLoop) {
+        // While minimized or hidden no redraw is asked for, so the loop sleeps until the
+        // next event (the one that shows the window again) instead of spinning.
         if let Some(w) = &self.window {
-            w.request_redraw();
+            if !self.minimized && !self.occluded {
+                w.request_redraw();
+            }
         }
     }
 }
