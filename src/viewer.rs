@@ -782,11 +782,13 @@ impl ApplicationHandler for App {
         }
     }
 
-    fn about_to_wait(&mut self, _event_loop: &ActiveEventLoop) {
-        // While minimized or hidden no redraw is asked for, so the loop sleeps until the
-        // next event (the one that shows the window again) instead of spinning.
+    fn about_to_wait(&mut self, event_loop: &ActiveEventLoop) {
+        // While minimized or hidden no redraw is asked for and the loop waits for the next
+        // event (the one that shows the window again) instead of polling.
+        let hidden = self.minimized || self.occluded;
+        event_loop.set_control_flow(if hidden { ControlFlow::Wait } else { ControlFlow::Poll });
         if let Some(w) = &self.window {
-            if !self.minimized && !self.occluded {
+            if !hidden {
                 w.request_redraw();
             }
         }
