@@ -301,7 +301,8 @@ struct Bench<'a> {
     s: &'a Session,
     args: &'a BenchArgs,
     renderer: BlocksRenderer,
-    target: Target,
+    /// One offscreen target per frame in flight.
+    targets: Vec<Target>,
     trace: Trace,
     stop: Arc<AtomicBool>,
     /// Frames drawn, for the watchdog.
@@ -360,6 +361,14 @@ impl Bench<'_> {
             rss: Vec::new(),
         };
         let mut feed = ErrorFeed::new(self.args.common.error_mode, self.args.common.refresh());
+        // Row of the frame pending in each offscreen slot.
+        let mut pending: Vec<Option<usize>> = vec![None; self.targets.len()];
+        let fill = |row: &mut Row, stats: &DrawStats| {
+            row.gpu_ms = stats.gpu_ms;
+            row.queue_wait_ms = Some(stats.wait_ms);
+            row.triangles = stats.triangles;
+            row.draw_calls = stats.draw_calls;
+        };
         for i in 0..self.frames {
             if self.stop.load(Ordering::SeqCst) {
                 run.interrupted = true;
@@ -402,29 +411,32 @@ impl Bench<'_> {
                 })
                 .map_err(|e| anyhow::anyhow!("draw thread, frame {i}: {e}"));
             }
-            let (_, stats): (_, DrawStats) = self.renderer.render_timed(
+            // Frames in flight, as in the viewer: this frame goes into the next slot, and
+            // what comes back is the slot's previous frame, finished.
+            let slot = i as usize % self.targets.len();
+            let done = self.renderer.submit_offscreen(
+                slot,
                 &self.s.hf,
                 &self.s.terrain,
-                &self.target,
+                &self.targets[slot],
                 &cam,
                 &blocks,
                 &shading,
-                false,
             )?;
+            if let (Some(stats), Some(r)) = (done, pending[slot].take()) {
+                fill(&mut run.rows[r], &stats);
+            }
+            pending[slot] = Some(run.rows.len());
             self.trace.instant(DRAW_TID, "submit (draw queue)", json!({"frame": i}));
             self.trace.complete(
                 DRAW_TID,
-                "record + submit + GPU",
+                "wait + record + submit",
                 t,
                 Instant::now(),
                 json!({"frame": i, "blocks": blocks.len()}),
             );
             row.frame_ms = frame_start.elapsed().as_secs_f64() * 1e3;
             self.trace.complete(DRAW_TID, label, frame_start, Instant::now(), json!({"frame": i}));
-            row.gpu_ms = stats.gpu_ms;
-            row.queue_wait_ms = stats.queue_wait_ms();
-            row.triangles = stats.triangles;
-            row.draw_calls = stats.draw_calls;
             row.blocks = blocks.len();
             if keep {
                 run.blocks.push(blocks);
@@ -435,6 +447,11 @@ impl Bench<'_> {
                 run.rss.extend(rss_mib().map(|m| (i + 1, m)));
             }
             progress.tick(i + 1);
+        }
+        for (slot, row) in pending.iter_mut().enumerate() {
+            if let (Some(stats), Some(r)) = (self.renderer.wait_offscreen(slot)?, row.take()) {
+                fill(&mut run.rows[r], &stats);
+            }
         }
         Ok(run)
     }
@@ -602,8 +619,16 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     let mut bench = Bench {
         s: &s,
         args,
-        renderer: BlocksRenderer::new(&s.device, &s.terrain, s.layout, crate::blocks::COLOR_FORMAT, 1)?,
-        target: Target::new(&s.device, size.0, size.1)?,
+        renderer: BlocksRenderer::new(
+            &s.device,
+            &s.terrain,
+            s.layout,
+            crate::blocks::COLOR_FORMAT,
+            crate::draw_thread::FRAMES_IN_FLIGHT,
+        )?,
+        targets: (0..crate::draw_thread::FRAMES_IN_FLIGHT)
+            .map(|_| Target::new(&s.device, size.0, size.1))
+            .collect::<crate::vk::VkResult<Vec<_>>>()?,
         trace: trace.clone(),
         stop: stop.clone(),
         frames_done: frames_done.clone(),
@@ -766,14 +791,14 @@ fn fidelity(bench: &mut Bench, activity: &ErrorsActivity) -> anyhow::Result<Valu
         let s = bench.s;
         let full_blocks = traverse(&s.hf, &s.mm, &s.layout, &cam, LodSelect::Full).blocks;
         let (full, _) =
-            bench.renderer.render_timed(&s.hf, &s.terrain, &bench.target, &cam, &full_blocks, &shading, true)?;
+            bench.renderer.render_timed(&s.hf, &s.terrain, &bench.targets[0], &cam, &full_blocks, &shading, true)?;
         let full = full.unwrap_or_default();
         let g = activity.wait_for(ErrorParams::new(&cam, bench.args.common.error_mode), Duration::from_secs(600))?;
         for delta in [0.5f32, 1.0, 2.0, 5.0] {
             let sel = LodSelect::errors(&g.errors, g.params.camera, delta, g.params.mode);
             let blocks = traverse(&s.hf, &s.mm, &s.layout, &cam, sel).blocks;
             let (img, stats) =
-                bench.renderer.render_timed(&s.hf, &s.terrain, &bench.target, &cam, &blocks, &shading, true)?;
+                bench.renderer.render_timed(&s.hf, &s.terrain, &bench.targets[0], &cam, &blocks, &shading, true)?;
             let (rmse, share) = image_difference(&full, &img.unwrap_or_default());
             out.push(json!({
                 "time_s": time_s, "delta": delta, "rmse": rmse, "share_off_by_more_than_16": share,

@@ -167,16 +167,9 @@ pub struct DrawStats {
     pub triangles: u64,
     /// GPU time of the frame's commands (timestamps), when the queue has them.
     pub gpu_ms: Option<f64>,
-    /// From the submission to its fence: the GPU time plus any wait for work queued
-    /// ahead of it (on a shared queue, error updates).
-    pub submit_to_done_ms: f64,
-}
-
-impl DrawStats {
-    /// How long the frame waited for the queue: submit-to-done minus its own GPU time.
-    pub fn queue_wait_ms(&self) -> Option<f64> {
-        self.gpu_ms.map(|g| (self.submit_to_done_ms - g).max(0.0))
-    }
+    /// How long the draw thread was blocked waiting for this frame to finish (its
+    /// frames in flight ahead of it and, on a shared queue, error updates).
+    pub wait_ms: f64,
 }
 
 /// Pipelines and per-frame state of the block renderer. Owned by the draw thread.
@@ -194,10 +187,19 @@ pub struct BlocksRenderer {
     sets: Vec<vk::DescriptorSet>,
     uniforms: Vec<Buffer>,
     commands: CommandPool,
+    /// Offscreen frames in flight (bench, render, tests); the viewer presents through
+    /// its swapchain instead.
+    offscreen: Vec<OffscreenSlot>,
+}
+
+/// One offscreen frame in flight: its commands, fence and timestamps.
+struct OffscreenSlot {
     cmd: vk::CommandBuffer,
     fence: Fence,
-    /// Start and end timestamps of the offscreen frame, when the queue has them.
+    /// Start and end timestamps of the frame, when the queue has them.
     queries: Option<QueryPool>,
+    /// The frame submitted from this slot and not yet waited for.
+    pending: Option<DrawStats>,
 }
 
 impl BlocksRenderer {
@@ -289,7 +291,16 @@ impl BlocksRenderer {
             uniforms.push(ubo);
         }
         let commands = CommandPool::new(device, device.draw_queue.family)?;
-        let cmd = commands.allocate()?;
+        let offscreen = (0..n)
+            .map(|_| {
+                Ok(OffscreenSlot {
+                    cmd: commands.allocate()?,
+                    fence: Fence::new(device, true)?,
+                    queries: QueryPool::timestamps(device, 2)?,
+                    pending: None,
+                })
+            })
+            .collect::<VkResult<Vec<_>>>()?;
         Ok(BlocksRenderer {
             device: device.clone(),
             layout: block_layout,
@@ -303,9 +314,7 @@ impl BlocksRenderer {
             sets,
             uniforms,
             commands,
-            cmd,
-            fence: Fence::new(device, true)?,
-            queries: QueryPool::timestamps(device, 2)?,
+            offscreen,
         })
     }
 
@@ -474,22 +483,53 @@ impl BlocksRenderer {
         shading: &Shading,
         read: bool,
     ) -> VkResult<(Option<Vec<u8>>, DrawStats)> {
-        self.set_frame(0, hf, terrain, cam, shading)?;
+        self.submit_offscreen(0, hf, terrain, target, cam, blocks, shading)?;
+        let stats = self.wait_offscreen(0)?.expect("a frame was just submitted");
+        let pixels = if read {
+            Some(target.readback.mapped()?[..(target.width * target.height * 4) as usize].to_vec())
+        } else {
+            None
+        };
+        Ok((pixels, stats))
+    }
+
+    /// Offscreen frames that can be in flight at once (one per uniform slot).
+    pub fn frames_in_flight(&self) -> usize {
+        self.offscreen.len()
+    }
+
+    /// Records and submits a frame from slot `slot` into `target` (which no other
+    /// pending frame may use), after waiting for the slot's previous frame, whose stats
+    /// are returned. Nothing waits for the new frame: see [`Self::wait_offscreen`].
+    #[allow(clippy::too_many_arguments)]
+    pub fn submit_offscreen(
+        &mut self,
+        slot: usize,
+        hf: &Heightfield,
+        terrain: &TerrainGpu,
+        target: &Target,
+        cam: &Camera,
+        blocks: &[DrawBlock],
+        shading: &Shading,
+    ) -> VkResult<Option<DrawStats>> {
+        let previous = self.wait_offscreen(slot)?;
+        self.set_frame(slot, hf, terrain, cam, shading)?;
         let d = self.device.raw.clone();
-        let cmd = self.cmd;
+        let cmd = self.offscreen[slot].cmd;
+        let queries = self.offscreen[slot].queries.as_ref().map(|q| q.handle);
         let extent = vk::Extent2D { width: target.width, height: target.height };
         let clear = if shading.sky { SKY_HORIZON } else { shading.background };
-        // SAFETY: the previous use of `cmd` finished (fence waited below every time).
+        // SAFETY: the slot's previous submission finished (waited for above).
         unsafe {
             begin_one_time(&d, cmd)?;
-            if let Some(q) = &self.queries {
-                d.cmd_reset_query_pool(cmd, q.handle, 0, 2);
-                d.cmd_write_timestamp2(cmd, vk::PipelineStageFlags2::TOP_OF_PIPE, q.handle, 0);
+            if let Some(q) = queries {
+                d.cmd_reset_query_pool(cmd, q, 0, 2);
+                d.cmd_write_timestamp2(cmd, vk::PipelineStageFlags2::TOP_OF_PIPE, q, 0);
             }
             let last_use = (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_READ);
             attachment_barriers(&d, cmd, target.color.handle, last_use, &target.depth);
         }
-        let stats = self.record(0, cmd, target.color.view, target.depth.view, extent, blocks, shading, clear);
+        let stats = self.record(slot, cmd, target.color.view, target.depth.view, extent, blocks, shading, clear);
         // SAFETY: as above.
         unsafe {
             let rendered = (
@@ -500,31 +540,34 @@ impl BlocksRenderer {
             let copied =
                 (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_READ, vk::ImageLayout::TRANSFER_SRC_OPTIMAL);
             image_barrier(&d, cmd, target.color.handle, COLOR_RANGE, rendered, copied);
-            let extent = vk::Extent2D { width: target.width, height: target.height };
             copy_image_to_host(&d, cmd, target.color.handle, extent, target.readback.handle);
-            if let Some(q) = &self.queries {
-                d.cmd_write_timestamp2(cmd, vk::PipelineStageFlags2::BOTTOM_OF_PIPE, q.handle, 1);
+            if let Some(q) = queries {
+                d.cmd_write_timestamp2(cmd, vk::PipelineStageFlags2::BOTTOM_OF_PIPE, q, 1);
             }
             d.end_command_buffer(cmd).vk("vkEndCommandBuffer")?;
         }
-        self.fence.reset()?;
+        let s = &mut self.offscreen[slot];
+        s.fence.reset()?;
         let cmds = [vk::CommandBufferSubmitInfo::default().command_buffer(cmd)];
         let submit = [vk::SubmitInfo2::default().command_buffer_infos(&cmds)];
-        let submitted = std::time::Instant::now();
-        self.device.draw_queue.submit(&self.device, &submit, self.fence.handle)?;
-        self.fence.wait(u64::MAX)?;
-        let mut stats = stats;
-        stats.submit_to_done_ms = submitted.elapsed().as_secs_f64() * 1e3;
-        let pixels = if read {
-            Some(target.readback.mapped()?[..(target.width * target.height * 4) as usize].to_vec())
-        } else {
-            None
-        };
-        stats.gpu_ms = match &self.queries {
+        self.device.draw_queue.submit(&self.device, &submit, s.fence.handle)?;
+        s.pending = Some(stats);
+        Ok(previous)
+    }
+
+    /// Waits for the frame pending in `slot`, if any, and returns its stats with the GPU
+    /// time and how long this thread was blocked waiting for it.
+    pub fn wait_offscreen(&mut self, slot: usize) -> VkResult<Option<DrawStats>> {
+        let s = &mut self.offscreen[slot];
+        let Some(mut stats) = s.pending.take() else { return Ok(None) };
+        let t = std::time::Instant::now();
+        s.fence.wait(u64::MAX)?;
+        stats.wait_ms = t.elapsed().as_secs_f64() * 1e3;
+        stats.gpu_ms = match &s.queries {
             Some(q) => q.elapsed_ms(0)?,
             None => None,
         };
-        Ok((pixels, stats))
+        Ok(Some(stats))
     }
 }
 
@@ -601,8 +644,9 @@ impl BlocksRenderer {
             .dst_binding(layout::CAPTURE_BINDING_POSITIONS)
             .descriptor_type(vk::DescriptorType::STORAGE_BUFFER)
             .buffer_info(&storage);
+        self.wait_offscreen(0)?;
         let d = device.raw.clone();
-        let cmd = self.cmd;
+        let cmd = self.offscreen[0].cmd;
         let area = vk::Rect2D { offset: vk::Offset2D::default(), extent: vk::Extent2D { width: 1, height: 1 } };
         // SAFETY: the set is new and unused; `cmd` is this renderer's, its last submission
         // completed (fence waited after every use); every object outlives the wait below.
@@ -636,14 +680,11 @@ impl BlocksRenderer {
             d.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().buffer_memory_barriers(&to_host));
             d.end_command_buffer(cmd).vk("vkEndCommandBuffer")?;
         }
-        self.fence.reset()?;
+        let fence = &self.offscreen[0].fence;
+        fence.reset()?;
         let cmds = [vk::CommandBufferSubmitInfo::default().command_buffer(cmd)];
-        device.draw_queue.submit(
-            &device,
-            &[vk::SubmitInfo2::default().command_buffer_infos(&cmds)],
-            self.fence.handle,
-        )?;
-        self.fence.wait(u64::MAX)?;
+        device.draw_queue.submit(&device, &[vk::SubmitInfo2::default().command_buffer_infos(&cmds)], fence.handle)?;
+        fence.wait(u64::MAX)?;
         let floats: Vec<f32> = bytemuck::pod_collect_to_vec(&positions.mapped()?[..blocks.len() * k * k * 16]);
         Ok(floats.chunks(4).map(|c| [c[0], c[1], c[2], c[3]]).collect())
     }
@@ -744,9 +785,11 @@ pub const COLOR_RANGE: vk::ImageSubresourceRange = vk::ImageSubresourceRange {
 
 impl Drop for BlocksRenderer {
     fn drop(&mut self) {
-        // Wait for the last frame before the command pool, pipelines and buffers go.
-        let _ = self.fence.wait(u64::MAX);
+        // Wait for the last frames before the command pool, pipelines and buffers go.
+        for s in &self.offscreen {
+            let _ = s.fence.wait(u64::MAX);
+            self.commands.free(s.cmd);
+        }
         let _ = &self.set_layout;
-        self.commands.free(self.cmd);
     }
 }

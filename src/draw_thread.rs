@@ -14,6 +14,9 @@ use glam::Vec3;
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
+/// Frames the draw thread keeps in flight (viewer and bench alike).
+pub const FRAMES_IN_FLIGHT: usize = 2;
+
 /// When the draw thread asks for new error data. Stale data keeps the bound (the
 /// traversal scales a block's error by `d / (d - m)` for a camera that moved `m`), so
 /// a new generation only pays once that inflation starts to cost triangles.

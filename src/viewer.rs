@@ -32,7 +32,7 @@ use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop};
 use winit::keyboard::{KeyCode, PhysicalKey};
 use winit::window::{Window, WindowId};
 
-const FRAMES_IN_FLIGHT: usize = 2;
+use crate::draw_thread::FRAMES_IN_FLIGHT;
 /// The largest window side X11 and Wayland accept.
 const MAX_WINDOW_SIDE: u32 = 32767;
 
