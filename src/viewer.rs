@@ -77,6 +77,10 @@ pub struct ViewArgs {
     /// Write the last frame to this PNG before exiting.
     #[arg(long, value_name = "FILE.png")]
     pub screenshot: Option<PathBuf>,
+    /// Record the flight: every frame's camera position and look-at point, written at
+    /// exit in the pose format `bench --path FILE` replays.
+    #[arg(long, value_name = "FILE")]
+    pub record_path: Option<PathBuf>,
     /// Start in walk mode (follow the ground).
     #[arg(long)]
     pub walk: bool,
@@ -227,6 +231,8 @@ struct App {
     minimized: bool,
     /// The window is fully hidden (winit's Occluded): nothing is drawn either.
     occluded: bool,
+    /// Poses of the frames drawn, for --record-path.
+    flight: Vec<(Vec3, Vec3)>,
     last_frame: Instant,
     started: Instant,
     title_at: Instant,
@@ -242,6 +248,11 @@ struct App {
 }
 
 pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
+    if let Some(dir) = args.record_path.as_ref().and_then(|p| p.parent()).filter(|d| !d.as_os_str().is_empty()) {
+        if !dir.is_dir() {
+            return Err(InputError(format!("--record-path: {} is not a directory", dir.display())).into());
+        }
+    }
     let hf = args.common.load_heightfield(None)?;
     let layout = BlockLayout::new(hf.n, args.common.block).map_err(InputError)?;
     if !(0.0..=1.0).contains(&args.detail_weight) {
@@ -318,6 +329,7 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
         swapchain_dirty: false,
         minimized: false,
         occluded: false,
+        flight: Vec::new(),
         last_frame: now,
         started: now,
         title_at: now,
@@ -339,6 +351,13 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
     let first_message = counter.as_ref().and_then(|c| c.messages().first().cloned());
     if let Some(e) = app.error.take() {
         return Err(e);
+    }
+    if let Some(path) = &args.record_path {
+        let text = crate::bench::write_poses(&app.flight);
+        crate::commands::write_atomic(path, |tmp| {
+            std::fs::write(tmp, &text).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))
+        })?;
+        println!("vkterrain: recorded {} poses to {}", app.flight.len(), path.display());
     }
     let secs = app.started.elapsed().as_secs_f64();
     app.stats.frames = app.frame;
@@ -500,6 +519,9 @@ impl App {
         let dt = (now - self.last_frame).as_secs_f32().min(0.25);
         self.last_frame = now;
         let cam = self.camera(dt);
+        if self.args.record_path.is_some() {
+            self.flight.push((cam.position, cam.position + cam.forward));
+        }
         let slot_index = self.slot;
         let gpu = self.gpu.as_mut().unwrap();
         let d = gpu.device.raw.clone();

@@ -80,3 +80,37 @@ fn viewer_rejects_bad_options_without_opening_a_window() {
     assert_eq!(out.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&out.stderr).contains("--detail-weight 2"));
 }
+
+/// A flight recorded with `--record-path` replays as a benchmark with `bench --path`:
+/// one pose per frame drawn, the same cameras.
+#[test]
+fn recorded_flight_replays_as_a_bench_path() {
+    let dir = std::env::temp_dir().join(format!("vkterrain-flight-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let flight = dir.join("flight.txt");
+    let out = viewer(&["--frames", "9", "--flyover", "--size", "320x240", "--record-path", flight.to_str().unwrap()]);
+    let recorded = std::fs::read_to_string(&flight);
+    let bench = Command::new(env!("CARGO_BIN_EXE_vkterrain"))
+        .args(["bench", "--path", flight.to_str().unwrap(), "--size", "160x120", "--no-fidelity"])
+        .args(["--validation", "on", "--out", dir.join("out").to_str().unwrap()])
+        .env("RUST_LOG", "error")
+        .output()
+        .unwrap();
+    let summary = std::fs::read_to_string(dir.join("out/summary.json"));
+    let _ = std::fs::remove_dir_all(&dir);
+    assert!(out.status.success(), "viewer failed: {}", String::from_utf8_lossy(&out.stderr));
+    let recorded = recorded.expect("the flight was written");
+    let poses: Vec<Vec<f32>> = recorded
+        .lines()
+        .filter(|l| !l.starts_with('#'))
+        .map(|l| l.split_whitespace().map(|v| v.parse().unwrap()).collect())
+        .collect();
+    assert_eq!(poses.len(), 9);
+    assert!(poses.iter().all(|p| p.len() == 6));
+    // The flyover moves north: z decreases from frame to frame.
+    assert!(poses.windows(2).all(|w| w[1][2] < w[0][2]), "{poses:?}");
+    assert!(bench.status.success(), "bench failed: {}", String::from_utf8_lossy(&bench.stderr));
+    let s: serde_json::Value = serde_json::from_str(&summary.unwrap()).unwrap();
+    assert_eq!(s["frames"], 9);
+    assert_eq!(s["validation_messages"], 0);
+}
