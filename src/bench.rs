@@ -360,7 +360,8 @@ impl Bench<'_> {
             interrupted: false,
             rss: Vec::new(),
         };
-        let mut feed = ErrorFeed::new(self.args.common.error_mode, self.args.common.refresh());
+        let mut feed =
+            ErrorFeed::new(self.args.common.error_mode, self.args.common.refresh()).with_trace(self.trace.clone());
         // Row of the frame pending in each offscreen slot.
         let mut pending: Vec<Option<usize>> = vec![None; self.targets.len()];
         let fill = |row: &mut Row, stats: &DrawStats| {
@@ -382,8 +383,6 @@ impl Bench<'_> {
             } else {
                 if let Some(a) = activity {
                     if let Some(n) = feed.update(a, &cam, i)? {
-                        self.trace.instant(DRAW_TID, "observed generation", json!({"generation": n}));
-                        self.trace.counter("errors timeline (observed by draw thread)", n);
                         let g = feed.usable().expect("a generation was just taken");
                         if let Some(ms) = g.gpu_ms {
                             run.update_gpu_ms.push(ms);
@@ -394,7 +393,6 @@ impl Bench<'_> {
                 let t = Instant::now();
                 let tr = feed.traverse_lod(lod, &self.s.hf, &self.s.mm, &self.s.layout, &cam, self.args.delta);
                 row.traverse_ms = t.elapsed().as_secs_f64() * 1e3;
-                self.trace.complete(DRAW_TID, "traverse", t, Instant::now(), json!({"frame": i}));
                 if let Some(g) = feed.usable() {
                     row.error_generation = g.number;
                     row.error_update_ms = g.gpu_ms;

@@ -9,8 +9,10 @@ use crate::errors_activity::{ErrorsActivity, Generation};
 use crate::gie::{ErrorMode, ErrorParams};
 use crate::heightfield::{Heightfield, MinMaxPyramid};
 use crate::quadtree::{traverse, BlockLayout, LodSelect, Traversal};
+use crate::trace::{Trace, DRAW_TID};
 use crate::vk::VkResult;
 use glam::Vec3;
+use serde_json::json;
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
@@ -77,6 +79,7 @@ pub struct ErrorFeed {
     update_ms: Option<f64>,
     /// Generations requested so far (requests that repeat the last one are not counted).
     pub requests: u64,
+    trace: Trace,
 }
 
 impl ErrorFeed {
@@ -91,7 +94,14 @@ impl ErrorFeed {
             requested_when: None,
             update_ms: None,
             requests: 0,
+            trace: Trace::off(),
         }
+    }
+
+    /// Records requests, observed generations and traversals into `trace`.
+    pub fn with_trace(mut self, trace: Trace) -> Self {
+        self.trace = trace;
+        self
     }
 
     pub fn mode(&self) -> ErrorMode {
@@ -129,6 +139,7 @@ impl ErrorFeed {
                 self.requested_at = Some(cam.position);
                 self.requested_when = Some(Instant::now());
                 self.requests += 1;
+                self.trace.instant(DRAW_TID, "request generation", json!({"frame": frame}));
             }
             let after = self.current.as_ref().map_or(0, |g| g.number);
             if let Some(g) = activity.latest(after)? {
@@ -140,6 +151,10 @@ impl ErrorFeed {
         self.recent.push_back((frame, cam.position));
         if self.recent.len() > 4096 {
             self.recent.pop_front();
+        }
+        if let Some(n) = taken {
+            self.trace.instant(DRAW_TID, "observed generation", json!({"generation": n, "frame": frame}));
+            self.trace.counter("errors timeline (observed by draw thread)", n);
         }
         Ok(taken)
     }
@@ -169,7 +184,9 @@ impl ErrorFeed {
             Some(g) => LodSelect::errors(&g.errors, g.params.camera, delta, g.params.mode),
             None => LodSelect::Distance { factor: 2.0 },
         };
+        let started = Instant::now();
         let t = traverse(hf, mm, layout, cam, select);
+        self.trace.complete(DRAW_TID, "traverse", started, Instant::now(), json!({"blocks": t.blocks.len()}));
         self.note_drawn(&t);
         t
     }
@@ -185,11 +202,15 @@ impl ErrorFeed {
         cam: &Camera,
         delta: f32,
     ) -> Traversal {
-        match lod {
-            LodChoice::Error => self.traverse(hf, mm, layout, cam, delta),
-            LodChoice::Distance => traverse(hf, mm, layout, cam, LodSelect::Distance { factor: 2.0 }),
-            LodChoice::Full => traverse(hf, mm, layout, cam, LodSelect::Full),
-        }
+        let select = match lod {
+            LodChoice::Error => return self.traverse(hf, mm, layout, cam, delta),
+            LodChoice::Distance => LodSelect::Distance { factor: 2.0 },
+            LodChoice::Full => LodSelect::Full,
+        };
+        let started = Instant::now();
+        let t = traverse(hf, mm, layout, cam, select);
+        self.trace.complete(DRAW_TID, "traverse", started, Instant::now(), json!({"blocks": t.blocks.len()}));
+        t
     }
 
     /// Records how near the drawn terrain is (for traversals made elsewhere).

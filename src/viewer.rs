@@ -14,6 +14,7 @@ use crate::gie::ErrorMode;
 use crate::heightfield::{Heightfield, MinMaxPyramid};
 use crate::quadtree::{BlockLayout, DrawBlock};
 use crate::terrain_gpu::{TerrainGpu, Texture};
+use crate::trace::{Trace, DRAW_TID};
 use crate::vk::{
     begin_one_time, image_barrier, vk, BinarySemaphore, Buffer, CommandPool, Device, DeviceOptions, Fence, Image,
     Instance, InstanceOptions, Surface, Swapchain, VkResultExt,
@@ -21,6 +22,7 @@ use crate::vk::{
 use clap::{Args, ValueEnum};
 use glam::Vec3;
 use raw_window_handle::{HasDisplayHandle, HasWindowHandle};
+use serde_json::json;
 use std::collections::HashSet;
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -81,6 +83,10 @@ pub struct ViewArgs {
     /// exit in the pose format `bench --path FILE` replays.
     #[arg(long, value_name = "FILE")]
     pub record_path: Option<PathBuf>,
+    /// Write a Chrome trace of both threads (Perfetto: the draw thread's phases, error
+    /// requests, submissions, generations signalled and observed), as `bench` does.
+    #[arg(long, value_name = "FILE.json")]
+    pub trace: Option<PathBuf>,
     /// Start in walk mode (follow the ground).
     #[arg(long)]
     pub walk: bool,
@@ -233,6 +239,7 @@ struct App {
     occluded: bool,
     /// Poses of the frames drawn, for --record-path.
     flight: Vec<(Vec3, Vec3)>,
+    trace: Trace,
     last_frame: Instant,
     started: Instant,
     title_at: Instant,
@@ -255,6 +262,10 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
     }
     let hf = args.common.load_heightfield(None)?;
     let layout = BlockLayout::new(hf.n, args.common.block).map_err(InputError)?;
+    let trace = match &args.trace {
+        Some(p) => Trace::to_file(p).map_err(|e| InputError(format!("--trace {}: {e}", p.display())))?,
+        None => Trace::off(),
+    };
     if !(0.0..=1.0).contains(&args.detail_weight) {
         return Err(InputError(format!("--detail-weight {}: must be within 0..1", args.detail_weight)).into());
     }
@@ -323,7 +334,8 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
         delta: args.delta,
         mode: args.common.error_mode,
         frozen: None,
-        feed: ErrorFeed::new(args.common.error_mode, args.common.refresh()),
+        feed: ErrorFeed::new(args.common.error_mode, args.common.refresh()).with_trace(trace.clone()),
+        trace: trace.clone(),
         frame: 0,
         slot: 0,
         swapchain_dirty: false,
@@ -347,6 +359,10 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
     // Waits for the GPU, joins the errors thread, destroys the device and instance, so
     // that the object tracker's leak reports are counted below.
     drop(app.gpu.take());
+    if let Some(p) = &args.trace {
+        app.trace.finish().map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))?;
+        println!("vkterrain: trace {}", p.display());
+    }
     let validation = counter.as_ref().map(|c| c.count());
     let first_message = counter.as_ref().and_then(|c| c.messages().first().cloned());
     if let Some(e) = app.error.take() {
@@ -426,7 +442,8 @@ impl App {
         let swapchain = Swapchain::new(&device, &surface, (size.width, size.height), present, None)?;
         let depth = depth_image(&device, swapchain.extent)?;
         let renderer = BlocksRenderer::new(&device, &terrain, self.layout, swapchain.format, FRAMES_IN_FLIGHT)?;
-        let activity = ErrorsActivity::start(&device, terrain.clone(), self.hf.clone(), self.layout)?;
+        let activity =
+            ErrorsActivity::start_traced(&device, terrain.clone(), self.hf.clone(), self.layout, self.trace.clone())?;
         let commands = CommandPool::new(&device, device.draw_queue.family)?;
         let slots = (0..FRAMES_IN_FLIGHT)
             .map(|_| {
@@ -522,11 +539,13 @@ impl App {
         if self.args.record_path.is_some() {
             self.flight.push((cam.position, cam.position + cam.forward));
         }
+        let frame_start = Instant::now();
         let slot_index = self.slot;
         let gpu = self.gpu.as_mut().unwrap();
         let d = gpu.device.raw.clone();
         let slot = &gpu.slots[slot_index];
         slot.fence.wait(u64::MAX)?;
+        self.trace.complete(DRAW_TID, "wait (frame slot)", frame_start, Instant::now(), json!({"frame": self.frame}));
 
         // The newest finished error generation (never waits on the errors queue after the
         // first frame, which waits for data at its camera so the bound holds from the start).
@@ -586,7 +605,9 @@ impl App {
             attachment_barriers(&d, cmd, image, last_use, &gpu.depth);
         }
         let clear = if self.shading.sky { crate::blocks::SKY_HORIZON } else { self.shading.background };
+        let recording = Instant::now();
         let stats = gpu.renderer.record(slot_index, cmd, view, gpu.depth.view, extent, &blocks, &self.shading, clear);
+        self.trace.complete(DRAW_TID, "record", recording, Instant::now(), json!({"blocks": blocks.len()}));
         // SAFETY: as above.
         unsafe {
             let rendered = (
@@ -623,6 +644,8 @@ impl App {
             .signal_semaphore_infos(&signals)];
         slot.fence.reset()?;
         gpu.device.draw_queue.submit(&gpu.device, &submit, slot.fence.handle)?;
+        self.trace.instant(DRAW_TID, "submit (draw queue)", json!({"frame": self.frame}));
+        let presenting = Instant::now();
         let swapchains = [gpu.swapchain.handle];
         let indices = [image_index];
         let wait_present = [render_done];
@@ -635,6 +658,8 @@ impl App {
             // SAFETY: the queue is locked (external synchronization); handles are live.
             unsafe { gpu.swapchain.loader.queue_present(gpu.device.draw_queue.handle, &present) }
         };
+        self.trace.complete(DRAW_TID, "present", presenting, Instant::now(), json!({"frame": self.frame}));
+        self.trace.complete(DRAW_TID, "frame", frame_start, Instant::now(), json!({"frame": self.frame}));
         match presented {
             Ok(sub) => self.swapchain_dirty |= sub || suboptimal,
             Err(vk::Result::ERROR_OUT_OF_DATE_KHR) => self.swapchain_dirty = true,

@@ -88,8 +88,20 @@ fn recorded_flight_replays_as_a_bench_path() {
     let dir = std::env::temp_dir().join(format!("vkterrain-flight-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let flight = dir.join("flight.txt");
-    let out = viewer(&["--frames", "9", "--flyover", "--size", "320x240", "--record-path", flight.to_str().unwrap()]);
+    let trace = dir.join("trace.json");
+    let out = viewer(&[
+        "--frames",
+        "9",
+        "--flyover",
+        "--size",
+        "320x240",
+        "--record-path",
+        flight.to_str().unwrap(),
+        "--trace",
+        trace.to_str().unwrap(),
+    ]);
     let recorded = std::fs::read_to_string(&flight);
+    let traced = std::fs::read_to_string(&trace);
     let bench = Command::new(env!("CARGO_BIN_EXE_vkterrain"))
         .args(["bench", "--path", flight.to_str().unwrap(), "--size", "160x120", "--no-fidelity"])
         .args(["--validation", "on", "--out", dir.join("out").to_str().unwrap()])
@@ -113,4 +125,12 @@ fn recorded_flight_replays_as_a_bench_path() {
     let s: serde_json::Value = serde_json::from_str(&summary.unwrap()).unwrap();
     assert_eq!(s["frames"], 9);
     assert_eq!(s["validation_messages"], 0);
+    // The viewer's trace: both threads, one "frame" span per frame, and every generation
+    // the errors thread signalled is one the draw thread could observe.
+    let t: serde_json::Value = serde_json::from_str(&traced.expect("trace written")).expect("valid JSON");
+    let events = t["traceEvents"].as_array().unwrap();
+    let named = |n: &str| events.iter().filter(|e| e["name"] == n).count();
+    assert_eq!(named("frame"), 9);
+    assert!(named("generation") >= 1 && named("observed generation") >= 1, "no generation in the trace");
+    assert!(events.iter().any(|e| e["tid"] == 2 && e["ph"] == "X"), "no errors-thread span");
 }
