@@ -364,7 +364,13 @@ impl Bench<'_> {
             ErrorFeed::new(self.args.common.error_mode, self.args.common.refresh()).with_trace(self.trace.clone());
         // Row of the frame pending in each offscreen slot.
         let mut pending: Vec<Option<usize>> = vec![None; self.targets.len()];
-        let fill = |row: &mut Row, stats: &DrawStats| {
+        let shared = self.s.device.queue_mode == crate::vk::QueueMode::Shared;
+        let draw_track = self.trace.gpu_tid(false, shared);
+        let trace = self.trace.clone();
+        let fill = |row: &mut Row, stats: &DrawStats, frame: usize| {
+            if let Some(t) = stats.gpu_ticks {
+                trace.gpu_span(draw_track, label, t, json!({"frame": frame}));
+            }
             row.gpu_ms = stats.gpu_ms;
             row.queue_wait_ms = Some(stats.wait_ms);
             row.triangles = stats.triangles;
@@ -422,7 +428,7 @@ impl Bench<'_> {
                 &shading,
             )?;
             if let (Some(stats), Some(r)) = (done, pending[slot].take()) {
-                fill(&mut run.rows[r], &stats);
+                fill(&mut run.rows[r], &stats, r);
             }
             pending[slot] = Some(run.rows.len());
             self.trace.instant(DRAW_TID, "submit (draw queue)", json!({"frame": i}));
@@ -448,7 +454,7 @@ impl Bench<'_> {
         }
         for (slot, row) in pending.iter_mut().enumerate() {
             if let (Some(stats), Some(r)) = (self.renderer.wait_offscreen(slot)?, row.take()) {
-                fill(&mut run.rows[r], &stats);
+                fill(&mut run.rows[r], &stats, r);
             }
         }
         Ok(run)
@@ -609,6 +615,10 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     }
     let trace_path = args.out.join("trace.json");
     let trace = Trace::to_file(&trace_path).map_err(|e| anyhow::anyhow!("{}: {e}", trace_path.display()))?;
+    match crate::vk::QueryPool::calibrate(&s.device)? {
+        Some(clock) => trace.set_gpu_clock(clock, s.device.queue_mode == crate::vk::QueueMode::Shared),
+        None => eprintln!("vkterrain: note: no timestamp queries: trace.json has no GPU tracks"),
+    }
     let rss_start = rss_mib();
     let started = Instant::now();
     let activity = ErrorsActivity::start_traced(&s.device, s.terrain.clone(), s.hf.clone(), s.layout, trace.clone())?;

@@ -167,6 +167,8 @@ pub struct DrawStats {
     pub triangles: u64,
     /// GPU time of the frame's commands (timestamps), when the queue has them.
     pub gpu_ms: Option<f64>,
+    /// The raw begin and end timestamps behind `gpu_ms`.
+    pub gpu_ticks: Option<[u64; 2]>,
     /// How long the draw thread was blocked waiting for this frame to finish (its
     /// frames in flight ahead of it and, on a shared queue, error updates).
     pub wait_ms: f64,
@@ -563,10 +565,10 @@ impl BlocksRenderer {
         let t = std::time::Instant::now();
         s.fence.wait(u64::MAX)?;
         stats.wait_ms = t.elapsed().as_secs_f64() * 1e3;
-        stats.gpu_ms = match &s.queries {
-            Some(q) => q.elapsed_ms(0)?,
-            None => None,
-        };
+        if let Some(q) = &s.queries {
+            stats.gpu_ms = q.elapsed_ms(0)?;
+            stats.gpu_ticks = q.ticks(0)?;
+        }
         Ok(Some(stats))
     }
 }

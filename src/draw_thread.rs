@@ -153,6 +153,7 @@ impl ErrorFeed {
             self.recent.pop_front();
         }
         if let Some(n) = taken {
+            self.trace.flow(DRAW_TID, false, n);
             self.trace.instant(DRAW_TID, "observed generation", json!({"generation": n, "frame": frame}));
             self.trace.counter("errors timeline (observed by draw thread)", n);
         }

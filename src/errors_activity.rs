@@ -875,6 +875,21 @@ fn run(gpu: ErrorsGpu, s: &Shared) -> VkResult<()> {
             }
         }
         s.finished.store(g, std::sync::atomic::Ordering::SeqCst);
+        if s.trace.enabled() {
+            // What the queue executed for this generation, and the flow to the frame
+            // that first uses it. The slot's queries are not reset before g + 2.
+            if let Some(q) = &s.queries {
+                let shared = gpu.device.queue_mode == crate::vk::QueueMode::Shared;
+                let q0 = QUERIES_PER_SLOT * slot as u32;
+                for c in 0..chunks.len() as u32 {
+                    if let Some(t) = q.ticks(q0 + 2 * c)? {
+                        let args = serde_json::json!({"generation": g, "submission": c});
+                        s.trace.gpu_span(s.trace.gpu_tid(true, shared), "error passes", t, args);
+                    }
+                }
+            }
+            s.trace.flow(ERRORS_TID, true, g);
+        }
         s.trace.complete(
             ERRORS_TID,
             "generation",

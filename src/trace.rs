@@ -12,6 +12,20 @@ use std::time::Instant;
 /// Thread ids in the trace.
 pub const DRAW_TID: u32 = 1;
 pub const ERRORS_TID: u32 = 2;
+/// GPU tracks: what each queue executed, from timestamp queries. With one shared queue
+/// both activities' work is on [`GPU_DRAW_QUEUE_TID`].
+pub const GPU_DRAW_QUEUE_TID: u32 = 10;
+pub const GPU_ERRORS_QUEUE_TID: u32 = 11;
+
+/// Where GPU timestamps fall on the CPU clock (see `QueryPool::calibrate`).
+#[derive(Clone, Copy, Debug)]
+pub struct GpuClock {
+    pub tick_at: u64,
+    pub cpu_at: Instant,
+    pub period_ns: f64,
+    /// Half the calibration's submit-to-fence window.
+    pub uncertainty_us: f64,
+}
 
 struct Sink {
     out: BufWriter<File>,
@@ -19,6 +33,7 @@ struct Sink {
     path: PathBuf,
     first: bool,
     failed: Option<std::io::Error>,
+    gpu_clock: Option<GpuClock>,
 }
 
 /// A cheap handle; `Trace::off()` records nothing.
@@ -38,7 +53,7 @@ impl Trace {
         let partial = path.with_extension("json.partial");
         let mut out = BufWriter::new(File::create(&partial)?);
         out.write_all(b"{\"displayTimeUnit\": \"ms\", \"traceEvents\": [\n")?;
-        let sink = Sink { out, partial, path: path.to_path_buf(), first: true, failed: None };
+        let sink = Sink { out, partial, path: path.to_path_buf(), first: true, failed: None, gpu_clock: None };
         let t = Trace { sink: Some(Arc::new(Mutex::new(sink))), origin: Instant::now() };
         t.push(json!({"ph": "M", "pid": 1, "tid": DRAW_TID, "name": "thread_name", "args": {"name": "blocks rendering (draw thread)"}}));
         t.push(
@@ -83,6 +98,55 @@ impl Trace {
     pub fn instant(&self, tid: u32, name: &str, args: Value) {
         if self.enabled() {
             self.push(json!({"ph": "i", "s": "t", "pid": 1, "tid": tid, "name": name, "ts": self.us(Instant::now()), "args": args}));
+        }
+    }
+
+    /// Enables GPU tracks: timestamps are placed with `clock`; `shared` when both
+    /// activities use one queue (one track). The method goes into the trace's metadata.
+    pub fn set_gpu_clock(&self, clock: GpuClock, shared: bool) {
+        let Some(s) = &self.sink else { return };
+        s.lock().unwrap_or_else(|e| e.into_inner()).gpu_clock = Some(clock);
+        let draw = if shared { "GPU: the shared queue (both activities)" } else { "GPU: draw queue" };
+        self.push(
+            json!({"ph": "M", "pid": 1, "tid": GPU_DRAW_QUEUE_TID, "name": "thread_name", "args": {"name": draw}}),
+        );
+        if !shared {
+            self.push(json!({"ph": "M", "pid": 1, "tid": GPU_ERRORS_QUEUE_TID, "name": "thread_name", "args": {"name": "GPU: errors queue"}}));
+        }
+        self.push(json!({"ph": "M", "pid": 1, "name": "gpu_clock", "args": {
+            "method": "measured offset: one timestamp at the midpoint of its submit-to-fence window",
+            "uncertainty_us": clock.uncertainty_us,
+            "period_ns": clock.period_ns,
+        }}));
+    }
+
+    /// The GPU track a queue's work goes on.
+    pub fn gpu_tid(&self, errors_queue: bool, shared: bool) -> u32 {
+        if errors_queue && !shared {
+            GPU_ERRORS_QUEUE_TID
+        } else {
+            GPU_DRAW_QUEUE_TID
+        }
+    }
+
+    /// A span of GPU work between two timestamps, on a GPU track.
+    pub fn gpu_span(&self, tid: u32, name: &str, ticks: [u64; 2], args: Value) {
+        let Some(s) = &self.sink else { return };
+        let Some(c) = s.lock().unwrap_or_else(|e| e.into_inner()).gpu_clock else { return };
+        let at = |t: u64| self.us(c.cpu_at) + (t as f64 - c.tick_at as f64) * c.period_ns / 1e3;
+        let (ts, end) = (at(ticks[0]), at(ticks[1]));
+        self.push(
+            json!({"ph": "X", "pid": 1, "tid": tid, "name": name, "ts": ts, "dur": (end - ts).max(0.0), "args": args}),
+        );
+    }
+
+    /// A flow arrow from now on `tid` (phase "s") or to now on `tid` (phase "f"): the
+    /// generation a timeline signal made, to the frame that first uses it.
+    pub fn flow(&self, tid: u32, start: bool, id: u64) {
+        if self.enabled() {
+            let ts = self.us(Instant::now());
+            let ph = if start { "s" } else { "f" };
+            self.push(json!({"ph": ph, "bp": "e", "pid": 1, "tid": tid, "name": "generation", "cat": "handoff", "id": id, "ts": ts}));
         }
     }
 

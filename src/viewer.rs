@@ -442,6 +442,12 @@ impl App {
         let swapchain = Swapchain::new(&device, &surface, (size.width, size.height), present, None)?;
         let depth = depth_image(&device, swapchain.extent)?;
         let renderer = BlocksRenderer::new(&device, &terrain, self.layout, swapchain.format, FRAMES_IN_FLIGHT)?;
+        if self.trace.enabled() {
+            match crate::vk::QueryPool::calibrate(&device)? {
+                Some(clock) => self.trace.set_gpu_clock(clock, device.queue_mode == crate::vk::QueueMode::Shared),
+                None => println!("vkterrain: note: no timestamp queries: the trace has no GPU tracks"),
+            }
+        }
         let activity =
             ErrorsActivity::start_traced(&device, terrain.clone(), self.hf.clone(), self.layout, self.trace.clone())?;
         let commands = CommandPool::new(&device, device.draw_queue.family)?;

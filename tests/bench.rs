@@ -115,6 +115,34 @@ fn short_bench_writes_every_file_with_documented_fields() {
     ] {
         assert!(has(name), "trace.json has no '{name}' event");
     }
+    // GPU tracks (timestamps placed on the CPU clock): every frame of the error run is a
+    // span there, starting no earlier than its submission (within the calibration's
+    // uncertainty), and the errors' GPU work is there too.
+    let clock = events.iter().find(|e| e["name"] == "gpu_clock").expect("GPU clock metadata");
+    let slack = clock["args"]["uncertainty_us"].as_f64().unwrap() + 500.0;
+    let gpu_frames: Vec<&serde_json::Value> =
+        events.iter().filter(|e| e["ph"] == "X" && e["tid"] == 10 && e["name"] == "error").collect();
+    assert_eq!(gpu_frames.len(), 24, "GPU spans of the error run");
+    for span in &gpu_frames {
+        let frame = &span["args"]["frame"];
+        let submit = events
+            .iter()
+            .find(|e| e["name"] == "submit (draw queue)" && &e["args"]["frame"] == frame)
+            .expect("the frame's submission");
+        let (ts, at) = (span["ts"].as_f64().unwrap(), submit["ts"].as_f64().unwrap());
+        assert!(ts >= at - slack, "frame {frame}: GPU start {ts} before its submission {at}");
+    }
+    assert!(events.iter().any(|e| e["ph"] == "X" && e["name"] == "error passes"), "no GPU error passes");
+    // A flow from each generation used to the frame that took it.
+    let ids = |ph: &str| -> Vec<u64> {
+        events
+            .iter()
+            .filter(|e| e["ph"] == ph && e["name"] == "generation")
+            .map(|e| e["id"].as_u64().unwrap())
+            .collect()
+    };
+    let (starts, ends) = (ids("s"), ids("f"));
+    assert!(!ends.is_empty() && ends.iter().all(|id| starts.contains(id)), "flows: starts {starts:?}, ends {ends:?}");
 }
 
 #[test]

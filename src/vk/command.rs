@@ -201,6 +201,48 @@ impl QueryPool {
         Ok(Some(QueryPool { device: device.clone(), handle, period_ns: period as f64 }))
     }
 
+    /// Raw ticks of timestamps `first` and `first + 1`, once both are written.
+    pub fn ticks(&self, first: u32) -> VkResult<Option<[u64; 2]>> {
+        let mut ticks = [0u64; 2];
+        // SAFETY: live pool; the caller reads only queries whose submission completed.
+        let r = unsafe {
+            self.device.raw.get_query_pool_results(self.handle, first, &mut ticks, vk::QueryResultFlags::TYPE_64)
+        };
+        match r {
+            Ok(()) => Ok(Some(ticks)),
+            Err(vk::Result::NOT_READY) => Ok(None),
+            Err(e) => Err(e).vk("vkGetQueryPoolResults"),
+        }
+    }
+
+    /// Places GPU timestamps on the CPU clock: one timestamp written by a submission on
+    /// the draw queue, taken at the midpoint of the CPU's submit-to-fence window (the
+    /// device may lack VK_EXT_calibrated_timestamps; this works everywhere, to within
+    /// that window).
+    pub fn calibrate(device: &Arc<Device>) -> VkResult<Option<crate::trace::GpuClock>> {
+        let Some(pool) = QueryPool::timestamps(device, 1)? else { return Ok(None) };
+        let commands = CommandPool::new(device, device.draw_queue.family)?;
+        let before = std::time::Instant::now();
+        device.one_shot(&commands, |cmd| {
+            // SAFETY: recording; the pool is ours and outlives the wait in one_shot.
+            unsafe {
+                device.raw.cmd_reset_query_pool(cmd, pool.handle, 0, 1);
+                device.raw.cmd_write_timestamp2(cmd, vk::PipelineStageFlags2::TOP_OF_PIPE, pool.handle, 0);
+            }
+        })?;
+        let after = std::time::Instant::now();
+        let mut tick = [0u64; 1];
+        // SAFETY: the submission completed (one_shot waited).
+        unsafe { device.raw.get_query_pool_results(pool.handle, 0, &mut tick, vk::QueryResultFlags::TYPE_64) }
+            .vk("vkGetQueryPoolResults")?;
+        Ok(Some(crate::trace::GpuClock {
+            tick_at: tick[0],
+            cpu_at: before + (after - before) / 2,
+            period_ns: pool.period_ns,
+            uncertainty_us: (after - before).as_secs_f64() * 1e6 / 2.0,
+        }))
+    }
+
     /// Milliseconds between timestamps `first` and `first + 1`, once both are written.
     pub fn elapsed_ms(&self, first: u32) -> VkResult<Option<f64>> {
         let mut ticks = [0u64; 2];
