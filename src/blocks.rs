@@ -160,6 +160,21 @@ impl Target {
     }
 }
 
+/// Where [`BlocksRenderer::record_frame`] draws, and what happens to the image after.
+pub struct FrameDest<'a> {
+    pub image: vk::Image,
+    pub view: vk::ImageView,
+    pub extent: vk::Extent2D,
+    pub depth: &'a Image,
+    /// Stage and access that last touched `image` (its old contents are discarded).
+    pub last_use: (vk::PipelineStageFlags2, vk::AccessFlags2),
+    /// Copy the frame into this host-visible buffer (offscreen frames, screenshots).
+    pub copy_to: Option<vk::Buffer>,
+    /// Leave the image in PRESENT_SRC (a swapchain image); otherwise it stays a copy
+    /// source (offscreen targets, whose next frame starts from COPY).
+    pub present: bool,
+}
+
 /// Frame statistics of one draw.
 #[derive(Clone, Copy, Debug, Default)]
 pub struct DrawStats {
@@ -442,6 +457,47 @@ impl BlocksRenderer {
         stats
     }
 
+    /// Records one whole frame into `cmd` (begun, not ended): the attachments made
+    /// writable, the blocks and the sky, then the copy to host memory and/or the
+    /// hand-over to presentation. The one frame recording of the viewer (swapchain) and
+    /// of offscreen frames (bench, render, tests).
+    pub fn record_frame(
+        &self,
+        slot: usize,
+        cmd: vk::CommandBuffer,
+        dest: &FrameDest,
+        blocks: &[DrawBlock],
+        shading: &Shading,
+    ) -> DrawStats {
+        let d = &self.device.raw;
+        // SAFETY: `cmd` is recording on this thread; the caller keeps every image and
+        // buffer alive until the submission completes.
+        unsafe { attachment_barriers(d, cmd, dest.image, dest.last_use, dest.depth) };
+        let clear = if shading.sky { SKY_HORIZON } else { shading.background };
+        let stats = self.record(slot, cmd, dest.view, dest.depth.view, dest.extent, blocks, shading, clear);
+        let rendered = (
+            vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT,
+            vk::AccessFlags2::COLOR_ATTACHMENT_WRITE,
+            vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL,
+        );
+        let copied =
+            (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_READ, vk::ImageLayout::TRANSFER_SRC_OPTIMAL);
+        let present = (vk::PipelineStageFlags2::NONE, vk::AccessFlags2::NONE, vk::ImageLayout::PRESENT_SRC_KHR);
+        // SAFETY: as above.
+        unsafe {
+            let mut last = rendered;
+            if let Some(buffer) = dest.copy_to {
+                image_barrier(d, cmd, dest.image, COLOR_RANGE, last, copied);
+                copy_image_to_host(d, cmd, dest.image, dest.extent, buffer);
+                last = copied;
+            }
+            if dest.present {
+                image_barrier(d, cmd, dest.image, COLOR_RANGE, last, present);
+            }
+        }
+        stats
+    }
+
     /// Writes the uniforms of `slot`. Only call when no pending frame uses that slot.
     pub fn set_frame(
         &mut self,
@@ -520,7 +576,6 @@ impl BlocksRenderer {
         let cmd = self.offscreen[slot].cmd;
         let queries = self.offscreen[slot].queries.as_ref().map(|q| q.handle);
         let extent = vk::Extent2D { width: target.width, height: target.height };
-        let clear = if shading.sky { SKY_HORIZON } else { shading.background };
         // SAFETY: the slot's previous submission finished (waited for above).
         unsafe {
             begin_one_time(&d, cmd)?;
@@ -528,21 +583,19 @@ impl BlocksRenderer {
                 d.cmd_reset_query_pool(cmd, q, 0, 2);
                 d.cmd_write_timestamp2(cmd, vk::PipelineStageFlags2::TOP_OF_PIPE, q, 0);
             }
-            let last_use = (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_READ);
-            attachment_barriers(&d, cmd, target.color.handle, last_use, &target.depth);
         }
-        let stats = self.record(slot, cmd, target.color.view, target.depth.view, extent, blocks, shading, clear);
+        let dest = FrameDest {
+            image: target.color.handle,
+            view: target.color.view,
+            extent,
+            depth: &target.depth,
+            last_use: (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_READ),
+            copy_to: Some(target.readback.handle),
+            present: false,
+        };
+        let stats = self.record_frame(slot, cmd, &dest, blocks, shading);
         // SAFETY: as above.
         unsafe {
-            let rendered = (
-                vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT,
-                vk::AccessFlags2::COLOR_ATTACHMENT_WRITE,
-                vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL,
-            );
-            let copied =
-                (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_READ, vk::ImageLayout::TRANSFER_SRC_OPTIMAL);
-            image_barrier(&d, cmd, target.color.handle, COLOR_RANGE, rendered, copied);
-            copy_image_to_host(&d, cmd, target.color.handle, extent, target.readback.handle);
             if let Some(q) = queries {
                 d.cmd_write_timestamp2(cmd, vk::PipelineStageFlags2::BOTTOM_OF_PIPE, q, 1);
             }
@@ -708,7 +761,7 @@ fn block_push(layout: &BlockLayout, b: &DrawBlock) -> BlockPush {
 /// # Safety
 /// `cmd` must be a command buffer of `d` in the recording state, and both images must
 /// stay alive until its submission completes.
-pub unsafe fn attachment_barriers(
+unsafe fn attachment_barriers(
     d: &ash::Device,
     cmd: vk::CommandBuffer,
     color: vk::Image,
@@ -747,7 +800,7 @@ pub unsafe fn attachment_barriers(
 ///
 /// # Safety
 /// As for [`attachment_barriers`]; `buffer` must hold `extent` RGBA8 texels.
-pub unsafe fn copy_image_to_host(
+unsafe fn copy_image_to_host(
     d: &ash::Device,
     cmd: vk::CommandBuffer,
     image: vk::Image,

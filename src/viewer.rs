@@ -2,9 +2,7 @@
 //! activity (traversal and drawing on the draw queue), with the errors activity live on
 //! its own thread and queue.
 
-use crate::blocks::{
-    attachment_barriers, copy_image_to_host, BlocksRenderer, DrawStats, Shading, COLOR_RANGE, DEPTH_FORMAT,
-};
+use crate::blocks::{BlocksRenderer, DrawStats, FrameDest, Shading, DEPTH_FORMAT};
 use crate::camera::Camera;
 use crate::cli::{near_plane, CommonArgs, InputError};
 use crate::commands::{save_png, Session};
@@ -16,8 +14,8 @@ use crate::quadtree::{BlockLayout, DrawBlock};
 use crate::terrain_gpu::{TerrainGpu, Texture};
 use crate::trace::{Trace, DRAW_TID};
 use crate::vk::{
-    begin_one_time, image_barrier, vk, BinarySemaphore, Buffer, CommandPool, Device, DeviceOptions, Fence, Image,
-    Instance, InstanceOptions, Surface, Swapchain, VkResultExt,
+    begin_one_time, vk, BinarySemaphore, Buffer, CommandPool, Device, DeviceOptions, Fence, Image, Instance,
+    InstanceOptions, Surface, Swapchain, VkResultExt,
 };
 use clap::{Args, ValueEnum};
 use glam::Vec3;
@@ -604,38 +602,22 @@ impl App {
         };
         let cmd = slot.cmd;
         // SAFETY: `cmd` belongs to this slot, whose previous submission completed.
-        unsafe {
-            begin_one_time(&d, cmd)?;
+        unsafe { begin_one_time(&d, cmd)? };
+        let dest = FrameDest {
+            image,
+            view,
+            extent,
+            depth: &gpu.depth,
             // The acquire semaphore orders this after the presentation engine's read.
-            let last_use = (vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT, vk::AccessFlags2::NONE);
-            attachment_barriers(&d, cmd, image, last_use, &gpu.depth);
-        }
-        let clear = if self.shading.sky { crate::blocks::SKY_HORIZON } else { self.shading.background };
+            last_use: (vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT, vk::AccessFlags2::NONE),
+            copy_to: readback.as_ref().map(|b| b.handle),
+            present: true,
+        };
         let recording = Instant::now();
-        let stats = gpu.renderer.record(slot_index, cmd, view, gpu.depth.view, extent, &blocks, &self.shading, clear);
+        let stats = gpu.renderer.record_frame(slot_index, cmd, &dest, &blocks, &self.shading);
         self.trace.complete(DRAW_TID, "record", recording, Instant::now(), json!({"blocks": blocks.len()}));
         // SAFETY: as above.
-        unsafe {
-            let rendered = (
-                vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT,
-                vk::AccessFlags2::COLOR_ATTACHMENT_WRITE,
-                vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL,
-            );
-            let present = (vk::PipelineStageFlags2::NONE, vk::AccessFlags2::NONE, vk::ImageLayout::PRESENT_SRC_KHR);
-            if let Some(buf) = &readback {
-                let copied = (
-                    vk::PipelineStageFlags2::COPY,
-                    vk::AccessFlags2::TRANSFER_READ,
-                    vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
-                );
-                image_barrier(&d, cmd, image, COLOR_RANGE, rendered, copied);
-                copy_image_to_host(&d, cmd, image, extent, buf.handle);
-                image_barrier(&d, cmd, image, COLOR_RANGE, copied, present);
-            } else {
-                image_barrier(&d, cmd, image, COLOR_RANGE, rendered, present);
-            }
-            d.end_command_buffer(cmd).vk("vkEndCommandBuffer")?;
-        }
+        unsafe { d.end_command_buffer(cmd).vk("vkEndCommandBuffer")? };
         let render_done = gpu.swapchain.render_done[image_index as usize];
         let waits = [vk::SemaphoreSubmitInfo::default()
             .semaphore(slot.acquired.handle)
