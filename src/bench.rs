@@ -371,6 +371,9 @@ impl Bench<'_> {
             if let Some(t) = stats.gpu_ticks {
                 trace.gpu_span(draw_track, label, t, json!({"frame": frame}));
             }
+            if let Some((asked, got)) = stats.queue_lock {
+                trace.complete(DRAW_TID, "wait (queue lock)", asked, got, json!({"frame": frame}));
+            }
             row.gpu_ms = stats.gpu_ms;
             row.queue_wait_ms = Some(stats.wait_ms);
             row.triangles = stats.triangles;

@@ -184,6 +184,8 @@ pub struct DrawStats {
     pub gpu_ms: Option<f64>,
     /// The raw begin and end timestamps behind `gpu_ms`.
     pub gpu_ticks: Option<[u64; 2]>,
+    /// When the submission asked for the queue's lock and got it.
+    pub queue_lock: Option<(std::time::Instant, std::time::Instant)>,
     /// How long the draw thread was blocked waiting for this frame to finish (its
     /// frames in flight ahead of it and, on a shared queue, error updates).
     pub wait_ms: f64,
@@ -605,7 +607,9 @@ impl BlocksRenderer {
         s.fence.reset()?;
         let cmds = [vk::CommandBufferSubmitInfo::default().command_buffer(cmd)];
         let submit = [vk::SubmitInfo2::default().command_buffer_infos(&cmds)];
-        self.device.draw_queue.submit(&self.device, &submit, s.fence.handle)?;
+        let (asked, got) = self.device.draw_queue.submit_timed(&self.device, &submit, s.fence.handle)?;
+        let mut stats = stats;
+        stats.queue_lock = Some((asked, got));
         s.pending = Some(stats);
         Ok(previous)
     }

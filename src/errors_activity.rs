@@ -851,7 +851,8 @@ fn run(gpu: ErrorsGpu, s: &Shared) -> VkResult<()> {
             let cmds = [vk::CommandBufferSubmitInfo::default().command_buffer(c)];
             gpu.chunk_fence.reset()?;
             let submit = [vk::SubmitInfo2::default().command_buffer_infos(&cmds)];
-            gpu.device.errors_queue.submit(&gpu.device, &submit, gpu.chunk_fence.handle)?;
+            let (asked, got) = gpu.device.errors_queue.submit_timed(&gpu.device, &submit, gpu.chunk_fence.handle)?;
+            s.trace.complete(ERRORS_TID, "wait (queue lock)", asked, got, serde_json::json!({"generation": g}));
             gpu.chunk_fence.wait(u64::MAX)?;
         }
         let cmds = [vk::CommandBufferSubmitInfo::default().command_buffer(last_chunk)];
@@ -860,7 +861,8 @@ fn run(gpu: ErrorsGpu, s: &Shared) -> VkResult<()> {
             .value(g)
             .stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)];
         let submit = [vk::SubmitInfo2::default().command_buffer_infos(&cmds).signal_semaphore_infos(&signal)];
-        gpu.device.errors_queue.submit(&gpu.device, &submit, vk::Fence::null())?;
+        let (asked, got) = gpu.device.errors_queue.submit_timed(&gpu.device, &submit, vk::Fence::null())?;
+        s.trace.complete(ERRORS_TID, "wait (queue lock)", asked, got, serde_json::json!({"generation": g}));
         s.trace.instant(
             ERRORS_TID,
             "submit (errors queue)",

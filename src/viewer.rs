@@ -631,7 +631,8 @@ impl App {
             .command_buffer_infos(&cmds)
             .signal_semaphore_infos(&signals)];
         slot.fence.reset()?;
-        gpu.device.draw_queue.submit(&gpu.device, &submit, slot.fence.handle)?;
+        let (asked, got) = gpu.device.draw_queue.submit_timed(&gpu.device, &submit, slot.fence.handle)?;
+        self.trace.complete(DRAW_TID, "wait (queue lock)", asked, got, json!({"frame": self.frame}));
         self.trace.instant(DRAW_TID, "submit (draw queue)", json!({"frame": self.frame}));
         let presenting = Instant::now();
         let swapchains = [gpu.swapchain.handle];

@@ -54,9 +54,23 @@ pub struct Queue {
 impl Queue {
     /// Submits under the queue's lock (vkQueueSubmit2 needs external synchronization).
     pub fn submit(&self, device: &Device, submits: &[vk::SubmitInfo2<'_>], fence: vk::Fence) -> VkResult<()> {
+        self.submit_timed(device, submits, fence).map(|_| ())
+    }
+
+    /// Like [`Queue::submit`]; returns when this thread started waiting for the queue's
+    /// lock and when it got it (on a shared queue, the other activity may hold it).
+    pub fn submit_timed(
+        &self,
+        device: &Device,
+        submits: &[vk::SubmitInfo2<'_>],
+        fence: vk::Fence,
+    ) -> VkResult<(std::time::Instant, std::time::Instant)> {
+        let asked = std::time::Instant::now();
         let _guard = self.lock.lock().unwrap_or_else(|e| e.into_inner());
+        let got = std::time::Instant::now();
         // SAFETY: the queue belongs to `device`; access is serialized by the lock.
-        unsafe { device.raw.queue_submit2(self.handle, submits, fence) }.vk("vkQueueSubmit2")
+        unsafe { device.raw.queue_submit2(self.handle, submits, fence) }.vk("vkQueueSubmit2")?;
+        Ok((asked, got))
     }
 
     /// Locks the queue for calls like vkQueuePresentKHR.
