@@ -121,6 +121,13 @@ impl ErrorFeed {
     /// generation at this camera, so the bound holds from the first frame; after that it
     /// never waits. Returns the generation newly taken, if any.
     pub fn update(&mut self, activity: &ErrorsActivity, cam: &Camera, frame: u64) -> VkResult<Option<u64>> {
+        let started = Instant::now();
+        let taken = self.update_inner(activity, cam, frame)?;
+        self.trace.complete(DRAW_TID, "error feed", started, Instant::now(), json!({"frame": frame}));
+        Ok(taken)
+    }
+
+    fn update_inner(&mut self, activity: &ErrorsActivity, cam: &Camera, frame: u64) -> VkResult<Option<u64>> {
         let params = ErrorParams::new(cam, self.mode);
         let mut taken = None;
         if self.usable().is_none() {

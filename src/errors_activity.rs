@@ -47,6 +47,10 @@ struct SlotInfo {
     params: ErrorParams,
     /// Submissions the generation was split into (timestamp pairs to add up).
     chunks: u32,
+    /// The generation's GPU time, read by the errors thread once it finished: reading
+    /// query results can wait for the whole queue on some drivers (lavapipe), which
+    /// must not stall the draw thread.
+    gpu_ms: Option<f64>,
 }
 
 struct Handoff {
@@ -690,7 +694,9 @@ impl ErrorsActivity {
         let s = &self.shared;
         let (g, info) = {
             let mut h = s.handoff.lock().unwrap();
-            let g = s.timeline.value()?;
+            // A generation is handed over once the errors thread has published it (its
+            // GPU time recorded), not as soon as the GPU signals it.
+            let g = s.timeline.value()?.min(s.finished.load(std::sync::atomic::Ordering::SeqCst));
             if g <= after || g == 0 {
                 return Ok(None);
             }
@@ -704,20 +710,7 @@ impl ErrorsActivity {
         let data: Vec<f32> = bytemuck::pod_collect_to_vec(&bytes[4..4 + len * 4]);
         let trailer = u32::from_le_bytes(bytes[4 + len * 4..8 + len * 4].try_into().unwrap());
         // Read inside the reading window: the slot's queries are not reset meanwhile.
-        let gpu_ms = match (&s.queries, &info) {
-            (Some(q), Some(i)) if i.generation == g => {
-                let q0 = QUERIES_PER_SLOT * slot as u32;
-                let mut sum = Some(0.0);
-                for c in 0..i.chunks {
-                    sum = match (sum, q.elapsed_ms(q0 + 2 * c)?) {
-                        (Some(a), Some(b)) => Some(a + b),
-                        _ => None,
-                    };
-                }
-                sum
-            }
-            _ => None,
-        };
+        let gpu_ms = info.and_then(|i| i.gpu_ms);
         {
             let mut h = s.handoff.lock().unwrap();
             h.reading = None;
@@ -832,7 +825,7 @@ fn run(gpu: ErrorsGpu, s: &Shared) -> VkResult<()> {
             while h.reading == Some(g.wrapping_sub(2)) {
                 h = s.handoff_cv.wait(h).unwrap();
             }
-            h.slots[slot] = Some(SlotInfo { generation: g, params, chunks: 0 });
+            h.slots[slot] = Some(SlotInfo { generation: g, params, chunks: 0, gpu_ms: None });
         }
         if s.inject_device_lost_at.load(std::sync::atomic::Ordering::SeqCst) == g {
             return Err(vk::Result::ERROR_DEVICE_LOST)
@@ -876,20 +869,28 @@ fn run(gpu: ErrorsGpu, s: &Shared) -> VkResult<()> {
                 return Ok(());
             }
         }
-        s.finished.store(g, std::sync::atomic::Ordering::SeqCst);
-        if s.trace.enabled() {
-            // What the queue executed for this generation, and the flow to the frame
-            // that first uses it. The slot's queries are not reset before g + 2.
-            if let Some(q) = &s.queries {
-                let shared = gpu.device.queue_mode == crate::vk::QueueMode::Shared;
-                let q0 = QUERIES_PER_SLOT * slot as u32;
-                for c in 0..chunks.len() as u32 {
-                    if let Some(t) = q.ticks(q0 + 2 * c)? {
+        // The generation's GPU time (sum over its submissions) and GPU spans; the slot's
+        // queries are not reset before g + 2.
+        let shared = gpu.device.queue_mode == crate::vk::QueueMode::Shared;
+        let mut gpu_ms = s.queries.as_ref().map(|_| 0.0);
+        if let Some(q) = &s.queries {
+            let q0 = QUERIES_PER_SLOT * slot as u32;
+            for c in 0..chunks.len() as u32 {
+                match q.ticks(q0 + 2 * c)? {
+                    Some(t) => {
+                        gpu_ms = gpu_ms.map(|ms| ms + t[1].wrapping_sub(t[0]) as f64 * q.period_ns / 1e6);
                         let args = serde_json::json!({"generation": g, "submission": c});
                         s.trace.gpu_span(s.trace.gpu_tid(true, shared), "error passes", t, args);
                     }
+                    None => gpu_ms = None,
                 }
             }
+        }
+        if let Some(info) = s.handoff.lock().unwrap().slots[slot].as_mut() {
+            info.gpu_ms = gpu_ms;
+        }
+        s.finished.store(g, std::sync::atomic::Ordering::SeqCst);
+        if s.trace.enabled() {
             s.trace.flow(ERRORS_TID, true, g);
         }
         s.trace.complete(

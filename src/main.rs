@@ -29,6 +29,8 @@ enum Command {
     /// Sweep delta and the distance factor on CPU along a path: triangles against the
     /// audited maximum error (quality.csv, quality.json, quality.png).
     Quality(vkterrain::quality::QualityArgs),
+    /// Draw a trace (bench or view --trace) as a picture: one lane per thread and queue.
+    Timeline(vkterrain::timeline::TimelineArgs),
 }
 
 fn main() -> ExitCode {
@@ -58,6 +60,7 @@ fn main() -> ExitCode {
         Some(Command::Errors(a)) => commands::errors(a),
         Some(Command::Bench(a)) => vkterrain::bench::bench(a),
         Some(Command::Quality(a)) => vkterrain::quality::quality(a),
+        Some(Command::Timeline(a)) => vkterrain::timeline::timeline(a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
