@@ -215,8 +215,9 @@ pub struct BlocksRenderer {
 struct OffscreenSlot {
     cmd: vk::CommandBuffer,
     fence: Fence,
-    /// Start and end timestamps of the frame, when the queue has them.
-    queries: Option<QueryPool>,
+    /// Start and end timestamps of the frame, when the queue has them, and the
+    /// host-visible buffer they are copied to.
+    queries: Option<(QueryPool, Buffer)>,
     /// The frame submitted from this slot and not yet waited for.
     pending: Option<DrawStats>,
 }
@@ -312,10 +313,23 @@ impl BlocksRenderer {
         let commands = CommandPool::new(device, device.draw_queue.family)?;
         let offscreen = (0..n)
             .map(|_| {
+                let queries = match QueryPool::timestamps(device, 2)? {
+                    Some(q) => Some((
+                        q,
+                        Buffer::new(
+                            device,
+                            "frame timestamps",
+                            16,
+                            vk::BufferUsageFlags::TRANSFER_DST,
+                            gpu_allocator::MemoryLocation::GpuToCpu,
+                        )?,
+                    )),
+                    None => None,
+                };
                 Ok(OffscreenSlot {
                     cmd: commands.allocate()?,
                     fence: Fence::new(device, true)?,
-                    queries: QueryPool::timestamps(device, 2)?,
+                    queries,
                     pending: None,
                 })
             })
@@ -576,7 +590,7 @@ impl BlocksRenderer {
         self.set_frame(slot, hf, terrain, cam, shading)?;
         let d = self.device.raw.clone();
         let cmd = self.offscreen[slot].cmd;
-        let queries = self.offscreen[slot].queries.as_ref().map(|q| q.handle);
+        let queries = self.offscreen[slot].queries.as_ref().map(|(q, _)| q.handle);
         let extent = vk::Extent2D { width: target.width, height: target.height };
         // SAFETY: the slot's previous submission finished (waited for above).
         unsafe {
@@ -598,8 +612,9 @@ impl BlocksRenderer {
         let stats = self.record_frame(slot, cmd, &dest, blocks, shading);
         // SAFETY: as above.
         unsafe {
-            if let Some(q) = queries {
-                d.cmd_write_timestamp2(cmd, vk::PipelineStageFlags2::BOTTOM_OF_PIPE, q, 1);
+            if let Some((q, buf)) = &self.offscreen[slot].queries {
+                d.cmd_write_timestamp2(cmd, vk::PipelineStageFlags2::BOTTOM_OF_PIPE, q.handle, 1);
+                q.record_copy(cmd, 0, 2, buf.handle, 0);
             }
             d.end_command_buffer(cmd).vk("vkEndCommandBuffer")?;
         }
@@ -622,9 +637,10 @@ impl BlocksRenderer {
         let t = std::time::Instant::now();
         s.fence.wait(u64::MAX)?;
         stats.wait_ms = t.elapsed().as_secs_f64() * 1e3;
-        if let Some(q) = &s.queries {
-            stats.gpu_ms = q.elapsed_ms(0)?;
-            stats.gpu_ticks = q.ticks(0)?;
+        if let Some((q, buf)) = &s.queries {
+            let t: Vec<u64> = bytemuck::pod_collect_to_vec(&buf.mapped()?[..16]);
+            stats.gpu_ticks = Some([t[0], t[1]]);
+            stats.gpu_ms = Some(q.ms([t[0], t[1]]));
         }
         Ok(Some(stats))
     }

@@ -73,8 +73,11 @@ struct Shared {
     readbacks: [Buffer; 2],
     failure: Mutex<Option<VkError>>,
     root_lod: u32,
-    /// Two timestamps per slot (start, end of the generation's commands).
+    /// Two timestamps per submission of a generation, per slot.
     queries: Option<QueryPool>,
+    /// Per slot: the slot's timestamps copied on the GPU (read after the generation
+    /// finished, without vkGetQueryPoolResults, which waits for the queue on lavapipe).
+    timestamps: Vec<Buffer>,
     /// Generations finished, for watchdogs.
     finished: std::sync::atomic::AtomicU64,
     /// True while the thread waits for a request with new parameters.
@@ -118,6 +121,8 @@ struct ErrorsGpu {
     slots: Vec<Slot>,
     /// Owned by `Shared`, which outlives this (the thread holds an Arc to it).
     queries: Option<vk::QueryPool>,
+    /// Per slot, where the slot's timestamps are copied (owned by `Shared` too).
+    timestamp_buffers: Vec<vk::Buffer>,
     gie_pipeline: GraphicsPipeline,
     reduce_pipeline: GraphicsPipeline,
     gie_layout: PipelineLayout,
@@ -272,6 +277,7 @@ impl ErrorsGpu {
             layout: block_layout,
             slots,
             queries: None,
+            timestamp_buffers: Vec::new(),
             gie_pipeline,
             reduce_pipeline,
             gie_layout,
@@ -526,6 +532,19 @@ impl ErrorsGpu {
             if let Some(pool) = self.queries {
                 let last = q0 + 2 * used as u32 - 1;
                 d.cmd_write_timestamp2(cmd, vk::PipelineStageFlags2::BOTTOM_OF_PIPE, pool, last);
+                if let Some(&buffer) = self.timestamp_buffers.get(slot_index) {
+                    // All of this generation's timestamps, copied once the GPU has them.
+                    let flags = vk::QueryResultFlags::TYPE_64 | vk::QueryResultFlags::WAIT;
+                    d.cmd_copy_query_pool_results(cmd, pool, q0, 2 * used as u32, buffer, 0, 8, flags);
+                    let to_host = [vk::BufferMemoryBarrier2::default()
+                        .src_stage_mask(copy)
+                        .src_access_mask(vk::AccessFlags2::TRANSFER_WRITE)
+                        .dst_stage_mask(vk::PipelineStageFlags2::HOST)
+                        .dst_access_mask(vk::AccessFlags2::HOST_READ)
+                        .buffer(buffer)
+                        .size(vk::WHOLE_SIZE)];
+                    d.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().buffer_memory_barriers(&to_host));
+                }
             }
             d.end_command_buffer(cmd).vk("vkEndCommandBuffer")?;
         }
@@ -632,6 +651,20 @@ impl ErrorsActivity {
         if queries.is_none() {
             tracing::info!("no timestamp queries on this device: error update GPU times are not reported");
         }
+        let timestamps = match queries {
+            Some(_) => (0..2)
+                .map(|i| {
+                    Buffer::new(
+                        device,
+                        &format!("error timestamps {i}"),
+                        QUERIES_PER_SLOT as u64 * 8,
+                        vk::BufferUsageFlags::TRANSFER_DST,
+                        gpu_allocator::MemoryLocation::GpuToCpu,
+                    )
+                })
+                .collect::<VkResult<Vec<_>>>()?,
+            None => Vec::new(),
+        };
         let shared = Arc::new(Shared {
             request: Mutex::new(Request { params: None, stop: false }),
             request_cv: Condvar::new(),
@@ -642,6 +675,7 @@ impl ErrorsActivity {
             failure: Mutex::new(None),
             root_lod: root,
             queries,
+            timestamps,
             finished: std::sync::atomic::AtomicU64::new(0),
             idle: std::sync::atomic::AtomicBool::new(true),
             inject_device_lost_at: std::sync::atomic::AtomicU64::new(0),
@@ -656,6 +690,7 @@ impl ErrorsActivity {
         // thread then owns them (and its own command pool) exclusively.
         let mut gpu = ErrorsGpu::new(device, terrain, hf, block_layout)?;
         gpu.queries = shared.queries.as_ref().map(|q| q.handle);
+        gpu.timestamp_buffers = shared.timestamps.iter().map(|b| b.handle).collect();
         let thread_shared = shared.clone();
         let thread = std::thread::Builder::new()
             .name("errors-activity".into())
@@ -872,19 +907,16 @@ fn run(gpu: ErrorsGpu, s: &Shared) -> VkResult<()> {
         // The generation's GPU time (sum over its submissions) and GPU spans; the slot's
         // queries are not reset before g + 2.
         let shared = gpu.device.queue_mode == crate::vk::QueueMode::Shared;
-        let mut gpu_ms = s.queries.as_ref().map(|_| 0.0);
-        if let Some(q) = &s.queries {
-            let q0 = QUERIES_PER_SLOT * slot as u32;
-            for c in 0..chunks.len() as u32 {
-                match q.ticks(q0 + 2 * c)? {
-                    Some(t) => {
-                        gpu_ms = gpu_ms.map(|ms| ms + t[1].wrapping_sub(t[0]) as f64 * q.period_ns / 1e6);
-                        let args = serde_json::json!({"generation": g, "submission": c});
-                        s.trace.gpu_span(s.trace.gpu_tid(true, shared), "error passes", t, args);
-                    }
-                    None => gpu_ms = None,
-                }
+        let mut gpu_ms = None;
+        if let (Some(q), Some(buf)) = (&s.queries, s.timestamps.get(slot)) {
+            let ticks: Vec<u64> = bytemuck::pod_collect_to_vec(&buf.mapped()?[..chunks.len() * 16]);
+            let mut sum = 0.0;
+            for (c, t) in ticks.chunks(2).enumerate() {
+                sum += q.ms([t[0], t[1]]);
+                let args = serde_json::json!({"generation": g, "submission": c});
+                s.trace.gpu_span(s.trace.gpu_tid(true, shared), "error passes", [t[0], t[1]], args);
             }
+            gpu_ms = Some(sum);
         }
         if let Some(info) = s.handoff.lock().unwrap().slots[slot].as_mut() {
             info.gpu_ms = gpu_ms;

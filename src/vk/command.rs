@@ -201,6 +201,37 @@ impl QueryPool {
         Ok(Some(QueryPool { device: device.clone(), handle, period_ns: period as f64 }))
     }
 
+    /// Records a copy of `count` timestamps from `first` into `buffer` at `offset` (u64
+    /// each, waiting on the GPU for them), then makes them visible to the host. Reading
+    /// them from the buffer after the submission's fence needs no Vulkan call: on some
+    /// drivers (lavapipe) vkGetQueryPoolResults waits for the whole queue to go idle,
+    /// which defeats frames in flight.
+    ///
+    /// # Safety
+    /// `cmd` is recording; `buffer` holds `offset + 8 * count` bytes and outlives the
+    /// submission; the queries are written earlier in submission order.
+    pub unsafe fn record_copy(&self, cmd: vk::CommandBuffer, first: u32, count: u32, buffer: vk::Buffer, offset: u64) {
+        let d = &self.device.raw;
+        let flags = vk::QueryResultFlags::TYPE_64 | vk::QueryResultFlags::WAIT;
+        let to_host = [vk::BufferMemoryBarrier2::default()
+            .src_stage_mask(vk::PipelineStageFlags2::COPY)
+            .src_access_mask(vk::AccessFlags2::TRANSFER_WRITE)
+            .dst_stage_mask(vk::PipelineStageFlags2::HOST)
+            .dst_access_mask(vk::AccessFlags2::HOST_READ)
+            .buffer(buffer)
+            .size(vk::WHOLE_SIZE)];
+        // SAFETY: guaranteed by the caller (see above).
+        unsafe {
+            d.cmd_copy_query_pool_results(cmd, self.handle, first, count, buffer, offset, 8, flags);
+            d.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().buffer_memory_barriers(&to_host));
+        }
+    }
+
+    /// Milliseconds between two ticks.
+    pub fn ms(&self, ticks: [u64; 2]) -> f64 {
+        ticks[1].wrapping_sub(ticks[0]) as f64 * self.period_ns / 1e6
+    }
+
     /// Raw ticks of timestamps `first` and `first + 1`, once both are written.
     pub fn ticks(&self, first: u32) -> VkResult<Option<[u64; 2]>> {
         let mut ticks = [0u64; 2];
