@@ -118,6 +118,9 @@ pub fn read_poses(path: &Path) -> Result<Vec<(Vec3, Vec3)>, InputError> {
         if v.len() != 6 {
             return Err(bad(&format!("{} numbers", v.len())));
         }
+        if v.iter().any(|c| c.abs() > crate::cli::MAX_WORLD) {
+            return Err(bad(&format!("a coordinate beyond {:e} world units", crate::cli::MAX_WORLD)));
+        }
         let (pos, look) = (Vec3::new(v[0], v[1], v[2]), Vec3::new(v[3], v[4], v[5]));
         if (look - pos).length() < 1e-6 {
             return Err(bad("the look-at point equals the position"));

@@ -156,7 +156,9 @@ impl CommonArgs {
                     raw_size: self.raw_size.map(|(w, h)| (w as usize, h as usize)),
                     max_grid_side,
                 };
-                heightfield::load(path, &opts).map_err(|e| InputError(e.to_string()))
+                let hf = heightfield::load(path, &opts).map_err(|e| InputError(e.to_string()))?;
+                check_scale(&hf)?;
+                Ok(hf)
             }
         }
     }
@@ -169,8 +171,32 @@ impl CommonArgs {
         if (look_at - position).length() < 1e-6 {
             return Err(InputError("--look-at must differ from --camera".into()));
         }
+        if !(position.abs().max_element() <= MAX_WORLD && look_at.abs().max_element() <= MAX_WORLD) {
+            return Err(InputError(format!(
+                "the camera ({position}) or the point it looks at ({look_at}) is beyond {MAX_WORLD:e} world units \
+                 (single-precision positions)"
+            )));
+        }
         Ok(Camera::look_at(position, look_at, self.fovy, w, h, near_plane(hf)))
     }
+}
+
+/// The largest world coordinate accepted (terrain extent, heights, camera): positions
+/// are single precision on the CPU and the GPU, and squared distances must not overflow.
+pub const MAX_WORLD: f32 = 1e12;
+
+/// The terrain's world extent and heights must fit [`MAX_WORLD`].
+pub fn check_scale(hf: &Heightfield) -> Result<(), InputError> {
+    let (wx, wz) = hf.world_extent();
+    let top = hf.raw.iter().fold(0.0f32, |m, v| m.max((v * hf.height_scale).abs()));
+    if !(wx.max(wz) <= MAX_WORLD && top <= MAX_WORLD) {
+        return Err(InputError(format!(
+            "{}: {wx:e} x {wz:e} world units with heights up to {top:e}: beyond {MAX_WORLD:e} \
+             (check --spacing and --height-scale)",
+            hf.source
+        )));
+    }
+    Ok(())
 }
 
 /// Near plane: a twentieth of the sample spacing keeps close terrain visible.

@@ -767,6 +767,10 @@ impl ErrorsActivity {
 
     /// Requests `params` and blocks until a generation computed with them is finished.
     pub fn wait_for(&self, params: ErrorParams, timeout: Duration) -> VkResult<Generation> {
+        // A NaN never equals itself: such a request could never be answered.
+        if !(params.camera.is_finite() && params.kappa.is_finite() && params.near.is_finite()) {
+            return Err(VkError::Setup(format!("error data requested for a non-finite camera {}", params.camera)));
+        }
         self.request(params);
         let start = Instant::now();
         let mut after = 0;

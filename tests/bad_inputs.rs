@@ -204,3 +204,26 @@ fn view_sizes_beyond_the_limits() {
     fails_cleanly(&["view", "--size", "20000x20000", "--frames", "2"], &["--size 20000x20000", "maxImageDimension2D"]);
     fails_cleanly(&["view", "--frames", "2", "--resize-at", "1:20000x100"], &["--resize-at 1", "maxImageDimension2D"]);
 }
+
+/// Scales single-precision positions cannot hold (an independent audit found a hang
+/// with a 1e35 spike and a silent loss of the bound at 1e17 spacing): one line, exit 2.
+#[test]
+fn scales_beyond_single_precision() {
+    let s = Scratch::new();
+    let spike = s.path("spike.f32");
+    let mut samples = vec![0f32; 129 * 129];
+    samples[65 * 129 + 65] = 1e35;
+    std::fs::write(&spike, samples.iter().flat_map(|v| v.to_le_bytes()).collect::<Vec<u8>>()).unwrap();
+    let p = spike.to_str().unwrap();
+    let raw = ["--raw-size", "129x129", "--spacing", "1", "--height-scale", "1"];
+    let args: Vec<&str> = ["render", "--heightmap", p].iter().copied().chain(raw).collect();
+    fails_cleanly(&args, &["spike.f32", "beyond"]);
+    let flat = s.path("flat.f32");
+    std::fs::write(&flat, vec![0u8; 129 * 129 * 4]).unwrap();
+    let f = flat.to_str().unwrap();
+    fails_cleanly(
+        &["render", "--heightmap", f, "--raw-size", "129x129", "--spacing", "1e17", "--height-scale", "1"],
+        &["flat.f32", "--spacing"],
+    );
+    fails_cleanly(&["render", "--camera", "1e13,0,0"], &["camera", "beyond"]);
+}
