@@ -238,6 +238,9 @@ struct App {
     /// Poses of the frames drawn, for --record-path.
     flight: Vec<(Vec3, Vec3)>,
     trace: Trace,
+    /// Set by Ctrl-C: the viewer closes as if its window were closed, so the trace and
+    /// the recorded flight are written.
+    interrupted: Arc<std::sync::atomic::AtomicBool>,
     last_frame: Instant,
     started: Instant,
     title_at: Instant,
@@ -264,6 +267,12 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
         Some(p) => Trace::to_file(p).map_err(|e| InputError(format!("--trace {}: {e}", p.display())))?,
         None => Trace::off(),
     };
+    let interrupted = Arc::new(std::sync::atomic::AtomicBool::new(false));
+    {
+        let flag = interrupted.clone();
+        // Ctrl-C ends the session cleanly: the trace stays valid JSON.
+        let _ = ctrlc::set_handler(move || flag.store(true, std::sync::atomic::Ordering::SeqCst));
+    }
     if !(0.0..=1.0).contains(&args.detail_weight) {
         return Err(InputError(format!("--detail-weight {}: must be within 0..1", args.detail_weight)).into());
     }
@@ -334,6 +343,7 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
         frozen: None,
         feed: ErrorFeed::new(args.common.error_mode, args.common.refresh()).with_trace(trace.clone()),
         trace: trace.clone(),
+        interrupted: interrupted.clone(),
         frame: 0,
         slot: 0,
         swapchain_dirty: false,
@@ -819,6 +829,10 @@ impl ApplicationHandler for App {
     }
 
     fn about_to_wait(&mut self, event_loop: &ActiveEventLoop) {
+        if self.interrupted.load(std::sync::atomic::Ordering::SeqCst) {
+            event_loop.exit();
+            return;
+        }
         // While minimized or hidden no redraw is asked for and the loop waits for the next
         // event (the one that shows the window again) instead of polling.
         let hidden = self.minimized || self.occluded;

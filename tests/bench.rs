@@ -133,6 +133,15 @@ fn short_bench_writes_every_file_with_documented_fields() {
         assert!(ts >= at - slack, "frame {frame}: GPU start {ts} before its submission {at}");
     }
     assert!(events.iter().any(|e| e["ph"] == "X" && e["name"] == "error passes"), "no GPU error passes");
+    // GPU work and timeline values agree: every generation's passes ended on the GPU
+    // before the draw thread observed that generation's timeline value.
+    for seen in events.iter().filter(|e| e["name"] == "observed generation") {
+        let (g, at) = (&seen["args"]["generation"], seen["ts"].as_f64().unwrap());
+        for pass in events.iter().filter(|e| e["name"] == "error passes" && &e["args"]["generation"] == g) {
+            let end = pass["ts"].as_f64().unwrap() + pass["dur"].as_f64().unwrap();
+            assert!(end <= at + slack, "generation {g}: GPU work ends at {end}, observed at {at}");
+        }
+    }
     // A flow from each generation used to the frame that took it.
     let ids = |ph: &str| -> Vec<u64> {
         events

@@ -134,3 +134,40 @@ fn recorded_flight_replays_as_a_bench_path() {
     assert!(named("generation") >= 1 && named("observed generation") >= 1, "no generation in the trace");
     assert!(events.iter().any(|e| e["tid"] == 2 && e["ph"] == "X"), "no errors-thread span");
 }
+
+/// Ctrl-C closes the viewer cleanly: its trace is complete, valid JSON.
+#[test]
+fn ctrl_c_leaves_a_valid_trace() {
+    if std::env::var_os("DISPLAY").is_none() {
+        panic!("needs a display: run under xvfb-run (tools/test.sh does)");
+    }
+    let trace = std::env::temp_dir().join(format!("vkterrain-ctrlc-trace-{}.json", std::process::id()));
+    let mut child = Command::new(env!("CARGO_BIN_EXE_vkterrain"))
+        .args(["view", "--size", "320x240", "--trace", trace.to_str().unwrap()])
+        .env("RUST_LOG", "error")
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    // Wait until frames are being drawn (the trace's partial file grows), then Ctrl-C.
+    let partial = trace.with_extension("json.partial");
+    let start = std::time::Instant::now();
+    while std::fs::metadata(&partial).map_or(0, |m| m.len()) < 20_000 {
+        assert!(start.elapsed().as_secs() < 60, "the viewer drew nothing in 60 s");
+        std::thread::sleep(std::time::Duration::from_millis(100));
+    }
+    assert!(Command::new("kill").args(["-INT", &child.id().to_string()]).status().unwrap().success());
+    let status = loop {
+        if let Some(s) = child.try_wait().unwrap() {
+            break s;
+        }
+        assert!(start.elapsed().as_secs() < 120, "the viewer did not stop after Ctrl-C");
+        std::thread::sleep(std::time::Duration::from_millis(100));
+    };
+    let text = std::fs::read_to_string(&trace);
+    let _ = std::fs::remove_file(&trace);
+    let _ = std::fs::remove_file(&partial);
+    assert!(status.success(), "exit {status:?}");
+    let t: serde_json::Value = serde_json::from_str(&text.expect("trace written")).expect("valid JSON");
+    assert!(t["traceEvents"].as_array().unwrap().iter().any(|e| e["name"] == "frame"));
+}
