@@ -23,8 +23,10 @@ pub struct GpuClock {
     pub tick_at: u64,
     pub cpu_at: Instant,
     pub period_ns: f64,
-    /// Half the calibration's submit-to-fence window.
+    /// How far off the placement may be, microseconds.
     pub uncertainty_us: f64,
+    /// How the clocks were related (written into the trace's metadata).
+    pub method: &'static str,
 }
 
 struct Sink {
@@ -114,7 +116,7 @@ impl Trace {
             self.push(json!({"ph": "M", "pid": 1, "tid": GPU_ERRORS_QUEUE_TID, "name": "thread_name", "args": {"name": "GPU: errors queue"}}));
         }
         self.push(json!({"ph": "M", "pid": 1, "name": "gpu_clock", "args": {
-            "method": "measured offset: one timestamp at the midpoint of its submit-to-fence window",
+            "method": clock.method,
             "uncertainty_us": clock.uncertainty_us,
             "period_ns": clock.period_ns,
         }}));

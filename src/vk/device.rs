@@ -111,6 +111,9 @@ pub struct Device {
     pub queue_mode: QueueMode,
     /// Families that use images shared by both activities (for CONCURRENT sharing).
     pub families: Vec<u32>,
+    /// VK_EXT_calibrated_timestamps, when the device has it with the device and
+    /// CLOCK_MONOTONIC time domains (for placing GPU work on the CPU clock).
+    pub calibrated_timestamps: Option<ash::ext::calibrated_timestamps::Device>,
     allocator: ManuallyDrop<Mutex<Allocator>>,
 }
 
@@ -242,6 +245,20 @@ impl Device {
         if opts.swapchain {
             exts.push(ash::khr::swapchain::NAME.as_ptr());
         }
+        // Optional: calibrated timestamps with a CPU clock Rust's Instant also uses.
+        // SAFETY: queries on a live physical device.
+        let available = unsafe { inst.enumerate_device_extension_properties(physical) }.unwrap_or_default();
+        let has_calibration =
+            available.iter().any(|e| e.extension_name_as_c_str() == Ok(ash::ext::calibrated_timestamps::NAME)) && {
+                let loader = ash::ext::calibrated_timestamps::Instance::new(&instance.entry, inst);
+                // SAFETY: the extension is available on this physical device.
+                let domains =
+                    unsafe { loader.get_physical_device_calibrateable_time_domains(physical) }.unwrap_or_default();
+                domains.contains(&vk::TimeDomainEXT::DEVICE) && domains.contains(&vk::TimeDomainEXT::CLOCK_MONOTONIC)
+            };
+        if has_calibration {
+            exts.push(ash::ext::calibrated_timestamps::NAME.as_ptr());
+        }
         let info = vk::DeviceCreateInfo::default()
             .queue_create_infos(&queue_infos)
             .enabled_features(&enabled)
@@ -280,7 +297,10 @@ impl Device {
         if errors_family != draw_family {
             fams.push(errors_family);
         }
+        let calibrated_timestamps =
+            has_calibration.then(|| ash::ext::calibrated_timestamps::Device::new(&instance.raw, &raw));
         Ok(Arc::new(Device {
+            calibrated_timestamps,
             instance,
             physical,
             raw,
