@@ -377,6 +377,9 @@ impl Bench<'_> {
             if let Some((asked, got)) = stats.queue_lock {
                 trace.complete(DRAW_TID, "wait (queue lock)", asked, got, json!({"frame": frame}));
             }
+            if let Some((from, to)) = stats.waited {
+                trace.complete(DRAW_TID, "wait (frame fence)", from, to, json!({"frame": frame}));
+            }
             row.gpu_ms = stats.gpu_ms;
             row.queue_wait_ms = Some(stats.wait_ms);
             row.triangles = stats.triangles;

@@ -186,6 +186,8 @@ pub struct DrawStats {
     pub gpu_ticks: Option<[u64; 2]>,
     /// When the submission asked for the queue's lock and got it.
     pub queue_lock: Option<(std::time::Instant, std::time::Instant)>,
+    /// When the draw thread started and stopped waiting for this frame's fence.
+    pub waited: Option<(std::time::Instant, std::time::Instant)>,
     /// How long the draw thread was blocked waiting for this frame to finish (its
     /// frames in flight ahead of it and, on a shared queue, error updates).
     pub wait_ms: f64,
@@ -636,7 +638,9 @@ impl BlocksRenderer {
         let Some(mut stats) = s.pending.take() else { return Ok(None) };
         let t = std::time::Instant::now();
         s.fence.wait(u64::MAX)?;
-        stats.wait_ms = t.elapsed().as_secs_f64() * 1e3;
+        let done = std::time::Instant::now();
+        stats.wait_ms = (done - t).as_secs_f64() * 1e3;
+        stats.waited = Some((t, done));
         if let Some((q, buf)) = &s.queries {
             let t: Vec<u64> = bytemuck::pod_collect_to_vec(&buf.mapped()?[..16]);
             stats.gpu_ticks = Some([t[0], t[1]]);

@@ -13,6 +13,7 @@ use crate::heightfield::{Heightfield, MinMaxPyramid};
 use crate::quadtree::{BlockLayout, DrawBlock};
 use crate::terrain_gpu::{TerrainGpu, Texture};
 use crate::trace::{Trace, DRAW_TID};
+use crate::vk::QueryPool;
 use crate::vk::{
     begin_one_time, vk, BinarySemaphore, Buffer, CommandPool, Device, DeviceOptions, Fence, Image, Instance,
     InstanceOptions, Surface, Swapchain, VkResultExt,
@@ -168,6 +169,10 @@ struct FrameSlot {
     cmd: vk::CommandBuffer,
     fence: Fence,
     acquired: BinarySemaphore,
+    /// Timestamps of the slot's frame (with --trace, when the device has them), copied
+    /// to the buffer on the GPU, and the frame they belong to.
+    timestamps: Option<(QueryPool, Buffer)>,
+    timed_frame: Option<u64>,
 }
 
 /// Everything that lives while the window is open, in drop order.
@@ -461,10 +466,25 @@ impl App {
         let commands = CommandPool::new(&device, device.draw_queue.family)?;
         let slots = (0..FRAMES_IN_FLIGHT)
             .map(|_| {
+                let timestamps = match (self.trace.enabled(), QueryPool::timestamps(&device, 2)?) {
+                    (true, Some(q)) => Some((
+                        q,
+                        Buffer::new(
+                            &device,
+                            "frame timestamps",
+                            16,
+                            vk::BufferUsageFlags::TRANSFER_DST,
+                            gpu_allocator::MemoryLocation::GpuToCpu,
+                        )?,
+                    )),
+                    _ => None,
+                };
                 Ok(FrameSlot {
                     cmd: commands.allocate()?,
                     fence: Fence::new(&device, true)?,
                     acquired: BinarySemaphore::new(&device)?,
+                    timestamps,
+                    timed_frame: None,
                 })
             })
             .collect::<anyhow::Result<Vec<_>>>()?;
@@ -557,9 +577,15 @@ impl App {
         let slot_index = self.slot;
         let gpu = self.gpu.as_mut().unwrap();
         let d = gpu.device.raw.clone();
-        let slot = &gpu.slots[slot_index];
+        let slot = &mut gpu.slots[slot_index];
         slot.fence.wait(u64::MAX)?;
         self.trace.complete(DRAW_TID, "wait (frame slot)", frame_start, Instant::now(), json!({"frame": self.frame}));
+        if let (Some((_, buf)), Some(f)) = (&slot.timestamps, slot.timed_frame.take()) {
+            let t: Vec<u64> = bytemuck::pod_collect_to_vec(&buf.mapped()?[..16]);
+            let shared = gpu.device.queue_mode == crate::vk::QueueMode::Shared;
+            self.trace.gpu_span(self.trace.gpu_tid(false, shared), "frame", [t[0], t[1]], json!({"frame": f}));
+        }
+        let slot = &gpu.slots[slot_index];
 
         // The newest finished error generation (never waits on the errors queue after the
         // first frame, which waits for data at its camera so the bound holds from the start).
@@ -612,7 +638,13 @@ impl App {
         };
         let cmd = slot.cmd;
         // SAFETY: `cmd` belongs to this slot, whose previous submission completed.
-        unsafe { begin_one_time(&d, cmd)? };
+        unsafe {
+            begin_one_time(&d, cmd)?;
+            if let Some((q, _)) = &slot.timestamps {
+                d.cmd_reset_query_pool(cmd, q.handle, 0, 2);
+                d.cmd_write_timestamp2(cmd, vk::PipelineStageFlags2::TOP_OF_PIPE, q.handle, 0);
+            }
+        }
         let dest = FrameDest {
             image,
             view,
@@ -626,8 +658,14 @@ impl App {
         let recording = Instant::now();
         let stats = gpu.renderer.record_frame(slot_index, cmd, &dest, &blocks, &self.shading);
         self.trace.complete(DRAW_TID, "record", recording, Instant::now(), json!({"blocks": blocks.len()}));
-        // SAFETY: as above.
-        unsafe { d.end_command_buffer(cmd).vk("vkEndCommandBuffer")? };
+        // SAFETY: as above; the timestamp buffer belongs to this slot.
+        unsafe {
+            if let Some((q, buf)) = &slot.timestamps {
+                d.cmd_write_timestamp2(cmd, vk::PipelineStageFlags2::BOTTOM_OF_PIPE, q.handle, 1);
+                q.record_copy(cmd, 0, 2, buf.handle, 0);
+            }
+            d.end_command_buffer(cmd).vk("vkEndCommandBuffer")?;
+        }
         let render_done = gpu.swapchain.render_done[image_index as usize];
         let waits = [vk::SemaphoreSubmitInfo::default()
             .semaphore(slot.acquired.handle)
@@ -644,6 +682,7 @@ impl App {
         let (asked, got) = gpu.device.draw_queue.submit_timed(&gpu.device, &submit, slot.fence.handle)?;
         self.trace.complete(DRAW_TID, "wait (queue lock)", asked, got, json!({"frame": self.frame}));
         self.trace.instant(DRAW_TID, "submit (draw queue)", json!({"frame": self.frame}));
+        let timed = slot.timestamps.is_some().then_some(self.frame);
         let presenting = Instant::now();
         let swapchains = [gpu.swapchain.handle];
         let indices = [image_index];
@@ -677,6 +716,9 @@ impl App {
         self.last_stats = stats;
         self.last_blocks = blocks.len();
         self.blocks = blocks;
+        if let Some(g) = self.gpu.as_mut() {
+            g.slots[slot_index].timed_frame = timed;
+        }
         self.slot = (self.slot + 1) % FRAMES_IN_FLIGHT;
         self.frame += 1;
         self.fps_frames += 1;

@@ -125,14 +125,19 @@ fn recorded_flight_replays_as_a_bench_path() {
     let s: serde_json::Value = serde_json::from_str(&summary.unwrap()).unwrap();
     assert_eq!(s["frames"], 9);
     assert_eq!(s["validation_messages"], 0);
-    // The viewer's trace: both threads, one "frame" span per frame, and every generation
-    // the errors thread signalled is one the draw thread could observe.
+    // The viewer's trace: both threads, one "frame" span per frame on the draw thread,
+    // and generations signalled and observed.
     let t: serde_json::Value = serde_json::from_str(&traced.expect("trace written")).expect("valid JSON");
     let events = t["traceEvents"].as_array().unwrap();
     let named = |n: &str| events.iter().filter(|e| e["name"] == n).count();
-    assert_eq!(named("frame"), 9);
+    assert_eq!(events.iter().filter(|e| e["tid"] == 1 && e["name"] == "frame").count(), 9);
     assert!(named("generation") >= 1 && named("observed generation") >= 1, "no generation in the trace");
     assert!(events.iter().any(|e| e["tid"] == 2 && e["ph"] == "X"), "no errors-thread span");
+    // GPU track: the frames the queue executed (all but the last two are read back
+    // before exit) and the error passes.
+    let gpu_frames = events.iter().filter(|e| e["tid"] == 10 && e["name"] == "frame").count();
+    assert!((7..=9).contains(&gpu_frames), "{gpu_frames} GPU frame spans");
+    assert!(events.iter().any(|e| e["name"] == "error passes"), "no GPU error passes");
 }
 
 /// Ctrl-C closes the viewer cleanly: its trace is complete, valid JSON.
