@@ -10,8 +10,9 @@ use crate::quadtree::{BlockLayout, DrawBlock};
 use crate::shaders;
 use crate::terrain_gpu::TerrainGpu;
 use crate::vk::{
-    begin_one_time, image_barrier, vk, Buffer, CommandPool, DepthMode, DescriptorPool, DescriptorSetLayout, Device,
-    Fence, GraphicsPipeline, GraphicsPipelineDesc, Image, PipelineLayout, QueryPool, VkResult, VkResultExt,
+    begin_one_time, host_read_barrier, image_barrier, vk, Buffer, CommandPool, DepthMode, DescriptorPool,
+    DescriptorSetLayout, Device, Fence, FrameTimer, GraphicsPipeline, GraphicsPipelineDesc, Image, PipelineLayout,
+    VkResult, VkResultExt,
 };
 use glam::Vec3;
 use std::sync::Arc;
@@ -217,9 +218,8 @@ pub struct BlocksRenderer {
 struct OffscreenSlot {
     cmd: vk::CommandBuffer,
     fence: Fence,
-    /// Start and end timestamps of the frame, when the queue has them, and the
-    /// host-visible buffer they are copied to.
-    queries: Option<(QueryPool, Buffer)>,
+    /// Start and end timestamps of the frame, when the queue has them.
+    timer: Option<FrameTimer>,
     /// The frame submitted from this slot and not yet waited for.
     pending: Option<DrawStats>,
 }
@@ -315,23 +315,10 @@ impl BlocksRenderer {
         let commands = CommandPool::new(device, device.draw_queue.family)?;
         let offscreen = (0..n)
             .map(|_| {
-                let queries = match QueryPool::timestamps(device, 2)? {
-                    Some(q) => Some((
-                        q,
-                        Buffer::new(
-                            device,
-                            "frame timestamps",
-                            16,
-                            vk::BufferUsageFlags::TRANSFER_DST,
-                            gpu_allocator::MemoryLocation::GpuToCpu,
-                        )?,
-                    )),
-                    None => None,
-                };
                 Ok(OffscreenSlot {
                     cmd: commands.allocate()?,
                     fence: Fence::new(device, true)?,
-                    queries,
+                    timer: FrameTimer::new(device)?,
                     pending: None,
                 })
             })
@@ -592,14 +579,12 @@ impl BlocksRenderer {
         self.set_frame(slot, hf, terrain, cam, shading)?;
         let d = self.device.raw.clone();
         let cmd = self.offscreen[slot].cmd;
-        let queries = self.offscreen[slot].queries.as_ref().map(|(q, _)| q.handle);
         let extent = vk::Extent2D { width: target.width, height: target.height };
         // SAFETY: the slot's previous submission finished (waited for above).
         unsafe {
             begin_one_time(&d, cmd)?;
-            if let Some(q) = queries {
-                d.cmd_reset_query_pool(cmd, q, 0, 2);
-                d.cmd_write_timestamp2(cmd, vk::PipelineStageFlags2::TOP_OF_PIPE, q, 0);
+            if let Some(t) = &self.offscreen[slot].timer {
+                t.begin(&d, cmd);
             }
         }
         let dest = FrameDest {
@@ -614,9 +599,8 @@ impl BlocksRenderer {
         let stats = self.record_frame(slot, cmd, &dest, blocks, shading);
         // SAFETY: as above.
         unsafe {
-            if let Some((q, buf)) = &self.offscreen[slot].queries {
-                d.cmd_write_timestamp2(cmd, vk::PipelineStageFlags2::BOTTOM_OF_PIPE, q.handle, 1);
-                q.record_copy(cmd, 0, 2, buf.handle, 0);
+            if let Some(t) = &self.offscreen[slot].timer {
+                t.end(&d, cmd);
             }
             d.end_command_buffer(cmd).vk("vkEndCommandBuffer")?;
         }
@@ -641,10 +625,10 @@ impl BlocksRenderer {
         let done = std::time::Instant::now();
         stats.wait_ms = (done - t).as_secs_f64() * 1e3;
         stats.waited = Some((t, done));
-        if let Some((q, buf)) = &s.queries {
-            let t: Vec<u64> = bytemuck::pod_collect_to_vec(&buf.mapped()?[..16]);
-            stats.gpu_ticks = Some([t[0], t[1]]);
-            stats.gpu_ms = Some(q.ms([t[0], t[1]]));
+        if let Some(t) = &s.timer {
+            let (ticks, ms) = t.read()?;
+            stats.gpu_ticks = Some(ticks);
+            stats.gpu_ms = Some(ms);
         }
         Ok(Some(stats))
     }
@@ -749,14 +733,8 @@ impl BlocksRenderer {
                 d.cmd_draw_indexed(cmd, self.mesh.index_count, 1, 0, 0, i as u32);
             }
             d.cmd_end_rendering(cmd);
-            let to_host = [vk::BufferMemoryBarrier2::default()
-                .src_stage_mask(vk::PipelineStageFlags2::VERTEX_SHADER)
-                .src_access_mask(vk::AccessFlags2::SHADER_STORAGE_WRITE)
-                .dst_stage_mask(vk::PipelineStageFlags2::HOST)
-                .dst_access_mask(vk::AccessFlags2::HOST_READ)
-                .buffer(positions.handle)
-                .size(vk::WHOLE_SIZE)];
-            d.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().buffer_memory_barriers(&to_host));
+            let written = (vk::PipelineStageFlags2::VERTEX_SHADER, vk::AccessFlags2::SHADER_STORAGE_WRITE);
+            host_read_barrier(&d, cmd, positions.handle, written);
             d.end_command_buffer(cmd).vk("vkEndCommandBuffer")?;
         }
         let fence = &self.offscreen[0].fence;
@@ -839,17 +817,10 @@ unsafe fn copy_image_to_host(
             layer_count: 1,
         })
         .image_extent(vk::Extent3D { width: extent.width, height: extent.height, depth: 1 });
-    let to_host = [vk::BufferMemoryBarrier2::default()
-        .src_stage_mask(vk::PipelineStageFlags2::COPY)
-        .src_access_mask(vk::AccessFlags2::TRANSFER_WRITE)
-        .dst_stage_mask(vk::PipelineStageFlags2::HOST)
-        .dst_access_mask(vk::AccessFlags2::HOST_READ)
-        .buffer(buffer)
-        .size(vk::WHOLE_SIZE)];
     // SAFETY: guaranteed by the caller (see above).
     unsafe {
         d.cmd_copy_image_to_buffer(cmd, image, vk::ImageLayout::TRANSFER_SRC_OPTIMAL, buffer, &[region]);
-        d.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().buffer_memory_barriers(&to_host));
+        host_read_barrier(d, cmd, buffer, (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_WRITE));
     }
 }
 

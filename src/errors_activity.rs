@@ -13,9 +13,9 @@ use crate::shaders;
 use crate::terrain_gpu::TerrainGpu;
 use crate::trace::{Trace, ERRORS_TID};
 use crate::vk::{
-    begin_one_time, image_barrier, vk, Buffer, CommandPool, DepthMode, DescriptorPool, DescriptorSetLayout, Device,
-    Fence, GraphicsPipeline, GraphicsPipelineDesc, Image, ImageUse, ImageView, PipelineLayout, QueryPool,
-    TimelineSemaphore, VkError, VkResult, VkResultExt,
+    begin_one_time, host_read_barrier, image_barrier, vk, Buffer, CommandPool, DepthMode, DescriptorPool,
+    DescriptorSetLayout, Device, Fence, GraphicsPipeline, GraphicsPipelineDesc, Image, ImageUse, ImageView,
+    PipelineLayout, QueryPool, TimelineSemaphore, VkError, VkResult, VkResultExt,
 };
 use std::sync::{Arc, Condvar, Mutex};
 use std::thread::JoinHandle;
@@ -490,13 +490,6 @@ impl ErrorsGpu {
                 (copy, vk::AccessFlags2::TRANSFER_READ, vk::ImageLayout::TRANSFER_SRC_OPTIMAL),
             );
             let regions = mip_copy_regions(&slot.gie, 0);
-            let to_host = [vk::BufferMemoryBarrier2::default()
-                .src_stage_mask(copy)
-                .src_access_mask(vk::AccessFlags2::TRANSFER_WRITE)
-                .dst_stage_mask(vk::PipelineStageFlags2::HOST)
-                .dst_access_mask(vk::AccessFlags2::HOST_READ)
-                .buffer(dump.handle)
-                .size(vk::WHOLE_SIZE)];
             // SAFETY: recording; `dump` is owned by the caller, who waits for completion.
             unsafe {
                 d.cmd_copy_image_to_buffer(
@@ -506,7 +499,7 @@ impl ErrorsGpu {
                     dump.handle,
                     &regions,
                 );
-                d.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().buffer_memory_barriers(&to_host));
+                host_read_barrier(d, cmd, dump.handle, (copy, vk::AccessFlags2::TRANSFER_WRITE));
             }
         }
         // SAFETY: recording; fills touch only the header and trailer words.
@@ -521,29 +514,14 @@ impl ErrorsGpu {
             d.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().buffer_memory_barriers(&before));
             d.cmd_fill_buffer(cmd, readback.handle, 0, 4, g as u32);
             d.cmd_fill_buffer(cmd, readback.handle, 4 + data_bytes, 4, g as u32);
-            let to_host = [vk::BufferMemoryBarrier2::default()
-                .src_stage_mask(copy | vk::PipelineStageFlags2::CLEAR)
-                .src_access_mask(vk::AccessFlags2::TRANSFER_WRITE)
-                .dst_stage_mask(vk::PipelineStageFlags2::HOST)
-                .dst_access_mask(vk::AccessFlags2::HOST_READ)
-                .buffer(readback.handle)
-                .size(vk::WHOLE_SIZE)];
-            d.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().buffer_memory_barriers(&to_host));
+            let written = (copy | vk::PipelineStageFlags2::CLEAR, vk::AccessFlags2::TRANSFER_WRITE);
+            host_read_barrier(d, cmd, readback.handle, written);
             if let Some(pool) = self.queries {
                 let last = q0 + 2 * used as u32 - 1;
                 d.cmd_write_timestamp2(cmd, vk::PipelineStageFlags2::BOTTOM_OF_PIPE, pool, last);
                 if let Some(&buffer) = self.timestamp_buffers.get(slot_index) {
                     // All of this generation's timestamps, copied once the GPU has them.
-                    let flags = vk::QueryResultFlags::TYPE_64 | vk::QueryResultFlags::WAIT;
-                    d.cmd_copy_query_pool_results(cmd, pool, q0, 2 * used as u32, buffer, 0, 8, flags);
-                    let to_host = [vk::BufferMemoryBarrier2::default()
-                        .src_stage_mask(copy)
-                        .src_access_mask(vk::AccessFlags2::TRANSFER_WRITE)
-                        .dst_stage_mask(vk::PipelineStageFlags2::HOST)
-                        .dst_access_mask(vk::AccessFlags2::HOST_READ)
-                        .buffer(buffer)
-                        .size(vk::WHOLE_SIZE)];
-                    d.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().buffer_memory_barriers(&to_host));
+                    crate::vk::record_query_copy(d, cmd, pool, q0, 2 * used as u32, buffer, 0);
                 }
             }
             d.end_command_buffer(cmd).vk("vkEndCommandBuffer")?;

@@ -13,7 +13,7 @@ use crate::heightfield::{Heightfield, MinMaxPyramid};
 use crate::quadtree::{BlockLayout, DrawBlock};
 use crate::terrain_gpu::{TerrainGpu, Texture};
 use crate::trace::{Trace, DRAW_TID};
-use crate::vk::QueryPool;
+use crate::vk::FrameTimer;
 use crate::vk::{
     begin_one_time, vk, BinarySemaphore, Buffer, CommandPool, Device, DeviceOptions, Fence, Image, Instance,
     InstanceOptions, Surface, Swapchain, VkResultExt,
@@ -169,9 +169,9 @@ struct FrameSlot {
     cmd: vk::CommandBuffer,
     fence: Fence,
     acquired: BinarySemaphore,
-    /// Timestamps of the slot's frame (with --trace, when the device has them), copied
-    /// to the buffer on the GPU, and the frame they belong to.
-    timestamps: Option<(QueryPool, Buffer)>,
+    /// Timestamps of the slot's frame (with --trace, when the device has them) and the
+    /// frame they belong to.
+    timer: Option<FrameTimer>,
     timed_frame: Option<u64>,
 }
 
@@ -466,24 +466,12 @@ impl App {
         let commands = CommandPool::new(&device, device.draw_queue.family)?;
         let slots = (0..FRAMES_IN_FLIGHT)
             .map(|_| {
-                let timestamps = match (self.trace.enabled(), QueryPool::timestamps(&device, 2)?) {
-                    (true, Some(q)) => Some((
-                        q,
-                        Buffer::new(
-                            &device,
-                            "frame timestamps",
-                            16,
-                            vk::BufferUsageFlags::TRANSFER_DST,
-                            gpu_allocator::MemoryLocation::GpuToCpu,
-                        )?,
-                    )),
-                    _ => None,
-                };
+                let timer = if self.trace.enabled() { FrameTimer::new(&device)? } else { None };
                 Ok(FrameSlot {
                     cmd: commands.allocate()?,
                     fence: Fence::new(&device, true)?,
                     acquired: BinarySemaphore::new(&device)?,
-                    timestamps,
+                    timer,
                     timed_frame: None,
                 })
             })
@@ -580,10 +568,9 @@ impl App {
         let slot = &mut gpu.slots[slot_index];
         slot.fence.wait(u64::MAX)?;
         self.trace.complete(DRAW_TID, "wait (frame slot)", frame_start, Instant::now(), json!({"frame": self.frame}));
-        if let (Some((_, buf)), Some(f)) = (&slot.timestamps, slot.timed_frame.take()) {
-            let t: Vec<u64> = bytemuck::pod_collect_to_vec(&buf.mapped()?[..16]);
+        if let (Some(timer), Some(f)) = (&slot.timer, slot.timed_frame.take()) {
             let shared = gpu.device.queue_mode == crate::vk::QueueMode::Shared;
-            self.trace.gpu_span(self.trace.gpu_tid(false, shared), "frame", [t[0], t[1]], json!({"frame": f}));
+            self.trace.gpu_span(self.trace.gpu_tid(false, shared), "frame", timer.read()?.0, json!({"frame": f}));
         }
         let slot = &gpu.slots[slot_index];
 
@@ -640,9 +627,8 @@ impl App {
         // SAFETY: `cmd` belongs to this slot, whose previous submission completed.
         unsafe {
             begin_one_time(&d, cmd)?;
-            if let Some((q, _)) = &slot.timestamps {
-                d.cmd_reset_query_pool(cmd, q.handle, 0, 2);
-                d.cmd_write_timestamp2(cmd, vk::PipelineStageFlags2::TOP_OF_PIPE, q.handle, 0);
+            if let Some(t) = &slot.timer {
+                t.begin(&d, cmd);
             }
         }
         let dest = FrameDest {
@@ -660,9 +646,8 @@ impl App {
         self.trace.complete(DRAW_TID, "record", recording, Instant::now(), json!({"blocks": blocks.len()}));
         // SAFETY: as above; the timestamp buffer belongs to this slot.
         unsafe {
-            if let Some((q, buf)) = &slot.timestamps {
-                d.cmd_write_timestamp2(cmd, vk::PipelineStageFlags2::BOTTOM_OF_PIPE, q.handle, 1);
-                q.record_copy(cmd, 0, 2, buf.handle, 0);
+            if let Some(t) = &slot.timer {
+                t.end(&d, cmd);
             }
             d.end_command_buffer(cmd).vk("vkEndCommandBuffer")?;
         }
@@ -682,7 +667,7 @@ impl App {
         let (asked, got) = gpu.device.draw_queue.submit_timed(&gpu.device, &submit, slot.fence.handle)?;
         self.trace.complete(DRAW_TID, "wait (queue lock)", asked, got, json!({"frame": self.frame}));
         self.trace.instant(DRAW_TID, "submit (draw queue)", json!({"frame": self.frame}));
-        let timed = slot.timestamps.is_some().then_some(self.frame);
+        let timed = slot.timer.is_some().then_some(self.frame);
         let presenting = Instant::now();
         let swapchains = [gpu.swapchain.handle];
         let indices = [image_index];

@@ -211,20 +211,8 @@ impl QueryPool {
     /// `cmd` is recording; `buffer` holds `offset + 8 * count` bytes and outlives the
     /// submission; the queries are written earlier in submission order.
     pub unsafe fn record_copy(&self, cmd: vk::CommandBuffer, first: u32, count: u32, buffer: vk::Buffer, offset: u64) {
-        let d = &self.device.raw;
-        let flags = vk::QueryResultFlags::TYPE_64 | vk::QueryResultFlags::WAIT;
-        let to_host = [vk::BufferMemoryBarrier2::default()
-            .src_stage_mask(vk::PipelineStageFlags2::COPY)
-            .src_access_mask(vk::AccessFlags2::TRANSFER_WRITE)
-            .dst_stage_mask(vk::PipelineStageFlags2::HOST)
-            .dst_access_mask(vk::AccessFlags2::HOST_READ)
-            .buffer(buffer)
-            .size(vk::WHOLE_SIZE)];
         // SAFETY: guaranteed by the caller (see above).
-        unsafe {
-            d.cmd_copy_query_pool_results(cmd, self.handle, first, count, buffer, offset, 8, flags);
-            d.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().buffer_memory_barriers(&to_host));
-        }
+        unsafe { record_query_copy(&self.device.raw, cmd, self.handle, first, count, buffer, offset) }
     }
 
     /// Milliseconds between two ticks.
@@ -314,5 +302,101 @@ impl Drop for QueryPool {
     fn drop(&mut self) {
         // SAFETY: the owner waits for the GPU before dropping.
         unsafe { self.device.raw.destroy_query_pool(self.handle, None) };
+    }
+}
+
+/// [`QueryPool::record_copy`] for a pool known by its handle.
+///
+/// # Safety
+/// As for [`QueryPool::record_copy`]; `pool` belongs to `d`.
+pub unsafe fn record_query_copy(
+    d: &ash::Device,
+    cmd: vk::CommandBuffer,
+    pool: vk::QueryPool,
+    first: u32,
+    count: u32,
+    buffer: vk::Buffer,
+    offset: u64,
+) {
+    let flags = vk::QueryResultFlags::TYPE_64 | vk::QueryResultFlags::WAIT;
+    // SAFETY: guaranteed by the caller (see above).
+    unsafe {
+        d.cmd_copy_query_pool_results(cmd, pool, first, count, buffer, offset, 8, flags);
+        host_read_barrier(d, cmd, buffer, (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_WRITE));
+    }
+}
+
+/// Makes the writes to `buffer` of `written` (stage and access) visible to the host
+/// after the submission's fence or semaphore.
+///
+/// # Safety
+/// `cmd` is recording and `buffer` outlives its submission.
+pub unsafe fn host_read_barrier(
+    d: &ash::Device,
+    cmd: vk::CommandBuffer,
+    buffer: vk::Buffer,
+    written: (vk::PipelineStageFlags2, vk::AccessFlags2),
+) {
+    let to_host = [vk::BufferMemoryBarrier2::default()
+        .src_stage_mask(written.0)
+        .src_access_mask(written.1)
+        .dst_stage_mask(vk::PipelineStageFlags2::HOST)
+        .dst_access_mask(vk::AccessFlags2::HOST_READ)
+        .buffer(buffer)
+        .size(vk::WHOLE_SIZE)];
+    // SAFETY: guaranteed by the caller (see above).
+    unsafe { d.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().buffer_memory_barriers(&to_host)) };
+}
+
+/// The begin and end timestamps of one frame's commands, copied to a host buffer on the
+/// GPU (see [`QueryPool::record_copy`]). `None` from [`FrameTimer::new`] when the queue
+/// has no timestamps.
+pub struct FrameTimer {
+    pool: QueryPool,
+    buffer: super::Buffer,
+}
+
+impl FrameTimer {
+    pub fn new(device: &Arc<Device>) -> VkResult<Option<Self>> {
+        let Some(pool) = QueryPool::timestamps(device, 2)? else { return Ok(None) };
+        let buffer = super::Buffer::new(
+            device,
+            "frame timestamps",
+            16,
+            vk::BufferUsageFlags::TRANSFER_DST,
+            gpu_allocator::MemoryLocation::GpuToCpu,
+        )?;
+        Ok(Some(FrameTimer { pool, buffer }))
+    }
+
+    /// Records the start timestamp (first in the command buffer).
+    ///
+    /// # Safety
+    /// `cmd` is recording; this timer's previous frame has completed.
+    pub unsafe fn begin(&self, d: &ash::Device, cmd: vk::CommandBuffer) {
+        // SAFETY: guaranteed by the caller (see above).
+        unsafe {
+            d.cmd_reset_query_pool(cmd, self.pool.handle, 0, 2);
+            d.cmd_write_timestamp2(cmd, vk::PipelineStageFlags2::TOP_OF_PIPE, self.pool.handle, 0);
+        }
+    }
+
+    /// Records the end timestamp and the copy to the host buffer (last in the buffer).
+    ///
+    /// # Safety
+    /// As for [`FrameTimer::begin`], in the same command buffer after it.
+    pub unsafe fn end(&self, d: &ash::Device, cmd: vk::CommandBuffer) {
+        // SAFETY: guaranteed by the caller (see above).
+        unsafe {
+            d.cmd_write_timestamp2(cmd, vk::PipelineStageFlags2::BOTTOM_OF_PIPE, self.pool.handle, 1);
+            self.pool.record_copy(cmd, 0, 2, self.buffer.handle, 0);
+        }
+    }
+
+    /// The frame's ticks and milliseconds; only after its submission completed.
+    pub fn read(&self) -> VkResult<([u64; 2], f64)> {
+        let t: Vec<u64> = bytemuck::pod_collect_to_vec(&self.buffer.mapped()?[..16]);
+        let ticks = [t[0], t[1]];
+        Ok((ticks, self.pool.ms(ticks)))
     }
 }

@@ -10,7 +10,8 @@ mod resources;
 mod swapchain;
 
 pub use command::{
-    begin_one_time, image_barrier, BinarySemaphore, CommandPool, Fence, ImageUse, QueryPool, TimelineSemaphore,
+    begin_one_time, host_read_barrier, image_barrier, record_query_copy, BinarySemaphore, CommandPool, Fence,
+    FrameTimer, ImageUse, QueryPool, TimelineSemaphore,
 };
 pub use device::{Device, DeviceOptions, Queue, QueueMode, QueueRequest};
 pub use instance::{Instance, InstanceOptions, MessageCounter};
