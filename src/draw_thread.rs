@@ -188,15 +188,7 @@ impl ErrorFeed {
         cam: &Camera,
         delta: f32,
     ) -> Traversal {
-        let select = match self.usable() {
-            Some(g) => LodSelect::errors(&g.errors, g.params.camera, delta, g.params.mode),
-            None => LodSelect::Distance { factor: 2.0 },
-        };
-        let started = Instant::now();
-        let t = traverse(hf, mm, layout, cam, select);
-        self.trace.complete(DRAW_TID, "traverse", started, Instant::now(), json!({"blocks": t.blocks.len()}));
-        self.note_drawn(&t);
-        t
+        self.traverse_lod(LodChoice::Error, hf, mm, layout, cam, delta)
     }
 
     /// Selects this frame's blocks for a `--lod` choice: the error data in use, the
@@ -210,14 +202,15 @@ impl ErrorFeed {
         cam: &Camera,
         delta: f32,
     ) -> Traversal {
-        let select = match lod {
-            LodChoice::Error => return self.traverse(hf, mm, layout, cam, delta),
-            LodChoice::Distance => LodSelect::Distance { factor: 2.0 },
-            LodChoice::Full => LodSelect::Full,
+        let select = match (lod, self.usable()) {
+            (LodChoice::Error, Some(g)) => LodSelect::errors(&g.errors, g.params.camera, delta, g.params.mode),
+            (LodChoice::Error, None) | (LodChoice::Distance, _) => LodSelect::Distance { factor: 2.0 },
+            (LodChoice::Full, _) => LodSelect::Full,
         };
         let started = Instant::now();
         let t = traverse(hf, mm, layout, cam, select);
         self.trace.complete(DRAW_TID, "traverse", started, Instant::now(), json!({"blocks": t.blocks.len()}));
+        self.note_drawn(&t);
         t
     }
 
