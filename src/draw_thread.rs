@@ -77,8 +77,6 @@ pub struct ErrorFeed {
     /// When the last request was made, and the GPU time of the newest update.
     requested_when: Option<Instant>,
     update_ms: Option<f64>,
-    /// Generations requested so far (requests that repeat the last one are not counted).
-    pub requests: u64,
     trace: Trace,
 }
 
@@ -93,7 +91,6 @@ impl ErrorFeed {
             nearest: None,
             requested_when: None,
             update_ms: None,
-            requests: 0,
             trace: Trace::off(),
         }
     }
@@ -133,7 +130,6 @@ impl ErrorFeed {
         if self.usable().is_none() {
             let g = activity.wait_for(params, Duration::from_secs(600))?;
             self.requested_at = Some(cam.position);
-            self.requests += 1;
             taken = Some(g.number);
             self.current = Some(g);
         } else {
@@ -145,7 +141,6 @@ impl ErrorFeed {
                 activity.request(params);
                 self.requested_at = Some(cam.position);
                 self.requested_when = Some(Instant::now());
-                self.requests += 1;
                 self.trace.instant(DRAW_TID, "request generation", json!({"frame": frame}));
             }
             let after = self.current.as_ref().map_or(0, |g| g.number);
@@ -210,13 +205,8 @@ impl ErrorFeed {
         let started = Instant::now();
         let t = traverse(hf, mm, layout, cam, select);
         self.trace.complete(DRAW_TID, "traverse", started, Instant::now(), json!({"blocks": t.blocks.len()}));
-        self.note_drawn(&t);
-        t
-    }
-
-    /// Records how near the drawn terrain is (for traversals made elsewhere).
-    pub fn note_drawn(&mut self, t: &Traversal) {
         self.nearest = t.nearest;
+        t
     }
 }
 

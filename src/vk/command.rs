@@ -220,20 +220,6 @@ impl QueryPool {
         ticks[1].wrapping_sub(ticks[0]) as f64 * self.period_ns / 1e6
     }
 
-    /// Raw ticks of timestamps `first` and `first + 1`, once both are written.
-    pub fn ticks(&self, first: u32) -> VkResult<Option<[u64; 2]>> {
-        let mut ticks = [0u64; 2];
-        // SAFETY: live pool; the caller reads only queries whose submission completed.
-        let r = unsafe {
-            self.device.raw.get_query_pool_results(self.handle, first, &mut ticks, vk::QueryResultFlags::TYPE_64)
-        };
-        match r {
-            Ok(()) => Ok(Some(ticks)),
-            Err(vk::Result::NOT_READY) => Ok(None),
-            Err(e) => Err(e).vk("vkGetQueryPoolResults"),
-        }
-    }
-
     /// Places GPU timestamps on the CPU clock: one timestamp written by a submission on
     /// the draw queue, taken at the midpoint of the CPU's submit-to-fence window (the
     /// device may lack VK_EXT_calibrated_timestamps; this works everywhere, to within
@@ -281,20 +267,6 @@ impl QueryPool {
             uncertainty_us: (after - before).as_secs_f64() * 1e6 / 2.0,
             method: "measured offset: one timestamp at the midpoint of its submit-to-fence window",
         }))
-    }
-
-    /// Milliseconds between timestamps `first` and `first + 1`, once both are written.
-    pub fn elapsed_ms(&self, first: u32) -> VkResult<Option<f64>> {
-        let mut ticks = [0u64; 2];
-        // SAFETY: live pool; the caller reads only queries whose submission completed.
-        let r = unsafe {
-            self.device.raw.get_query_pool_results(self.handle, first, &mut ticks, vk::QueryResultFlags::TYPE_64)
-        };
-        match r {
-            Ok(()) => Ok(Some(ticks[1].wrapping_sub(ticks[0]) as f64 * self.period_ns / 1e6)),
-            Err(vk::Result::NOT_READY) => Ok(None),
-            Err(e) => Err(e).vk("vkGetQueryPoolResults"),
-        }
     }
 }
 
