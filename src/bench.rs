@@ -6,7 +6,6 @@ use crate::blocks::{BlocksRenderer, DrawStats, Shading, Target};
 use crate::camera::Camera;
 use crate::cli::{near_plane, CommonArgs, InputError};
 use crate::commands::{positive, write_atomic, LodChoice, Session};
-use crate::draw_thread::ErrorFeed;
 use crate::errors_activity::ErrorsActivity;
 use crate::gie::ErrorParams;
 use crate::heightfield::{Heightfield, MinMaxPyramid};
@@ -364,7 +363,7 @@ impl Bench<'_> {
             rss: Vec::new(),
         };
         let mut feed =
-            ErrorFeed::new(self.args.common.error_mode, self.args.common.refresh()).with_trace(self.trace.clone());
+            self.args.common.error_feed().with_trace(self.trace.clone());
         // Row of the frame pending in each offscreen slot.
         let mut pending: Vec<Option<usize>> = vec![None; self.targets.len()];
         let shared = self.s.device.queue_mode == crate::vk::QueueMode::Shared;
@@ -812,7 +811,8 @@ fn fidelity(bench: &mut Bench, activity: &ErrorsActivity) -> anyhow::Result<Valu
         let full = full.unwrap_or_default();
         let g = activity.wait_for(ErrorParams::new(&cam, bench.args.common.error_mode), Duration::from_secs(600))?;
         for delta in [0.5f32, 1.0, 2.0, 5.0] {
-            let sel = LodSelect::errors(&g.errors, g.params.camera, delta, g.params.mode);
+            let sel = LodSelect::errors(&g.errors, g.params.camera, delta, g.params.mode)
+                .with_morph(bench.args.common.morph == crate::cli::OnOff::On);
             let blocks = traverse(&s.hf, &s.mm, &s.layout, &cam, sel).blocks;
             let (img, stats) =
                 bench.renderer.render_timed(&s.hf, &s.terrain, &bench.targets[0], &cam, &blocks, &shading, true)?;

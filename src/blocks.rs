@@ -6,7 +6,7 @@
 use crate::camera::Camera;
 use crate::gpu_layout::{self as layout, BlockPush, FrameUniforms};
 use crate::heightfield::Heightfield;
-use crate::quadtree::{BlockLayout, DrawBlock};
+use crate::quadtree::{morph_value, BlockLayout, DrawBlock};
 use crate::shaders;
 use crate::terrain_gpu::TerrainGpu;
 use crate::vk::{
@@ -754,6 +754,12 @@ fn block_push(layout: &BlockLayout, b: &DrawBlock) -> BlockPush {
     BlockPush {
         block: [ox as i32, oz as i32, b.stride() as i32, b.lod as i32],
         coarser_neighbour_stride: [c[0] as i32, c[1] as i32, c[2] as i32, c[3] as i32],
+        morph_edges: b.edge_morph.map(morph_value),
+        morph: [morph_value(b.morph), 0.0, 0.0, 0.0],
+        corner_raw: b.corner_raw.map(|bits| {
+            debug_assert_ne!(bits, crate::quadtree::CORNER_UNRESOLVED, "blocks to draw come from the traversal");
+            f32::from_bits(bits)
+        }),
     }
 }
 

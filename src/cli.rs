@@ -129,11 +129,22 @@ pub struct CommonArgs {
     /// Screen-space error bound: strict (guaranteed) or paper (seed 000 eqs. 2-4).
     #[arg(long = "error-mode", alias = "mode", value_enum, default_value_t = ErrorMode::Strict)]
     pub error_mode: ErrorMode,
+    /// Geomorphing: blocks move continuously between LODs instead of popping, with the
+    /// morph paid for inside the error bound.
+    #[arg(long, value_enum, default_value_t = OnOff::On)]
+    pub morph: OnOff,
 }
 
 impl CommonArgs {
     pub fn refresh(&self) -> crate::draw_thread::RefreshPolicy {
         crate::draw_thread::RefreshPolicy { moved_fraction: self.refresh_at, max_share: self.update_share }
+    }
+
+    /// The draw thread's error feed as these options set it up.
+    pub fn error_feed(&self) -> crate::draw_thread::ErrorFeed {
+        let mut feed = crate::draw_thread::ErrorFeed::new(self.error_mode, self.refresh());
+        feed.morph = self.morph == OnOff::On;
+        feed
     }
 
     pub fn validation(&self) -> bool {

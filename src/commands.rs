@@ -3,7 +3,6 @@
 use crate::audit;
 use crate::blocks::{BlocksRenderer, NormalSource, Shading, Target};
 use crate::cli::{CommonArgs, InputError};
-use crate::draw_thread::ErrorFeed;
 use crate::errors_activity::ErrorsActivity;
 use crate::gie::ErrorParams;
 use crate::heightfield::{Heightfield, MinMaxPyramid};
@@ -216,7 +215,7 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
     };
     // `render` is the draw thread's first frame: it waits for the generation computed at
     // its own camera, so its output is deterministic.
-    let mut feed = ErrorFeed::new(args.common.error_mode, args.common.refresh());
+    let mut feed = args.common.error_feed();
     if let Some(a) = &activity {
         let t = Instant::now();
         generation = feed.update(a, &cam, 0)?.unwrap_or_default();

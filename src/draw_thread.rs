@@ -78,6 +78,8 @@ pub struct ErrorFeed {
     requested_when: Option<Instant>,
     update_ms: Option<f64>,
     trace: Trace,
+    /// Geomorphing between LODs (`--morph`, the viewer's M key).
+    pub morph: bool,
 }
 
 impl ErrorFeed {
@@ -92,6 +94,7 @@ impl ErrorFeed {
             requested_when: None,
             update_ms: None,
             trace: Trace::off(),
+            morph: true,
         }
     }
 
@@ -198,13 +201,16 @@ impl ErrorFeed {
         delta: f32,
     ) -> Traversal {
         let select = match (lod, self.usable()) {
-            (LodChoice::Error, Some(g)) => LodSelect::errors(&g.errors, g.params.camera, delta, g.params.mode),
+            (LodChoice::Error, Some(g)) => {
+                LodSelect::errors(&g.errors, g.params.camera, delta, g.params.mode).with_morph(self.morph)
+            }
             (LodChoice::Error, None) | (LodChoice::Distance, _) => LodSelect::Distance { factor: 2.0 },
             (LodChoice::Full, _) => LodSelect::Full,
         };
         let started = Instant::now();
         let t = traverse(hf, mm, layout, cam, select);
-        self.trace.complete(DRAW_TID, "traverse", started, Instant::now(), json!({"blocks": t.blocks.len()}));
+        let args = json!({"blocks": t.blocks.len(), "morphing": t.morphing});
+        self.trace.complete(DRAW_TID, "traverse", started, Instant::now(), args);
         self.nearest = t.nearest;
         t
     }

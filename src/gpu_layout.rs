@@ -96,6 +96,12 @@ gpu_block! {
         /// Stride of the neighbour across each edge, or 0 when it is not coarser:
         /// x: -z (north), y: +x (east), z: +z (south), w: -x (west).
         coarser_neighbour_stride: [i32; 4] => "ivec4",
+        /// Morph factor of the vertices on each edge, same order (`morph.rs`).
+        morph_edges: [f32; 4] => "vec4",
+        /// x: morph factor of the interior vertices; y, z, w: unused.
+        morph: [f32; 4] => "vec4",
+        /// Raw height of each corner: NW, NE, SE, SW (`quadtree::resolve_corners`).
+        corner_raw: [f32; 4] => "vec4",
     }
 }
 

@@ -13,6 +13,7 @@ pub mod deviation;
 pub mod gie;
 pub mod gpu_layout;
 pub mod heightfield;
+pub mod morph;
 pub mod quadtree;
 pub mod quality;
 pub mod stitch;

@@ -49,18 +49,78 @@ impl BlockLayout {
     }
 }
 
-/// A block to draw: LOD, block coordinates at that LOD, and the stride of each coarser
+/// Morph factors are multiples of `1 / MORPH_ONE`, exact in f32 on the CPU and the GPU.
+pub const MORPH_ONE: u16 = 1024;
+
+/// A morph factor as the shaders get it.
+pub fn morph_value(q: u16) -> f32 {
+    q as f32 / MORPH_ONE as f32
+}
+
+/// A block to draw: LOD, block coordinates at that LOD, the stride of each coarser
 /// neighbour (0 when the neighbour is not coarser): north (-z), east (+x), south (+z),
-/// west (-x).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+/// west (-x), and its geomorph (see [`crate::morph`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub struct DrawBlock {
     pub lod: u32,
     pub bx: u32,
     pub bz: u32,
     pub coarser: [u32; 4],
+    /// Morph factor of the interior vertices: 0 puts the block's odd vertices on its
+    /// parent's surface, [`MORPH_ONE`] on its own samples.
+    pub morph: u16,
+    /// Morph factor of the vertices on each edge (1 on edges next to another LOD).
+    pub edge_morph: [u16; 4],
+    /// Raw height of each corner (NW, NE, SE, SW) as f32 bits, or [`CORNER_UNRESOLVED`]:
+    /// a corner inside a coarser neighbour's edge lies on that edge, whose own corners
+    /// may lie on a coarser one's, so the traversal resolves them ([`resolve_corners`]).
+    pub corner_raw: [u32; 4],
+}
+
+/// A corner whose height is its sample's (blocks made outside the traversal).
+pub const CORNER_UNRESOLVED: u32 = u32::MAX;
+
+/// The corners at the start and the end of each edge (north, east, south, west), in the
+/// direction of increasing x or z.
+const EDGE_CORNERS: [[usize; 2]; 4] = [[0, 1], [1, 2], [3, 2], [0, 3]];
+
+/// The two ends of a block's morph, for the bound.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum MorphState {
+    /// Every vertex at its own LOD (factor 1): the surface the selection bounds.
+    Own,
+    /// Every vertex on the parent LOD's surface (factor 0).
+    Parent,
 }
 
 impl DrawBlock {
+    /// An unmorphed block with no coarser neighbour.
+    pub fn new(lod: u32, bx: u32, bz: u32) -> Self {
+        DrawBlock {
+            lod,
+            bx,
+            bz,
+            coarser: [0; 4],
+            morph: MORPH_ONE,
+            edge_morph: [MORPH_ONE; 4],
+            corner_raw: [CORNER_UNRESOLVED; 4],
+        }
+    }
+    /// Raw height of corner `c` at sample `(x, z)`.
+    pub fn corner(&self, c: usize, hf: &Heightfield, x: i64, z: i64) -> f32 {
+        match self.corner_raw[c] {
+            CORNER_UNRESOLVED => hf.raw_at(x, z),
+            bits => f32::from_bits(bits),
+        }
+    }
+    /// The block with every morph factor at one end.
+    pub fn in_state(&self, state: MorphState) -> Self {
+        let q = match state {
+            MorphState::Own => MORPH_ONE,
+            MorphState::Parent => 0,
+        };
+        DrawBlock { morph: q, edge_morph: [q; 4], ..*self }
+    }
     pub fn origin(&self, layout: &BlockLayout) -> (u32, u32) {
         let s = layout.block_samples(self.lod);
         (self.bx * s, self.bz * s)
@@ -80,7 +140,9 @@ pub enum LodSelect<'a> {
     /// applies each block's own `1 / cos^2` and, with `stitch_bound`, the deviation of
     /// its stitched strips (splitting coarser neighbours until they fit): see
     /// [`LodSelect::errors`].
-    Errors { errors: &'a BlockErrors, computed_at: Vec3, delta: f32, mode: ErrorMode, stitch_bound: bool },
+    /// With `morph`, blocks geomorph from their parent's surface to their own, with the
+    /// factors chosen inside the bound ([`crate::morph`]).
+    Errors { errors: &'a BlockErrors, computed_at: Vec3, delta: f32, mode: ErrorMode, stitch_bound: bool, morph: bool },
     /// Distance rings (the GeoMipMapping-style baseline): refine while the camera is
     /// closer than `factor` times the block's size.
     Distance { factor: f32 },
@@ -88,9 +150,18 @@ pub enum LodSelect<'a> {
 
 impl<'a> LodSelect<'a> {
     /// Error-driven selection as the renderer uses it: in strict mode the stitched
-    /// strips are paid for in the bound.
+    /// strips are paid for in the bound; blocks morph.
     pub fn errors(errors: &'a BlockErrors, computed_at: Vec3, delta: f32, mode: ErrorMode) -> Self {
-        LodSelect::Errors { errors, computed_at, delta, mode, stitch_bound: mode == ErrorMode::Strict }
+        LodSelect::Errors { errors, computed_at, delta, mode, stitch_bound: mode == ErrorMode::Strict, morph: true }
+    }
+    /// The same selection with morphing on or off.
+    pub fn with_morph(self, on: bool) -> Self {
+        match self {
+            LodSelect::Errors { errors, computed_at, delta, mode, stitch_bound, .. } => {
+                LodSelect::Errors { errors, computed_at, delta, mode, stitch_bound, morph: on }
+            }
+            other => other,
+        }
     }
 }
 
@@ -106,6 +177,8 @@ pub struct Traversal {
     pub stitch_splits: usize,
     /// Distance from the camera to the nearest drawn block's box.
     pub nearest: Option<f32>,
+    /// Blocks drawn part way between their parent's surface and their own.
+    pub morphing: usize,
 }
 
 /// World-space AABB of a block.
@@ -126,11 +199,27 @@ pub fn block_aabb(
     )
 }
 
-/// Traverses the quadtree top-down from the root (culling before splitting or drawing).
-/// In strict mode with the stitch bound, a block whose stitched strip along a coarser
-/// neighbour exceeds delta forces that neighbour to split; the traversal is repeated
-/// until no strip exceeds delta (each block is forced at most once, so it ends).
+/// Traverses the quadtree top-down from the root (culling before splitting or drawing),
+/// then chooses the blocks' morph factors when the selection morphs.
 pub fn traverse(
+    hf: &Heightfield,
+    mm: &MinMaxPyramid,
+    layout: &BlockLayout,
+    cam: &Camera,
+    select: LodSelect,
+) -> Traversal {
+    let mut out = select_blocks(hf, mm, layout, cam, select);
+    if let LodSelect::Errors { delta, morph: true, .. } = select {
+        crate::morph::assign(hf, mm, layout, cam, delta, &mut out);
+    }
+    out
+}
+
+/// The block selection. In strict mode with the stitch bound, a block whose stitched
+/// strip along a coarser neighbour exceeds delta forces that neighbour to split; the
+/// traversal is repeated until no strip exceeds delta (each block is forced at most once,
+/// so it ends).
+fn select_blocks(
     hf: &Heightfield,
     mm: &MinMaxPyramid,
     layout: &BlockLayout,
@@ -243,7 +332,7 @@ fn traverse_once(
         };
         if draw {
             out.max_block_error = out.max_block_error.max(err);
-            out.blocks.push(DrawBlock { lod, bx, bz, coarser: [0; 4] });
+            out.blocks.push(DrawBlock::new(lod, bx, bz));
         } else {
             for (cx, cz) in [(1, 1), (0, 1), (1, 0), (0, 0)] {
                 stack.push((lod - 1, bx * 2 + cx, bz * 2 + cz));
@@ -259,6 +348,7 @@ fn traverse_once(
     out.nearest = out.blocks.first().map(distance);
     out.lod_map = lod_map(layout, &out.blocks);
     assign_neighbours(layout, &mut out.blocks, &out.lod_map);
+    resolve_corners(hf, layout, &mut out.blocks, &out.lod_map);
     out
 }
 
@@ -310,55 +400,143 @@ fn assign_neighbours(layout: &BlockLayout, blocks: &mut [DrawBlock], map: &[i8])
     }
 }
 
+/// Sets every block's corner heights. A corner strictly inside a coarser neighbour's edge
+/// lies on that edge's line between its vertices; those are raw samples, or that
+/// neighbour's own corners, resolved before (coarsest first).
+pub fn resolve_corners(hf: &Heightfield, layout: &BlockLayout, blocks: &mut [DrawBlock], map: &[i8]) {
+    let cells = layout.cells() as i64;
+    let index: std::collections::HashMap<(u32, u32, u32), usize> =
+        blocks.iter().enumerate().map(|(i, b)| ((b.lod, b.bx, b.bz), i)).collect();
+    let mut order: Vec<usize> = (0..blocks.len()).collect();
+    order.sort_by_key(|&i| std::cmp::Reverse(blocks[i].lod));
+    let last = layout.k() - 1;
+    for i in order {
+        let b = blocks[i];
+        let span = 1i64 << b.lod;
+        let (cx, cz) = (b.bx as i64 * span, b.bz as i64 * span);
+        let across = [(cx, cz - 1), (cx + span, cz), (cx, cz + span), (cx - 1, cz)];
+        let stride = b.stride() as i64;
+        let (ox, oz) = b.origin(layout);
+        for (c, (u, v)) in [(0, 0), (last, 0), (last, last), (0, last)].into_iter().enumerate() {
+            let (sx, sz) = (ox as i64 + u as i64 * stride, oz as i64 + v as i64 * stride);
+            let mut h = hf.raw_at(sx, sz);
+            for (s, corners) in EDGE_CORNERS.iter().enumerate() {
+                let ns = b.coarser[s] as i64;
+                if ns == 0 || !corners.contains(&c) {
+                    continue;
+                }
+                let (nx, nz) = across[s];
+                let l = map[(nz * cells + nx) as usize] as u32;
+                let Some(&x) = index.get(&(l, (nx >> l) as u32, (nz >> l) as u32)) else { continue };
+                let xb = blocks[x];
+                let size = layout.block_samples(l) as i64;
+                let (xo, zo) = xb.origin(layout);
+                let (coord, start) = if s % 2 == 0 { (sx, xo as i64) } else { (sz, zo as i64) };
+                if coord % size == 0 {
+                    continue; // also a corner of the neighbour's
+                }
+                // The neighbour's edge facing this block, and its vertex heights.
+                let facing = (s + 2) % 4;
+                let vertex = |at: i64| -> f32 {
+                    let (px, pz) = if s % 2 == 0 { (at, sz) } else { (sx, at) };
+                    if at == start {
+                        xb.corner(EDGE_CORNERS[facing][0], hf, px, pz)
+                    } else if at == start + size {
+                        xb.corner(EDGE_CORNERS[facing][1], hf, px, pz)
+                    } else {
+                        hf.raw_at(px, pz)
+                    }
+                };
+                let r = coord % ns;
+                h = if r == 0 {
+                    vertex(coord)
+                } else {
+                    let (ha, hb) = (vertex(coord - r), vertex(coord - r + ns));
+                    ha + (hb - ha) * (r as f32 / ns as f32)
+                };
+            }
+            blocks[i].corner_raw[c] = h.to_bits();
+        }
+    }
+}
+
 /// The vertex shader's placement of block vertex `(u, v)`, in plain Rust: the sample it
-/// lands on and its raw height (SPEC section 5, cracks). Must match `glsl/terrain.vert`.
+/// lands on and its raw height, stitched and morphed (SPEC section 5). Must match
+/// `glsl/block_vertex.glsl` bit for bit.
 pub fn block_vertex(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, u: u32, v: u32) -> (i64, i64, f32) {
-    let k = layout.k();
+    let last = layout.k() - 1;
     let stride = b.stride() as i64;
     let (ox, oz) = b.origin(layout);
     let (mut sx, mut sz) = (ox as i64 + u as i64 * stride, oz as i64 + v as i64 * stride);
-    let cn = b.coarser;
-    let (mut best, mut axis) = (0i64, 0);
-    if v == 0 && cn[0] as i64 > best {
-        best = cn[0] as i64;
-        axis = 0;
+    if let Some(c) = [(0, 0), (last, 0), (last, last), (0, last)].iter().position(|&p| p == (u, v)) {
+        return (sx, sz, b.corner(c, hf, sx, sz));
     }
-    if v == k - 1 && cn[2] as i64 > best {
-        best = cn[2] as i64;
-        axis = 0;
-    }
-    if u == k - 1 && cn[1] as i64 > best {
-        best = cn[1] as i64;
-        axis = 1;
-    }
-    if u == 0 && cn[3] as i64 > best {
-        best = cn[3] as i64;
-        axis = 1;
-    }
-    let coord = if axis == 0 { sx } else { sz };
-    let rem = if best > 0 { coord % best } else { 0 };
+    // Other edge vertices next to a coarser block follow that block's edge.
+    let side = [(0, v == 0), (2, v == last), (1, u == last), (3, u == 0)].into_iter().find(|&(s, on)| on && b.coarser[s] > 0);
+    let Some((side, _)) = side else {
+        return (sx, sz, own_vertex_raw(hf, b, last, u, v, sx, sz));
+    };
+    let best = b.coarser[side] as i64;
+    let along = if side % 2 == 0 { u } else { v };
+    let coord = if side % 2 == 0 { sx } else { sz };
+    let rem = coord % best;
+    let [first, second] = EDGE_CORNERS[side];
     if rem == 0 {
+        // A vertex of the coarser block, inside its edge: unmorphed.
         (sx, sz, hf.raw_at(sx, sz))
-    } else if best <= (k as i64 - 1) * stride {
-        if axis == 0 {
+    } else if best <= last as i64 * stride {
+        // The neighbour has vertices at both ends of this edge: collapse onto the one
+        // below (degenerate triangles, no T-junction).
+        if side % 2 == 0 {
             sx -= rem;
         } else {
             sz -= rem;
         }
-        (sx, sz, hf.raw_at(sx, sz))
+        let h = if along as i64 * stride == rem { b.corner(first, hf, sx, sz) } else { hf.raw_at(sx, sz) };
+        (sx, sz, h)
     } else {
-        let (mut ax, mut az, mut bx, mut bz) = (sx, sz, sx, sz);
-        if axis == 0 {
-            ax -= rem;
-            bx = ax + best;
+        // The whole edge lies inside one segment of the neighbour: on the line between
+        // this edge's corners, which lie on that segment.
+        let (ca, cb) = if side % 2 == 0 {
+            (b.corner(first, hf, ox as i64, sz), b.corner(second, hf, ox as i64 + last as i64 * stride, sz))
         } else {
-            az -= rem;
-            bz = az + best;
-        }
-        let ra = hf.raw_at(ax, az);
-        let rb = hf.raw_at(bx, bz);
-        (sx, sz, ra + (rb - ra) * (rem as f32 / best as f32))
+            (b.corner(first, hf, sx, oz as i64), b.corner(second, hf, sx, oz as i64 + last as i64 * stride))
+        };
+        (sx, sz, ca + (cb - ca) * (along as f32 / last as f32))
     }
+}
+
+/// `raw` moved towards the parent surface's height `p`: factor 1 is `raw` itself.
+#[inline]
+pub fn morph_raw(p: f32, raw: f32, f: f32) -> f32 {
+    if f >= 1.0 {
+        raw
+    } else {
+        p + (raw - p) * f
+    }
+}
+
+/// Height of the block's own vertex `(u, v)` at sample `(sx, sz)`: a vertex at an odd
+/// position lies on an edge or the a-i diagonal of its parent's quad, where the parent
+/// surface is the mean of the two samples around it.
+fn own_vertex_raw(hf: &Heightfield, b: &DrawBlock, last: u32, u: u32, v: u32, sx: i64, sz: i64) -> f32 {
+    let raw = hf.raw_at(sx, sz);
+    let (odd_u, odd_v) = (u % 2 == 1, v % 2 == 1);
+    let q = match (v, u) {
+        (0, _) => b.edge_morph[0],
+        (_, _) if v == last => b.edge_morph[2],
+        (_, _) if u == last => b.edge_morph[1],
+        (_, 0) => b.edge_morph[3],
+        _ => b.morph,
+    };
+    let f = morph_value(q);
+    if !(odd_u || odd_v) || f >= 1.0 {
+        return raw;
+    }
+    let s = b.stride() as i64;
+    let (dx, dz) = (if odd_u { s } else { 0 }, if odd_v { s } else { 0 });
+    let p = (hf.raw_at(sx - dx, sz - dz) + hf.raw_at(sx + dx, sz + dz)) * 0.5;
+    morph_raw(p, raw, f)
 }
 
 /// Frustum-visible test for the finest cell `(cx, cz)` (used by the tiling check).

@@ -75,7 +75,9 @@ pub fn quality(args: &QualityArgs) -> anyhow::Result<()> {
                 _ => {
                     let mode = if method == "strict" { ErrorMode::Strict } else { ErrorMode::Paper };
                     let errors = block_errors(&group_errors(&hf, &mm, &ErrorParams::new(cam, mode)), layout.m);
-                    traverse(&hf, &mm, &layout, cam, LodSelect::errors(&errors, cam.position, parameter, mode))
+                    let select = LodSelect::errors(&errors, cam.position, parameter, mode)
+                        .with_morph(args.common.morph == crate::cli::OnOff::On);
+                    traverse(&hf, &mm, &layout, cam, select)
                 }
             };
             tris += t.blocks.len() as f64 * tpb;

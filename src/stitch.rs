@@ -5,7 +5,8 @@
 //! triangles whose surface neither block's error covers. This module measures that strip
 //! exactly: `max |H - S|` over the samples under the stitched strip `S`, which depends on
 //! the block and its neighbours' LODs but not on the camera, so it is computed once per
-//! configuration and cached. The traversal projects it like any world-space deviation.
+//! configuration and cached, for both ends of the morph (see `morph.rs`). The traversal
+//! projects it like any world-space deviation.
 
 use crate::heightfield::Heightfield;
 use crate::quadtree::{block_vertex, BlockLayout, DrawBlock};
@@ -30,7 +31,8 @@ impl StripDeviation {
     }
 }
 
-type Key = (u32, u32, u32, [u32; 4]);
+/// The block (LOD, position, neighbours and morph factors) and the strips measured.
+type Key = (DrawBlock, u8);
 
 /// Strip deviations already computed, by block and neighbour strides.
 #[derive(Default)]
@@ -53,27 +55,39 @@ impl Clone for StitchCache {
 }
 
 impl StitchCache {
-    /// The strip deviation of `b` with its current neighbours, computed on first use.
-    pub fn get(&self, hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock) -> StripDeviation {
-        let key = (b.lod, b.bx, b.bz, b.coarser);
+    /// The deviation of the strips along the edges in `sides` (bit `e` for edge `e`) of
+    /// block `b` as given (neighbours and morph factors), computed on first use.
+    pub fn strips(&self, hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, sides: u8) -> StripDeviation {
+        let key = (*b, sides);
         // A poisoned lock only means another thread panicked mid-insert; entries are
         // whole values, so the map is still consistent.
         if let Some(d) = self.map.lock().unwrap_or_else(|e| e.into_inner()).get(&key) {
             return *d;
         }
-        let d = strip_deviation(hf, layout, b);
+        let d = strip_deviation(hf, layout, b, sides);
         self.map.lock().unwrap_or_else(|e| e.into_inner()).insert(key, d);
         d
     }
+
+    /// The stitched strips of `b` (the edges next to a coarser block), unmorphed.
+    pub fn get(&self, hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock) -> StripDeviation {
+        self.strips(hf, layout, &b.in_state(crate::quadtree::MorphState::Own), coarser_sides(b))
+    }
 }
 
-/// Exact deviation of the stitched strips of `b` (see the module comment). The strip of
-/// an edge is its first row of quads: only those triangles have a moved vertex.
-pub fn strip_deviation(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock) -> StripDeviation {
+/// Bit `e` set for each edge `e` next to a coarser block.
+pub fn coarser_sides(b: &DrawBlock) -> u8 {
+    (0..4).filter(|&e| b.coarser[e] > 0).fold(0, |m, e| m | 1 << e)
+}
+
+/// Exact deviation of the strips of `b` along the edges in `sides`: the first row of
+/// quads along an edge, where collapsed (stitched) vertices and edge vertices with their
+/// own morph factor sit.
+pub fn strip_deviation(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, sides: u8) -> StripDeviation {
     let mut out = StripDeviation { edge: [0.0; 4], lo: f32::INFINITY, hi: f32::NEG_INFINITY };
     let last = layout.k() - 2; // last quad index
     for e in 0..4 {
-        if b.coarser[e] == 0 {
+        if sides & (1 << e) == 0 {
             continue;
         }
         let mut m = 0.0f32;
@@ -131,12 +145,16 @@ mod tests {
         Heightfield::embed("t", side, side, &s, HeightFormat::Float32, 1.0, 1.0).unwrap()
     }
 
+    fn cache_free(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock) -> StripDeviation {
+        StitchCache::default().get(hf, layout, b)
+    }
+
     #[test]
     fn no_coarser_neighbour_costs_nothing() {
         let hf = field(33, |x, z| ((x * 5 + z * 3) % 7) as f32);
         let layout = BlockLayout::new(hf.n, 9).unwrap();
-        let b = DrawBlock { lod: 0, bx: 1, bz: 1, coarser: [0; 4] };
-        assert_eq!(strip_deviation(&hf, &layout, &b).max(), 0.0);
+        let b = DrawBlock::new(0, 1, 1);
+        assert_eq!(cache_free(&hf, &layout, &b).max(), 0.0);
     }
 
     /// A ridge perpendicular to the north edge, in the first interior row: the collapsed
@@ -155,8 +173,8 @@ mod tests {
         });
         let layout = BlockLayout::new(hf.n, 9).unwrap();
         // LOD-0 block (0, 1) spans z = 8..16; its north neighbour is coarser (stride 2).
-        let b = DrawBlock { lod: 0, bx: 0, bz: 1, coarser: [2, 0, 0, 0] };
-        let d = strip_deviation(&hf, &layout, &b);
+        let b = DrawBlock { coarser: [2, 0, 0, 0], ..DrawBlock::new(0, 0, 1) };
+        let d = strip_deviation(&hf, &layout, &b, coarser_sides(&b));
         assert!(d.edge[0] > 0.0 && d.edge[1..] == [0.0; 3], "{d:?}");
         let cache = StitchCache::default();
         assert_eq!(cache.get(&hf, &layout, &b), d);

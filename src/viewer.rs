@@ -346,7 +346,7 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
         delta: args.delta,
         mode: args.common.error_mode,
         frozen: None,
-        feed: ErrorFeed::new(args.common.error_mode, args.common.refresh()).with_trace(trace.clone()),
+        feed: args.common.error_feed().with_trace(trace.clone()),
         trace: trace.clone(),
         interrupted: interrupted.clone(),
         frame: 0,

@@ -153,6 +153,54 @@ fn strict_mode_holds_delta_on_crafted_fields() {
 
 /// Every drawn edge vertex lies on the neighbour's surface: for LOD differences up to m
 /// it coincides with one of the neighbour's vertices (same sample, same height).
+/// Every sample on the boundary between two drawn blocks has the same rendered height in
+/// both (stitched and morphed): no crack. Returns the samples compared.
+fn assert_watertight(hf: &Heightfield, layout: &BlockLayout, t: &Traversal, what: &str) -> usize {
+    let cells = layout.cells() as i64;
+    let cell = 1i64 << layout.m;
+    let at = |cx: i64, cz: i64| -> Option<usize> {
+        if cx < 0 || cz < 0 || cx >= cells || cz >= cells {
+            return None;
+        }
+        let l = t.lod_map[(cz * cells + cx) as usize];
+        if l < 0 {
+            return None;
+        }
+        let l = l as u32;
+        t.blocks.iter().position(|b| b.lod == l && b.bx as i64 == cx >> l && b.bz as i64 == cz >> l)
+    };
+    let mut compared = 0;
+    for (i, b) in t.blocks.iter().enumerate() {
+        let (ox, oz) = b.origin(layout);
+        let side = layout.block_samples(b.lod) as i64;
+        let (ox, oz) = (ox as i64, oz as i64);
+        // Samples along the north and west edges, shared with the block across.
+        for d in 0..=side {
+            for (x, z, across) in [(ox + d, oz, (ox + d - (d == side) as i64, oz - 1)), (ox, oz + d, (ox - 1, oz + d - (d == side) as i64))] {
+                if x >= hf.width as i64 || z >= hf.height as i64 {
+                    continue;
+                }
+                let Some(j) = at(across.0.div_euclid(cell), across.1.div_euclid(cell)) else { continue };
+                if j == i {
+                    continue;
+                }
+                let mine = vkterrain::audit::rendered_raw(hf, layout, b, x, z);
+                let theirs = vkterrain::audit::rendered_raw(hf, layout, &t.blocks[j], x, z);
+                let (Some(a), Some(c)) = (mine, theirs) else {
+                    panic!("{what}: sample ({x}, {z}) on the edge of {b:?} and {:?} not covered", t.blocks[j])
+                };
+                assert!(
+                    (a - c).abs() <= 1e-5 * (1.0 + a.abs().max(c.abs())),
+                    "{what}: crack at ({x}, {z}): {a} in {b:?}, {c} in {:?}",
+                    t.blocks[j]
+                );
+                compared += 1;
+            }
+        }
+    }
+    compared
+}
+
 #[test]
 fn stitching_matches_coarser_neighbours() {
     let hf = field(257, 257, 4.0, |x, z| {
@@ -192,28 +240,21 @@ fn stitching_matches_coarser_neighbours() {
                         if other.is_some_and(|o| b.coarser[o] > ns) {
                             continue;
                         }
-                        let (sx, sz, raw) = block_vertex(&hf, &layout, b, u, v);
+                        let (sx, sz, _) = block_vertex(&hf, &layout, b, u, v);
                         let along = if edge % 2 == 0 { sx } else { sz };
                         if ns <= (kk - 1) * b.stride() {
-                            // Collapsed onto a neighbour vertex: same sample, exact height.
+                            // Collapsed onto a neighbour vertex (its height is checked by
+                            // the watertightness test below).
                             assert_eq!(
                                 along % ns as i64,
                                 0,
                                 "k {k} block {b:?} edge {edge}: vertex off the neighbour's grid"
                             );
-                            assert_eq!(raw, hf.raw_at(sx, sz));
-                        } else {
-                            // On the neighbour's edge segment: linear between its vertices.
-                            let a = along - along.rem_euclid(ns as i64);
-                            let (ax, az, bx, bz) =
-                                if edge % 2 == 0 { (a, sz, a + ns as i64, sz) } else { (sx, a, sx, a + ns as i64) };
-                            let (ha, hb) = (hf.raw_at(ax, az), hf.raw_at(bx, bz));
-                            let f = (along - a) as f32 / ns as f32;
-                            assert!((raw - (ha + (hb - ha) * f)).abs() <= 1e-4 * (1.0 + ha.abs().max(hb.abs())));
                         }
                     }
                 }
             }
+            assert_watertight(&hf, &layout, &t, &format!("k {k} pose {i}"));
         }
     }
     // A lone spike just past the centre: the flat half next to it stays at a coarse LOD
@@ -241,6 +282,7 @@ fn stitching_matches_coarser_neighbours() {
         }
     }
     check_tiling(&lone, &lone_mm, &layout, &t.blocks, &cam).unwrap();
+    assert_watertight(&lone, &layout, &t, "lone spike");
     let a = audit(&lone, &layout, &t, &cam);
     assert!(a.max_error_px <= 1.01, "lone spike: {}", a.max_error_px);
     // Differences of 1, 2 and more levels all occurred.
