@@ -67,8 +67,13 @@ void main() {
         float range = max(frame.terrain.w - frame.terrain.z, 1e-6);
         float t = clamp((v_world.y - frame.terrain.z) / range, 0.0, 1.0);
         albedo = ramp(t, 1.0 - n.y);
-        // Level ground at the lowest height is water (sea level in most DEMs).
-        if (v_world.y <= frame.terrain.z + 1e-3 * range && n.y > 0.9999) {
+        // Level ground at the lowest height is water (sea level in most DEMs). Decided
+        // from the samples around the pixel, not the drawn height, so that a shoreline
+        // does not move with LOD or morphing.
+        float sea = frame.terrain.z + 1e-3 * range;
+        if (v_world.y <= frame.terrain.z + 0.05 * range && n.y > 0.9999
+            && max(max(world_height(i0), world_height(i0 + ivec2(1, 0))),
+                   max(world_height(i0 + ivec2(0, 1)), world_height(i0 + ivec2(1, 1)))) <= sea) {
             albedo = vec3(0.05, 0.16, 0.30);
         }
         if (frame.flags.y != 0) {

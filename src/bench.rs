@@ -58,6 +58,12 @@ pub struct BenchArgs {
     /// Skip the fidelity measurements (RMSE against --lod full at fixed views).
     #[arg(long)]
     pub no_fidelity: bool,
+    /// Measure popping: read back every frame of the main run and of a --lod full run on
+    /// the same path, take each frame's colour RMSE against the frame before, and report
+    /// the main run's excess over the full run's (`popping` in summary.json and
+    /// frames.csv). Reading frames back costs time, so compare fps without it.
+    #[arg(long)]
+    pub popping: bool,
     /// Where normals come from: the gradient map (default) or sixteen height fetches per
     /// pixel (the first wave's shading), to measure the pixel work side by side.
     #[arg(long, value_enum, default_value_t = crate::blocks::NormalSource::GradientMap)]
@@ -156,10 +162,19 @@ struct Row {
     error_update_ms: Option<f64>,
     /// Submit-to-done minus the frame's own GPU time: waiting behind other queue work.
     queue_wait_ms: Option<f64>,
+    /// Blocks drawn part way between two LODs.
+    morphing: usize,
+    /// Colour RMSE against the previous frame (with --popping).
+    temporal_rmse: Option<f64>,
+    /// `temporal_rmse` minus the --lod full run's at the same frame (with --popping).
+    popping: Option<f64>,
+    /// Colour RMSE between this frame and the previous frame's blocks drawn from this
+    /// frame's camera: the change due to LOD selection alone (with --popping).
+    lod_change_rmse: Option<f64>,
 }
 
 const CSV_HEADER: &str = "time_s,frame_ms,traverse_ms,gpu_ms,triangles,draw_calls,blocks,error_generation,\
-                          error_age_frames,error_update_ms,queue_wait_ms";
+                          error_age_frames,error_update_ms,queue_wait_ms,morphing,temporal_rmse,popping,lod_change_rmse";
 
 fn opt<T: std::fmt::Display>(v: Option<T>) -> String {
     v.map_or(String::new(), |v| v.to_string())
@@ -168,7 +183,7 @@ fn opt<T: std::fmt::Display>(v: Option<T>) -> String {
 impl Row {
     fn csv(&self) -> String {
         format!(
-            "{:.4},{:.3},{:.3},{},{},{},{},{},{},{},{}",
+            "{:.4},{:.3},{:.3},{},{},{},{},{},{},{},{},{},{},{},{}",
             self.time_s,
             self.frame_ms,
             self.traverse_ms,
@@ -179,7 +194,11 @@ impl Row {
             self.error_generation,
             opt(self.error_age_frames),
             opt(self.error_update_ms.map(|v| format!("{v:.3}"))),
-            opt(self.queue_wait_ms.map(|v| format!("{v:.3}")))
+            opt(self.queue_wait_ms.map(|v| format!("{v:.3}"))),
+            self.morphing,
+            opt(self.temporal_rmse.map(|v| format!("{v:.4}"))),
+            opt(self.popping.map(|v| format!("{v:.4}"))),
+            opt(self.lod_change_rmse.map(|v| format!("{v:.4}")))
         )
     }
 }
@@ -299,6 +318,62 @@ struct Run {
     rss: Vec<(u64, f64)>,
 }
 
+/// Colour RMSE of each frame against the one before; frames may finish out of order
+/// (one per slot), so they wait here until their predecessor has been seen.
+#[derive(Default)]
+struct TemporalDiff {
+    next: usize,
+    waiting: std::collections::BTreeMap<usize, Vec<u8>>,
+    previous: Option<Vec<u8>>,
+    /// Camera and blocks of the frames not yet compared.
+    frames: std::collections::HashMap<usize, (Camera, Vec<DrawBlock>)>,
+}
+
+impl TemporalDiff {
+    fn push(&mut self, row: usize, pixels: Vec<u8>, rows: &mut [Row]) {
+        self.waiting.insert(row, pixels);
+        while let Some(px) = self.waiting.remove(&self.next) {
+            if let Some(prev) = &self.previous {
+                rows[self.next].temporal_rmse = Some(image_difference(prev, &px).0);
+            }
+            self.previous = Some(px);
+            self.next += 1;
+        }
+    }
+}
+
+/// Popping: per frame, the main run's change from the frame before minus the full
+/// run's on the same path (what the camera's motion alone changes).
+fn popping(main: &mut [Row], full: &[Row]) -> Value {
+    let mut excess: Vec<f64> = Vec::new();
+    for (m, f) in main.iter_mut().zip(full) {
+        if let (Some(a), Some(b)) = (m.temporal_rmse, f.temporal_rmse) {
+            m.popping = Some(a - b);
+            excess.push(a - b);
+        }
+    }
+    let n = excess.len();
+    let mean = excess.iter().sum::<f64>() / n.max(1) as f64;
+    excess.sort_by(f64::total_cmp);
+    let mut lod: Vec<f64> = main.iter().filter_map(|r| r.temporal_rmse).collect();
+    lod.sort_by(f64::total_cmp);
+    let mut reference: Vec<f64> = full.iter().filter_map(|r| r.temporal_rmse).collect();
+    reference.sort_by(f64::total_cmp);
+    let mut change: Vec<f64> = main.iter().filter_map(|r| r.lod_change_rmse).collect();
+    let mean_change = change.iter().sum::<f64>() / change.len().max(1) as f64;
+    change.sort_by(f64::total_cmp);
+    json!({
+        "frame_pairs": n,
+        "mean_excess": mean,
+        "p99_excess": (n > 0).then(|| percentile(&excess, 0.99)),
+        "p99_temporal_rmse": (n > 0).then(|| percentile(&lod, 0.99)),
+        "p99_temporal_rmse_full": (n > 0).then(|| percentile(&reference, 0.99)),
+        "mean_lod_change_rmse": mean_change,
+        "p99_lod_change_rmse": (!change.is_empty()).then(|| percentile(&change, 0.99)),
+        "max_lod_change_rmse": change.last(),
+    })
+}
+
 struct Bench<'a> {
     s: &'a Session,
     args: &'a BenchArgs,
@@ -317,6 +392,35 @@ struct Bench<'a> {
 }
 
 impl Bench<'_> {
+    /// Reads row `r`'s finished frame from `slot`. In an error-driven run it then draws
+    /// row `r`'s blocks and the previous row's, both from row `r`'s camera, on a keyed
+    /// background in the same slot: their difference where both show terrain is the LOD
+    /// change alone (no motion, no blocks entering the frustum).
+    fn finish_temporal(
+        &mut self,
+        diff: &mut TemporalDiff,
+        slot: usize,
+        r: usize,
+        rows: &mut [Row],
+        shading: &Shading,
+    ) -> anyhow::Result<()> {
+        let pixels = self.targets[slot].pixels()?;
+        if let (Some((cam, now)), Some((_, before))) = (diff.frames.get(&r), r.checked_sub(1).and_then(|p| diff.frames.get(&p))) {
+            let keyed = Shading { sky: false, background: KEY_COLOUR, ..*shading };
+            let mut images = Vec::new();
+            for blocks in [now, before] {
+                let target = &self.targets[slot];
+                self.renderer.submit_offscreen(slot, &self.s.hf, &self.s.terrain, target, cam, blocks, &keyed)?;
+                self.renderer.wait_offscreen(slot)?;
+                images.push(target.pixels()?);
+            }
+            rows[r].lod_change_rmse = Some(keyed_difference(&images[0], &images[1]));
+        }
+        diff.frames.retain(|&k, _| k + 2 >= r);
+        diff.push(r, pixels, rows);
+        Ok(())
+    }
+
     fn camera(&self, i: u64) -> (Camera, f64) {
         match &self.poses {
             // Pose files carry no time: frames are 1/30 s apart.
@@ -366,6 +470,7 @@ impl Bench<'_> {
             self.args.common.error_feed().with_trace(self.trace.clone());
         // Row of the frame pending in each offscreen slot.
         let mut pending: Vec<Option<usize>> = vec![None; self.targets.len()];
+        let mut temporal = self.args.popping.then(TemporalDiff::default);
         let shared = self.s.device.queue_mode == crate::vk::QueueMode::Shared;
         let draw_track = self.trace.gpu_tid(false, shared);
         let trace = self.trace.clone();
@@ -407,6 +512,7 @@ impl Bench<'_> {
                 let t = Instant::now();
                 let tr = feed.traverse_lod(lod, &self.s.hf, &self.s.mm, &self.s.layout, &cam, self.args.delta);
                 row.traverse_ms = t.elapsed().as_secs_f64() * 1e3;
+                row.morphing = tr.morphing;
                 if let Some(g) = feed.usable() {
                     row.error_generation = g.number;
                     row.error_update_ms = g.gpu_ms;
@@ -426,6 +532,16 @@ impl Bench<'_> {
             // Frames in flight, as in the viewer: this frame goes into the next slot, and
             // what comes back is the slot's previous frame, finished.
             let slot = i as usize % self.targets.len();
+            if let Some(diff) = &mut temporal {
+                // The slot's previous frame, finished: read it before it is drawn over.
+                if let (Some(stats), Some(r)) = (self.renderer.wait_offscreen(slot)?, pending[slot].take()) {
+                    fill(&mut run.rows[r], &stats, r);
+                    self.finish_temporal(diff, slot, r, &mut run.rows, &shading)?;
+                }
+                if lod == LodChoice::Error && ceiling.is_none() {
+                    diff.frames.insert(run.rows.len(), (cam, blocks.clone()));
+                }
+            }
             let done = self.renderer.submit_offscreen(
                 slot,
                 &self.s.hf,
@@ -463,6 +579,9 @@ impl Bench<'_> {
         for (slot, row) in pending.iter_mut().enumerate() {
             if let (Some(stats), Some(r)) = (self.renderer.wait_offscreen(slot)?, row.take()) {
                 fill(&mut run.rows[r], &stats, r);
+                if let Some(diff) = &mut temporal {
+                    self.finish_temporal(diff, slot, r, &mut run.rows, &shading)?;
+                }
             }
         }
         Ok(run)
@@ -584,6 +703,23 @@ fn plot(path: &Path, rows: &[Row], title: &str) -> anyhow::Result<()> {
 }
 
 /// RMSE (8-bit) and the share of pixels off by more than 16 levels.
+/// Background of the LOD-change images: pixels showing it in either image are left out.
+const KEY_COLOUR: [f32; 3] = [1.0, 0.0, 1.0];
+
+/// Colour RMSE over the pixels that show terrain in both images.
+fn keyed_difference(a: &[u8], b: &[u8]) -> f64 {
+    let key = KEY_COLOUR.map(|c| (c * 255.0) as u8);
+    let (mut se, mut n) = (0.0f64, 0usize);
+    for (p, q) in a.chunks(4).zip(b.chunks(4)) {
+        if p[..3] == key || q[..3] == key {
+            continue;
+        }
+        se += (0..3).map(|c| ((p[c] as i32 - q[c] as i32).pow(2)) as f64).sum::<f64>();
+        n += 1;
+    }
+    (se / (3 * n.max(1)) as f64).sqrt()
+}
+
 pub fn image_difference(a: &[u8], b: &[u8]) -> (f64, f64) {
     let (mut se, mut off, mut n) = (0.0f64, 0usize, 0usize);
     for (p, q) in a.chunks(4).zip(b.chunks(4)) {
@@ -711,16 +847,24 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
             });
         }
         let out = (|| -> anyhow::Result<Value> {
-            let main = bench.run(args.lod, (args.lod == LodChoice::Error).then_some(&activity), None, args.compare)?;
-            write_csv(&args.out.join("frames.csv"), &main.rows)?;
+            let mut main =
+                bench.run(args.lod, (args.lod == LodChoice::Error).then_some(&activity), None, args.compare)?;
             // A generation is recorded only when a newer one is observed.
             let increasing = main.generations.windows(2).all(|w| w[0] < w[1]);
             let mut summary = summarize(&main);
             summary["generations_strictly_increasing"] = json!(increasing);
             summary["rss_samples_mib"] = json!(main.rss);
             summary["interrupted"] = json!(main.interrupted);
-            if args.compare && !main.interrupted {
-                let full = bench.run(LodChoice::Full, None, None, false)?;
+            let mut full = None;
+            if (args.compare || args.popping) && !main.interrupted {
+                full = Some(bench.run(LodChoice::Full, None, None, false)?);
+            }
+            if let (true, Some(full)) = (args.popping, &full) {
+                summary["popping"] = popping(&mut main.rows, &full.rows);
+                summary["popping"]["morph"] = json!(args.common.morph == crate::cli::OnOff::On);
+            }
+            write_csv(&args.out.join("frames.csv"), &main.rows)?;
+            if let (true, Some(full)) = (args.compare, full) {
                 let distance = bench.run(LodChoice::Distance, None, None, false)?;
                 let ceiling = bench.run(LodChoice::Full, None, Some(&main.blocks), false)?;
                 let (sm, sf, sd, sc) = (summarize(&main), summarize(&full), summarize(&distance), summarize(&ceiling));
@@ -771,6 +915,7 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     let messages = s.device.instance.messages.clone();
     drop(s);
     summary["validation_messages"] = json!(messages.count());
+    summary["morph"] = json!(args.common.morph == crate::cli::OnOff::On);
     summary["validation_counted_after_device_destruction"] = json!(true);
     let text = serde_json::to_string_pretty(&summary)?;
     let path = args.out.join("summary.json");

@@ -127,6 +127,11 @@ pub struct Target {
 }
 
 impl Target {
+    /// The last finished frame's RGBA8 pixels (the readback buffer).
+    pub fn pixels(&self) -> VkResult<Vec<u8>> {
+        Ok(self.readback.mapped()?[..(self.width * self.height * 4) as usize].to_vec())
+    }
+
     pub fn new(device: &Arc<Device>, width: u32, height: u32) -> VkResult<Self> {
         let extent = vk::Extent2D { width, height };
         Ok(Target {

@@ -36,7 +36,7 @@
 use crate::camera::{distance_to_aabb, Camera};
 use crate::heightfield::{Heightfield, MinMaxPyramid};
 use crate::quadtree::{
-    angular_factor, block_aabb, block_vertex, morph_value, world_to_pixels, BlockLayout, DrawBlock, MorphState,
+    angular_factor, block_aabb, morph_value, world_to_pixels, BlockLayout, DrawBlock, MorphState,
     Traversal, MORPH_ONE,
 };
 use glam::Vec3;
@@ -73,8 +73,8 @@ impl MorphCost {
 pub enum MorphRule {
     /// Everything above.
     Bounded,
-    /// Only the interior term: the fixed edges' strips and the edge factors ignored.
-    InteriorOnly,
+    /// Half of each factor the bound asks for: the morph underpaid.
+    Underpaid,
     /// Every block on its parent's surface (factor 0), the bound ignored.
     ParentSurface,
 }
@@ -145,21 +145,25 @@ pub fn cost(
     }
     let (strip_parent, strip_own) = strips.map_or((0.0, 0.0), |(p, o)| (p.max() * hs * px, o.max() * hs * px));
 
-    // Edges: each vertex's whole morph.
-    let all_parent = b.in_state(MorphState::Parent);
-    let k = layout.k();
+    // Free edges: each odd vertex's whole morph, from the mean of its neighbours along
+    // the edge to its own sample (fixed edges do not morph).
+    let k = layout.k() as i64;
+    let stride = b.stride() as i64;
     let mut edge_move = [0.0f32; 4];
     for (s, m) in edge_move.iter_mut().enumerate() {
-        for t in 0..k {
-            let (u, v) = match s {
-                0 => (t, 0),
-                1 => (k - 1, t),
-                2 => (t, k - 1),
-                _ => (0, t),
-            };
-            let moved =
-                (block_vertex(hf, layout, &own_state, u, v).2 - block_vertex(hf, layout, &all_parent, u, v).2).abs();
-            *m = m.max(moved * hs * px);
+        if fixed & (1 << s) != 0 {
+            continue;
+        }
+        let ((x0, z0), (dx, dz)) = match s {
+            0 => ((0, 0), (1, 0)),
+            1 => ((k - 1, 0), (0, 1)),
+            2 => ((0, k - 1), (1, 0)),
+            _ => ((0, 0), (0, 1)),
+        };
+        for t in (1..k - 1).step_by(2) {
+            let (x, z) = (ox as i64 + (x0 + t * dx) * stride, oz as i64 + (z0 + t * dz) * stride);
+            let mean = (hf.raw_at(x - dx * stride, z - dz * stride) + hf.raw_at(x + dx * stride, z + dz * stride)) * 0.5;
+            *m = m.max((hf.raw_at(x, z) - mean).abs() * hs * px);
         }
     }
     MorphCost { parent, own, strip_parent, strip_own, edge_move, fixed }
@@ -167,12 +171,8 @@ pub fn cost(
 
 /// The least factor `>= current` (in steps of `1 / MORPH_ONE`) that meets `delta` with
 /// these edge factors, or `MORPH_ONE` (always sound) when none does.
-fn least_factor(c: &MorphCost, current: u16, edges: [u16; 4], delta: f32, rule: MorphRule) -> u16 {
+fn least_factor(c: &MorphCost, current: u16, edges: [u16; 4], delta: f32) -> u16 {
     let e = edges.map(morph_value);
-    let c = match rule {
-        MorphRule::InteriorOnly => MorphCost { strip_parent: 0.0, strip_own: 0.0, edge_move: [0.0; 4], ..*c },
-        _ => *c,
-    };
     // Edge factors below `f` rise to `f` with it (they are maxima), so they cost nothing.
     let fits = |f: f32| c.bound(f, e.map(|x| x.max(f))) <= delta;
     // The feasible set is a union of intervals whose left ends are where a constraint
@@ -200,6 +200,11 @@ fn least_factor(c: &MorphCost, current: u16, edges: [u16; 4], delta: f32, rule: 
     MORPH_ONE
 }
 
+/// A block reaches its own surface at the latest when its parent's error is this many
+/// times delta (linearly from its split, where the parent's error is delta); before, if the
+/// bound asks for it. Without it a block would sit at exactly delta until it splits.
+pub const MORPH_RANGE: f32 = 2.0;
+
 /// Rounds of raising before giving up on morphing this frame (factor 1 everywhere).
 const MAX_ROUNDS: usize = 200;
 
@@ -218,6 +223,7 @@ pub fn assign_with(
     t: &mut Traversal,
     rule: MorphRule,
 ) {
+    if std::env::var("VKT_NO_MORPH").is_ok() { return; }
     let root = layout.root_lod();
     let n = t.blocks.len();
     let index: HashMap<(u32, u32, u32), usize> = t.blocks.iter().enumerate().map(|(i, b)| ((b.lod, b.bx, b.bz), i)).collect();
@@ -252,7 +258,20 @@ pub fn assign_with(
         .zip(&fixed)
         .map(|(b, &fx)| (b.lod < root).then(|| cost(hf, mm, layout, cam, delta, b, fx)))
         .collect();
-    let mut q: Vec<u16> = costs.iter().map(|c| if c.is_some() { 0 } else { MORPH_ONE }).collect();
+    // Start from the ramp; the bound may ask for more.
+    let range: f32 = std::env::var("VKT_MORPH_RANGE").ok().and_then(|v| v.parse().ok()).unwrap_or(MORPH_RANGE);
+    let mut q: Vec<u16> = costs
+        .iter()
+        .map(|c| match c {
+            Some(_) if rule == MorphRule::ParentSurface => 0,
+            Some(c) if range > 1.0 => {
+                let f = ((c.parent / delta - 1.0) / (range - 1.0)).clamp(0.0, 1.0);
+                (f * MORPH_ONE as f32).ceil() as u16
+            }
+            Some(_) => 0,
+            None => MORPH_ONE,
+        })
+        .collect();
     let mut edges = vec![[MORPH_ONE; 4]; n];
     let mut settled = false;
     for _ in 0..MAX_ROUNDS {
@@ -272,7 +291,7 @@ pub fn assign_with(
         let mut changed = false;
         for i in 0..n {
             if let Some(c) = &costs[i] {
-                let need = least_factor(c, q[i], edges[i], delta, rule);
+                let need = least_factor(c, q[i], edges[i], delta);
                 if need > q[i] {
                     q[i] = need;
                     changed = true;
@@ -287,6 +306,11 @@ pub fn assign_with(
     if !settled {
         q.fill(MORPH_ONE);
         edges.fill([MORPH_ONE; 4]);
+    }
+    if rule == MorphRule::Underpaid {
+        for f in q.iter_mut().chain(edges.iter_mut().flatten()) {
+            *f /= 2;
+        }
     }
     t.morphing = 0;
     for (i, b) in t.blocks.iter_mut().enumerate() {

@@ -97,8 +97,8 @@ pub struct ViewArgs {
 const KEYS: &str = "\
 keys: W/S forward/back, A/D left/right, Q/E down/up, hold a mouse button and move to look,
       Shift faster, wheel changes speed, G walk/fly, [ and ] halve/double delta,
-      M strict/paper error mode, F wireframe, L colour blocks by LOD, Space freeze the
-      block list, P screenshot, Esc quit";
+      M strict/paper error mode, N geomorphing on/off, F wireframe, L colour blocks by LOD,
+      Space freeze the block list, P screenshot, Esc quit";
 
 fn load_texture(path: &PathBuf) -> Result<Texture, InputError> {
     let img = image::open(path).map_err(|e| InputError(format!("{}: cannot read texture: {e}", path.display())))?;
@@ -726,13 +726,14 @@ impl App {
         let age = self.feed.age_frames(self.frame).map_or("-".to_string(), |a| a.to_string());
         let queue = self.gpu.as_ref().map_or("", |g| g.device.queue_mode.as_str());
         let title = format!(
-            "vkterrain | {fps:.1} fps {:.1} ms | {} tris {} draws {} blocks | delta {} {} | errors age {age} frames | queue {queue}{}{} | ({:.0}, {:.0}, {:.0})",
+            "vkterrain | {fps:.1} fps {:.1} ms | {} tris {} draws {} blocks | delta {} {} {} | errors age {age} frames | queue {queue}{}{} | ({:.0}, {:.0}, {:.0})",
             1000.0 / fps.max(1e-6),
             self.last_stats.triangles,
             self.last_stats.draw_calls,
             self.last_blocks,
             self.delta,
             self.mode.as_str(),
+            if self.feed.morph { "morph" } else { "no morph" },
             if self.frozen.is_some() { " | FROZEN" } else { "" },
             if self.ctl.walk { " | walk" } else { "" },
             cam.position.x,
@@ -754,6 +755,7 @@ impl App {
             KeyCode::KeyM => {
                 self.mode = if self.mode == ErrorMode::Strict { ErrorMode::Paper } else { ErrorMode::Strict }
             }
+            KeyCode::KeyN => self.feed.morph = !self.feed.morph,
             KeyCode::KeyF => {
                 self.shading.wireframe = !self.shading.wireframe;
                 if self.gpu.as_ref().is_some_and(|g| !g.device.features.wireframe) {

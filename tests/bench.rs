@@ -61,11 +61,13 @@ fn short_bench_writes_every_file_with_documented_fields() {
     assert_eq!(
         lines.next().unwrap(),
         "time_s,frame_ms,traverse_ms,gpu_ms,triangles,draw_calls,blocks,error_generation,error_age_frames,\
-         error_update_ms,queue_wait_ms"
+         error_update_ms,queue_wait_ms,morphing,temporal_rmse,popping,lod_change_rmse"
     );
     let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
     assert_eq!(rows.len(), 24);
-    assert!(rows.iter().all(|r| r.len() == 11));
+    assert!(rows.iter().all(|r| r.len() == 15));
+    // Without --popping no frame is read back for it.
+    assert!(rows.iter().all(|r| r[12..] == ["", "", ""]));
     // Terrain is ahead for the first three quarters of the path (at the far edge the
     // camera looks out past it, as at the end of the paper's Figure 8).
     assert!(rows[..18].iter().all(|r| r[4].parse::<u64>().unwrap() > 0), "frames with terrain ahead draw triangles");
@@ -155,6 +157,36 @@ fn short_bench_writes_every_file_with_documented_fields() {
     };
     let (starts, ends) = (ids("s"), ids("f"));
     assert!(!ends.is_empty() && ends.iter().all(|id| starts.contains(id)), "flows: starts {starts:?}, ends {ends:?}");
+}
+
+/// `--popping`: every frame of the error run and of the full run is compared with the one
+/// before, the excess is the difference, and the LOD change alone is measured from each
+/// frame's camera; with morphing on, blocks are drawn part way.
+#[test]
+fn popping_is_measured_frame_by_frame() {
+    let tmp = TempDir::new("popping");
+    for morph in ["on", "off"] {
+        let out = tmp.path().join(morph);
+        let s = bench(&out, &["--frames", "12", "--popping", "--no-fidelity", "--morph", morph]);
+        assert_eq!(s["morph"], morph == "on");
+        let p = &s["popping"];
+        assert_eq!(p["frame_pairs"], 11, "{p}");
+        for key in ["mean_excess", "p99_excess", "mean_lod_change_rmse", "p99_lod_change_rmse"] {
+            assert!(p[key].as_f64().is_some_and(|v| v.is_finite()), "popping.{key}: {p}");
+        }
+        let csv = std::fs::read_to_string(out.join("frames.csv")).unwrap();
+        let rows: Vec<Vec<String>> = csv.lines().skip(1).map(|l| l.split(',').map(String::from).collect()).collect();
+        let num = |r: &[String], c: usize| r[c].parse::<f64>().ok();
+        assert!(rows[0][12..].iter().all(|c| c.is_empty()), "the first frame has no predecessor");
+        for r in &rows[1..] {
+            let (t, excess, change) = (num(r, 12).unwrap(), num(r, 13).unwrap(), num(r, 14).unwrap());
+            assert!(t >= 0.0 && change >= 0.0 && excess <= t + 1e-3, "{r:?}");
+        }
+        let mean: f64 = rows[1..].iter().map(|r| num(r, 13).unwrap()).sum::<f64>() / 11.0;
+        assert!((mean - p["mean_excess"].as_f64().unwrap()).abs() < 1e-3, "mean excess {mean} against {p}");
+        let morphing: usize = rows.iter().map(|r| r[11].parse::<usize>().unwrap()).sum();
+        assert_eq!(morphing > 0, morph == "on", "blocks drawn part way: {morphing}");
+    }
 }
 
 #[test]

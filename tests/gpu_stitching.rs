@@ -1,5 +1,5 @@
 //! The vertex shader's placement of every vertex of every drawn block (stitching
-//! included) equals its plain-Rust mirror `quadtree::block_vertex`, bit for bit: the
+//! and morphing included) equals its plain-Rust mirror `quadtree::block_vertex`, bit for bit: the
 //! GPU side of the crack-free guarantee that `traversal.rs` proves on the CPU.
 
 mod common;
@@ -13,19 +13,20 @@ use vkterrain::heightfield::{Heightfield, MinMaxPyramid};
 use vkterrain::quadtree::{block_vertex, traverse, BlockLayout, LodSelect};
 use vkterrain::terrain_gpu::TerrainGpu;
 
-/// Returns (vertices compared, collapsed-edge vertices, on-segment vertices).
+/// Returns (vertices compared, collapsed-edge vertices, on-segment vertices, morphed
+/// interior vertices).
 fn compare(
     device: &Arc<vkterrain::vk::Device>,
     hf: &Heightfield,
     k: u32,
     cams: &[Camera],
     delta: f32,
-) -> (usize, usize, usize) {
+) -> (usize, usize, usize, usize) {
     let mm = MinMaxPyramid::build(hf);
     let layout = BlockLayout::new(hf.n, k).unwrap();
     let terrain = TerrainGpu::new(device, hf, &mm, None, None).unwrap();
     let mut renderer = BlocksRenderer::new(device, &terrain, layout, COLOR_FORMAT, 1).unwrap();
-    let (mut n, mut collapsed, mut lerped) = (0, 0, 0);
+    let (mut n, mut collapsed, mut lerped, mut morphed) = (0, 0, 0, 0);
     for cam in cams {
         let errors = block_errors(&group_errors(hf, &mm, &ErrorParams::new(cam, ErrorMode::Strict)), layout.m);
         let t = traverse(hf, &mm, &layout, cam, LodSelect::errors(&errors, cam.position, delta, ErrorMode::Strict));
@@ -40,14 +41,16 @@ fn compare(
                     let got = gpu[i * (kk * kk) as usize + (v * kk + u) as usize];
                     assert_eq!([got[0], got[1], got[2]], want, "block {b:?} vertex ({u},{v})");
                     let moved = (sx, sz) != (ox as i64 + (u * b.stride()) as i64, oz as i64 + (v * b.stride()) as i64);
+                    let interior = u > 0 && v > 0 && u < kk - 1 && v < kk - 1;
                     collapsed += moved as usize;
-                    lerped += (!moved && raw != hf.raw_at(sx, sz)) as usize;
+                    lerped += (!moved && !interior && raw != hf.raw_at(sx, sz)) as usize;
+                    morphed += (interior && raw != hf.raw_at(sx, sz)) as usize;
                     n += 1;
                 }
             }
         }
     }
-    (n, collapsed, lerped)
+    (n, collapsed, lerped, morphed)
 }
 
 #[test]
@@ -64,12 +67,13 @@ fn vertex_shader_placement_matches_the_cpu_mirror() {
             Camera::look_at(pos, Vec3::new(512.0, 0.0, 512.0), 60.0, 320, 240, 0.2)
         })
         .collect();
-    let (mut total, mut collapsed, mut lerped) = (0, 0, 0);
+    let (mut total, mut collapsed, mut lerped, mut morphed) = (0, 0, 0, 0);
     for k in [3, 9, 33] {
-        let (n, c, l) = compare(&device, &hills, k, &cams, 1.0);
+        let (n, c, l, m) = compare(&device, &hills, k, &cams, 1.0);
         total += n;
         collapsed += c;
         lerped += l;
+        morphed += m;
     }
     // A lone spike next to flat ground: LOD differences beyond m (vertices on a segment).
     let lone = field(257, 257, 1.0, |x, z| {
@@ -82,11 +86,15 @@ fn vertex_shader_placement_matches_the_cpu_mirror() {
         }
     });
     let top = [Camera::look_at(Vec3::new(128.0, 300.0, 128.0), Vec3::new(128.0, 0.0, 127.0), 70.0, 320, 240, 0.05)];
-    let (n, c, l) = compare(&device, &lone, 3, &top, 1.0);
+    let (n, c, l, m) = compare(&device, &lone, 3, &top, 1.0);
     total += n;
     collapsed += c;
     lerped += l;
-    println!("{total} vertices compared: {collapsed} collapsed onto a coarser neighbour, {lerped} placed on its edge");
+    morphed += m;
+    println!(
+        "{total} vertices compared: {collapsed} collapsed onto a coarser neighbour, {lerped} edge vertices off their sample's height, {morphed} interior vertices morphed"
+    );
     assert!(collapsed > 0 && lerped > 0, "both stitching cases must occur ({collapsed}, {lerped})");
+    assert!(morphed > 0, "no morphed vertex was compared");
     finish(device);
 }

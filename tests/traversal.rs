@@ -9,7 +9,8 @@ use vkterrain::audit::{audit, check_tiling};
 use vkterrain::camera::Camera;
 use vkterrain::gie::{block_errors, group_errors_with, ErrorMode, ErrorParams, WorldPart};
 use vkterrain::heightfield::{self, Heightfield, LoadOptions, MinMaxPyramid};
-use vkterrain::quadtree::{block_vertex, traverse, BlockLayout, LodSelect, Traversal};
+use vkterrain::morph::{self, MorphRule};
+use vkterrain::quadtree::{block_vertex, traverse, BlockLayout, LodSelect, Traversal, MORPH_ONE};
 
 /// A small deterministic generator (no dependency, reproducible poses).
 struct Rng(u64);
@@ -68,6 +69,10 @@ enum Variant {
     NoStitchBound,
     /// The paper's nested max in place of the exact world deviation.
     NestedMax,
+    /// Half of each morph factor the bound asks for.
+    MorphUnderpaid,
+    /// Every block drawn on its parent's surface.
+    MorphParentSurface,
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -88,7 +93,14 @@ fn frame_with(
     if let LodSelect::Errors { stitch_bound, .. } = &mut select {
         *stitch_bound &= variant != Variant::NoStitchBound;
     }
-    traverse(hf, mm, layout, cam, select)
+    let rule = match variant {
+        Variant::MorphUnderpaid => MorphRule::Underpaid,
+        Variant::MorphParentSurface => MorphRule::ParentSurface,
+        _ => return traverse(hf, mm, layout, cam, select),
+    };
+    let mut t = traverse(hf, mm, layout, cam, select.with_morph(false));
+    morph::assign_with(hf, mm, layout, cam, delta, &mut t, rule);
+    t
 }
 
 /// Runs `count` random poses of every kind; returns the worst audited error per mode.
@@ -606,4 +618,108 @@ fn strict_holds_where_the_deviation_leaves_the_frustum() {
             t.max_block_error
         );
     }
+}
+
+/// Mutation tests for the morph's share of the bound: blocks drawn on their parent's
+/// surface, or with half the factor the bound asks for, break delta on real data and on
+/// the crafted fields.
+#[test]
+fn audit_catches_unpaid_morphs() {
+    let hf = heightfield::load(&data("puget_sound/ps_height_1k.png"), &LoadOptions::default()).unwrap();
+    let mut rng = Rng(5);
+    let poses: Vec<Camera> = (0..12).map(|i| pose(&hf, &mut rng, [Pose::NearGround, Pose::Horizon][i % 2])).collect();
+    let parent = worst_ratio(&hf, 33, &poses, Variant::MorphParentSurface, false);
+    assert!(parent > 1.5, "blocks on their parent's surface: worst audited / delta only {parent}");
+    let underpaid = worst_ratio(&hf, 33, &poses, Variant::MorphUnderpaid, false);
+    assert!(underpaid > 1.01, "half the morph factor on Puget Sound: worst audited / delta only {underpaid}");
+    let mut report = Vec::new();
+    for (f, edge, k) in [(flat_next_to_ridges(1, 0.5), 128.0, 9), (first_row_spikes(5, 40.0), 96.0, 5), (blancmange(), 128.0, 5)] {
+        let poses = adversarial_poses(&f, edge, 40, 300 + k as u64);
+        let r = worst_ratio(&f, k, &poses, Variant::MorphUnderpaid, false);
+        report.push(format!("{} k {k}: {r:.2}", f.source));
+        assert!(r > 1.01, "half the morph factor on {}: worst audited / delta only {r}", f.source);
+    }
+    println!("worst audited / delta: parent surface {parent:.2}; half the factor: Puget Sound {underpaid:.2}, {}", report.join(", "));
+}
+
+/// Drawn surface height (raw) at every covered sample, NaN where nothing is drawn.
+fn drawn_surface(hf: &Heightfield, layout: &BlockLayout, t: &Traversal) -> Vec<f32> {
+    let mut h = vec![f32::NAN; hf.width * hf.height];
+    for b in &t.blocks {
+        let (ox, oz) = b.origin(layout);
+        let side = layout.block_samples(b.lod) as usize;
+        for z in oz as usize..(oz as usize + side + 1).min(hf.height) {
+            for x in ox as usize..(ox as usize + side + 1).min(hf.width) {
+                if let Some(r) = vkterrain::audit::rendered_raw(hf, layout, b, x as i64, z as i64) {
+                    h[z * hf.width + x] = r;
+                }
+            }
+        }
+    }
+    h
+}
+
+/// What geomorphing is for: between two close camera positions the drawn surface moves
+/// a little everywhere instead of jumping where blocks split or merge. Measured on the
+/// CPU along a low flight over Puget Sound: the sum over frames of the squared screen
+/// displacement of every visible sample of the drawn surface, with and without
+/// morphing; and morph states occur (blocks part way) with the audit holding on them.
+#[test]
+fn morphing_turns_jumps_into_small_steps() {
+    let hf = heightfield::load(&data("puget_sound/ps_height_1k.png"), &LoadOptions::default()).unwrap();
+    let mm = MinMaxPyramid::build(&hf);
+    let layout = BlockLayout::new(hf.n, 33).unwrap();
+    let (wx, wz) = hf.world_extent();
+    let steps = 24;
+    let cams: Vec<Camera> = (0..steps)
+        .map(|i| {
+            let x = wx * (0.3 + 0.004 * i as f32);
+            let z = wz * 0.6;
+            let pos = Vec3::new(x, hf.surface_height(x, z) + 600.0, z);
+            Camera::look_at(pos, pos + Vec3::new(1.0, -0.25, -0.3), 60.0, 640, 480, 8.0)
+        })
+        .collect();
+    let mut energy = [0.0f64; 2];
+    let mut partial = 0usize;
+    for (m, morph_on) in [false, true].into_iter().enumerate() {
+        let mut previous: Option<Vec<f32>> = None;
+        for cam in &cams {
+            let p = ErrorParams::new(cam, ErrorMode::Strict);
+            let errors = block_errors(&group_errors_with(&hf, &mm, &p, WorldPart::Exact), layout.m);
+            let t = traverse(&hf, &mm, &layout, cam, LodSelect::errors(&errors, cam.position, 1.0, ErrorMode::Strict).with_morph(morph_on));
+            if morph_on {
+                partial += t.blocks.iter().filter(|b| b.morph > 0 && b.morph < MORPH_ONE).count();
+                let a = audit(&hf, &layout, &t, cam);
+                assert!(a.max_error_px <= 1.01, "morphing frame at {:?}: audited {} px", cam.position, a.max_error_px);
+            }
+            let surface = drawn_surface(&hf, &layout, &t);
+            if let Some(prev) = &previous {
+                let vp = cam.view_proj();
+                let frustum = cam.frustum();
+                for (i, (&a, &b)) in surface.iter().zip(prev).enumerate() {
+                    if a.is_nan() || b.is_nan() || a == b {
+                        continue;
+                    }
+                    let (x, z) = ((i % hf.width) as f32 * hf.spacing, (i / hf.width) as f32 * hf.spacing);
+                    let pa = Vec3::new(x, a * hf.height_scale, z);
+                    let pb = Vec3::new(x, b * hf.height_scale, z);
+                    if !frustum.contains_point(pa) || !frustum.contains_point(pb) {
+                        continue;
+                    }
+                    if let (Some(qa), Some(qb)) = (cam.project(&vp, pa), cam.project(&vp, pb)) {
+                        energy[m] += ((qa.0 - qb.0).powi(2) + (qa.1 - qb.1).powi(2)) as f64;
+                    }
+                }
+            }
+            previous = Some(surface);
+        }
+    }
+    println!(
+        "squared screen displacement of the drawn surface over {steps} frames: no morph {:.0}, morph {:.0} (ratio {:.3}); {partial} blocks drawn part way",
+        energy[0],
+        energy[1],
+        energy[1] / energy[0]
+    );
+    assert!(partial > steps, "too few morph states to test ({partial})");
+    assert!(energy[0] > 0.0 && energy[1] < energy[0] / 3.0, "morphing: {energy:?}");
 }
