@@ -405,7 +405,9 @@ impl Bench<'_> {
         shading: &Shading,
     ) -> anyhow::Result<()> {
         let pixels = self.targets[slot].pixels()?;
-        if let (Some((cam, now)), Some((_, before))) = (diff.frames.get(&r), r.checked_sub(1).and_then(|p| diff.frames.get(&p))) {
+        if let (Some((cam, now)), Some((_, before))) =
+            (diff.frames.get(&r), r.checked_sub(1).and_then(|p| diff.frames.get(&p)))
+        {
             let keyed = Shading { sky: false, background: KEY_COLOUR, ..*shading };
             let mut images = Vec::new();
             for blocks in [now, before] {
@@ -466,8 +468,7 @@ impl Bench<'_> {
             interrupted: false,
             rss: Vec::new(),
         };
-        let mut feed =
-            self.args.common.error_feed().with_trace(self.trace.clone());
+        let mut feed = self.args.common.error_feed().with_trace(self.trace.clone());
         // Row of the frame pending in each offscreen slot.
         let mut pending: Vec<Option<usize>> = vec![None; self.targets.len()];
         let mut temporal = self.args.popping.then(TemporalDiff::default);

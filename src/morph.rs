@@ -36,8 +36,7 @@
 use crate::camera::{distance_to_aabb, Camera};
 use crate::heightfield::{Heightfield, MinMaxPyramid};
 use crate::quadtree::{
-    angular_factor, block_aabb, morph_value, world_to_pixels, BlockLayout, DrawBlock, MorphState,
-    Traversal, MORPH_ONE,
+    angular_factor, block_aabb, morph_value, world_to_pixels, BlockLayout, DrawBlock, MorphState, Traversal, MORPH_ONE,
 };
 use glam::Vec3;
 use std::collections::HashMap;
@@ -99,9 +98,8 @@ pub fn cost(
             *e = MORPH_ONE;
         }
     }
-    let strips = (fixed != 0).then(|| {
-        (mm.stitch.strips(hf, layout, &parent_state, fixed), mm.stitch.strips(hf, layout, &own_state, fixed))
-    });
+    let strips = (fixed != 0)
+        .then(|| (mm.stitch.strips(hf, layout, &parent_state, fixed), mm.stitch.strips(hf, layout, &own_state, fixed)));
     let (mut min, mut max) = block_aabb(hf, mm, layout, j, b.bx, b.bz);
     if let Some((p, o)) = &strips {
         min.y = min.y.min(p.lo.min(o.lo) * hs);
@@ -162,7 +160,8 @@ pub fn cost(
         };
         for t in (1..k - 1).step_by(2) {
             let (x, z) = (ox as i64 + (x0 + t * dx) * stride, oz as i64 + (z0 + t * dz) * stride);
-            let mean = (hf.raw_at(x - dx * stride, z - dz * stride) + hf.raw_at(x + dx * stride, z + dz * stride)) * 0.5;
+            let mean =
+                (hf.raw_at(x - dx * stride, z - dz * stride) + hf.raw_at(x + dx * stride, z + dz * stride)) * 0.5;
             *m = m.max((hf.raw_at(x, z) - mean).abs() * hs * px);
         }
     }
@@ -180,9 +179,9 @@ fn least_factor(c: &MorphCost, current: u16, edges: [u16; 4], delta: f32) -> u16
     let mut lines = Vec::new();
     for (a, b) in [(c.parent, c.own), (c.strip_parent, c.strip_own)] {
         lines.push((a, b - a));
-        for s in 0..4 {
+        for (s, (&es, &d)) in e.iter().zip(&c.edge_move).enumerate() {
             if c.fixed & (1 << s) == 0 {
-                lines.push((a + e[s] * c.edge_move[s], b - a - c.edge_move[s]));
+                lines.push((a + es * d, b - a - d));
             }
         }
     }
@@ -223,10 +222,10 @@ pub fn assign_with(
     t: &mut Traversal,
     rule: MorphRule,
 ) {
-    if std::env::var("VKT_NO_MORPH").is_ok() { return; }
     let root = layout.root_lod();
     let n = t.blocks.len();
-    let index: HashMap<(u32, u32, u32), usize> = t.blocks.iter().enumerate().map(|(i, b)| ((b.lod, b.bx, b.bz), i)).collect();
+    let index: HashMap<(u32, u32, u32), usize> =
+        t.blocks.iter().enumerate().map(|(i, b)| ((b.lod, b.bx, b.bz), i)).collect();
     let cells = layout.cells() as i64;
     // Across each edge: the same-LOD neighbour, or a block of another LOD (fixed edge).
     let mut same = vec![[None; 4]; n];
@@ -259,16 +258,14 @@ pub fn assign_with(
         .map(|(b, &fx)| (b.lod < root).then(|| cost(hf, mm, layout, cam, delta, b, fx)))
         .collect();
     // Start from the ramp; the bound may ask for more.
-    let range: f32 = std::env::var("VKT_MORPH_RANGE").ok().and_then(|v| v.parse().ok()).unwrap_or(MORPH_RANGE);
     let mut q: Vec<u16> = costs
         .iter()
         .map(|c| match c {
             Some(_) if rule == MorphRule::ParentSurface => 0,
-            Some(c) if range > 1.0 => {
-                let f = ((c.parent / delta - 1.0) / (range - 1.0)).clamp(0.0, 1.0);
+            Some(c) => {
+                let f = ((c.parent / delta - 1.0) / (MORPH_RANGE - 1.0)).clamp(0.0, 1.0);
                 (f * MORPH_ONE as f32).ceil() as u16
             }
-            Some(_) => 0,
             None => MORPH_ONE,
         })
         .collect();
@@ -277,11 +274,8 @@ pub fn assign_with(
     for _ in 0..MAX_ROUNDS {
         for i in 0..n {
             for s in 0..4 {
-                edges[i][s] = if fixed[i] & (1 << s) != 0 {
-                    MORPH_ONE
-                } else {
-                    same[i][s].map_or(q[i], |m| q[i].max(q[m]))
-                };
+                edges[i][s] =
+                    if fixed[i] & (1 << s) != 0 { MORPH_ONE } else { same[i][s].map_or(q[i], |m| q[i].max(q[m])) };
             }
         }
         if rule == MorphRule::ParentSurface {

@@ -472,7 +472,8 @@ pub fn block_vertex(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, u: u3
         return (sx, sz, b.corner(c, hf, sx, sz));
     }
     // Other edge vertices next to a coarser block follow that block's edge.
-    let side = [(0, v == 0), (2, v == last), (1, u == last), (3, u == 0)].into_iter().find(|&(s, on)| on && b.coarser[s] > 0);
+    let side =
+        [(0, v == 0), (2, v == last), (1, u == last), (3, u == 0)].into_iter().find(|&(s, on)| on && b.coarser[s] > 0);
     let Some((side, _)) = side else {
         return (sx, sz, own_vertex_raw(hf, b, last, u, v, sx, sz));
     };

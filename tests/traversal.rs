@@ -188,7 +188,10 @@ fn assert_watertight(hf: &Heightfield, layout: &BlockLayout, t: &Traversal, what
         let (ox, oz) = (ox as i64, oz as i64);
         // Samples along the north and west edges, shared with the block across.
         for d in 0..=side {
-            for (x, z, across) in [(ox + d, oz, (ox + d - (d == side) as i64, oz - 1)), (ox, oz + d, (ox - 1, oz + d - (d == side) as i64))] {
+            for (x, z, across) in [
+                (ox + d, oz, (ox + d - (d == side) as i64, oz - 1)),
+                (ox, oz + d, (ox - 1, oz + d - (d == side) as i64)),
+            ] {
                 if x >= hf.width as i64 || z >= hf.height as i64 {
                     continue;
                 }
@@ -633,13 +636,18 @@ fn audit_catches_unpaid_morphs() {
     let underpaid = worst_ratio(&hf, 33, &poses, Variant::MorphUnderpaid, false);
     assert!(underpaid > 1.01, "half the morph factor on Puget Sound: worst audited / delta only {underpaid}");
     let mut report = Vec::new();
-    for (f, edge, k) in [(flat_next_to_ridges(1, 0.5), 128.0, 9), (first_row_spikes(5, 40.0), 96.0, 5), (blancmange(), 128.0, 5)] {
+    for (f, edge, k) in
+        [(flat_next_to_ridges(1, 0.5), 128.0, 9), (first_row_spikes(5, 40.0), 96.0, 5), (blancmange(), 128.0, 5)]
+    {
         let poses = adversarial_poses(&f, edge, 40, 300 + k as u64);
         let r = worst_ratio(&f, k, &poses, Variant::MorphUnderpaid, false);
         report.push(format!("{} k {k}: {r:.2}", f.source));
         assert!(r > 1.01, "half the morph factor on {}: worst audited / delta only {r}", f.source);
     }
-    println!("worst audited / delta: parent surface {parent:.2}; half the factor: Puget Sound {underpaid:.2}, {}", report.join(", "));
+    println!(
+        "worst audited / delta: parent surface {parent:.2}; half the factor: Puget Sound {underpaid:.2}, {}",
+        report.join(", ")
+    );
 }
 
 /// Drawn surface height (raw) at every covered sample, NaN where nothing is drawn.
@@ -686,7 +694,13 @@ fn morphing_turns_jumps_into_small_steps() {
         for cam in &cams {
             let p = ErrorParams::new(cam, ErrorMode::Strict);
             let errors = block_errors(&group_errors_with(&hf, &mm, &p, WorldPart::Exact), layout.m);
-            let t = traverse(&hf, &mm, &layout, cam, LodSelect::errors(&errors, cam.position, 1.0, ErrorMode::Strict).with_morph(morph_on));
+            let t = traverse(
+                &hf,
+                &mm,
+                &layout,
+                cam,
+                LodSelect::errors(&errors, cam.position, 1.0, ErrorMode::Strict).with_morph(morph_on),
+            );
             if morph_on {
                 partial += t.blocks.iter().filter(|b| b.morph > 0 && b.morph < MORPH_ONE).count();
                 let a = audit(&hf, &layout, &t, cam);
