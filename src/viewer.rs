@@ -28,7 +28,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 use winit::application::ApplicationHandler;
 use winit::dpi::PhysicalSize;
-use winit::event::{DeviceEvent, ElementState, MouseButton, MouseScrollDelta, WindowEvent};
+use winit::event::{ElementState, MouseButton, MouseScrollDelta, WindowEvent};
 use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop};
 use winit::keyboard::{KeyCode, PhysicalKey};
 use winit::window::{Window, WindowId};
@@ -96,7 +96,8 @@ pub struct ViewArgs {
 
 const KEYS: &str = "\
 keys: W/S forward/back, A/D left/right, Q/E down/up, hold a mouse button and move to look,
-      Shift faster, wheel changes speed, G walk/fly, [ and ] halve/double delta,
+      Shift faster, wheel changes speed, G walk/fly, Home back to the start view,
+      [ and ] halve/double delta,
       M strict/paper error mode, N geomorphing on/off, F wireframe, L colour blocks by LOD,
       Space freeze the block list, P screenshot, Esc quit";
 
@@ -104,6 +105,15 @@ fn load_texture(path: &PathBuf) -> Result<Texture, InputError> {
     let img = image::open(path).map_err(|e| InputError(format!("{}: cannot read texture: {e}", path.display())))?;
     let rgba = img.to_rgba8();
     Ok(Texture { width: rgba.width(), height: rgba.height(), rgba: rgba.into_raw() })
+}
+
+/// The viewer's start (and Home) view: over the south part of the terrain, above its
+/// highest point, looking north over it.
+fn start_view(hf: &Heightfield, mm: &MinMaxPyramid) -> (Vec3, Vec3) {
+    let (wx, wz) = hf.world_extent();
+    let [lo, hi] = mm.range().map(|r| r * hf.height_scale);
+    let l = wx.max(wz);
+    (Vec3::new(wx * 0.5, hi + 0.08 * l, wz * 0.92), Vec3::new(wx * 0.5, lo, wz * 0.35))
 }
 
 /// Camera state driven by input or a flyover path.
@@ -151,12 +161,15 @@ impl Controller {
         self.clamp_to_ground(hf);
     }
 
-    /// Never below the terrain (seed 002); in walk mode, at eye height above it.
+    /// Never below the terrain (seed 002); in walk mode, on the terrain at eye height
+    /// (walking off an edge, or switching to walk outside, lands on its border).
     fn clamp_to_ground(&mut self, hf: &Heightfield) {
         let (wx, wz) = hf.world_extent();
         let ground = hf.surface_height(self.position.x.clamp(0.0, wx), self.position.z.clamp(0.0, wz));
         let eye = (2.0f32).max(near_plane(hf) * 4.0);
         if self.walk {
+            self.position.x = self.position.x.clamp(0.0, wx);
+            self.position.z = self.position.z.clamp(0.0, wz);
             self.position.y = ground + eye;
         } else {
             self.position.y = self.position.y.max(ground + eye);
@@ -216,6 +229,15 @@ struct RunStats {
     geometry_bytes: u64,
     validation_messages: u64,
     screenshot: Option<String>,
+    /// State at exit: camera position, yaw and pitch (radians), delta, geomorphing.
+    final_position: [f32; 3],
+    final_yaw: f32,
+    final_pitch: f32,
+    final_delta: f32,
+    final_morph: bool,
+    /// Where the camera started, and how far (radians of yaw) dragging the mouse turned it.
+    start_position: [f32; 3],
+    mouse_turn: f32,
 }
 
 struct App {
@@ -229,6 +251,12 @@ struct App {
     gpu: Option<Gpu>,
     error: Option<anyhow::Error>,
     ctl: Controller,
+    /// Where Home puts the camera: position, yaw, pitch.
+    home: (Vec3, f32, f32),
+    /// Horizontal speed over the last frame (world units per second), for the title.
+    ground_speed: f32,
+    /// Last cursor position in the window, for drag-to-look.
+    cursor: Option<(f32, f32)>,
     shading: Shading,
     delta: f32,
     mode: ErrorMode,
@@ -307,7 +335,14 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
     let detail = args.detail.as_ref().map(load_texture).transpose()?;
     let mm = MinMaxPyramid::build(&hf);
     let (w, h) = args.common.size.unwrap_or((1280, 720));
-    let cam = args.common.camera(&hf, (w, h))?;
+    let cam = if args.common.camera.is_none() && args.common.look_at.is_none() {
+        // Inside the terrain's extent, above its highest point, looking over it: walk
+        // mode (G) lands on ground from here.
+        let (position, target) = start_view(&hf, &mm);
+        Camera::look_at(position, target, args.common.fovy, w, h, near_plane(&hf))
+    } else {
+        args.common.camera(&hf, (w, h))?
+    };
     let f = cam.forward;
     let (wx, wz) = hf.world_extent();
     let l = wx.max(wz);
@@ -328,6 +363,9 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
         window: None,
         gpu: None,
         error: None,
+        home: (cam.position, f.z.atan2(f.x), f.y.clamp(-1.0, 1.0).asin()),
+        ground_speed: 0.0,
+        cursor: None,
         ctl: Controller {
             position: cam.position,
             yaw: f.z.atan2(f.x),
@@ -393,6 +431,11 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
     app.stats.seconds = secs;
     app.stats.avg_fps = app.frame as f64 / secs.max(1e-9);
     app.stats.validation_messages = validation.unwrap_or(0);
+    app.stats.final_position = app.ctl.position.to_array();
+    (app.stats.final_yaw, app.stats.final_pitch) = (app.ctl.yaw, app.ctl.pitch);
+    app.stats.final_delta = app.delta;
+    app.stats.final_morph = app.feed.morph;
+    app.stats.start_position = app.home.0.to_array();
     println!("{}", serde_json::to_string(&app.stats)?);
     if let Some(n) = validation.filter(|&n| n > 0) {
         anyhow::bail!("{n} validation message(s); first: {}", first_message.unwrap_or_default());
@@ -531,7 +574,10 @@ impl App {
             self.ctl.pitch = -0.35;
             self.ctl.clamp_to_ground(&self.hf);
         } else {
+            let before = self.ctl.position;
             self.ctl.update(&self.hf, dt);
+            let moved = self.ctl.position - before;
+            self.ground_speed = if dt > 0.0 { Vec3::new(moved.x, 0.0, moved.z).length() / dt } else { 0.0 };
         }
         let target = self.ctl.position + self.ctl.forward();
         Camera::look_at(
@@ -725,8 +771,9 @@ impl App {
         self.fps_frames = 0;
         let age = self.feed.age_frames(self.frame).map_or("-".to_string(), |a| a.to_string());
         let queue = self.gpu.as_ref().map_or("", |g| g.device.queue_mode.as_str());
+        let (wx, wz) = self.hf.world_extent();
         let title = format!(
-            "vkterrain | {fps:.1} fps {:.1} ms | {} tris {} draws {} blocks | delta {} {} {} | errors age {age} frames | queue {queue}{}{} | ({:.0}, {:.0}, {:.0})",
+            "vkterrain | {fps:.1} fps {:.1} ms | {} tris {} draws {} blocks | delta {} {} {} | errors age {age} frames | queue {queue}{}{} | {:.0} above ground, {:.0}/s | ({:.0}, {:.0}, {:.0})",
             1000.0 / fps.max(1e-6),
             self.last_stats.triangles,
             self.last_stats.draw_calls,
@@ -736,6 +783,8 @@ impl App {
             if self.feed.morph { "morph" } else { "no morph" },
             if self.frozen.is_some() { " | FROZEN" } else { "" },
             if self.ctl.walk { " | walk" } else { "" },
+            cam.position.y - self.hf.surface_height(cam.position.x.clamp(0.0, wx), cam.position.z.clamp(0.0, wz)),
+            self.ground_speed,
             cam.position.x,
             cam.position.y,
             cam.position.z,
@@ -764,7 +813,14 @@ impl App {
             }
             KeyCode::KeyL => self.shading.colour_by_lod = !self.shading.colour_by_lod,
             KeyCode::Space => self.frozen = if self.frozen.is_some() { None } else { Some(self.blocks.clone()) },
-            KeyCode::KeyG => self.ctl.walk = !self.ctl.walk,
+            KeyCode::KeyG => {
+                self.ctl.walk = !self.ctl.walk;
+                self.ctl.clamp_to_ground(&self.hf);
+            }
+            KeyCode::Home => {
+                (self.ctl.position, self.ctl.yaw, self.ctl.pitch) = self.home;
+                self.ctl.walk = false;
+            }
             KeyCode::KeyP => {
                 // The next free name: screenshots of earlier runs are never overwritten.
                 let path = loop {
@@ -817,6 +873,18 @@ impl ApplicationHandler for App {
             WindowEvent::MouseInput { state, button: MouseButton::Left | MouseButton::Right, .. } => {
                 self.ctl.looking = state == ElementState::Pressed;
             }
+            WindowEvent::CursorMoved { position, .. } => {
+                // Drag to look: the cursor's motion inside the window turns the camera.
+                let at = (position.x as f32, position.y as f32);
+                if let (true, Some(last)) = (self.ctl.looking, self.cursor) {
+                    let (dx, dy) = (at.0 - last.0, at.1 - last.1);
+                    self.ctl.yaw += dx * 0.003;
+                    self.ctl.pitch = (self.ctl.pitch - dy * 0.003).clamp(-1.55, 1.55);
+                    self.stats.mouse_turn += (dx * 0.003).abs();
+                }
+                self.cursor = Some(at);
+            }
+            WindowEvent::CursorLeft { .. } => self.cursor = None,
             WindowEvent::MouseWheel { delta, .. } => {
                 let steps = match delta {
                     MouseScrollDelta::LineDelta(_, y) => y,
@@ -845,15 +913,6 @@ impl ApplicationHandler for App {
                 }
             }
             _ => {}
-        }
-    }
-
-    fn device_event(&mut self, _el: &ActiveEventLoop, _id: winit::event::DeviceId, event: DeviceEvent) {
-        if let DeviceEvent::MouseMotion { delta } = event {
-            if self.ctl.looking {
-                self.ctl.yaw += delta.0 as f32 * 0.003;
-                self.ctl.pitch = (self.ctl.pitch - delta.1 as f32 * 0.003).clamp(-1.55, 1.55);
-            }
         }
     }
 

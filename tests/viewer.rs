@@ -176,3 +176,64 @@ fn ctrl_c_leaves_a_valid_trace() {
     let t: serde_json::Value = serde_json::from_str(&text.expect("trace written")).expect("valid JSON");
     assert!(t["traceEvents"].as_array().unwrap().iter().any(|e| e["name"] == "frame"));
 }
+
+/// A user at the keyboard and mouse, played by xdotool in a private Xvfb: `]` doubles
+/// delta, N turns geomorphing off, holding W flies forward, dragging with the left
+/// button turns the view, Home returns to the start view and flying on from there moves
+/// again, Escape quits. The state the viewer reports at exit shows each of them, with
+/// zero validation messages.
+#[test]
+fn keyboard_and_mouse_drive_the_viewer() {
+    let tmp = std::env::temp_dir().join(format!("vkterrain-xdotool-{}", std::process::id()));
+    std::fs::create_dir_all(&tmp).unwrap();
+    let (out, err) = (tmp.join("out.txt"), tmp.join("err.txt"));
+    let script = format!(
+        r#"set -e
+"{bin}" view --size 320x240 --validation on >"{out}" 2>"{err}" &
+pid=$!
+wid=$(xdotool search --sync --onlyvisible --name vkterrain | head -1)
+xdotool windowfocus --sync "$wid" || xdotool windowfocus "$wid"
+sleep 3
+xdotool key bracketright
+xdotool key n
+xdotool mousemove --window "$wid" 100 120 mousedown 1
+for i in 1 2 3 4 5 6 7 8; do xdotool mousemove_relative -- 10 0; sleep 0.2; done
+xdotool mouseup 1
+xdotool key Home
+xdotool keydown w
+sleep 2
+xdotool keyup w
+sleep 1
+xdotool key Escape
+wait $pid
+"#,
+        bin = env!("CARGO_BIN_EXE_vkterrain"),
+        out = out.display(),
+        err = err.display()
+    );
+    let status = Command::new("xvfb-run")
+        .args(["-a", "-s", "-screen 0 1024x768x24", "bash", "-c", &script])
+        .env("RUST_LOG", "error")
+        .status()
+        .expect("xvfb-run (tools/install-deps.sh installs it, and xdotool)");
+    let stdout = std::fs::read_to_string(&out).unwrap_or_default();
+    let stderr = std::fs::read_to_string(&err).unwrap_or_default();
+    let _ = std::fs::remove_dir_all(&tmp);
+    assert!(status.success(), "viewer under xdotool failed: {stderr}\n{stdout}");
+    let json: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
+    assert_eq!(json["validation_messages"], 0, "{stderr}");
+    assert_eq!(json["final_delta"], 2.0, "] doubles delta: {json}");
+    assert_eq!(json["final_morph"], false, "N turns morphing off: {json}");
+    let frames = json["frames"].as_u64().unwrap();
+    assert!(frames >= 10, "{json}");
+    // Started above the terrain looking north (-z): Home restored that view, so after
+    // the drag the yaw is back, and W moved the camera north from the start.
+    let yaw = json["final_yaw"].as_f64().unwrap();
+    assert!((yaw + std::f64::consts::FRAC_PI_2).abs() < 0.05, "Home restores the start view's heading: {json}");
+    let p = &json["final_position"];
+    let z = p[2].as_f64().unwrap();
+    // The built-in terrain spans 0..wz; the start view is at 0.92 wz.
+    let start_z = json["start_position"][2].as_f64().unwrap();
+    assert!(z < start_z - 1.0, "W flew north from the start view: z {z}, started at {start_z}");
+    assert!(json["mouse_turn"].as_f64().unwrap() > 0.1, "dragging with the left button turned the view: {json}");
+}

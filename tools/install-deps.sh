@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Installs what vkterrain needs on a fresh Debian 12 machine: the Vulkan loader,
-# lavapipe (CPU Vulkan driver), validation layers, Xvfb for window tests, and the
+# lavapipe (CPU Vulkan driver), validation layers, Xvfb and xdotool for window tests, and the
 # toolchain shaderc's build-from-source needs (cmake, ninja, python3, g++).
 # Idempotent: does nothing when everything is present.
 set -euo pipefail
@@ -8,7 +8,7 @@ set -euo pipefail
 need=()
 have_pkg() { dpkg-query -W -f='${Status}' "$1" 2>/dev/null | grep -q "install ok installed"; }
 for p in libvulkan1 mesa-vulkan-drivers vulkan-validationlayers vulkan-tools \
-         xvfb xauth cmake ninja-build python3 g++ pkg-config curl ca-certificates fonts-dejavu-core procps libx11-dev libxkbcommon-x11-0 \
+         xvfb xauth xdotool cmake ninja-build python3 g++ pkg-config curl ca-certificates fonts-dejavu-core procps libx11-dev libxkbcommon-x11-0 \
          libwayland-client0 libxcursor1 libxrandr2 libxi6; do
   have_pkg "$p" || need+=("$p")
 done
