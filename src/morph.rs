@@ -36,33 +36,46 @@
 use crate::camera::{distance_to_aabb, Camera};
 use crate::heightfield::{Heightfield, MinMaxPyramid};
 use crate::quadtree::{
-    angular_factor, block_aabb, morph_value, world_to_pixels, BlockLayout, DrawBlock, MorphState, Traversal, MORPH_ONE,
+    angular_factor, block_aabb, morph_value, world_to_pixels, BlockLayout, DrawBlock, Traversal, MORPH_ONE,
 };
+use crate::stitch::CORNER_EDGES;
 use glam::Vec3;
 use std::collections::HashMap;
 
 /// What a block's morph costs, in pixels for this frame's camera.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct MorphCost {
-    /// Bound on the error away from the fixed edges, every free vertex at factor 0.
+    /// Bound on the error of the interior quads, every vertex at factor 0.
     pub parent: f32,
     /// The same with every vertex at factor 1.
     pub own: f32,
-    /// Strips along the fixed edges (next to another LOD), free vertices at 0 and at 1.
-    pub strip_parent: f32,
-    pub strip_own: f32,
-    /// Largest whole morph `|h1 - h0|` of a vertex on each edge (north, east, south, west).
-    pub edge_move: [f32; 4],
+    /// Edge strips and corner quads in each state ([`crate::stitch::EdgeRegions`]).
+    pub side: [[f32; 4]; 4],
+    pub corner: [[f32; 8]; 4],
     /// Edges whose vertices do not morph (bit `e` for edge `e`).
     pub fixed: u8,
 }
 
+fn lerp(a: f32, b: f32, t: f32) -> f32 {
+    a + (b - a) * t
+}
+
 impl MorphCost {
-    /// Bound on the block's error with interior factor `f` and edge factors `e`.
+    /// Bound on the block's error with interior factor `f` and edge factors `e` (those of
+    /// fixed edges are ignored). The deviation at a sample is the absolute value of an
+    /// affine function of the factors, so over each region it is at most the
+    /// multilinear interpolation of its values at the extreme states.
     pub fn bound(&self, f: f32, e: [f32; 4]) -> f32 {
-        let base = ((1.0 - f) * self.parent + f * self.own).max((1.0 - f) * self.strip_parent + f * self.strip_own);
-        let free = |s: &usize| self.fixed & (1 << s) == 0;
-        base + (0..4).filter(free).map(|s| (e[s] - f).abs() * self.edge_move[s]).fold(0.0, f32::max)
+        let mut m = lerp(self.parent, self.own, f);
+        for (s, d) in self.side.iter().enumerate() {
+            m = m.max(lerp(lerp(d[0], d[1], e[s]), lerp(d[2], d[3], e[s]), f));
+        }
+        for (c, d) in self.corner.iter().enumerate() {
+            let [a, b] = CORNER_EDGES[c];
+            let at = |fs: usize| lerp(lerp(d[fs], d[fs + 1], e[b]), lerp(d[fs + 2], d[fs + 3], e[b]), e[a]);
+            m = m.max(lerp(at(0), at(4), f));
+        }
+        m
     }
 }
 
@@ -91,25 +104,14 @@ pub fn cost(
 ) -> MorphCost {
     let hs = hf.height_scale;
     let j = b.lod;
-    let own_state = b.in_state(MorphState::Own);
-    let mut parent_state = b.in_state(MorphState::Parent);
-    for (s, e) in parent_state.edge_morph.iter_mut().enumerate() {
-        if fixed & (1 << s) != 0 {
-            *e = MORPH_ONE;
-        }
-    }
-    let strips = (fixed != 0)
-        .then(|| (mm.stitch.strips(hf, layout, &parent_state, fixed), mm.stitch.strips(hf, layout, &own_state, fixed)));
+    let regions = mm.stitch.regions(hf, layout, b, fixed);
     let (mut min, mut max) = block_aabb(hf, mm, layout, j, b.bx, b.bz);
-    if let Some((p, o)) = &strips {
-        min.y = min.y.min(p.lo.min(o.lo) * hs);
-        max.y = max.y.max(p.hi.max(o.hi) * hs);
-    }
-    let px = world_to_pixels(cam, min, max, delta);
+    min.y = min.y.min(regions.lo * hs);
+    max.y = max.y.max(regions.hi * hs);
+    let px = world_to_pixels(cam, min, max, delta) * hs;
     let per_group = cam.kappa() * angular_factor(cam, min, max, delta);
 
-    // Away from the fixed edges: per parent group (level j + 1), as the errors activity
-    // projects.
+    // Interior: per parent group (level j + 1), as the errors activity projects.
     let level = j + 1;
     let gs = 1usize << level;
     let per_side = (layout.k() as usize - 1) / 2;
@@ -141,62 +143,33 @@ pub fn cost(
             own = own.max(dc * hs * f);
         }
     }
-    let (strip_parent, strip_own) = strips.map_or((0.0, 0.0), |(p, o)| (p.max() * hs * px, o.max() * hs * px));
-
-    // Free edges: each odd vertex's whole morph, from the mean of its neighbours along
-    // the edge to its own sample (fixed edges do not morph).
-    let k = layout.k() as i64;
-    let stride = b.stride() as i64;
-    let mut edge_move = [0.0f32; 4];
-    for (s, m) in edge_move.iter_mut().enumerate() {
-        if fixed & (1 << s) != 0 {
-            continue;
-        }
-        let ((x0, z0), (dx, dz)) = match s {
-            0 => ((0, 0), (1, 0)),
-            1 => ((k - 1, 0), (0, 1)),
-            2 => ((0, k - 1), (1, 0)),
-            _ => ((0, 0), (0, 1)),
-        };
-        for t in (1..k - 1).step_by(2) {
-            let (x, z) = (ox as i64 + (x0 + t * dx) * stride, oz as i64 + (z0 + t * dz) * stride);
-            let mean =
-                (hf.raw_at(x - dx * stride, z - dz * stride) + hf.raw_at(x + dx * stride, z + dz * stride)) * 0.5;
-            *m = m.max((hf.raw_at(x, z) - mean).abs() * hs * px);
-        }
+    MorphCost {
+        parent,
+        own,
+        side: regions.side.map(|d| d.map(|v| v * px)),
+        corner: regions.corner.map(|d| d.map(|v| v * px)),
+        fixed,
     }
-    MorphCost { parent, own, strip_parent, strip_own, edge_move, fixed }
 }
 
-/// The least factor `>= current` (in steps of `1 / MORPH_ONE`) that meets `delta` with
-/// these edge factors, or `MORPH_ONE` (always sound) when none does.
-fn least_factor(c: &MorphCost, current: u16, edges: [u16; 4], delta: f32) -> u16 {
-    let e = edges.map(morph_value);
-    // Edge factors below `f` rise to `f` with it (they are maxima), so they cost nothing.
-    let fits = |f: f32| c.bound(f, e.map(|x| x.max(f))) <= delta;
-    // The feasible set is a union of intervals whose left ends are where a constraint
-    // line meets delta, or an edge factor.
-    let mut lines = Vec::new();
-    for (a, b) in [(c.parent, c.own), (c.strip_parent, c.strip_own)] {
-        lines.push((a, b - a));
-        for (s, (&es, &d)) in e.iter().zip(&c.edge_move).enumerate() {
-            if c.fixed & (1 << s) == 0 {
-                lines.push((a + es * d, b - a - d));
-            }
+/// Steps of the factor search (in units of `1 / MORPH_ONE`).
+const STEP: u16 = MORPH_ONE / 64;
+
+/// The least factor `>= current` (in steps of [`STEP`]) that meets `delta`, with each
+/// edge factor given as a function of it, if any.
+fn least_factor(c: &MorphCost, current: u16, edges: impl Fn(u16) -> [u16; 4], delta: f32) -> Option<u16> {
+    let mut q = current;
+    loop {
+        let e = edges(q);
+        // Everything at factor 1 is the selection's own surface, which it bounds.
+        if c.bound(morph_value(q), e.map(morph_value)) <= delta || (q == MORPH_ONE && e == [MORPH_ONE; 4]) {
+            return Some(q);
         }
-    }
-    let mut candidates: Vec<f32> = vec![morph_value(current)];
-    candidates.extend(lines.iter().filter(|l| l.1 != 0.0).map(|&(a, b)| (delta - a) / b));
-    candidates.extend(e);
-    candidates.retain(|f| f.is_finite() && *f >= morph_value(current) && *f <= 1.0);
-    candidates.sort_by(f32::total_cmp);
-    for f in candidates {
-        let q = ((f * MORPH_ONE as f32).ceil() as u16).clamp(current, MORPH_ONE);
-        if fits(morph_value(q)) {
-            return q;
+        if q == MORPH_ONE {
+            return None;
         }
+        q = (q + STEP - q % STEP).min(MORPH_ONE);
     }
-    MORPH_ONE
 }
 
 /// A block reaches its own surface at the latest when its parent's error is this many
@@ -270,32 +243,54 @@ pub fn assign_with(
         })
         .collect();
     let mut edges = vec![[MORPH_ONE; 4]; n];
+    // An edge shared with a block of the same LOD takes the smaller factor: where a block
+    // has just split, its neighbours' edges were on its edge line, which is factor 0 for
+    // their odd vertices, so nothing jumps; a free edge follows its block.
+    let edge_rule = |i: usize, q: &[u16], own: u16| -> [u16; 4] {
+        std::array::from_fn(|s| {
+            if fixed[i] & (1 << s) != 0 {
+                MORPH_ONE
+            } else {
+                same[i][s].map_or(own, |m| own.max(q[m]))
+            }
+        })
+    };
     let mut settled = false;
     for _ in 0..MAX_ROUNDS {
-        for i in 0..n {
-            for s in 0..4 {
-                edges[i][s] =
-                    if fixed[i] & (1 << s) != 0 { MORPH_ONE } else { same[i][s].map_or(q[i], |m| q[i].max(q[m])) };
-            }
-        }
         if rule == MorphRule::ParentSurface {
             settled = true;
             break;
         }
         let mut changed = false;
         for i in 0..n {
-            if let Some(c) = &costs[i] {
-                let need = least_factor(c, q[i], edges[i], delta);
-                if need > q[i] {
-                    q[i] = need;
-                    changed = true;
-                }
+            let Some(c) = &costs[i] else { continue };
+            let e = edge_rule(i, &q, q[i]);
+            if c.bound(morph_value(q[i]), e.map(morph_value)) <= delta || (q[i] == MORPH_ONE && e == [MORPH_ONE; 4]) {
+                continue;
+            }
+            changed = true;
+            let snapshot = q.clone();
+            if let Some(f) = least_factor(c, q[i], |f| edge_rule(i, &snapshot, f), delta) {
+                q[i] = f;
+                continue;
+            }
+            // Its neighbours' lower factors hold its edges down: the least factor that
+            // fits with them raised to it, and they are raised.
+            let raised =
+                |f: u16| -> [u16; 4] { std::array::from_fn(|s| if fixed[i] & (1 << s) != 0 { MORPH_ONE } else { f }) };
+            let f = least_factor(c, q[i], raised, delta).unwrap_or(MORPH_ONE);
+            q[i] = f;
+            for m in same[i].iter().flatten() {
+                q[*m] = q[*m].max(f);
             }
         }
         if !changed {
             settled = true;
             break;
         }
+    }
+    for (i, e) in edges.iter_mut().enumerate() {
+        *e = edge_rule(i, &q, q[i]);
     }
     if !settled {
         q.fill(MORPH_ONE);

@@ -38,7 +38,28 @@ type Key = (DrawBlock, u8);
 #[derive(Default)]
 pub struct StitchCache {
     map: Mutex<HashMap<Key, StripDeviation>>,
+    regions: Mutex<HashMap<Key, EdgeRegions>>,
 }
+
+/// Exact deviation (raw units) of a block's edge regions in every combination of the
+/// morph states of the vertex groups they touch (`morph.rs`): the strip along each edge
+/// without its corner quads touches the interior vertices (factor `f`) and that edge's
+/// (`e`); a corner quad touches the interior and both edges meeting there. Vertices on
+/// the edges in `fixed` never morph.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct EdgeRegions {
+    /// Per edge, state `2 f + e` (0: parent, 1: own).
+    pub side: [[f32; 4]; 4],
+    /// Per corner (NW, NE, SE, SW, between the edges in [`CORNER_EDGES`]), state
+    /// `4 f + 2 e_a + e_b`.
+    pub corner: [[f32; 8]; 4],
+    /// Raw height range of the vertices in every state.
+    pub lo: f32,
+    pub hi: f32,
+}
+
+/// The two edges meeting at each corner (NW, NE, SE, SW).
+pub const CORNER_EDGES: [[usize; 2]; 4] = [[0, 3], [0, 1], [2, 1], [2, 3]];
 
 impl std::fmt::Debug for StitchCache {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
@@ -50,7 +71,8 @@ impl std::fmt::Debug for StitchCache {
 impl Clone for StitchCache {
     fn clone(&self) -> Self {
         let map = self.map.lock().map(|m| m.clone()).unwrap_or_default();
-        StitchCache { map: Mutex::new(map) }
+        let regions = self.regions.lock().map(|m| m.clone()).unwrap_or_default();
+        StitchCache { map: Mutex::new(map), regions: Mutex::new(regions) }
     }
 }
 
@@ -66,6 +88,17 @@ impl StitchCache {
         }
         let d = strip_deviation(hf, layout, b, sides);
         self.map.lock().unwrap_or_else(|e| e.into_inner()).insert(key, d);
+        d
+    }
+
+    /// The edge regions of `b` (its morph factors ignored), computed on first use.
+    pub fn regions(&self, hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, fixed: u8) -> EdgeRegions {
+        let key = (b.in_state(crate::quadtree::MorphState::Own), fixed);
+        if let Some(d) = self.regions.lock().unwrap_or_else(|e| e.into_inner()).get(&key) {
+            return *d;
+        }
+        let d = edge_regions(hf, layout, b, fixed);
+        self.regions.lock().unwrap_or_else(|e| e.into_inner()).insert(key, d);
         d
     }
 
@@ -109,6 +142,64 @@ pub fn strip_deviation(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, si
             }
         }
         out.edge[e] = m;
+    }
+    if out.lo > out.hi {
+        out.lo = 0.0;
+        out.hi = 0.0;
+    }
+    out
+}
+
+/// See [`EdgeRegions`].
+pub fn edge_regions(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, fixed: u8) -> EdgeRegions {
+    use crate::quadtree::MORPH_ONE;
+    let last = layout.k() - 2; // last quad index
+    let mut out = EdgeRegions { lo: f32::INFINITY, hi: f32::NEG_INFINITY, ..Default::default() };
+    let state = |f: bool, edges: &[(usize, bool)]| {
+        let q = |on: bool| if on { MORPH_ONE } else { 0 };
+        let mut s = DrawBlock { morph: q(f), edge_morph: [MORPH_ONE; 4], ..*b };
+        for &(e, on) in edges {
+            if fixed & (1 << e) == 0 {
+                s.edge_morph[e] = q(on);
+            }
+        }
+        s
+    };
+    let mut quad_dev = |s: &DrawBlock, u: u32, v: u32| {
+        let vert = |uu: u32, vv: u32| block_vertex(hf, layout, s, uu, vv);
+        let (a, c, i, g) = (vert(u, v), vert(u + 1, v), vert(u + 1, v + 1), vert(u, v + 1));
+        let mut m = 0.0f32;
+        for tri in [[a, c, i], [a, i, g]] {
+            for p in &tri {
+                out.lo = out.lo.min(p.2);
+                out.hi = out.hi.max(p.2);
+            }
+            m = m.max(triangle_deviation(hf, &tri));
+        }
+        m
+    };
+    for e in 0..4 {
+        for st in 0..4 {
+            let s = state(st & 2 != 0, &[(e, st & 1 != 0)]);
+            let mut m = 0.0f32;
+            for t in 1..last {
+                let (u, v) = match e {
+                    0 => (t, 0),
+                    1 => (last, t),
+                    2 => (t, last),
+                    _ => (0, t),
+                };
+                m = m.max(quad_dev(&s, u, v));
+            }
+            out.side[e][st] = m;
+        }
+    }
+    for (c, [ea, eb]) in CORNER_EDGES.iter().copied().enumerate() {
+        let (u, v) = [(0, 0), (last, 0), (last, last), (0, last)][c];
+        for st in 0..8 {
+            let s = state(st & 4 != 0, &[(ea, st & 2 != 0), (eb, st & 1 != 0)]);
+            out.corner[c][st] = quad_dev(&s, u, v);
+        }
     }
     if out.lo > out.hi {
         out.lo = 0.0;
