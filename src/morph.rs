@@ -6,32 +6,33 @@
 //! Which vertices morph, so that the surface stays watertight:
 //! - interior vertices, with the block's factor `f`;
 //! - vertices on an edge shared with a block of the same LOD, with one factor for the
-//!   edge: the larger of the two blocks' (no other block touches them);
-//! - not the vertices on an edge next to a coarser or finer block (factor 1). Their
-//!   corners and collapsed vertices are shared with a third block that does not know the
-//!   others' factors; unmorphed, every block computes the same height, as before.
+//!   edge, the larger of the two blocks' (no other block touches them);
+//! - not the vertices on an edge next to a coarser or finer block: their corners and
+//!   collapsed vertices are shared with a third block that does not know the others'
+//!   factors; unmorphed, every block computes the same height, as before.
 //!
-//! The factor is chosen per frame, as small as the bound allows:
-//! - With the edge vertices next to other LODs fixed and every other vertex at one
-//!   factor `f`, the surface is affine in `f` (the triangulation does not move), so its
-//!   deviation is at most `(1 - f) E0 + f E1`, the two ends measured exactly:
-//!   - away from the fixed edges, per parent group with that group's distance, as the
-//!     errors activity does: `E0` from `D_{j+1}`, `E1` from the largest `D_j` of the
-//!     group's four children;
-//!   - in the first row of quads along the fixed edges, the exact strip deviations
-//!     (`stitch.rs`) with the free vertices at 0 and at 1.
-//! - A same-LOD edge's factor `e` may exceed `f`: its vertices then move the surface by at
-//!   most `(e - f) |h1 - h0|`, with `h1 - h0` a vertex's whole morph. That is added.
-//! - At the moment a block splits its parent's error is delta, so `E0 <= delta` and
-//!   `f = 0` fits, unless a fixed edge's strip does not.
-//! - Factors only rise, to the least value that meets the bound given the neighbours'
-//!   edges, until nothing changes. Factor 1 everywhere is the selection's own surface,
-//!   which the selection already bounds, so that fallback is always sound.
+//! The factor is chosen per frame, as small as the bound allows. At every sample the
+//! drawn surface is an affine function of the factors of the vertex groups around it
+//! (the triangulation does not move), so its deviation is convex in them and at most the
+//! multilinear interpolation of its values at the extreme states, which are measured
+//! exactly:
+//! - interior quads (one group, `f`): `(1 - f) E0 + f E1`, per parent group with that
+//!   group's distance, as the errors activity does: `E0` from `D_{j+1}`, `E1` from the
+//!   largest `D_j` of the group's four children;
+//! - the strip along each edge (`f` and the edge's factor) and each corner quad (`f` and
+//!   the two edges' factors): exact deviations in every state (`stitch::EdgeRegions`,
+//!   cached per block and neighbours).
+//!
+//! At the moment a block splits its parent's error is delta, so `E0 <= delta` and `f = 0`
+//! fits unless an edge region does not. The factors start from a ramp and only rise, to
+//! the least value (in steps of 1/64) that meets the bound given the neighbours' edges,
+//! until nothing changes; factor 1 with every edge at 1 is the selection's own surface,
+//! which the selection already bounds, so it always ends.
 //!
 //! Pixels per world unit of a group: `kappa * a_b / dist(group box)`, with `a_b` the
-//! block's angular factor ([`crate::quadtree::angular_factor`]); the morphed surface lies
-//! between the parent's and the own surface, inside the group's box. Computed fresh for
-//! this frame's camera, so stale error data plays no part here.
+//! block's angular factor ([`crate::quadtree::angular_factor`]); the edge regions use the
+//! block's box grown to every state's heights. Computed fresh for this frame's camera, so
+//! stale error data plays no part here.
 
 use crate::camera::{distance_to_aabb, Camera};
 use crate::heightfield::{Heightfield, MinMaxPyramid};
@@ -243,9 +244,9 @@ pub fn assign_with(
         })
         .collect();
     let mut edges = vec![[MORPH_ONE; 4]; n];
-    // An edge shared with a block of the same LOD takes the smaller factor: where a block
-    // has just split, its neighbours' edges were on its edge line, which is factor 0 for
-    // their odd vertices, so nothing jumps; a free edge follows its block.
+    // An edge shared with a block of the same LOD takes the larger factor (measured: the
+    // smaller one makes neighbours raise each other and pops more); a free edge follows
+    // its block; edges next to other LODs stay at 1.
     let edge_rule = |i: usize, q: &[u16], own: u16| -> [u16; 4] {
         std::array::from_fn(|s| {
             if fixed[i] & (1 << s) != 0 {
@@ -269,20 +270,9 @@ pub fn assign_with(
                 continue;
             }
             changed = true;
+            // At factor 1 its edges are at 1 too (they are maxima): always accepted.
             let snapshot = q.clone();
-            if let Some(f) = least_factor(c, q[i], |f| edge_rule(i, &snapshot, f), delta) {
-                q[i] = f;
-                continue;
-            }
-            // Its neighbours' lower factors hold its edges down: the least factor that
-            // fits with them raised to it, and they are raised.
-            let raised =
-                |f: u16| -> [u16; 4] { std::array::from_fn(|s| if fixed[i] & (1 << s) != 0 { MORPH_ONE } else { f }) };
-            let f = least_factor(c, q[i], raised, delta).unwrap_or(MORPH_ONE);
-            q[i] = f;
-            for m in same[i].iter().flatten() {
-                q[*m] = q[*m].max(f);
-            }
+            q[i] = least_factor(c, q[i], |f| edge_rule(i, &snapshot, f), delta).unwrap_or(MORPH_ONE);
         }
         if !changed {
             settled = true;
