@@ -153,6 +153,20 @@ pub fn cost(
     }
 }
 
+/// The factor that the selection's own (possibly stale-corrected) errors give: 0 when the
+/// parent's error is delta (the moment it split), 1 when the block's own error is delta
+/// (the moment it splits in turn), linear in between. The selection decides splits with
+/// these errors, so the morph is continuous across them even with stale error data,
+/// where the fresh bound alone would let a block about to split sit on its parent's
+/// surface.
+fn selection_factor([own, parent]: [f32; 2], delta: f32) -> f32 {
+    if parent.is_finite() && parent > delta && parent > own {
+        ((parent - delta) / (parent - own)).clamp(0.0, 1.0)
+    } else {
+        0.0
+    }
+}
+
 /// Steps of the factor search (in units of `1 / MORPH_ONE`).
 const STEP: u16 = MORPH_ONE / 64;
 
@@ -234,11 +248,12 @@ pub fn assign_with(
     // Start from the ramp; the bound may ask for more.
     let mut q: Vec<u16> = costs
         .iter()
-        .map(|c| match c {
+        .enumerate()
+        .map(|(i, c)| match c {
             Some(_) if rule == MorphRule::ParentSurface => 0,
             Some(c) => {
-                let f = ((c.parent / delta - 1.0) / (MORPH_RANGE - 1.0)).clamp(0.0, 1.0);
-                (f * MORPH_ONE as f32).ceil() as u16
+                let ramp = ((c.parent / delta - 1.0) / (MORPH_RANGE - 1.0)).clamp(0.0, 1.0);
+                (ramp.max(selection_factor(t.selection_errors[i], delta)) * MORPH_ONE as f32).ceil() as u16
             }
             None => MORPH_ONE,
         })

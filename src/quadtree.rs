@@ -179,6 +179,9 @@ pub struct Traversal {
     pub nearest: Option<f32>,
     /// Blocks drawn part way between their parent's surface and their own.
     pub morphing: usize,
+    /// Per drawn block: the error the selection accepted for it and the one for which it
+    /// split its parent (pixels; 0 where not error-driven, infinite for the root).
+    pub selection_errors: Vec<[f32; 2]>,
 }
 
 /// World-space AABB of a block.
@@ -298,8 +301,9 @@ fn traverse_once(
 ) -> Traversal {
     let frustum = cam.frustum();
     let mut out = Traversal::default();
-    let mut stack = vec![(layout.root_lod(), 0u32, 0u32)];
-    while let Some((lod, bx, bz)) = stack.pop() {
+    // Blocks still to visit, with their parent's selection error.
+    let mut stack = vec![(layout.root_lod(), 0u32, 0u32, f32::INFINITY)];
+    while let Some((lod, bx, bz, parent_err)) = stack.pop() {
         let (ox, oz) = (bx * layout.block_samples(lod), bz * layout.block_samples(lod));
         if ox as usize >= hf.width - 1 || oz as usize >= hf.height - 1 {
             continue; // wholly in the embedding margin
@@ -333,9 +337,10 @@ fn traverse_once(
         if draw {
             out.max_block_error = out.max_block_error.max(err);
             out.blocks.push(DrawBlock::new(lod, bx, bz));
+            out.selection_errors.push([err, parent_err]);
         } else {
             for (cx, cz) in [(1, 1), (0, 1), (1, 0), (0, 0)] {
-                stack.push((lod - 1, bx * 2 + cx, bz * 2 + cz));
+                stack.push((lod - 1, bx * 2 + cx, bz * 2 + cz, err));
             }
         }
     }
@@ -344,8 +349,12 @@ fn traverse_once(
         let (min, max) = block_aabb(hf, mm, layout, b.lod, b.bx, b.bz);
         distance_to_aabb(cam.position, min, max)
     };
-    out.blocks.sort_by_cached_key(|b| distance(b).to_bits());
-    out.nearest = out.blocks.first().map(distance);
+    let mut order: Vec<(f32, DrawBlock, [f32; 2])> =
+        out.blocks.iter().zip(&out.selection_errors).map(|(b, e)| (distance(b), *b, *e)).collect();
+    order.sort_by(|a, b| a.0.total_cmp(&b.0));
+    out.blocks = order.iter().map(|o| o.1).collect();
+    out.selection_errors = order.iter().map(|o| o.2).collect();
+    out.nearest = order.first().map(|o| o.0);
     out.lod_map = lod_map(layout, &out.blocks);
     assign_neighbours(layout, &mut out.blocks, &out.lod_map);
     resolve_corners(hf, layout, &mut out.blocks, &out.lod_map);
