@@ -31,6 +31,33 @@ vec2 gradient(ivec2 s) {
     return texelFetch(gradients, s, 0).rg * frame.texturing.z;
 }
 
+// Hash of an integer lattice point to [0, 1] (integer arithmetic: the same on every GPU).
+float lattice(ivec2 c) {
+    uint n = uint(c.x) * 1597334677u ^ uint(c.y) * 3812015801u;
+    n = (n ^ (n >> 16)) * 2246822519u;
+    n ^= n >> 13;
+    return float(n & 0xffffu) / 65535.0;
+}
+
+float value_noise(vec2 p) {
+    ivec2 i = ivec2(floor(p));
+    vec2 f = fract(p);
+    f = f * f * (3.0 - 2.0 * f);
+    return mix(mix(lattice(i), lattice(i + ivec2(1, 0)), f.x),
+               mix(lattice(i + ivec2(0, 1)), lattice(i + ivec2(1, 1)), f.x), f.y);
+}
+
+// Procedural detail where no detail texture is given: value noise over the ground at 4
+// and 16 cycles per sample spacing, faded out where a cycle spans less than a few pixels,
+// so that close views are not one flat colour and far ones do not shimmer. A function of
+// (x, z) in samples alone: the same for every LOD and morph.
+float procedural_detail(vec2 p) {
+    float fade = 1.0 - smoothstep(0.25, 1.0, length(fwidth(p)) * 16.0);
+    if (fade <= 0.0) return 1.0;
+    float d = 0.6 * value_noise(p * 4.0) + 0.4 * value_noise(p * 16.0);
+    return 1.0 + 0.35 * (d - 0.5) * fade;
+}
+
 vec3 ramp(float t, float slope) {
     vec3 low = vec3(0.10, 0.22, 0.07);
     vec3 mid = vec3(0.30, 0.27, 0.14);
@@ -62,6 +89,8 @@ void main() {
             vec3 detail = texture(detail_tex, uv * frame.texturing.x).rgb;
             float alpha = frame.texturing.y;
             albedo = alpha * albedo + (1.0 - alpha) * detail;
+        } else {
+            albedo *= procedural_detail(p);
         }
     } else {
         float range = max(frame.terrain.w - frame.terrain.z, 1e-6);
@@ -80,6 +109,8 @@ void main() {
             vec3 detail = texture(detail_tex, uv * frame.texturing.x).rgb;
             float alpha = frame.texturing.y;
             albedo = alpha * albedo + (1.0 - alpha) * detail;
+        } else {
+            albedo *= procedural_detail(p);
         }
     }
     if (frame.flags.z != 0) {
