@@ -187,9 +187,10 @@ fn least_factor(c: &MorphCost, current: u16, edges: impl Fn(u16) -> [u16; 4], de
     }
 }
 
-/// A block reaches its own surface at the latest when its parent's error is this many
-/// times delta (linearly from its split, where the parent's error is delta); before, if the
-/// bound asks for it. Without it a block would sit at exactly delta until it splits.
+/// A block reaches its own surface at the latest when its parent's fresh error is this
+/// many times delta (linearly from its split, where the parent's error is delta), or when
+/// the selection's errors say so ([`selection_factor`]), or before, if the bound asks for
+/// it. Without these a block would sit at exactly delta until it splits.
 pub const MORPH_RANGE: f32 = 2.0;
 
 /// Rounds of raising before giving up on morphing this frame (factor 1 everywhere).
@@ -262,14 +263,11 @@ pub fn assign_with(
     // An edge shared with a block of the same LOD takes the larger factor (measured: the
     // smaller one makes neighbours raise each other and pops more); a free edge follows
     // its block; edges next to other LODs stay at 1.
-    let edge_rule = |i: usize, q: &[u16], own: u16| -> [u16; 4] {
-        std::array::from_fn(|s| {
-            if fixed[i] & (1 << s) != 0 {
-                MORPH_ONE
-            } else {
-                same[i][s].map_or(own, |m| own.max(q[m]))
-            }
-        })
+    let neighbours = |i: usize, q: &[u16]| -> [Option<u16>; 4] { same[i].map(|m| m.map(|m| q[m])) };
+    let edge_rule = |i: usize, across: [Option<u16>; 4], own: u16| -> [u16; 4] {
+        std::array::from_fn(
+            |s| if fixed[i] & (1 << s) != 0 { MORPH_ONE } else { across[s].map_or(own, |m| own.max(m)) },
+        )
     };
     let mut settled = false;
     for _ in 0..MAX_ROUNDS {
@@ -280,14 +278,14 @@ pub fn assign_with(
         let mut changed = false;
         for i in 0..n {
             let Some(c) = &costs[i] else { continue };
-            let e = edge_rule(i, &q, q[i]);
+            let across = neighbours(i, &q);
+            let e = edge_rule(i, across, q[i]);
             if c.bound(morph_value(q[i]), e.map(morph_value)) <= delta || (q[i] == MORPH_ONE && e == [MORPH_ONE; 4]) {
                 continue;
             }
             changed = true;
             // At factor 1 its edges are at 1 too (they are maxima): always accepted.
-            let snapshot = q.clone();
-            q[i] = least_factor(c, q[i], |f| edge_rule(i, &snapshot, f), delta).unwrap_or(MORPH_ONE);
+            q[i] = least_factor(c, q[i], |f| edge_rule(i, across, f), delta).unwrap_or(MORPH_ONE);
         }
         if !changed {
             settled = true;
@@ -295,7 +293,7 @@ pub fn assign_with(
         }
     }
     for (i, e) in edges.iter_mut().enumerate() {
-        *e = edge_rule(i, &q, q[i]);
+        *e = edge_rule(i, neighbours(i, &q), q[i]);
     }
     if !settled {
         q.fill(MORPH_ONE);
