@@ -254,7 +254,9 @@ pub fn assign_with(
             Some(_) if rule == MorphRule::ParentSurface => 0,
             Some(c) => {
                 let ramp = ((c.parent / delta - 1.0) / (MORPH_RANGE - 1.0)).clamp(0.0, 1.0);
-                (ramp.max(selection_factor(t.selection_errors[i], delta)) * MORPH_ONE as f32).ceil() as u16
+                (ramp.max(selection_factor(t.selection_errors.get(i).copied().unwrap_or_default(), delta))
+                    * MORPH_ONE as f32)
+                    .ceil() as u16
             }
             None => MORPH_ONE,
         })
