@@ -154,7 +154,9 @@ pub fn option_error(e: crate::vk::VkError) -> anyhow::Error {
 
 /// Writes `bytes` to `path` through a temporary file, so that no partial file is left.
 pub fn write_atomic(path: &Path, write: impl FnOnce(&Path) -> anyhow::Result<()>) -> anyhow::Result<()> {
-    let tmp = path.with_extension("partial.tmp");
+    // A name of this process's own: two runs writing the same file must not share it
+    // (the last rename wins, and neither fails).
+    let tmp = path.with_extension(format!("{}.partial.tmp", std::process::id()));
     match write(&tmp) {
         Ok(()) => std::fs::rename(&tmp, path).map_err(|e| anyhow::anyhow!("{}: {e}", path.display())),
         Err(e) => {

@@ -58,8 +58,14 @@ fn fails_cleanly(args: &[&str], needles: &[&str]) {
         assert!(errors[0].contains(n), "{full:?}: '{}' does not mention '{n}'", errors[0]);
     }
     assert!(!out_png.exists(), "{full:?} left {}", out_png.display());
-    let partial = out_png.with_extension("partial.tmp");
-    assert!(!partial.exists(), "{full:?} left {}", partial.display());
+    let dir = out_png.parent().unwrap();
+    let partial: Vec<_> = std::fs::read_dir(dir)
+        .unwrap()
+        .flatten()
+        .filter(|e| e.file_name().to_string_lossy().ends_with(".partial.tmp"))
+        .map(|e| e.path())
+        .collect();
+    assert!(partial.is_empty(), "{full:?} left {partial:?}");
 }
 
 fn bad_file(name: &str, needles: &[&str]) {
@@ -226,4 +232,41 @@ fn scales_beyond_single_precision() {
         &["flat.f32", "--spacing"],
     );
     fails_cleanly(&["render", "--camera", "1e13,0,0"], &["camera", "beyond"]);
+}
+
+/// Two runs writing the same output file at once (an audit harness did this): both
+/// succeed, the file is a whole PNG, and no temporary file of theirs is left. The race is
+/// made certain by a third writer's temporary file already in place under the name the
+/// first wave used for all of them (a directory, so that writing to it fails).
+#[test]
+fn two_renders_to_one_file_both_succeed() {
+    let scratch = Scratch::new();
+    std::fs::create_dir_all(scratch.path("same.partial.tmp")).unwrap();
+    let field = scratch.path("hills.f32");
+    let bytes: Vec<u8> = (0..65 * 65).flat_map(|i| (((i % 65) as f32 * 0.2).sin() * 5.0).to_le_bytes()).collect();
+    std::fs::write(&field, bytes).unwrap();
+    let out = scratch.path("same.png");
+    let run = || {
+        Command::new(env!("CARGO_BIN_EXE_vkterrain"))
+            .args(["render", "--heightmap", field.to_str().unwrap(), "--raw-size", "65x65", "--block", "9"])
+            .args(["--size", "64x48", "--validation", "off", "--out", out.to_str().unwrap()])
+            .env("RUST_LOG", "error")
+            .output()
+    };
+    let (a, b) = std::thread::scope(|s| {
+        let a = s.spawn(run);
+        let b = s.spawn(run);
+        (a.join().unwrap().unwrap(), b.join().unwrap().unwrap())
+    });
+    for o in [&a, &b] {
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    }
+    let img = image::open(&out).expect("a whole PNG");
+    assert_eq!((img.width(), img.height()), (64, 48));
+    let left: Vec<_> = std::fs::read_dir(scratch.path(""))
+        .unwrap()
+        .flatten()
+        .filter(|e| e.file_name().to_string_lossy().ends_with(".partial.tmp") && e.file_name() != "same.partial.tmp")
+        .collect();
+    assert!(left.is_empty(), "left {left:?}");
 }
