@@ -96,7 +96,8 @@ pub struct ViewArgs {
 
 const KEYS: &str = "\
 keys: W/S forward/back, A/D left/right, Q/E down/up, hold a mouse button and move to look,
-      Shift faster, wheel changes speed, G walk/fly, Home back to the start view,
+      Shift faster, wheel changes speed, G walk/fly, O orbit the point ahead (drag to
+      turn, W/S in/out), Home back to the start view,
       [ and ] halve/double delta,
       M strict/paper error mode, N geomorphing on/off, F wireframe, L colour blocks by LOD,
       Space freeze the block list, P screenshot, Esc quit";
@@ -116,6 +117,24 @@ fn start_view(hf: &Heightfield, mm: &MinMaxPyramid) -> (Vec3, Vec3) {
     (Vec3::new(wx * 0.5, hi + 0.08 * l, wz * 0.92), Vec3::new(wx * 0.5, lo, wz * 0.35))
 }
 
+/// The first point of the terrain along the ray from `from` in direction `dir` (marched in
+/// steps of a sample spacing up to twice the terrain's size), or the point a quarter of
+/// the terrain's size ahead, on the ground.
+fn ground_hit(hf: &Heightfield, from: Vec3, dir: Vec3) -> Vec3 {
+    let (wx, wz) = hf.world_extent();
+    let l = wx.max(wz);
+    let ground = |p: Vec3| hf.surface_height(p.x.clamp(0.0, wx), p.z.clamp(0.0, wz));
+    let steps = (2.0 * l / hf.spacing).min(20_000.0) as usize;
+    for i in 1..=steps {
+        let p = from + dir * (i as f32 * 2.0 * l / steps as f32);
+        if p.y <= ground(p) && (0.0..=wx).contains(&p.x) && (0.0..=wz).contains(&p.z) {
+            return p;
+        }
+    }
+    let p = from + dir * 0.25 * l;
+    Vec3::new(p.x, ground(p), p.z)
+}
+
 /// Camera state driven by input or a flyover path.
 struct Controller {
     position: Vec3,
@@ -125,6 +144,9 @@ struct Controller {
     walk: bool,
     held: HashSet<KeyCode>,
     looking: bool,
+    /// Orbit mode (O): the point looked at and the distance to it; dragging turns the
+    /// camera around it, W/S move in and out.
+    orbit: Option<(Vec3, f32)>,
 }
 
 impl Controller {
@@ -133,6 +155,15 @@ impl Controller {
     }
 
     fn update(&mut self, hf: &Heightfield, dt: f32) {
+        if let Some((pivot, radius)) = &mut self.orbit {
+            let k = |c| self.held.contains(&c);
+            let zoom = k(KeyCode::KeyS) as i32 - k(KeyCode::KeyW) as i32;
+            *radius = (*radius * (1.0 + 1.5 * dt * zoom as f32)).max(hf.spacing);
+            let (pivot, radius) = (*pivot, *radius);
+            self.position = pivot - self.forward() * radius;
+            self.clamp_to_ground(hf);
+            return;
+        }
         let fwd = self.forward();
         let flat = Vec3::new(fwd.x, 0.0, fwd.z).normalize_or_zero();
         let right = flat.cross(Vec3::Y);
@@ -238,6 +269,10 @@ struct RunStats {
     /// Where the camera started, and how far (radians of yaw) dragging the mouse turned it.
     start_position: [f32; 3],
     mouse_turn: f32,
+    /// Yaw turned by dragging in orbit mode, and the largest change of the distance to
+    /// the orbit's centre while turning (relative).
+    orbit_turn: f32,
+    orbit_drift: f32,
 }
 
 struct App {
@@ -374,6 +409,7 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
             walk: args.walk,
             held: HashSet::new(),
             looking: false,
+            orbit: None,
         },
         shading: Shading {
             fog_density: fog,
@@ -578,6 +614,10 @@ impl App {
             self.ctl.update(&self.hf, dt);
             let moved = self.ctl.position - before;
             self.ground_speed = if dt > 0.0 { Vec3::new(moved.x, 0.0, moved.z).length() / dt } else { 0.0 };
+            if let Some((pivot, radius)) = self.ctl.orbit {
+                let drift = ((self.ctl.position - pivot).length() - radius).abs() / radius;
+                self.stats.orbit_drift = self.stats.orbit_drift.max(drift);
+            }
         }
         let target = self.ctl.position + self.ctl.forward();
         Camera::look_at(
@@ -782,7 +822,7 @@ impl App {
             self.mode.as_str(),
             if self.feed.morph { "morph" } else { "no morph" },
             if self.frozen.is_some() { " | FROZEN" } else { "" },
-            if self.ctl.walk { " | walk" } else { "" },
+            if self.ctl.walk { " | walk" } else if self.ctl.orbit.is_some() { " | orbit" } else { "" },
             cam.position.y - self.hf.surface_height(cam.position.x.clamp(0.0, wx), cam.position.z.clamp(0.0, wz)),
             self.ground_speed,
             cam.position.x,
@@ -820,6 +860,17 @@ impl App {
             KeyCode::Home => {
                 (self.ctl.position, self.ctl.yaw, self.ctl.pitch) = self.home;
                 self.ctl.walk = false;
+                self.ctl.orbit = None;
+            }
+            KeyCode::KeyO => {
+                self.ctl.orbit = match self.ctl.orbit {
+                    Some(_) => None,
+                    None => {
+                        let pivot = ground_hit(&self.hf, self.ctl.position, self.ctl.forward());
+                        self.ctl.walk = false;
+                        Some((pivot, (self.ctl.position - pivot).length().max(self.hf.spacing)))
+                    }
+                };
             }
             KeyCode::KeyP => {
                 // The next free name: screenshots of earlier runs are never overwritten.
@@ -881,6 +932,9 @@ impl ApplicationHandler for App {
                     self.ctl.yaw += dx * 0.003;
                     self.ctl.pitch = (self.ctl.pitch - dy * 0.003).clamp(-1.55, 1.55);
                     self.stats.mouse_turn += (dx * 0.003).abs();
+                    if self.ctl.orbit.is_some() {
+                        self.stats.orbit_turn += (dx * 0.003).abs();
+                    }
                 }
                 self.cursor = Some(at);
             }

@@ -178,9 +178,9 @@ fn ctrl_c_leaves_a_valid_trace() {
 }
 
 /// A user at the keyboard and mouse, played by xdotool in a private Xvfb: `]` doubles
-/// delta, N turns geomorphing off, holding W flies forward, dragging with the left
-/// button turns the view, Home returns to the start view and flying on from there moves
-/// again, Escape quits. The state the viewer reports at exit shows each of them, with
+/// delta, N turns geomorphing off, dragging with the left button turns the view, O and a
+/// drag orbit the point ahead, Home returns to the start view (leaving orbit mode),
+/// holding W flies forward from there, Escape quits. The state the viewer reports at exit shows each of them, with
 /// zero validation messages.
 #[test]
 fn keyboard_and_mouse_drive_the_viewer() {
@@ -198,6 +198,10 @@ xdotool key bracketright
 xdotool key n
 xdotool mousemove --window "$wid" 100 120 mousedown 1
 for i in 1 2 3 4 5 6 7 8; do xdotool mousemove_relative -- 10 0; sleep 0.2; done
+xdotool mouseup 1
+xdotool key o
+xdotool mousemove --window "$wid" 100 120 mousedown 1
+for i in 1 2 3 4 5 6; do xdotool mousemove_relative -- 10 0; sleep 0.2; done
 xdotool mouseup 1
 xdotool key Home
 xdotool keydown w
@@ -221,6 +225,7 @@ wait $pid
     let _ = std::fs::remove_dir_all(&tmp);
     assert!(status.success(), "viewer under xdotool failed: {stderr}\n{stdout}");
     let json: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
+    println!("{json}");
     assert_eq!(json["validation_messages"], 0, "{stderr}");
     assert_eq!(json["final_delta"], 2.0, "] doubles delta: {json}");
     assert_eq!(json["final_morph"], false, "N turns morphing off: {json}");
@@ -236,4 +241,7 @@ wait $pid
     let start_z = json["start_position"][2].as_f64().unwrap();
     assert!(z < start_z - 1.0, "W flew north from the start view: z {z}, started at {start_z}");
     assert!(json["mouse_turn"].as_f64().unwrap() > 0.1, "dragging with the left button turned the view: {json}");
+    // O then a drag: the camera circled the point it looked at, at a constant distance.
+    assert!(json["orbit_turn"].as_f64().unwrap() > 0.05, "O and a drag orbit: {json}");
+    assert!(json["orbit_drift"].as_f64().unwrap() < 1e-3, "the orbit kept its distance: {json}");
 }
