@@ -53,8 +53,6 @@ pub struct MorphCost {
     /// Edge strips and corner quads in each state ([`crate::stitch::EdgeRegions`]).
     pub side: [[f32; 4]; 4],
     pub corner: [[f32; 8]; 4],
-    /// Edges whose vertices do not morph (bit `e` for edge `e`).
-    pub fixed: u8,
 }
 
 fn lerp(a: f32, b: f32, t: f32) -> f32 {
@@ -62,8 +60,8 @@ fn lerp(a: f32, b: f32, t: f32) -> f32 {
 }
 
 impl MorphCost {
-    /// Bound on the block's error with interior factor `f` and edge factors `e` (those of
-    /// fixed edges are ignored). The deviation at a sample is the absolute value of an
+    /// Bound on the block's error with interior factor `f` and edge factors `e` (fixed
+    /// edges' regions do not depend on theirs). The deviation at a sample is the absolute value of an
     /// affine function of the factors, so over each region it is at most the
     /// multilinear interpolation of its values at the extreme states.
     pub fn bound(&self, f: f32, e: [f32; 4]) -> f32 {
@@ -149,7 +147,6 @@ pub fn cost(
         own,
         side: regions.side.map(|d| d.map(|v| v * px)),
         corner: regions.corner.map(|d| d.map(|v| v * px)),
-        fixed,
     }
 }
 

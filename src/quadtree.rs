@@ -84,15 +84,6 @@ pub const CORNER_UNRESOLVED: u32 = u32::MAX;
 /// direction of increasing x or z.
 const EDGE_CORNERS: [[usize; 2]; 4] = [[0, 1], [1, 2], [3, 2], [0, 3]];
 
-/// The two ends of a block's morph, for the bound.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
-pub enum MorphState {
-    /// Every vertex at its own LOD (factor 1): the surface the selection bounds.
-    Own,
-    /// Every vertex on the parent LOD's surface (factor 0).
-    Parent,
-}
-
 impl DrawBlock {
     /// An unmorphed block with no coarser neighbour.
     pub fn new(lod: u32, bx: u32, bz: u32) -> Self {
@@ -113,13 +104,10 @@ impl DrawBlock {
             bits => f32::from_bits(bits),
         }
     }
-    /// The block with every morph factor at one end.
-    pub fn in_state(&self, state: MorphState) -> Self {
-        let q = match state {
-            MorphState::Own => MORPH_ONE,
-            MorphState::Parent => 0,
-        };
-        DrawBlock { morph: q, edge_morph: [q; 4], ..*self }
+    /// The block with every vertex at its own LOD (factor 1): the surface the selection
+    /// bounds.
+    pub fn unmorphed(&self) -> Self {
+        DrawBlock { morph: MORPH_ONE, edge_morph: [MORPH_ONE; 4], ..*self }
     }
     pub fn origin(&self, layout: &BlockLayout) -> (u32, u32) {
         let s = layout.block_samples(self.lod);

@@ -31,7 +31,7 @@ impl StripDeviation {
     }
 }
 
-/// The block (LOD, position, neighbours and morph factors) and the strips measured.
+/// The block (LOD, position, neighbours, corners; unmorphed) and the edges measured.
 type Key = (DrawBlock, u8);
 
 /// Strip deviations already computed, by block and neighbour strides.
@@ -76,35 +76,29 @@ impl Clone for StitchCache {
     }
 }
 
-impl StitchCache {
-    /// The deviation of the strips along the edges in `sides` (bit `e` for edge `e`) of
-    /// block `b` as given (neighbours and morph factors), computed on first use.
-    pub fn strips(&self, hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, sides: u8) -> StripDeviation {
-        let key = (*b, sides);
-        // A poisoned lock only means another thread panicked mid-insert; entries are
-        // whole values, so the map is still consistent.
-        if let Some(d) = self.map.lock().unwrap_or_else(|e| e.into_inner()).get(&key) {
-            return *d;
-        }
-        let d = strip_deviation(hf, layout, b, sides);
-        self.map.lock().unwrap_or_else(|e| e.into_inner()).insert(key, d);
-        d
+/// The value cached under `key`, computed on first use. A poisoned lock only means
+/// another thread panicked mid-insert; entries are whole values, so the map is still
+/// consistent.
+fn cached<V: Copy>(map: &Mutex<HashMap<Key, V>>, key: Key, compute: impl FnOnce() -> V) -> V {
+    if let Some(v) = map.lock().unwrap_or_else(|e| e.into_inner()).get(&key) {
+        return *v;
     }
+    let v = compute();
+    map.lock().unwrap_or_else(|e| e.into_inner()).insert(key, v);
+    v
+}
 
-    /// The edge regions of `b` (its morph factors ignored), computed on first use.
+impl StitchCache {
+    /// The edge regions of `b` (its morph factors ignored) whose edges in `fixed` do not
+    /// morph.
     pub fn regions(&self, hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, fixed: u8) -> EdgeRegions {
-        let key = (b.in_state(crate::quadtree::MorphState::Own), fixed);
-        if let Some(d) = self.regions.lock().unwrap_or_else(|e| e.into_inner()).get(&key) {
-            return *d;
-        }
-        let d = edge_regions(hf, layout, b, fixed);
-        self.regions.lock().unwrap_or_else(|e| e.into_inner()).insert(key, d);
-        d
+        cached(&self.regions, (b.unmorphed(), fixed), || edge_regions(hf, layout, b, fixed))
     }
 
     /// The stitched strips of `b` (the edges next to a coarser block), unmorphed.
     pub fn get(&self, hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock) -> StripDeviation {
-        self.strips(hf, layout, &b.in_state(crate::quadtree::MorphState::Own), coarser_sides(b))
+        let sides = coarser_sides(b);
+        cached(&self.map, (b.unmorphed(), sides), || strip_deviation(hf, layout, &b.unmorphed(), sides))
     }
 }
 
