@@ -10,7 +10,7 @@ use std::path::{Path, PathBuf};
 #[allow(dead_code)]
 mod gpu_layout;
 
-use gpu_layout::{all_blocks, glsl_align_size, BlockInfo, BlockKind, GLSL_CONSTANTS};
+use gpu_layout::{all_blocks, glsl_align_size, BlockInfo, BlockKind, GLSL_CONSTANTS, LOD_PALETTE};
 
 fn main() {
     let out_dir = PathBuf::from(std::env::var("OUT_DIR").unwrap());
@@ -94,6 +94,9 @@ fn generate_header(blocks: &[BlockInfo]) -> Result<String, String> {
     for (name, value) in GLSL_CONSTANTS {
         writeln!(s, "#define {name} {value}").unwrap();
     }
+    let colours: Vec<String> =
+        LOD_PALETTE.iter().map(|c| format!("vec3({:?}, {:?}, {:?})", c[0], c[1], c[2])).collect();
+    writeln!(s, "#define LOD_PALETTE vec3[{}]({})", LOD_PALETTE.len(), colours.join(", ")).unwrap();
     for b in blocks {
         let mut end = 0;
         writeln!(s, "#ifdef USE_{}", b.name).unwrap();

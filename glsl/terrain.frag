@@ -114,9 +114,8 @@ void main() {
         }
     }
     if (frame.flags.z != 0) {
-        vec3 palette[6] = vec3[6](vec3(1, 0.2, 0.2), vec3(1, 0.7, 0.1), vec3(0.9, 1, 0.2),
-                                  vec3(0.2, 1, 0.3), vec3(0.2, 0.6, 1), vec3(0.7, 0.3, 1));
-        albedo = mix(albedo, palette[v_lod % 6], 0.6);
+        vec3 palette[] = LOD_PALETTE;
+        albedo = mix(albedo, palette[v_lod % palette.length()], 0.6);
     }
     vec3 l = normalize(frame.light.xyz);
     vec3 color = albedo * (frame.light.w + (1.0 - frame.light.w) * max(dot(n, l), 0.0));

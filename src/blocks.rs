@@ -391,6 +391,7 @@ impl BlocksRenderer {
         blocks: &[DrawBlock],
         shading: &Shading,
         clear: [f32; 3],
+        overlay: Option<&mut dyn FnMut(vk::CommandBuffer)>,
     ) -> DrawStats {
         let d = &self.device.raw;
         let color_att = [vk::RenderingAttachmentInfo::default()
@@ -460,6 +461,13 @@ impl BlocksRenderer {
                 d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, self.sky_pipeline.handle);
                 d.cmd_draw(cmd, 3, 1, 0, 0);
             }
+        }
+        // Drawn over everything in the same rendering (the viewer's panel).
+        if let Some(draw) = overlay {
+            draw(cmd);
+        }
+        // SAFETY: as above; the rendering begun above is still open.
+        unsafe {
             d.cmd_end_rendering(cmd);
         }
         stats.draw_calls = blocks.len() as u64 + shading.sky as u64;
@@ -470,7 +478,8 @@ impl BlocksRenderer {
     /// Records one whole frame into `cmd` (begun, not ended): the attachments made
     /// writable, the blocks and the sky, then the copy to host memory and/or the
     /// hand-over to presentation. The one frame recording of the viewer (swapchain) and
-    /// of offscreen frames (bench, render, tests).
+    /// of offscreen frames (bench, render, tests). `overlay` records more drawing into
+    /// the same rendering, after the terrain and the sky.
     pub fn record_frame(
         &self,
         slot: usize,
@@ -478,13 +487,14 @@ impl BlocksRenderer {
         dest: &FrameDest,
         blocks: &[DrawBlock],
         shading: &Shading,
+        overlay: Option<&mut dyn FnMut(vk::CommandBuffer)>,
     ) -> DrawStats {
         let d = &self.device.raw;
         // SAFETY: `cmd` is recording on this thread; the caller keeps every image and
         // buffer alive until the submission completes.
         unsafe { attachment_barriers(d, cmd, dest.image, dest.last_use, dest.depth) };
         let clear = if shading.sky { SKY_HORIZON } else { shading.background };
-        let stats = self.record(slot, cmd, dest.view, dest.depth.view, dest.extent, blocks, shading, clear);
+        let stats = self.record(slot, cmd, dest.view, dest.depth.view, dest.extent, blocks, shading, clear, overlay);
         let rendered = (
             vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT,
             vk::AccessFlags2::COLOR_ATTACHMENT_WRITE,
@@ -601,7 +611,7 @@ impl BlocksRenderer {
             copy_to: Some(target.readback.handle),
             present: false,
         };
-        let stats = self.record_frame(slot, cmd, &dest, blocks, shading);
+        let stats = self.record_frame(slot, cmd, &dest, blocks, shading, None);
         // SAFETY: as above.
         unsafe {
             if let Some(t) = &self.offscreen[slot].timer {

@@ -134,6 +134,7 @@ impl ErrorFeed {
             let g = activity.wait_for(params, Duration::from_secs(600))?;
             self.requested_at = Some(cam.position);
             taken = Some(g.number);
+            self.update_ms = g.gpu_ms.or(self.update_ms);
             self.current = Some(g);
         } else {
             let rested = match (self.requested_when, self.update_ms) {
@@ -168,6 +169,11 @@ impl ErrorFeed {
     /// The generation in use, if it was made for the current mode.
     pub fn usable(&self) -> Option<&Generation> {
         self.current.as_ref().filter(|g| g.params.mode == self.mode)
+    }
+
+    /// GPU time of the newest error update, when the device has timestamps.
+    pub fn update_ms(&self) -> Option<f64> {
+        self.update_ms
     }
 
     /// Frames since the camera was where the data in use was computed.

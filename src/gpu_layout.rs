@@ -167,6 +167,11 @@ pub const GLSL_CONSTANTS: &[(&str, u32)] = &[
     ("REDUCE_BINDING_GIE", REDUCE_BINDING_GIE),
 ];
 
+/// Colours of the LOD levels in the "colour blocks by LOD" view (level modulo 6): the
+/// shader's palette and the viewer's legend.
+pub const LOD_PALETTE: [[f32; 3]; 6] =
+    [[1.0, 0.2, 0.2], [1.0, 0.7, 0.1], [0.9, 1.0, 0.2], [0.2, 1.0, 0.3], [0.2, 0.6, 1.0], [0.7, 0.3, 1.0]];
+
 /// Every block, for the header generator and the SPIR-V check.
 pub fn all_blocks() -> Vec<BlockInfo> {
     vec![

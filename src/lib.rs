@@ -28,6 +28,7 @@ pub mod cli;
 pub mod commands;
 pub mod draw_thread;
 pub mod errors_activity;
+pub mod hud;
 pub mod terrain_gpu;
 pub mod timeline;
 pub mod trace;

@@ -10,6 +10,7 @@ use crate::draw_thread::ErrorFeed;
 use crate::errors_activity::ErrorsActivity;
 use crate::gie::ErrorMode;
 use crate::heightfield::{Heightfield, MinMaxPyramid};
+use crate::hud::{Controls, Hud, Ranges, Readout};
 use crate::quadtree::{BlockLayout, DrawBlock};
 use crate::terrain_gpu::{TerrainGpu, Texture};
 use crate::trace::{Trace, DRAW_TID};
@@ -89,6 +90,9 @@ pub struct ViewArgs {
     /// Start in walk mode (follow the ground).
     #[arg(long)]
     pub walk: bool,
+    /// Start with the on-screen panel hidden (H shows it).
+    #[arg(long)]
+    pub no_hud: bool,
     /// Resize the window at a frame, e.g. 20:800x600 (repeatable; for tests).
     #[arg(long, value_name = "FRAME:WxH")]
     pub resize_at: Vec<String>,
@@ -100,7 +104,7 @@ keys: W/S forward/back, A/D left/right, Q/E down/up, hold a mouse button and mov
       turn, W/S in/out), Home back to the start view,
       [ and ] halve/double delta,
       M strict/paper error mode, N geomorphing on/off, F wireframe, L colour blocks by LOD,
-      Space freeze the block list, P screenshot, Esc quit";
+      Space freeze the block list, P screenshot, H hide/show the panel, F1 key help, Esc quit";
 
 fn load_texture(path: &PathBuf) -> Result<Texture, InputError> {
     let img = image::open(path).map_err(|e| InputError(format!("{}: cannot read texture: {e}", path.display())))?;
@@ -221,6 +225,7 @@ struct FrameSlot {
 
 /// Everything that lives while the window is open, in drop order.
 struct Gpu {
+    hud: Hud,
     slots: Vec<FrameSlot>,
     commands: CommandPool,
     depth: Image,
@@ -273,6 +278,9 @@ struct RunStats {
     /// the orbit's centre while turning (relative).
     orbit_turn: f32,
     orbit_drift: f32,
+    /// Whether the panel was shown at exit, and in how many frames it was drawn.
+    hud_visible: bool,
+    hud_frames: u64,
 }
 
 struct App {
@@ -534,6 +542,8 @@ impl App {
         let swapchain = Swapchain::new(&device, &surface, (size.width, size.height), present, None)?;
         let depth = depth_image(&device, swapchain.extent)?;
         let renderer = BlocksRenderer::new(&device, &terrain, self.layout, swapchain.format, FRAMES_IN_FLIGHT)?;
+        let mut hud = Hud::new(&device, &window, swapchain.format, DEPTH_FORMAT, FRAMES_IN_FLIGHT)?;
+        hud.visible = !self.args.no_hud;
         if self.trace.enabled() {
             match crate::vk::QueryPool::calibrate(&device)? {
                 Some(clock) => self.trace.set_gpu_clock(clock, device.queue_mode == crate::vk::QueueMode::Shared),
@@ -559,6 +569,7 @@ impl App {
         self.stats.geometry_bytes = crate::commands::renderer_geometry_bytes(self.layout.k());
         self.stats.device = device.name.clone();
         self.gpu = Some(Gpu {
+            hud,
             slots,
             commands,
             depth,
@@ -588,6 +599,7 @@ impl App {
         let new = Swapchain::new(&gpu.device, &gpu.surface, (size.width, size.height), present, Some(&gpu.swapchain))?;
         gpu.swapchain = new;
         gpu.depth = depth_image(&gpu.device, gpu.swapchain.extent)?;
+        gpu.hud.set_format(gpu.swapchain.format, DEPTH_FORMAT)?;
         self.swapchain_dirty = false;
         self.stats.resizes += 1;
         Ok(())
@@ -641,8 +653,10 @@ impl App {
             return Ok(()); // nothing is rendered while minimized or hidden
         }
         let now = Instant::now();
-        let dt = (now - self.last_frame).as_secs_f32().min(0.25);
+        let interval = (now - self.last_frame).as_secs_f32();
+        let dt = interval.min(0.25);
         self.last_frame = now;
+        self.panel(interval)?;
         let cam = self.camera(dt);
         if self.args.record_path.is_some() {
             self.flight.push((cam.position, cam.position + cam.forward));
@@ -728,7 +742,21 @@ impl App {
             present: true,
         };
         let recording = Instant::now();
-        let stats = gpu.renderer.record_frame(slot_index, cmd, &dest, &blocks, &self.shading);
+        let hud = &mut gpu.hud;
+        let mut hud_error = None;
+        let mut draw_hud = |cmd| {
+            if let Err(e) = hud.record(cmd, extent) {
+                hud_error = Some(e);
+            }
+        };
+        let stats = gpu.renderer.record_frame(slot_index, cmd, &dest, &blocks, &self.shading, Some(&mut draw_hud));
+        if let Some(e) = hud_error {
+            return Err(e);
+        }
+        self.stats.hud_visible = gpu.hud.visible;
+        if gpu.hud.visible {
+            self.stats.hud_frames += 1;
+        }
         self.trace.complete(DRAW_TID, "record", recording, Instant::now(), json!({"blocks": blocks.len()}));
         // SAFETY: as above; the timestamp buffer belongs to this slot.
         unsafe {
@@ -800,6 +828,92 @@ impl App {
         Ok(())
     }
 
+    fn go_home(&mut self) {
+        (self.ctl.position, self.ctl.yaw, self.ctl.pitch) = self.home;
+        self.ctl.walk = false;
+        self.ctl.orbit = None;
+    }
+
+    /// The state the panel and the keys both change.
+    fn controls(&self) -> Controls {
+        Controls {
+            delta: self.delta,
+            mode: self.mode,
+            morph: self.feed.morph,
+            frozen: self.frozen.is_some(),
+            wireframe: self.shading.wireframe,
+            colour_by_lod: self.shading.colour_by_lod,
+            fog_density: self.shading.fog_density,
+            speed: self.ctl.speed,
+            go_home: false,
+        }
+    }
+
+    fn apply(&mut self, c: Controls) {
+        if c.frozen != self.frozen.is_some() {
+            self.frozen = c.frozen.then(|| self.blocks.clone());
+        }
+        self.delta = c.delta;
+        self.mode = c.mode;
+        self.feed.morph = c.morph;
+        self.shading.wireframe = c.wireframe;
+        self.shading.colour_by_lod = c.colour_by_lod;
+        self.shading.fog_density = c.fog_density;
+        self.ctl.speed = c.speed;
+        if c.go_home {
+            self.go_home();
+        }
+    }
+
+    /// This frame's panel: the last frame's figures shown, its controls applied.
+    /// `interval` is the time since the last frame began (the plotted frame time).
+    fn panel(&mut self, interval: f32) -> anyhow::Result<()> {
+        let (wx, wz) = self.hf.world_extent();
+        let p = self.ctl.position;
+        let mut readout = Readout {
+            triangles: self.last_stats.triangles,
+            draw_calls: self.last_stats.draw_calls,
+            blocks: self.last_blocks,
+            error_age: self.feed.age_frames(self.frame),
+            update_ms: self.feed.update_ms(),
+            generations: self.stats.error_generations,
+            queue_mode: self.stats.queue_mode.clone(),
+            device: self.stats.device.clone(),
+            camera_mode: if self.args.flyover {
+                "flyover"
+            } else if self.ctl.walk {
+                "walk"
+            } else if self.ctl.orbit.is_some() {
+                "orbit"
+            } else {
+                "fly"
+            },
+            position: p,
+            above_ground: p.y - self.hf.surface_height(p.x.clamp(0.0, wx), p.z.clamp(0.0, wz)),
+            ground_speed: self.ground_speed,
+            ..Readout::default()
+        };
+        let l = wx.max(wz);
+        readout.ranges = Ranges {
+            fog_max: (8.0 * self.args.fog.unwrap_or(0.2 / l)).max(2.0 * self.shading.fog_density),
+            speed: (l / 6000.0, l / 6.0),
+        };
+        let before = self.controls();
+        let mut after = before;
+        let (Some(gpu), Some(window)) = (self.gpu.as_mut(), self.window.as_ref()) else { return Ok(()) };
+        readout.panel_ms = gpu.hud.last_ms;
+        readout.wireframe_available = gpu.device.features.wireframe;
+        if self.frame > 0 {
+            let t = gpu.hud.now();
+            gpu.hud.history.push(t, interval * 1e3);
+        }
+        gpu.hud.prepare(window, &readout, &mut after)?;
+        if after != before {
+            self.apply(after);
+        }
+        Ok(())
+    }
+
     /// Live statistics in the title bar, a few times a second.
     fn update_title(&mut self, cam: &Camera) {
         let elapsed = self.title_at.elapsed();
@@ -852,16 +966,22 @@ impl App {
                 }
             }
             KeyCode::KeyL => self.shading.colour_by_lod = !self.shading.colour_by_lod,
+            KeyCode::KeyH => {
+                if let Some(g) = self.gpu.as_mut() {
+                    g.hud.visible = !g.hud.visible;
+                }
+            }
+            KeyCode::F1 => {
+                if let Some(g) = self.gpu.as_mut() {
+                    g.hud.help = !g.hud.help;
+                }
+            }
             KeyCode::Space => self.frozen = if self.frozen.is_some() { None } else { Some(self.blocks.clone()) },
             KeyCode::KeyG => {
                 self.ctl.walk = !self.ctl.walk;
                 self.ctl.clamp_to_ground(&self.hf);
             }
-            KeyCode::Home => {
-                (self.ctl.position, self.ctl.yaw, self.ctl.pitch) = self.home;
-                self.ctl.walk = false;
-                self.ctl.orbit = None;
-            }
+            KeyCode::Home => self.go_home(),
             KeyCode::KeyO => {
                 self.ctl.orbit = match self.ctl.orbit {
                     Some(_) => None,
@@ -902,6 +1022,23 @@ impl ApplicationHandler for App {
     }
 
     fn window_event(&mut self, event_loop: &ActiveEventLoop, _id: WindowId, event: WindowEvent) {
+        // The panel sees every event first; what it takes (a click on it, dragging one of
+        // its sliders) does not also move the camera.
+        let taken = match (self.gpu.as_mut(), self.window.as_ref()) {
+            (Some(g), Some(w)) => g.hud.on_event(w, &event),
+            _ => false,
+        };
+        if taken
+            && matches!(
+                event,
+                WindowEvent::KeyboardInput { .. } | WindowEvent::MouseInput { .. } | WindowEvent::MouseWheel { .. }
+            )
+        {
+            if let WindowEvent::MouseInput { state: ElementState::Released, .. } = event {
+                self.ctl.looking = false;
+            }
+            return;
+        }
         match event {
             WindowEvent::CloseRequested => event_loop.exit(),
             WindowEvent::Occluded(hidden) => self.occluded = hidden,

@@ -35,6 +35,8 @@ fn flyover_with_resizes_writes_a_screenshot_and_exits_cleanly() {
         "22:400x300",
         "--validation",
         "on",
+        // The sky check below reads the top rows, where the panel would be.
+        "--no-hud",
         "--screenshot",
         shot.to_str().unwrap(),
     ]);
@@ -43,6 +45,7 @@ fn flyover_with_resizes_writes_a_screenshot_and_exits_cleanly() {
     assert!(out.status.success(), "viewer failed: {stderr}\n{stdout}");
     let json: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
     assert_eq!(json["frames"], 36);
+    assert_eq!(json["hud_frames"], 0, "--no-hud: {json}");
     assert_eq!(json["validation_messages"], 0, "{stderr}");
     assert!(json["resizes"].as_u64().unwrap() >= 2, "{json}");
     assert!(json["error_generations"].as_u64().unwrap() >= 10, "{json}");
@@ -177,30 +180,66 @@ fn ctrl_c_leaves_a_valid_trace() {
     assert!(t["traceEvents"].as_array().unwrap().iter().any(|e| e["name"] == "frame"));
 }
 
-/// A user at the keyboard and mouse, played by xdotool in a private Xvfb: `]` doubles
-/// delta, N turns geomorphing off, dragging with the left button turns the view, O and a
-/// drag orbit the point ahead, Home returns to the start view (leaving orbit mode),
-/// holding W flies forward from there, Escape quits. The state the viewer reports at exit shows each of them, with
-/// zero validation messages.
+/// Mean absolute difference of two RGBA screenshots over the pixels in `[x0, x1) x [y0, y1)`.
+fn mean_difference(a: &image::RgbaImage, b: &image::RgbaImage, (x0, x1): (u32, u32), (y0, y1): (u32, u32)) -> f64 {
+    let mut sum = 0u64;
+    for y in y0..y1 {
+        for x in x0..x1 {
+            let (p, q) = (a.get_pixel(x, y), b.get_pixel(x, y));
+            sum += (0..3).map(|c| (p[c] as i64 - q[c] as i64).unsigned_abs()).sum::<u64>();
+        }
+    }
+    sum as f64 / (3 * (x1 - x0) * (y1 - y0)) as f64
+}
+
+/// A user at the keyboard and mouse, played by xdotool in a private Xvfb:
+/// - P takes a screenshot with the on-screen panel, H hides it and P takes another, F1
+///   shows the key help for a third: the panel and the help are drawn where expected and
+///   nowhere else;
+/// - `]` doubles delta, N turns geomorphing off;
+/// - a drag on the panel moves the panel, not the camera; a drag beside it turns the view;
+/// - O and a drag orbit the point ahead, Home returns to the start view (leaving orbit
+///   mode), holding W flies forward from there, Escape quits.
+///
+/// The state the viewer reports at exit shows each of them, with zero validation messages.
 #[test]
 fn keyboard_and_mouse_drive_the_viewer() {
     let tmp = std::env::temp_dir().join(format!("vkterrain-xdotool-{}", std::process::id()));
     std::fs::create_dir_all(&tmp).unwrap();
     let (out, err) = (tmp.join("out.txt"), tmp.join("err.txt"));
+    // Screenshots go to the working directory, as vkterrain-1.png, -2.png, -3.png.
     let script = format!(
         r#"set -e
-"{bin}" view --size 320x240 --validation on >"{out}" 2>"{err}" &
+cd "{tmp}"
+"{bin}" view --size 800x600 --validation on >"{out}" 2>"{err}" &
 pid=$!
 wid=$(xdotool search --sync --onlyvisible --name vkterrain | head -1)
 xdotool windowfocus --sync "$wid" || xdotool windowfocus "$wid"
-sleep 3
+sleep 4
+xdotool mousemove --window "$wid" 700 550
+xdotool key p
+sleep 2
+xdotool key h
+sleep 1
+xdotool key p
+sleep 2
+xdotool key F1
+sleep 1
+xdotool key p
+sleep 2
+xdotool key F1
+xdotool key h
+sleep 1
 xdotool key bracketright
 xdotool key n
-xdotool mousemove --window "$wid" 100 120 mousedown 1
+xdotool mousemove --window "$wid" 100 20 mousedown 1
+for i in 1 2 3 4 5 6 7 8; do xdotool mousemove_relative -- 10 0; sleep 0.2; done
+xdotool mouseup 1
+xdotool mousemove --window "$wid" 500 300 mousedown 1
 for i in 1 2 3 4 5 6 7 8; do xdotool mousemove_relative -- 10 0; sleep 0.2; done
 xdotool mouseup 1
 xdotool key o
-xdotool mousemove --window "$wid" 100 120 mousedown 1
+xdotool mousemove --window "$wid" 500 300 mousedown 1
 for i in 1 2 3 4 5 6; do xdotool mousemove_relative -- 10 0; sleep 0.2; done
 xdotool mouseup 1
 xdotool key Home
@@ -211,6 +250,7 @@ sleep 1
 xdotool key Escape
 wait $pid
 "#,
+        tmp = tmp.display(),
         bin = env!("CARGO_BIN_EXE_vkterrain"),
         out = out.display(),
         err = err.display()
@@ -222,11 +262,33 @@ wait $pid
         .expect("xvfb-run (tools/install-deps.sh installs it, and xdotool)");
     let stdout = std::fs::read_to_string(&out).unwrap_or_default();
     let stderr = std::fs::read_to_string(&err).unwrap_or_default();
+    let shots: Vec<_> =
+        (1..=3).map(|i| image::open(tmp.join(format!("vkterrain-{i}.png"))).map(|i| i.to_rgba8())).collect();
     let _ = std::fs::remove_dir_all(&tmp);
     assert!(status.success(), "viewer under xdotool failed: {stderr}\n{stdout}");
     let json: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
     println!("{json}");
     assert_eq!(json["validation_messages"], 0, "{stderr}");
+
+    // The panel (top left) is in the first screenshot and not the second; the rest of
+    // the picture is the same frame give or take LOD updates. The help overlay sits in
+    // the middle of the third.
+    let shots: Vec<image::RgbaImage> = shots.into_iter().map(|s| s.expect("three screenshots (P)")).collect();
+    for s in &shots {
+        assert_eq!(s.dimensions(), (800, 600));
+    }
+    let panel = mean_difference(&shots[0], &shots[1], (10, 250), (40, 400));
+    let beside = mean_difference(&shots[0], &shots[1], (320, 800), (0, 600));
+    println!("panel region {panel:.1}, beside it {beside:.2}");
+    assert!(panel > 15.0, "the panel is drawn, and H hides it: mean difference {panel:.1}");
+    assert!(beside < 1.0, "nothing else changes with the panel: mean difference {beside:.2}");
+    let help = mean_difference(&shots[1], &shots[2], (330, 470), (220, 380));
+    let corner = mean_difference(&shots[1], &shots[2], (600, 800), (500, 600));
+    println!("help region {help:.1}, corner {corner:.2}");
+    assert!(help > 15.0, "F1 shows the key help: mean difference {help:.1}");
+    assert!(corner < 1.0, "the help leaves the corner alone: mean difference {corner:.2}");
+    assert_eq!(json["hud_visible"], true, "H shows the panel again: {json}");
+
     assert_eq!(json["final_delta"], 2.0, "] doubles delta: {json}");
     assert_eq!(json["final_morph"], false, "N turns morphing off: {json}");
     let frames = json["frames"].as_u64().unwrap();
@@ -240,8 +302,13 @@ wait $pid
     // The built-in terrain spans 0..wz; the start view is at 0.92 wz.
     let start_z = json["start_position"][2].as_f64().unwrap();
     assert!(z < start_z - 1.0, "W flew north from the start view: z {z}, started at {start_z}");
-    assert!(json["mouse_turn"].as_f64().unwrap() > 0.1, "dragging with the left button turned the view: {json}");
+    // Two drags of 80 pixels, 0.003 rad each: one beside the panel turns the view by
+    // 0.24 rad, the one on the panel's title bar (which moves the panel) does not.
+    let turn = json["mouse_turn"].as_f64().unwrap();
+    assert!(turn > 0.1, "dragging with the left button turned the view: {json}");
     // O then a drag: the camera circled the point it looked at, at a constant distance.
-    assert!(json["orbit_turn"].as_f64().unwrap() > 0.05, "O and a drag orbit: {json}");
+    let orbit = json["orbit_turn"].as_f64().unwrap();
+    assert!(orbit > 0.05, "O and a drag orbit: {json}");
+    assert!(turn - orbit < 0.3, "a drag on the panel does not turn the camera: {turn} turned, {orbit} of it orbiting");
     assert!(json["orbit_drift"].as_f64().unwrap() < 1e-3, "the orbit kept its distance: {json}");
 }

@@ -114,7 +114,9 @@ pub struct Device {
     /// VK_EXT_calibrated_timestamps, when the device has it with the device and
     /// CLOCK_MONOTONIC time domains (for placing GPU work on the CPU clock).
     pub calibrated_timestamps: Option<ash::ext::calibrated_timestamps::Device>,
-    allocator: ManuallyDrop<Mutex<Allocator>>,
+    /// Shared (an `Arc`) with the viewer's egui renderer, which holds an `Arc<Device>`
+    /// beside its clone, so the clone is gone before this is dropped.
+    allocator: ManuallyDrop<Arc<Mutex<Allocator>>>,
 }
 
 /// Chooses the queue arrangement (SPEC section 6) from each family's flags and queue
@@ -311,7 +313,7 @@ impl Device {
             errors_queue: Queue { handle: errors_q, family: errors_family, lock: errors_lock },
             queue_mode,
             families: fams,
-            allocator: ManuallyDrop::new(Mutex::new(allocator)),
+            allocator: ManuallyDrop::new(Arc::new(Mutex::new(allocator))),
         }))
     }
 
@@ -332,6 +334,13 @@ impl Device {
 
     pub fn allocator(&self) -> MutexGuard<'_, Allocator> {
         self.allocator.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// The allocator itself, for a library that allocates through it. The caller must
+    /// also hold an `Arc<Device>` and drop the clone first: the device frees the
+    /// allocator's memory blocks when it is destroyed.
+    pub fn shared_allocator(&self) -> Arc<Mutex<Allocator>> {
+        Arc::clone(&self.allocator)
     }
 
     pub fn max_image_dimension_2d(&self) -> u32 {

@@ -1,0 +1,556 @@
+//! The viewer's on-screen panel (egui): live figures with frame-time and fps plots, the
+//! controls the keys also reach, a legend for the LOD colours and a key-help overlay.
+//! It is drawn inside the frame's own rendering, after the terrain and the sky, so its
+//! cost is part of the frame time the panel shows.
+
+use crate::gie::ErrorMode;
+use crate::gpu_layout::LOD_PALETTE;
+use crate::vk::{vk, CommandPool, Device};
+use egui::{Color32, Pos2, Sense, Shape, Stroke, Vec2};
+use egui_ash_renderer::allocator::GpuAllocator;
+use egui_ash_renderer::{DynamicRendering, Options, RenderMode, Renderer};
+use glam::Vec3;
+use std::collections::VecDeque;
+use std::sync::Arc;
+use std::time::Instant;
+use winit::event::WindowEvent;
+use winit::window::Window;
+
+/// Seconds of history in the plots.
+pub const PLOT_SECONDS: f64 = 5.0;
+
+/// Frame times over the last [`PLOT_SECONDS`].
+#[derive(Debug, Default)]
+pub struct FrameHistory {
+    /// (seconds since start, frame time in ms), oldest first.
+    samples: VecDeque<(f64, f32)>,
+}
+
+impl FrameHistory {
+    /// Adds a frame that ended at `t` seconds and took `ms`; forgets frames older than
+    /// the plot's span.
+    pub fn push(&mut self, t: f64, ms: f32) {
+        self.samples.push_back((t, ms));
+        while self.samples.front().is_some_and(|&(s, _)| s < t - PLOT_SECONDS) {
+            self.samples.pop_front();
+        }
+    }
+
+    pub fn samples(&self) -> impl Iterator<Item = (f64, f32)> + '_ {
+        self.samples.iter().copied()
+    }
+
+    /// Median and largest frame time in the span.
+    pub fn median_max(&self) -> Option<(f32, f32)> {
+        let mut v: Vec<f32> = self.samples.iter().map(|s| s.1).collect();
+        if v.is_empty() {
+            return None;
+        }
+        v.sort_by(f32::total_cmp);
+        Some((v[v.len() / 2], v[v.len() - 1]))
+    }
+
+    /// Frames per second over each of the span's whole seconds (newest last), counting
+    /// the frames that ended in it.
+    pub fn fps_per_second(&self, now: f64) -> Vec<(f64, f32)> {
+        let mut out = Vec::new();
+        let mut end = now;
+        while end - 1.0 >= now - PLOT_SECONDS {
+            let n = self.samples.iter().filter(|&&(t, _)| t > end - 1.0 && t <= end).count();
+            out.push((end, n as f32));
+            end -= 1.0;
+        }
+        out.reverse();
+        out
+    }
+}
+
+/// What the panel shows (read only).
+#[derive(Debug, Default, Clone)]
+pub struct Readout {
+    pub triangles: u64,
+    pub draw_calls: u64,
+    pub blocks: usize,
+    /// Frames since the camera was where the error data in use was computed.
+    pub error_age: Option<u64>,
+    /// GPU time of the newest error update, when the device has timestamps.
+    pub update_ms: Option<f64>,
+    pub generations: u64,
+    pub queue_mode: String,
+    pub device: String,
+    pub camera_mode: &'static str,
+    pub position: Vec3,
+    pub above_ground: f32,
+    pub ground_speed: f32,
+    /// CPU time the panel took last frame (building, tessellating, recording).
+    pub panel_ms: f32,
+    pub wireframe_available: bool,
+    /// The fog and speed sliders' ranges.
+    pub ranges: Ranges,
+}
+
+/// What the panel (and the keys) change.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Controls {
+    pub delta: f32,
+    pub mode: ErrorMode,
+    pub morph: bool,
+    pub frozen: bool,
+    pub wireframe: bool,
+    pub colour_by_lod: bool,
+    pub fog_density: f32,
+    pub speed: f32,
+    /// Set for one frame by the "Home" button.
+    pub go_home: bool,
+}
+
+/// Ranges of the sliders that have no natural one.
+#[derive(Debug, Default, Clone, Copy)]
+pub struct Ranges {
+    pub fog_max: f32,
+    pub speed: (f32, f32),
+}
+
+pub const KEYS: &[(&str, &str)] = &[
+    ("W / S", "forward / back (orbit: in / out)"),
+    ("A / D", "left / right"),
+    ("Q / E", "down / up"),
+    ("drag", "look around (orbit: turn around the centre)"),
+    ("Shift, wheel", "faster; change the speed"),
+    ("G", "walk on the ground / fly"),
+    ("O", "orbit the terrain point ahead"),
+    ("Home", "back to the start view"),
+    ("[ and ]", "halve / double delta"),
+    ("M", "strict / paper error mode"),
+    ("N", "geomorphing on / off"),
+    ("F", "wireframe"),
+    ("L", "colour blocks by LOD"),
+    ("Space", "freeze the block list"),
+    ("P", "screenshot (next free vkterrain-N.png)"),
+    ("H", "hide / show this panel"),
+    ("F1", "this help"),
+    ("Esc", "quit"),
+];
+
+/// Builds the panel and the help overlay into `ctx`'s current pass.
+pub fn build_ui(
+    ctx: &egui::Context,
+    show_panel: bool,
+    show_help: &mut bool,
+    readout: &Readout,
+    history: &FrameHistory,
+    now: f64,
+    controls: &mut Controls,
+) {
+    if show_panel {
+        egui::Window::new("vkterrain")
+            .default_pos([8.0, 8.0])
+            .default_width(270.0)
+            .resizable(false)
+            .show(ctx, |ui| panel(ui, readout, history, now, controls));
+    }
+    if *show_help {
+        egui::Window::new("Keys")
+            .anchor(egui::Align2::CENTER_CENTER, [0.0, 0.0])
+            .collapsible(false)
+            .resizable(false)
+            .open(show_help)
+            .show(ctx, |ui| {
+                egui::Grid::new("keys").num_columns(2).striped(true).show(ui, |ui| {
+                    for (k, what) in KEYS {
+                        ui.monospace(*k);
+                        ui.label(*what);
+                        ui.end_row();
+                    }
+                });
+            });
+    }
+}
+
+fn panel(ui: &mut egui::Ui, r: &Readout, history: &FrameHistory, now: f64, c: &mut Controls) {
+    let ranges = r.ranges;
+    let (median, max) = history.median_max().unwrap_or((0.0, 0.0));
+    ui.label(format!("{:.1} fps, frame {median:.1} ms, max {max:.1} ms", 1000.0 / median.max(1e-3)));
+    ui.label(format!("this panel: {:.2} ms CPU per frame", r.panel_ms));
+    plot(ui, "frame ms", history.samples().collect(), now, Color32::LIGHT_GREEN);
+    plot(ui, "fps", history.fps_per_second(now), now, Color32::LIGHT_BLUE);
+    egui::Grid::new("figures").num_columns(2).show(ui, |ui| {
+        let mut row = |k: &str, v: String| {
+            ui.label(k);
+            ui.monospace(v);
+            ui.end_row();
+        };
+        row("triangles", r.triangles.to_string());
+        row("draw calls", format!("{} ({} blocks)", r.draw_calls, r.blocks));
+        row("error age", r.error_age.map_or("-".into(), |a| format!("{a} frames")));
+        row("error update", r.update_ms.map_or("- (no timestamps)".into(), |m| format!("{m:.1} ms GPU")));
+        row("generations", r.generations.to_string());
+        row("queues", r.queue_mode.clone());
+        row("camera", r.camera_mode.to_string());
+        row("position", format!("{:.0}, {:.0}, {:.0}", r.position.x, r.position.y, r.position.z));
+        row("above ground", format!("{:.0}", r.above_ground));
+        row("ground speed", format!("{:.0}/s", r.ground_speed));
+    });
+    ui.separator();
+    ui.horizontal(|ui| {
+        ui.label("delta (px)");
+        ui.add(egui::Slider::new(&mut c.delta, 0.0625..=64.0).logarithmic(true).clamping(egui::SliderClamping::Edits));
+    });
+    ui.horizontal(|ui| {
+        ui.label("errors");
+        ui.radio_value(&mut c.mode, ErrorMode::Strict, "strict");
+        ui.radio_value(&mut c.mode, ErrorMode::Paper, "paper");
+    });
+    ui.horizontal(|ui| {
+        ui.checkbox(&mut c.morph, "morph");
+        ui.checkbox(&mut c.frozen, "freeze blocks");
+    });
+    ui.horizontal(|ui| {
+        ui.add_enabled(r.wireframe_available, egui::Checkbox::new(&mut c.wireframe, "wireframe"))
+            .on_disabled_hover_text("this device has no fillModeNonSolid");
+        ui.checkbox(&mut c.colour_by_lod, "LOD colours");
+    });
+    if c.colour_by_lod {
+        ui.horizontal_wrapped(|ui| {
+            ui.label("LOD");
+            for (i, col) in LOD_PALETTE.iter().enumerate() {
+                let (rect, _) = ui.allocate_exact_size(Vec2::splat(12.0), Sense::hover());
+                let rgb = |v: f32| (v * 255.0).round() as u8;
+                ui.painter().rect_filled(rect, 2.0, Color32::from_rgb(rgb(col[0]), rgb(col[1]), rgb(col[2])));
+                ui.label(if i + 1 == LOD_PALETTE.len() {
+                    format!("{i}, {}..", i + LOD_PALETTE.len())
+                } else {
+                    i.to_string()
+                });
+            }
+        });
+        ui.small("0 is the finest level; colours repeat every 6 levels, mixed 60 % over the ground.");
+    }
+    ui.horizontal(|ui| {
+        ui.label("fog");
+        ui.add(
+            egui::Slider::new(&mut c.fog_density, 0.0..=ranges.fog_max)
+                .show_value(false)
+                .clamping(egui::SliderClamping::Edits),
+        );
+    });
+    ui.horizontal(|ui| {
+        ui.label("speed");
+        ui.add(
+            egui::Slider::new(&mut c.speed, ranges.speed.0..=ranges.speed.1)
+                .logarithmic(true)
+                .suffix("/s")
+                .clamping(egui::SliderClamping::Edits),
+        );
+    });
+    ui.horizontal(|ui| {
+        if ui.button("Home").clicked() {
+            c.go_home = true;
+        }
+        ui.small("F1 keys, H hides this panel");
+    });
+}
+
+/// A line plot of (time, value) over the last [`PLOT_SECONDS`], scaled to its largest value.
+fn plot(ui: &mut egui::Ui, name: &str, points: Vec<(f64, f32)>, now: f64, colour: Color32) {
+    let (rect, _) = ui.allocate_exact_size(Vec2::new(ui.available_width(), 44.0), Sense::hover());
+    let painter = ui.painter_at(rect);
+    painter.rect_filled(rect, 2.0, Color32::from_black_alpha(140));
+    let top = points.iter().map(|p| p.1).fold(0.0f32, f32::max).max(1e-3) * 1.15;
+    let at = |t: f64, v: f32| {
+        let x = rect.left() + ((1.0 - (now - t) / PLOT_SECONDS) as f32).clamp(0.0, 1.0) * rect.width();
+        Pos2::new(x, rect.bottom() - v / top * rect.height())
+    };
+    if points.len() > 1 {
+        painter.add(Shape::line(points.iter().map(|&(t, v)| at(t, v)).collect(), Stroke::new(1.5, colour)));
+    }
+    let label = format!("{name}, last {PLOT_SECONDS:.0} s (top {top:.0})");
+    painter.text(
+        rect.left_top() + Vec2::new(3.0, 2.0),
+        egui::Align2::LEFT_TOP,
+        label,
+        egui::FontId::proportional(10.0),
+        Color32::GRAY,
+    );
+}
+
+/// The panel's GPU side and input state. Fields drop in order: the renderer (which
+/// holds a clone of the device's allocator) before the device.
+pub struct Hud {
+    renderer: Renderer<GpuAllocator>,
+    uploads: CommandPool,
+    state: egui_winit::State,
+    ctx: egui::Context,
+    primitives: Vec<egui::ClippedPrimitive>,
+    pixels_per_point: f32,
+    format: vk::Format,
+    pub visible: bool,
+    pub help: bool,
+    pub history: FrameHistory,
+    started: Instant,
+    /// CPU time of the last frame's panel work (ms).
+    pub last_ms: f32,
+    device: Arc<Device>,
+}
+
+impl Hud {
+    /// `format` is the colour attachment's; `depth` the depth attachment's (the panel
+    /// is drawn inside the terrain's rendering, which has one, without depth testing).
+    pub fn new(
+        device: &Arc<Device>,
+        window: &Window,
+        format: vk::Format,
+        depth: vk::Format,
+        frames_in_flight: usize,
+    ) -> anyhow::Result<Self> {
+        let renderer = Renderer::with_gpu_allocator(
+            device.shared_allocator(),
+            device.raw.clone(),
+            Self::mode(format, depth),
+            Options {
+                // One vertex/index buffer per frame slot: a slot's buffers are rewritten
+                // only after its fence (the frame two back) was waited for.
+                in_flight_frames: frames_in_flight,
+                enable_depth_test: false,
+                enable_depth_write: false,
+                srgb_framebuffer: is_srgb(format),
+            },
+        )
+        .map_err(|e| anyhow::anyhow!("the on-screen panel's renderer: {e}"))?;
+        let ctx = egui::Context::default();
+        let max_side = device.max_image_dimension_2d() as usize;
+        let state = egui_winit::State::new(
+            ctx.clone(),
+            egui::ViewportId::ROOT,
+            window,
+            Some(window.scale_factor() as f32),
+            None,
+            Some(max_side),
+        );
+        Ok(Hud {
+            renderer,
+            uploads: CommandPool::new(device, device.draw_queue.family)?,
+            state,
+            ctx,
+            primitives: Vec::new(),
+            pixels_per_point: 1.0,
+            format,
+            visible: true,
+            help: false,
+            history: FrameHistory::default(),
+            started: Instant::now(),
+            last_ms: 0.0,
+            device: device.clone(),
+        })
+    }
+
+    fn mode(format: vk::Format, depth: vk::Format) -> RenderMode {
+        RenderMode::DynamicRendering(DynamicRendering {
+            color_attachment_format: format,
+            depth_attachment_format: Some(depth),
+            stencil_attachment_format: None,
+        })
+    }
+
+    /// After a swapchain change: rebuilds the pipeline if the colour format changed.
+    pub fn set_format(&mut self, format: vk::Format, depth: vk::Format) -> anyhow::Result<()> {
+        if format != self.format {
+            self.renderer
+                .set_render_mode(Self::mode(format, depth))
+                .map_err(|e| anyhow::anyhow!("the on-screen panel's renderer: {e}"))?;
+            self.format = format;
+        }
+        Ok(())
+    }
+
+    /// Passes a window event to the panel; true when the panel took it (a click or drag
+    /// on it, typing into it), so the camera must not also act on it.
+    pub fn on_event(&mut self, window: &Window, event: &WindowEvent) -> bool {
+        self.state.on_window_event(window, event).consumed
+    }
+
+    /// Seconds since the panel was made (the plots' clock).
+    pub fn now(&self) -> f64 {
+        self.started.elapsed().as_secs_f64()
+    }
+
+    /// Builds this frame's panel (applying its controls to `controls`) and uploads any
+    /// new font or image data. Call before recording the frame.
+    pub fn prepare(&mut self, window: &Window, readout: &Readout, controls: &mut Controls) -> anyhow::Result<()> {
+        let started = Instant::now();
+        let input = self.state.take_egui_input(window);
+        let now = self.now();
+        let (visible, mut help) = (self.visible, self.help);
+        let history = &self.history;
+        let output =
+            self.ctx.run_ui(input, |ui| build_ui(ui.ctx(), visible, &mut help, readout, history, now, controls));
+        self.help = help;
+        self.state.handle_platform_output(window, output.platform_output);
+        let mut delta = output.textures_delta;
+        if !delta.set.is_empty() || !delta.free.is_empty() {
+            // Texture changes are rare (the font atlas at start, new glyphs): wait until
+            // no frame uses the old data rather than keep it alive per frame.
+            self.device.wait_idle()?;
+            let _queue = self.device.draw_queue.lock();
+            for (id, images) in &delta.set {
+                for image in images {
+                    // The renderer submits on the draw queue (locked above) and waits for it.
+                    self.renderer
+                        .set_texture(self.device.draw_queue.handle, self.uploads.handle, *id, image)
+                        .map_err(|e| anyhow::anyhow!("the on-screen panel's textures: {e}"))?;
+                }
+            }
+            for id in &delta.free {
+                self.renderer.free_texture(*id).map_err(|e| anyhow::anyhow!("the on-screen panel's textures: {e}"))?;
+            }
+            delta.clear(); // applied
+        }
+        self.pixels_per_point = output.pixels_per_point;
+        self.primitives = self.ctx.tessellate(output.shapes, output.pixels_per_point);
+        self.last_ms = started.elapsed().as_secs_f32() * 1e3;
+        Ok(())
+    }
+
+    /// Records the prepared panel into `cmd`, inside the frame's rendering.
+    pub fn record(&mut self, cmd: vk::CommandBuffer, extent: vk::Extent2D) -> anyhow::Result<()> {
+        let started = Instant::now();
+        self.renderer
+            .cmd_draw(cmd, extent, self.pixels_per_point, &self.primitives)
+            .map_err(|e| anyhow::anyhow!("the on-screen panel: {e}"))?;
+        self.last_ms += started.elapsed().as_secs_f32() * 1e3;
+        Ok(())
+    }
+}
+
+fn is_srgb(format: vk::Format) -> bool {
+    matches!(format, vk::Format::B8G8R8A8_SRGB | vk::Format::R8G8B8A8_SRGB | vk::Format::A8B8G8R8_SRGB_PACK32)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn history_keeps_the_plot_span_and_reports_median_and_max() {
+        let mut h = FrameHistory::default();
+        for i in 0..100 {
+            h.push(i as f64 * 0.1, if i == 95 { 50.0 } else { 10.0 + (i % 3) as f32 });
+        }
+        // 9.9 s now: frames from 4.9 s on remain (4.9, 5.0, ..., 9.9).
+        assert_eq!(h.samples().count(), 51);
+        assert!(h.samples().all(|(t, _)| t >= 9.9 - PLOT_SECONDS - 1e-9));
+        assert_eq!(h.median_max(), Some((11.0, 50.0)));
+        assert_eq!(FrameHistory::default().median_max(), None);
+    }
+
+    #[test]
+    fn fps_counts_the_frames_of_each_second() {
+        let mut h = FrameHistory::default();
+        // 20 fps for the first 3 s, then 40 fps.
+        let mut t = 0.0;
+        while t < 3.0 {
+            t += 0.05;
+            h.push(t, 50.0);
+        }
+        while t < 6.0 {
+            t += 0.025;
+            h.push(t, 25.0);
+        }
+        let fps = h.fps_per_second(6.0);
+        assert_eq!(fps.len(), PLOT_SECONDS as usize);
+        let last = fps.last().unwrap().1;
+        assert!((39.0..=41.0).contains(&last), "{fps:?}");
+        let first = fps.first().unwrap().1; // 1..2 s
+        assert!((19.0..=21.0).contains(&first), "{fps:?}");
+    }
+
+    fn controls() -> Controls {
+        Controls {
+            delta: 1.0,
+            mode: ErrorMode::Strict,
+            morph: true,
+            frozen: false,
+            wireframe: false,
+            colour_by_lod: true,
+            fog_density: 0.1,
+            speed: 10.0,
+            go_home: false,
+        }
+    }
+
+    /// Runs the panel headless for three passes; in the last, clicks the centre of the
+    /// text `click_on` as laid out in the pass before (or a point outside the panel).
+    /// Returns the controls after and the number of shapes of the last pass.
+    fn run(show: bool, click_on: Result<&str, Pos2>) -> (Controls, usize) {
+        use egui::epaint::Shape as S;
+        let ctx = egui::Context::default();
+        let mut c = controls();
+        let readout = Readout { ranges: Ranges { fog_max: 1.0, speed: (1.0, 100.0) }, ..Readout::default() };
+        let mut h = FrameHistory::default();
+        for i in 0..30 {
+            h.push(i as f64 * 0.1, 16.0);
+        }
+        let mut shapes = 0;
+        let mut target = click_on.err();
+        for pass in 0..3 {
+            let events = match (pass, target) {
+                (2, Some(at)) => {
+                    let click = |pressed| egui::Event::PointerButton {
+                        pos: at,
+                        button: egui::PointerButton::Primary,
+                        pressed,
+                        modifiers: Default::default(),
+                    };
+                    vec![egui::Event::PointerMoved(at), click(true), click(false)]
+                }
+                _ => Vec::new(),
+            };
+            let input = egui::RawInput {
+                screen_rect: Some(egui::Rect::from_min_size(Pos2::ZERO, Vec2::new(1280.0, 720.0))),
+                events,
+                ..Default::default()
+            };
+            let mut help = false;
+            let mut out = ctx.run_ui(input, |ui| build_ui(ui.ctx(), show, &mut help, &readout, &h, 3.0, &mut c));
+            out.textures_delta.clear(); // nothing to upload headless
+            shapes = out.shapes.len();
+            if let Ok(text) = click_on {
+                for clipped in &out.shapes {
+                    if let S::Text(t) = &clipped.shape {
+                        if t.galley.text() == text {
+                            target = Some(t.visual_bounding_rect().center());
+                        }
+                    }
+                }
+            }
+        }
+        if let Ok(text) = click_on {
+            assert!(target.is_some(), "no text {text:?} in the panel");
+        }
+        (c, shapes)
+    }
+
+    #[test]
+    fn the_panel_draws_when_shown_and_nothing_when_hidden() {
+        let (c, shown) = run(true, Err(Pos2::new(1000.0, 600.0)));
+        assert!(shown > 0);
+        assert_eq!(c, controls(), "a click outside the panel changes nothing");
+        let (_, hidden) = run(false, Err(Pos2::new(1000.0, 600.0)));
+        assert_eq!(hidden, 0);
+    }
+
+    #[test]
+    fn the_panel_controls_change_the_state() {
+        let (c, _) = run(true, Ok("morph"));
+        assert_eq!(c, Controls { morph: false, ..controls() });
+        let (c, _) = run(true, Ok("LOD colours"));
+        assert_eq!(c, Controls { colour_by_lod: false, ..controls() });
+        let (c, _) = run(true, Ok("paper"));
+        assert_eq!(c, Controls { mode: ErrorMode::Paper, ..controls() });
+        let (c, _) = run(true, Ok("Home"));
+        assert_eq!(c, Controls { go_home: true, ..controls() });
+        // Wireframe is greyed out on a device without it (the readout's default).
+        let (c, _) = run(true, Ok("wireframe"));
+        assert_eq!(c, controls());
+    }
+}
