@@ -10,7 +10,10 @@ use std::path::{Path, PathBuf};
 #[allow(dead_code)]
 mod gpu_layout;
 
-use gpu_layout::{all_blocks, glsl_align_size, BlockInfo, BlockKind, GLSL_CONSTANTS, LOD_PALETTE};
+use gpu_layout::{
+    all_blocks, glsl_align_size, BlockInfo, BlockKind, AO_DIRECTIONS, AO_DISTANCES, GLSL_CONSTANTS, LOD_PALETTE,
+    SUN_SOFTNESS, SUN_STEP_GROWTH,
+};
 
 fn main() {
     let out_dir = PathBuf::from(std::env::var("OUT_DIR").unwrap());
@@ -97,6 +100,13 @@ fn generate_header(blocks: &[BlockInfo]) -> Result<String, String> {
     let colours: Vec<String> =
         LOD_PALETTE.iter().map(|c| format!("vec3({:?}, {:?}, {:?})", c[0], c[1], c[2])).collect();
     writeln!(s, "#define LOD_PALETTE vec3[{}]({})", LOD_PALETTE.len(), colours.join(", ")).unwrap();
+    // Floats written with `{:?}`: the shortest text that reads back as the same f32.
+    writeln!(s, "#define SUN_STEP_GROWTH {:?}", SUN_STEP_GROWTH).unwrap();
+    writeln!(s, "#define SUN_SOFTNESS {:?}", SUN_SOFTNESS).unwrap();
+    let dirs: Vec<String> = AO_DIRECTIONS.iter().map(|d| format!("vec2({:?}, {:?})", d[0], d[1])).collect();
+    writeln!(s, "#define AO_DIRECTIONS vec2[{}]({})", dirs.len(), dirs.join(", ")).unwrap();
+    let dists: Vec<String> = AO_DISTANCES.iter().map(|d| format!("{d:?}")).collect();
+    writeln!(s, "#define AO_DISTANCES float[{}]({})", dists.len(), dists.join(", ")).unwrap();
     for b in blocks {
         let mut end = 0;
         writeln!(s, "#ifdef USE_{}", b.name).unwrap();

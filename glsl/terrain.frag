@@ -1,6 +1,7 @@
 #version 450
 // Terrain shading: normals from the heightfield, base and detail textures blended as in
-// seed 000 eqs. 9-11 (or a height/slope ramp), a directional light and distance fog.
+// seed 000 eqs. 9-11 (or a height/slope ramp), a directional sun with precomputed shadows
+// and ambient occlusion, and distance fog.
 #extension GL_GOOGLE_include_directive : require
 #define USE_FrameUniforms
 #include "layout.glsl"
@@ -10,6 +11,7 @@ layout(set = 0, binding = TERRAIN_BINDING_HEIGHTS) uniform sampler2D heights;
 layout(set = 0, binding = TERRAIN_BINDING_BASE) uniform sampler2D base_tex;
 layout(set = 0, binding = TERRAIN_BINDING_DETAIL) uniform sampler2D detail_tex;
 layout(set = 0, binding = TERRAIN_BINDING_GRADIENTS) uniform sampler2D gradients;
+layout(set = 0, binding = TERRAIN_BINDING_LIGHTING) uniform sampler2D lighting;
 layout(location = 0) in vec3 v_world;
 layout(location = 1) flat in int v_lod;
 layout(location = 0) out vec4 out_color;
@@ -117,8 +119,12 @@ void main() {
         vec3 palette[] = LOD_PALETTE;
         albedo = mix(albedo, palette[v_lod % palette.length()], 0.6);
     }
+    // Sun visibility and ambient occlusion, precomputed per lighting texel (lighting.frag):
+    // texel i is sample i * (N - 1) / (side - 1).
+    float texels = float(textureSize(lighting, 0).x);
+    vec2 lit = texture(lighting, (p * (texels - 1.0) / float(frame.extent.z - 1) + 0.5) / texels).rg;
     vec3 l = normalize(frame.light.xyz);
-    vec3 color = albedo * (frame.light.w + (1.0 - frame.light.w) * max(dot(n, l), 0.0));
+    vec3 color = albedo * (frame.light.w * lit.g + (1.0 - frame.light.w) * max(dot(n, l), 0.0) * lit.r);
     float dist = length(v_world - frame.camera_fog.xyz);
     float fog = 1.0 - exp(-frame.camera_fog.w * dist);
     out_color = vec4(mix(color, frame.sky_horizon.rgb, fog), 1.0);

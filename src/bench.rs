@@ -774,10 +774,12 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
         args,
         renderer: BlocksRenderer::new(
             &s.device,
+            &s.hf,
             &s.terrain,
             s.layout,
             crate::blocks::COLOR_FORMAT,
             crate::draw_thread::FRAMES_IN_FLIGHT,
+            args.common.sun.0,
         )?,
         targets: (0..crate::draw_thread::FRAMES_IN_FLIGHT)
             .map(|_| Target::new(&s.device, size.0, size.1))

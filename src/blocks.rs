@@ -6,6 +6,8 @@
 use crate::camera::Camera;
 use crate::gpu_layout::{self as layout, BlockPush, FrameUniforms};
 use crate::heightfield::Heightfield;
+use crate::lighting::Sun;
+use crate::lighting_gpu::LightingMap;
 use crate::quadtree::{morph_value, BlockLayout, DrawBlock};
 use crate::shaders;
 use crate::terrain_gpu::TerrainGpu;
@@ -14,7 +16,6 @@ use crate::vk::{
     DescriptorSetLayout, Device, Fence, FrameTimer, GraphicsPipeline, GraphicsPipelineDesc, Image, PipelineLayout,
     VkResult, VkResultExt,
 };
-use glam::Vec3;
 use std::sync::Arc;
 
 pub const COLOR_FORMAT: vk::Format = vk::Format::R8G8B8A8_SRGB;
@@ -217,6 +218,8 @@ pub struct BlocksRenderer {
     /// Offscreen frames in flight (bench, render, tests); the viewer presents through
     /// its swapchain instead.
     offscreen: Vec<OffscreenSlot>,
+    /// Sun visibility and ambient occlusion, sampled by the terrain shader.
+    lighting: LightingMap,
 }
 
 /// One offscreen frame in flight: its commands, fence and timestamps.
@@ -230,13 +233,18 @@ struct OffscreenSlot {
 }
 
 impl BlocksRenderer {
+    /// A renderer of `hf` (on the GPU as `terrain`) into `color_format` targets, lit by
+    /// `sun` (`None`: no shadows or occlusion).
     pub fn new(
         device: &Arc<Device>,
+        hf: &Heightfield,
         terrain: &TerrainGpu,
         block_layout: BlockLayout,
         color_format: vk::Format,
         frames_in_flight: usize,
+        sun: Option<Sun>,
     ) -> VkResult<Self> {
+        let lighting = LightingMap::new(device, hf, terrain, sun)?;
         let stages = vk::ShaderStageFlags::VERTEX | vk::ShaderStageFlags::FRAGMENT;
         let sampler = vk::DescriptorType::COMBINED_IMAGE_SAMPLER;
         let set_layout = DescriptorSetLayout::new(
@@ -247,6 +255,7 @@ impl BlocksRenderer {
                 (layout::TERRAIN_BINDING_BASE, sampler, vk::ShaderStageFlags::FRAGMENT),
                 (layout::TERRAIN_BINDING_DETAIL, sampler, vk::ShaderStageFlags::FRAGMENT),
                 (layout::TERRAIN_BINDING_GRADIENTS, sampler, vk::ShaderStageFlags::FRAGMENT),
+                (layout::TERRAIN_BINDING_LIGHTING, sampler, vk::ShaderStageFlags::FRAGMENT),
             ],
         )?;
         let pipeline_layout = PipelineLayout::new(
@@ -291,7 +300,7 @@ impl BlocksRenderer {
             },
         )?;
         let n = frames_in_flight.max(1) as u32;
-        let pool = DescriptorPool::new(device, n, &[(sampler, 4 * n), (vk::DescriptorType::UNIFORM_BUFFER, n)])?;
+        let pool = DescriptorPool::new(device, n, &[(sampler, 5 * n), (vk::DescriptorType::UNIFORM_BUFFER, n)])?;
         let ubo_size = std::mem::size_of::<FrameUniforms>() as u64;
         let mut sets = Vec::new();
         let mut uniforms = Vec::new();
@@ -311,6 +320,7 @@ impl BlocksRenderer {
                     (layout::TERRAIN_BINDING_BASE, terrain.base.view, terrain.linear.handle),
                     (layout::TERRAIN_BINDING_DETAIL, terrain.detail.view, terrain.linear.handle),
                     (layout::TERRAIN_BINDING_GRADIENTS, terrain.gradients.view, terrain.nearest.handle),
+                    (layout::TERRAIN_BINDING_LIGHTING, lighting.image.view, lighting.sampler.handle),
                 ],
                 &[(layout::TERRAIN_BINDING_FRAME, ubo.handle, ubo_size)],
             );
@@ -342,6 +352,7 @@ impl BlocksRenderer {
             uniforms,
             commands,
             offscreen,
+            lighting,
         })
     }
 
@@ -349,7 +360,8 @@ impl BlocksRenderer {
         let vp = cam.view_proj();
         let sky = if shading.sky { 1.0 } else { 0.0 };
         let horizon = if shading.sky { SKY_HORIZON } else { shading.background };
-        let light = Vec3::new(-0.5, 0.8, -0.3).normalize();
+        // Without a sun (no shadows) the light still comes from the default direction.
+        let light = self.lighting.sun().unwrap_or(Sun::DEFAULT).direction();
         FrameUniforms {
             view_proj: vp.to_cols_array_2d(),
             inv_view_proj: vp.inverse().to_cols_array_2d(),
@@ -516,6 +528,17 @@ impl BlocksRenderer {
             }
         }
         stats
+    }
+
+    /// Redraws the lighting map for `sun` (`None`: no shadows or occlusion); frames
+    /// recorded from now on use it.
+    pub fn set_sun(&mut self, hf: &Heightfield, sun: Option<Sun>) -> VkResult<()> {
+        self.lighting.set_sun(hf, sun)
+    }
+
+    /// The lighting map (tests read it back).
+    pub fn lighting(&self) -> &LightingMap {
+        &self.lighting
     }
 
     /// Writes the uniforms of `slot`. Only call when no pending frame uses that slot.

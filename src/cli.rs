@@ -133,6 +133,18 @@ pub struct CommonArgs {
     /// morph paid for inside the error bound.
     #[arg(long, value_enum, default_value_t = OnOff::On)]
     pub morph: OnOff,
+    /// Sun for the precomputed shadows and ambient occlusion: compass azimuth and
+    /// elevation in degrees (azimuth 0 is north, the top of the heightmap), or `off`.
+    #[arg(long, value_name = "AZ,EL|off", default_value = "301,54", value_parser = parse_sun)]
+    pub sun: SunArg,
+}
+
+/// The `--sun` option: a sun, or none (no shadows or occlusion).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SunArg(pub Option<crate::lighting::Sun>);
+
+fn parse_sun(s: &str) -> Result<SunArg, String> {
+    crate::lighting::Sun::parse(s).map(SunArg)
 }
 
 impl CommonArgs {

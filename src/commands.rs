@@ -205,7 +205,8 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
     let s = Session::open(&args.common)?;
     let cam = args.common.camera(&s.hf, (1280, 720))?;
     s.check_viewport((cam.width, cam.height))?;
-    let mut renderer = BlocksRenderer::new(&s.device, &s.terrain, s.layout, crate::blocks::COLOR_FORMAT, 1)?;
+    let mut renderer =
+        BlocksRenderer::new(&s.device, &s.hf, &s.terrain, s.layout, crate::blocks::COLOR_FORMAT, 1, args.common.sun.0)?;
     let target = Target::new(&s.device, cam.width, cam.height)?;
 
     let mut generation = 0;

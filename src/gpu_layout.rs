@@ -73,6 +73,12 @@ pub const TERRAIN_BINDING_DETAIL: u32 = 3;
 /// Terrain pipeline: per-sample gradients (R16G16_SNORM) for the normals.
 pub const TERRAIN_BINDING_GRADIENTS: u32 = 5;
 
+/// Terrain pipeline: sun visibility and ambient occlusion (RG8, `lighting.frag`).
+pub const TERRAIN_BINDING_LIGHTING: u32 = 6;
+
+/// Lighting pass: the heightfield, texelFetch only.
+pub const LIGHTING_BINDING_HEIGHTS: u32 = 0;
+
 /// Vertex capture (tests): world positions written by capture.vert.
 pub const CAPTURE_BINDING_POSITIONS: u32 = 4;
 
@@ -145,6 +151,19 @@ gpu_block! {
 }
 
 gpu_block! {
+    /// Constants of the sun-visibility and ambient-occlusion pass (`lighting.frag`).
+    push_constant LightingPush as lighting_pc {
+        /// xz: unit horizontal direction towards the sun (samples), y: tangent of its
+        /// elevation, w: 1 = shadows and occlusion, 0 = everything lit.
+        sun: [f32; 4] => "vec4",
+        /// true extent in samples (x, z), samples per lighting texel, heights are unorm16.
+        grid: [i32; 4] => "ivec4",
+        /// spacing, height_scale, unused, unused.
+        params: [f32; 4] => "vec4",
+    }
+}
+
+gpu_block! {
     /// Constants of one block-error reduction pass.
     push_constant ReducePush as reduce_pc {
         /// block LOD j, GIE mip to read (j - 1), groups per block side (k - 1), unused.
@@ -165,7 +184,30 @@ pub const GLSL_CONSTANTS: &[(&str, u32)] = &[
     ("GIE_BINDING_MINMAX", GIE_BINDING_MINMAX),
     ("GIE_BINDING_DEVIATION", GIE_BINDING_DEVIATION),
     ("REDUCE_BINDING_GIE", REDUCE_BINDING_GIE),
+    ("TERRAIN_BINDING_LIGHTING", TERRAIN_BINDING_LIGHTING),
+    ("LIGHTING_BINDING_HEIGHTS", LIGHTING_BINDING_HEIGHTS),
+    ("SUN_MAX_STEPS", SUN_MAX_STEPS),
 ];
+
+/// The sun's horizon march: step `t` (in samples) grows by `max(1, t * SUN_STEP_GROWTH)`,
+/// at most `SUN_MAX_STEPS` steps (reaching about 10^5 samples).
+pub const SUN_MAX_STEPS: u32 = 256;
+pub const SUN_STEP_GROWTH: f32 = 0.05;
+/// Half-width of the penumbra, in tangent of elevation (about 1.1 degrees).
+pub const SUN_SOFTNESS: f32 = 0.02;
+
+/// Ambient occlusion: horizon directions (unit, in samples) and distances (samples).
+pub const AO_DIRECTIONS: [[f32; 2]; 8] = [
+    [1.0, 0.0],
+    [std::f32::consts::FRAC_1_SQRT_2, std::f32::consts::FRAC_1_SQRT_2],
+    [0.0, 1.0],
+    [-std::f32::consts::FRAC_1_SQRT_2, std::f32::consts::FRAC_1_SQRT_2],
+    [-1.0, 0.0],
+    [-std::f32::consts::FRAC_1_SQRT_2, -std::f32::consts::FRAC_1_SQRT_2],
+    [0.0, -1.0],
+    [std::f32::consts::FRAC_1_SQRT_2, -std::f32::consts::FRAC_1_SQRT_2],
+];
+pub const AO_DISTANCES: [f32; 12] = [1.0, 2.0, 3.0, 4.0, 6.0, 8.0, 11.0, 16.0, 22.0, 32.0, 45.0, 64.0];
 
 /// Colours of the LOD levels in the "colour blocks by LOD" view (level modulo 6): the
 /// shader's palette and the viewer's legend.
@@ -179,6 +221,7 @@ pub fn all_blocks() -> Vec<BlockInfo> {
         BlockInfo::of::<FrameUniforms>(),
         BlockInfo::of::<GiePush>(),
         BlockInfo::of::<ReducePush>(),
+        BlockInfo::of::<LightingPush>(),
     ]
 }
 

@@ -5,6 +5,7 @@
 
 use crate::gie::ErrorMode;
 use crate::gpu_layout::LOD_PALETTE;
+use crate::lighting::Sun;
 use crate::vk::{vk, CommandPool, Device};
 use egui::{Color32, Pos2, Sense, Shape, Stroke, Vec2};
 use egui_ash_renderer::allocator::GpuAllocator;
@@ -84,6 +85,9 @@ pub struct Readout {
     pub ground_speed: f32,
     /// CPU time the panel took last frame (building, tessellating, recording).
     pub panel_ms: f32,
+    /// Time the last lighting map took (ms), and the sun it was made for.
+    pub lighting_ms: f64,
+    pub lit_sun: Option<Sun>,
     pub wireframe_available: bool,
     /// The fog and speed sliders' ranges.
     pub ranges: Ranges,
@@ -102,6 +106,8 @@ pub struct Controls {
     pub speed: f32,
     /// Set for one frame by the "Home" button.
     pub go_home: bool,
+    /// Sun of the shadows and occlusion (`None`: off).
+    pub sun: Option<Sun>,
 }
 
 /// Ranges of the sliders that have no natural one.
@@ -234,6 +240,24 @@ fn panel(ui: &mut egui::Ui, r: &Readout, history: &FrameHistory, now: f64, c: &m
                 .clamping(egui::SliderClamping::Edits),
         );
     });
+    let mut shadows = c.sun.is_some();
+    ui.horizontal(|ui| {
+        ui.checkbox(&mut shadows, "sun shadows and occlusion");
+    });
+    if shadows != c.sun.is_some() {
+        c.sun = if shadows { Some(r.lit_sun.unwrap_or(Sun::DEFAULT)) } else { None };
+    }
+    if let Some(sun) = c.sun.as_mut() {
+        ui.horizontal(|ui| {
+            ui.label("sun az");
+            ui.add(egui::Slider::new(&mut sun.azimuth, 0.0..=360.0).suffix("°").fixed_decimals(0));
+        });
+        ui.horizontal(|ui| {
+            ui.label("sun el");
+            ui.add(egui::Slider::new(&mut sun.elevation, 1.0..=89.0).suffix("°").fixed_decimals(0));
+        });
+        ui.small(format!("shadows are redrawn on release ({:.0} ms last time)", r.lighting_ms));
+    }
     ui.horizontal(|ui| {
         ui.label("speed");
         ui.add(
@@ -369,6 +393,11 @@ impl Hud {
         self.state.on_window_event(window, event).consumed
     }
 
+    /// Whether a control of the panel is being dragged (the sun is redrawn on release).
+    pub fn pointer_busy(&self) -> bool {
+        self.ctx.egui_is_using_pointer()
+    }
+
     /// Seconds since the panel was made (the plots' clock).
     pub fn now(&self) -> f64 {
         self.started.elapsed().as_secs_f64()
@@ -475,6 +504,7 @@ mod tests {
             fog_density: 0.1,
             speed: 10.0,
             go_home: false,
+            sun: Some(Sun::DEFAULT),
         }
     }
 
@@ -549,6 +579,8 @@ mod tests {
         assert_eq!(c, Controls { mode: ErrorMode::Paper, ..controls() });
         let (c, _) = run(true, Ok("Home"));
         assert_eq!(c, Controls { go_home: true, ..controls() });
+        let (c, _) = run(true, Ok("sun shadows and occlusion"));
+        assert_eq!(c, Controls { sun: None, ..controls() });
         // Wireframe is greyed out on a device without it (the readout's default).
         let (c, _) = run(true, Ok("wireframe"));
         assert_eq!(c, controls());

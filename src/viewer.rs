@@ -11,6 +11,7 @@ use crate::errors_activity::ErrorsActivity;
 use crate::gie::ErrorMode;
 use crate::heightfield::{Heightfield, MinMaxPyramid};
 use crate::hud::{Controls, Hud, Ranges, Readout};
+use crate::lighting::Sun;
 use crate::quadtree::{BlockLayout, DrawBlock};
 use crate::terrain_gpu::{TerrainGpu, Texture};
 use crate::trace::{Trace, DRAW_TID};
@@ -281,6 +282,8 @@ struct RunStats {
     /// Whether the panel was shown at exit, and in how many frames it was drawn.
     hud_visible: bool,
     hud_frames: u64,
+    /// The sun of the lighting map at exit (azimuth, elevation), if any.
+    final_sun: Option<[f32; 2]>,
 }
 
 struct App {
@@ -303,6 +306,8 @@ struct App {
     shading: Shading,
     delta: f32,
     mode: ErrorMode,
+    /// The sun asked for (the panel); the lighting map follows when no slider is held.
+    sun: Option<Sun>,
     frozen: Option<Vec<DrawBlock>>,
     feed: ErrorFeed,
     frame: u64,
@@ -427,6 +432,7 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
         },
         delta: args.delta,
         mode: args.common.error_mode,
+        sun: args.common.sun.0,
         frozen: None,
         feed: args.common.error_feed().with_trace(trace.clone()),
         trace: trace.clone(),
@@ -541,7 +547,23 @@ impl App {
         };
         let swapchain = Swapchain::new(&device, &surface, (size.width, size.height), present, None)?;
         let depth = depth_image(&device, swapchain.extent)?;
-        let renderer = BlocksRenderer::new(&device, &terrain, self.layout, swapchain.format, FRAMES_IN_FLIGHT)?;
+        let renderer = BlocksRenderer::new(
+            &device,
+            &self.hf,
+            &terrain,
+            self.layout,
+            swapchain.format,
+            FRAMES_IN_FLIGHT,
+            self.args.common.sun.0,
+        )?;
+        if let Some(sun) = renderer.lighting().sun() {
+            println!(
+                "vkterrain: sun at azimuth {}, elevation {}: shadow and occlusion map in {:.0} ms",
+                sun.azimuth,
+                sun.elevation,
+                renderer.lighting().last_ms()
+            );
+        }
         let mut hud = Hud::new(&device, &window, swapchain.format, DEPTH_FORMAT, FRAMES_IN_FLIGHT)?;
         hud.visible = !self.args.no_hud;
         if self.trace.enabled() {
@@ -754,6 +776,7 @@ impl App {
             return Err(e);
         }
         self.stats.hud_visible = gpu.hud.visible;
+        self.stats.final_sun = gpu.renderer.lighting().sun().map(|s| [s.azimuth, s.elevation]);
         if gpu.hud.visible {
             self.stats.hud_frames += 1;
         }
@@ -846,6 +869,7 @@ impl App {
             fog_density: self.shading.fog_density,
             speed: self.ctl.speed,
             go_home: false,
+            sun: self.sun,
         }
     }
 
@@ -860,6 +884,7 @@ impl App {
         self.shading.colour_by_lod = c.colour_by_lod;
         self.shading.fog_density = c.fog_density;
         self.ctl.speed = c.speed;
+        self.sun = c.sun;
         if c.go_home {
             self.go_home();
         }
@@ -903,6 +928,8 @@ impl App {
         let (Some(gpu), Some(window)) = (self.gpu.as_mut(), self.window.as_ref()) else { return Ok(()) };
         readout.panel_ms = gpu.hud.last_ms;
         readout.wireframe_available = gpu.device.features.wireframe;
+        readout.lighting_ms = gpu.renderer.lighting().last_ms();
+        readout.lit_sun = gpu.renderer.lighting().sun();
         if self.frame > 0 {
             let t = gpu.hud.now();
             gpu.hud.history.push(t, interval * 1e3);
@@ -910,6 +937,10 @@ impl App {
         gpu.hud.prepare(window, &readout, &mut after)?;
         if after != before {
             self.apply(after);
+        }
+        let gpu = self.gpu.as_mut().unwrap();
+        if gpu.renderer.lighting().sun() != self.sun && !gpu.hud.pointer_busy() {
+            gpu.renderer.set_sun(&self.hf, self.sun)?;
         }
         Ok(())
     }

@@ -192,6 +192,9 @@ fn bad_options() {
     fails_cleanly(&["render", "--size", "0x480"], &["--size", "at least 1"]);
     fails_cleanly(&["render", "--camera", "NaN,1,2"], &["--camera", "finite"]);
     fails_cleanly(&["render", "--fovy", "200"], &["--fovy", "179"]);
+    fails_cleanly(&["render", "--sun", "400,10"], &["--sun", "azimuth 400"]);
+    fails_cleanly(&["render", "--sun", "90,95"], &["--sun", "elevation 95"]);
+    fails_cleanly(&["view", "--sun", "west"], &["--sun", "AZ,EL"]);
     fails_cleanly(&["frobnicate"], &["frobnicate"]);
     let s = Scratch::new();
     fails_cleanly(&["render", "--out", &s.path("picture.jpg").display().to_string()], &["--out", ".png"]);

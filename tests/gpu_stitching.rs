@@ -25,7 +25,7 @@ fn compare(
     let mm = MinMaxPyramid::build(hf);
     let layout = BlockLayout::new(hf.n, k).unwrap();
     let terrain = TerrainGpu::new(device, hf, &mm, None, None).unwrap();
-    let mut renderer = BlocksRenderer::new(device, &terrain, layout, COLOR_FORMAT, 1).unwrap();
+    let mut renderer = BlocksRenderer::new(device, hf, &terrain, layout, COLOR_FORMAT, 1, None).unwrap();
     let (mut n, mut collapsed, mut lerped, mut morphed) = (0, 0, 0, 0);
     for cam in cams {
         let errors = block_errors(&group_errors(hf, &mm, &ErrorParams::new(cam, ErrorMode::Strict)), layout.m);
