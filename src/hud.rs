@@ -264,6 +264,7 @@ fn panel(ui: &mut egui::Ui, r: &Readout, history: &FrameHistory, now: f64, c: &m
             egui::Slider::new(&mut c.speed, ranges.speed.0..=ranges.speed.1)
                 .logarithmic(true)
                 .suffix("/s")
+                .fixed_decimals(0)
                 .clamping(egui::SliderClamping::Edits),
         );
     });
@@ -280,7 +281,7 @@ fn plot(ui: &mut egui::Ui, name: &str, points: Vec<(f64, f32)>, now: f64, colour
     let (rect, _) = ui.allocate_exact_size(Vec2::new(ui.available_width(), 44.0), Sense::hover());
     let painter = ui.painter_at(rect);
     painter.rect_filled(rect, 2.0, Color32::from_black_alpha(140));
-    let top = points.iter().map(|p| p.1).fold(0.0f32, f32::max).max(1e-3) * 1.15;
+    let top = points.iter().map(|p| p.1).fold(0.0f32, f32::max).max(1e-3) * 1.4;
     let at = |t: f64, v: f32| {
         let x = rect.left() + ((1.0 - (now - t) / PLOT_SECONDS) as f32).clamp(0.0, 1.0) * rect.width();
         Pos2::new(x, rect.bottom() - v / top * rect.height())
