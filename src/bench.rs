@@ -413,7 +413,7 @@ impl Bench<'_> {
             for blocks in [now, before] {
                 let target = &self.targets[slot];
                 self.renderer.submit_offscreen(slot, &self.s.hf, &self.s.terrain, target, cam, blocks, &keyed)?;
-                self.renderer.wait_offscreen(slot)?;
+                self.renderer.wait_frame(slot)?;
                 images.push(target.pixels()?);
             }
             rows[r].lod_change_rmse = Some(keyed_difference(&images[0], &images[1]));
@@ -535,7 +535,7 @@ impl Bench<'_> {
             let slot = i as usize % self.targets.len();
             if let Some(diff) = &mut temporal {
                 // The slot's previous frame, finished: read it before it is drawn over.
-                if let (Some(stats), Some(r)) = (self.renderer.wait_offscreen(slot)?, pending[slot].take()) {
+                if let (Some(stats), Some(r)) = (self.renderer.wait_frame(slot)?, pending[slot].take()) {
                     fill(&mut run.rows[r], &stats, r);
                     self.finish_temporal(diff, slot, r, &mut run.rows, &shading)?;
                 }
@@ -578,7 +578,7 @@ impl Bench<'_> {
             progress.tick(i + 1);
         }
         for (slot, row) in pending.iter_mut().enumerate() {
-            if let (Some(stats), Some(r)) = (self.renderer.wait_offscreen(slot)?, row.take()) {
+            if let (Some(stats), Some(r)) = (self.renderer.wait_frame(slot)?, row.take()) {
                 fill(&mut run.rows[r], &stats, r);
                 if let Some(diff) = &mut temporal {
                     self.finish_temporal(diff, slot, r, &mut run.rows, &shading)?;

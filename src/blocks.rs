@@ -182,6 +182,14 @@ pub struct FrameDest<'a> {
     pub present: bool,
 }
 
+/// Semaphores a frame's submission waits for and signals: the swapchain image's
+/// acquire and the hand-over to presentation (none for offscreen frames).
+#[derive(Default, Clone, Copy)]
+pub struct FrameSync<'a> {
+    pub wait: &'a [vk::SemaphoreSubmitInfo<'a>],
+    pub signal: &'a [vk::SemaphoreSubmitInfo<'a>],
+}
+
 /// Frame statistics of one draw.
 #[derive(Clone, Copy, Debug, Default)]
 pub struct DrawStats {
@@ -393,7 +401,7 @@ impl BlocksRenderer {
 
     /// Records the sky and every block into `cmd`, inside dynamic rendering on `color`.
     #[allow(clippy::too_many_arguments)]
-    pub fn record(
+    fn record(
         &self,
         slot: usize,
         cmd: vk::CommandBuffer,
@@ -492,7 +500,7 @@ impl BlocksRenderer {
     /// hand-over to presentation. The one frame recording of the viewer (swapchain) and
     /// of offscreen frames (bench, render, tests). `overlay` records more drawing into
     /// the same rendering, after the terrain and the sky.
-    pub fn record_frame(
+    fn record_frame(
         &self,
         slot: usize,
         cmd: vk::CommandBuffer,
@@ -585,7 +593,7 @@ impl BlocksRenderer {
         read: bool,
     ) -> VkResult<(Option<Vec<u8>>, DrawStats)> {
         self.submit_offscreen(0, hf, terrain, target, cam, blocks, shading)?;
-        let stats = self.wait_offscreen(0)?.expect("a frame was just submitted");
+        let stats = self.wait_frame(0)?.expect("a frame was just submitted");
         let pixels = if read {
             Some(target.readback.mapped()?[..(target.width * target.height * 4) as usize].to_vec())
         } else {
@@ -601,7 +609,7 @@ impl BlocksRenderer {
 
     /// Records and submits a frame from slot `slot` into `target` (which no other
     /// pending frame may use), after waiting for the slot's previous frame, whose stats
-    /// are returned. Nothing waits for the new frame: see [`Self::wait_offscreen`].
+    /// are returned. Nothing waits for the new frame: see [`Self::wait_frame`].
     #[allow(clippy::too_many_arguments)]
     pub fn submit_offscreen(
         &mut self,
@@ -613,11 +621,40 @@ impl BlocksRenderer {
         blocks: &[DrawBlock],
         shading: &Shading,
     ) -> VkResult<Option<DrawStats>> {
-        let previous = self.wait_offscreen(slot)?;
+        let dest = FrameDest {
+            image: target.color.handle,
+            view: target.color.view,
+            extent: vk::Extent2D { width: target.width, height: target.height },
+            depth: &target.depth,
+            last_use: (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_READ),
+            copy_to: Some(target.readback.handle),
+            present: false,
+        };
+        self.submit_frame(slot, hf, terrain, &dest, cam, blocks, shading, None, FrameSync::default())
+    }
+
+    /// The one frame submission of every command (view, bench, render, tests): waits for
+    /// the previous frame of `slot` (its stats are returned), writes the slot's uniforms,
+    /// records the frame into `dest` between the slot's timestamps, and submits it on the
+    /// draw queue with `sync`'s semaphores, fenced by the slot. Nothing waits for the new
+    /// frame: see [`Self::wait_frame`].
+    #[allow(clippy::too_many_arguments)]
+    pub fn submit_frame(
+        &mut self,
+        slot: usize,
+        hf: &Heightfield,
+        terrain: &TerrainGpu,
+        dest: &FrameDest,
+        cam: &Camera,
+        blocks: &[DrawBlock],
+        shading: &Shading,
+        overlay: Option<&mut dyn FnMut(vk::CommandBuffer)>,
+        sync: FrameSync,
+    ) -> VkResult<Option<DrawStats>> {
+        let previous = self.wait_frame(slot)?;
         self.set_frame(slot, hf, terrain, cam, shading)?;
         let d = self.device.raw.clone();
         let cmd = self.offscreen[slot].cmd;
-        let extent = vk::Extent2D { width: target.width, height: target.height };
         // SAFETY: the slot's previous submission finished (waited for above).
         unsafe {
             begin_one_time(&d, cmd)?;
@@ -625,16 +662,7 @@ impl BlocksRenderer {
                 t.begin(&d, cmd);
             }
         }
-        let dest = FrameDest {
-            image: target.color.handle,
-            view: target.color.view,
-            extent,
-            depth: &target.depth,
-            last_use: (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_READ),
-            copy_to: Some(target.readback.handle),
-            present: false,
-        };
-        let stats = self.record_frame(slot, cmd, &dest, blocks, shading, None);
+        let stats = self.record_frame(slot, cmd, dest, blocks, shading, overlay);
         // SAFETY: as above.
         unsafe {
             if let Some(t) = &self.offscreen[slot].timer {
@@ -645,7 +673,10 @@ impl BlocksRenderer {
         let s = &mut self.offscreen[slot];
         s.fence.reset()?;
         let cmds = [vk::CommandBufferSubmitInfo::default().command_buffer(cmd)];
-        let submit = [vk::SubmitInfo2::default().command_buffer_infos(&cmds)];
+        let submit = [vk::SubmitInfo2::default()
+            .wait_semaphore_infos(sync.wait)
+            .command_buffer_infos(&cmds)
+            .signal_semaphore_infos(sync.signal)];
         let (asked, got) = self.device.draw_queue.submit_timed(&self.device, &submit, s.fence.handle)?;
         let mut stats = stats;
         stats.queue_lock = Some((asked, got));
@@ -653,9 +684,15 @@ impl BlocksRenderer {
         Ok(previous)
     }
 
+    /// Stats of the frame submitted from `slot` and not yet waited for (its GPU time
+    /// is known only once [`Self::wait_frame`] returns it).
+    pub fn pending(&self, slot: usize) -> Option<DrawStats> {
+        self.offscreen[slot].pending
+    }
+
     /// Waits for the frame pending in `slot`, if any, and returns its stats with the GPU
     /// time and how long this thread was blocked waiting for it.
-    pub fn wait_offscreen(&mut self, slot: usize) -> VkResult<Option<DrawStats>> {
+    pub fn wait_frame(&mut self, slot: usize) -> VkResult<Option<DrawStats>> {
         let s = &mut self.offscreen[slot];
         let Some(mut stats) = s.pending.take() else { return Ok(None) };
         let t = std::time::Instant::now();
@@ -745,7 +782,7 @@ impl BlocksRenderer {
             .dst_binding(layout::CAPTURE_BINDING_POSITIONS)
             .descriptor_type(vk::DescriptorType::STORAGE_BUFFER)
             .buffer_info(&storage);
-        self.wait_offscreen(0)?;
+        self.wait_frame(0)?;
         let d = device.raw.clone();
         let cmd = self.offscreen[0].cmd;
         let area = vk::Rect2D { offset: vk::Offset2D::default(), extent: vk::Extent2D { width: 1, height: 1 } };

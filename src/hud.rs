@@ -83,6 +83,8 @@ pub struct Readout {
     pub position: Vec3,
     pub above_ground: f32,
     pub ground_speed: f32,
+    /// GPU time of the last finished frame (timestamps), when the device has them.
+    pub gpu_frame_ms: Option<f64>,
     /// CPU time the panel took last frame (building, tessellating, recording).
     pub panel_ms: f32,
     /// Time the last lighting map took (ms), and the sun it was made for.
@@ -186,6 +188,7 @@ fn panel(ui: &mut egui::Ui, r: &Readout, history: &FrameHistory, now: f64, c: &m
             ui.monospace(v);
             ui.end_row();
         };
+        row("GPU frame", r.gpu_frame_ms.map_or("- (no timestamps)".into(), |m| format!("{m:.1} ms")));
         row("triangles", r.triangles.to_string());
         row("draw calls", format!("{} ({} blocks)", r.draw_calls, r.blocks));
         row("error age", r.error_age.map_or("-".into(), |a| format!("{a} frames")));

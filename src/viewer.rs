@@ -2,7 +2,7 @@
 //! activity (traversal and drawing on the draw queue), with the errors activity live on
 //! its own thread and queue.
 
-use crate::blocks::{BlocksRenderer, DrawStats, FrameDest, Shading, DEPTH_FORMAT};
+use crate::blocks::{BlocksRenderer, DrawStats, FrameDest, FrameSync, Shading, DEPTH_FORMAT};
 use crate::camera::Camera;
 use crate::cli::{near_plane, CommonArgs, InputError};
 use crate::commands::{save_png, Session};
@@ -15,10 +15,9 @@ use crate::lighting::Sun;
 use crate::quadtree::{BlockLayout, DrawBlock};
 use crate::terrain_gpu::{TerrainGpu, Texture};
 use crate::trace::{Trace, DRAW_TID};
-use crate::vk::FrameTimer;
 use crate::vk::{
-    begin_one_time, vk, BinarySemaphore, Buffer, CommandPool, Device, DeviceOptions, Fence, Image, Instance,
-    InstanceOptions, Surface, Swapchain, VkResultExt,
+    vk, BinarySemaphore, Buffer, Device, DeviceOptions, Image, Instance, InstanceOptions, Surface, Swapchain,
+    VkResultExt,
 };
 use clap::{Args, ValueEnum};
 use glam::Vec3;
@@ -213,22 +212,12 @@ impl Controller {
     }
 }
 
-/// Per-frame-in-flight objects.
-struct FrameSlot {
-    cmd: vk::CommandBuffer,
-    fence: Fence,
-    acquired: BinarySemaphore,
-    /// Timestamps of the slot's frame (with --trace, when the device has them) and the
-    /// frame they belong to.
-    timer: Option<FrameTimer>,
-    timed_frame: Option<u64>,
-}
-
 /// Everything that lives while the window is open, in drop order.
 struct Gpu {
     hud: Hud,
-    slots: Vec<FrameSlot>,
-    commands: CommandPool,
+    /// Per frame slot: the swapchain image's acquire semaphore. The slot's commands,
+    /// fence and timestamps are the renderer's (`BlocksRenderer::submit_frame`).
+    acquired: Vec<BinarySemaphore>,
     depth: Image,
     swapchain: Swapchain,
     renderer: BlocksRenderer,
@@ -244,9 +233,6 @@ impl Drop for Gpu {
         let _ = self.device.wait_idle();
         if let Some(a) = self.activity.take() {
             let _ = a.stop();
-        }
-        for s in &self.slots {
-            self.commands.free(s.cmd);
         }
     }
 }
@@ -327,6 +313,10 @@ struct App {
     title_at: Instant,
     fps_frames: u64,
     last_stats: DrawStats,
+    /// GPU time of the last finished frame (timestamps), when the device has them.
+    last_gpu_ms: Option<f64>,
+    /// The frame submitted from each slot and not yet traced.
+    slot_frames: [Option<u64>; FRAMES_IN_FLIGHT],
     last_blocks: usize,
     /// The block list of the last frame (frozen with Space).
     blocks: Vec<DrawBlock>,
@@ -448,6 +438,8 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
         title_at: now,
         fps_frames: 0,
         last_stats: DrawStats::default(),
+        last_gpu_ms: None,
+        slot_frames: [None; FRAMES_IN_FLIGHT],
         last_blocks: 0,
         blocks: Vec::new(),
         screenshot_next: None,
@@ -574,34 +566,12 @@ impl App {
         }
         let activity =
             ErrorsActivity::start_traced(&device, terrain.clone(), self.hf.clone(), self.layout, self.trace.clone())?;
-        let commands = CommandPool::new(&device, device.draw_queue.family)?;
-        let slots = (0..FRAMES_IN_FLIGHT)
-            .map(|_| {
-                let timer = if self.trace.enabled() { FrameTimer::new(&device)? } else { None };
-                Ok(FrameSlot {
-                    cmd: commands.allocate()?,
-                    fence: Fence::new(&device, true)?,
-                    acquired: BinarySemaphore::new(&device)?,
-                    timer,
-                    timed_frame: None,
-                })
-            })
-            .collect::<anyhow::Result<Vec<_>>>()?;
+        let acquired = (0..FRAMES_IN_FLIGHT).map(|_| BinarySemaphore::new(&device)).collect::<Result<Vec<_>, _>>()?;
         self.stats.queue_mode = device.queue_mode.as_str().into();
         self.stats.geometry_bytes = crate::commands::renderer_geometry_bytes(self.layout.k());
         self.stats.device = device.name.clone();
-        self.gpu = Some(Gpu {
-            hud,
-            slots,
-            commands,
-            depth,
-            swapchain,
-            renderer,
-            activity: Some(activity),
-            terrain,
-            surface,
-            device,
-        });
+        self.gpu =
+            Some(Gpu { hud, acquired, depth, swapchain, renderer, activity: Some(activity), terrain, surface, device });
         self.window = Some(window);
         Ok(())
     }
@@ -686,15 +656,11 @@ impl App {
         let frame_start = Instant::now();
         let slot_index = self.slot;
         let gpu = self.gpu.as_mut().unwrap();
-        let d = gpu.device.raw.clone();
-        let slot = &mut gpu.slots[slot_index];
-        slot.fence.wait(u64::MAX)?;
-        self.trace.complete(DRAW_TID, "wait (frame slot)", frame_start, Instant::now(), json!({"frame": self.frame}));
-        if let (Some(timer), Some(f)) = (&slot.timer, slot.timed_frame.take()) {
-            let shared = gpu.device.queue_mode == crate::vk::QueueMode::Shared;
-            self.trace.gpu_span(self.trace.gpu_tid(false, shared), "frame", timer.read()?.0, json!({"frame": f}));
+        // The slot's previous frame must be done before its acquire semaphore is reused.
+        if let Some(done) = gpu.renderer.wait_frame(slot_index)? {
+            self.trace_frame(slot_index, &done);
         }
-        let slot = &gpu.slots[slot_index];
+        let gpu = self.gpu.as_mut().unwrap();
 
         // The newest finished error generation (never waits on the errors queue after the
         // first frame, which waits for data at its camera so the bound holds from the start).
@@ -708,17 +674,13 @@ impl App {
             None => self.feed.traverse(&self.hf, &self.mm, &self.layout, &cam, self.delta).blocks,
         };
 
+        let acquired = gpu.acquired[slot_index].handle;
         // SAFETY: the swapchain and semaphore are live; the acquire semaphore of this
-        // slot is unsignalled (its previous frame completed: fence waited above).
-        let acquired = unsafe {
-            gpu.swapchain.loader.acquire_next_image(
-                gpu.swapchain.handle,
-                u64::MAX,
-                slot.acquired.handle,
-                vk::Fence::null(),
-            )
+        // slot is unsignalled (its previous frame completed: waited for above).
+        let acquire = unsafe {
+            gpu.swapchain.loader.acquire_next_image(gpu.swapchain.handle, u64::MAX, acquired, vk::Fence::null())
         };
-        let (image_index, suboptimal) = match acquired {
+        let (image_index, suboptimal) = match acquire {
             Ok(r) => r,
             Err(vk::Result::ERROR_OUT_OF_DATE_KHR) => {
                 self.swapchain_dirty = true;
@@ -726,10 +688,7 @@ impl App {
             }
             Err(e) => return Err(e).vk("vkAcquireNextImageKHR").map_err(Into::into),
         };
-        let image = gpu.swapchain.images[image_index as usize];
-        let view = gpu.swapchain.views[image_index as usize];
         let extent = gpu.swapchain.extent;
-        gpu.renderer.set_frame(slot_index, &self.hf, &gpu.terrain, &cam, &self.shading)?;
         let screenshot = self.screenshot_next.take();
         let readback = match (&screenshot, gpu.swapchain.can_copy) {
             (Some(_), true) => Some(Buffer::new(
@@ -745,17 +704,9 @@ impl App {
             }
             _ => None,
         };
-        let cmd = slot.cmd;
-        // SAFETY: `cmd` belongs to this slot, whose previous submission completed.
-        unsafe {
-            begin_one_time(&d, cmd)?;
-            if let Some(t) = &slot.timer {
-                t.begin(&d, cmd);
-            }
-        }
         let dest = FrameDest {
-            image,
-            view,
+            image: gpu.swapchain.images[image_index as usize],
+            view: gpu.swapchain.views[image_index as usize],
             extent,
             depth: &gpu.depth,
             // The acquire semaphore orders this after the presentation engine's read.
@@ -763,7 +714,13 @@ impl App {
             copy_to: readback.as_ref().map(|b| b.handle),
             present: true,
         };
-        let recording = Instant::now();
+        let render_done = gpu.swapchain.render_done[image_index as usize];
+        let waits = [vk::SemaphoreSubmitInfo::default()
+            .semaphore(acquired)
+            .stage_mask(vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT)];
+        let signals = [vk::SemaphoreSubmitInfo::default()
+            .semaphore(render_done)
+            .stage_mask(vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT | vk::PipelineStageFlags2::COPY)];
         let hud = &mut gpu.hud;
         let mut hud_error = None;
         let mut draw_hud = |cmd| {
@@ -771,40 +728,30 @@ impl App {
                 hud_error = Some(e);
             }
         };
-        let stats = gpu.renderer.record_frame(slot_index, cmd, &dest, &blocks, &self.shading, Some(&mut draw_hud));
+        let recording = Instant::now();
+        gpu.renderer.submit_frame(
+            slot_index,
+            &self.hf,
+            &gpu.terrain,
+            &dest,
+            &cam,
+            &blocks,
+            &self.shading,
+            Some(&mut draw_hud),
+            FrameSync { wait: &waits, signal: &signals },
+        )?;
         if let Some(e) = hud_error {
             return Err(e);
         }
+        self.trace.complete(DRAW_TID, "record and submit", recording, Instant::now(), json!({"blocks": blocks.len()}));
+        self.trace.instant(DRAW_TID, "submit (draw queue)", json!({"frame": self.frame}));
+        self.slot_frames[slot_index] = Some(self.frame);
+        let stats = gpu.renderer.pending(slot_index).unwrap_or_default();
         self.stats.hud_visible = gpu.hud.visible;
         self.stats.final_sun = gpu.renderer.lighting().sun().map(|s| [s.azimuth, s.elevation]);
         if gpu.hud.visible {
             self.stats.hud_frames += 1;
         }
-        self.trace.complete(DRAW_TID, "record", recording, Instant::now(), json!({"blocks": blocks.len()}));
-        // SAFETY: as above; the timestamp buffer belongs to this slot.
-        unsafe {
-            if let Some(t) = &slot.timer {
-                t.end(&d, cmd);
-            }
-            d.end_command_buffer(cmd).vk("vkEndCommandBuffer")?;
-        }
-        let render_done = gpu.swapchain.render_done[image_index as usize];
-        let waits = [vk::SemaphoreSubmitInfo::default()
-            .semaphore(slot.acquired.handle)
-            .stage_mask(vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT)];
-        let signals = [vk::SemaphoreSubmitInfo::default()
-            .semaphore(render_done)
-            .stage_mask(vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT | vk::PipelineStageFlags2::COPY)];
-        let cmds = [vk::CommandBufferSubmitInfo::default().command_buffer(cmd)];
-        let submit = [vk::SubmitInfo2::default()
-            .wait_semaphore_infos(&waits)
-            .command_buffer_infos(&cmds)
-            .signal_semaphore_infos(&signals)];
-        slot.fence.reset()?;
-        let (asked, got) = gpu.device.draw_queue.submit_timed(&gpu.device, &submit, slot.fence.handle)?;
-        self.trace.complete(DRAW_TID, "wait (queue lock)", asked, got, json!({"frame": self.frame}));
-        self.trace.instant(DRAW_TID, "submit (draw queue)", json!({"frame": self.frame}));
-        let timed = slot.timer.is_some().then_some(self.frame);
         let presenting = Instant::now();
         let swapchains = [gpu.swapchain.handle];
         let indices = [image_index];
@@ -826,7 +773,11 @@ impl App {
             Err(e) => return Err(e).vk("vkQueuePresentKHR").map_err(Into::into),
         }
         if let (Some(path), Some(buf)) = (screenshot, readback) {
-            slot.fence.wait(u64::MAX)?;
+            let gpu = self.gpu.as_mut().unwrap();
+            if let Some(done) = gpu.renderer.wait_frame(slot_index)? {
+                self.trace_frame(slot_index, &done);
+            }
+            let gpu = self.gpu.as_ref().unwrap();
             let mut px = buf.mapped()?[..(extent.width * extent.height * 4) as usize].to_vec();
             if gpu.swapchain.format == vk::Format::B8G8R8A8_SRGB || gpu.swapchain.format == vk::Format::B8G8R8A8_UNORM {
                 px.chunks_mut(4).for_each(|p| p.swap(0, 2));
@@ -838,9 +789,6 @@ impl App {
         self.last_stats = stats;
         self.last_blocks = blocks.len();
         self.blocks = blocks;
-        if let Some(g) = self.gpu.as_mut() {
-            g.slots[slot_index].timed_frame = timed;
-        }
         self.slot = (self.slot + 1) % FRAMES_IN_FLIGHT;
         self.frame += 1;
         self.fps_frames += 1;
@@ -849,6 +797,24 @@ impl App {
         self.stats.last_blocks = self.last_blocks;
         self.update_title(&cam);
         Ok(())
+    }
+
+    /// Trace spans of a finished frame: its GPU time, the waits for the queue and for it.
+    fn trace_frame(&mut self, slot: usize, done: &DrawStats) {
+        let Some(frame) = self.slot_frames[slot].take() else { return };
+        if let Some(g) = &self.gpu {
+            let shared = g.device.queue_mode == crate::vk::QueueMode::Shared;
+            if let Some(t) = done.gpu_ticks {
+                self.trace.gpu_span(self.trace.gpu_tid(false, shared), "frame", t, json!({"frame": frame}));
+            }
+        }
+        if let Some((asked, got)) = done.queue_lock {
+            self.trace.complete(DRAW_TID, "wait (queue lock)", asked, got, json!({"frame": frame}));
+        }
+        if let Some((from, to)) = done.waited {
+            self.trace.complete(DRAW_TID, "wait (frame slot)", from, to, json!({"frame": frame}));
+        }
+        self.last_gpu_ms = done.gpu_ms;
     }
 
     fn go_home(&mut self) {
@@ -916,6 +882,7 @@ impl App {
             position: p,
             above_ground: p.y - self.hf.surface_height(p.x.clamp(0.0, wx), p.z.clamp(0.0, wz)),
             ground_speed: self.ground_speed,
+            gpu_frame_ms: self.last_gpu_ms,
             ..Readout::default()
         };
         let l = wx.max(wz);
