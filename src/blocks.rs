@@ -882,8 +882,8 @@ unsafe fn attachment_barriers(
 /// a barrier that makes the bytes visible to the host after the submission's fence.
 ///
 /// # Safety
-/// As for [`attachment_barriers`]; `buffer` must hold `extent` RGBA8 texels.
-unsafe fn copy_image_to_host(
+/// As for [`attachment_barriers`]; `buffer` must hold `extent` texels of the image's format.
+pub(crate) unsafe fn copy_image_to_host(
     d: &ash::Device,
     cmd: vk::CommandBuffer,
     image: vk::Image,

@@ -225,31 +225,11 @@ impl LightingMap {
         let source =
             (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_READ, vk::ImageLayout::TRANSFER_SRC_OPTIMAL);
         self.device.one_shot(&self.commands, |cmd| {
-            let region = vk::BufferImageCopy::default()
-                .image_subresource(vk::ImageSubresourceLayers {
-                    aspect_mask: vk::ImageAspectFlags::COLOR,
-                    mip_level: 0,
-                    base_array_layer: 0,
-                    layer_count: 1,
-                })
-                .image_extent(vk::Extent3D { width: extent.width, height: extent.height, depth: 1 });
-            // SAFETY: as in `draw`; the buffer outlives the wait.
+            // SAFETY: as in `draw`; the buffer (two bytes a texel) outlives the wait.
             unsafe {
                 image_barrier(raw, cmd, image, range, sampled, source);
-                raw.cmd_copy_image_to_buffer(
-                    cmd,
-                    image,
-                    vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
-                    buffer.handle,
-                    &[region],
-                );
+                crate::blocks::copy_image_to_host(raw, cmd, image, extent, buffer.handle);
                 image_barrier(raw, cmd, image, range, source, sampled);
-                crate::vk::host_read_barrier(
-                    raw,
-                    cmd,
-                    buffer.handle,
-                    (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_WRITE),
-                );
             }
         })?;
         Ok(bytemuck::pod_collect_to_vec(&buffer.mapped()?[..bytes as usize]))
