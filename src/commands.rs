@@ -78,6 +78,21 @@ pub fn positive(s: &str) -> Result<f32, String> {
     Ok(v)
 }
 
+pub fn non_negative(s: &str) -> Result<f32, String> {
+    let v: f32 = s.parse().map_err(|_| format!("'{s}' is not a number"))?;
+    if !(v.is_finite() && v >= 0.0) {
+        return Err(format!("'{s}': must be a finite number, 0 or more"));
+    }
+    Ok(v)
+}
+
+pub fn at_least_one(s: &str) -> Result<u64, String> {
+    match s.parse::<u64>() {
+        Ok(n) if n >= 1 => Ok(n),
+        _ => Err(format!("'{s}': must be a whole number, 1 or more")),
+    }
+}
+
 /// Everything a command needs on the GPU.
 pub struct Session {
     pub hf: Arc<Heightfield>,
@@ -154,16 +169,48 @@ pub fn option_error(e: crate::vk::VkError) -> anyhow::Error {
 
 /// Writes `bytes` to `path` through a temporary file, so that no partial file is left.
 pub fn write_atomic(path: &Path, write: impl FnOnce(&Path) -> anyhow::Result<()>) -> anyhow::Result<()> {
+    // Through a symbolic link to the file it names (as `cp` does), never onto a
+    // directory, pipe or device.
+    let path = output_target(path).map_err(|e| anyhow::anyhow!(e))?;
     // A name of this process's own: two runs writing the same file must not share it
     // (the last rename wins, and neither fails).
     let tmp = path.with_extension(format!("{}.partial.tmp", std::process::id()));
-    match write(&tmp) {
-        Ok(()) => std::fs::rename(&tmp, path).map_err(|e| anyhow::anyhow!("{}: {e}", path.display())),
-        Err(e) => {
-            let _ = std::fs::remove_file(&tmp);
-            Err(e)
+    let written =
+        write(&tmp).and_then(|()| std::fs::rename(&tmp, &path).map_err(|e| anyhow::anyhow!("{}: {e}", path.display())));
+    if written.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    written
+}
+
+/// The file an output option writes: `path` itself, or the file a symbolic link at
+/// `path` points to. An error (naming the path) when that is a directory, a pipe or a
+/// device, or when its directory does not exist. Checked when options are read, so that
+/// a long run does not fail at its end, and again when writing.
+pub fn output_target(path: &Path) -> Result<std::path::PathBuf, String> {
+    let mut target = path.to_path_buf();
+    for _ in 0..32 {
+        match std::fs::symlink_metadata(&target) {
+            Ok(m) if m.file_type().is_symlink() => {
+                let link = std::fs::read_link(&target).map_err(|e| format!("{}: {e}", path.display()))?;
+                target = match target.parent() {
+                    Some(dir) => dir.join(link),
+                    None => link,
+                };
+            }
+            Ok(m) if m.is_file() => return Ok(target),
+            Ok(_) => return Err(format!("{}: not a regular file (a directory, pipe or device)", path.display())),
+            Err(_) => {
+                let dir = target.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
+                return if dir.is_dir() {
+                    Ok(target)
+                } else {
+                    Err(format!("{}: directory {} does not exist", path.display(), dir.display()))
+                };
+            }
         }
     }
+    Err(format!("{}: too many levels of symbolic links", path.display()))
 }
 
 pub fn save_png(path: &Path, width: u32, height: u32, rgba: &[u8]) -> anyhow::Result<()> {
@@ -192,6 +239,7 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
     if args.out.extension().and_then(|e| e.to_str()).map(|e| e.to_lowercase()) != Some("png".into()) {
         return Err(InputError(format!("--out {}: the output must be a .png file", args.out.display())).into());
     }
+    output_target(&args.out).map_err(|e| InputError(format!("--out {e}")))?;
     let mut shading = Shading {
         fog_density: args.fog,
         colour_by_lod: args.colour_by_lod,

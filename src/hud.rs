@@ -17,6 +17,9 @@ use std::time::Instant;
 use winit::event::WindowEvent;
 use winit::window::Window;
 
+/// The fog slider's end, in multiples of the default density.
+pub const FOG_MAX_HAZE: f32 = 5.0;
+
 /// Seconds of history in the plots.
 pub const PLOT_SECONDS: f64 = 5.0;
 
@@ -115,7 +118,8 @@ pub struct Controls {
 /// Ranges of the sliders that have no natural one.
 #[derive(Debug, Default, Clone, Copy)]
 pub struct Ranges {
-    pub fog_max: f32,
+    /// The default fog density (the slider is in multiples of it).
+    pub fog_default: f32,
     pub speed: (f32, f32),
 }
 
@@ -151,11 +155,14 @@ pub fn build_ui(
     controls: &mut Controls,
 ) {
     if show_panel {
-        egui::Window::new("vkterrain")
-            .default_pos([8.0, 8.0])
-            .default_width(270.0)
-            .resizable(false)
-            .show(ctx, |ui| panel(ui, readout, history, now, controls));
+        egui::Window::new("vkterrain").default_pos([8.0, 8.0]).default_width(270.0).auto_sized().show(ctx, |ui| {
+            ui.set_max_width(270.0);
+            // Scrolls when the window is too small to show it whole (title bar and
+            // margins take about 60 points).
+            egui::ScrollArea::vertical()
+                .max_height((ctx.content_rect().height() - 60.0).max(40.0))
+                .show(ui, |ui| panel(ui, readout, history, now, controls));
+        });
     }
     if *show_help {
         egui::Window::new("Keys")
@@ -237,11 +244,19 @@ fn panel(ui: &mut egui::Ui, r: &Readout, history: &FrameHistory, now: f64, c: &m
     }
     ui.horizontal(|ui| {
         ui.label("fog");
-        ui.add(
-            egui::Slider::new(&mut c.fog_density, 0.0..=ranges.fog_max)
-                .show_value(false)
-                .clamping(egui::SliderClamping::Edits),
-        );
+        // In multiples of the default haze: a range that does not follow the value.
+        let mut haze = c.fog_density / ranges.fog_default.max(f32::MIN_POSITIVE);
+        let changed = ui
+            .add(
+                egui::Slider::new(&mut haze, 0.0..=FOG_MAX_HAZE)
+                    .suffix(" x default")
+                    .fixed_decimals(2)
+                    .clamping(egui::SliderClamping::Edits),
+            )
+            .changed();
+        if changed {
+            c.fog_density = haze * ranges.fog_default;
+        }
     });
     let mut shadows = c.sun.is_some();
     ui.horizontal(|ui| {
@@ -277,6 +292,12 @@ fn panel(ui: &mut egui::Ui, r: &Readout, history: &FrameHistory, now: f64, c: &m
         }
         ui.small("F1 keys, H hides this panel");
     });
+}
+
+/// Whether a window of the panel (the panel or the key help) was drawn at `pos` last frame.
+pub fn panel_at(ctx: &egui::Context, pos: Pos2) -> bool {
+    // The root of the frame is a background layer that covers everything.
+    ctx.layer_id_at(pos).is_some_and(|l| l.order != egui::Order::Background)
 }
 
 /// A line plot of (time, value) over the last [`PLOT_SECONDS`], scaled to its largest value.
@@ -315,6 +336,8 @@ pub struct Hud {
     pub visible: bool,
     pub help: bool,
     pub history: FrameHistory,
+    /// Where the cursor is in the window (egui points), from the latest event.
+    cursor: Option<Pos2>,
     started: Instant,
     /// CPU time of the last frame's panel work (ms).
     pub last_ms: f32,
@@ -365,6 +388,7 @@ impl Hud {
             format,
             visible: true,
             help: false,
+            cursor: None,
             history: FrameHistory::default(),
             started: Instant::now(),
             last_ms: 0.0,
@@ -394,7 +418,23 @@ impl Hud {
     /// Passes a window event to the panel; true when the panel took it (a click or drag
     /// on it, typing into it), so the camera must not also act on it.
     pub fn on_event(&mut self, window: &Window, event: &WindowEvent) -> bool {
-        self.state.on_window_event(window, event).consumed
+        let consumed = self.state.on_window_event(window, event).consumed;
+        match event {
+            WindowEvent::CursorMoved { position, .. } => {
+                let ppp = window.scale_factor() as f32;
+                self.cursor = Some(Pos2::new(position.x as f32 / ppp, position.y as f32 / ppp));
+                consumed
+            }
+            WindowEvent::CursorLeft { .. } => {
+                self.cursor = None;
+                consumed
+            }
+            // egui decides from where the pointer was at its last frame; at a few frames
+            // a second the cursor may have reached the panel since. Where it is now counts.
+            WindowEvent::MouseInput { state: winit::event::ElementState::Pressed, .. }
+            | WindowEvent::MouseWheel { .. } => consumed || self.cursor.is_some_and(|p| panel_at(&self.ctx, p)),
+            _ => consumed,
+        }
     }
 
     /// Whether a control of the panel is being dragged (the sun is redrawn on release).
@@ -512,23 +552,31 @@ mod tests {
         }
     }
 
-    /// Runs the panel headless for three passes; in the last, clicks the centre of the
+    /// Runs the panel headless for a few passes; in the last, clicks the centre of the
     /// text `click_on` as laid out in the pass before (or a point outside the panel).
     /// Returns the controls after and the number of shapes of the last pass.
     fn run(show: bool, click_on: Result<&str, Pos2>) -> (Controls, usize) {
+        run_on(Vec2::new(1280.0, 1000.0), show, click_on, 0.0)
+    }
+
+    /// As [`run`] on a screen of `screen` points, with the mouse wheel turned by
+    /// `scroll` points over the panel in the second pass.
+    fn run_on(screen: Vec2, show: bool, click_on: Result<&str, Pos2>, scroll: f32) -> (Controls, usize) {
+        // A second apart, so that smoothed scrolling has finished before the click.
+        const PASSES: usize = 12;
         use egui::epaint::Shape as S;
         let ctx = egui::Context::default();
         let mut c = controls();
-        let readout = Readout { ranges: Ranges { fog_max: 1.0, speed: (1.0, 100.0) }, ..Readout::default() };
+        let readout = Readout { ranges: Ranges { fog_default: 0.1, speed: (1.0, 100.0) }, ..Readout::default() };
         let mut h = FrameHistory::default();
         for i in 0..30 {
             h.push(i as f64 * 0.1, 16.0);
         }
         let mut shapes = 0;
         let mut target = click_on.err();
-        for pass in 0..3 {
-            let events = match (pass, target) {
-                (2, Some(at)) => {
+        for pass in 0..PASSES {
+            let mut events = match (pass, target) {
+                (p, Some(at)) if p == PASSES - 1 => {
                     let click = |pressed| egui::Event::PointerButton {
                         pos: at,
                         button: egui::PointerButton::Primary,
@@ -539,8 +587,19 @@ mod tests {
                 }
                 _ => Vec::new(),
             };
+            if pass == 1 && scroll != 0.0 {
+                events.push(egui::Event::PointerMoved(Pos2::new(100.0, 200.0)));
+                events.push(egui::Event::MouseWheel {
+                    unit: egui::MouseWheelUnit::Point,
+                    delta: Vec2::new(0.0, -scroll),
+                    modifiers: Default::default(),
+                    phase: egui::TouchPhase::Move,
+                });
+            }
             let input = egui::RawInput {
-                screen_rect: Some(egui::Rect::from_min_size(Pos2::ZERO, Vec2::new(1280.0, 720.0))),
+                screen_rect: Some(egui::Rect::from_min_size(Pos2::ZERO, screen)),
+                time: Some(pass as f64),
+                predicted_dt: 1.0,
                 events,
                 ..Default::default()
             };
@@ -559,7 +618,7 @@ mod tests {
             }
         }
         if let Ok(text) = click_on {
-            assert!(target.is_some(), "no text {text:?} in the panel");
+            assert!(target.is_some(), "no text {text:?} in the panel on {screen:?}");
         }
         (c, shapes)
     }
@@ -571,6 +630,34 @@ mod tests {
         assert_eq!(c, controls(), "a click outside the panel changes nothing");
         let (_, hidden) = run(false, Err(Pos2::new(1000.0, 600.0)));
         assert_eq!(hidden, 0);
+    }
+
+    /// The press that starts a drag counts as the panel's when the cursor is over the
+    /// panel as drawn last frame, wherever egui last saw the pointer.
+    #[test]
+    fn the_panel_is_found_where_it_was_drawn() {
+        let ctx = egui::Context::default();
+        let mut c = controls();
+        let readout = Readout { ranges: Ranges { fog_default: 0.1, speed: (1.0, 100.0) }, ..Readout::default() };
+        let h = FrameHistory::default();
+        for show in [true, false] {
+            for _ in 0..2 {
+                let input = egui::RawInput {
+                    screen_rect: Some(egui::Rect::from_min_size(Pos2::ZERO, Vec2::new(1280.0, 720.0))),
+                    ..Default::default()
+                };
+                let mut help = false;
+                let mut out = ctx.run_ui(input, |ui| build_ui(ui.ctx(), show, &mut help, &readout, &h, 3.0, &mut c));
+                out.textures_delta.clear();
+            }
+            assert_eq!(panel_at(&ctx, Pos2::new(100.0, 20.0)), show, "the panel's title bar (shown: {show})");
+            assert_eq!(panel_at(&ctx, Pos2::new(100.0, 300.0)), show, "the panel's middle (shown: {show})");
+            assert!(
+                !panel_at(&ctx, Pos2::new(900.0, 400.0)),
+                "beside the panel: {:?}",
+                ctx.layer_id_at(Pos2::new(900.0, 400.0))
+            );
+        }
     }
 
     #[test]
@@ -585,6 +672,10 @@ mod tests {
         assert_eq!(c, Controls { go_home: true, ..controls() });
         let (c, _) = run(true, Ok("sun shadows and occlusion"));
         assert_eq!(c, Controls { sun: None, ..controls() });
+        // On a small screen the panel scrolls: the end of it is reached with the wheel.
+        let small = Vec2::new(640.0, 480.0);
+        let (c, _) = run_on(small, true, Ok("Home"), 2000.0);
+        assert_eq!(c, Controls { go_home: true, ..controls() });
         // Wireframe is greyed out on a device without it (the readout's default).
         let (c, _) = run(true, Ok("wireframe"));
         assert_eq!(c, controls());

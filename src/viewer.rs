@@ -65,12 +65,12 @@ pub struct ViewArgs {
     #[arg(long, value_name = "ALPHA", default_value = "0.7")]
     pub detail_weight: f32,
     /// Exponential fog density per world unit (default: a haze at the terrain's scale).
-    #[arg(long, value_name = "DENSITY")]
+    #[arg(long, value_name = "DENSITY", value_parser = crate::commands::non_negative, allow_negative_numbers = true)]
     pub fog: Option<f32>,
     #[arg(long, value_enum, default_value_t = PresentMode::Fifo)]
     pub present_mode: PresentMode,
     /// Exit after N frames.
-    #[arg(long, value_name = "N")]
+    #[arg(long, value_name = "N", value_parser = crate::commands::at_least_one, allow_negative_numbers = true)]
     pub frames: Option<u64>,
     /// Fly north from the south edge, three quarters of the way across, over the run
     /// (with --frames) or every 60 seconds.
@@ -321,15 +321,17 @@ struct App {
     /// The block list of the last frame (frozen with Space).
     blocks: Vec<DrawBlock>,
     screenshot_next: Option<PathBuf>,
-    screenshots_taken: u64,
+    /// P presses not yet served.
+    screenshots_asked: u64,
     resizes: Vec<(u64, u32, u32)>,
     stats: RunStats,
 }
 
 pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
-    if let Some(dir) = args.record_path.as_ref().and_then(|p| p.parent()).filter(|d| !d.as_os_str().is_empty()) {
-        if !dir.is_dir() {
-            return Err(InputError(format!("--record-path: {} is not a directory", dir.display())).into());
+    // Output paths are checked before the run, not when it ends.
+    for (opt, path) in [("--record-path", &args.record_path), ("--screenshot", &args.screenshot)] {
+        if let Some(p) = path {
+            crate::commands::output_target(p).map_err(|e| InputError(format!("{opt} {e}")))?;
         }
     }
     let hf = args.common.load_heightfield(None)?;
@@ -355,6 +357,7 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
         });
         match parsed {
             Some((f, w, h)) if w > 0 && h > 0 => resizes.push((f, w, h)),
+            Some(_) => return Err(InputError(format!("--resize-at {r}: the size must be at least 1x1")).into()),
             _ => return Err(InputError(format!("--resize-at {r}: expected FRAME:WxH")).into()),
         }
     }
@@ -384,7 +387,7 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
     let f = cam.forward;
     let (wx, wz) = hf.world_extent();
     let l = wx.max(wz);
-    let fog = args.fog.unwrap_or(0.2 / l);
+    let fog = args.fog.unwrap_or_else(|| default_fog(&hf));
     let event_loop = EventLoop::new().map_err(|e| {
         anyhow::anyhow!("cannot open a window ({e}); is DISPLAY set? Use `vkterrain render` for headless output")
     })?;
@@ -443,7 +446,7 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
         last_blocks: 0,
         blocks: Vec::new(),
         screenshot_next: None,
-        screenshots_taken: 0,
+        screenshots_asked: 0,
         resizes,
         stats: RunStats::default(),
     };
@@ -689,7 +692,12 @@ impl App {
             Err(e) => return Err(e).vk("vkAcquireNextImageKHR").map_err(Into::into),
         };
         let extent = gpu.swapchain.extent;
-        let screenshot = self.screenshot_next.take();
+        let screenshot = self.screenshot_next.take().or_else(|| {
+            (self.screenshots_asked > 0).then(|| {
+                self.screenshots_asked -= 1;
+                next_free_screenshot()
+            })
+        });
         let readback = match (&screenshot, gpu.swapchain.can_copy) {
             (Some(_), true) => Some(Buffer::new(
                 &gpu.device,
@@ -886,10 +894,7 @@ impl App {
             ..Readout::default()
         };
         let l = wx.max(wz);
-        readout.ranges = Ranges {
-            fog_max: (8.0 * self.args.fog.unwrap_or(0.2 / l)).max(2.0 * self.shading.fog_density),
-            speed: (l / 6000.0, l / 6.0),
-        };
+        readout.ranges = Ranges { fog_default: default_fog(&self.hf), speed: (l / 6000.0, l / 6.0) };
         let before = self.controls();
         let mut after = before;
         let (Some(gpu), Some(window)) = (self.gpu.as_mut(), self.window.as_ref()) else { return Ok(()) };
@@ -990,20 +995,27 @@ impl App {
                     }
                 };
             }
-            KeyCode::KeyP => {
-                // The next free name: screenshots of earlier runs are never overwritten.
-                let path = loop {
-                    self.screenshots_taken += 1;
-                    let p = PathBuf::from(format!("vkterrain-{}.png", self.screenshots_taken));
-                    if !p.exists() {
-                        break p;
-                    }
-                };
-                self.screenshot_next = Some(path);
-            }
+            // One screenshot per frame, however fast P is pressed.
+            KeyCode::KeyP => self.screenshots_asked += 1,
             _ => {}
         }
     }
+}
+
+/// The first `vkterrain-N.png` in the working directory that names nothing (not even a
+/// broken link): screenshots never overwrite. Taken when the frame is written, so that
+/// numbers are not skipped.
+/// A haze at the terrain's scale: 18% fog across its width.
+fn default_fog(hf: &Heightfield) -> f32 {
+    let (wx, wz) = hf.world_extent();
+    0.2 / wx.max(wz)
+}
+
+fn next_free_screenshot() -> PathBuf {
+    (1..)
+        .map(|n| PathBuf::from(format!("vkterrain-{n}.png")))
+        .find(|p| std::fs::symlink_metadata(p).is_err())
+        .expect("a free name")
 }
 
 fn depth_image(device: &Arc<Device>, extent: vk::Extent2D) -> anyhow::Result<Image> {

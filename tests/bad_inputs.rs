@@ -193,6 +193,13 @@ fn bad_options() {
     fails_cleanly(&["render", "--camera", "NaN,1,2"], &["--camera", "finite"]);
     fails_cleanly(&["render", "--fovy", "200"], &["--fovy", "179"]);
     fails_cleanly(&["render", "--sun", "400,10"], &["--sun", "azimuth 400"]);
+    fails_cleanly(&["view", "--fog", "-0.001"], &["--fog", "0 or more"]);
+    fails_cleanly(&["view", "--fog", "nan"], &["--fog", "finite"]);
+    fails_cleanly(&["view", "--frames", "0"], &["--frames", "1 or more"]);
+    fails_cleanly(&["view", "--resize-at", "2:0x0"], &["--resize-at 2:0x0", "at least 1x1"]);
+    // A number is a device index, never part of a name ("LLVM 15.0.6" holds a 5).
+    fails_cleanly(&["render", "--gpu", "5"], &["--gpu 5", "no such device"]);
+    fails_cleanly(&["render", "--gpu", ""], &["--gpu", "no such device"]);
     fails_cleanly(&["render", "--sun", "90,95"], &["--sun", "elevation 95"]);
     fails_cleanly(&["view", "--sun", "west"], &["--sun", "AZ,EL"]);
     fails_cleanly(&["frobnicate"], &["frobnicate"]);
@@ -235,6 +242,47 @@ fn scales_beyond_single_precision() {
         &["flat.f32", "--spacing"],
     );
     fails_cleanly(&["render", "--camera", "1e13,0,0"], &["camera", "beyond"]);
+}
+
+/// Output paths are checked before any work: a directory, a missing directory, a pipe.
+#[test]
+fn bad_output_paths_fail_before_the_run() {
+    let s = Scratch::new();
+    std::fs::create_dir_all(s.path("dir.png")).unwrap();
+    let dir = s.path("dir.png").display().to_string();
+    let missing = s.path("no/such/dir/x.png").display().to_string();
+    fails_cleanly(&["render", "--out", &dir], &["--out", "dir.png", "not a regular file"]);
+    fails_cleanly(&["render", "--out", &missing], &["--out", "does not exist"]);
+    fails_cleanly(&["view", "--screenshot", &dir], &["--screenshot", "not a regular file"]);
+    fails_cleanly(&["view", "--screenshot", &missing], &["--screenshot", "does not exist"]);
+    fails_cleanly(&["view", "--record-path", &dir], &["--record-path", "not a regular file"]);
+    let fifo = s.path("fifo.png");
+    assert!(Command::new("mkfifo").arg(&fifo).status().unwrap().success());
+    fails_cleanly(&["render", "--out", fifo.to_str().unwrap()], &["--out", "not a regular file"]);
+}
+
+/// An output path that is a symbolic link is written through: the link stays, the file
+/// it names gets the picture (as `cp` does), and no temporary file is left.
+#[test]
+fn output_through_a_symbolic_link() {
+    let s = Scratch::new();
+    std::os::unix::fs::symlink("target.png", s.path("link.png")).unwrap();
+    let field = s.path("hills.f32");
+    let bytes: Vec<u8> = (0..33 * 33).flat_map(|i| (((i % 33) as f32 * 0.3).sin() * 4.0).to_le_bytes()).collect();
+    std::fs::write(&field, bytes).unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_vkterrain"))
+        .args(["render", "--heightmap", field.to_str().unwrap(), "--raw-size", "33x33", "--block", "9"])
+        .args(["--size", "40x30", "--validation", "on", "--sun", "off", "--out", s.path("link.png").to_str().unwrap()])
+        .env("RUST_LOG", "error")
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(std::fs::symlink_metadata(s.path("link.png")).unwrap().file_type().is_symlink(), "the link was replaced");
+    let img = image::open(s.path("target.png")).expect("the picture is in the file the link names");
+    assert_eq!((img.width(), img.height()), (40, 30));
+    let names: Vec<String> =
+        std::fs::read_dir(s.path("")).unwrap().flatten().map(|e| e.file_name().to_string_lossy().into()).collect();
+    assert!(names.iter().all(|n| !n.ends_with(".partial.tmp")), "{names:?}");
 }
 
 /// Two runs writing the same output file at once (an audit harness did this): both

@@ -246,7 +246,8 @@ xdotool key Home
 xdotool keydown w
 sleep 2
 xdotool keyup w
-sleep 1
+xdotool key p p
+sleep 3
 xdotool key Escape
 wait $pid
 "#,
@@ -264,6 +265,8 @@ wait $pid
     let stderr = std::fs::read_to_string(&err).unwrap_or_default();
     let shots: Vec<_> =
         (1..=3).map(|i| image::open(tmp.join(format!("vkterrain-{i}.png"))).map(|i| i.to_rgba8())).collect();
+    // P twice in one frame: two screenshots, the next two free numbers.
+    let double_p = [4, 5, 6].map(|i| tmp.join(format!("vkterrain-{i}.png")).exists());
     let _ = std::fs::remove_dir_all(&tmp);
     assert!(status.success(), "viewer under xdotool failed: {stderr}\n{stdout}");
     let json: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
@@ -288,6 +291,7 @@ wait $pid
     assert!(help > 15.0, "F1 shows the key help: mean difference {help:.1}");
     assert!(corner < 1.0, "the help leaves the corner alone: mean difference {corner:.2}");
     assert_eq!(json["hud_visible"], true, "H shows the panel again: {json}");
+    assert_eq!(double_p, [true, true, false], "P pressed twice quickly writes vkterrain-4 and -5");
 
     assert_eq!(json["final_delta"], 2.0, "] doubles delta: {json}");
     assert_eq!(json["final_morph"], false, "N turns morphing off: {json}");

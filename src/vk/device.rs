@@ -169,11 +169,13 @@ impl Device {
         let names: Vec<String> = described.iter().map(|(_, pr)| c_name(&pr.device_name)).collect();
         let chosen = match &opts.gpu {
             Some(sel) => {
-                let idx = sel
-                    .parse::<usize>()
-                    .ok()
-                    .filter(|&i| i < described.len())
-                    .or_else(|| names.iter().position(|n| n.to_lowercase().contains(&sel.to_lowercase())));
+                // A number is an index only (device names contain digits); a name must
+                // not be empty.
+                let idx = match sel.trim().parse::<usize>() {
+                    Ok(i) => (i < described.len()).then_some(i),
+                    Err(_) if sel.trim().is_empty() => None,
+                    Err(_) => names.iter().position(|n| n.to_lowercase().contains(&sel.trim().to_lowercase())),
+                };
                 idx.ok_or_else(|| {
                     VkError::Option(format!("--gpu {sel}: no such device; available: {}", names.join(", ")))
                 })?
