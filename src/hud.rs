@@ -130,7 +130,7 @@ pub const KEYS: &[(&str, &str)] = &[
     ("drag", "look around (orbit: turn around the centre)"),
     ("Shift, wheel", "faster; change the speed"),
     ("G", "walk on the ground / fly"),
-    ("O", "orbit the terrain point ahead"),
+    ("O", "orbit the terrain point under the cursor"),
     ("Home", "back to the start view"),
     ("[ and ]", "halve / double delta"),
     ("M", "strict / paper error mode"),

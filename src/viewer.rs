@@ -100,7 +100,7 @@ pub struct ViewArgs {
 
 const KEYS: &str = "\
 keys: W/S forward/back, A/D left/right, Q/E down/up, hold a mouse button and move to look,
-      Shift faster, wheel changes speed, G walk/fly, O orbit the point ahead (drag to
+      Shift faster, wheel changes speed, G walk/fly, O orbit the point under the cursor (drag to
       turn, W/S in/out), Home back to the start view,
       [ and ] halve/double delta,
       M strict/paper error mode, N geomorphing on/off, F wireframe, L colour blocks by LOD,
@@ -265,6 +265,8 @@ struct RunStats {
     /// the orbit's centre while turning (relative).
     orbit_turn: f32,
     orbit_drift: f32,
+    /// How far (yaw, radians) pressing O turned the camera to face the point under the cursor.
+    orbit_aim_turn: f32,
     /// Whether the panel was shown at exit, and in how many frames it was drawn.
     hud_visible: bool,
     hud_frames: u64,
@@ -825,6 +827,22 @@ impl App {
         self.last_gpu_ms = done.gpu_ms;
     }
 
+    /// The direction through the cursor, or the view's centre when the cursor is not in
+    /// the window.
+    fn cursor_ray(&self) -> Vec3 {
+        let fwd = self.ctl.forward();
+        let (Some((x, y)), Some(window)) = (self.cursor, &self.window) else { return fwd };
+        let size = window.inner_size();
+        let right = fwd.cross(Vec3::Y).normalize_or_zero();
+        if size.width == 0 || size.height == 0 || right == Vec3::ZERO {
+            return fwd;
+        }
+        let up = right.cross(fwd);
+        let t = (self.args.common.fovy.to_radians() * 0.5).tan();
+        let (nx, ny) = (2.0 * x / size.width as f32 - 1.0, 1.0 - 2.0 * y / size.height as f32);
+        (fwd + right * (nx * t * size.width as f32 / size.height as f32) + up * (ny * t)).normalize()
+    }
+
     fn go_home(&mut self) {
         (self.ctl.position, self.ctl.yaw, self.ctl.pitch) = self.home;
         self.ctl.walk = false;
@@ -989,9 +1007,18 @@ impl App {
                 self.ctl.orbit = match self.ctl.orbit {
                     Some(_) => None,
                     None => {
-                        let pivot = ground_hit(&self.hf, self.ctl.position, self.ctl.forward());
+                        // Around the terrain point under the cursor (ahead when the cursor
+                        // is outside the window), turning to face it.
+                        let pivot = ground_hit(&self.hf, self.ctl.position, self.cursor_ray());
+                        let to = pivot - self.ctl.position;
+                        if to.length() > 0.0 {
+                            let d = to.normalize();
+                            let yaw = d.z.atan2(d.x);
+                            self.stats.orbit_aim_turn = (yaw - self.ctl.yaw).abs();
+                            (self.ctl.yaw, self.ctl.pitch) = (yaw, d.y.clamp(-1.0, 1.0).asin());
+                        }
                         self.ctl.walk = false;
-                        Some((pivot, (self.ctl.position - pivot).length().max(self.hf.spacing)))
+                        Some((pivot, to.length().max(self.hf.spacing)))
                     }
                 };
             }

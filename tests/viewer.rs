@@ -315,4 +315,8 @@ wait $pid
     assert!(orbit > 0.05, "O and a drag orbit: {json}");
     assert!(turn - orbit < 0.3, "a drag on the panel does not turn the camera: {turn} turned, {orbit} of it orbiting");
     assert!(json["orbit_drift"].as_f64().unwrap() < 1e-3, "the orbit kept its distance: {json}");
+    // O was pressed with the cursor 180 pixels right of the centre (of 800, 60 degrees
+    // vertical field of view): the camera turned about 0.33 rad to face that point.
+    let aim = json["orbit_aim_turn"].as_f64().unwrap();
+    assert!((0.2..0.45).contains(&aim), "O turns to the point under the cursor: {aim} rad");
 }
