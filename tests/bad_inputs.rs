@@ -136,6 +136,14 @@ fn raw_size_mismatch() {
     );
 }
 #[test]
+fn raw_size_for_a_png() {
+    fails_cleanly(
+        &["render", "--heightmap", &corpus("two_by_two.png"), "--raw-size", "64x64"],
+        &["two_by_two.png", "--raw-size", ".r16"],
+    );
+}
+
+#[test]
 fn raw_without_size() {
     let p = corpus("wrong_size.r16");
     fails_cleanly(&["render", "--heightmap", &p], &["wrong_size.r16", "--raw-size"]);
@@ -256,6 +264,8 @@ fn bad_output_paths_fail_before_the_run() {
     fails_cleanly(&["view", "--screenshot", &dir], &["--screenshot", "not a regular file"]);
     fails_cleanly(&["view", "--screenshot", &missing], &["--screenshot", "does not exist"]);
     fails_cleanly(&["view", "--record-path", &dir], &["--record-path", "not a regular file"]);
+    let same = s.path("same.png").display().to_string();
+    fails_cleanly(&["view", "--screenshot", &same, "--trace", &same], &["--trace", "the same file as --screenshot"]);
     let fifo = s.path("fifo.png");
     assert!(Command::new("mkfifo").arg(&fifo).status().unwrap().success());
     fails_cleanly(&["render", "--out", fifo.to_str().unwrap()], &["--out", "not a regular file"]);

@@ -52,6 +52,10 @@ pub fn load(path: &Path, opts: &LoadOptions) -> Result<Heightfield, HeightfieldE
         return Err(HeightfieldError::invalid(&shown, "file is empty"));
     }
     let ext = path.extension().map(|e| e.to_string_lossy().to_lowercase()).unwrap_or_default();
+    if opts.raw_size.is_some() && !matches!(ext.as_str(), "r16" | "f32") {
+        // The file's own header gives its size; a size given anyway is a mistake.
+        return Err(HeightfieldError::invalid(&shown, "--raw-size is only for raw .r16 and .f32 files"));
+    }
     let decoded = match ext.as_str() {
         "png" | "jpg" | "jpeg" => decode_image(&shown, &bytes)?,
         "tif" | "tiff" => decode_tiff(&shown, &bytes)?,
