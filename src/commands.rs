@@ -183,11 +183,42 @@ pub fn write_atomic(path: &Path, write: impl FnOnce(&Path) -> anyhow::Result<()>
     written
 }
 
+/// Checks a command's output options before any work: each names a file that can be
+/// written ([`output_target`]), no two name the same file, and none names an input.
+pub fn check_outputs(outputs: &[(&str, Option<&Path>)], inputs: &[(&str, Option<&Path>)]) -> Result<(), InputError> {
+    // Compared by the canonical directory and the file name (the file may not exist yet).
+    let key = |p: &Path| {
+        let dir = p.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
+        dir.canonicalize().map_or(p.to_path_buf(), |d| d.join(p.file_name().unwrap_or_default()))
+    };
+    let mut seen: Vec<(&str, std::path::PathBuf)> = Vec::new();
+    for &(opt, input) in inputs {
+        if let Some(p) = input {
+            if let Ok(real) = p.canonicalize() {
+                seen.push((opt, real));
+            }
+        }
+    }
+    for &(opt, output) in outputs {
+        let Some(p) = output else { continue };
+        let target = output_target(p).map_err(|e| InputError(format!("{opt} {e}")))?;
+        let k = key(&target);
+        if let Some((other, _)) = seen.iter().find(|(_, t)| *t == k) {
+            return Err(InputError(format!("{opt} {}: the same file as {other}", p.display())));
+        }
+        seen.push((opt, k));
+    }
+    Ok(())
+}
+
 /// The file an output option writes: `path` itself, or the file a symbolic link at
 /// `path` points to. An error (naming the path) when that is a directory, a pipe or a
 /// device, or when its directory does not exist. Checked when options are read, so that
 /// a long run does not fail at its end, and again when writing.
 pub fn output_target(path: &Path) -> Result<std::path::PathBuf, String> {
+    if path.as_os_str().to_string_lossy().ends_with('/') || path.file_name().is_none() {
+        return Err(format!("{}: names a directory, not a file", path.display()));
+    }
     let mut target = path.to_path_buf();
     for _ in 0..32 {
         match std::fs::symlink_metadata(&target) {
@@ -239,7 +270,7 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
     if args.out.extension().and_then(|e| e.to_str()).map(|e| e.to_lowercase()) != Some("png".into()) {
         return Err(InputError(format!("--out {}: the output must be a .png file", args.out.display())).into());
     }
-    output_target(&args.out).map_err(|e| InputError(format!("--out {e}")))?;
+    check_outputs(&[("--out", Some(&args.out))], &[("--heightmap", args.common.heightmap.as_deref())])?;
     let mut shading = Shading {
         fog_density: args.fog,
         colour_by_lod: args.colour_by_lod,

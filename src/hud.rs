@@ -158,9 +158,12 @@ pub fn build_ui(
         egui::Window::new("vkterrain").default_pos([8.0, 8.0]).default_width(270.0).auto_sized().show(ctx, |ui| {
             ui.set_max_width(270.0);
             // Scrolls when the window is too small to show it whole (title bar and
-            // margins take about 60 points).
+            // margins take about 70 points).
+            let room = (ctx.content_rect().height() - 80.0).max(40.0);
+            // The minimum too: a window made small and then large again grows back.
             egui::ScrollArea::vertical()
-                .max_height((ctx.content_rect().height() - 60.0).max(40.0))
+                .max_height(room)
+                .min_scrolled_height(room)
                 .show(ui, |ui| panel(ui, readout, history, now, controls));
         });
     }
@@ -201,6 +204,8 @@ fn panel(ui: &mut egui::Ui, r: &Readout, history: &FrameHistory, now: f64, c: &m
         row("error age", r.error_age.map_or("-".into(), |a| format!("{a} frames")));
         row("error update", r.update_ms.map_or("- (no timestamps)".into(), |m| format!("{m:.1} ms GPU")));
         row("generations", r.generations.to_string());
+        // The name without the driver's details in brackets (it fits the panel).
+        row("device", r.device.split(" (").next().unwrap_or_default().chars().take(24).collect());
         row("queues", r.queue_mode.clone());
         row("camera", r.camera_mode.to_string());
         row("position", format!("{:.0}, {:.0}, {:.0}", r.position.x, r.position.y, r.position.z));
@@ -556,14 +561,15 @@ mod tests {
     /// text `click_on` as laid out in the pass before (or a point outside the panel).
     /// Returns the controls after and the number of shapes of the last pass.
     fn run(show: bool, click_on: Result<&str, Pos2>) -> (Controls, usize) {
-        run_on(Vec2::new(1280.0, 1000.0), show, click_on, 0.0)
+        run_on(Vec2::new(1280.0, 1000.0), show, click_on, 0.0, false)
     }
 
     /// As [`run`] on a screen of `screen` points, with the mouse wheel turned by
-    /// `scroll` points over the panel in the second pass.
-    fn run_on(screen: Vec2, show: bool, click_on: Result<&str, Pos2>, scroll: f32) -> (Controls, usize) {
+    /// `scroll` points over the panel in the second pass; `shrunk`: the first passes on
+    /// a 400 x 300 screen (a window made small, then large again).
+    fn run_on(screen: Vec2, show: bool, click_on: Result<&str, Pos2>, scroll: f32, shrunk: bool) -> (Controls, usize) {
         // A second apart, so that smoothed scrolling has finished before the click.
-        const PASSES: usize = 12;
+        const PASSES: usize = 20;
         use egui::epaint::Shape as S;
         let ctx = egui::Context::default();
         let mut c = controls();
@@ -587,7 +593,7 @@ mod tests {
                 }
                 _ => Vec::new(),
             };
-            if pass == 1 && scroll != 0.0 {
+            if (1..PASSES / 2).contains(&pass) && scroll != 0.0 {
                 events.push(egui::Event::PointerMoved(Pos2::new(100.0, 200.0)));
                 events.push(egui::Event::MouseWheel {
                     unit: egui::MouseWheelUnit::Point,
@@ -597,7 +603,10 @@ mod tests {
                 });
             }
             let input = egui::RawInput {
-                screen_rect: Some(egui::Rect::from_min_size(Pos2::ZERO, screen)),
+                screen_rect: Some(egui::Rect::from_min_size(
+                    Pos2::ZERO,
+                    if shrunk && pass < 4 { Vec2::new(400.0, 300.0) } else { screen },
+                )),
                 time: Some(pass as f64),
                 predicted_dt: 1.0,
                 events,
@@ -674,7 +683,10 @@ mod tests {
         assert_eq!(c, Controls { sun: None, ..controls() });
         // On a small screen the panel scrolls: the end of it is reached with the wheel.
         let small = Vec2::new(640.0, 480.0);
-        let (c, _) = run_on(small, true, Ok("Home"), 2000.0);
+        let (c, _) = run_on(small, true, Ok("Home"), 2000.0, false);
+        assert_eq!(c, Controls { go_home: true, ..controls() });
+        // Made small and large again, the panel is whole again without scrolling.
+        let (c, _) = run_on(Vec2::new(1280.0, 1000.0), true, Ok("Home"), 0.0, true);
         assert_eq!(c, Controls { go_home: true, ..controls() });
         // Wireframe is greyed out on a device without it (the readout's default).
         let (c, _) = run(true, Ok("wireframe"));

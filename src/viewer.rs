@@ -330,23 +330,20 @@ struct App {
 }
 
 pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
-    // Output paths are checked before the run, not when it ends, and must differ (each
-    // would replace the other at exit).
-    let outputs = [("--record-path", &args.record_path), ("--screenshot", &args.screenshot), ("--trace", &args.trace)];
-    let mut targets: Vec<(&str, PathBuf)> = Vec::new();
-    for (opt, path) in outputs {
-        if let Some(p) = path {
-            let target = crate::commands::output_target(p).map_err(|e| InputError(format!("{opt} {e}")))?;
-            let key = target
-                .parent()
-                .and_then(|d| d.canonicalize().ok())
-                .map_or(target.clone(), |d| d.join(target.file_name().unwrap_or_default()));
-            if let Some((other, _)) = targets.iter().find(|(_, t)| *t == key) {
-                return Err(InputError(format!("{opt} {}: the same file as {other}", p.display())).into());
-            }
-            targets.push((opt, key));
-        }
-    }
+    // Output paths are checked before the run, not when it ends: distinct files that
+    // are not inputs.
+    crate::commands::check_outputs(
+        &[
+            ("--record-path", args.record_path.as_deref()),
+            ("--screenshot", args.screenshot.as_deref()),
+            ("--trace", args.trace.as_deref()),
+        ],
+        &[
+            ("--heightmap", args.common.heightmap.as_deref()),
+            ("--texture", args.texture.as_deref()),
+            ("--detail", args.detail.as_deref()),
+        ],
+    )?;
     let hf = args.common.load_heightfield(None)?;
     let layout = BlockLayout::new(hf.n, args.common.block).map_err(InputError)?;
     let trace = match &args.trace {

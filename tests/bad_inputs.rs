@@ -266,6 +266,19 @@ fn bad_output_paths_fail_before_the_run() {
     fails_cleanly(&["view", "--record-path", &dir], &["--record-path", "not a regular file"]);
     let same = s.path("same.png").display().to_string();
     fails_cleanly(&["view", "--screenshot", &same, "--trace", &same], &["--trace", "the same file as --screenshot"]);
+    let slash = format!("{}/", s.path("new").display());
+    fails_cleanly(&["view", "--trace", &slash], &["--trace", "names a directory"]);
+    let png_slash = format!("{}/", s.path("new.png").display());
+    fails_cleanly(&["render", "--out", &png_slash], &["--out", "names a directory"]);
+    // An output never replaces an input.
+    std::fs::copy(corpus("two_by_two.png"), s.path("input.png")).unwrap();
+    let input = s.path("input.png").display().to_string();
+    fails_cleanly(
+        &["view", "--heightmap", &input, "--screenshot", &input],
+        &["--screenshot", "same file as --heightmap"],
+    );
+    fails_cleanly(&["render", "--heightmap", &input, "--out", &input], &["--out", "same file as --heightmap"]);
+    assert_eq!(std::fs::read(&input).unwrap(), std::fs::read(corpus("two_by_two.png")).unwrap());
     let fifo = s.path("fifo.png");
     assert!(Command::new("mkfifo").arg(&fifo).status().unwrap().success());
     fails_cleanly(&["render", "--out", fifo.to_str().unwrap()], &["--out", "not a regular file"]);
