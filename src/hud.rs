@@ -299,6 +299,61 @@ fn panel(ui: &mut egui::Ui, r: &Readout, history: &FrameHistory, now: f64, c: &m
     });
 }
 
+/// Keeps a mouse press and its release in different frames. At a few frames a second a
+/// quick click arrives whole between two frames, and egui, seeing the button go down and
+/// up in one frame, moves no slider; so a release that follows a press no frame has seen
+/// yet is held back and given to the next frame.
+#[derive(Debug)]
+pub struct ClickSplitter<E> {
+    press_unseen: bool,
+    held: Option<E>,
+    /// Whether the panel took the last press (the held release answers the same).
+    pub pressed_on_panel: bool,
+}
+
+impl<E> Default for ClickSplitter<E> {
+    fn default() -> Self {
+        ClickSplitter { press_unseen: false, held: None, pressed_on_panel: false }
+    }
+}
+
+impl<E: Clone> ClickSplitter<E> {
+    /// A button event: what to do with it now.
+    pub fn on_button(&mut self, pressed: bool, event: &E) -> Click<E> {
+        if pressed {
+            self.press_unseen = true;
+            // A second click before any frame: the first one's release goes first.
+            match self.held.take() {
+                Some(release) => Click::PassAfter(release),
+                None => Click::Pass,
+            }
+        } else if self.press_unseen && self.held.is_none() {
+            self.held = Some(event.clone());
+            Click::Hold { taken: self.pressed_on_panel }
+        } else {
+            Click::Pass
+        }
+    }
+
+    /// A frame took its input: the press is seen; returns the release to give the next
+    /// frame.
+    pub fn frame_taken(&mut self) -> Option<E> {
+        self.press_unseen = false;
+        self.held.take()
+    }
+}
+
+/// What [`ClickSplitter::on_button`] decided.
+#[derive(Debug, PartialEq)]
+pub enum Click<E> {
+    /// Pass the event on now.
+    Pass,
+    /// Pass this held release on first, then the event.
+    PassAfter(E),
+    /// Held back for the next frame; `taken`: the panel takes it (as it took the press).
+    Hold { taken: bool },
+}
+
 /// Whether a window of the panel (the panel or the key help) was drawn at `pos` last frame.
 pub fn panel_at(ctx: &egui::Context, pos: Pos2) -> bool {
     // The root of the frame is a background layer that covers everything.
@@ -343,6 +398,7 @@ pub struct Hud {
     pub history: FrameHistory,
     /// Where the cursor is in the window (egui points), from the latest event.
     cursor: Option<Pos2>,
+    clicks: ClickSplitter<WindowEvent>,
     started: Instant,
     /// CPU time of the last frame's panel work (ms).
     pub last_ms: f32,
@@ -394,6 +450,7 @@ impl Hud {
             visible: true,
             help: false,
             cursor: None,
+            clicks: ClickSplitter::default(),
             history: FrameHistory::default(),
             started: Instant::now(),
             last_ms: 0.0,
@@ -423,8 +480,19 @@ impl Hud {
     /// Passes a window event to the panel; true when the panel took it (a click or drag
     /// on it, typing into it), so the camera must not also act on it.
     pub fn on_event(&mut self, window: &Window, event: &WindowEvent) -> bool {
+        if let WindowEvent::MouseInput { state, .. } = event {
+            let pressed = *state == winit::event::ElementState::Pressed;
+            match self.clicks.on_button(pressed, event) {
+                Click::Hold { taken } => return taken,
+                Click::PassAfter(release) => {
+                    // Its answer was given when it was held.
+                    let _ = self.state.on_window_event(window, &release);
+                }
+                Click::Pass => {}
+            }
+        }
         let consumed = self.state.on_window_event(window, event).consumed;
-        match event {
+        let consumed = match event {
             WindowEvent::CursorMoved { position, .. } => {
                 let ppp = window.scale_factor() as f32;
                 self.cursor = Some(Pos2::new(position.x as f32 / ppp, position.y as f32 / ppp));
@@ -439,7 +507,11 @@ impl Hud {
             WindowEvent::MouseInput { state: winit::event::ElementState::Pressed, .. }
             | WindowEvent::MouseWheel { .. } => consumed || self.cursor.is_some_and(|p| panel_at(&self.ctx, p)),
             _ => consumed,
+        };
+        if let WindowEvent::MouseInput { state: winit::event::ElementState::Pressed, .. } = event {
+            self.clicks.pressed_on_panel = consumed;
         }
+        consumed
     }
 
     /// Whether a control of the panel is being dragged (the sun is redrawn on release).
@@ -457,6 +529,10 @@ impl Hud {
     pub fn prepare(&mut self, window: &Window, readout: &Readout, controls: &mut Controls) -> anyhow::Result<()> {
         let started = Instant::now();
         let input = self.state.take_egui_input(window);
+        // A release held back from this frame's input goes into the next one.
+        if let Some(release) = self.clicks.frame_taken() {
+            let _ = self.state.on_window_event(window, &release);
+        }
         let now = self.now();
         let (visible, mut help) = (self.visible, self.help);
         let history = &self.history;
@@ -507,6 +583,77 @@ fn is_srgb(format: vk::Format) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A press and release between two frames reach egui in two frames; a slow press
+    /// (a frame between) and a double click before any frame keep their order.
+    #[test]
+    fn quick_clicks_are_split_across_frames() {
+        let mut c = ClickSplitter::<&str>::default();
+        assert_eq!(c.on_button(true, &"down"), Click::Pass);
+        c.pressed_on_panel = true;
+        assert_eq!(c.on_button(false, &"up"), Click::Hold { taken: true });
+        assert_eq!(c.frame_taken(), Some("up"));
+        assert_eq!(c.frame_taken(), None);
+        // A frame between press and release: nothing held.
+        assert_eq!(c.on_button(true, &"down"), Click::Pass);
+        assert_eq!(c.frame_taken(), None);
+        assert_eq!(c.on_button(false, &"up"), Click::Pass);
+        // Two clicks before a frame: the first release goes before the second press.
+        assert_eq!(c.on_button(true, &"down1"), Click::Pass);
+        assert_eq!(c.on_button(false, &"up1"), Click::Hold { taken: true });
+        assert_eq!(c.on_button(true, &"down2"), Click::PassAfter("up1"));
+        assert_eq!(c.on_button(false, &"up2"), Click::Hold { taken: true });
+        assert_eq!(c.frame_taken(), Some("up2"));
+    }
+
+    /// Why: egui moves a slider only when it sees the button down in a frame. A click on
+    /// the delta slider's track, press and release in one pass, leaves delta alone; the
+    /// same click split over two passes moves it.
+    #[test]
+    fn egui_needs_the_press_and_release_in_different_frames() {
+        for split in [false, true] {
+            let ctx = egui::Context::default();
+            let mut c = controls();
+            let readout = Readout { ranges: Ranges { fog_default: 0.1, speed: (1.0, 100.0) }, ..Readout::default() };
+            let h = FrameHistory::default();
+            let mut track = None;
+            for pass in 0..5 {
+                let mut events = Vec::new();
+                if let Some(at) = track {
+                    let button = |pressed| egui::Event::PointerButton {
+                        pos: at,
+                        button: egui::PointerButton::Primary,
+                        pressed,
+                        modifiers: Default::default(),
+                    };
+                    match (pass, split) {
+                        (2, false) => events = vec![egui::Event::PointerMoved(at), button(true), button(false)],
+                        (2, true) => events = vec![egui::Event::PointerMoved(at), button(true)],
+                        (3, true) => events = vec![button(false)],
+                        _ => {}
+                    }
+                }
+                let input = egui::RawInput {
+                    screen_rect: Some(egui::Rect::from_min_size(Pos2::ZERO, Vec2::new(1280.0, 1000.0))),
+                    events,
+                    ..Default::default()
+                };
+                let mut help = false;
+                let mut out = ctx.run_ui(input, |ui| build_ui(ui.ctx(), true, &mut help, &readout, &h, 3.0, &mut c));
+                out.textures_delta.clear();
+                // Right of the "delta (px)" label, on the slider's track near its far end.
+                for clipped in &out.shapes {
+                    if let egui::epaint::Shape::Text(t) = &clipped.shape {
+                        if t.galley.text() == "delta (px)" && track.is_none() {
+                            let r = t.visual_bounding_rect();
+                            track = Some(Pos2::new(r.right() + 90.0, r.center().y));
+                        }
+                    }
+                }
+            }
+            assert_eq!(c.delta != 1.0, split, "split {split}: delta {}", c.delta);
+        }
+    }
 
     #[test]
     fn history_keeps_the_plot_span_and_reports_median_and_max() {
