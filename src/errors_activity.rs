@@ -13,9 +13,9 @@ use crate::shaders;
 use crate::terrain_gpu::TerrainGpu;
 use crate::trace::{Trace, ERRORS_TID};
 use crate::vk::{
-    begin_one_time, host_read_barrier, image_barrier, vk, Buffer, CommandPool, DepthMode, DescriptorPool,
-    DescriptorSetLayout, Device, Fence, GraphicsPipeline, GraphicsPipelineDesc, Image, ImageUse, ImageView,
-    PipelineLayout, QueryPool, TimelineSemaphore, VkError, VkResult, VkResultExt,
+    begin_one_time, host_read_barrier, image_barrier, vk, Buffer, CommandPool, DescriptorPool, DescriptorSetLayout,
+    Device, Fence, GraphicsPipeline, GraphicsPipelineDesc, Image, ImageUse, ImageView, PipelineLayout, QueryPool,
+    TimelineSemaphore, VkError, VkResult, VkResultExt,
 };
 use std::sync::{Arc, Condvar, Mutex};
 use std::thread::JoinHandle;
@@ -187,18 +187,7 @@ impl ErrorsGpu {
         let gie_layout = PipelineLayout::new(device, &gie_set_layout, std::mem::size_of::<GiePush>() as u32, frag)?;
         let reduce_layout =
             PipelineLayout::new(device, &reduce_set_layout, std::mem::size_of::<ReducePush>() as u32, frag)?;
-        let desc = |fs: &'static [u8], l| GraphicsPipelineDesc {
-            vert: shaders::PASS_VERT,
-            frag: Some(fs),
-            rasterizer_discard: false,
-            vertex_attribute: None,
-            color_format: Some(GIE_FORMAT),
-            depth_format: None,
-            depth: DepthMode::Off,
-            polygon_mode: vk::PolygonMode::FILL,
-            cull_back: false,
-            layout: l,
-        };
+        let desc = |fs, l| GraphicsPipelineDesc::fullscreen_pass(fs, GIE_FORMAT, l);
         let gie_pipeline = GraphicsPipeline::new(device, &desc(shaders::GIE_FRAG, &gie_layout))?;
         let reduce_pipeline = GraphicsPipeline::new(device, &desc(shaders::BLOCK_REDUCE_FRAG, &reduce_layout))?;
         let pool = DescriptorPool::new(device, 2 * (n + 1), &[(sampler, 2 * (4 * n + 1))])?;

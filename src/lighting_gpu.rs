@@ -8,7 +8,7 @@ use crate::lighting::{lighting_side, samples_per_texel, Sun, MAX_LIGHTING_SIDE};
 use crate::shaders;
 use crate::terrain_gpu::TerrainGpu;
 use crate::vk::{
-    image_barrier, vk, Buffer, CommandPool, DepthMode, DescriptorPool, DescriptorSetLayout, Device, GraphicsPipeline,
+    image_barrier, vk, Buffer, CommandPool, DescriptorPool, DescriptorSetLayout, Device, GraphicsPipeline,
     GraphicsPipelineDesc, Image, PipelineLayout, Sampler, VkResult,
 };
 use std::sync::Arc;
@@ -63,18 +63,7 @@ impl LightingMap {
             PipelineLayout::new(device, &set_layout, std::mem::size_of::<LightingPush>() as u32, frag)?;
         let pipeline = GraphicsPipeline::new(
             device,
-            &GraphicsPipelineDesc {
-                vert: shaders::PASS_VERT,
-                frag: Some(shaders::LIGHTING_FRAG),
-                rasterizer_discard: false,
-                vertex_attribute: None,
-                color_format: Some(LIGHTING_FORMAT),
-                depth_format: None,
-                depth: DepthMode::Off,
-                polygon_mode: vk::PolygonMode::FILL,
-                cull_back: false,
-                layout: &pipeline_layout,
-            },
+            &GraphicsPipelineDesc::fullscreen_pass(shaders::LIGHTING_FRAG, LIGHTING_FORMAT, &pipeline_layout),
         )?;
         let pool = DescriptorPool::new(device, 1, &[(sampler_ty, 1)])?;
         let set = pool.allocate(&set_layout)?;

@@ -160,6 +160,25 @@ pub struct GraphicsPipelineDesc<'a> {
     pub layout: &'a PipelineLayout,
 }
 
+impl<'a> GraphicsPipelineDesc<'a> {
+    /// A pass over a whole colour target: one triangle from `pass.vert` (which only
+    /// covers the target; the fragment shader reads gl_FragCoord), no depth.
+    pub fn fullscreen_pass(frag: &'a [u8], color_format: vk::Format, layout: &'a PipelineLayout) -> Self {
+        GraphicsPipelineDesc {
+            vert: crate::shaders::PASS_VERT,
+            frag: Some(frag),
+            rasterizer_discard: false,
+            vertex_attribute: None,
+            color_format: Some(color_format),
+            depth_format: None,
+            depth: DepthMode::Off,
+            polygon_mode: vk::PolygonMode::FILL,
+            cull_back: false,
+            layout,
+        }
+    }
+}
+
 /// Depth use of a pipeline (reversed Z: nearer is greater, cleared to 0).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum DepthMode {
