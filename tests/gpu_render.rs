@@ -178,6 +178,38 @@ fn spike_appears_where_the_camera_projects_it() {
     finish(device);
 }
 
+/// The terrain shader reads the lighting map where it should: a wall running north-south
+/// with the sun low in the east shades a band west of it and leaves the ground east of
+/// it lit. A map read transposed would shade an east-west band instead, and a sun
+/// direction with the wrong sign the east side; both fail here.
+#[test]
+fn shadows_fall_away_from_the_sun() {
+    let device = gpu();
+    let wall = field(65, 65, 1.0, |x, _| if x == 40 { 10.0 } else { 0.0 });
+    let east = Sun { azimuth: 90.0, elevation: 30.0 };
+    let mut scene = Scene::new(&device, wall, 17, Some(east));
+    let cam = Camera::look_at(Vec3::new(32.0, 90.0, 75.0), Vec3::new(32.0, 0.0, 30.0), 60.0, 320, 240, 0.05);
+    let img = scene.render(&cam, None, &plain());
+    let vp = cam.view_proj();
+    let brightness = |x: f32, z: f32| {
+        let (px, py) = cam.project(&vp, Vec3::new(x, 0.0, z)).unwrap();
+        assert!(px >= 0.0 && py >= 0.0 && px < 320.0 && py < 240.0, "({x}, {z}) is off screen");
+        pixel(&img, cam.width, px as u32, py as u32).iter().map(|&c| c as f32).sum::<f32>()
+    };
+    // The shadow is 10 / tan 30 = 17.3 samples long: x from 23 to 40 is in it. In the
+    // shadow only the ambient term is left: about 0.6 of the lit brightness in sRGB.
+    for z in [12.0, 30.0, 48.0] {
+        let (shaded, lit) = (brightness(32.0, z), brightness(48.0, z));
+        println!("z {z}: west of the wall {shaded}, east {lit}");
+        assert!(shaded < 0.75 * lit, "z {z}: west of the wall {shaded} is not darker than east {lit}");
+        // Beyond the shadow's end the west side is lit again.
+        let beyond = brightness(12.0, z);
+        assert!(beyond > 0.85 * lit, "z {z}: beyond the shadow {beyond}, east {lit}");
+    }
+    drop(scene);
+    finish(device);
+}
+
 /// Cameras 10 to 40 km above the middle of the terrain looking down at 65 to 88 degrees (oblique, so a
 /// crack's vertical slit would show), whose whole view is terrain.
 fn downward_poses(hf: &Heightfield, count: usize) -> Vec<Camera> {
