@@ -343,6 +343,34 @@ impl<E: Clone> ClickSplitter<E> {
     }
 }
 
+/// A texture update as a whole image. The renderer uploads a partial update after a
+/// layout transition from UNDEFINED, which allows a GPU to discard the rest of the
+/// texture (the font atlas's other glyphs); so `copies` keeps every texture, patches
+/// are applied to the copy, and the whole copy is uploaded.
+pub fn whole_image(
+    copies: &mut std::collections::HashMap<egui::TextureId, egui::ColorImage>,
+    id: egui::TextureId,
+    delta: &egui::epaint::ImageDelta,
+) -> egui::epaint::ImageDelta {
+    let egui::ImageData::Color(patch) = &delta.image;
+    match delta.pos {
+        None => {
+            copies.insert(id, (**patch).clone());
+        }
+        Some([x0, y0]) => {
+            let [w, h] = patch.size;
+            let whole =
+                copies.entry(id).or_insert_with(|| egui::ColorImage::filled([x0 + w, y0 + h], Color32::TRANSPARENT));
+            let ww = whole.size[0];
+            for y in 0..h.min(whole.size[1].saturating_sub(y0)) {
+                let n = w.min(ww.saturating_sub(x0));
+                whole.pixels[(y0 + y) * ww + x0..][..n].copy_from_slice(&patch.pixels[y * w..][..n]);
+            }
+        }
+    }
+    egui::epaint::ImageDelta::full(copies[&id].clone(), delta.options)
+}
+
 /// What [`ClickSplitter::on_button`] decided.
 #[derive(Debug, PartialEq)]
 pub enum Click<E> {
@@ -399,6 +427,8 @@ pub struct Hud {
     /// Where the cursor is in the window (egui points), from the latest event.
     cursor: Option<Pos2>,
     clicks: ClickSplitter<WindowEvent>,
+    /// A copy of each texture, for uploading updates whole ([`whole_image`]).
+    textures: std::collections::HashMap<egui::TextureId, egui::ColorImage>,
     started: Instant,
     /// CPU time of the last frame's panel work (ms).
     pub last_ms: f32,
@@ -451,6 +481,7 @@ impl Hud {
             help: false,
             cursor: None,
             clicks: ClickSplitter::default(),
+            textures: Default::default(),
             history: FrameHistory::default(),
             started: Instant::now(),
             last_ms: 0.0,
@@ -547,14 +578,19 @@ impl Hud {
             self.device.wait_idle()?;
             let _queue = self.device.draw_queue.lock();
             for (id, images) in &delta.set {
+                let mut whole = None;
                 for image in images {
+                    whole = Some(whole_image(&mut self.textures, *id, image));
+                }
+                if let Some(image) = whole {
                     // The renderer submits on the draw queue (locked above) and waits for it.
                     self.renderer
-                        .set_texture(self.device.draw_queue.handle, self.uploads.handle, *id, image)
+                        .set_texture(self.device.draw_queue.handle, self.uploads.handle, *id, &image)
                         .map_err(|e| anyhow::anyhow!("the on-screen panel's textures: {e}"))?;
                 }
             }
             for id in &delta.free {
+                self.textures.remove(id);
                 self.renderer.free_texture(*id).map_err(|e| anyhow::anyhow!("the on-screen panel's textures: {e}"))?;
             }
             delta.clear(); // applied
@@ -583,6 +619,25 @@ fn is_srgb(format: vk::Format) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn texture_patches_are_uploaded_whole() {
+        use egui::epaint::ImageDelta;
+        let mut copies = std::collections::HashMap::new();
+        let id = egui::TextureId::Managed(0);
+        let opts = egui::TextureOptions::default();
+        let base = egui::ColorImage::filled([4, 3], Color32::RED);
+        let d = whole_image(&mut copies, id, &ImageDelta::full(base, opts));
+        assert_eq!(d.pos, None);
+        let patch = egui::ColorImage::filled([2, 1], Color32::BLUE);
+        let d = whole_image(&mut copies, id, &ImageDelta::partial([1, 2], patch, opts));
+        assert_eq!(d.pos, None, "uploaded whole");
+        let egui::ImageData::Color(img) = &d.image;
+        assert_eq!(img.size, [4, 3]);
+        let blue: Vec<usize> = (0..12).filter(|&i| img.pixels[i] == Color32::BLUE).collect();
+        assert_eq!(blue, vec![9, 10], "the patch at (1, 2) and (2, 2), the rest kept");
+        assert_eq!(img.pixels.iter().filter(|&&p| p == Color32::RED).count(), 10);
+    }
 
     /// A press and release between two frames reach egui in two frames; a slow press
     /// (a frame between) and a double click before any frame keep their order.
