@@ -88,6 +88,9 @@ pub struct Readout {
     pub ground_speed: f32,
     /// GPU time of the last finished frame (timestamps), when the device has them.
     pub gpu_frame_ms: Option<f64>,
+    /// How long the draw thread was blocked by the last finished frame: for its frame
+    /// slot and for the queue's lock (which the errors activity holds on a shared queue).
+    pub waits_ms: (f64, f64),
     /// CPU time the panel took last frame (building, tessellating, recording).
     pub panel_ms: f32,
     /// Time the last lighting map took (ms), and the sun it was made for.
@@ -199,6 +202,7 @@ fn panel(ui: &mut egui::Ui, r: &Readout, history: &FrameHistory, now: f64, c: &m
             ui.end_row();
         };
         row("GPU frame", r.gpu_frame_ms.map_or("- (no timestamps)".into(), |m| format!("{m:.1} ms")));
+        row("draw waits", format!("{:.1} slot, {:.1} queue ms", r.waits_ms.0, r.waits_ms.1));
         row("triangles", r.triangles.to_string());
         row("draw calls", format!("{} ({} blocks)", r.draw_calls, r.blocks));
         row("error age", r.error_age.map_or("-".into(), |a| format!("{a} frames")));

@@ -317,6 +317,9 @@ struct App {
     last_stats: DrawStats,
     /// GPU time of the last finished frame (timestamps), when the device has them.
     last_gpu_ms: Option<f64>,
+    /// How long the draw thread was blocked by the last finished frame: waiting for its
+    /// slot (the frame two back) and for the queue's lock (ms).
+    last_waits: (f64, f64),
     /// The frame submitted from each slot and not yet traced.
     slot_frames: [Option<u64>; FRAMES_IN_FLIGHT],
     last_blocks: usize,
@@ -452,6 +455,7 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
         fps_frames: 0,
         last_stats: DrawStats::default(),
         last_gpu_ms: None,
+        last_waits: (0.0, 0.0),
         slot_frames: [None; FRAMES_IN_FLIGHT],
         last_blocks: 0,
         blocks: Vec::new(),
@@ -833,6 +837,8 @@ impl App {
             self.trace.complete(DRAW_TID, "wait (frame slot)", from, to, json!({"frame": frame}));
         }
         self.last_gpu_ms = done.gpu_ms;
+        let lock = done.queue_lock.map_or(0.0, |(a, g)| (g - a).as_secs_f64() * 1e3);
+        self.last_waits = (done.wait_ms, lock);
     }
 
     /// The direction through the cursor, or the view's centre when the cursor is not in
@@ -917,6 +923,7 @@ impl App {
             above_ground: p.y - self.hf.surface_height(p.x.clamp(0.0, wx), p.z.clamp(0.0, wz)),
             ground_speed: self.ground_speed,
             gpu_frame_ms: self.last_gpu_ms,
+            waits_ms: self.last_waits,
             ..Readout::default()
         };
         let l = wx.max(wz);
