@@ -42,6 +42,9 @@ fn flyover_with_resizes_writes_a_screenshot_and_exits_cleanly() {
     ]);
     let stdout = String::from_utf8_lossy(&out.stdout);
     let stderr = String::from_utf8_lossy(&out.stderr);
+    // Read and removed before any assertion, so that a failure leaves nothing behind.
+    let img = image::open(&shot).map(|i| i.to_rgb8());
+    let _ = std::fs::remove_file(&shot);
     assert!(out.status.success(), "viewer failed: {stderr}\n{stdout}");
     let json: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
     assert_eq!(json["frames"], 36);
@@ -51,7 +54,7 @@ fn flyover_with_resizes_writes_a_screenshot_and_exits_cleanly() {
     assert!(json["error_generations"].as_u64().unwrap() >= 10, "{json}");
     assert!(json["last_triangles"].as_u64().unwrap() > 0);
 
-    let img = image::open(&shot).expect("screenshot written").to_rgb8();
+    let img = img.expect("screenshot written");
     assert_eq!((img.width(), img.height()), (400, 300), "the screenshot has the resized window's size");
     let mean = |y0: u32, y1: u32| {
         let mut s = [0f64; 3];
@@ -74,7 +77,6 @@ fn flyover_with_resizes_writes_a_screenshot_and_exits_cleanly() {
     assert!(bottom[2] < bottom[1] && bottom[1] < 200.0, "bottom rows are not terrain: {bottom:?}");
     let distinct: std::collections::HashSet<[u8; 3]> = img.pixels().map(|p| p.0).collect();
     assert!(distinct.len() > 200, "the screenshot is nearly blank ({} colours)", distinct.len());
-    let _ = std::fs::remove_file(&shot);
 }
 
 #[test]
