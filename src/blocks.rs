@@ -520,8 +520,7 @@ impl BlocksRenderer {
             vk::AccessFlags2::COLOR_ATTACHMENT_WRITE,
             vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL,
         );
-        let copied =
-            (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_READ, vk::ImageLayout::TRANSFER_SRC_OPTIMAL);
+        let copied = crate::vk::COPY_SOURCE;
         let present = (vk::PipelineStageFlags2::NONE, vk::AccessFlags2::NONE, vk::ImageLayout::PRESENT_SRC_KHR);
         // SAFETY: as above.
         unsafe {

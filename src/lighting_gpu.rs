@@ -9,7 +9,7 @@ use crate::shaders;
 use crate::terrain_gpu::TerrainGpu;
 use crate::vk::{
     image_barrier, vk, Buffer, CommandPool, DescriptorPool, DescriptorSetLayout, Device, GraphicsPipeline,
-    GraphicsPipelineDesc, Image, PipelineLayout, Sampler, VkResult,
+    GraphicsPipelineDesc, Image, PipelineLayout, Sampler, VkResult, COPY_SOURCE, FRAGMENT_SAMPLED,
 };
 use std::sync::Arc;
 
@@ -136,11 +136,7 @@ impl LightingMap {
             vk::AccessFlags2::COLOR_ATTACHMENT_WRITE,
             vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL,
         );
-        let sampled = (
-            vk::PipelineStageFlags2::FRAGMENT_SHADER,
-            vk::AccessFlags2::SHADER_SAMPLED_READ,
-            vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
-        );
+        let sampled = FRAGMENT_SAMPLED;
         let started = std::time::Instant::now();
         self.device.one_shot(&self.commands, |cmd| {
             let att = [vk::RenderingAttachmentInfo::default()
@@ -206,13 +202,8 @@ impl LightingMap {
         )?;
         let raw = &self.device.raw;
         let (image, range) = (self.image.handle, self.image.range(0, 1));
-        let sampled = (
-            vk::PipelineStageFlags2::FRAGMENT_SHADER,
-            vk::AccessFlags2::SHADER_SAMPLED_READ,
-            vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
-        );
-        let source =
-            (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_READ, vk::ImageLayout::TRANSFER_SRC_OPTIMAL);
+        let sampled = FRAGMENT_SAMPLED;
+        let source = COPY_SOURCE;
         self.device.one_shot(&self.commands, |cmd| {
             // SAFETY: as in `draw`; the buffer (two bytes a texel) outlives the wait.
             unsafe {

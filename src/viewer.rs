@@ -98,14 +98,6 @@ pub struct ViewArgs {
     pub resize_at: Vec<String>,
 }
 
-const KEYS: &str = "\
-keys: W/S forward/back, A/D left/right, Q/E down/up, hold a mouse button and move to look,
-      Shift faster, wheel changes speed, G walk/fly, O orbit the point under the cursor (drag to
-      turn, W/S in/out), Home back to the start view,
-      [ and ] halve/double delta,
-      M strict/paper error mode, N geomorphing on/off, F wireframe, L colour blocks by LOD,
-      Space freeze the block list, P screenshot, H hide/show the panel, F1 key help, Esc quit";
-
 fn load_texture(path: &PathBuf) -> Result<Texture, InputError> {
     let img = image::open(path).map_err(|e| InputError(format!("{}: cannot read texture: {e}", path.display())))?;
     let rgba = img.to_rgba8();
@@ -405,7 +397,11 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
         anyhow::anyhow!("cannot open a window ({e}); is DISPLAY set? Use `vkterrain render` for headless output")
     })?;
     event_loop.set_control_flow(ControlFlow::Poll);
-    println!("{KEYS}");
+    // The same table as the panel's key help (F1).
+    println!("keys:");
+    for (k, what) in crate::hud::KEYS {
+        println!("  {k:<13} {what}");
+    }
     let now = Instant::now();
     let mut app = App {
         args: args.clone(),

@@ -135,6 +135,17 @@ pub unsafe fn begin_one_time(d: &ash::Device, cmd: vk::CommandBuffer) -> VkResul
 /// Where an image was last used, or will be used next: stage, access and layout.
 pub type ImageUse = (vk::PipelineStageFlags2, vk::AccessFlags2, vk::ImageLayout);
 
+/// Read by fragment shaders through a sampler.
+pub const FRAGMENT_SAMPLED: ImageUse = (
+    vk::PipelineStageFlags2::FRAGMENT_SHADER,
+    vk::AccessFlags2::SHADER_SAMPLED_READ,
+    vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
+);
+
+/// The source of a copy.
+pub const COPY_SOURCE: ImageUse =
+    (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_READ, vk::ImageLayout::TRANSFER_SRC_OPTIMAL);
+
 /// Records one image barrier from `from` to `to` over `range`.
 ///
 /// # Safety

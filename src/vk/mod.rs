@@ -11,7 +11,7 @@ mod swapchain;
 
 pub use command::{
     begin_one_time, host_read_barrier, image_barrier, record_query_copy, BinarySemaphore, CommandPool, Fence,
-    FrameTimer, ImageUse, QueryPool, TimelineSemaphore,
+    FrameTimer, ImageUse, QueryPool, TimelineSemaphore, COPY_SOURCE, FRAGMENT_SAMPLED,
 };
 pub use device::{Device, DeviceOptions, Queue, QueueMode, QueueRequest};
 pub use instance::{Instance, InstanceOptions, MessageCounter};
