@@ -1,6 +1,6 @@
 // Block vertex placement. World position of vertex `local` of the block in `block_pc`
 // (SPEC section 5): corners at their resolved heights, edge vertices next to a coarser
-// block on that block's edge, odd vertices morphed towards the parent's surface
+// block on that block's (morphed) edge, odd vertices morphed towards the parent's surface
 // (src/morph.rs). Shared by terrain.vert and capture.vert (which tests it against
 // quadtree::block_vertex, bit for bit). Needs `heights`, `frame` and `block_pc` declared
 // by the includer.
@@ -32,6 +32,21 @@ float own_vertex_raw(ivec2 local, ivec2 s, int last) {
     if (!(odd_u || odd_v) || f >= 1.0) return raw;
     int st = block_pc.block.z;
     ivec2 d = ivec2(odd_u ? st : 0, odd_v ? st : 0);
+    precise float p = (raw_at(s - d) + raw_at(s + d)) * 0.5;
+    return morph_raw(p, raw, f);
+}
+
+// The coarser neighbour's vertex at sample s on the edge across `side` (its stride
+// `best`), as that block draws it: odd vertices morph with the edge's factor, which both
+// blocks are given. Its origin is a multiple of twice its stride, so parity is that of
+// the coordinate over the stride.
+float coarse_vertex_raw(ivec2 s, int side, int best) {
+    float raw = raw_at(s);
+    float f = block_pc.morph_edges[side];
+    bool along_x = (side & 1) == 0;
+    int coord = along_x ? s.x : s.y;
+    if (((coord / best) & 1) == 0 || f >= 1.0) return raw;
+    ivec2 d = along_x ? ivec2(best, 0) : ivec2(0, best);
     precise float p = (raw_at(s - d) + raw_at(s + d)) * 0.5;
     return morph_raw(p, raw, f);
 }
@@ -73,13 +88,13 @@ vec3 place_block_vertex(ivec2 local) {
         int coord = along_x ? s.x : s.y;
         int rem = coord % best;
         if (rem == 0) {
-            // A vertex of the coarser block, inside its edge: unmorphed.
-            raw = raw_at(s);
+            // A vertex of the coarser block, inside its edge.
+            raw = coarse_vertex_raw(s, side, best);
         } else if (best <= last * stride) {
             // The neighbour has vertices at both ends of this edge: collapse onto the one
             // below (degenerate triangles, no T-junction).
             if (along_x) s.x -= rem; else s.y -= rem;
-            raw = along * stride == rem ? block_pc.corner_raw[EDGE_CORNERS[side].x] : raw_at(s);
+            raw = along * stride == rem ? block_pc.corner_raw[EDGE_CORNERS[side].x] : coarse_vertex_raw(s, side, best);
         } else {
             // The whole edge lies inside one segment of the neighbour: on the line between
             // this edge's corners, which lie on that segment.

@@ -69,7 +69,8 @@ pub struct DrawBlock {
     /// Morph factor of the interior vertices: 0 puts the block's odd vertices on its
     /// parent's surface, [`MORPH_ONE`] on its own samples.
     pub morph: u16,
-    /// Morph factor of the vertices on each edge (1 on edges next to another LOD).
+    /// Morph factor of the vertices on each edge; on an edge next to a coarser block, of
+    /// that block's vertices there, which this block's edge follows.
     pub edge_morph: [u16; 4],
     /// Raw height of each corner (NW, NE, SE, SW) as f32 bits, or [`CORNER_UNRESOLVED`]:
     /// a corner inside a coarser neighbour's edge lies on that edge, whose own corners
@@ -480,8 +481,8 @@ pub fn block_vertex(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, u: u3
     let rem = coord % best;
     let [first, second] = EDGE_CORNERS[side];
     if rem == 0 {
-        // A vertex of the coarser block, inside its edge: unmorphed.
-        (sx, sz, hf.raw_at(sx, sz))
+        // A vertex of the coarser block, inside its edge.
+        (sx, sz, coarse_vertex_raw(hf, b, side, sx, sz))
     } else if best <= last as i64 * stride {
         // The neighbour has vertices at both ends of this edge: collapse onto the one
         // below (degenerate triangles, no T-junction).
@@ -490,7 +491,11 @@ pub fn block_vertex(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, u: u3
         } else {
             sz -= rem;
         }
-        let h = if along as i64 * stride == rem { b.corner(first, hf, sx, sz) } else { hf.raw_at(sx, sz) };
+        let h = if along as i64 * stride == rem {
+            b.corner(first, hf, sx, sz)
+        } else {
+            coarse_vertex_raw(hf, b, side, sx, sz)
+        };
         (sx, sz, h)
     } else {
         // The whole edge lies inside one segment of the neighbour: on the line between
@@ -502,6 +507,25 @@ pub fn block_vertex(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, u: u3
         };
         (sx, sz, ca + (cb - ca) * (along as f32 / last as f32))
     }
+}
+
+/// Height of the coarser neighbour's vertex at `(sx, sz)` on the edge across `side`, as
+/// that block draws it: its odd vertices morph with the edge's factor, which both blocks
+/// are given ([`crate::morph`]), between the mean of the two vertices around it along
+/// the edge and their own sample. The neighbour's origin is a multiple of twice its
+/// stride, so a vertex's parity is that of its coordinate over the stride.
+fn coarse_vertex_raw(hf: &Heightfield, b: &DrawBlock, side: usize, sx: i64, sz: i64) -> f32 {
+    let raw = hf.raw_at(sx, sz);
+    let best = b.coarser[side] as i64;
+    let along_x = side.is_multiple_of(2);
+    let coord = if along_x { sx } else { sz };
+    let f = morph_value(b.edge_morph[side]);
+    if (coord / best) % 2 == 0 || f >= 1.0 {
+        return raw;
+    }
+    let (dx, dz) = if along_x { (best, 0) } else { (0, best) };
+    let p = (hf.raw_at(sx - dx, sz - dz) + hf.raw_at(sx + dx, sz + dz)) * 0.5;
+    morph_raw(p, raw, f)
 }
 
 /// `raw` moved towards the parent surface's height `p`: factor 1 is `raw` itself.

@@ -14,19 +14,19 @@ use vkterrain::quadtree::{block_vertex, traverse, BlockLayout, LodSelect};
 use vkterrain::terrain_gpu::TerrainGpu;
 
 /// Returns (vertices compared, collapsed-edge vertices, on-segment vertices, morphed
-/// interior vertices).
+/// interior vertices, vertices that follow a coarser neighbour's morphed edge).
 fn compare(
     device: &Arc<vkterrain::vk::Device>,
     hf: &Heightfield,
     k: u32,
     cams: &[Camera],
     delta: f32,
-) -> (usize, usize, usize, usize) {
+) -> (usize, usize, usize, usize, usize) {
     let mm = MinMaxPyramid::build(hf);
     let layout = BlockLayout::new(hf.n, k).unwrap();
     let terrain = TerrainGpu::new(device, hf, &mm, None, None).unwrap();
     let mut renderer = BlocksRenderer::new(device, hf, &terrain, layout, COLOR_FORMAT, 1, None).unwrap();
-    let (mut n, mut collapsed, mut lerped, mut morphed) = (0, 0, 0, 0);
+    let (mut n, mut collapsed, mut lerped, mut morphed, mut following) = (0, 0, 0, 0, 0);
     for cam in cams {
         let errors = block_errors(&group_errors(hf, &mm, &ErrorParams::new(cam, ErrorMode::Strict)), layout.m);
         let t = traverse(hf, &mm, &layout, cam, LodSelect::errors(&errors, cam.position, delta, ErrorMode::Strict));
@@ -45,12 +45,17 @@ fn compare(
                     collapsed += moved as usize;
                     lerped += (!moved && !interior && raw != hf.raw_at(sx, sz)) as usize;
                     morphed += (interior && raw != hf.raw_at(sx, sz)) as usize;
+                    let coarse_side = (v == 0 && b.coarser[0] > 0)
+                        || (u == kk - 1 && b.coarser[1] > 0)
+                        || (v == kk - 1 && b.coarser[2] > 0)
+                        || (u == 0 && b.coarser[3] > 0);
+                    following += (coarse_side && raw != block_vertex(hf, &layout, &b.unmorphed(), u, v).2) as usize;
                     n += 1;
                 }
             }
         }
     }
-    (n, collapsed, lerped, morphed)
+    (n, collapsed, lerped, morphed, following)
 }
 
 #[test]
@@ -67,13 +72,14 @@ fn vertex_shader_placement_matches_the_cpu_mirror() {
             Camera::look_at(pos, Vec3::new(512.0, 0.0, 512.0), 60.0, 320, 240, 0.2)
         })
         .collect();
-    let (mut total, mut collapsed, mut lerped, mut morphed) = (0, 0, 0, 0);
+    let (mut total, mut collapsed, mut lerped, mut morphed, mut following) = (0, 0, 0, 0, 0);
     for k in [3, 9, 33] {
-        let (n, c, l, m) = compare(&device, &hills, k, &cams, 1.0);
+        let (n, c, l, m, f) = compare(&device, &hills, k, &cams, 1.0);
         total += n;
         collapsed += c;
         lerped += l;
         morphed += m;
+        following += f;
     }
     // A lone spike next to flat ground: LOD differences beyond m (vertices on a segment).
     let lone = field(257, 257, 1.0, |x, z| {
@@ -86,15 +92,17 @@ fn vertex_shader_placement_matches_the_cpu_mirror() {
         }
     });
     let top = [Camera::look_at(Vec3::new(128.0, 300.0, 128.0), Vec3::new(128.0, 0.0, 127.0), 70.0, 320, 240, 0.05)];
-    let (n, c, l, m) = compare(&device, &lone, 3, &top, 1.0);
+    let (n, c, l, m, f) = compare(&device, &lone, 3, &top, 1.0);
     total += n;
     collapsed += c;
     lerped += l;
     morphed += m;
+    following += f;
     println!(
-        "{total} vertices compared: {collapsed} collapsed onto a coarser neighbour, {lerped} edge vertices off their sample's height, {morphed} interior vertices morphed"
+        "{total} vertices compared: {collapsed} collapsed onto a coarser neighbour, {lerped} edge vertices off their sample's height, {morphed} interior vertices morphed, {following} following a coarser neighbour's morphed edge"
     );
     assert!(collapsed > 0 && lerped > 0, "both stitching cases must occur ({collapsed}, {lerped})");
     assert!(morphed > 0, "no morphed vertex was compared");
+    assert!(following > 0, "no vertex on a morphed coarser edge was compared");
     finish(device);
 }
