@@ -119,17 +119,7 @@ pub fn audit(hf: &Heightfield, layout: &BlockLayout, traversal: &Traversal, cam:
                 r.uncovered += 1;
                 continue;
             }
-            let b = &traversal.blocks[idx as usize];
-            let err = match rendered_raw(hf, layout, b, x, z) {
-                Some(rr) => {
-                    let q = Vec3::new(p.x, rr * hf.height_scale, p.z);
-                    match (cam.project(&vp, p), cam.project(&vp, q)) {
-                        (Some(a), Some(b)) => ((a.0 - b.0).powi(2) + (a.1 - b.1).powi(2)).sqrt(),
-                        _ => f32::INFINITY,
-                    }
-                }
-                None => f32::INFINITY,
-            };
+            let err = rendered_error(hf, layout, &traversal.blocks[idx as usize], cam, &vp, (x, z, p));
             if err > r.max_error_px {
                 r.max_error_px = err;
                 r.worst = (x, z);
@@ -137,6 +127,48 @@ pub fn audit(hf: &Heightfield, layout: &BlockLayout, traversal: &Traversal, cam:
         }
     }
     r
+}
+
+/// Pixel distance between the true point `p` of a sample and block `b`'s rendered
+/// surface at the same `(x, z)` (infinite where `b` does not cover it or either point
+/// does not project).
+fn rendered_error(
+    hf: &Heightfield,
+    layout: &BlockLayout,
+    b: &DrawBlock,
+    cam: &Camera,
+    vp: &glam::Mat4,
+    (x, z, p): (i64, i64, Vec3),
+) -> f32 {
+    match rendered_raw(hf, layout, b, x, z) {
+        Some(rr) => {
+            let q = Vec3::new(p.x, rr * hf.height_scale, p.z);
+            match (cam.project(vp, p), cam.project(vp, q)) {
+                (Some(a), Some(b)) => ((a.0 - b.0).powi(2) + (a.1 - b.1).powi(2)).sqrt(),
+                _ => f32::INFINITY,
+            }
+        }
+        None => f32::INFINITY,
+    }
+}
+
+/// The audit of one block on its own: the largest pixel distance over its samples
+/// (edges included) inside the frustum, whatever its neighbours draw.
+pub fn audit_block(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, cam: &Camera) -> f32 {
+    let frustum = cam.frustum();
+    let vp = cam.view_proj();
+    let (ox, oz) = b.origin(layout);
+    let size = layout.block_samples(b.lod) as i64;
+    let mut worst = 0.0f32;
+    for z in oz as i64..=(oz as i64 + size).min(hf.height as i64 - 1) {
+        for x in ox as i64..=(ox as i64 + size).min(hf.width as i64 - 1) {
+            let p = Vec3::new(x as f32 * hf.spacing, hf.raw_at(x, z) * hf.height_scale, z as f32 * hf.spacing);
+            if frustum.contains_point(p) {
+                worst = worst.max(rendered_error(hf, layout, b, cam, &vp, (x, z, p)));
+            }
+        }
+    }
+    worst
 }
 
 /// Every visible finest-grid cell is covered by exactly one drawn block, and no cell by

@@ -40,10 +40,8 @@
 
 use crate::camera::{distance_to_aabb, Camera};
 use crate::heightfield::{Heightfield, MinMaxPyramid};
-use crate::quadtree::{
-    angular_factor, block_aabb, morph_value, world_to_pixels, BlockLayout, DrawBlock, Traversal, MORPH_ONE,
-};
-use crate::stitch::CORNER_EDGES;
+use crate::quadtree::{angular_factor, block_aabb, morph_value, BlockLayout, DrawBlock, Traversal, MORPH_ONE};
+use crate::stitch::{strip_segment, CORNER_EDGES};
 use glam::Vec3;
 use std::collections::HashMap;
 
@@ -111,14 +109,51 @@ pub fn cost(
     let (mut min, mut max) = block_aabb(hf, mm, layout, j, b.bx, b.bz);
     min.y = min.y.min(regions.lo * hs);
     max.y = max.y.max(regions.hi * hs);
-    let px = world_to_pixels(cam, min, max, delta) * hs;
     let per_group = cam.kappa() * angular_factor(cam, min, max, delta);
+    // Each edge region projected from its own box (the block's heights, the region's
+    // extent in x and z) with the block's angular factor, as the interior groups are:
+    // the far part of a block is much farther than its nearest point.
+    let (ox, oz) = b.origin(layout);
+    let (size, st) = (layout.block_samples(j), b.stride());
+    let last = layout.k() - 2; // last quad index
+    let px = |[x0, z0, x1, z1]: [u32; 4]| {
+        let sp = hf.spacing;
+        let lo = Vec3::new(x0 as f32 * sp, min.y, z0 as f32 * sp);
+        let hi = Vec3::new(x1 as f32 * sp, max.y, z1 as f32 * sp);
+        per_group * hs / distance_to_aabb(cam.position, lo, hi).max(cam.near)
+    };
+    // Box of quads `t0..=t1` along edge `e`, in samples `[x0, z0, x1, z1]`.
+    let strip_box = |e: usize, t0: u32, t1: u32| -> [u32; 4] {
+        let (a, b) = (t0 * st, (t1 + 1) * st);
+        match e {
+            0 => [ox + a, oz, ox + b, oz + st],
+            1 => [ox + size - st, oz + a, ox + size, oz + b],
+            2 => [ox + a, oz + size - st, ox + b, oz + size],
+            _ => [ox, oz + a, ox + st, oz + b],
+        }
+    };
+    let mut sides = [[0.0f32; 4]; 4];
+    for (e, segments) in regions.side.iter().enumerate() {
+        for (g, d) in segments.iter().enumerate() {
+            let quads: Vec<u32> = (1..last).filter(|&t| strip_segment(t, last) == g).collect();
+            let (Some(&t0), Some(&t1)) = (quads.first(), quads.last()) else { continue };
+            let f = px(strip_box(e, t0, t1));
+            for (m, v) in sides[e].iter_mut().zip(d) {
+                *m = m.max(v * f);
+            }
+        }
+    }
+    let corner_quads = [(0, 0), (last, 0), (last, last), (0, last)];
+    let corner: [[f32; 8]; 4] = std::array::from_fn(|c| {
+        let (u, v) = corner_quads[c];
+        let f = px([ox + u * st, oz + v * st, ox + (u + 1) * st, oz + (v + 1) * st]);
+        regions.corner[c].map(|d| d * f)
+    });
 
     // Interior: per parent group (level j + 1), as the errors activity projects.
     let level = j + 1;
     let gs = 1usize << level;
     let per_side = (layout.k() as usize - 1) / 2;
-    let (ox, oz) = b.origin(layout);
     let (ga, gb) = (ox as usize / gs, oz as usize / gs);
     let side = mm.cells(level);
     let world = gs as f32 * hf.spacing;
@@ -146,12 +181,7 @@ pub fn cost(
             own = own.max(dc * hs * f);
         }
     }
-    MorphCost {
-        parent,
-        own,
-        side: regions.side.map(|d| d.map(|v| v * px)),
-        corner: regions.corner.map(|d| d.map(|v| v * px)),
-    }
+    MorphCost { parent, own, side: sides, corner }
 }
 
 /// The factor that the selection's own (possibly stale-corrected) errors give: 0 when the
@@ -196,6 +226,14 @@ pub const MORPH_RANGE: f32 = 2.0;
 
 /// Rounds of raising before giving up on morphing this frame (factor 1 everywhere).
 const MAX_ROUNDS: usize = 200;
+
+/// Per drawn block, the sides whose vertices never morph (bit `s` for side `s`): see
+/// `EdgeVars`.
+pub fn fixed_edges(layout: &BlockLayout, t: &Traversal) -> Vec<u8> {
+    let root = layout.root_lod();
+    let edges = EdgeVars::new(layout, t, |i| t.blocks[i].lod < root);
+    (0..t.blocks.len()).map(|i| edges.fixed(i)).collect()
+}
 
 /// Sets every block's morph factors (the renderer's rule).
 pub fn assign(hf: &Heightfield, mm: &MinMaxPyramid, layout: &BlockLayout, cam: &Camera, delta: f32, t: &mut Traversal) {

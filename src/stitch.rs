@@ -48,14 +48,23 @@ pub struct StitchCache {
 /// the edges in `fixed` never morph.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct EdgeRegions {
-    /// Per edge, state `2 f + e` (0: parent, 1: own).
-    pub side: [[f32; 4]; 4],
+    /// Per edge and segment of its strip ([`strip_segment`]), state `2 f + e` (0:
+    /// parent, 1: own): each segment is projected from its own box.
+    pub side: [[[f32; 4]; STRIP_SEGMENTS]; 4],
     /// Per corner (NW, NE, SE, SW, between the edges in [`CORNER_EDGES`]), state
     /// `4 f + 2 e_a + e_b`.
     pub corner: [[f32; 8]; 4],
     /// Raw height range of the vertices in every state.
     pub lo: f32,
     pub hi: f32,
+}
+
+/// Segments a strip is measured in, so that each is projected from its own distance.
+pub const STRIP_SEGMENTS: usize = 8;
+
+/// The segment of quad `t` (0..=`last`, along the edge) of a strip.
+pub fn strip_segment(t: u32, last: u32) -> usize {
+    (t as usize * STRIP_SEGMENTS) / (last as usize + 1)
 }
 
 /// The two edges meeting at each corner (NW, NE, SE, SW).
@@ -175,7 +184,6 @@ pub fn edge_regions(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, fixed
     for e in 0..4 {
         for st in 0..4 {
             let s = state(st & 2 != 0, &[(e, st & 1 != 0)]);
-            let mut m = 0.0f32;
             for t in 1..last {
                 let (u, v) = match e {
                     0 => (t, 0),
@@ -183,9 +191,10 @@ pub fn edge_regions(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, fixed
                     2 => (t, last),
                     _ => (0, t),
                 };
-                m = m.max(quad_dev(&s, u, v));
+                let d = quad_dev(&s, u, v);
+                let m = &mut out.side[e][strip_segment(t, last)][st];
+                *m = m.max(d);
             }
-            out.side[e][st] = m;
         }
     }
     for (c, [ea, eb]) in CORNER_EDGES.iter().copied().enumerate() {

@@ -11,7 +11,9 @@ use vkterrain::camera::Camera;
 use vkterrain::gie::{block_errors, group_errors_with, ErrorMode, ErrorParams, WorldPart};
 use vkterrain::heightfield::{self, Heightfield, LoadOptions, MinMaxPyramid};
 use vkterrain::morph::{self, MorphRule};
-use vkterrain::quadtree::{block_vertex, traverse, BlockLayout, LodSelect, Traversal, MORPH_ONE};
+use vkterrain::quadtree::{
+    block_vertex, morph_value, traverse, BlockLayout, DrawBlock, LodSelect, Traversal, MORPH_ONE,
+};
 
 /// A small deterministic generator (no dependency, reproducible poses).
 struct Rng(u64);
@@ -755,4 +757,75 @@ fn morphing_turns_jumps_into_small_steps() {
         assert!(partial > cams.len(), "{name}: too few morph states to test ({partial})");
         assert!(off > 0.0 && on < off / 3.0, "{name}: morphing {on}, without {off}");
     }
+}
+
+/// The claim under the morph's factors (`morph::MorphCost::bound`): in *every* state of a
+/// block's vertex groups, not only those the traversal picks, a block whose bound is
+/// within delta draws a surface within delta (the bound's angular factor is only valid
+/// for errors then compared with delta, SPEC section 3). Each drawn block of frames on
+/// the crafted fields is put in mixed states (interior on the parent's surface with edges
+/// on their own samples, the reverse, and part way) and audited on its own.
+/// Mutation: with the edge strips' and corner quads' terms cut to a third, some state
+/// passes the cut bound and breaks delta, so those terms are needed and checked here.
+#[test]
+fn morph_bound_holds_in_every_state() {
+    let states: [(u16, [u16; 4]); 6] = [
+        (0, [MORPH_ONE; 4]),
+        (MORPH_ONE, [0; 4]),
+        (0, [0, MORPH_ONE, 0, MORPH_ONE]),
+        (MORPH_ONE, [MORPH_ONE, 0, MORPH_ONE, 0]),
+        (MORPH_ONE / 2, [MORPH_ONE, 0, MORPH_ONE / 4, 0]),
+        (MORPH_ONE / 3, [MORPH_ONE / 2; 4]),
+    ];
+    let (mut checked, mut worst, mut broken_when_cut) = (0usize, 0.0f32, 0usize);
+    for (f, edge, k) in [
+        (flat_next_to_ridges(1, 0.5), 128.0, 9u32),
+        (flat_next_to_ridges(2, 40.0), 128.0, 9),
+        (first_row_spikes(5, 40.0), 96.0, 5),
+        (first_row_spikes(9, 40.0), 96.0, 9),
+        (edge_steps(2.0), 128.0, 9),
+        (blancmange(), 128.0, 5),
+    ] {
+        let mm = MinMaxPyramid::build(&f);
+        let layout = BlockLayout::new(f.n, k).unwrap();
+        for (i, cam) in adversarial_poses(&f, edge, 16, 40 + k as u64).iter().enumerate() {
+            let delta = [1.0f32, 0.5, 2.0][i % 3];
+            let t = frame(&f, &mm, &layout, cam, cam, ErrorMode::Strict, delta);
+            let fixed = morph::fixed_edges(&layout, &t);
+            for (b, &fx) in t.blocks.iter().zip(&fixed) {
+                if b.lod == layout.root_lod() {
+                    continue;
+                }
+                let c = morph::cost(&f, &mm, &layout, cam, delta, b, fx);
+                let mut cut = c;
+                cut.side = c.side.map(|d| d.map(|v| v / 3.0));
+                cut.corner = c.corner.map(|d| d.map(|v| v / 3.0));
+                for (q, e) in states {
+                    let e: [u16; 4] = std::array::from_fn(|s| if fx & (1 << s) != 0 { MORPH_ONE } else { e[s] });
+                    let (fv, ev) = (morph_value(q), e.map(morph_value));
+                    let (within, within_cut) = (c.bound(fv, ev) <= delta, cut.bound(fv, ev) <= delta);
+                    if !within && !within_cut {
+                        continue;
+                    }
+                    let s = DrawBlock { morph: q, edge_morph: e, ..*b };
+                    let audited = vkterrain::audit::audit_block(&f, &layout, &s, cam);
+                    if within {
+                        assert!(
+                            audited <= delta * 1.01,
+                            "{} k {k} pose {i}: block {b:?} in state ({q}, {e:?}) audited {audited} px, delta {delta}",
+                            f.source
+                        );
+                        worst = worst.max(audited / delta);
+                        checked += 1;
+                    }
+                    broken_when_cut += (within_cut && audited > delta * 1.01) as usize;
+                }
+            }
+        }
+    }
+    println!(
+        "{checked} block states within the bound audited: worst audited / delta {worst:.3}; with the edge terms cut to a third, {broken_when_cut} states pass the bound and break delta"
+    );
+    assert!(checked > 1000, "too few block states ({checked})");
+    assert!(broken_when_cut > 0, "the edge terms never bind on these inputs");
 }
