@@ -62,6 +62,18 @@ fn lerp(a: f32, b: f32, t: f32) -> f32 {
 }
 
 impl MorphCost {
+    /// The tighter of two bounds in each extreme state (both bound the same surface, so
+    /// their minimum does; the interpolation between states stays an upper bound).
+    pub fn min(&self, o: &MorphCost) -> MorphCost {
+        let m = |a: f32, b: f32| a.min(b);
+        MorphCost {
+            parent: m(self.parent, o.parent),
+            own: m(self.own, o.own),
+            side: std::array::from_fn(|s| std::array::from_fn(|t| m(self.side[s][t], o.side[s][t]))),
+            corner: std::array::from_fn(|c| std::array::from_fn(|t| m(self.corner[c][t], o.corner[c][t]))),
+        }
+    }
+
     /// Bound on the block's error with interior factor `f` and edge factors `e` (fixed
     /// edges' regions do not depend on theirs). The deviation at a sample is the absolute value of an
     /// affine function of the factors, so over each region it is at most the
@@ -92,8 +104,18 @@ pub enum MorphRule {
     ParentSurface,
 }
 
+/// How the edge regions are measured.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum EdgeTerms {
+    /// Sample by sample in every state ([`crate::stitch::edge_regions`], cached).
+    Exact,
+    /// From the vertices' moves ([`crate::stitch::edge_regions_bound`]): looser, `O(k)`.
+    Cheap,
+}
+
 /// The morph's cost for block `b` (with its neighbours' strides set) whose edges in
 /// `fixed` do not morph.
+#[allow(clippy::too_many_arguments)]
 pub fn cost(
     hf: &Heightfield,
     mm: &MinMaxPyramid,
@@ -102,10 +124,14 @@ pub fn cost(
     delta: f32,
     b: &DrawBlock,
     fixed: u8,
+    terms: EdgeTerms,
 ) -> MorphCost {
     let hs = hf.height_scale;
     let j = b.lod;
-    let regions = mm.stitch.regions(hf, layout, b, fixed);
+    let regions = match terms {
+        EdgeTerms::Exact => mm.stitch.regions(hf, layout, b, fixed),
+        EdgeTerms::Cheap => crate::stitch::edge_regions_bound(hf, mm, layout, b, fixed),
+    };
     let (mut min, mut max) = block_aabb(hf, mm, layout, j, b.bx, b.bz);
     min.y = min.y.min(regions.lo * hs);
     max.y = max.y.max(regions.hi * hs);
@@ -254,12 +280,15 @@ pub fn assign_with(
     let n = t.blocks.len();
     let edges = EdgeVars::new(layout, t, |i| t.blocks[i].lod < root);
     // The root has no parent to morph from.
-    let costs: Vec<Option<MorphCost>> = t
+    // Cheap edge terms first; the exact ones (cached per block, costly the first time a
+    // block is seen) only for blocks that the cheap ones hold back.
+    let mut costs: Vec<Option<MorphCost>> = t
         .blocks
         .iter()
         .enumerate()
-        .map(|(i, b)| (b.lod < root).then(|| cost(hf, mm, layout, cam, delta, b, edges.fixed(i))))
+        .map(|(i, b)| (b.lod < root).then(|| cost(hf, mm, layout, cam, delta, b, edges.fixed(i), EdgeTerms::Cheap)))
         .collect();
+    let mut exact = vec![false; n];
     // Start from the ramp; the bound may ask for more.
     let mut q: Vec<u16> = costs
         .iter()
@@ -284,13 +313,25 @@ pub fn assign_with(
         }
         let mut changed = false;
         for i in 0..n {
-            let Some(c) = &costs[i] else { continue };
+            let Some(cheap) = costs[i] else { continue };
             let now = edges.values(i, &e);
             // Everything at factor 1 is the selection's own surface, which it bounds.
-            if c.bound(morph_value(q[i]), now.map(morph_value)) <= delta || (q[i] == MORPH_ONE && now == [MORPH_ONE; 4])
-            {
+            let fits = |c: &MorphCost| {
+                c.bound(morph_value(q[i]), now.map(morph_value)) <= delta
+                    || (q[i] == MORPH_ONE && now == [MORPH_ONE; 4])
+            };
+            if fits(&cheap) {
                 continue;
             }
+            if !exact[i] {
+                exact[i] = true;
+                let c = cheap.min(&cost(hf, mm, layout, cam, delta, &t.blocks[i], edges.fixed(i), EdgeTerms::Exact));
+                costs[i] = Some(c);
+                if fits(&c) {
+                    continue;
+                }
+            }
+            let Some(c) = &costs[i] else { continue };
             changed = true;
             // Raise its factor and its edges together (a shared edge changes the block
             // across, checked in the next round). At factor 1 with every edge at 1 it

@@ -211,6 +211,100 @@ pub fn edge_regions(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, fixed
     out
 }
 
+/// A cheap upper bound on [`edge_regions`], for blocks seen for the first time (the exact
+/// regions cost `O(k * stride^2)` samples per state; this costs `O(k)` vertices). In any
+/// state the drawn surface is the unmorphed one with each vertex moved by its own
+/// group's displacement times `1 - factor`, and a point of a triangle moves by at most
+/// its vertices' largest move, so a region's deviation is at most the unmorphed
+/// surface's there (the quad's `D_j`, or the stitched strip's exact deviation along an
+/// edge next to a coarser block, which the selection has measured) plus the largest move
+/// of a vertex group it touches, scaled by that group's `1 - factor`.
+pub fn edge_regions_bound(
+    hf: &Heightfield,
+    mm: &crate::heightfield::MinMaxPyramid,
+    layout: &BlockLayout,
+    b: &DrawBlock,
+    fixed: u8,
+) -> EdgeRegions {
+    use crate::quadtree::MORPH_ONE;
+    let last = layout.k() - 2; // last quad index
+    let kk = layout.k() - 1; // last vertex index
+    let one = b.unmorphed();
+    let zero = DrawBlock {
+        morph: 0,
+        edge_morph: std::array::from_fn(|s| if fixed & (1 << s) != 0 { MORPH_ONE } else { 0 }),
+        ..*b
+    };
+    let stitched = if coarser_sides(b) != 0 { mm.stitch.get(hf, layout, b).edge } else { [0.0; 4] };
+    let (ox, oz) = b.origin(layout);
+    let st = b.stride();
+    let quad_dev = |u: u32, v: u32| {
+        if b.lod == 0 {
+            0.0
+        } else {
+            mm.deviation(b.lod, (ox / st + u) as usize, (oz / st + v) as usize)
+        }
+    };
+    let mut out = EdgeRegions { lo: f32::INFINITY, hi: f32::NEG_INFINITY, ..Default::default() };
+    // How far vertex (u, v) moves between factor 0 and 1 of its group, and the group:
+    // Some(edge) or None for the interior (the corners never move).
+    let mut moves = |u: u32, v: u32| -> (f32, Option<usize>) {
+        let a = block_vertex(hf, layout, &one, u, v).2;
+        let z = block_vertex(hf, layout, &zero, u, v).2;
+        out.lo = out.lo.min(a.min(z));
+        out.hi = out.hi.max(a.max(z));
+        let group = [(0, v == 0), (2, v == kk), (1, u == kk), (3, u == 0)].into_iter().find(|g| g.1).map(|g| g.0);
+        ((a - z).abs(), group)
+    };
+    let mut side = [[[0.0f32, 0.0, 0.0, 0.0]; STRIP_SEGMENTS]; 4];
+    let mut seg = [[[0.0f32; 3]; STRIP_SEGMENTS]; 4]; // unmorphed deviation, interior move, edge move
+    for (e, segs) in seg.iter_mut().enumerate() {
+        for t in 1..last {
+            let (u, v) = match e {
+                0 => (t, 0),
+                1 => (last, t),
+                2 => (t, last),
+                _ => (0, t),
+            };
+            let g = &mut segs[strip_segment(t, last)];
+            g[0] = g[0].max(if b.coarser[e] > 0 { stitched[e] } else { quad_dev(u, v) });
+            for (vu, vv) in [(u, v), (u + 1, v), (u + 1, v + 1), (u, v + 1)] {
+                let (m, group) = moves(vu, vv);
+                let at = if group == Some(e) { 2 } else { 1 };
+                g[at] = g[at].max(m);
+            }
+        }
+    }
+    for (e, segs) in seg.iter().enumerate() {
+        for (g, &[d, int, edge]) in segs.iter().enumerate() {
+            // State 2 f + e.
+            side[e][g] = [d + int.max(edge), d + int, d + edge, d];
+        }
+    }
+    out.side = side;
+    for (c, [ea, eb]) in CORNER_EDGES.iter().copied().enumerate() {
+        let (u, v) = [(0, 0), (last, 0), (last, last), (0, last)][c];
+        let d = quad_dev(u, v).max(stitched[ea]).max(stitched[eb]);
+        let (mut int, mut a, mut bm) = (0.0f32, 0.0f32, 0.0f32);
+        for (vu, vv) in [(u, v), (u + 1, v), (u + 1, v + 1), (u, v + 1)] {
+            match moves(vu, vv) {
+                (m, Some(g)) if g == ea => a = a.max(m),
+                (m, Some(g)) if g == eb => bm = bm.max(m),
+                (m, _) => int = int.max(m),
+            }
+        }
+        for st in 0..8 {
+            let off = |on: bool, m: f32| if on { 0.0 } else { m };
+            out.corner[c][st] = d + off(st & 4 != 0, int).max(off(st & 2 != 0, a)).max(off(st & 1 != 0, bm));
+        }
+    }
+    if out.lo > out.hi {
+        out.lo = 0.0;
+        out.hi = 0.0;
+    }
+    out
+}
+
 /// `max |H - T|` over the integer samples inside triangle `t` (edges included); 0 for a
 /// degenerate (collapsed) triangle, which covers nothing.
 fn triangle_deviation(hf: &Heightfield, t: &[(i64, i64, f32); 3]) -> f32 {
