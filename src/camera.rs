@@ -34,7 +34,10 @@ impl Camera {
 
     pub fn view(&self) -> Mat4 {
         let (_, up) = self.basis();
-        Mat4::look_at_rh(self.position, self.position + self.forward, up)
+        // From the direction itself: `position + forward` rounds to the f32 grid at the
+        // position's magnitude, which at 70 km turned the view by 0.002 rad (3 pixels
+        // at the frame's edge between the image and the culling frustum).
+        Mat4::look_to_rh(self.position, self.forward, up)
     }
 
     /// Reversed infinite perspective with Vulkan's y-down clip space.
@@ -172,6 +175,39 @@ pub fn distance_to_aabb(p: Vec3, min: Vec3, max: Vec3) -> f32 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The image and the culling frustum are the same pyramid: the frustum's edge
+    /// directions project onto the image's edges, also far from the origin and looking
+    /// nearly straight down (an auditor found background showing through at the frame's
+    /// edge there: the view matrix was built from `position + forward`, which f32 rounds
+    /// at 70 km, turning the image 3.5 pixels away from the frustum).
+    #[test]
+    fn the_frustum_edges_project_onto_the_image_edges() {
+        for (pos, target) in [
+            (Vec3::new(73807.7, 13059.59, 85856.61), Vec3::new(74081.35, 0.0, 85937.77)),
+            (Vec3::new(1.5e5, 900.0, 2.0e5), Vec3::new(1.6e5, 0.0, 1.9e5)),
+            (Vec3::new(10.0, 5.0, -3.0), Vec3::new(40.0, 0.0, 7.0)),
+        ] {
+            let cam = Camera::look_at(pos, target, 20.0, 640, 480, 1.0);
+            let (right, up) = cam.basis();
+            let tv = (cam.fovy * 0.5).tan();
+            let th = tv * cam.aspect();
+            let vp = cam.view_proj();
+            let at = |d: Vec3| cam.project(&vp, cam.position + d * 1000.0).unwrap();
+            for (d, want) in [
+                (cam.forward - th * right, (0.0, 240.0)),
+                (cam.forward + th * right, (640.0, 240.0)),
+                (cam.forward + tv * up, (320.0, 0.0)),
+                (cam.forward - tv * up, (320.0, 480.0)),
+            ] {
+                let got = at(d);
+                assert!(
+                    (got.0 - want.0).abs() < 0.1 && (got.1 - want.1).abs() < 0.1,
+                    "camera at {pos}: frustum edge projects to {got:?}, not {want:?}"
+                );
+            }
+        }
+    }
 
     #[test]
     fn vertical_factor_bounds_the_foreshortening_of_every_ray_into_the_box() {
