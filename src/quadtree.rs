@@ -162,7 +162,8 @@ pub struct Traversal {
     pub max_block_error: f32,
     /// LOD of the drawn block over each finest-grid cell, -1 where nothing is drawn.
     pub lod_map: Vec<i8>,
-    /// Blocks split only because a finer neighbour's stitched strip exceeded delta.
+    /// Blocks split only because a finer neighbour's stitched strip exceeded delta or the
+    /// neighbour was more than `m` LODs finer.
     pub stitch_splits: usize,
     /// Distance from the camera to the nearest drawn block's box.
     pub nearest: Option<f32>,
@@ -207,10 +208,11 @@ pub fn traverse(
     out
 }
 
-/// The block selection. In strict mode with the stitch bound, a block whose stitched
-/// strip along a coarser neighbour exceeds delta forces that neighbour to split; the
-/// traversal is repeated until no strip exceeds delta (each block is forced at most once,
-/// so it ends).
+/// The block selection. A block more than `m` LODs finer than a neighbour (`k = 2^m + 1`)
+/// forces that neighbour to split, so that no block's corner lies inside a coarser
+/// edge's segment (a T-junction); in strict mode with the stitch bound, so does a block
+/// whose stitched strip along a coarser neighbour exceeds delta. The traversal is
+/// repeated until neither happens (each block is forced at most once, so it ends).
 fn select_blocks(
     hf: &Heightfield,
     mm: &MinMaxPyramid,
@@ -222,9 +224,9 @@ fn select_blocks(
     loop {
         let mut out = traverse_once(hf, mm, layout, cam, select, &forced);
         out.stitch_splits = forced.len();
-        let delta = match select {
-            LodSelect::Errors { delta, mode: ErrorMode::Strict, stitch_bound: true, .. } => delta,
-            _ => return out,
+        let strict = match select {
+            LodSelect::Errors { delta, mode: ErrorMode::Strict, stitch_bound: true, .. } => Some(delta),
+            _ => None,
         };
         let before = forced.len();
         let cells = layout.cells() as i64;
@@ -232,11 +234,14 @@ fn select_blocks(
             if b.coarser == [0; 4] {
                 continue;
             }
-            let strips = mm.stitch.get(hf, layout, b);
-            let (mut min, mut max) = block_aabb(hf, mm, layout, b.lod, b.bx, b.bz);
-            min.y = min.y.min(strips.lo * hf.height_scale);
-            max.y = max.y.max(strips.hi * hf.height_scale);
-            let px_per_world = world_to_pixels(cam, min, max, delta);
+            // The strips' error in pixels, in strict mode.
+            let strip_px = strict.map(|delta| {
+                let strips = mm.stitch.get(hf, layout, b);
+                let (mut min, mut max) = block_aabb(hf, mm, layout, b.lod, b.bx, b.bz);
+                min.y = min.y.min(strips.lo * hf.height_scale);
+                max.y = max.y.max(strips.hi * hf.height_scale);
+                strips.edge.map(|d| d * hf.height_scale * world_to_pixels(cam, min, max, delta))
+            });
             let span = 1i64 << b.lod;
             let (cx, cz) = (b.bx as i64 * span, b.bz as i64 * span);
             for (e, (nx, nz)) in [(cx, cz - 1), (cx + span, cz), (cx, cz + span), (cx - 1, cz)].into_iter().enumerate()
@@ -244,9 +249,18 @@ fn select_blocks(
                 if b.coarser[e] == 0 {
                     continue;
                 }
-                let err = strips.edge[e] * hf.height_scale * px_per_world;
-                if err <= delta {
-                    out.max_block_error = out.max_block_error.max(err);
+                // More than m levels apart, this block's corner lies inside a segment of
+                // the coarser edge: a T-junction, which rasterizes with pinholes.
+                let t_junction = b.coarser[e] > b.stride() << layout.m;
+                let over = match (strict, strip_px) {
+                    (Some(delta), Some(px)) if px[e] <= delta => {
+                        out.max_block_error = out.max_block_error.max(px[e]);
+                        false
+                    }
+                    (Some(_), Some(_)) => true,
+                    _ => false,
+                };
+                if !(t_junction || over) {
                     continue;
                 }
                 if nx >= 0 && nz >= 0 && nx < cells && nz < cells {

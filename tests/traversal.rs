@@ -526,9 +526,12 @@ fn strict_holds_delta_on_adversarial_fields() {
     println!("strict mode, worst audited / delta: {}", report.join("; "));
 }
 
-/// LOD jumps of 1 to beyond m: a lone spike makes the flat field around it coarse while
-/// its own blocks go to LOD 0, so edges meet neighbours many levels coarser, including
-/// the case where the whole edge lies inside one coarse segment.
+/// LOD jumps of 1 up to m (`k = 2^m + 1`): a lone spike makes the flat field around it
+/// coarse while its own blocks go to LOD 0, so edges meet neighbours many levels
+/// coarser. No jump exceeds m: beyond it a block's corner would lie inside a coarser
+/// edge's segment, a T-junction that rasterizes with pinholes (an auditor found them at
+/// k 3; without the selection's split of such neighbours this field gives jumps of up
+/// to 6 here and the assertion fails). Every jump up to m occurs, and the bound holds.
 #[test]
 fn strict_holds_delta_across_every_lod_jump() {
     let lone = field(257, 257, 1.0, |x, z| match (x, z) {
@@ -540,9 +543,9 @@ fn strict_holds_delta_across_every_lod_jump() {
         _ => 0.0,
     });
     let mm = MinMaxPyramid::build(&lone);
-    let mut jumps = std::collections::BTreeSet::new();
     for k in [3u32, 5, 9] {
         let layout = BlockLayout::new(lone.n, k).unwrap();
+        let mut jumps = std::collections::BTreeSet::new();
         let mut poses = adversarial_poses(&lone, 129.0, 30, k as u64 + 100);
         poses.extend(adversarial_poses(&lone, 61.0, 20, k as u64 + 200));
         poses.extend(adversarial_poses(&lone, 190.0, 20, k as u64 + 300));
@@ -556,8 +559,12 @@ fn strict_holds_delta_across_every_lod_jump() {
             }
         }
         worst_ratio(&lone, k, &poses, Variant::Renderer, true);
+        let m = layout.m;
+        assert!(
+            (1..=m).all(|j| jumps.contains(&j)) && jumps.iter().all(|&j| j <= m),
+            "k {k}: LOD jumps seen: {jumps:?}"
+        );
     }
-    assert!((1..=4).all(|j| jumps.contains(&j)) && jumps.iter().any(|&j| j > 4), "LOD jumps seen: {jumps:?}");
 }
 
 /// Mutation tests: the audit must fail when the bound is wrong. Without the stitched
