@@ -96,8 +96,9 @@ vec3 place_block_vertex(ivec2 local) {
             if (along_x) s.x -= rem; else s.y -= rem;
             raw = along * stride == rem ? block_pc.corner_raw[EDGE_CORNERS[side].x] : coarse_vertex_raw(s, side, best);
         } else {
-            // The whole edge lies inside one segment of the neighbour: on the line between
-            // this edge's corners, which lie on that segment.
+            // The whole edge lies inside one segment of the neighbour (LODs more than m
+            // apart; the traversal splits such neighbours, other block lists may not):
+            // on the line between this edge's corners, which lie on that segment.
             float ca = block_pc.corner_raw[EDGE_CORNERS[side].x];
             float cb = block_pc.corner_raw[EDGE_CORNERS[side].y];
             precise float t = float(along) / float(last);

@@ -411,16 +411,15 @@ impl EdgeVars {
             start.push(from);
             Some(start.len() - 1)
         };
-        // Coarser neighbours, linked once every block's own variables exist.
-        let mut coarser = Vec::new();
+        // Edges whose variable the block across creates, linked once every block's own
+        // variables exist: (block, side, block across).
+        let (mut coarser, mut same) = (Vec::new(), Vec::new());
         for (i, b) in t.blocks.iter().enumerate() {
             if !morphs(i) {
                 continue;
             }
             let span = 1i64 << b.lod;
-            let (cx, cz) = (b.bx as i64 * span, b.bz as i64 * span);
-            for (s, (nx, nz)) in [(cx, cz - 1), (cx + span, cz), (cx, cz + span), (cx - 1, cz)].into_iter().enumerate()
-            {
+            for (s, (nx, nz)) in b.cells_across().into_iter().enumerate() {
                 if nx < 0 || nz < 0 || nx >= cells || nz >= cells {
                     var[i][s] = new_var(vec![i]);
                     continue;
@@ -430,7 +429,7 @@ impl EdgeVars {
                     let l = l as u32;
                     match index.get(&(l, (nx >> l) as u32, (nz >> l) as u32)) {
                         // Created by the block across, which comes first.
-                        Some(&j) if j < i => {}
+                        Some(&j) if j < i => same.push((i, s, j)),
                         Some(&j) if morphs(j) => var[i][s] = new_var(vec![i, j]),
                         Some(_) => {}
                         None => var[i][s] = new_var(vec![i]),
@@ -456,33 +455,8 @@ impl EdgeVars {
                 }
             }
         }
-        // Same-LOD edges created by the block across (it has the lower index).
-        for (i, b) in t.blocks.iter().enumerate() {
-            if !morphs(i) {
-                continue;
-            }
-            let span = 1i64 << b.lod;
-            let (cx, cz) = (b.bx as i64 * span, b.bz as i64 * span);
-            for (s, (nx, nz)) in [(cx, cz - 1), (cx + span, cz), (cx, cz + span), (cx - 1, cz)].into_iter().enumerate()
-            {
-                if nx < 0
-                    || nz < 0
-                    || nx >= cells
-                    || nz >= cells
-                    || t.lod_map[(nz * cells + nx) as usize] != b.lod as i8
-                {
-                    continue;
-                }
-                let l = b.lod;
-                if let Some(&j) = index.get(&(l, (nx >> l) as u32, (nz >> l) as u32)) {
-                    if j < i && morphs(j) {
-                        var[i][s] = var[j][(s + 2) % 4];
-                    }
-                }
-            }
-        }
-        for (i, s, c) in coarser {
-            var[i][s] = if morphs(c) { var[c][(s + 2) % 4] } else { None };
+        for (i, s, j) in same.into_iter().chain(coarser) {
+            var[i][s] = if morphs(j) { var[j][(s + 2) % 4] } else { None };
         }
         EdgeVars { var, start }
     }

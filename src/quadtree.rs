@@ -117,6 +117,13 @@ impl DrawBlock {
     pub fn stride(&self) -> u32 {
         1 << self.lod
     }
+    /// The finest-grid cell just across each edge (north, east, south, west) from the
+    /// edge's first cell; it may lie outside the grid.
+    pub fn cells_across(&self) -> [(i64, i64); 4] {
+        let span = 1i64 << self.lod;
+        let (cx, cz) = (self.bx as i64 * span, self.bz as i64 * span);
+        [(cx, cz - 1), (cx + span, cz), (cx, cz + span), (cx - 1, cz)]
+    }
 }
 
 /// How the LOD of each block is chosen.
@@ -242,10 +249,7 @@ fn select_blocks(
                 max.y = max.y.max(strips.hi * hf.height_scale);
                 strips.edge.map(|d| d * hf.height_scale * world_to_pixels(cam, min, max, delta))
             });
-            let span = 1i64 << b.lod;
-            let (cx, cz) = (b.bx as i64 * span, b.bz as i64 * span);
-            for (e, (nx, nz)) in [(cx, cz - 1), (cx + span, cz), (cx, cz + span), (cx - 1, cz)].into_iter().enumerate()
-            {
+            for (e, (nx, nz)) in b.cells_across().into_iter().enumerate() {
                 if b.coarser[e] == 0 {
                     continue;
                 }
@@ -424,9 +428,7 @@ pub fn resolve_corners(hf: &Heightfield, layout: &BlockLayout, blocks: &mut [Dra
     let last = layout.k() - 1;
     for i in order {
         let b = blocks[i];
-        let span = 1i64 << b.lod;
-        let (cx, cz) = (b.bx as i64 * span, b.bz as i64 * span);
-        let across = [(cx, cz - 1), (cx + span, cz), (cx, cz + span), (cx - 1, cz)];
+        let across = b.cells_across();
         let stride = b.stride() as i64;
         let (ox, oz) = b.origin(layout);
         for (c, (u, v)) in [(0, 0), (last, 0), (last, last), (0, last)].into_iter().enumerate() {
@@ -512,8 +514,10 @@ pub fn block_vertex(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, u: u3
         };
         (sx, sz, h)
     } else {
-        // The whole edge lies inside one segment of the neighbour: on the line between
-        // this edge's corners, which lie on that segment.
+        // The whole edge lies inside one segment of the neighbour (LODs more than m
+        // apart: never in the traversal's block lists, which split such neighbours, but
+        // a block list may come from elsewhere): on the line between this edge's
+        // corners, which lie on that segment.
         let (ca, cb) = if side % 2 == 0 {
             (b.corner(first, hf, ox as i64, sz), b.corner(second, hf, ox as i64 + last as i64 * stride, sz))
         } else {

@@ -67,6 +67,16 @@ pub fn strip_segment(t: u32, last: u32) -> usize {
     (t as usize * STRIP_SEGMENTS) / (last as usize + 1)
 }
 
+/// Quad `t` (0..=`last`) of the first row along edge `e`.
+fn strip_quad(e: usize, t: u32, last: u32) -> (u32, u32) {
+    match e {
+        0 => (t, 0),
+        1 => (last, t),
+        2 => (t, last),
+        _ => (0, t),
+    }
+}
+
 /// The two edges meeting at each corner (NW, NE, SE, SW).
 pub const CORNER_EDGES: [[usize; 2]; 4] = [[0, 3], [0, 1], [2, 1], [2, 3]];
 
@@ -128,12 +138,7 @@ pub fn strip_deviation(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, si
         }
         let mut m = 0.0f32;
         for t in 0..=last {
-            let (u, v) = match e {
-                0 => (t, 0),
-                1 => (last, t),
-                2 => (t, last),
-                _ => (0, t),
-            };
+            let (u, v) = strip_quad(e, t, last);
             let vert = |uu: u32, vv: u32| block_vertex(hf, layout, b, uu, vv);
             let (a, c, i, g) = (vert(u, v), vert(u + 1, v), vert(u + 1, v + 1), vert(u, v + 1));
             for tri in [[a, c, i], [a, i, g]] {
@@ -185,12 +190,7 @@ pub fn edge_regions(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, fixed
         for st in 0..4 {
             let s = state(st & 2 != 0, &[(e, st & 1 != 0)]);
             for t in 1..last {
-                let (u, v) = match e {
-                    0 => (t, 0),
-                    1 => (last, t),
-                    2 => (t, last),
-                    _ => (0, t),
-                };
+                let (u, v) = strip_quad(e, t, last);
                 let d = quad_dev(&s, u, v);
                 let m = &mut out.side[e][strip_segment(t, last)][st];
                 *m = m.max(d);
@@ -260,12 +260,7 @@ pub fn edge_regions_bound(
     let mut seg = [[[0.0f32; 3]; STRIP_SEGMENTS]; 4]; // unmorphed deviation, interior move, edge move
     for (e, segs) in seg.iter_mut().enumerate() {
         for t in 1..last {
-            let (u, v) = match e {
-                0 => (t, 0),
-                1 => (last, t),
-                2 => (t, last),
-                _ => (0, t),
-            };
+            let (u, v) = strip_quad(e, t, last);
             let g = &mut segs[strip_segment(t, last)];
             g[0] = g[0].max(if b.coarser[e] > 0 { stitched[e] } else { quad_dev(u, v) });
             for (vu, vv) in [(u, v), (u + 1, v), (u + 1, v + 1), (u, v + 1)] {
