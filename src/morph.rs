@@ -41,7 +41,7 @@
 use crate::camera::{distance_to_aabb, Camera};
 use crate::heightfield::{Heightfield, MinMaxPyramid};
 use crate::quadtree::{angular_factor, block_aabb, morph_value, BlockLayout, DrawBlock, Traversal, MORPH_ONE};
-use crate::stitch::{strip_segment, CORNER_EDGES};
+use crate::stitch::{strip_segment, CORNER_EDGES, STRIP_SEGMENTS};
 use glam::Vec3;
 use std::collections::HashMap;
 
@@ -158,11 +158,16 @@ pub fn cost(
             _ => [ox, oz + a, ox + st, oz + b],
         }
     };
+    // The first and last quad of each segment (the same along every edge).
+    let mut range: [Option<(u32, u32)>; STRIP_SEGMENTS] = [None; STRIP_SEGMENTS];
+    for t in 1..last {
+        let r = &mut range[strip_segment(t, last)];
+        *r = Some(r.map_or((t, t), |(t0, _)| (t0, t)));
+    }
     let mut sides = [[0.0f32; 4]; 4];
     for (e, segments) in regions.side.iter().enumerate() {
-        for (g, d) in segments.iter().enumerate() {
-            let quads: Vec<u32> = (1..last).filter(|&t| strip_segment(t, last) == g).collect();
-            let (Some(&t0), Some(&t1)) = (quads.first(), quads.last()) else { continue };
+        for (d, r) in segments.iter().zip(range) {
+            let Some((t0, t1)) = r else { continue };
             let f = px(strip_box(e, t0, t1));
             for (m, v) in sides[e].iter_mut().zip(d) {
                 *m = m.max(v * f);
