@@ -12,7 +12,7 @@ mod gpu_layout;
 
 use gpu_layout::{
     all_blocks, glsl_align_size, BlockInfo, BlockKind, AO_DIRECTIONS, AO_DISTANCES, GLSL_CONSTANTS, LOD_PALETTE,
-    SUN_SOFTNESS, SUN_STEP_GROWTH,
+    SPEC_CONSTANTS, SUN_SOFTNESS, SUN_STEP_GROWTH,
 };
 
 fn main() {
@@ -107,6 +107,20 @@ fn generate_header(blocks: &[BlockInfo]) -> Result<String, String> {
     writeln!(s, "#define AO_DIRECTIONS vec2[{}]({})", dirs.len(), dirs.join(", ")).unwrap();
     let dists: Vec<String> = AO_DISTANCES.iter().map(|d| format!("{d:?}")).collect();
     writeln!(s, "#define AO_DISTANCES float[{}]({})", dists.len(), dists.join(", ")).unwrap();
+    let mut groups: Vec<&str> = SPEC_CONSTANTS.iter().map(|c| c.group).collect();
+    groups.dedup();
+    for g in groups {
+        writeln!(s, "#ifdef USE_{g}").unwrap();
+        for c in SPEC_CONSTANTS.iter().filter(|c| c.group == g) {
+            writeln!(s, "layout(constant_id = {}) const bool {} = false;", c.id, c.name).unwrap();
+        }
+        writeln!(s, "#endif").unwrap();
+    }
+    let mut ids: Vec<u32> = SPEC_CONSTANTS.iter().map(|c| c.id).collect();
+    ids.sort_unstable();
+    if ids.windows(2).any(|w| w[0] == w[1]) {
+        return Err("two specialization constants share an id".into());
+    }
     for b in blocks {
         let mut end = 0;
         writeln!(s, "#ifdef USE_{}", b.name).unwrap();

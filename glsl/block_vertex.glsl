@@ -6,7 +6,7 @@
 // by the includer.
 
 float raw_at(ivec2 s) {
-    return decode_raw(texelFetch(heights, s, 0).r, frame.flags.w);
+    return decode_raw(texelFetch(heights, s, 0).r, frame.flags.x);
 }
 
 // `raw` moved towards the parent surface's height `p`; factor 1 is `raw` itself.

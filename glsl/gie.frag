@@ -3,6 +3,7 @@
 // i-1 of the error image. Reads the heightfield and the four child groups of LOD i-1.
 #extension GL_GOOGLE_include_directive : require
 #define USE_GiePush
+#define USE_GieSpec
 #include "layout.glsl"
 #include "common.glsl"
 
@@ -18,7 +19,6 @@ float raw_at(ivec2 s) {
 
 void main() {
     int lod = gie_pc.level.x;
-    int strict_mode = gie_pc.level.z;
     ivec2 g = ivec2(gl_FragCoord.xy);
     int size = 1 << lod;
     int h = size >> 1;
@@ -34,7 +34,9 @@ void main() {
     vec3 cam = gie_pc.camera.xyz;
     float kappa = gie_pc.camera.w;
 
-    if (strict_mode != 0) {
+    // A specialization constant, not a uniform: each mode's pipeline holds only its own
+    // code (llvmpipe would otherwise run both under a mask).
+    if (STRICT_ERRORS) {
         // SPEC 3, strict: the exact deviation D_i of the group from its LOD mesh (computed
         // once per heightfield) over the distance to the group's box. No nesting: D_i is
         // measured against the full-resolution surface. The traversal applies the block's

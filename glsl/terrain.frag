@@ -4,6 +4,7 @@
 // and ambient occlusion, and distance fog.
 #extension GL_GOOGLE_include_directive : require
 #define USE_FrameUniforms
+#define USE_TerrainSpec
 #include "layout.glsl"
 #include "common.glsl"
 
@@ -18,19 +19,30 @@ layout(location = 0) out vec4 out_color;
 
 float world_height(ivec2 s) {
     s = clamp(s, ivec2(0), ivec2(frame.extent.z - 1));
-    return decode_raw(texelFetch(heights, s, 0).r, frame.flags.w) * frame.terrain.y;
+    return decode_raw(texelFetch(heights, s, 0).r, frame.flags.x) * frame.terrain.y;
 }
 
-// The per-sample gradient (central differences of world heights). By default it is
-// precomputed at load (Heightfield::gradient_map): one fetch instead of four heights;
-// `--shading heights` keeps the first wave's four fetches, for comparison.
-vec2 gradient(ivec2 s) {
-    if (frame.texturing.w != 0.0) {
-        return vec2(world_height(s + ivec2(1, 0)) - world_height(s - ivec2(1, 0)),
-                    world_height(s + ivec2(0, 1)) - world_height(s - ivec2(0, 1))) / (2.0 * frame.terrain.x);
+// What the shader needs of one sample: its gradient (central differences of world
+// heights) and whether it lies at sea level (world height <= frame.texturing.w). By
+// default both come from one fetch of the gradient map (Heightfield::gradient_map, which
+// keeps the sea flag in the lowest bit of the z gradient); `--shading heights` computes
+// them from five height fetches, the first wave's shading, for comparison. The choice is
+// a specialization constant: llvmpipe runs both sides of a uniform branch.
+struct Sample {
+    vec2 gradient;
+    bool sea;
+};
+
+Sample sample_at(ivec2 s) {
+    if (NORMALS_FROM_HEIGHTS) {
+        vec2 g = vec2(world_height(s + ivec2(1, 0)) - world_height(s - ivec2(1, 0)),
+                      world_height(s + ivec2(0, 1)) - world_height(s - ivec2(0, 1))) / (2.0 * frame.terrain.x);
+        return Sample(g, world_height(s) <= frame.texturing.w);
     }
     s = clamp(s, ivec2(0), ivec2(frame.extent.z - 1));
-    return texelFetch(gradients, s, 0).rg * frame.texturing.z;
+    vec2 t = texelFetch(gradients, s, 0).rg;
+    int z_units = int(round(t.y * 32767.0));
+    return Sample(vec2(t.x, float(z_units & ~1) / 32767.0) * frame.texturing.z, (z_units & 1) != 0);
 }
 
 // Hash of an integer lattice point to [0, 1] (integer arithmetic: the same on every GPU).
@@ -79,15 +91,16 @@ void main() {
 
     ivec2 i0 = ivec2(floor(p));
     vec2 f = p - vec2(i0);
-    vec2 g = mix(mix(gradient(i0), gradient(i0 + ivec2(1, 0)), f.x),
-                 mix(gradient(i0 + ivec2(0, 1)), gradient(i0 + ivec2(1, 1)), f.x), f.y);
+    Sample s00 = sample_at(i0), s10 = sample_at(i0 + ivec2(1, 0));
+    Sample s01 = sample_at(i0 + ivec2(0, 1)), s11 = sample_at(i0 + ivec2(1, 1));
+    vec2 g = mix(mix(s00.gradient, s10.gradient, f.x), mix(s01.gradient, s11.gradient, f.x), f.y);
     vec3 n = normalize(vec3(-g.x, 1.0, -g.y));
 
     vec3 albedo;
     vec2 uv = p / max(extent, vec2(1.0));
-    if (frame.flags.x != 0) {
+    if (BASE_TEXTURE) {
         albedo = texture(base_tex, uv).rgb;
-        if (frame.flags.y != 0) {
+        if (DETAIL_TEXTURE) {
             vec3 detail = texture(detail_tex, uv * frame.texturing.x).rgb;
             float alpha = frame.texturing.y;
             albedo = alpha * albedo + (1.0 - alpha) * detail;
@@ -101,13 +114,11 @@ void main() {
         // Level ground at the lowest height is water (sea level in most DEMs). Decided
         // from the samples around the pixel, not the drawn height, so that a shoreline
         // does not move with LOD or morphing.
-        float sea = frame.terrain.z + 1e-3 * range;
         if (v_world.y <= frame.terrain.z + 0.05 * range && n.y > 0.9999
-            && max(max(world_height(i0), world_height(i0 + ivec2(1, 0))),
-                   max(world_height(i0 + ivec2(0, 1)), world_height(i0 + ivec2(1, 1)))) <= sea) {
+            && s00.sea && s10.sea && s01.sea && s11.sea) {
             albedo = vec3(0.05, 0.16, 0.30);
         }
-        if (frame.flags.y != 0) {
+        if (DETAIL_TEXTURE) {
             vec3 detail = texture(detail_tex, uv * frame.texturing.x).rgb;
             float alpha = frame.texturing.y;
             albedo = alpha * albedo + (1.0 - alpha) * detail;
@@ -115,7 +126,7 @@ void main() {
             albedo *= procedural_detail(p);
         }
     }
-    if (frame.flags.z != 0) {
+    if (COLOUR_BY_LOD) {
         vec3 palette[] = LOD_PALETTE;
         albedo = mix(albedo, palette[v_lod % palette.length()], 0.6);
     }

@@ -98,6 +98,15 @@ pub enum NormalSource {
     Heights,
 }
 
+/// What selects a terrain pipeline: the shading switches compiled in as specialization
+/// constants (the textures are fixed per renderer), and the polygon mode.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+struct TerrainVariant {
+    normals: NormalSource,
+    colour_by_lod: bool,
+    wireframe: bool,
+}
+
 impl Default for Shading {
     fn default() -> Self {
         Shading {
@@ -215,8 +224,11 @@ pub struct BlocksRenderer {
     pub mesh: BlockMesh,
     set_layout: DescriptorSetLayout,
     pipeline_layout: PipelineLayout,
-    terrain_pipeline: GraphicsPipeline,
-    wire_pipeline: Option<GraphicsPipeline>,
+    color_format: vk::Format,
+    /// Whether the terrain has a base and a detail texture (fixed per renderer).
+    textures: (bool, bool),
+    /// Terrain pipelines made so far, one per shading variant (made on first use).
+    terrain_pipelines: Vec<(TerrainVariant, GraphicsPipeline)>,
     sky_pipeline: GraphicsPipeline,
     _pool: DescriptorPool,
     /// One uniform buffer and descriptor set per frame in flight.
@@ -272,26 +284,6 @@ impl BlocksRenderer {
             std::mem::size_of::<BlockPush>() as u32,
             vk::ShaderStageFlags::VERTEX,
         )?;
-        let desc = |polygon_mode| GraphicsPipelineDesc {
-            vert: shaders::TERRAIN_VERT,
-            frag: Some(shaders::TERRAIN_FRAG),
-            rasterizer_discard: false,
-            vertex_attribute: Some((2, vk::Format::R8G8_UINT)),
-            color_format: Some(color_format),
-            depth_format: Some(DEPTH_FORMAT),
-            depth: DepthMode::TestWrite,
-            polygon_mode,
-            // A heightfield is seen from above only: culling its underside lets a crack
-            // show the background instead of hiding behind back faces, and saves work.
-            cull_back: true,
-            layout: &pipeline_layout,
-        };
-        let terrain_pipeline = GraphicsPipeline::new(device, &desc(vk::PolygonMode::FILL))?;
-        let wire_pipeline = if device.features.wireframe {
-            Some(GraphicsPipeline::new(device, &desc(vk::PolygonMode::LINE))?)
-        } else {
-            None
-        };
         let sky_pipeline = GraphicsPipeline::new(
             device,
             &GraphicsPipelineDesc {
@@ -305,6 +297,7 @@ impl BlocksRenderer {
                 polygon_mode: vk::PolygonMode::FILL,
                 cull_back: false,
                 layout: &pipeline_layout,
+                specialization: &[],
             },
         )?;
         let n = frames_in_flight.max(1) as u32;
@@ -346,14 +339,15 @@ impl BlocksRenderer {
                 })
             })
             .collect::<VkResult<Vec<_>>>()?;
-        Ok(BlocksRenderer {
+        let mut renderer = BlocksRenderer {
             device: device.clone(),
             layout: block_layout,
             mesh: BlockMesh::new(device, block_layout.k())?,
             set_layout,
             pipeline_layout,
-            terrain_pipeline,
-            wire_pipeline,
+            color_format,
+            textures: (terrain.has_base, terrain.has_detail),
+            terrain_pipelines: Vec::new(),
             sky_pipeline,
             _pool: pool,
             sets,
@@ -361,7 +355,51 @@ impl BlocksRenderer {
             commands,
             offscreen,
             lighting,
-        })
+        };
+        // The default shading's pipeline now, so that the first frame does not compile it.
+        renderer.terrain_pipeline(&Shading::default())?;
+        Ok(renderer)
+    }
+
+    /// The terrain pipeline for `shading`, made the first time that variant is asked for
+    /// (a few tens of milliseconds on lavapipe; the viewer's toggles each make one).
+    fn terrain_pipeline(&mut self, shading: &Shading) -> VkResult<vk::Pipeline> {
+        let variant = TerrainVariant {
+            normals: shading.normals,
+            colour_by_lod: shading.colour_by_lod,
+            wireframe: shading.wireframe && self.device.features.wireframe,
+        };
+        if let Some((_, p)) = self.terrain_pipelines.iter().find(|(v, _)| *v == variant) {
+            return Ok(p.handle);
+        }
+        let (base, detail) = self.textures;
+        let specialization = [
+            (layout::SPEC_NORMALS_FROM_HEIGHTS, variant.normals == NormalSource::Heights),
+            (layout::SPEC_BASE_TEXTURE, base),
+            (layout::SPEC_DETAIL_TEXTURE, detail),
+            (layout::SPEC_COLOUR_BY_LOD, variant.colour_by_lod),
+        ];
+        let pipeline = GraphicsPipeline::new(
+            &self.device,
+            &GraphicsPipelineDesc {
+                vert: shaders::TERRAIN_VERT,
+                frag: Some(shaders::TERRAIN_FRAG),
+                rasterizer_discard: false,
+                vertex_attribute: Some((2, vk::Format::R8G8_UINT)),
+                color_format: Some(self.color_format),
+                depth_format: Some(DEPTH_FORMAT),
+                depth: DepthMode::TestWrite,
+                polygon_mode: if variant.wireframe { vk::PolygonMode::LINE } else { vk::PolygonMode::FILL },
+                // A heightfield is seen from above only: culling its underside lets a crack
+                // show the background instead of hiding behind back faces, and saves work.
+                cull_back: true,
+                layout: &self.pipeline_layout,
+                specialization: &specialization,
+            },
+        )?;
+        let handle = pipeline.handle;
+        self.terrain_pipelines.push((variant, pipeline));
+        Ok(handle)
     }
 
     fn frame_uniforms(&self, hf: &Heightfield, terrain: &TerrainGpu, cam: &Camera, shading: &Shading) -> FrameUniforms {
@@ -381,19 +419,9 @@ impl BlocksRenderer {
                 terrain.raw_range[1] * hf.height_scale,
             ],
             light: [light.x, light.y, light.z, 0.25],
-            texturing: [
-                shading.detail_tiling,
-                shading.detail_weight,
-                terrain.gradient_scale,
-                (shading.normals == NormalSource::Heights) as i32 as f32,
-            ],
+            texturing: [shading.detail_tiling, shading.detail_weight, terrain.gradient_scale, terrain.sea_level],
             extent: [hf.width as i32, hf.height as i32, hf.side() as i32, self.layout.k() as i32],
-            flags: [
-                terrain.has_base as i32,
-                terrain.has_detail as i32,
-                shading.colour_by_lod as i32,
-                (hf.format == crate::heightfield::HeightFormat::Unorm16) as i32,
-            ],
+            flags: [(hf.format == crate::heightfield::HeightFormat::Unorm16) as i32, 0, 0, 0],
             sky_zenith: [SKY_ZENITH[0], SKY_ZENITH[1], SKY_ZENITH[2], sky],
             sky_horizon: [horizon[0], horizon[1], horizon[2], 1.0],
         }
@@ -405,6 +433,7 @@ impl BlocksRenderer {
         &self,
         slot: usize,
         cmd: vk::CommandBuffer,
+        pipeline: vk::Pipeline,
         color_view: vk::ImageView,
         depth_view: vk::ImageView,
         extent: vk::Extent2D,
@@ -457,10 +486,6 @@ impl BlocksRenderer {
                 &[self.sets[slot]],
                 &[],
             );
-            let pipeline = match (&self.wire_pipeline, shading.wireframe) {
-                (Some(w), true) => w.handle,
-                _ => self.terrain_pipeline.handle,
-            };
             d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, pipeline);
             d.cmd_bind_vertex_buffers(cmd, 0, &[self.mesh.vertices.handle], &[0]);
             d.cmd_bind_index_buffer(cmd, self.mesh.indices.handle, 0, self.mesh.index_type);
@@ -500,10 +525,12 @@ impl BlocksRenderer {
     /// hand-over to presentation. The one frame recording of the viewer (swapchain) and
     /// of offscreen frames (bench, render, tests). `overlay` records more drawing into
     /// the same rendering, after the terrain and the sky.
+    #[allow(clippy::too_many_arguments)]
     fn record_frame(
         &self,
         slot: usize,
         cmd: vk::CommandBuffer,
+        pipeline: vk::Pipeline,
         dest: &FrameDest,
         blocks: &[DrawBlock],
         shading: &Shading,
@@ -514,7 +541,8 @@ impl BlocksRenderer {
         // buffer alive until the submission completes.
         unsafe { attachment_barriers(d, cmd, dest.image, dest.last_use, dest.depth) };
         let clear = if shading.sky { SKY_HORIZON } else { shading.background };
-        let stats = self.record(slot, cmd, dest.view, dest.depth.view, dest.extent, blocks, shading, clear, overlay);
+        let stats =
+            self.record(slot, cmd, pipeline, dest.view, dest.depth.view, dest.extent, blocks, shading, clear, overlay);
         let rendered = (
             vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT,
             vk::AccessFlags2::COLOR_ATTACHMENT_WRITE,
@@ -652,6 +680,7 @@ impl BlocksRenderer {
     ) -> VkResult<Option<DrawStats>> {
         let previous = self.wait_frame(slot)?;
         self.set_frame(slot, hf, terrain, cam, shading)?;
+        let pipeline = self.terrain_pipeline(shading)?;
         let d = self.device.raw.clone();
         let cmd = self.offscreen[slot].cmd;
         // SAFETY: the slot's previous submission finished (waited for above).
@@ -661,7 +690,7 @@ impl BlocksRenderer {
                 t.begin(&d, cmd);
             }
         }
-        let stats = self.record_frame(slot, cmd, dest, blocks, shading, overlay);
+        let stats = self.record_frame(slot, cmd, pipeline, dest, blocks, shading, overlay);
         // SAFETY: as above.
         unsafe {
             if let Some(t) = &self.offscreen[slot].timer {
@@ -748,6 +777,7 @@ impl BlocksRenderer {
                 polygon_mode: vk::PolygonMode::FILL,
                 cull_back: false,
                 layout: &pipeline_layout,
+                specialization: &[],
             },
         )?;
         let pool = DescriptorPool::new(

@@ -123,7 +123,8 @@ struct ErrorsGpu {
     queries: Option<vk::QueryPool>,
     /// Per slot, where the slot's timestamps are copied (owned by `Shared` too).
     timestamp_buffers: Vec<vk::Buffer>,
-    gie_pipeline: GraphicsPipeline,
+    /// The GIE pass per error mode: `[paper, strict]`.
+    gie_pipelines: [GraphicsPipeline; 2],
     reduce_pipeline: GraphicsPipeline,
     gie_layout: PipelineLayout,
     reduce_layout: PipelineLayout,
@@ -188,7 +189,16 @@ impl ErrorsGpu {
         let reduce_layout =
             PipelineLayout::new(device, &reduce_set_layout, std::mem::size_of::<ReducePush>() as u32, frag)?;
         let desc = |fs, l| GraphicsPipelineDesc::fullscreen_pass(fs, GIE_FORMAT, l);
-        let gie_pipeline = GraphicsPipeline::new(device, &desc(shaders::GIE_FRAG, &gie_layout))?;
+        let gie = |strict| {
+            GraphicsPipeline::new(
+                device,
+                &GraphicsPipelineDesc {
+                    specialization: &[(layout::SPEC_STRICT_ERRORS, strict)],
+                    ..desc(shaders::GIE_FRAG, &gie_layout)
+                },
+            )
+        };
+        let gie_pipelines = [gie(false)?, gie(true)?];
         let reduce_pipeline = GraphicsPipeline::new(device, &desc(shaders::BLOCK_REDUCE_FRAG, &reduce_layout))?;
         let pool = DescriptorPool::new(device, 2 * (n + 1), &[(sampler, 2 * (4 * n + 1))])?;
         let commands = CommandPool::new(device, device.errors_queue.family)?;
@@ -267,7 +277,7 @@ impl ErrorsGpu {
             slots,
             queries: None,
             timestamp_buffers: Vec::new(),
-            gie_pipeline,
+            gie_pipelines,
             reduce_pipeline,
             gie_layout,
             reduce_layout,
@@ -382,6 +392,7 @@ impl ErrorsGpu {
             (color, write, rt),
         );
         let unorm = (self.hf.format == HeightFormat::Unorm16) as i32;
+        let gie_pipeline = &self.gie_pipelines[(p.mode == crate::gie::ErrorMode::Strict) as usize];
         // About equal fragment counts per submission; one pass may span several.
         let total: u64 = (1..=n).map(|lod| 1u64 << (2 * (n - lod))).sum();
         let budget = total.div_ceil(CHUNKS as u64).max(1);
@@ -389,7 +400,7 @@ impl ErrorsGpu {
         for lod in 1..=n {
             let side = 1u32 << (n - lod);
             let push = GiePush {
-                level: [lod as i32, n as i32, (p.mode == crate::gie::ErrorMode::Strict) as i32, unorm],
+                level: [lod as i32, n as i32, 0, unorm],
                 extent: [self.hf.width as i32, self.hf.height as i32, side as i32, 0],
                 camera: [p.camera.x, p.camera.y, p.camera.z, p.kappa],
                 params: [self.hf.spacing, self.hf.height_scale, p.near, 0.0],
@@ -422,7 +433,7 @@ impl ErrorsGpu {
                     slot.gie_mips[(lod - 1) as usize].handle,
                     side,
                     rows.clone(),
-                    (&self.gie_pipeline, &self.gie_layout),
+                    (gie_pipeline, &self.gie_layout),
                     slot.gie_sets[(lod - 1) as usize],
                     bytemuck::bytes_of(&push),
                 );

@@ -122,12 +122,13 @@ gpu_block! {
         terrain: [f32; 4] => "vec4",
         /// xyz: direction towards the light, w: ambient.
         light: [f32; 4] => "vec4",
-        /// detail tiling factor (DTF), base weight alpha, gradient-map scale, 1 = normals
-        /// from height fetches instead of the gradient map.
+        /// detail tiling factor (DTF), base weight alpha, gradient-map scale, sea level
+        /// (world height at or below which level ground is water).
         texturing: [f32; 4] => "vec4",
         /// true extent in samples (x, z), grid side N, block side k.
         extent: [i32; 4] => "ivec4",
-        /// has base texture, has detail texture, colour by LOD, heights are unorm16 (1).
+        /// heights are unorm16 (1) or float (0), unused x 3. Switches that select a
+        /// shading path are specialization constants (`TerrainSpec`), not flags.
         flags: [i32; 4] => "ivec4",
         /// Sky: zenith colour (rgb), w: 1 = draw the sky gradient, 0 = plain background.
         sky_zenith: [f32; 4] => "vec4",
@@ -139,7 +140,7 @@ gpu_block! {
 gpu_block! {
     /// Constants of one GIE pass (Algorithm 1 for LOD `i`).
     push_constant GiePush as gie_pc {
-        /// LOD i, n, mode (0 paper, 1 strict), heights are unorm16 (1) or float (0).
+        /// LOD i, n, unused (the mode is `SPEC_STRICT_ERRORS`), heights are unorm16 (1) or float (0).
         level: [i32; 4] => "ivec4",
         /// true extent in samples (x, z), groups per side at this LOD, unused.
         extent: [i32; 4] => "ivec4",
@@ -170,6 +171,38 @@ gpu_block! {
         level: [i32; 4] => "ivec4",
     }
 }
+
+/// A boolean specialization constant: a switch fixed per pipeline, so that a shader
+/// compiles only the branch it takes. Uniform-decided branches are not free on every
+/// device: llvmpipe (lavapipe) runs both sides of such a branch under a mask, so a pixel
+/// paid for every shading path and the strict errors for the paper's. The header
+/// declares each one (`layout(constant_id = ID) const bool NAME = false;`) under
+/// `USE_<group>`; Rust passes the same `id` to the pipeline ([`crate::vk::GraphicsPipelineDesc`]).
+#[derive(Clone, Copy, Debug)]
+pub struct SpecConstant {
+    pub group: &'static str,
+    pub name: &'static str,
+    pub id: u32,
+}
+
+/// terrain.frag: normals from sixteen height fetches (`--shading heights`), not the gradient map.
+pub const SPEC_NORMALS_FROM_HEIGHTS: u32 = 0;
+/// terrain.frag: a base texture is bound.
+pub const SPEC_BASE_TEXTURE: u32 = 1;
+/// terrain.frag: a detail texture is bound.
+pub const SPEC_DETAIL_TEXTURE: u32 = 2;
+/// terrain.frag: tint each block by its LOD.
+pub const SPEC_COLOUR_BY_LOD: u32 = 3;
+/// gie.frag: strict mode (else the paper's eqs. 2-4).
+pub const SPEC_STRICT_ERRORS: u32 = 4;
+
+pub const SPEC_CONSTANTS: &[SpecConstant] = &[
+    SpecConstant { group: "TerrainSpec", name: "NORMALS_FROM_HEIGHTS", id: SPEC_NORMALS_FROM_HEIGHTS },
+    SpecConstant { group: "TerrainSpec", name: "BASE_TEXTURE", id: SPEC_BASE_TEXTURE },
+    SpecConstant { group: "TerrainSpec", name: "DETAIL_TEXTURE", id: SPEC_DETAIL_TEXTURE },
+    SpecConstant { group: "TerrainSpec", name: "COLOUR_BY_LOD", id: SPEC_COLOUR_BY_LOD },
+    SpecConstant { group: "GieSpec", name: "STRICT_ERRORS", id: SPEC_STRICT_ERRORS },
+];
 
 /// The integer constants the GLSL header defines, by name.
 pub const GLSL_CONSTANTS: &[(&str, u32)] = &[

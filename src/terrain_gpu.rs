@@ -13,6 +13,8 @@ pub struct TerrainGpu {
     /// Per-sample gradients (R16G16_SNORM, times `gradient_scale`) for shading.
     pub gradients: Image,
     pub gradient_scale: f32,
+    /// World height at or below which level ground is water ([`Heightfield::sea_level`]).
+    pub sea_level: f32,
     pub nearest: Sampler,
     pub linear: Sampler,
     pub base: Image,
@@ -77,7 +79,8 @@ impl TerrainGpu {
         )?;
         upload(device, &pool, &deviation, &dev_mips)?;
 
-        let (grads, gradient_scale) = hf.gradient_map();
+        let sea_level = hf.sea_level(mm.range());
+        let (grads, gradient_scale) = hf.gradient_map(sea_level);
         let gradients =
             Image::new(device, "gradient map", extent(side, side), vk::Format::R16G16_SNORM, 1, usage, false)?;
         upload(device, &pool, &gradients, &[bytemuck::cast_slice(&grads)])?;
@@ -100,6 +103,7 @@ impl TerrainGpu {
             deviation,
             gradients,
             gradient_scale,
+            sea_level,
             nearest: Sampler::new(device, vk::Filter::NEAREST, vk::SamplerAddressMode::CLAMP_TO_EDGE)?,
             linear: Sampler::new(device, vk::Filter::LINEAR, vk::SamplerAddressMode::REPEAT)?,
             base: base_img,

@@ -364,6 +364,11 @@ fn gradient_map_shading_matches_height_fetches() {
                 scene.hf.source,
                 share * 100.0
             );
+            let off: Vec<_> = (new.chunks(4).zip(old.chunks(4)).enumerate())
+                .filter(|(_, (n, o))| (0..3).any(|c| (n[c] as i32 - o[c] as i32).abs() > 16))
+                .map(|(i, (n, o))| (i % 320, i / 320, n[..3].to_vec(), o[..3].to_vec()))
+                .collect();
+            println!("  pixels off by > 16 (x, y, new, old): {off:?}");
             assert!(rmse < 0.5, "{}: RMSE {rmse}", scene.hf.source);
             assert_eq!(share, 0.0);
             // The sky, drawn last, fills exactly the pixels no terrain covers, and leaves

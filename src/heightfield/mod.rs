@@ -162,11 +162,21 @@ impl Heightfield {
         ((self.width - 1) as f32 * self.spacing, (self.height - 1) as f32 * self.spacing)
     }
 
-    /// The terrain shader's per-sample gradient `(dH/dx, dH/dz)` in world units (central
-    /// differences, edges clamped), computed once so that a pixel fetches four gradients
-    /// instead of sixteen heights. Returned as R16G16_SNORM texels and the scale that
-    /// turns `[-1, 1]` back into gradients.
-    pub fn gradient_map(&self) -> (Vec<[i16; 2]>, f32) {
+    /// World height at or below which level ground is shaded as water: the lowest
+    /// height plus a thousandth of the height range (`raw_range`, raw units), sea level
+    /// in most DEMs.
+    pub fn sea_level(&self, raw_range: [f32; 2]) -> f32 {
+        let (lo, hi) = (raw_range[0] * self.height_scale, raw_range[1] * self.height_scale);
+        lo + 1e-3 * (hi - lo).max(1e-6)
+    }
+
+    /// The terrain shader's per-sample data, computed once so that a pixel fetches four
+    /// texels instead of twenty heights: the gradient `(dH/dx, dH/dz)` in world units
+    /// (central differences, edges clamped) as R16G16_SNORM texels, with the scale that
+    /// turns `[-1, 1]` back into gradients; and in the lowest bit of the z texel, whether
+    /// the sample's world height is at most `sea_level` (the water test; the z gradient
+    /// is then rounded to even units, one unit in 32767 at most).
+    pub fn gradient_map(&self, sea_level: f32) -> (Vec<[i16; 2]>, f32) {
         let side = self.side() as i64;
         let h = |x: i64, z: i64| self.height_at(x.clamp(0, side - 1), z.clamp(0, side - 1));
         let inv = 1.0 / (2.0 * self.spacing);
@@ -177,7 +187,20 @@ impl Heightfield {
             })
             .collect();
         let scale = grads.iter().flatten().fold(0.0f32, |m, g| m.max(g.abs())).max(f32::MIN_POSITIVE);
-        let texels = grads.iter().map(|g| g.map(|v| (v / scale * 32767.0).round() as i16)).collect();
+        let texel = |v: f32| (v / scale * 32767.0).round() as i16;
+        // The z texel is the nearest even integer (one unit off at most, level ground
+        // exact), plus the flag; the shader clears the flag before using the gradient.
+        // -32768 reads back as -1.0 like -32767, so it is never written.
+        let flagged = |v: f32, flag: bool| {
+            let even = (2.0 * (v / scale * 32767.0 / 2.0).round()).clamp(-32766.0, 32766.0) as i16;
+            even | flag as i16
+        };
+        let texels = (grads.iter().enumerate())
+            .map(|(i, g)| {
+                let sea = self.height_at(i as i64 % side, i as i64 / side) <= sea_level;
+                [texel(g[0]), flagged(g[1], sea)]
+            })
+            .collect();
         (texels, scale)
     }
 
@@ -298,6 +321,41 @@ mod tests {
         s[4] = f32::NAN;
         let e = Heightfield::embed("g.tif", 3, 3, &s, HeightFormat::Float32, 1.0, 1.0);
         assert!(e.unwrap_err().to_string().contains("column 1, row 1 is not a finite"));
+    }
+
+    /// The shader reads the sea flag back as `round(snorm * 32767) & 1`; check that on
+    /// the texels most likely to break it (the largest gradients of either sign, where
+    /// clamping meets the bit) and that the flag is exactly `height <= sea_level`.
+    #[test]
+    fn gradient_map_keeps_the_sea_flag_and_the_gradient() {
+        // A sea-level band (rows 3 to 5) between two ridges: the largest gradients, of
+        // both signs, fall on sea samples at the band's edges.
+        let hf =
+            field(9, 9, |x, z| if (3..=5).contains(&z) { 0.0 } else { (4.0 - (x as f32 - 4.0).abs()) * 100.0 + 50.0 });
+        let sea = hf.sea_level([0.0, 450.0]);
+        let (texels, scale) = hf.gradient_map(sea);
+        let side = hf.side();
+        let mut seen = [0; 2];
+        for (i, t) in texels.iter().enumerate() {
+            let (x, z) = ((i % side) as i64, (i / side) as i64);
+            let as_read = |v: i16| (v as f32 / 32767.0).max(-1.0);
+            let units = (as_read(t[1]) * 32767.0).round() as i32;
+            let bit = units & 1 != 0;
+            assert_eq!(bit, hf.height_at(x, z) <= sea, "sample ({x}, {z})");
+            seen[bit as usize] += 1;
+            let gx = (hf.height_at(x + 1, z) - hf.height_at(x - 1, z)) / (2.0 * hf.spacing);
+            let gz = (hf.height_at(x, z + 1) - hf.height_at(x, z - 1)) / (2.0 * hf.spacing);
+            assert!((as_read(t[0]) * scale - gx).abs() <= 0.51 * scale / 32767.0, "gx at ({x}, {z})");
+            let even = (units & !1) as f32 / 32767.0;
+            assert!((even * scale - gz).abs() <= 1.01 * scale / 32767.0, "gz at ({x}, {z})");
+            if gz == 0.0 {
+                assert_eq!(even, 0.0, "level ground at ({x}, {z})");
+            }
+        }
+        assert!(seen[0] > 0 && seen[1] > 0, "{seen:?}");
+        assert!(texels.iter().any(|t| t[1] == -32765), "the negative extreme was not exercised");
+        assert!(texels.iter().any(|t| t[1] == -32766), "the negative extreme was not exercised");
+        assert!(texels.iter().any(|t| t[1] == 32767), "the positive extreme was not exercised");
     }
 
     #[test]

@@ -158,6 +158,9 @@ pub struct GraphicsPipelineDesc<'a> {
     /// winds a -> c -> i counter-clockwise seen from +y, and the projection flips y.
     pub cull_back: bool,
     pub layout: &'a PipelineLayout,
+    /// Values of boolean specialization constants (`gpu_layout::SPEC_*` ids), given to
+    /// every stage; a stage ignores the ids it does not declare.
+    pub specialization: &'a [(u32, bool)],
 }
 
 impl<'a> GraphicsPipelineDesc<'a> {
@@ -175,6 +178,7 @@ impl<'a> GraphicsPipelineDesc<'a> {
             polygon_mode: vk::PolygonMode::FILL,
             cull_back: false,
             layout,
+            specialization: &[],
         }
     }
 }
@@ -208,17 +212,23 @@ impl GraphicsPipeline {
         let vs = shader_module(device, d.vert)?;
         let fs = d.frag.map(|f| shader_module(device, f)).transpose()?;
         let entry = c"main";
-        let mut stages = vec![vk::PipelineShaderStageCreateInfo::default()
-            .stage(vk::ShaderStageFlags::VERTEX)
-            .module(vs)
-            .name(entry)];
+        // Booleans are VkBool32: four bytes each, in order.
+        let spec_entries: Vec<vk::SpecializationMapEntry> = (d.specialization.iter().enumerate())
+            .map(|(i, &(id, _))| vk::SpecializationMapEntry { constant_id: id, offset: 4 * i as u32, size: 4 })
+            .collect();
+        let spec_data: Vec<u32> = d.specialization.iter().map(|&(_, on)| on as u32).collect();
+        let spec = vk::SpecializationInfo::default().map_entries(&spec_entries).data(bytemuck::cast_slice(&spec_data));
+        let stage = |flags, module| {
+            let s = vk::PipelineShaderStageCreateInfo::default().stage(flags).module(module).name(entry);
+            if spec_entries.is_empty() {
+                s
+            } else {
+                s.specialization_info(&spec)
+            }
+        };
+        let mut stages = vec![stage(vk::ShaderStageFlags::VERTEX, vs)];
         if let Some(fs) = fs {
-            stages.push(
-                vk::PipelineShaderStageCreateInfo::default()
-                    .stage(vk::ShaderStageFlags::FRAGMENT)
-                    .module(fs)
-                    .name(entry),
-            );
+            stages.push(stage(vk::ShaderStageFlags::FRAGMENT, fs));
         }
         let bindings;
         let attributes;
