@@ -11,7 +11,7 @@
 layout(set = 0, binding = TERRAIN_BINDING_HEIGHTS) uniform sampler2D heights;
 layout(set = 0, binding = TERRAIN_BINDING_BASE) uniform sampler2D base_tex;
 layout(set = 0, binding = TERRAIN_BINDING_DETAIL) uniform sampler2D detail_tex;
-layout(set = 0, binding = TERRAIN_BINDING_GRADIENTS) uniform sampler2D gradients;
+layout(set = 0, binding = TERRAIN_BINDING_GRADIENTS) uniform usampler2D gradients;
 layout(set = 0, binding = TERRAIN_BINDING_LIGHTING) uniform sampler2D lighting;
 layout(location = 0) in vec3 v_world;
 layout(location = 1) flat in int v_lod;
@@ -24,25 +24,26 @@ float world_height(ivec2 s) {
 
 // What the shader needs of one sample: its gradient (central differences of world
 // heights) and whether it lies at sea level (world height <= frame.texturing.w). By
-// default both come from one fetch of the gradient map (Heightfield::gradient_map, which
-// keeps the sea flag in the lowest bit of the z gradient); `--shading heights` computes
-// them from five height fetches, the first wave's shading, for comparison. The choice is
-// a specialization constant: llvmpipe runs both sides of a uniform branch.
+// default both come from the gradient map (Heightfield::gradient_map: two 16-bit signed
+// units per texel, the sea flag in the lowest bit of z), the four samples around a pixel
+// in one gather; `--shading heights` computes them from five height fetches each, the
+// first wave's shading, for comparison. The choice is a specialization constant:
+// llvmpipe runs both sides of a uniform branch.
 struct Sample {
     vec2 gradient;
     bool sea;
 };
 
-Sample sample_at(ivec2 s) {
-    if (NORMALS_FROM_HEIGHTS) {
-        vec2 g = vec2(world_height(s + ivec2(1, 0)) - world_height(s - ivec2(1, 0)),
-                      world_height(s + ivec2(0, 1)) - world_height(s - ivec2(0, 1))) / (2.0 * frame.terrain.x);
-        return Sample(g, world_height(s) <= frame.texturing.w);
-    }
-    s = clamp(s, ivec2(0), ivec2(frame.extent.z - 1));
-    vec2 t = texelFetch(gradients, s, 0).rg;
-    int z_units = int(round(t.y * 32767.0));
-    return Sample(vec2(t.x, float(z_units & ~1) / 32767.0) * frame.texturing.z, (z_units & 1) != 0);
+Sample from_heights(ivec2 s) {
+    vec2 g = vec2(world_height(s + ivec2(1, 0)) - world_height(s - ivec2(1, 0)),
+                  world_height(s + ivec2(0, 1)) - world_height(s - ivec2(0, 1))) / (2.0 * frame.terrain.x);
+    return Sample(g, world_height(s) <= frame.texturing.w);
+}
+
+Sample from_texel(uint t) {
+    int x_units = int(t << 16) >> 16;
+    int z_units = int(t) >> 16;
+    return Sample(vec2(float(x_units), float(z_units & ~1)) * (frame.texturing.z / 32767.0), (z_units & 1) != 0);
 }
 
 // Hash of an integer lattice point to [0, 1] (integer arithmetic: the same on every GPU).
@@ -91,8 +92,21 @@ void main() {
 
     ivec2 i0 = ivec2(floor(p));
     vec2 f = p - vec2(i0);
-    Sample s00 = sample_at(i0), s10 = sample_at(i0 + ivec2(1, 0));
-    Sample s01 = sample_at(i0 + ivec2(0, 1)), s11 = sample_at(i0 + ivec2(1, 1));
+    Sample s00, s10, s01, s11;
+    if (NORMALS_FROM_HEIGHTS) {
+        s00 = from_heights(i0);
+        s10 = from_heights(i0 + ivec2(1, 0));
+        s01 = from_heights(i0 + ivec2(0, 1));
+        s11 = from_heights(i0 + ivec2(1, 1));
+    } else {
+        // Texels i0 and i0 + 1 on each axis (clamped at the far edge): the coordinate is
+        // midway between their centres. Gather order: (0,1), (1,1), (1,0), (0,0).
+        uvec4 t = textureGather(gradients, (vec2(i0) + 1.0) / float(frame.extent.z));
+        s00 = from_texel(t.w);
+        s10 = from_texel(t.z);
+        s01 = from_texel(t.x);
+        s11 = from_texel(t.y);
+    }
     vec2 g = mix(mix(s00.gradient, s10.gradient, f.x), mix(s01.gradient, s11.gradient, f.x), f.y);
     vec3 n = normalize(vec3(-g.x, 1.0, -g.y));
 

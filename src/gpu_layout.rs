@@ -70,7 +70,7 @@ pub const TERRAIN_BINDING_BASE: u32 = 2;
 /// Terrain pipeline: detail texture (a 1x1 white texel when none is given).
 pub const TERRAIN_BINDING_DETAIL: u32 = 3;
 
-/// Terrain pipeline: per-sample gradients (R16G16_SNORM) for the normals.
+/// Terrain pipeline: per-sample gradients and sea flags (two i16 in an R32_UINT texel).
 pub const TERRAIN_BINDING_GRADIENTS: u32 = 5;
 
 /// Terrain pipeline: sun visibility and ambient occlusion (RG8, `lighting.frag`).

@@ -10,7 +10,8 @@ pub struct TerrainGpu {
     pub minmax: Image,
     /// Exact group deviations `D_L` (R32F, LOD L in mip L-1): strict mode's world part.
     pub deviation: Image,
-    /// Per-sample gradients (R16G16_SNORM, times `gradient_scale`) for shading.
+    /// Per-sample gradients and sea flags for shading ([`Heightfield::gradient_map`]'s
+    /// two i16 per texel, read as one R32_UINT so that one gather brings four samples).
     pub gradients: Image,
     pub gradient_scale: f32,
     /// World height at or below which level ground is water ([`Heightfield::sea_level`]).
@@ -81,8 +82,7 @@ impl TerrainGpu {
 
         let sea_level = hf.sea_level(mm.range());
         let (grads, gradient_scale) = hf.gradient_map(sea_level);
-        let gradients =
-            Image::new(device, "gradient map", extent(side, side), vk::Format::R16G16_SNORM, 1, usage, false)?;
+        let gradients = Image::new(device, "gradient map", extent(side, side), vk::Format::R32_UINT, 1, usage, false)?;
         upload(device, &pool, &gradients, &[bytemuck::cast_slice(&grads)])?;
 
         let white = Texture { width: 1, height: 1, rgba: vec![255; 4] };
