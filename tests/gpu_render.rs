@@ -14,7 +14,7 @@ use vkterrain::gie::{ErrorMode, ErrorParams};
 use vkterrain::heightfield::{self, Heightfield, LoadOptions, MinMaxPyramid};
 use vkterrain::lighting::Sun;
 use vkterrain::quadtree::{traverse, BlockLayout, LodSelect};
-use vkterrain::terrain_gpu::TerrainGpu;
+use vkterrain::terrain_gpu::{TerrainGpu, Texture};
 use vkterrain::vk::Device;
 
 const MAGENTA: [u8; 3] = [255, 0, 255];
@@ -388,5 +388,75 @@ fn gradient_map_shading_matches_height_fetches() {
         }
         drop(scene);
     }
+    finish(device);
+}
+
+/// Each shading switch is a specialization constant, compiled into its own pipeline
+/// (llvmpipe would otherwise run every path a uniform decides, for every pixel). Each
+/// variant must render under validation and take its own path: a pure red base texture
+/// makes every terrain pixel red, a pure blue detail texture at weight 0 makes it blue, the
+/// LOD tint moves the colours, and wireframe shows the background between its lines.
+#[test]
+fn every_shading_variant_takes_its_own_path() {
+    let device = gpu();
+    let hf = field(129, 129, 2.0, |x, z| ((x as f32 * 0.2).sin() * (z as f32 * 0.15).cos()) * 20.0 + 30.0);
+    let (wx, wz) = hf.world_extent();
+    let cam =
+        Camera::look_at(Vec3::new(wx * 0.5, 150.0, wz * 1.1), Vec3::new(wx * 0.5, 0.0, wz * 0.4), 60.0, 160, 120, 0.1);
+    let mm = MinMaxPyramid::build(&hf);
+    let layout = BlockLayout::new(hf.n, 33).unwrap();
+    let blocks = traverse(&hf, &mm, &layout, &cam, LodSelect::Full).blocks;
+    let target = Target::new(&device, cam.width, cam.height).unwrap();
+    let solid = |rgb: [u8; 3]| Texture { width: 2, height: 2, rgba: [rgb[0], rgb[1], rgb[2], 255].repeat(4) };
+    let render = |base: Option<&Texture>, detail: Option<&Texture>, shading: &Shading| -> Vec<u8> {
+        let terrain = TerrainGpu::new(&device, &hf, &mm, base, detail).unwrap();
+        let mut r = BlocksRenderer::new(&device, &hf, &terrain, layout, COLOR_FORMAT, 1, None).unwrap();
+        r.render_offscreen(&hf, &terrain, &target, &cam, &blocks, shading).unwrap().0
+    };
+    let default = render(None, None, &plain());
+    let terrain: Vec<usize> = (0..default.len() / 4).filter(|&i| default[4 * i..4 * i + 3] != MAGENTA).collect();
+    assert!(terrain.len() > default.len() / 4 / 3, "only {} terrain pixels", terrain.len());
+    let rgb = |px: &[u8], i: usize| [px[4 * i], px[4 * i + 1], px[4 * i + 2]];
+
+    let red = render(Some(&solid([255, 0, 0])), None, &plain());
+    assert!(terrain.iter().all(|&i| matches!(rgb(&red, i), [r, 0, 0] if r > 0)), "base texture not used");
+    let blue = render(Some(&solid([255, 0, 0])), Some(&solid([0, 0, 255])), &Shading { detail_weight: 0.0, ..plain() });
+    assert!(terrain.iter().all(|&i| matches!(rgb(&blue, i), [0, 0, b] if b > 0)), "detail texture not used");
+
+    let tinted = render(None, None, &Shading { colour_by_lod: true, ..plain() });
+    let moved: f64 = terrain
+        .iter()
+        .map(|&i| (0..3).map(|c| (tinted[4 * i + c] as f64 - default[4 * i + c] as f64).abs()).sum::<f64>())
+        .sum::<f64>()
+        / terrain.len() as f64;
+    assert!(moved > 30.0, "the LOD tint moved the colours by {moved:.1} levels on average");
+
+    if device.features.wireframe {
+        // Close up, so that cells span many pixels.
+        let near = Camera::look_at(
+            Vec3::new(wx * 0.5, 60.0, wz * 0.6),
+            Vec3::new(wx * 0.5, 0.0, wz * 0.4),
+            60.0,
+            160,
+            120,
+            0.1,
+        );
+        let near_blocks = traverse(&hf, &mm, &layout, &near, LodSelect::Full).blocks;
+        let terrain_gpu = TerrainGpu::new(&device, &hf, &mm, None, None).unwrap();
+        let mut r = BlocksRenderer::new(&device, &hf, &terrain_gpu, layout, COLOR_FORMAT, 1, None).unwrap();
+        let mut draw =
+            |shading: &Shading| r.render_offscreen(&hf, &terrain_gpu, &target, &near, &near_blocks, shading).unwrap().0;
+        let (filled, wire) = (draw(&plain()), draw(&Shading { wireframe: true, ..plain() }));
+        let terrain: Vec<usize> = (0..filled.len() / 4).filter(|&i| filled[4 * i..4 * i + 3] != MAGENTA).collect();
+        let background = terrain.iter().filter(|&&i| rgb(&wire, i) == MAGENTA).count();
+        assert!(
+            background > terrain.len() / 10 && background < terrain.len(),
+            "wireframe: {background} of {} terrain pixels show the background",
+            terrain.len()
+        );
+    } else {
+        println!("note: no wireframe (fillModeNonSolid) on this device; that variant was not drawn");
+    }
+    drop(target);
     finish(device);
 }
