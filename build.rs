@@ -108,6 +108,7 @@ fn generate_header(blocks: &[BlockInfo]) -> Result<String, String> {
     let dists: Vec<String> = AO_DISTANCES.iter().map(|d| format!("{d:?}")).collect();
     writeln!(s, "#define AO_DISTANCES float[{}]({})", dists.len(), dists.join(", ")).unwrap();
     let mut groups: Vec<&str> = SPEC_CONSTANTS.iter().map(|c| c.group).collect();
+    groups.sort_unstable();
     groups.dedup();
     for g in groups {
         writeln!(s, "#ifdef USE_{g}").unwrap();

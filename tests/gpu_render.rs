@@ -405,13 +405,16 @@ fn every_shading_variant_takes_its_own_path() {
         Camera::look_at(Vec3::new(wx * 0.5, 150.0, wz * 1.1), Vec3::new(wx * 0.5, 0.0, wz * 0.4), 60.0, 160, 120, 0.1);
     let mm = MinMaxPyramid::build(&hf);
     let layout = BlockLayout::new(hf.n, 33).unwrap();
-    let blocks = traverse(&hf, &mm, &layout, &cam, LodSelect::Full).blocks;
     let target = Target::new(&device, cam.width, cam.height).unwrap();
     let solid = |rgb: [u8; 3]| Texture { width: 2, height: 2, rgba: [rgb[0], rgb[1], rgb[2], 255].repeat(4) };
-    let render = |base: Option<&Texture>, detail: Option<&Texture>, shading: &Shading| -> Vec<u8> {
+    let render_from = |cam: &Camera, base: Option<&Texture>, detail: Option<&Texture>, shading: &Shading| {
+        let blocks = traverse(&hf, &mm, &layout, cam, LodSelect::Full).blocks;
         let terrain = TerrainGpu::new(&device, &hf, &mm, base, detail).unwrap();
         let mut r = BlocksRenderer::new(&device, &hf, &terrain, layout, COLOR_FORMAT, 1, None).unwrap();
-        r.render_offscreen(&hf, &terrain, &target, &cam, &blocks, shading).unwrap().0
+        r.render_offscreen(&hf, &terrain, &target, cam, &blocks, shading).unwrap().0
+    };
+    let render = |base: Option<&Texture>, detail: Option<&Texture>, shading: &Shading| -> Vec<u8> {
+        render_from(&cam, base, detail, shading)
     };
     let default = render(None, None, &plain());
     let terrain: Vec<usize> = (0..default.len() / 4).filter(|&i| default[4 * i..4 * i + 3] != MAGENTA).collect();
@@ -441,12 +444,10 @@ fn every_shading_variant_takes_its_own_path() {
             120,
             0.1,
         );
-        let near_blocks = traverse(&hf, &mm, &layout, &near, LodSelect::Full).blocks;
-        let terrain_gpu = TerrainGpu::new(&device, &hf, &mm, None, None).unwrap();
-        let mut r = BlocksRenderer::new(&device, &hf, &terrain_gpu, layout, COLOR_FORMAT, 1, None).unwrap();
-        let mut draw =
-            |shading: &Shading| r.render_offscreen(&hf, &terrain_gpu, &target, &near, &near_blocks, shading).unwrap().0;
-        let (filled, wire) = (draw(&plain()), draw(&Shading { wireframe: true, ..plain() }));
+        let (filled, wire) = (
+            render_from(&near, None, None, &plain()),
+            render_from(&near, None, None, &Shading { wireframe: true, ..plain() }),
+        );
         let terrain: Vec<usize> = (0..filled.len() / 4).filter(|&i| filled[4 * i..4 * i + 3] != MAGENTA).collect();
         let background = terrain.iter().filter(|&&i| rgb(&wire, i) == MAGENTA).count();
         assert!(
