@@ -69,6 +69,13 @@ pub fn rendered_raw(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, x: i6
 
 /// Barycentric interpolation of a triangle's raw heights at `(px, pz)` if inside.
 pub(crate) fn interpolate(t: &[(i64, i64, f32); 3], px: f64, pz: f64) -> Option<f32> {
+    let w = barycentric(&t.map(|p| (p.0, p.1)), px, pz)?;
+    Some(weighted(w, [t[0].2, t[1].2, t[2].2]))
+}
+
+/// Barycentric weights of `(px, pz)` in the triangle with corners `t`, if inside
+/// (edges included); `None` for a degenerate (collapsed) triangle.
+pub(crate) fn barycentric(t: &[(i64, i64); 3], px: f64, pz: f64) -> Option<[f64; 3]> {
     let (x0, z0) = (t[0].0 as f64, t[0].1 as f64);
     let (x1, z1) = (t[1].0 as f64, t[1].1 as f64);
     let (x2, z2) = (t[2].0 as f64, t[2].1 as f64);
@@ -83,7 +90,12 @@ pub(crate) fn interpolate(t: &[(i64, i64, f32); 3], px: f64, pz: f64) -> Option<
     if w0 < eps || w1 < eps || w2 < eps {
         return None;
     }
-    Some((w0 * t[0].2 as f64 + w1 * t[1].2 as f64 + w2 * t[2].2 as f64) as f32)
+    Some([w0, w1, w2])
+}
+
+/// The height with weights `w` at the corners' heights `h`.
+pub(crate) fn weighted(w: [f64; 3], h: [f32; 3]) -> f32 {
+    (w[0] * h[0] as f64 + w[1] * h[1] as f64 + w[2] * h[2] as f64) as f32
 }
 
 /// For every sample inside the frustum, the pixel distance between the true point and

@@ -8,6 +8,7 @@
 
 pub mod audit;
 pub mod bench;
+pub mod block_cache;
 pub mod camera;
 pub mod deviation;
 pub mod gie;

@@ -109,7 +109,8 @@ pub enum MorphRule {
 pub enum EdgeTerms {
     /// Sample by sample in every state ([`crate::stitch::edge_regions`], cached).
     Exact,
-    /// From the vertices' moves ([`crate::stitch::edge_regions_bound`]): looser, `O(k)`.
+    /// From the vertices' moves ([`crate::stitch::edge_regions_bound`], cached): looser,
+    /// `O(k)`.
     Cheap,
 }
 
@@ -130,7 +131,7 @@ pub fn cost(
     let j = b.lod;
     let regions = match terms {
         EdgeTerms::Exact => mm.stitch.regions(hf, layout, b, fixed),
-        EdgeTerms::Cheap => crate::stitch::edge_regions_bound(hf, mm, layout, b, fixed),
+        EdgeTerms::Cheap => mm.stitch.regions_bound(hf, mm, layout, b, fixed),
     };
     let (mut min, mut max) = block_aabb(hf, mm, layout, j, b.bx, b.bz);
     min.y = min.y.min(regions.lo * hs);
@@ -181,38 +182,124 @@ pub fn cost(
         regions.corner[c].map(|d| d * f)
     });
 
-    // Interior: per parent group (level j + 1), as the errors activity projects.
-    let level = j + 1;
-    let gs = 1usize << level;
+    let (parent, own) = interior(hf, mm, layout, cam, b, per_group);
+    MorphCost { parent, own, side: sides, corner }
+}
+
+/// Tiles a side in [`InteriorTiles`].
+const TILES: usize = 4;
+
+/// A block's interior parent groups (level `j + 1`) in `TILES x TILES` tiles, without a
+/// camera: per tile its groups `[gx0, gz0, gx1, gz1)`, their raw height range and their
+/// largest `E0` and `E1` deviations (raw units). A group is no nearer the camera than its
+/// tile's box, so a tile's deviations over that box's distance bound every group's term,
+/// and a tile whose bound cannot raise the maximum found so far is skipped.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct InteriorTiles {
+    groups: [[u32; 4]; TILES * TILES],
+    /// `[lo, hi, E0, E1]`.
+    values: [[f32; 4]; TILES * TILES],
+}
+
+/// The `E0` and `E1` deviations (raw units) of parent group `(gx, gz)` of a LOD-`j` block.
+fn group_deviations(mm: &MinMaxPyramid, j: u32, gx: usize, gz: usize) -> (f32, f32) {
+    let d0 = mm.deviation(j + 1, gx, gz);
+    let dc = if j == 0 {
+        0.0
+    } else {
+        let mut m = 0.0f32;
+        for (cx, cz) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
+            m = m.max(mm.deviation(j, 2 * gx + cx, 2 * gz + cz));
+        }
+        m
+    };
+    (d0, dc)
+}
+
+/// The block's parent groups (level `j + 1`) `[gx0, gz0, gx1, gz1)`, clipped to the grid.
+fn interior_groups(mm: &MinMaxPyramid, layout: &BlockLayout, b: &DrawBlock) -> [usize; 4] {
+    let gs = 1usize << (b.lod + 1);
     let per_side = (layout.k() as usize - 1) / 2;
+    let (ox, oz) = b.origin(layout);
     let (ga, gb) = (ox as usize / gs, oz as usize / gs);
-    let side = mm.cells(level);
-    let world = gs as f32 * hf.spacing;
-    let (mut parent, mut own) = (0.0f32, 0.0f32);
-    for gz in gb..(gb + per_side).min(side) {
-        for gx in ga..(ga + per_side).min(side) {
-            let d0 = mm.deviation(level, gx, gz);
-            let dc = if j == 0 {
-                0.0
-            } else {
-                let mut m = 0.0f32;
-                for (cx, cz) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
-                    m = m.max(mm.deviation(j, 2 * gx + cx, 2 * gz + cz));
+    let side = mm.cells(b.lod + 1);
+    [ga, gb, (ga + per_side).min(side), (gb + per_side).min(side)]
+}
+
+impl InteriorTiles {
+    fn new(mm: &MinMaxPyramid, layout: &BlockLayout, b: &DrawBlock) -> Self {
+        let [ga, gb, ge, gf] = interior_groups(mm, layout, b);
+        let per_side = (layout.k() as usize - 1) / 2;
+        let step = per_side.div_ceil(TILES);
+        let mut out = InteriorTiles::default();
+        for ty in 0..TILES {
+            for tx in 0..TILES {
+                let (x0, z0) = ((ga + tx * step).min(ge), (gb + ty * step).min(gf));
+                let (x1, z1) = ((x0 + step).min(ge), (z0 + step).min(gf));
+                let mut v = [f32::INFINITY, f32::NEG_INFINITY, 0.0, 0.0];
+                for gz in z0..z1 {
+                    for gx in x0..x1 {
+                        let (d0, dc) = group_deviations(mm, b.lod, gx, gz);
+                        let [lo, hi] = mm.get(b.lod + 1, gx, gz);
+                        v = [v[0].min(lo), v[1].max(hi), v[2].max(d0), v[3].max(dc)];
+                    }
                 }
-                m
-            };
-            if d0 == 0.0 && dc == 0.0 {
-                continue;
+                out.groups[ty * TILES + tx] = [x0, z0, x1, z1].map(|g| g as u32);
+                out.values[ty * TILES + tx] = v;
             }
-            let [lo, hi] = mm.get(level, gx, gz);
-            let gmin = Vec3::new(gx as f32 * world, lo * hs, gz as f32 * world);
-            let gmax = Vec3::new((gx + 1) as f32 * world, hi * hs, (gz + 1) as f32 * world);
-            let f = per_group / distance_to_aabb(cam.position, gmin, gmax).max(cam.near);
-            parent = parent.max(d0 * hs * f);
-            own = own.max(dc * hs * f);
+        }
+        out
+    }
+}
+
+/// The interior's bound with every vertex at factor 0 (`parent`) and at factor 1 (`own`),
+/// in pixels: per parent group (level `j + 1`), as the errors activity projects, its
+/// deviation over its box's distance. Exactly the maximum over all groups; tiles that
+/// cannot raise it are skipped ([`InteriorTiles`]).
+fn interior(
+    hf: &Heightfield,
+    mm: &MinMaxPyramid,
+    layout: &BlockLayout,
+    cam: &Camera,
+    b: &DrawBlock,
+    per_group: f32,
+) -> (f32, f32) {
+    let tiles = mm.interiors.get_or_compute((layout.m, b.lod, b.bx, b.bz), || InteriorTiles::new(mm, layout, b));
+    let hs = hf.height_scale;
+    let world = (1u32 << (b.lod + 1)) as f32 * hf.spacing;
+    let scale = |[x0, z0, x1, z1]: [u32; 4], lo: f32, hi: f32| {
+        let gmin = Vec3::new(x0 as f32 * world, lo * hs, z0 as f32 * world);
+        let gmax = Vec3::new(x1 as f32 * world, hi * hs, z1 as f32 * world);
+        per_group / distance_to_aabb(cam.position, gmin, gmax).max(cam.near)
+    };
+    let mut order: [(f32, usize); TILES * TILES] = std::array::from_fn(|t| {
+        let [lo, hi, d0, dc] = tiles.values[t];
+        let f = if d0 == 0.0 && dc == 0.0 { 0.0 } else { scale(tiles.groups[t], lo, hi) };
+        (f, t)
+    });
+    let reach = |&(f, t): &(f32, usize)| tiles.values[t][2].max(tiles.values[t][3]) * f;
+    order.sort_unstable_by(|a, b| reach(b).total_cmp(&reach(a)));
+    let (mut parent, mut own) = (0.0f32, 0.0f32);
+    for (f, t) in order {
+        let [_, _, d0, dc] = tiles.values[t];
+        if d0 * hs * f <= parent && dc * hs * f <= own {
+            continue;
+        }
+        let [x0, z0, x1, z1] = tiles.groups[t];
+        for gz in z0..z1 {
+            for gx in x0..x1 {
+                let (d0, dc) = group_deviations(mm, b.lod, gx as usize, gz as usize);
+                if d0 == 0.0 && dc == 0.0 {
+                    continue;
+                }
+                let [lo, hi] = mm.get(b.lod + 1, gx as usize, gz as usize);
+                let f = scale([gx, gz, gx + 1, gz + 1], lo, hi);
+                parent = parent.max(d0 * hs * f);
+                own = own.max(dc * hs * f);
+            }
         }
     }
-    MorphCost { parent, own, side: sides, corner }
+    (parent, own)
 }
 
 /// The factor that the selection's own (possibly stale-corrected) errors give: 0 when the
@@ -490,5 +577,97 @@ impl EdgeVars {
         for v in self.var[i].iter().flatten() {
             e[*v] = e[*v].max(f);
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::heightfield::HeightFormat;
+
+    /// Every parent group's term, no tiles: the maximum the pruned search must find.
+    fn interior_all_groups(
+        hf: &Heightfield,
+        mm: &MinMaxPyramid,
+        layout: &BlockLayout,
+        cam: &Camera,
+        b: &DrawBlock,
+        per_group: f32,
+    ) -> (f32, f32) {
+        let [ga, gb, ge, gf] = interior_groups(mm, layout, b);
+        let (hs, world) = (hf.height_scale, (1u32 << (b.lod + 1)) as f32 * hf.spacing);
+        let (mut parent, mut own) = (0.0f32, 0.0f32);
+        for gz in gb..gf {
+            for gx in ga..ge {
+                let (d0, dc) = group_deviations(mm, b.lod, gx, gz);
+                let [lo, hi] = mm.get(b.lod + 1, gx, gz);
+                let gmin = Vec3::new(gx as f32 * world, lo * hs, gz as f32 * world);
+                let gmax = Vec3::new((gx + 1) as f32 * world, hi * hs, (gz + 1) as f32 * world);
+                let f = per_group / distance_to_aabb(cam.position, gmin, gmax).max(cam.near);
+                parent = parent.max(d0 * hs * f);
+                own = own.max(dc * hs * f);
+            }
+        }
+        (parent, own)
+    }
+
+    /// Rough terrain with one spike (the group most likely to be skipped wrongly when its
+    /// tile is far), cameras inside, above and beside the blocks, every block of three
+    /// LODs and two block sizes: the pruned maximum is the maximum over all groups, bit
+    /// for bit.
+    #[test]
+    fn tiles_find_the_maximum_over_all_groups() {
+        let side = 257;
+        let s: Vec<f32> = (0..side * side)
+            .map(|i| {
+                let (x, z) = (i % side, i / side);
+                let spike = if (x, z) == (200, 37) { 900.0 } else { 0.0 };
+                ((x * 7919 + z * 104_729) % 97) as f32 + (x as f32 * 0.05).sin() * 60.0 + spike
+            })
+            .collect();
+        let hf = Heightfield::embed("t", side, side, &s, HeightFormat::Float32, 1.0, 2.0).unwrap();
+        let mm = MinMaxPyramid::build(&hf);
+        let mut compared = 0;
+        let mut differ_from_block_box = 0;
+        for k in [17, 33] {
+            let layout = BlockLayout::new(hf.n, k).unwrap();
+            let cams = [
+                Vec3::new(201.0, 40.0, 38.0),
+                Vec3::new(10.0, 600.0, 250.0),
+                Vec3::new(-300.0, 5.0, 128.0),
+                Vec3::new(128.0, 2000.0, 128.0),
+            ];
+            for p in cams {
+                let cam = Camera::look_at(p, Vec3::new(128.0, 0.0, 128.0), 60.0, 640, 480, 0.05);
+                for lod in 0..3.min(layout.root_lod()) {
+                    let n = layout.cells() >> lod;
+                    for bz in 0..n as u32 {
+                        for bx in 0..n as u32 {
+                            let b = DrawBlock::new(lod, bx, bz);
+                            let want = interior_all_groups(&hf, &mm, &layout, &cam, &b, 1.5);
+                            assert_eq!(interior(&hf, &mm, &layout, &cam, &b, 1.5), want, "k {k}, {b:?}, camera {p}");
+                            let (min, max) = block_aabb(&hf, &mm, &layout, lod, bx, bz);
+                            let coarse = 1.5 / distance_to_aabb(cam.position, min, max).max(cam.near);
+                            if want.0 > 0.0 && want.0 < 0.99 * coarse * hf.height_scale * mm_max_d0(&mm, &layout, &b) {
+                                differ_from_block_box += 1;
+                            }
+                            compared += 1;
+                        }
+                    }
+                }
+            }
+        }
+        assert!(compared > 500, "{compared}");
+        // The per-group distances matter (a whole-block bound would be looser): the case
+        // the pruning must get right.
+        assert!(differ_from_block_box > 50, "{differ_from_block_box} of {compared}");
+    }
+
+    fn mm_max_d0(mm: &MinMaxPyramid, layout: &BlockLayout, b: &DrawBlock) -> f32 {
+        let [ga, gb, ge, gf] = interior_groups(mm, layout, b);
+        (gb..gf)
+            .flat_map(|gz| (ga..ge).map(move |gx| (gx, gz)))
+            .map(|(gx, gz)| mm.deviation(b.lod + 1, gx, gz))
+            .fold(0.0, f32::max)
     }
 }

@@ -8,10 +8,9 @@
 //! configuration and cached, for both ends of the morph (see `morph.rs`). The traversal
 //! projects it like any world-space deviation.
 
+use crate::block_cache::BoundedCache;
 use crate::heightfield::Heightfield;
 use crate::quadtree::{block_vertex, BlockLayout, DrawBlock};
-use std::collections::HashMap;
-use std::sync::Mutex;
 
 /// Deviation of the stitched strips of one block, in raw height units.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -31,14 +30,17 @@ impl StripDeviation {
     }
 }
 
-/// The block (LOD, position, neighbours, corners; unmorphed) and the edges measured.
-type Key = (DrawBlock, u8);
+/// The block size (`m`), the block (LOD, position, neighbours, corners; unmorphed) and
+/// the edges measured.
+type Key = (u32, DrawBlock, u8);
 
-/// Strip deviations already computed, by block and neighbour strides.
-#[derive(Default)]
+/// Strip deviations and edge regions already computed, by block and neighbour strides.
+/// None depends on the camera, so a block keeps its entries while it stays drawn.
+#[derive(Clone, Debug, Default)]
 pub struct StitchCache {
-    map: Mutex<HashMap<Key, StripDeviation>>,
-    regions: Mutex<HashMap<Key, EdgeRegions>>,
+    strips: BoundedCache<Key, StripDeviation>,
+    regions: BoundedCache<Key, EdgeRegions>,
+    bounds: BoundedCache<Key, EdgeRegions>,
 }
 
 /// Exact deviation (raw units) of a block's edge regions in every combination of the
@@ -80,44 +82,31 @@ fn strip_quad(e: usize, t: u32, last: u32) -> (u32, u32) {
 /// The two edges meeting at each corner (NW, NE, SE, SW).
 pub const CORNER_EDGES: [[usize; 2]; 4] = [[0, 3], [0, 1], [2, 1], [2, 3]];
 
-impl std::fmt::Debug for StitchCache {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        let len = self.map.lock().map_or(0, |m| m.len());
-        write!(f, "StitchCache({len} configurations)")
-    }
-}
-
-impl Clone for StitchCache {
-    fn clone(&self) -> Self {
-        let map = self.map.lock().map(|m| m.clone()).unwrap_or_default();
-        let regions = self.regions.lock().map(|m| m.clone()).unwrap_or_default();
-        StitchCache { map: Mutex::new(map), regions: Mutex::new(regions) }
-    }
-}
-
-/// The value cached under `key`, computed on first use. A poisoned lock only means
-/// another thread panicked mid-insert; entries are whole values, so the map is still
-/// consistent.
-fn cached<V: Copy>(map: &Mutex<HashMap<Key, V>>, key: Key, compute: impl FnOnce() -> V) -> V {
-    if let Some(v) = map.lock().unwrap_or_else(|e| e.into_inner()).get(&key) {
-        return *v;
-    }
-    let v = compute();
-    map.lock().unwrap_or_else(|e| e.into_inner()).insert(key, v);
-    v
-}
-
 impl StitchCache {
     /// The edge regions of `b` (its morph factors ignored) whose edges in `fixed` do not
     /// morph.
     pub fn regions(&self, hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, fixed: u8) -> EdgeRegions {
-        cached(&self.regions, (b.unmorphed(), fixed), || edge_regions(hf, layout, b, fixed))
+        self.regions.get_or_compute((layout.m, b.unmorphed(), fixed), || edge_regions(hf, layout, b, fixed))
+    }
+
+    /// [`edge_regions_bound`] of `b` (its morph factors ignored), cached: it is asked for
+    /// every drawn block every frame.
+    pub fn regions_bound(
+        &self,
+        hf: &Heightfield,
+        mm: &crate::heightfield::MinMaxPyramid,
+        layout: &BlockLayout,
+        b: &DrawBlock,
+        fixed: u8,
+    ) -> EdgeRegions {
+        self.bounds.get_or_compute((layout.m, b.unmorphed(), fixed), || edge_regions_bound(hf, mm, layout, b, fixed))
     }
 
     /// The stitched strips of `b` (the edges next to a coarser block), unmorphed.
     pub fn get(&self, hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock) -> StripDeviation {
         let sides = coarser_sides(b);
-        cached(&self.map, (b.unmorphed(), sides), || strip_deviation(hf, layout, &b.unmorphed(), sides))
+        self.strips
+            .get_or_compute((layout.m, b.unmorphed(), sides), || strip_deviation(hf, layout, &b.unmorphed(), sides))
     }
 }
 
@@ -158,7 +147,8 @@ pub fn strip_deviation(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, si
     out
 }
 
-/// See [`EdgeRegions`].
+/// See [`EdgeRegions`]. The triangulation is the same in every state (only heights
+/// move), so each sample's barycentric weights are found once for all states.
 pub fn edge_regions(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, fixed: u8) -> EdgeRegions {
     use crate::quadtree::MORPH_ONE;
     let last = layout.k() - 2; // last quad index
@@ -173,36 +163,46 @@ pub fn edge_regions(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, fixed
         }
         s
     };
-    let mut quad_dev = |s: &DrawBlock, u: u32, v: u32| {
-        let vert = |uu: u32, vv: u32| block_vertex(hf, layout, s, uu, vv);
-        let (a, c, i, g) = (vert(u, v), vert(u + 1, v), vert(u + 1, v + 1), vert(u, v + 1));
-        let mut m = 0.0f32;
-        for tri in [[a, c, i], [a, i, g]] {
-            for p in &tri {
-                out.lo = out.lo.min(p.2);
-                out.hi = out.hi.max(p.2);
+    // Quad (u, v)'s deviation in each of the states `s`.
+    let mut quad_dev = |s: &[DrawBlock], u: u32, v: u32, dev: &mut [f32]| {
+        let corners = [(u, v), (u + 1, v), (u + 1, v + 1), (u, v + 1)];
+        let mut pos = [(0i64, 0i64); 4];
+        let mut heights = [[0.0f32; 4]; 8];
+        for (st, block) in s.iter().enumerate() {
+            for (c, &(uu, vv)) in corners.iter().enumerate() {
+                let (x, z, h) = block_vertex(hf, layout, block, uu, vv);
+                pos[c] = (x, z);
+                heights[st][c] = h;
+                out.lo = out.lo.min(h);
+                out.hi = out.hi.max(h);
             }
-            m = m.max(triangle_deviation(hf, &tri));
         }
-        m
+        for tri in [[0, 1, 2], [0, 2, 3]] {
+            let p = tri.map(|c| pos[c]);
+            let h: [[f32; 3]; 8] = std::array::from_fn(|st| tri.map(|c| heights[st][c]));
+            triangle_deviation_states(hf, p, &h[..s.len()], dev);
+        }
     };
+    let mut dev = [0.0f32; 8];
     for e in 0..4 {
-        for st in 0..4 {
-            let s = state(st & 2 != 0, &[(e, st & 1 != 0)]);
-            for t in 1..last {
-                let (u, v) = strip_quad(e, t, last);
-                let d = quad_dev(&s, u, v);
-                let m = &mut out.side[e][strip_segment(t, last)][st];
-                *m = m.max(d);
+        let states: [DrawBlock; 4] = std::array::from_fn(|st| state(st & 2 != 0, &[(e, st & 1 != 0)]));
+        for t in 1..last {
+            let (u, v) = strip_quad(e, t, last);
+            dev[..4].fill(0.0);
+            quad_dev(&states, u, v, &mut dev[..4]);
+            let m = &mut out.side[e][strip_segment(t, last)];
+            for (m, d) in m.iter_mut().zip(&dev) {
+                *m = m.max(*d);
             }
         }
     }
     for (c, [ea, eb]) in CORNER_EDGES.iter().copied().enumerate() {
         let (u, v) = [(0, 0), (last, 0), (last, last), (0, last)][c];
-        for st in 0..8 {
-            let s = state(st & 4 != 0, &[(ea, st & 2 != 0), (eb, st & 1 != 0)]);
-            out.corner[c][st] = quad_dev(&s, u, v);
-        }
+        let states: [DrawBlock; 8] =
+            std::array::from_fn(|st| state(st & 4 != 0, &[(ea, st & 2 != 0), (eb, st & 1 != 0)]));
+        dev.fill(0.0);
+        quad_dev(&states, u, v, &mut dev);
+        out.corner[c] = dev;
     }
     if out.lo > out.hi {
         out.lo = 0.0;
@@ -248,13 +248,18 @@ pub fn edge_regions_bound(
     let mut out = EdgeRegions { lo: f32::INFINITY, hi: f32::NEG_INFINITY, ..Default::default() };
     // How far vertex (u, v) moves between factor 0 and 1 of its group, and the group:
     // Some(edge) or None for the interior (the corners never move).
+    // Each vertex is shared by up to four quads of the strips: measured once.
+    let mut measured: Vec<Option<f32>> = vec![None; (kk as usize + 1).pow(2)];
     let mut moves = |u: u32, v: u32| -> (f32, Option<usize>) {
-        let a = block_vertex(hf, layout, &one, u, v).2;
-        let z = block_vertex(hf, layout, &zero, u, v).2;
-        out.lo = out.lo.min(a.min(z));
-        out.hi = out.hi.max(a.max(z));
+        let m = *measured[(v * (kk + 1) + u) as usize].get_or_insert_with(|| {
+            let a = block_vertex(hf, layout, &one, u, v).2;
+            let z = block_vertex(hf, layout, &zero, u, v).2;
+            out.lo = out.lo.min(a.min(z));
+            out.hi = out.hi.max(a.max(z));
+            (a - z).abs()
+        });
         let group = [(0, v == 0), (2, v == kk), (1, u == kk), (3, u == 0)].into_iter().find(|g| g.1).map(|g| g.0);
-        ((a - z).abs(), group)
+        (m, group)
     };
     let mut side = [[[0.0f32, 0.0, 0.0, 0.0]; STRIP_SEGMENTS]; 4];
     let mut seg = [[[0.0f32; 3]; STRIP_SEGMENTS]; 4]; // unmorphed deviation, interior move, edge move
@@ -303,19 +308,28 @@ pub fn edge_regions_bound(
 /// `max |H - T|` over the integer samples inside triangle `t` (edges included); 0 for a
 /// degenerate (collapsed) triangle, which covers nothing.
 fn triangle_deviation(hf: &Heightfield, t: &[(i64, i64, f32); 3]) -> f32 {
-    let x0 = t.iter().map(|p| p.0).min().unwrap_or(0);
-    let x1 = t.iter().map(|p| p.0).max().unwrap_or(0);
-    let z0 = t.iter().map(|p| p.1).min().unwrap_or(0);
-    let z1 = t.iter().map(|p| p.1).max().unwrap_or(0);
-    let mut m = 0.0f32;
+    let mut m = [0.0f32];
+    triangle_deviation_states(hf, t.map(|p| (p.0, p.1)), &[t.map(|p| p.2)], &mut m);
+    m[0]
+}
+
+/// [`triangle_deviation`] of the triangle with corners `pos` and, in each state `s`, corner
+/// heights `heights[s]`, raised into `dev[s]`.
+fn triangle_deviation_states(hf: &Heightfield, pos: [(i64, i64); 3], heights: &[[f32; 3]], dev: &mut [f32]) {
+    let x0 = pos.iter().map(|p| p.0).min().unwrap_or(0);
+    let x1 = pos.iter().map(|p| p.0).max().unwrap_or(0);
+    let z0 = pos.iter().map(|p| p.1).min().unwrap_or(0);
+    let z1 = pos.iter().map(|p| p.1).max().unwrap_or(0);
     for z in z0..=z1 {
         for x in x0..=x1 {
-            if let Some(r) = crate::audit::interpolate(t, x as f64, z as f64) {
-                m = m.max((hf.raw_at(x, z) - r).abs());
+            if let Some(w) = crate::audit::barycentric(&pos, x as f64, z as f64) {
+                let raw = hf.raw_at(x, z);
+                for (d, h) in dev.iter_mut().zip(heights) {
+                    *d = d.max((raw - crate::audit::weighted(w, *h)).abs());
+                }
             }
         }
     }
-    m
 }
 
 #[cfg(test)]
@@ -362,5 +376,63 @@ mod tests {
         let cache = StitchCache::default();
         assert_eq!(cache.get(&hf, &layout, &b), d);
         assert_eq!(cache.get(&hf, &layout, &b), d);
+    }
+
+    /// The regions measured one state at a time, quad by quad (what `edge_regions`
+    /// computes with each sample's weights shared across states).
+    fn regions_state_by_state(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, fixed: u8) -> EdgeRegions {
+        use crate::quadtree::MORPH_ONE;
+        let last = layout.k() - 2;
+        let mut out = EdgeRegions::default();
+        let state = |f: bool, edges: &[(usize, bool)]| {
+            let q = |on: bool| if on { MORPH_ONE } else { 0 };
+            let mut s = DrawBlock { morph: q(f), edge_morph: [MORPH_ONE; 4], ..*b };
+            for &(e, on) in edges {
+                if fixed & (1 << e) == 0 {
+                    s.edge_morph[e] = q(on);
+                }
+            }
+            s
+        };
+        let quad = |s: &DrawBlock, u: u32, v: u32| {
+            let vert = |uu: u32, vv: u32| block_vertex(hf, layout, s, uu, vv);
+            let (a, c, i, g) = (vert(u, v), vert(u + 1, v), vert(u + 1, v + 1), vert(u, v + 1));
+            triangle_deviation(hf, &[a, c, i]).max(triangle_deviation(hf, &[a, i, g]))
+        };
+        for e in 0..4 {
+            for st in 0..4 {
+                let s = state(st & 2 != 0, &[(e, st & 1 != 0)]);
+                for t in 1..last {
+                    let (u, v) = strip_quad(e, t, last);
+                    let m = &mut out.side[e][strip_segment(t, last)][st];
+                    *m = m.max(quad(&s, u, v));
+                }
+            }
+        }
+        for (c, [ea, eb]) in CORNER_EDGES.iter().copied().enumerate() {
+            let (u, v) = [(0, 0), (last, 0), (last, last), (0, last)][c];
+            for st in 0..8 {
+                out.corner[c][st] = quad(&state(st & 4 != 0, &[(ea, st & 2 != 0), (eb, st & 1 != 0)]), u, v);
+            }
+        }
+        out
+    }
+
+    /// Rough terrain, a LOD-1 block with coarser blocks on two sides (collapsed, stitched
+    /// vertices) and every choice of fixed edges: every region in every state equals the
+    /// state-by-state measure.
+    #[test]
+    fn edge_regions_equal_the_state_by_state_measure() {
+        let hf = field(65, |x, z| ((x * 7919 + z * 104_729) % 61) as f32 + (x as f32 * 0.3).sin() * 20.0);
+        let layout = BlockLayout::new(hf.n, 9).unwrap();
+        for coarser in [[0, 0, 0, 0], [4, 0, 0, 8], [0, 4, 8, 0]] {
+            let b = DrawBlock { coarser, ..DrawBlock::new(1, 1, 1) };
+            for fixed in 0..16u8 {
+                let got = edge_regions(&hf, &layout, &b, fixed);
+                let want = regions_state_by_state(&hf, &layout, &b, fixed);
+                assert_eq!((got.side, got.corner), (want.side, want.corner), "coarser {coarser:?}, fixed {fixed:b}");
+                assert!(got.side.iter().flatten().flatten().any(|&d| d > 0.0));
+            }
+        }
     }
 }

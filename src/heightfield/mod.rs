@@ -218,7 +218,8 @@ impl Heightfield {
 /// camera: min/max raw heights and the exact deviation `D_L = max |H - L_L|` (strict
 /// mode's world part, [`crate::deviation`]). Level `L` (1..=n) has `2^(n-L)` cells a
 /// side, cell `(a, b)` covering samples `[2^L a, 2^L (a+1)]` in x and z, both ends
-/// included. Also caches the stitched strips' deviations ([`crate::stitch`]).
+/// included. Also caches the stitched strips' deviations ([`crate::stitch`]) and the
+/// blocks' interior summaries ([`crate::morph::InteriorTiles`]).
 #[derive(Clone, Debug)]
 pub struct MinMaxPyramid {
     pub n: u32,
@@ -227,6 +228,7 @@ pub struct MinMaxPyramid {
     /// `dev[L - 1]`, row-major, raw height units.
     pub dev: Vec<Vec<f32>>,
     pub stitch: crate::stitch::StitchCache,
+    pub interiors: crate::block_cache::BoundedCache<(u32, u32, u32, u32), crate::morph::InteriorTiles>,
 }
 
 impl MinMaxPyramid {
@@ -267,7 +269,13 @@ impl MinMaxPyramid {
             }
             levels.push(level);
         }
-        MinMaxPyramid { n, levels, dev: crate::deviation::exact_deviation(hf), stitch: Default::default() }
+        MinMaxPyramid {
+            n,
+            levels,
+            dev: crate::deviation::exact_deviation(hf),
+            stitch: Default::default(),
+            interiors: Default::default(),
+        }
     }
 
     /// Cells a side at level `l`.
