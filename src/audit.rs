@@ -45,7 +45,6 @@ pub fn rendered_raw(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, x: i6
         (qv == 0 && cn[0] > 0) || (qv == k - 2 && cn[2] > 0) || (qu == k - 2 && cn[1] > 0) || (qu == 0 && cn[3] > 0);
     // Collapsed edge vertices move by up to `ratio` quads along their edge.
     let reach = if touches { (*cn.iter().max().unwrap() as i64 / stride).min(k - 1) } else { 0 };
-    let (p_x, p_z) = (x as f64, z as f64);
     for dv in -reach..=reach {
         for du in -reach..=reach {
             let (u, v) = (qu + du, qv + dv);
@@ -58,7 +57,7 @@ pub fn rendered_raw(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, x: i6
             let i = vert(u + 1, v + 1);
             let g = vert(u, v + 1);
             for tri in [[a, c, i], [a, i, g]] {
-                if let Some(h) = interpolate(&tri, p_x, p_z) {
+                if let Some(h) = interpolate(&tri, x, z) {
                     return Some(h);
                 }
             }
@@ -67,30 +66,30 @@ pub fn rendered_raw(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, x: i6
     None
 }
 
-/// Barycentric interpolation of a triangle's raw heights at `(px, pz)` if inside.
-pub(crate) fn interpolate(t: &[(i64, i64, f32); 3], px: f64, pz: f64) -> Option<f32> {
+/// Barycentric interpolation of a triangle's raw heights at sample `(px, pz)` if inside.
+pub(crate) fn interpolate(t: &[(i64, i64, f32); 3], px: i64, pz: i64) -> Option<f32> {
     let w = barycentric(&t.map(|p| (p.0, p.1)), px, pz)?;
     Some(weighted(w, [t[0].2, t[1].2, t[2].2]))
 }
 
-/// Barycentric weights of `(px, pz)` in the triangle with corners `t`, if inside
-/// (edges included); `None` for a degenerate (collapsed) triangle.
-pub(crate) fn barycentric(t: &[(i64, i64); 3], px: f64, pz: f64) -> Option<[f64; 3]> {
-    let (x0, z0) = (t[0].0 as f64, t[0].1 as f64);
-    let (x1, z1) = (t[1].0 as f64, t[1].1 as f64);
-    let (x2, z2) = (t[2].0 as f64, t[2].1 as f64);
+/// Barycentric weights of sample `(px, pz)` in the triangle with corners `t`, if inside
+/// (edges included, decided exactly in integers); `None` for a degenerate (collapsed)
+/// triangle, which covers nothing.
+pub(crate) fn barycentric(t: &[(i64, i64); 3], px: i64, pz: i64) -> Option<[f64; 3]> {
+    let [(x0, z0), (x1, z1), (x2, z2)] = *t;
     let det = (x1 - x0) * (z2 - z0) - (x2 - x0) * (z1 - z0);
-    if det.abs() < 1e-12 {
-        return None; // degenerate (collapsed) triangle
-    }
-    let w1 = ((px - x0) * (z2 - z0) - (x2 - x0) * (pz - z0)) / det;
-    let w2 = ((x1 - x0) * (pz - z0) - (px - x0) * (z1 - z0)) / det;
-    let w0 = 1.0 - w1 - w2;
-    let eps = -1e-9;
-    if w0 < eps || w1 < eps || w2 < eps {
+    if det == 0 {
         return None;
     }
-    Some([w0, w1, w2])
+    let n1 = (px - x0) * (z2 - z0) - (x2 - x0) * (pz - z0);
+    let n2 = (x1 - x0) * (pz - z0) - (px - x0) * (z1 - z0);
+    let n0 = det - n1 - n2;
+    let s = det.signum();
+    if n0 * s < 0 || n1 * s < 0 || n2 * s < 0 {
+        return None;
+    }
+    let (w1, w2) = (n1 as f64 / det as f64, n2 as f64 / det as f64);
+    Some([1.0 - w1 - w2, w1, w2])
 }
 
 /// The height with weights `w` at the corners' heights `h`.
@@ -214,4 +213,28 @@ pub fn check_tiling(
         }
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Samples on a triangle's edges and corners are inside, the nearest ones beyond are
+    /// not, in either winding; a collapsed triangle covers nothing; the height is the
+    /// plane's.
+    #[test]
+    fn barycentric_includes_edges_exactly() {
+        let plane = |x: i64, z: i64| 2.0 * x as f32 - 3.0 * z as f32 + 5.0;
+        let ccw = [(0i64, 0i64), (8, 0), (8, 8)];
+        for t in [ccw, [ccw[0], ccw[2], ccw[1]]] {
+            let tri = t.map(|(x, z)| (x, z, plane(x, z)));
+            for (x, z) in [(0, 0), (4, 0), (8, 0), (8, 5), (3, 3), (8, 8), (5, 2)] {
+                assert_eq!(interpolate(&tri, x, z), Some(plane(x, z)), "{x}, {z}");
+            }
+            for (x, z) in [(3, 4), (9, 0), (4, -1), (8, 9), (0, 1)] {
+                assert_eq!(interpolate(&tri, x, z), None, "{x}, {z}");
+            }
+        }
+        assert_eq!(barycentric(&[(0, 0), (4, 4), (8, 8)], 4, 4), None);
+    }
 }

@@ -4,7 +4,6 @@
 //! end: a frame draws a few thousand blocks at most, and the map keeps several frames'
 //! worth before it is emptied and refilled.
 
-use std::collections::HashMap;
 use std::hash::Hash;
 use std::sync::Mutex;
 
@@ -12,12 +11,12 @@ use std::sync::Mutex;
 pub const CACHE_ENTRIES: usize = 1 << 14;
 
 pub struct BoundedCache<K, V> {
-    map: Mutex<HashMap<K, V>>,
+    map: Mutex<foldhash::HashMap<K, V>>,
 }
 
 impl<K, V> Default for BoundedCache<K, V> {
     fn default() -> Self {
-        BoundedCache { map: Mutex::new(HashMap::new()) }
+        BoundedCache { map: Mutex::new(foldhash::HashMap::default()) }
     }
 }
 
@@ -36,7 +35,7 @@ impl<K, V> std::fmt::Debug for BoundedCache<K, V> {
 impl<K, V> BoundedCache<K, V> {
     /// A poisoned lock only means another thread panicked mid-insert; entries are whole
     /// values, so the map is still consistent.
-    fn lock(&self) -> std::sync::MutexGuard<'_, HashMap<K, V>> {
+    fn lock(&self) -> std::sync::MutexGuard<'_, foldhash::HashMap<K, V>> {
         self.map.lock().unwrap_or_else(|e| e.into_inner())
     }
 

@@ -42,8 +42,8 @@ use crate::camera::{distance_to_aabb, Camera};
 use crate::heightfield::{Heightfield, MinMaxPyramid};
 use crate::quadtree::{angular_factor, block_aabb, morph_value, BlockLayout, DrawBlock, Traversal, MORPH_ONE};
 use crate::stitch::{strip_segment, CORNER_EDGES, STRIP_SEGMENTS};
+use foldhash::HashMap;
 use glam::Vec3;
-use std::collections::HashMap;
 
 /// What a block's morph costs, in pixels for this frame's camera.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]

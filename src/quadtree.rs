@@ -4,8 +4,8 @@
 use crate::camera::{distance_to_aabb, Camera, Frustum};
 use crate::gie::{BlockErrors, ErrorMode};
 use crate::heightfield::{Heightfield, MinMaxPyramid};
+use foldhash::HashSet;
 use glam::Vec3;
-use std::collections::HashSet;
 
 /// Block geometry: `k = 2^m + 1` vertices a side; a block of LOD `j` covers `2^(m+j)`
 /// samples; the root is at LOD `n - m`.
@@ -227,7 +227,7 @@ fn select_blocks(
     cam: &Camera,
     select: LodSelect,
 ) -> Traversal {
-    let mut forced = HashSet::new();
+    let mut forced = HashSet::default();
     loop {
         let mut out = traverse_once(hf, mm, layout, cam, select, &forced);
         out.stitch_splits = forced.len();
@@ -421,7 +421,7 @@ fn assign_neighbours(layout: &BlockLayout, blocks: &mut [DrawBlock], map: &[i8])
 /// neighbour's own corners, resolved before (coarsest first).
 pub fn resolve_corners(hf: &Heightfield, layout: &BlockLayout, blocks: &mut [DrawBlock], map: &[i8]) {
     let cells = layout.cells() as i64;
-    let index: std::collections::HashMap<(u32, u32, u32), usize> =
+    let index: foldhash::HashMap<(u32, u32, u32), usize> =
         blocks.iter().enumerate().map(|(i, b)| ((b.lod, b.bx, b.bz), i)).collect();
     let mut order: Vec<usize> = (0..blocks.len()).collect();
     order.sort_by_key(|&i| std::cmp::Reverse(blocks[i].lod));

@@ -322,7 +322,7 @@ fn triangle_deviation_states(hf: &Heightfield, pos: [(i64, i64); 3], heights: &[
     let z1 = pos.iter().map(|p| p.1).max().unwrap_or(0);
     for z in z0..=z1 {
         for x in x0..=x1 {
-            if let Some(w) = crate::audit::barycentric(&pos, x as f64, z as f64) {
+            if let Some(w) = crate::audit::barycentric(&pos, x, z) {
                 let raw = hf.raw_at(x, z);
                 for (d, h) in dev.iter_mut().zip(heights) {
                     *d = d.max((raw - crate::audit::weighted(w, *h)).abs());
