@@ -72,8 +72,9 @@ pub struct BenchArgs {
     #[arg(long, value_name = "SECS", default_value = "10", value_parser = positive)]
     pub watchdog: f32,
     /// Fault injection for tests: `errors-device-lost:G` (the errors thread loses the
-    /// device at generation G) or `draw-out-of-memory:F` (the draw thread runs out of
-    /// device memory at frame F).
+    /// device at generation G), `draw-out-of-memory:F` (the draw thread runs out of
+    /// device memory at frame F) or `interrupt-full:F` (Ctrl-C at frame F of the
+    /// `--lod full` run that --compare and --popping add).
     #[arg(long, value_name = "FAULT:N", hide = true)]
     pub inject_fault: Option<String>,
 }
@@ -386,6 +387,8 @@ struct Bench<'a> {
     frames_done: Arc<AtomicU64>,
     size: (u32, u32),
     draw_oom_at: Option<u64>,
+    /// Acts as Ctrl-C at this frame of the `--lod full` run (tests).
+    interrupt_full_at: Option<u64>,
     /// Frames of the run: --frames, or the pose file's length.
     frames: u64,
     poses: Option<Vec<(Vec3, Vec3)>>,
@@ -491,6 +494,9 @@ impl Bench<'_> {
             row.draw_calls = stats.draw_calls;
         };
         for i in 0..self.frames {
+            if label == "full" && self.interrupt_full_at == Some(i) {
+                self.stop.store(true, Ordering::SeqCst);
+            }
             if self.stop.load(Ordering::SeqCst) {
                 run.interrupted = true;
                 break;
@@ -801,6 +807,7 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
         frames_done: frames_done.clone(),
         size,
         draw_oom_at: None,
+        interrupt_full_at: None,
         frames,
         poses,
     };
@@ -818,6 +825,7 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
             match kind {
                 "errors-device-lost" => activity.inject_device_lost_at(n),
                 "draw-out-of-memory" => bench.draw_oom_at = Some(n),
+                "interrupt-full" => bench.interrupt_full_at = Some(n),
                 _ => return Err(InputError(format!("--inject-fault {kind}: unknown fault")).into()),
             }
         }
@@ -870,9 +878,11 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
             summary["generations_strictly_increasing"] = json!(increasing);
             summary["rss_samples_mib"] = json!(main.rss);
             summary["interrupted"] = json!(main.interrupted);
+            // Comparisons only from runs that went the whole path: a run stopped part way
+            // (Ctrl-C, the watchdog) would make every ratio meaningless.
             let mut full = None;
             if (args.compare || args.popping) && !main.interrupted {
-                full = Some(bench.run(LodChoice::Full, None, None, false)?);
+                full = Some(bench.run(LodChoice::Full, None, None, false)?).filter(|r| !r.interrupted);
             }
             if let (true, Some(full)) = (args.popping, &full) {
                 summary["popping"] = popping(&mut main.rows, &full.rows);
@@ -882,21 +892,24 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
             if let (true, Some(full)) = (args.compare, full) {
                 let distance = bench.run(LodChoice::Distance, None, None, false)?;
                 let ceiling = bench.run(LodChoice::Full, None, Some(&main.blocks), false)?;
-                let (sm, sf, sd, sc) = (summarize(&main), summarize(&full), summarize(&distance), summarize(&ceiling));
-                let ratio =
-                    |a: &Value, b: &Value, k: &str| a[k].as_f64().zip(b[k].as_f64()).map(|(x, y)| x / y.max(1e-12));
-                summary["compare"] = json!({
-                    "error": sm, "full": sf, "distance": sd, "ceiling": sc,
-                    "fps_error_over_full": ratio(&sm, &sf, "avg_fps"),
-                    "fps_error_over_distance": ratio(&sm, &sd, "avg_fps"),
-                    "triangles_full_over_error": ratio(&sf, &sm, "mean_triangles"),
-                    "triangles_distance_over_error": ratio(&sd, &sm, "mean_triangles"),
-                    "share_of_ceiling_fps": ratio(&sm, &sc, "avg_fps"),
-                });
-                let ms = |run: &Run| run.rows.iter().map(|r| r.frame_ms).collect::<Vec<_>>();
-                if let Some((median, p99)) = frame_time_excess(&ms(&main), &ms(&ceiling)) {
-                    summary["compare"]["median_excess_over_ceiling_ms"] = json!(median);
-                    summary["compare"]["p99_excess_over_ceiling_ms"] = json!(p99);
+                if !distance.interrupted && !ceiling.interrupted {
+                    let (sm, sf, sd, sc) =
+                        (summarize(&main), summarize(&full), summarize(&distance), summarize(&ceiling));
+                    let ratio =
+                        |a: &Value, b: &Value, k: &str| a[k].as_f64().zip(b[k].as_f64()).map(|(x, y)| x / y.max(1e-12));
+                    summary["compare"] = json!({
+                        "error": sm, "full": sf, "distance": sd, "ceiling": sc,
+                        "fps_error_over_full": ratio(&sm, &sf, "avg_fps"),
+                        "fps_error_over_distance": ratio(&sm, &sd, "avg_fps"),
+                        "triangles_full_over_error": ratio(&sf, &sm, "mean_triangles"),
+                        "triangles_distance_over_error": ratio(&sd, &sm, "mean_triangles"),
+                        "share_of_ceiling_fps": ratio(&sm, &sc, "avg_fps"),
+                    });
+                    let ms = |run: &Run| run.rows.iter().map(|r| r.frame_ms).collect::<Vec<_>>();
+                    if let Some((median, p99)) = frame_time_excess(&ms(&main), &ms(&ceiling)) {
+                        summary["compare"]["median_excess_over_ceiling_ms"] = json!(median);
+                        summary["compare"]["p99_excess_over_ceiling_ms"] = json!(p99);
+                    }
                 }
             }
             if !args.no_fidelity && !stop.load(Ordering::SeqCst) {
@@ -913,6 +926,10 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     // The trace holds what was measured even when the run failed.
     let traced = trace.finish().map_err(|e| anyhow::anyhow!("{}: {e}", trace_path.display()));
     let mut summary = result?;
+    // Any run stopped part way (the main run, or one that --compare or --popping added).
+    if stop.load(Ordering::SeqCst) {
+        summary["interrupted"] = json!(true);
+    }
     stopped?;
     traced?;
     let secs = started.elapsed().as_secs_f64();

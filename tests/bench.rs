@@ -253,6 +253,35 @@ fn ctrl_c_stops_cleanly_and_keeps_what_was_measured() {
     assert!(out.join("plot.png").exists() && out.join("trace.json").exists());
 }
 
+/// Stopped during a run that --compare adds (here the `--lod full` one, at its third
+/// frame): the summary says interrupted and holds no comparison built from the partial
+/// run; the main run's results are all there.
+#[test]
+fn a_compare_stopped_part_way_reports_no_ratios() {
+    let tmp = TempDir::new("cmpstop");
+    let out = tmp.path().join("out");
+    let field = small_field(tmp.path());
+    let o = Command::new(env!("CARGO_BIN_EXE_vkterrain"))
+        .args(["bench", "--heightmap", field.to_str().unwrap(), "--raw-size", "257x257", "--spacing", "10"])
+        .args(["--block", "9", "--size", "160x120", "--frames", "12", "--validation", "on", "--no-fidelity"])
+        .args(["--compare", "--inject-fault", "interrupt-full:3", "--out"])
+        .arg(&out)
+        .env("RUST_LOG", "error")
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{stderr}");
+    assert!(stderr.contains("interrupted; partial results"), "{stderr}");
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
+    assert_eq!(summary["interrupted"], true);
+    assert!(summary.get("compare").is_none(), "{}", summary["compare"]);
+    assert_eq!(summary["frames"], 12);
+    assert_eq!(summary["validation_messages"], 0);
+    let rows = std::fs::read_to_string(out.join("frames.csv")).unwrap().lines().count();
+    assert_eq!(rows, 13);
+}
+
 /// Runs a bench with an injected fault; it must exit with 1 (not hang, not panic), one
 /// error line naming the stage and the Vulkan result, both threads joined.
 fn faulted(fault: &str, needles: &[&str]) {
