@@ -172,10 +172,15 @@ struct Row {
     /// Colour RMSE between this frame and the previous frame's blocks drawn from this
     /// frame's camera: the change due to LOD selection alone (with --popping).
     lod_change_rmse: Option<f64>,
+    /// Share of the pixels compared for `lod_change_rmse` whose largest channel differs by
+    /// more than 16 levels (the fidelity's threshold): a visible jump, which a sub-level
+    /// change spread over many pixels (a morph step) does not make.
+    lod_change_over16: Option<f64>,
 }
 
 const CSV_HEADER: &str = "time_s,frame_ms,traverse_ms,gpu_ms,triangles,draw_calls,blocks,error_generation,\
-                          error_age_frames,error_update_ms,queue_wait_ms,morphing,temporal_rmse,popping,lod_change_rmse";
+                          error_age_frames,error_update_ms,queue_wait_ms,morphing,temporal_rmse,popping,lod_change_rmse,\
+                          lod_change_over16";
 
 fn opt<T: std::fmt::Display>(v: Option<T>) -> String {
     v.map_or(String::new(), |v| v.to_string())
@@ -184,7 +189,7 @@ fn opt<T: std::fmt::Display>(v: Option<T>) -> String {
 impl Row {
     fn csv(&self) -> String {
         format!(
-            "{:.4},{:.3},{:.3},{},{},{},{},{},{},{},{},{},{},{},{}",
+            "{:.4},{:.3},{:.3},{},{},{},{},{},{},{},{},{},{},{},{},{}",
             self.time_s,
             self.frame_ms,
             self.traverse_ms,
@@ -199,7 +204,8 @@ impl Row {
             self.morphing,
             opt(self.temporal_rmse.map(|v| format!("{v:.4}"))),
             opt(self.popping.map(|v| format!("{v:.4}"))),
-            opt(self.lod_change_rmse.map(|v| format!("{v:.4}")))
+            opt(self.lod_change_rmse.map(|v| format!("{v:.4}"))),
+            opt(self.lod_change_over16.map(|v| format!("{v:.7}")))
         )
     }
 }
@@ -363,6 +369,9 @@ fn popping(main: &mut [Row], full: &[Row]) -> Value {
     let mut change: Vec<f64> = main.iter().filter_map(|r| r.lod_change_rmse).collect();
     let mean_change = change.iter().sum::<f64>() / change.len().max(1) as f64;
     change.sort_by(f64::total_cmp);
+    let mut over16: Vec<f64> = main.iter().filter_map(|r| r.lod_change_over16).collect();
+    let mean_over16 = over16.iter().sum::<f64>() / over16.len().max(1) as f64;
+    over16.sort_by(f64::total_cmp);
     json!({
         "frame_pairs": n,
         "mean_excess": mean,
@@ -372,6 +381,9 @@ fn popping(main: &mut [Row], full: &[Row]) -> Value {
         "mean_lod_change_rmse": mean_change,
         "p99_lod_change_rmse": (!change.is_empty()).then(|| percentile(&change, 0.99)),
         "max_lod_change_rmse": change.last(),
+        "mean_lod_change_share_over16": mean_over16,
+        "p99_lod_change_share_over16": (!over16.is_empty()).then(|| percentile(&over16, 0.99)),
+        "max_lod_change_share_over16": over16.last(),
     })
 }
 
@@ -419,7 +431,9 @@ impl Bench<'_> {
                 self.renderer.wait_frame(slot)?;
                 images.push(target.pixels()?);
             }
-            rows[r].lod_change_rmse = Some(keyed_difference(&images[0], &images[1]));
+            let (rmse, over16) = keyed_difference(&images[0], &images[1]);
+            rows[r].lod_change_rmse = Some(rmse);
+            rows[r].lod_change_over16 = Some(over16);
         }
         diff.frames.retain(|&k, _| k + 2 >= r);
         diff.push(r, pixels, rows);
@@ -726,17 +740,19 @@ fn plot(path: &Path, rows: &[Row], title: &str) -> anyhow::Result<()> {
 const KEY_COLOUR: [f32; 3] = [1.0, 0.0, 1.0];
 
 /// Colour RMSE over the pixels that show terrain in both images.
-fn keyed_difference(a: &[u8], b: &[u8]) -> f64 {
+fn keyed_difference(a: &[u8], b: &[u8]) -> (f64, f64) {
     let key = KEY_COLOUR.map(|c| (c * 255.0) as u8);
-    let (mut se, mut n) = (0.0f64, 0usize);
+    let (mut se, mut over, mut n) = (0.0f64, 0usize, 0usize);
     for (p, q) in a.chunks(4).zip(b.chunks(4)) {
         if p[..3] == key || q[..3] == key {
             continue;
         }
-        se += (0..3).map(|c| ((p[c] as i32 - q[c] as i32).pow(2)) as f64).sum::<f64>();
+        let d = [0, 1, 2].map(|c| p[c] as i32 - q[c] as i32);
+        se += d.iter().map(|d| (d * d) as f64).sum::<f64>();
+        over += d.iter().any(|d| d.abs() > 16) as usize;
         n += 1;
     }
-    (se / (3 * n.max(1)) as f64).sqrt()
+    ((se / (3 * n.max(1)) as f64).sqrt(), over as f64 / n.max(1) as f64)
 }
 
 pub fn image_difference(a: &[u8], b: &[u8]) -> (f64, f64) {
@@ -1011,6 +1027,19 @@ fn fidelity(bench: &mut Bench, activity: &ErrorsActivity) -> anyhow::Result<Valu
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Keyed pixels are left out; the RMSE is over the rest, and only a channel more
+    /// than 16 levels off counts as a visible jump (16 itself does not).
+    #[test]
+    fn keyed_difference_counts_visible_jumps_only() {
+        let key = KEY_COLOUR.map(|c| (c * 255.0) as u8);
+        let px = |r: u8, g: u8, b: u8| [r, g, b, 255];
+        let a: Vec<u8> = [px(10, 10, 10), px(10, 10, 10), px(10, 10, 10), px(key[0], key[1], key[2])].concat();
+        let b: Vec<u8> = [px(10, 10, 10), px(26, 10, 10), px(10, 10, 27), px(200, 0, 0)].concat();
+        let (rmse, over) = keyed_difference(&a, &b);
+        assert!((rmse - ((16.0f64 * 16.0 + 17.0 * 17.0) / 9.0).sqrt()).abs() < 1e-9, "{rmse}");
+        assert!((over - 1.0 / 3.0).abs() < 1e-12, "{over}");
+    }
 
     /// A path whose second half is twice as heavy slows both runs alike: the excess stays
     /// as it was. Stalled frames (2 in 100) show in the p99, not the median.

@@ -61,13 +61,13 @@ fn short_bench_writes_every_file_with_documented_fields() {
     assert_eq!(
         lines.next().unwrap(),
         "time_s,frame_ms,traverse_ms,gpu_ms,triangles,draw_calls,blocks,error_generation,error_age_frames,\
-         error_update_ms,queue_wait_ms,morphing,temporal_rmse,popping,lod_change_rmse"
+         error_update_ms,queue_wait_ms,morphing,temporal_rmse,popping,lod_change_rmse,lod_change_over16"
     );
     let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
     assert_eq!(rows.len(), 24);
-    assert!(rows.iter().all(|r| r.len() == 15));
+    assert!(rows.iter().all(|r| r.len() == 16));
     // Without --popping no frame is read back for it.
-    assert!(rows.iter().all(|r| r[12..] == ["", "", ""]));
+    assert!(rows.iter().all(|r| r[12..] == ["", "", "", ""]));
     // Terrain is ahead for the first three quarters of the path (at the far edge the
     // camera looks out past it, as at the end of the paper's Figure 8).
     assert!(rows[..18].iter().all(|r| r[4].parse::<u64>().unwrap() > 0), "frames with terrain ahead draw triangles");
@@ -174,7 +174,14 @@ fn popping_is_measured_frame_by_frame() {
         assert_eq!(s["morph"], morph == "on");
         let p = &s["popping"];
         assert_eq!(p["frame_pairs"], 11, "{p}");
-        for key in ["mean_excess", "p99_excess", "mean_lod_change_rmse", "p99_lod_change_rmse"] {
+        for key in [
+            "mean_excess",
+            "p99_excess",
+            "mean_lod_change_rmse",
+            "p99_lod_change_rmse",
+            "mean_lod_change_share_over16",
+            "p99_lod_change_share_over16",
+        ] {
             assert!(p[key].as_f64().is_some_and(|v| v.is_finite()), "popping.{key}: {p}");
         }
         let csv = std::fs::read_to_string(out.join("frames.csv")).unwrap();
@@ -184,6 +191,10 @@ fn popping_is_measured_frame_by_frame() {
         for r in &rows[1..] {
             let (t, excess, change) = (num(r, 12).unwrap(), num(r, 13).unwrap(), num(r, 14).unwrap());
             assert!(t >= 0.0 && change >= 0.0 && excess <= t + 1e-3, "{r:?}");
+            // A visible jump in a pixel shows in the RMSE: over 16 levels in one channel of
+            // a share s of the pixels is at least 17 * sqrt(s / 3).
+            let over16 = num(r, 15).unwrap();
+            assert!((0.0..=1.0).contains(&over16) && change + 1e-3 >= 17.0 * (over16 / 3.0).sqrt(), "{r:?}");
         }
         let mean: f64 = rows[1..].iter().map(|r| num(r, 13).unwrap()).sum::<f64>() / 11.0;
         assert!((mean - p["mean_excess"].as_f64().unwrap()).abs() < 1e-3, "mean excess {mean} against {p}");
