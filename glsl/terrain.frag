@@ -125,9 +125,11 @@ void main() {
         float range = max(frame.terrain.w - frame.terrain.z, 1e-6);
         float t = clamp((v_world.y - frame.terrain.z) / range, 0.0, 1.0);
         albedo = ramp(t, 1.0 - n.y);
-        // Level ground at the lowest height is water (sea level in most DEMs). Decided
-        // from the samples around the pixel, not the drawn height, so that a shoreline
-        // does not move with LOD or morphing.
+        // Level ground at the lowest height is water (sea level in most DEMs): the sea
+        // flags and the flatness come from the samples around the pixel, so that LOD and
+        // morphing do not move the shoreline across the samples; the drawn height only
+        // keeps coarse triangles that rise well above the sea dry. The shoreline still
+        // moves on screen with the surface (README, popping).
         if (v_world.y <= frame.terrain.z + 0.05 * range && n.y > 0.9999
             && s00.sea && s10.sea && s01.sea && s11.sea) {
             albedo = vec3(0.05, 0.16, 0.30);
