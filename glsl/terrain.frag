@@ -125,15 +125,20 @@ void main() {
         float range = max(frame.terrain.w - frame.terrain.z, 1e-6);
         float t = clamp((v_world.y - frame.terrain.z) / range, 0.0, 1.0);
         albedo = ramp(t, 1.0 - n.y);
-        // Level ground at the lowest height is water (sea level in most DEMs): the sea
-        // flags and the flatness come from the samples around the pixel, so that LOD and
-        // morphing do not move the shoreline across the samples; the drawn height only
-        // keeps coarse triangles that rise well above the sea dry. The shoreline still
-        // moves on screen with the surface (README, popping).
-        if (v_world.y <= frame.terrain.z + 0.05 * range && n.y > 0.9999
-            && s00.sea && s10.sea && s01.sea && s11.sea) {
-            albedo = vec3(0.05, 0.16, 0.30);
-        }
+        // The lowest ground is water (sea level in most DEMs): where the samples around
+        // the pixel are at sea level (their flags). Blended, not tested, so that the
+        // shoreline is an edge that moves continuously: a step between quads flipped
+        // whole pixels between land and water whenever the surface under them moved by
+        // a fraction of a pixel (morphing, LOD changes, the camera), most of the visible
+        // jumps of a morphing frame (README, popping). The bilinear share of sea samples
+        // counts from one half (so that a lone sea sample stays dry); inside a quad of
+        // four sea samples it is 1. Decided from the samples, not the drawn height, so
+        // that LOD and morphing do not move it across the samples; the drawn height only
+        // keeps coarse triangles that rise well above the sea dry.
+        float sea = mix(mix(float(s00.sea), float(s10.sea), f.x), mix(float(s01.sea), float(s11.sea), f.x), f.y);
+        float w = smoothstep(0.5, 1.0, sea);
+        if (v_world.y > frame.terrain.z + 0.05 * range) w = 0.0;
+        albedo = mix(albedo, vec3(0.05, 0.16, 0.30), w);
         if (DETAIL_TEXTURE) {
             vec3 detail = texture(detail_tex, uv * frame.texturing.x).rgb;
             float alpha = frame.texturing.y;
