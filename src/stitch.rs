@@ -171,6 +171,7 @@ pub fn edge_regions(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, fixed
         for (st, block) in s.iter().enumerate() {
             for (c, &(uu, vv)) in corners.iter().enumerate() {
                 let (x, z, h) = block_vertex(hf, layout, block, uu, vv);
+                debug_assert!(st == 0 || pos[c] == (x, z), "a morph state moved a vertex in x or z");
                 pos[c] = (x, z);
                 heights[st][c] = h;
                 out.lo = out.lo.min(h);
