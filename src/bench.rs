@@ -360,31 +360,33 @@ fn popping(main: &mut [Row], full: &[Row]) -> Value {
         }
     }
     let n = excess.len();
-    let mean = excess.iter().sum::<f64>() / n.max(1) as f64;
-    excess.sort_by(f64::total_cmp);
-    let mut lod: Vec<f64> = main.iter().filter_map(|r| r.temporal_rmse).collect();
-    lod.sort_by(f64::total_cmp);
-    let mut reference: Vec<f64> = full.iter().filter_map(|r| r.temporal_rmse).collect();
-    reference.sort_by(f64::total_cmp);
-    let mut change: Vec<f64> = main.iter().filter_map(|r| r.lod_change_rmse).collect();
-    let mean_change = change.iter().sum::<f64>() / change.len().max(1) as f64;
-    change.sort_by(f64::total_cmp);
-    let mut over16: Vec<f64> = main.iter().filter_map(|r| r.lod_change_over16).collect();
-    let mean_over16 = over16.iter().sum::<f64>() / over16.len().max(1) as f64;
-    over16.sort_by(f64::total_cmp);
+    let (excess, mean) = sorted_with_mean(excess.into_iter());
+    let (lod, _) = sorted_with_mean(main.iter().filter_map(|r| r.temporal_rmse));
+    let (reference, _) = sorted_with_mean(full.iter().filter_map(|r| r.temporal_rmse));
+    let (change, mean_change) = sorted_with_mean(main.iter().filter_map(|r| r.lod_change_rmse));
+    let (over16, mean_over16) = sorted_with_mean(main.iter().filter_map(|r| r.lod_change_over16));
+    let p99 = |s: &[f64]| (!s.is_empty()).then(|| percentile(s, 0.99));
     json!({
         "frame_pairs": n,
         "mean_excess": mean,
-        "p99_excess": (n > 0).then(|| percentile(&excess, 0.99)),
+        "p99_excess": p99(&excess),
         "p99_temporal_rmse": (n > 0).then(|| percentile(&lod, 0.99)),
         "p99_temporal_rmse_full": (n > 0).then(|| percentile(&reference, 0.99)),
         "mean_lod_change_rmse": mean_change,
-        "p99_lod_change_rmse": (!change.is_empty()).then(|| percentile(&change, 0.99)),
+        "p99_lod_change_rmse": p99(&change),
         "max_lod_change_rmse": change.last(),
         "mean_lod_change_share_over16": mean_over16,
-        "p99_lod_change_share_over16": (!over16.is_empty()).then(|| percentile(&over16, 0.99)),
+        "p99_lod_change_share_over16": p99(&over16),
         "max_lod_change_share_over16": over16.last(),
     })
+}
+
+/// The values sorted, and their mean (0 when there are none).
+fn sorted_with_mean(values: impl Iterator<Item = f64>) -> (Vec<f64>, f64) {
+    let mut v: Vec<f64> = values.collect();
+    let mean = v.iter().sum::<f64>() / v.len().max(1) as f64;
+    v.sort_by(f64::total_cmp);
+    (v, mean)
 }
 
 struct Bench<'a> {
@@ -735,16 +737,25 @@ fn plot(path: &Path, rows: &[Row], title: &str) -> anyhow::Result<()> {
     std::fs::rename(&tmp, path).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))
 }
 
-/// RMSE (8-bit) and the share of pixels off by more than 16 levels.
 /// Background of the LOD-change images: pixels showing it in either image are left out.
 const KEY_COLOUR: [f32; 3] = [1.0, 0.0, 1.0];
 
-/// Colour RMSE over the pixels that show terrain in both images.
+/// [`image_difference`] over the pixels that show terrain in both images.
 fn keyed_difference(a: &[u8], b: &[u8]) -> (f64, f64) {
     let key = KEY_COLOUR.map(|c| (c * 255.0) as u8);
+    difference(a, b, |p, q| p[..3] != key && q[..3] != key)
+}
+
+/// RMSE (8-bit) and the share of pixels with a channel off by more than 16 levels.
+pub fn image_difference(a: &[u8], b: &[u8]) -> (f64, f64) {
+    difference(a, b, |_, _| true)
+}
+
+/// [`image_difference`] over the RGBA pixels that `compared` accepts.
+fn difference(a: &[u8], b: &[u8], compared: impl Fn(&[u8], &[u8]) -> bool) -> (f64, f64) {
     let (mut se, mut over, mut n) = (0.0f64, 0usize, 0usize);
     for (p, q) in a.chunks(4).zip(b.chunks(4)) {
-        if p[..3] == key || q[..3] == key {
+        if !compared(p, q) {
             continue;
         }
         let d = [0, 1, 2].map(|c| p[c] as i32 - q[c] as i32);
@@ -753,21 +764,6 @@ fn keyed_difference(a: &[u8], b: &[u8]) -> (f64, f64) {
         n += 1;
     }
     ((se / (3 * n.max(1)) as f64).sqrt(), over as f64 / n.max(1) as f64)
-}
-
-pub fn image_difference(a: &[u8], b: &[u8]) -> (f64, f64) {
-    let (mut se, mut off, mut n) = (0.0f64, 0usize, 0usize);
-    for (p, q) in a.chunks(4).zip(b.chunks(4)) {
-        let mut worst = 0i32;
-        for c in 0..3 {
-            let d = p[c] as i32 - q[c] as i32;
-            se += (d * d) as f64;
-            worst = worst.max(d.abs());
-        }
-        off += (worst > 16) as usize;
-        n += 1;
-    }
-    ((se / (3 * n.max(1)) as f64).sqrt(), off as f64 / n.max(1) as f64)
 }
 
 pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
