@@ -1,163 +1,20 @@
 #version 450
-// Terrain shading: normals from the heightfield, base and detail textures blended as in
-// seed 000 eqs. 9-11 (or a height/slope ramp), a directional sun with precomputed shadows
-// and ambient occlusion, and distance fog.
+// Forward terrain shading: every fragment of every block is shaded as it is drawn
+// (`--pixels forward`; the colour-by-LOD and wireframe views). See shade.frag for the
+// default, which shades each visible pixel once.
 #extension GL_GOOGLE_include_directive : require
 #define USE_FrameUniforms
 #define USE_TerrainSpec
 #include "layout.glsl"
 #include "common.glsl"
+#include "margin.glsl"
+#include "terrain_shade.glsl"
 
-layout(set = 0, binding = TERRAIN_BINDING_HEIGHTS) uniform sampler2D heights;
-layout(set = 0, binding = TERRAIN_BINDING_BASE) uniform sampler2D base_tex;
-layout(set = 0, binding = TERRAIN_BINDING_DETAIL) uniform sampler2D detail_tex;
-layout(set = 0, binding = TERRAIN_BINDING_GRADIENTS) uniform usampler2D gradients;
-layout(set = 0, binding = TERRAIN_BINDING_LIGHTING) uniform sampler2D lighting;
 layout(location = 0) in vec3 v_world;
 layout(location = 1) flat in int v_lod;
 layout(location = 0) out vec4 out_color;
 
-float world_height(ivec2 s) {
-    s = clamp(s, ivec2(0), ivec2(frame.extent.z - 1));
-    return decode_raw(texelFetch(heights, s, 0).r, frame.flags.x) * frame.terrain.y;
-}
-
-// What the shader needs of one sample: its gradient (central differences of world
-// heights) and whether it lies at sea level (world height <= frame.texturing.w). By
-// default both come from the gradient map (Heightfield::gradient_map: two 16-bit signed
-// units per texel, the sea flag in the lowest bit of z), the four samples around a pixel
-// in one gather; `--shading heights` computes them from five height fetches each, the
-// first wave's shading, for comparison. The choice is a specialization constant:
-// llvmpipe runs both sides of a uniform branch.
-struct Sample {
-    vec2 gradient;
-    bool sea;
-};
-
-Sample from_heights(ivec2 s) {
-    vec2 g = vec2(world_height(s + ivec2(1, 0)) - world_height(s - ivec2(1, 0)),
-                  world_height(s + ivec2(0, 1)) - world_height(s - ivec2(0, 1))) / (2.0 * frame.terrain.x);
-    return Sample(g, world_height(s) <= frame.texturing.w);
-}
-
-Sample from_texel(uint t) {
-    int x_units = int(t << 16) >> 16;
-    int z_units = int(t) >> 16;
-    return Sample(vec2(float(x_units), float(z_units & ~1)) * (frame.texturing.z / 32767.0), (z_units & 1) != 0);
-}
-
-// Hash of an integer lattice point to [0, 1] (integer arithmetic: the same on every GPU).
-float lattice(ivec2 c) {
-    uint n = uint(c.x) * 1597334677u ^ uint(c.y) * 3812015801u;
-    n = (n ^ (n >> 16)) * 2246822519u;
-    n ^= n >> 13;
-    return float(n & 0xffffu) / 65535.0;
-}
-
-float value_noise(vec2 p) {
-    ivec2 i = ivec2(floor(p));
-    vec2 f = fract(p);
-    f = f * f * (3.0 - 2.0 * f);
-    return mix(mix(lattice(i), lattice(i + ivec2(1, 0)), f.x),
-               mix(lattice(i + ivec2(0, 1)), lattice(i + ivec2(1, 1)), f.x), f.y);
-}
-
-// Procedural detail where no detail texture is given: value noise over the ground at 4
-// and 16 cycles per sample spacing, faded out where a cycle spans less than a few pixels,
-// so that close views are not one flat colour and far ones do not shimmer. A function of
-// (x, z) in samples alone: the same for every LOD and morph.
-float procedural_detail(vec2 p) {
-    float fade = 1.0 - smoothstep(0.25, 1.0, length(fwidth(p)) * 16.0);
-    if (fade <= 0.0) return 1.0;
-    float d = 0.6 * value_noise(p * 4.0) + 0.4 * value_noise(p * 16.0);
-    return 1.0 + 0.35 * (d - 0.5) * fade;
-}
-
-vec3 ramp(float t, float slope) {
-    vec3 low = vec3(0.10, 0.22, 0.07);
-    vec3 mid = vec3(0.30, 0.27, 0.14);
-    vec3 high = vec3(0.32, 0.30, 0.28);
-    vec3 snow = vec3(0.85, 0.87, 0.90);
-    vec3 c = t < 0.35 ? mix(low, mid, t / 0.35) : mix(mid, high, clamp((t - 0.35) / 0.35, 0.0, 1.0));
-    c = mix(c, high, smoothstep(0.35, 0.7, slope));
-    return mix(c, snow, smoothstep(0.72, 0.8, t) * (1.0 - smoothstep(0.5, 0.8, slope)));
-}
-
 void main() {
-    float spacing = frame.terrain.x;
-    vec2 p = v_world.xz / spacing;
-    vec2 extent = vec2(frame.extent.xy - 1);
-    // The embedding margin beyond the true extent is never shown.
-    if (p.x > extent.x + 1e-3 || p.y > extent.y + 1e-3) discard;
-
-    ivec2 i0 = ivec2(floor(p));
-    vec2 f = p - vec2(i0);
-    Sample s00, s10, s01, s11;
-    if (NORMALS_FROM_HEIGHTS) {
-        s00 = from_heights(i0);
-        s10 = from_heights(i0 + ivec2(1, 0));
-        s01 = from_heights(i0 + ivec2(0, 1));
-        s11 = from_heights(i0 + ivec2(1, 1));
-    } else {
-        // Texels i0 and i0 + 1 on each axis (clamped at the far edge): the coordinate is
-        // midway between their centres. Gather order: (0,1), (1,1), (1,0), (0,0).
-        uvec4 t = textureGather(gradients, (vec2(i0) + 1.0) / float(frame.extent.z));
-        s00 = from_texel(t.w);
-        s10 = from_texel(t.z);
-        s01 = from_texel(t.x);
-        s11 = from_texel(t.y);
-    }
-    vec2 g = mix(mix(s00.gradient, s10.gradient, f.x), mix(s01.gradient, s11.gradient, f.x), f.y);
-    vec3 n = normalize(vec3(-g.x, 1.0, -g.y));
-
-    vec3 albedo;
-    vec2 uv = p / max(extent, vec2(1.0));
-    if (BASE_TEXTURE) {
-        albedo = texture(base_tex, uv).rgb;
-        if (DETAIL_TEXTURE) {
-            vec3 detail = texture(detail_tex, uv * frame.texturing.x).rgb;
-            float alpha = frame.texturing.y;
-            albedo = alpha * albedo + (1.0 - alpha) * detail;
-        } else {
-            albedo *= procedural_detail(p);
-        }
-    } else {
-        float range = max(frame.terrain.w - frame.terrain.z, 1e-6);
-        float t = clamp((v_world.y - frame.terrain.z) / range, 0.0, 1.0);
-        albedo = ramp(t, 1.0 - n.y);
-        // The lowest ground is water (sea level in most DEMs): where the samples around
-        // the pixel are at sea level (their flags). Blended, not tested, so that the
-        // shoreline is an edge that moves continuously: a step between quads flipped
-        // whole pixels between land and water whenever the surface under them moved by
-        // a fraction of a pixel (morphing, LOD changes, the camera), most of the visible
-        // jumps of a morphing frame (README, popping). The bilinear share of sea samples
-        // counts from one half (so that a lone sea sample stays dry); inside a quad of
-        // four sea samples it is 1. Decided from the samples, not the drawn height, so
-        // that LOD and morphing do not move it across the samples; the drawn height only
-        // keeps coarse triangles that rise well above the sea dry.
-        float sea = mix(mix(float(s00.sea), float(s10.sea), f.x), mix(float(s01.sea), float(s11.sea), f.x), f.y);
-        float w = smoothstep(0.5, 1.0, sea);
-        if (v_world.y > frame.terrain.z + 0.05 * range) w = 0.0;
-        albedo = mix(albedo, vec3(0.05, 0.16, 0.30), w);
-        if (DETAIL_TEXTURE) {
-            vec3 detail = texture(detail_tex, uv * frame.texturing.x).rgb;
-            float alpha = frame.texturing.y;
-            albedo = alpha * albedo + (1.0 - alpha) * detail;
-        } else {
-            albedo *= procedural_detail(p);
-        }
-    }
-    if (COLOUR_BY_LOD) {
-        vec3 palette[] = LOD_PALETTE;
-        albedo = mix(albedo, palette[v_lod % palette.length()], 0.6);
-    }
-    // Sun visibility and ambient occlusion, precomputed per lighting texel (lighting.frag):
-    // texel i is sample i * (N - 1) / (side - 1).
-    float texels = float(textureSize(lighting, 0).x);
-    vec2 lit = texture(lighting, (p * (texels - 1.0) / float(frame.extent.z - 1) + 0.5) / texels).rg;
-    vec3 l = normalize(frame.light.xyz);
-    vec3 color = albedo * (frame.light.w * lit.g + (1.0 - frame.light.w) * max(dot(n, l), 0.0) * lit.r);
-    float dist = length(v_world - frame.camera_fog.xyz);
-    float fog = 1.0 - exp(-frame.camera_fog.w * dist);
-    out_color = vec4(mix(color, frame.sky_horizon.rgb, fog), 1.0);
+    if (beyond_extent(v_world)) discard;
+    out_color = vec4(shade_terrain(v_world, v_lod), 1.0);
 }

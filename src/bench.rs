@@ -68,6 +68,11 @@ pub struct BenchArgs {
     /// pixel (the first wave's shading), to measure the pixel work side by side.
     #[arg(long, value_enum, default_value_t = crate::blocks::NormalSource::GradientMap)]
     pub shading: crate::blocks::NormalSource,
+    /// How pixels are shaded: once each after a depth-only pass over the blocks
+    /// (default), or as the blocks are drawn (the earlier shading), to measure the pixel
+    /// work side by side.
+    #[arg(long, value_enum, default_value_t = crate::blocks::PixelPass::Deferred)]
+    pub pixels: crate::blocks::PixelPass,
     /// Fail the run when a thread makes no progress for this many seconds.
     #[arg(long, value_name = "SECS", default_value = "10", value_parser = positive)]
     pub watchdog: f32,
@@ -478,7 +483,7 @@ impl Bench<'_> {
             (None, LodChoice::Distance) => "distance",
         };
         let mut progress = Progress::new(label, self.frames);
-        let shading = Shading { normals: self.args.shading, ..Shading::default() };
+        let shading = Shading { normals: self.args.shading, pixels: self.args.pixels, ..Shading::default() };
         let mut run = Run {
             rows: Vec::new(),
             blocks: Vec::new(),

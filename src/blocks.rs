@@ -86,6 +86,28 @@ pub struct Shading {
     pub detail_tiling: f32,
     pub detail_weight: f32,
     pub normals: NormalSource,
+    pub pixels: PixelPass,
+}
+
+/// How terrain pixels are shaded (the image is the same up to rounding, silhouettes
+/// aside: see shade.frag).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
+pub enum PixelPass {
+    /// The blocks write depth only, then one pass over the target shades each visible
+    /// pixel once, from its depth.
+    #[default]
+    Deferred,
+    /// Each block's fragments are shaded as it is drawn, partly covered 2x2 quads
+    /// included (the shading before deferred; colour-by-LOD and wireframe always use it).
+    Forward,
+}
+
+impl Shading {
+    /// Whether this frame is shaded deferred: the colour-by-LOD and wireframe views need
+    /// the block that drew a pixel, which depth alone does not give.
+    fn deferred(&self) -> bool {
+        self.pixels == PixelPass::Deferred && !self.colour_by_lod && !self.wireframe
+    }
 }
 
 /// Where the terrain shader's normals come from (the image is the same up to rounding).
@@ -105,6 +127,17 @@ struct TerrainVariant {
     normals: NormalSource,
     colour_by_lod: bool,
     wireframe: bool,
+    /// The deferred shading pass (shade.frag) rather than the forward block pipeline.
+    deferred: bool,
+}
+
+/// The pipelines a frame is drawn with.
+#[derive(Clone, Copy)]
+struct FramePipelines {
+    /// Draws the blocks: shaded (forward) or depth only (deferred).
+    blocks: vk::Pipeline,
+    /// Deferred shading's pass over the target, after the blocks.
+    shade: Option<vk::Pipeline>,
 }
 
 impl Default for Shading {
@@ -118,6 +151,7 @@ impl Default for Shading {
             detail_tiling: 64.0,
             detail_weight: 1.0,
             normals: NormalSource::GradientMap,
+            pixels: PixelPass::Deferred,
         }
     }
 }
@@ -154,15 +188,7 @@ impl Target {
                 vk::ImageUsageFlags::COLOR_ATTACHMENT | vk::ImageUsageFlags::TRANSFER_SRC,
                 false,
             )?,
-            depth: Image::new(
-                device,
-                "depth target",
-                extent,
-                DEPTH_FORMAT,
-                1,
-                vk::ImageUsageFlags::DEPTH_STENCIL_ATTACHMENT,
-                false,
-            )?,
+            depth: depth_target(device, "depth target", extent)?,
             readback: Buffer::new(
                 device,
                 "frame readback",
@@ -174,6 +200,12 @@ impl Target {
             height,
         })
     }
+}
+
+/// A depth attachment that the deferred shading pass also samples.
+pub fn depth_target(device: &Arc<Device>, name: &str, extent: vk::Extent2D) -> VkResult<Image> {
+    let usage = vk::ImageUsageFlags::DEPTH_STENCIL_ATTACHMENT | vk::ImageUsageFlags::SAMPLED;
+    Image::new(device, name, extent, DEPTH_FORMAT, 1, usage, false)
 }
 
 /// Where [`BlocksRenderer::record_frame`] draws, and what happens to the image after.
@@ -229,8 +261,10 @@ pub struct BlocksRenderer {
     textures: (bool, bool),
     /// Terrain pipelines made so far, one per shading variant (made on first use).
     terrain_pipelines: Vec<(TerrainVariant, GraphicsPipeline)>,
+    /// Deferred shading's first pass: the blocks, depth only.
+    depth_pipeline: GraphicsPipeline,
     sky_pipeline: GraphicsPipeline,
-    _pool: DescriptorPool,
+    pool: DescriptorPool,
     /// One uniform buffer and descriptor set per frame in flight.
     sets: Vec<vk::DescriptorSet>,
     uniforms: Vec<Buffer>,
@@ -276,6 +310,7 @@ impl BlocksRenderer {
                 (layout::TERRAIN_BINDING_DETAIL, sampler, vk::ShaderStageFlags::FRAGMENT),
                 (layout::TERRAIN_BINDING_GRADIENTS, sampler, vk::ShaderStageFlags::FRAGMENT),
                 (layout::TERRAIN_BINDING_LIGHTING, sampler, vk::ShaderStageFlags::FRAGMENT),
+                (layout::TERRAIN_BINDING_DEPTH, sampler, vk::ShaderStageFlags::FRAGMENT),
             ],
         )?;
         let pipeline_layout = PipelineLayout::new(
@@ -300,8 +335,24 @@ impl BlocksRenderer {
                 specialization: &[],
             },
         )?;
+        let depth_pipeline = GraphicsPipeline::new(
+            device,
+            &GraphicsPipelineDesc {
+                vert: shaders::TERRAIN_DEPTH_VERT,
+                frag: Some(shaders::TERRAIN_DEPTH_FRAG),
+                rasterizer_discard: false,
+                vertex_attribute: Some((2, vk::Format::R8G8_UINT)),
+                color_format: None,
+                depth_format: Some(DEPTH_FORMAT),
+                depth: DepthMode::TestWrite,
+                polygon_mode: vk::PolygonMode::FILL,
+                cull_back: true,
+                layout: &pipeline_layout,
+                specialization: &[],
+            },
+        )?;
         let n = frames_in_flight.max(1) as u32;
-        let pool = DescriptorPool::new(device, n, &[(sampler, 5 * n), (vk::DescriptorType::UNIFORM_BUFFER, n)])?;
+        let pool = DescriptorPool::new(device, n, &[(sampler, 6 * n), (vk::DescriptorType::UNIFORM_BUFFER, n)])?;
         let ubo_size = std::mem::size_of::<FrameUniforms>() as u64;
         let mut sets = Vec::new();
         let mut uniforms = Vec::new();
@@ -322,6 +373,9 @@ impl BlocksRenderer {
                     (layout::TERRAIN_BINDING_DETAIL, terrain.detail.view, terrain.linear.handle),
                     (layout::TERRAIN_BINDING_GRADIENTS, terrain.gradients.view, terrain.nearest.handle),
                     (layout::TERRAIN_BINDING_LIGHTING, lighting.image.view, lighting.sampler.handle),
+                    // A placeholder until the first frame writes its depth image here
+                    // (`submit_frame`).
+                    (layout::TERRAIN_BINDING_DEPTH, terrain.heights.view, terrain.nearest.handle),
                 ],
                 &[(layout::TERRAIN_BINDING_FRAME, ubo.handle, ubo_size)],
             );
@@ -348,27 +402,40 @@ impl BlocksRenderer {
             color_format,
             textures: (terrain.has_base, terrain.has_detail),
             terrain_pipelines: Vec::new(),
+            depth_pipeline,
             sky_pipeline,
-            _pool: pool,
+            pool,
             sets,
             uniforms,
             commands,
             offscreen,
             lighting,
         };
-        // The default shading's pipeline now, so that the first frame does not compile it.
-        renderer.terrain_pipeline(&Shading::default())?;
+        // The default shading's pipelines now, so that the first frame does not compile them.
+        renderer.frame_pipelines(&Shading::default())?;
         Ok(renderer)
     }
 
-    /// The terrain pipeline for `shading`, made the first time that variant is asked for
-    /// (a few tens of milliseconds on lavapipe; the viewer's toggles each make one).
-    fn terrain_pipeline(&mut self, shading: &Shading) -> VkResult<vk::Pipeline> {
+    /// The pipelines of a frame drawn with `shading`.
+    fn frame_pipelines(&mut self, shading: &Shading) -> VkResult<FramePipelines> {
+        let deferred = shading.deferred();
         let variant = TerrainVariant {
             normals: shading.normals,
             colour_by_lod: shading.colour_by_lod,
             wireframe: shading.wireframe && self.device.features.wireframe,
+            deferred,
         };
+        let terrain = self.terrain_pipeline(variant)?;
+        Ok(if deferred {
+            FramePipelines { blocks: self.depth_pipeline.handle, shade: Some(terrain) }
+        } else {
+            FramePipelines { blocks: terrain, shade: None }
+        })
+    }
+
+    /// The terrain shading pipeline of `variant`, made the first time it is asked for (a
+    /// few tens of milliseconds on lavapipe; the viewer's toggles each make one).
+    fn terrain_pipeline(&mut self, variant: TerrainVariant) -> VkResult<vk::Pipeline> {
         if let Some((_, p)) = self.terrain_pipelines.iter().find(|(v, _)| *v == variant) {
             return Ok(p.handle);
         }
@@ -379,9 +446,24 @@ impl BlocksRenderer {
             (layout::SPEC_DETAIL_TEXTURE, detail),
             (layout::SPEC_COLOUR_BY_LOD, variant.colour_by_lod),
         ];
-        let pipeline = GraphicsPipeline::new(
-            &self.device,
-            &GraphicsPipelineDesc {
+        let desc = if variant.deferred {
+            // Over the whole target, with the depth attached read-only (as the viewer's
+            // panel, drawn in the same rendering, expects).
+            GraphicsPipelineDesc {
+                vert: shaders::FULLSCREEN_VERT,
+                frag: Some(shaders::SHADE_FRAG),
+                rasterizer_discard: false,
+                vertex_attribute: None,
+                color_format: Some(self.color_format),
+                depth_format: Some(DEPTH_FORMAT),
+                depth: DepthMode::Off,
+                polygon_mode: vk::PolygonMode::FILL,
+                cull_back: false,
+                layout: &self.pipeline_layout,
+                specialization: &specialization,
+            }
+        } else {
+            GraphicsPipelineDesc {
                 vert: shaders::TERRAIN_VERT,
                 frag: Some(shaders::TERRAIN_FRAG),
                 rasterizer_discard: false,
@@ -395,8 +477,9 @@ impl BlocksRenderer {
                 cull_back: true,
                 layout: &self.pipeline_layout,
                 specialization: &specialization,
-            },
-        )?;
+            }
+        };
+        let pipeline = GraphicsPipeline::new(&self.device, &desc)?;
         let handle = pipeline.handle;
         self.terrain_pipelines.push((variant, pipeline));
         Ok(handle)
@@ -427,15 +510,16 @@ impl BlocksRenderer {
         }
     }
 
-    /// Records the sky and every block into `cmd`, inside dynamic rendering on `color`.
+    /// Records every block and the sky into `cmd`, inside dynamic rendering on `color`:
+    /// forward, one rendering; deferred, the blocks' depth, then the shading pass.
     #[allow(clippy::too_many_arguments)]
     fn record(
         &self,
         slot: usize,
         cmd: vk::CommandBuffer,
-        pipeline: vk::Pipeline,
+        pipelines: FramePipelines,
         color_view: vk::ImageView,
-        depth_view: vk::ImageView,
+        depth: &Image,
         extent: vk::Extent2D,
         blocks: &[DrawBlock],
         shading: &Shading,
@@ -443,26 +527,25 @@ impl BlocksRenderer {
         overlay: Option<&mut dyn FnMut(vk::CommandBuffer)>,
     ) -> DrawStats {
         let d = &self.device.raw;
+        let deferred = pipelines.shade.is_some();
         let color_att = [vk::RenderingAttachmentInfo::default()
             .image_view(color_view)
             .image_layout(vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL)
-            .load_op(vk::AttachmentLoadOp::CLEAR)
+            // The shading pass writes every pixel.
+            .load_op(if deferred { vk::AttachmentLoadOp::DONT_CARE } else { vk::AttachmentLoadOp::CLEAR })
             .store_op(vk::AttachmentStoreOp::STORE)
             .clear_value(vk::ClearValue {
                 color: vk::ClearColorValue { float32: [clear[0], clear[1], clear[2], 1.0] },
             })];
         let depth_att = vk::RenderingAttachmentInfo::default()
-            .image_view(depth_view)
+            .image_view(depth.view)
             .image_layout(vk::ImageLayout::DEPTH_ATTACHMENT_OPTIMAL)
             .load_op(vk::AttachmentLoadOp::CLEAR)
-            .store_op(vk::AttachmentStoreOp::DONT_CARE)
+            .store_op(if deferred { vk::AttachmentStoreOp::STORE } else { vk::AttachmentStoreOp::DONT_CARE })
             .clear_value(vk::ClearValue { depth_stencil: vk::ClearDepthStencilValue { depth: 0.0, stencil: 0 } });
         let area = vk::Rect2D { offset: vk::Offset2D::default(), extent };
-        let rendering = vk::RenderingInfo::default()
-            .render_area(area)
-            .layer_count(1)
-            .color_attachments(&color_att)
-            .depth_attachment(&depth_att);
+        let rendering = vk::RenderingInfo::default().render_area(area).layer_count(1).depth_attachment(&depth_att);
+        let rendering = if deferred { rendering } else { rendering.color_attachments(&color_att) };
         let viewport = vk::Viewport {
             x: 0.0,
             y: 0.0,
@@ -486,7 +569,7 @@ impl BlocksRenderer {
                 &[self.sets[slot]],
                 &[],
             );
-            d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, pipeline);
+            d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, pipelines.blocks);
             d.cmd_bind_vertex_buffers(cmd, 0, &[self.mesh.vertices.handle], &[0]);
             d.cmd_bind_index_buffer(cmd, self.mesh.indices.handle, 0, self.mesh.index_type);
             for b in blocks {
@@ -500,9 +583,44 @@ impl BlocksRenderer {
                 );
                 d.cmd_draw_indexed(cmd, self.mesh.index_count, 1, 0, 0, 0);
             }
-            // The sky last, only where no terrain was drawn (depth still at the far plane):
-            // hidden sky pixels are never shaded.
-            if shading.sky {
+            if let Some(shade) = pipelines.shade {
+                d.cmd_end_rendering(cmd);
+                // The blocks' depth, read by the shading pass both as a texture and as a
+                // read-only attachment (the viewer's panel pipeline has a depth format).
+                let tests =
+                    vk::PipelineStageFlags2::EARLY_FRAGMENT_TESTS | vk::PipelineStageFlags2::LATE_FRAGMENT_TESTS;
+                image_barrier(
+                    d,
+                    cmd,
+                    depth.handle,
+                    depth.range(0, 1),
+                    (
+                        tests,
+                        vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_WRITE,
+                        vk::ImageLayout::DEPTH_ATTACHMENT_OPTIMAL,
+                    ),
+                    (
+                        tests | vk::PipelineStageFlags2::FRAGMENT_SHADER,
+                        vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_READ | vk::AccessFlags2::SHADER_SAMPLED_READ,
+                        vk::ImageLayout::DEPTH_READ_ONLY_OPTIMAL,
+                    ),
+                );
+                let depth_read = vk::RenderingAttachmentInfo::default()
+                    .image_view(depth.view)
+                    .image_layout(vk::ImageLayout::DEPTH_READ_ONLY_OPTIMAL)
+                    .load_op(vk::AttachmentLoadOp::LOAD)
+                    .store_op(vk::AttachmentStoreOp::NONE);
+                let shading_pass = vk::RenderingInfo::default()
+                    .render_area(area)
+                    .layer_count(1)
+                    .color_attachments(&color_att)
+                    .depth_attachment(&depth_read);
+                d.cmd_begin_rendering(cmd, &shading_pass);
+                d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, shade);
+                d.cmd_draw(cmd, 3, 1, 0, 0);
+            } else if shading.sky {
+                // The sky last, only where no terrain was drawn (depth still at the far
+                // plane): hidden sky pixels are never shaded.
                 d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, self.sky_pipeline.handle);
                 d.cmd_draw(cmd, 3, 1, 0, 0);
             }
@@ -515,7 +633,7 @@ impl BlocksRenderer {
         unsafe {
             d.cmd_end_rendering(cmd);
         }
-        stats.draw_calls = blocks.len() as u64 + shading.sky as u64;
+        stats.draw_calls = blocks.len() as u64 + (deferred || shading.sky) as u64;
         stats.triangles = blocks.len() as u64 * self.layout.triangles_per_block();
         stats
     }
@@ -530,7 +648,7 @@ impl BlocksRenderer {
         &self,
         slot: usize,
         cmd: vk::CommandBuffer,
-        pipeline: vk::Pipeline,
+        pipelines: FramePipelines,
         dest: &FrameDest,
         blocks: &[DrawBlock],
         shading: &Shading,
@@ -542,7 +660,7 @@ impl BlocksRenderer {
         unsafe { attachment_barriers(d, cmd, dest.image, dest.last_use, dest.depth) };
         let clear = if shading.sky { SKY_HORIZON } else { shading.background };
         let stats =
-            self.record(slot, cmd, pipeline, dest.view, dest.depth.view, dest.extent, blocks, shading, clear, overlay);
+            self.record(slot, cmd, pipelines, dest.view, dest.depth, dest.extent, blocks, shading, clear, overlay);
         let rendered = (
             vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT,
             vk::AccessFlags2::COLOR_ATTACHMENT_WRITE,
@@ -680,7 +798,17 @@ impl BlocksRenderer {
     ) -> VkResult<Option<DrawStats>> {
         let previous = self.wait_frame(slot)?;
         self.set_frame(slot, hf, terrain, cam, shading)?;
-        let pipeline = self.terrain_pipeline(shading)?;
+        let pipelines = self.frame_pipelines(shading)?;
+        // Rewritten every frame, forward ones included: the slot's set is idle (waited
+        // for above), a target's depth image may be gone since the last frame (the
+        // viewer's is replaced on resize), and lavapipe reads every descriptor of a set
+        // when it is bound, used or not.
+        self.pool.write_in_layout(
+            self.sets[slot],
+            &[(layout::TERRAIN_BINDING_DEPTH, dest.depth.view, terrain.nearest.handle)],
+            vk::ImageLayout::DEPTH_READ_ONLY_OPTIMAL,
+            &[],
+        );
         let d = self.device.raw.clone();
         let cmd = self.offscreen[slot].cmd;
         // SAFETY: the slot's previous submission finished (waited for above).
@@ -690,7 +818,7 @@ impl BlocksRenderer {
                 t.begin(&d, cmd);
             }
         }
-        let stats = self.record_frame(slot, cmd, pipeline, dest, blocks, shading, overlay);
+        let stats = self.record_frame(slot, cmd, pipelines, dest, blocks, shading, overlay);
         // SAFETY: as above.
         unsafe {
             if let Some(t) = &self.offscreen[slot].timer {
@@ -891,8 +1019,9 @@ unsafe fn attachment_barriers(
             .new_layout(vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL)
             .image(color)
             .subresource_range(COLOR_RANGE),
+        // After the last frame's depth writes, and its shading pass's reads (deferred).
         vk::ImageMemoryBarrier2::default()
-            .src_stage_mask(fragment_tests)
+            .src_stage_mask(fragment_tests | vk::PipelineStageFlags2::FRAGMENT_SHADER)
             .src_access_mask(vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_WRITE)
             .dst_stage_mask(fragment_tests)
             .dst_access_mask(

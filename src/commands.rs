@@ -1,7 +1,7 @@
 //! The subcommands: `render` (one headless frame) and `errors` (one error generation).
 
 use crate::audit;
-use crate::blocks::{BlocksRenderer, NormalSource, Shading, Target};
+use crate::blocks::{BlocksRenderer, NormalSource, PixelPass, Shading, Target};
 use crate::cli::{CommonArgs, InputError};
 use crate::errors_activity::ErrorsActivity;
 use crate::gie::ErrorParams;
@@ -55,6 +55,10 @@ pub struct RenderArgs {
     /// wave's sixteen height fetches per pixel (same image up to rounding).
     #[arg(long, value_enum, default_value_t = NormalSource::GradientMap)]
     pub shading: NormalSource,
+    /// How pixels are shaded: once each after a depth-only pass over the blocks
+    /// (default), or as the blocks are drawn (the earlier shading, for comparison).
+    #[arg(long, value_enum, default_value_t = PixelPass::Deferred)]
+    pub pixels: PixelPass,
 }
 
 #[derive(Args, Debug)]
@@ -275,6 +279,7 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
         fog_density: args.fog,
         colour_by_lod: args.colour_by_lod,
         normals: args.shading,
+        pixels: args.pixels,
         ..Shading::default()
     };
     if let Some(bg) = &args.background {

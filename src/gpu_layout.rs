@@ -76,6 +76,9 @@ pub const TERRAIN_BINDING_GRADIENTS: u32 = 5;
 /// Terrain pipeline: sun visibility and ambient occlusion (RG8, `lighting.frag`).
 pub const TERRAIN_BINDING_LIGHTING: u32 = 6;
 
+/// Deferred shading pass (shade.frag): the depth the blocks wrote, texelFetch only.
+pub const TERRAIN_BINDING_DEPTH: u32 = 7;
+
 /// Lighting pass: the heightfield, texelFetch only.
 pub const LIGHTING_BINDING_HEIGHTS: u32 = 0;
 
@@ -218,6 +221,7 @@ pub const GLSL_CONSTANTS: &[(&str, u32)] = &[
     ("GIE_BINDING_DEVIATION", GIE_BINDING_DEVIATION),
     ("REDUCE_BINDING_GIE", REDUCE_BINDING_GIE),
     ("TERRAIN_BINDING_LIGHTING", TERRAIN_BINDING_LIGHTING),
+    ("TERRAIN_BINDING_DEPTH", TERRAIN_BINDING_DEPTH),
     ("LIGHTING_BINDING_HEIGHTS", LIGHTING_BINDING_HEIGHTS),
     ("SUN_MAX_STEPS", SUN_MAX_STEPS),
 ];

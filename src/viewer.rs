@@ -1057,7 +1057,7 @@ fn next_free_screenshot() -> PathBuf {
 }
 
 fn depth_image(device: &Arc<Device>, extent: vk::Extent2D) -> anyhow::Result<Image> {
-    Ok(Image::new(device, "depth", extent, DEPTH_FORMAT, 1, vk::ImageUsageFlags::DEPTH_STENCIL_ATTACHMENT, false)?)
+    Ok(crate::blocks::depth_target(device, "depth", extent)?)
 }
 
 impl ApplicationHandler for App {

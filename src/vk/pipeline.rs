@@ -60,22 +60,28 @@ impl DescriptorPool {
         Ok(unsafe { self.device.raw.allocate_descriptor_sets(&info) }.vk("vkAllocateDescriptorSets")?[0])
     }
 
-    /// Writes combined image samplers and uniform buffers into `set`.
+    /// Writes combined image samplers (read in SHADER_READ_ONLY_OPTIMAL) and uniform
+    /// buffers into `set`.
     pub fn write(
         &self,
         set: vk::DescriptorSet,
         images: &[(u32, vk::ImageView, vk::Sampler)],
         buffers: &[(u32, vk::Buffer, u64)],
     ) {
+        self.write_in_layout(set, images, vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL, buffers)
+    }
+
+    /// [`Self::write`] with the images read in `image_layout`.
+    pub fn write_in_layout(
+        &self,
+        set: vk::DescriptorSet,
+        images: &[(u32, vk::ImageView, vk::Sampler)],
+        image_layout: vk::ImageLayout,
+        buffers: &[(u32, vk::Buffer, u64)],
+    ) {
         let image_infos: Vec<[vk::DescriptorImageInfo; 1]> = images
             .iter()
-            .map(|&(_, view, sampler)| {
-                [vk::DescriptorImageInfo {
-                    sampler,
-                    image_view: view,
-                    image_layout: vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
-                }]
-            })
+            .map(|&(_, view, sampler)| [vk::DescriptorImageInfo { sampler, image_view: view, image_layout }])
             .collect();
         let buffer_infos: Vec<[vk::DescriptorBufferInfo; 1]> =
             buffers.iter().map(|&(_, buffer, range)| [vk::DescriptorBufferInfo { buffer, offset: 0, range }]).collect();
