@@ -118,8 +118,9 @@ pub struct CommonArgs {
     #[arg(long, value_enum, default_value_t = QueueRequest::Auto)]
     pub queues: QueueRequest,
     /// New error data is requested when the camera has moved this fraction of the
-    /// distance to the nearest drawn terrain since the last request (0: every frame it
-    /// moves). Stale data keeps the bound; this only trades updates for triangles.
+    /// distance to the nearest drawn terrain since the last request and the last frame
+    /// split blocks only because its data was stale (0: every frame it moves, stale
+    /// splits or not). Stale data keeps the bound; this only trades updates for triangles.
     #[arg(long, value_name = "F", default_value = "0.05", value_parser = parse_fraction)]
     pub refresh_at: f32,
     /// Largest share of wall time spent on error updates (1: no cap). After an update of

@@ -21,7 +21,10 @@ pub const FRAMES_IN_FLIGHT: usize = 2;
 
 /// When the draw thread asks for new error data. Stale data keeps the bound (the
 /// traversal scales a block's error by `d / (d - m)` for a camera that moved `m`), so
-/// a new generation only pays once that inflation starts to cost triangles.
+/// a new generation only pays once that inflation starts to cost triangles: when the
+/// last traversal split blocks for staleness alone (`Traversal::stale_splits`). Where
+/// every block is split on its own merit (terrain that needs full resolution), updates
+/// would cost time and save nothing.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct RefreshPolicy {
     /// Request when the camera has moved this fraction of the distance to the nearest
@@ -52,13 +55,22 @@ impl RefreshPolicy {
     }
 
     /// Whether a camera at `now` should request new data, last requested at `requested`,
-    /// with the nearest drawn terrain `nearest` away (None: nothing drawn yet).
-    pub fn should_request(&self, requested: Option<Vec3>, now: Vec3, nearest: Option<f32>) -> bool {
+    /// with the nearest drawn terrain `nearest` away (None: nothing drawn yet) and
+    /// `stale_splits` blocks split for staleness alone in the last traversal (ignored at
+    /// `moved_fraction` 0, which asks every frame the camera moves).
+    pub fn should_request(
+        &self,
+        requested: Option<Vec3>,
+        now: Vec3,
+        nearest: Option<f32>,
+        stale_splits: usize,
+    ) -> bool {
         match (requested, nearest) {
             (None, _) | (_, None) => true,
             (Some(r), Some(d)) => {
                 let moved = (now - r).length();
-                moved > 0.0 && moved >= self.moved_fraction * d
+                let pays = stale_splits > 0 || self.moved_fraction == 0.0;
+                moved > 0.0 && moved >= self.moved_fraction * d && pays
             }
         }
     }
@@ -74,6 +86,8 @@ pub struct ErrorFeed {
     recent: VecDeque<(u64, Vec3)>,
     /// Distance to the nearest drawn block in the last frame.
     nearest: Option<f32>,
+    /// Blocks the last frame's traversal split for staleness alone.
+    stale_splits: usize,
     /// When the last request was made, and the GPU time of the newest update.
     requested_when: Option<Instant>,
     update_ms: Option<f64>,
@@ -91,6 +105,7 @@ impl ErrorFeed {
             requested_at: None,
             recent: VecDeque::new(),
             nearest: None,
+            stale_splits: 0,
             requested_when: None,
             update_ms: None,
             trace: Trace::off(),
@@ -141,7 +156,7 @@ impl ErrorFeed {
                 (Some(t), Some(u)) => t.elapsed().as_secs_f64() * 1e3 >= self.policy.spacing_ms(u),
                 _ => true,
             };
-            if rested && self.policy.should_request(self.requested_at, cam.position, self.nearest) {
+            if rested && self.policy.should_request(self.requested_at, cam.position, self.nearest, self.stale_splits) {
                 activity.request(params);
                 self.requested_at = Some(cam.position);
                 self.requested_when = Some(Instant::now());
@@ -218,6 +233,7 @@ impl ErrorFeed {
         let args = json!({"blocks": t.blocks.len(), "morphing": t.morphing});
         self.trace.complete(DRAW_TID, "traverse", started, Instant::now(), args);
         self.nearest = t.nearest;
+        self.stale_splits = t.stale_splits;
         t
     }
 }
@@ -230,17 +246,19 @@ mod tests {
     fn refresh_waits_until_the_inflation_would_cost() {
         let p = RefreshPolicy::default();
         let at = Vec3::new(0.0, 100.0, 0.0);
-        assert!(p.should_request(None, at, Some(100.0)), "no request yet");
-        assert!(p.should_request(Some(at), at, None), "nothing drawn yet");
-        assert!(!p.should_request(Some(at), at, Some(100.0)), "standing still");
-        assert!(!p.should_request(Some(at), at + Vec3::X * 4.9, Some(100.0)));
-        assert!(p.should_request(Some(at), at + Vec3::X * 5.0, Some(100.0)));
+        assert!(p.should_request(None, at, Some(100.0), 0), "no request yet");
+        assert!(p.should_request(Some(at), at, None, 0), "nothing drawn yet");
+        assert!(!p.should_request(Some(at), at, Some(100.0), 1), "standing still");
+        assert!(!p.should_request(Some(at), at + Vec3::X * 4.9, Some(100.0), 1));
+        assert!(p.should_request(Some(at), at + Vec3::X * 5.0, Some(100.0), 1));
+        // Nothing split for staleness: new data would not save a triangle.
+        assert!(!p.should_request(Some(at), at + Vec3::X * 50.0, Some(100.0), 0));
         // Close to the ground a small move already matters.
-        assert!(p.should_request(Some(at), at + Vec3::X * 0.2, Some(3.0)));
+        assert!(p.should_request(Some(at), at + Vec3::X * 0.2, Some(3.0), 1));
         let every = RefreshPolicy { moved_fraction: 0.0, max_share: 1.0 };
         assert_eq!(every.spacing_ms(100.0), 0.0);
         assert!((p.spacing_ms(150.0) - 850.0).abs() < 1e-3, "15 % of the time: 150 ms on, 850 ms off");
-        assert!(every.should_request(Some(at), at + Vec3::X * 1e-3, Some(1e6)));
-        assert!(!every.should_request(Some(at), at, Some(1e6)));
+        assert!(every.should_request(Some(at), at + Vec3::X * 1e-3, Some(1e6), 0));
+        assert!(!every.should_request(Some(at), at, Some(1e6), 0));
     }
 }

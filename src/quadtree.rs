@@ -176,6 +176,11 @@ pub struct Traversal {
     pub nearest: Option<f32>,
     /// Blocks drawn part way between their parent's surface and their own.
     pub morphing: usize,
+    /// Blocks split only because their error data is stale: the stale-corrected error
+    /// exceeds delta, but the data scaled to this camera's distance (`1 / d`, the
+    /// estimate of what a new generation would hold) does not. New data can pay only
+    /// when this is above zero (the refresh policy).
+    pub stale_splits: usize,
     /// Per drawn block: the error the selection accepted for it and the one for which it
     /// split its parent (pixels; 0 where not error-driven, infinite for the root).
     pub selection_errors: Vec<[f32; 2]>,
@@ -319,6 +324,7 @@ fn traverse_once(
         if !frustum.intersects_aabb(min, max) {
             continue;
         }
+        let mut stale_split = false;
         let (draw, err) = if lod == 0 {
             (true, 0.0)
         } else if forced.contains(&(lod, bx, bz)) {
@@ -327,12 +333,17 @@ fn traverse_once(
             match select {
                 LodSelect::Full => (false, 0.0),
                 LodSelect::Errors { errors, computed_at, delta, mode, .. } => {
-                    let mut e =
-                        stale_corrected(errors.get(lod, bx as usize, bz as usize), computed_at, cam.position, min, max);
+                    let data = errors.get(lod, bx as usize, bz as usize);
+                    let mut e = stale_corrected(data, computed_at, cam.position, min, max);
+                    let mut fresh =
+                        data * distance_to_aabb(computed_at, min, max) / distance_to_aabb(cam.position, min, max);
                     if mode == ErrorMode::Strict {
                         // The GPU data holds D * kappa / distance; the angles are this frame's.
-                        e *= angular_factor(cam, min, max, delta);
+                        let angles = angular_factor(cam, min, max, delta);
+                        e *= angles;
+                        fresh *= angles;
                     }
+                    stale_split = e > delta && fresh <= delta;
                     (e <= delta, e)
                 }
                 LodSelect::Distance { factor } => {
@@ -346,6 +357,7 @@ fn traverse_once(
             out.blocks.push(DrawBlock::new(lod, bx, bz));
             out.selection_errors.push([err, parent_err]);
         } else {
+            out.stale_splits += stale_split as usize;
             for (cx, cz) in [(1, 1), (0, 1), (1, 0), (0, 0)] {
                 stack.push((lod - 1, bx * 2 + cx, bz * 2 + cz, err));
             }

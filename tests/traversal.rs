@@ -319,6 +319,47 @@ fn full_lod_draws_every_visible_block_at_lod_0() {
     check_tiling(&hf, &mm, &layout, &t.blocks, &cam).unwrap();
 }
 
+/// `stale_splits` (what the refresh policy asks new data for) counts the blocks split
+/// only because their data is stale: none with fresh data, some after the camera moved
+/// towards the terrain, and none where the terrain needs full resolution anyway (new data
+/// could not save a triangle there, as on ATLOD's fly path).
+#[test]
+fn stale_splits_count_only_what_new_data_would_merge() {
+    let ps = heightfield::load(&data("puget_sound/ps_height_1k.png"), &LoadOptions::default()).unwrap();
+    // Noise of 40 units a sample: every block needs full resolution from this close.
+    let rough = field(129, 129, 1.0, |x, z| ((x * 7919 + z * 104729) % 97) as f32 * 0.4);
+    for (hf, rough) in [(ps, false), (rough, true)] {
+        let mm = MinMaxPyramid::build(&hf);
+        let layout = BlockLayout::new(hf.n, 17).unwrap();
+        let (wx, wz) = hf.world_extent();
+        let target = Vec3::new(wx * 0.5, 0.0, wz * 0.5);
+        let eye = Vec3::new(wx * 0.5, wx * 0.15, wz * 1.05);
+        let cam = Camera::look_at(eye, target, 60.0, 640, 480, hf.spacing * 0.05);
+        // The same view from 4 % further back along the line of sight.
+        let back = Camera::look_at(eye + (eye - target) * 0.04, target, 60.0, 640, 480, hf.spacing * 0.05);
+        for mode in [ErrorMode::Strict, ErrorMode::Paper] {
+            let fresh = frame(&hf, &mm, &layout, &cam, &cam, mode, 1.0);
+            let stale = frame(&hf, &mm, &layout, &cam, &back, mode, 1.0);
+            println!(
+                "{} {mode:?}: fresh {} blocks, {} stale splits; stale {} blocks, {} stale splits",
+                hf.source,
+                fresh.blocks.len(),
+                fresh.stale_splits,
+                stale.blocks.len(),
+                stale.stale_splits
+            );
+            assert_eq!(fresh.stale_splits, 0, "{} {mode:?}: fresh data split for staleness", hf.source);
+            if rough {
+                assert!(fresh.blocks.iter().all(|b| b.lod == 0), "the rough field needs full resolution");
+                assert_eq!(stale.stale_splits, 0, "{mode:?}: nothing to merge, yet stale splits counted");
+            } else {
+                assert!(stale.blocks.len() >= fresh.blocks.len(), "{mode:?}: stale data drew fewer blocks");
+                assert!(stale.stale_splits > 0, "{mode:?}: no block split for staleness");
+            }
+        }
+    }
+}
+
 // ---- Adversarial fields: inputs made to break the strict bound (SPEC section 7) ----
 
 /// A camera near the ground at `(x, z)` (samples), looking along `yaw` and down `pitch`.
