@@ -1,9 +1,9 @@
 // Block vertex placement. World position of vertex `local` of the block in `block_pc`
 // (SPEC section 5): corners at their resolved heights, edge vertices next to a coarser
 // block on that block's (morphed) edge, odd vertices morphed towards the parent's surface
-// (src/morph.rs). Shared by terrain.vert and capture.vert (which tests it against
-// quadtree::block_vertex, bit for bit). Needs `heights`, `frame` and `block_pc` declared
-// by the includer.
+// (src/morph.rs). Shared by terrain.vert, terrain_depth.vert and capture.vert (which
+// tests it against quadtree::block_vertex, bit for bit). Needs `heights`, `frame` and
+// `block_pc` declared by the includer.
 
 float raw_at(ivec2 s) {
     return decode_raw(texelFetch(heights, s, 0).r, frame.flags.x);
@@ -17,58 +17,29 @@ float morph_raw(float p, float raw, float f) {
     return m;
 }
 
-// The block's own vertex: at an odd position it lies on an edge or the a-i diagonal of
-// its parent's quad, where the parent surface is the mean of the two samples around it.
-float own_vertex_raw(ivec2 local, ivec2 s, int last) {
-    float raw = raw_at(s);
-    bool odd_u = (local.x & 1) == 1;
-    bool odd_v = (local.y & 1) == 1;
-    float f;
-    if (local.y == 0) f = block_pc.morph_edges.x;
-    else if (local.y == last) f = block_pc.morph_edges.z;
-    else if (local.x == last) f = block_pc.morph_edges.y;
-    else if (local.x == 0) f = block_pc.morph_edges.w;
-    else f = block_pc.morph.x;
-    if (!(odd_u || odd_v) || f >= 1.0) return raw;
-    int st = block_pc.block.z;
-    ivec2 d = ivec2(odd_u ? st : 0, odd_v ? st : 0);
-    precise float p = (raw_at(s - d) + raw_at(s + d)) * 0.5;
-    return morph_raw(p, raw, f);
-}
-
-// The coarser neighbour's vertex at sample s on the edge across `side` (its stride
-// `best`), as that block draws it: odd vertices morph with the edge's factor, which both
-// blocks are given. Its origin is a multiple of twice its stride, so parity is that of
-// the coordinate over the stride.
-float coarse_vertex_raw(ivec2 s, int side, int best) {
-    float raw = raw_at(s);
-    float f = block_pc.morph_edges[side];
-    bool along_x = (side & 1) == 0;
-    int coord = along_x ? s.x : s.y;
-    if (((coord / best) & 1) == 0 || f >= 1.0) return raw;
-    ivec2 d = along_x ? ivec2(best, 0) : ivec2(0, best);
-    precise float p = (raw_at(s - d) + raw_at(s + d)) * 0.5;
-    return morph_raw(p, raw, f);
-}
-
 // Corners at the start and the end of each edge (north, east, south, west).
 const ivec2 EDGE_CORNERS[4] = ivec2[4](ivec2(0, 1), ivec2(1, 2), ivec2(3, 2), ivec2(0, 3));
 
+// Every vertex is decided first, without a fetch: either its height is given outright
+// (a corner's resolved height, or a point on a line between corners), or it is the
+// sample at `s` morphed with factor `f` towards the mean of the samples at `s - d` and
+// `s + d` (d = 0: not morphed). The three fetches then run once. llvmpipe runs every
+// side of a branch that differs between the vertices it shades together, so fetches
+// inside the branches were paid for up to three times over.
 vec3 place_block_vertex(ivec2 local) {
     int last = frame.extent.w - 1;
     int stride = block_pc.block.z;
     ivec2 s = block_pc.block.xy + local * stride;
-    vec3 world = vec3(float(s.x) * frame.terrain.x, 0.0, float(s.y) * frame.terrain.x);
+    bool given = false;
+    float given_raw = 0.0;
+    ivec2 d = ivec2(0);
+    float f = 1.0;
 
     int corner = -1;
     if (local == ivec2(0, 0)) corner = 0;
     else if (local == ivec2(last, 0)) corner = 1;
     else if (local == ivec2(last, last)) corner = 2;
     else if (local == ivec2(0, last)) corner = 3;
-    if (corner >= 0) {
-        world.y = block_pc.corner_raw[corner] * frame.terrain.y;
-        return world;
-    }
 
     // Other edge vertices next to a coarser block follow that block's edge.
     ivec4 cn = block_pc.coarser_neighbour_stride;
@@ -78,24 +49,27 @@ vec3 place_block_vertex(ivec2 local) {
     else if (local.x == last && cn.y > 0) side = 1;
     else if (local.x == 0 && cn.w > 0) side = 3;
 
-    float raw;
-    if (side < 0) {
-        raw = own_vertex_raw(local, s, last);
+    if (corner >= 0) {
+        // Corners at their resolved heights.
+        given = true;
+        given_raw = block_pc.corner_raw[corner];
+    } else if (side < 0) {
+        // The block's own vertex: at an odd position it lies on an edge or the a-i
+        // diagonal of its parent's quad, where the parent surface is the mean of the two
+        // samples around it.
+        if (local.y == 0) f = block_pc.morph_edges.x;
+        else if (local.y == last) f = block_pc.morph_edges.z;
+        else if (local.x == last) f = block_pc.morph_edges.y;
+        else if (local.x == 0) f = block_pc.morph_edges.w;
+        else f = block_pc.morph.x;
+        d = ivec2((local.x & 1) == 1 ? stride : 0, (local.y & 1) == 1 ? stride : 0);
     } else {
         int best = cn[side];
         bool along_x = (side & 1) == 0;
         int along = along_x ? local.x : local.y;
         int coord = along_x ? s.x : s.y;
         int rem = coord % best;
-        if (rem == 0) {
-            // A vertex of the coarser block, inside its edge.
-            raw = coarse_vertex_raw(s, side, best);
-        } else if (best <= last * stride) {
-            // The neighbour has vertices at both ends of this edge: collapse onto the one
-            // below (degenerate triangles, no T-junction).
-            if (along_x) s.x -= rem; else s.y -= rem;
-            raw = along * stride == rem ? block_pc.corner_raw[EDGE_CORNERS[side].x] : coarse_vertex_raw(s, side, best);
-        } else {
+        if (rem != 0 && best > last * stride) {
             // The whole edge lies inside one segment of the neighbour (LODs more than m
             // apart; the traversal splits such neighbours, other block lists may not):
             // on the line between this edge's corners, which lie on that segment.
@@ -103,8 +77,27 @@ vec3 place_block_vertex(ivec2 local) {
             float cb = block_pc.corner_raw[EDGE_CORNERS[side].y];
             precise float t = float(along) / float(last);
             precise float lerp = ca + (cb - ca) * t;
-            raw = lerp;
+            given = true;
+            given_raw = lerp;
+        } else if (rem != 0 && along * stride == rem) {
+            // Collapsed onto the neighbour's vertex below, which is this edge's first
+            // corner (degenerate triangles, no T-junction).
+            if (along_x) s.x -= rem; else s.y -= rem;
+            given = true;
+            given_raw = block_pc.corner_raw[EDGE_CORNERS[side].x];
+        } else {
+            // A vertex of the coarser block inside its edge, this one or (collapsed) the
+            // one below, as that block draws it: its odd vertices morph with the edge's
+            // factor, which both blocks are given. Its origin is a multiple of twice its
+            // stride, so parity is that of the coordinate over the stride.
+            if (along_x) s.x -= rem; else s.y -= rem;
+            f = block_pc.morph_edges[side];
+            if ((((coord - rem) / best) & 1) == 1) d = along_x ? ivec2(best, 0) : ivec2(0, best);
         }
     }
-    return vec3(float(s.x) * frame.terrain.x, raw * frame.terrain.y, float(s.y) * frame.terrain.x);
+
+    float raw = raw_at(s);
+    precise float p = (raw_at(s - d) + raw_at(s + d)) * 0.5;
+    float h = given ? given_raw : (d == ivec2(0) ? raw : morph_raw(p, raw, f));
+    return vec3(float(s.x) * frame.terrain.x, h * frame.terrain.y, float(s.y) * frame.terrain.x);
 }
