@@ -1,7 +1,13 @@
 // The heightfield is embedded in a power-of-two grid (SPEC section 2); blocks over the
 // margin beyond the true extent are drawn, but their pixels are never shown. Needs `frame`.
+
+// Distances (in samples) inside the true extent's far edges along x and z: negative
+// beyond them. Linear in the world position, so that it clips exactly where the
+// forward pass discards.
+vec2 inside_extent(vec3 world) {
+    return vec2(frame.extent.xy - 1) + 1e-3 - world.xz / frame.terrain.x;
+}
+
 bool beyond_extent(vec3 world) {
-    vec2 p = world.xz / frame.terrain.x;
-    vec2 extent = vec2(frame.extent.xy - 1);
-    return p.x > extent.x + 1e-3 || p.y > extent.y + 1e-3;
+    return any(lessThan(inside_extent(world), vec2(0.0)));
 }

@@ -103,8 +103,8 @@ pub enum PixelPass {
 }
 
 impl Shading {
-    /// Whether this frame is shaded deferred: the colour-by-LOD and wireframe views need
-    /// the block that drew a pixel, which depth alone does not give.
+    /// Whether this frame asks for deferred shading: the colour-by-LOD and wireframe
+    /// views need the block that drew a pixel, which depth alone does not give.
     fn deferred(&self) -> bool {
         self.pixels == PixelPass::Deferred && !self.colour_by_lod && !self.wireframe
     }
@@ -261,8 +261,9 @@ pub struct BlocksRenderer {
     textures: (bool, bool),
     /// Terrain pipelines made so far, one per shading variant (made on first use).
     terrain_pipelines: Vec<(TerrainVariant, GraphicsPipeline)>,
-    /// Deferred shading's first pass: the blocks, depth only.
-    depth_pipeline: GraphicsPipeline,
+    /// Deferred shading's first pass: the blocks, depth only, the embedding margin
+    /// clipped (None without shaderClipDistance: frames are then shaded forward).
+    depth_pipeline: Option<GraphicsPipeline>,
     sky_pipeline: GraphicsPipeline,
     pool: DescriptorPool,
     /// One uniform buffer and descriptor set per frame in flight.
@@ -335,22 +336,28 @@ impl BlocksRenderer {
                 specialization: &[],
             },
         )?;
-        let depth_pipeline = GraphicsPipeline::new(
-            device,
-            &GraphicsPipelineDesc {
-                vert: shaders::TERRAIN_DEPTH_VERT,
-                frag: Some(shaders::TERRAIN_DEPTH_FRAG),
-                rasterizer_discard: false,
-                vertex_attribute: Some((2, vk::Format::R8G8_UINT)),
-                color_format: None,
-                depth_format: Some(DEPTH_FORMAT),
-                depth: DepthMode::TestWrite,
-                polygon_mode: vk::PolygonMode::FILL,
-                cull_back: true,
-                layout: &pipeline_layout,
-                specialization: &[],
-            },
-        )?;
+        let depth_pipeline = device
+            .features
+            .clip_distance
+            .then(|| {
+                GraphicsPipeline::new(
+                    device,
+                    &GraphicsPipelineDesc {
+                        vert: shaders::TERRAIN_DEPTH_VERT,
+                        frag: None,
+                        rasterizer_discard: false,
+                        vertex_attribute: Some((2, vk::Format::R8G8_UINT)),
+                        color_format: None,
+                        depth_format: Some(DEPTH_FORMAT),
+                        depth: DepthMode::TestWrite,
+                        polygon_mode: vk::PolygonMode::FILL,
+                        cull_back: true,
+                        layout: &pipeline_layout,
+                        specialization: &[],
+                    },
+                )
+            })
+            .transpose()?;
         let n = frames_in_flight.max(1) as u32;
         let pool = DescriptorPool::new(device, n, &[(sampler, 6 * n), (vk::DescriptorType::UNIFORM_BUFFER, n)])?;
         let ubo_size = std::mem::size_of::<FrameUniforms>() as u64;
@@ -418,18 +425,18 @@ impl BlocksRenderer {
 
     /// The pipelines of a frame drawn with `shading`.
     fn frame_pipelines(&mut self, shading: &Shading) -> VkResult<FramePipelines> {
-        let deferred = shading.deferred();
+        // Deferred needs the depth pass, which needs clip distances.
+        let depth_pass = self.depth_pipeline.as_ref().map(|p| p.handle).filter(|_| shading.deferred());
         let variant = TerrainVariant {
             normals: shading.normals,
             colour_by_lod: shading.colour_by_lod,
             wireframe: shading.wireframe && self.device.features.wireframe,
-            deferred,
+            deferred: depth_pass.is_some(),
         };
         let terrain = self.terrain_pipeline(variant)?;
-        Ok(if deferred {
-            FramePipelines { blocks: self.depth_pipeline.handle, shade: Some(terrain) }
-        } else {
-            FramePipelines { blocks: terrain, shade: None }
+        Ok(match depth_pass {
+            Some(depth) => FramePipelines { blocks: depth, shade: Some(terrain) },
+            None => FramePipelines { blocks: terrain, shade: None },
         })
     }
 

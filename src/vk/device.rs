@@ -95,6 +95,9 @@ pub struct DeviceFeatures {
     /// Vertex shaders may write storage buffers (used by the vertex-capture test hook).
     pub vertex_stores: bool,
     pub pipeline_statistics: bool,
+    /// gl_ClipDistance: deferred shading's depth pass clips the embedding margin with it
+    /// (no fragment shader); without it frames are shaded forward.
+    pub clip_distance: bool,
     /// Nanoseconds per timestamp tick, when the draw queue has timestamps.
     pub timestamp_period: Option<f32>,
 }
@@ -232,6 +235,7 @@ impl Device {
             wireframe: supported.fill_mode_non_solid != 0,
             vertex_stores: supported.vertex_pipeline_stores_and_atomics != 0,
             pipeline_statistics: supported.pipeline_statistics_query != 0,
+            clip_distance: supported.shader_clip_distance != 0,
             timestamp_period: (families[draw_family as usize].timestamp_valid_bits > 0
                 && families[errors_family as usize].timestamp_valid_bits > 0)
                 .then_some(properties.limits.timestamp_period),
@@ -239,7 +243,8 @@ impl Device {
         let enabled = vk::PhysicalDeviceFeatures::default()
             .fill_mode_non_solid(features.wireframe)
             .vertex_pipeline_stores_and_atomics(features.vertex_stores)
-            .pipeline_statistics_query(features.pipeline_statistics);
+            .pipeline_statistics_query(features.pipeline_statistics)
+            .shader_clip_distance(features.clip_distance);
         let mut e12 = vk::PhysicalDeviceVulkan12Features::default().timeline_semaphore(true);
         let mut e13 = vk::PhysicalDeviceVulkan13Features::default()
             .synchronization2(true)
@@ -327,6 +332,9 @@ impl Device {
         }
         if self.features.timestamp_period.is_none() {
             n.push("no timestamp queries: GPU times are not reported".into());
+        }
+        if !self.features.clip_distance {
+            n.push("no shaderClipDistance: pixels are shaded forward (--pixels forward)".into());
         }
         if !self.features.wireframe {
             n.push("no fillModeNonSolid: wireframe is unavailable".into());
