@@ -125,7 +125,7 @@ pub struct CommonArgs {
     pub refresh_at: f32,
     /// Largest share of wall time spent on error updates (1: no cap). After an update of
     /// u ms the next request waits u (1/share - 1) ms; stale data keeps the bound.
-    #[arg(long, value_name = "SHARE", default_value = "0.15", value_parser = parse_share)]
+    #[arg(long, value_name = "SHARE", default_value = "0.05", value_parser = parse_share)]
     pub update_share: f32,
     /// Screen-space error bound: strict (guaranteed) or paper (seed 000 eqs. 2-4).
     #[arg(long = "error-mode", alias = "mode", value_enum, default_value_t = ErrorMode::Strict)]

@@ -40,7 +40,7 @@ pub struct RefreshPolicy {
 
 impl Default for RefreshPolicy {
     fn default() -> Self {
-        RefreshPolicy { moved_fraction: 0.05, max_share: 0.15 }
+        RefreshPolicy { moved_fraction: 0.05, max_share: 0.05 }
     }
 }
 
@@ -257,7 +257,7 @@ mod tests {
         assert!(p.should_request(Some(at), at + Vec3::X * 0.2, Some(3.0), 1));
         let every = RefreshPolicy { moved_fraction: 0.0, max_share: 1.0 };
         assert_eq!(every.spacing_ms(100.0), 0.0);
-        assert!((p.spacing_ms(150.0) - 850.0).abs() < 1e-3, "15 % of the time: 150 ms on, 850 ms off");
+        assert!((p.spacing_ms(150.0) - 2850.0).abs() < 1e-3, "5 % of the time: 150 ms on, 2850 ms off");
         assert!(every.should_request(Some(at), at + Vec3::X * 1e-3, Some(1e6), 0));
         assert!(!every.should_request(Some(at), at, Some(1e6), 0));
     }
