@@ -39,6 +39,12 @@ fn flyover_with_resizes_writes_a_screenshot_and_exits_cleanly() {
         "--no-hud",
         "--screenshot",
         shot.to_str().unwrap(),
+        // Ask for error data every frame the camera moves, so that generations stream in
+        // while the window is resized (the default policy asks far less often).
+        "--refresh-at",
+        "0",
+        "--update-share",
+        "1",
     ]);
     let stdout = String::from_utf8_lossy(&out.stdout);
     let stderr = String::from_utf8_lossy(&out.stderr);
