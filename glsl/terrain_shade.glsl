@@ -108,13 +108,6 @@ vec3 shade_terrain(vec3 world, int lod) {
     vec2 uv = p / max(extent, vec2(1.0));
     if (BASE_TEXTURE) {
         albedo = texture(base_tex, uv).rgb;
-        if (DETAIL_TEXTURE) {
-            vec3 detail = texture(detail_tex, uv * frame.texturing.x).rgb;
-            float alpha = frame.texturing.y;
-            albedo = alpha * albedo + (1.0 - alpha) * detail;
-        } else {
-            albedo *= procedural_detail(p);
-        }
     } else {
         // At least one sample spacing: a height recovered from depth (deferred) is off by
         // a tiny fraction of the distance, which over a flat field's zero range would
@@ -136,13 +129,13 @@ vec3 shade_terrain(vec3 world, int lod) {
         float w = smoothstep(0.5, 1.0, sea);
         if (world.y > frame.terrain.z + 0.05 * range) w = 0.0;
         albedo = mix(albedo, vec3(0.05, 0.16, 0.30), w);
-        if (DETAIL_TEXTURE) {
-            vec3 detail = texture(detail_tex, uv * frame.texturing.x).rgb;
-            float alpha = frame.texturing.y;
-            albedo = alpha * albedo + (1.0 - alpha) * detail;
-        } else {
-            albedo *= procedural_detail(p);
-        }
+    }
+    if (DETAIL_TEXTURE) {
+        vec3 detail = texture(detail_tex, uv * frame.texturing.x).rgb;
+        float alpha = frame.texturing.y;
+        albedo = alpha * albedo + (1.0 - alpha) * detail;
+    } else {
+        albedo *= procedural_detail(p);
     }
     if (COLOUR_BY_LOD) {
         vec3 palette[] = LOD_PALETTE;

@@ -324,6 +324,31 @@ fn fidelity_against_the_full_resolution_render() {
     finish(device);
 }
 
+/// Two 320 x 240 views of `hf` for the shading comparisons: the whole field from beyond
+/// its south edge, and obliquely across it from above its north-west quarter.
+fn shading_views(hf: &Heightfield) -> [Camera; 2] {
+    let (wx, wz) = hf.world_extent();
+    let top = hf.raw.iter().cloned().fold(f32::MIN, f32::max) * hf.height_scale;
+    [
+        Camera::look_at(
+            Vec3::new(wx * 0.5, top + wx * 0.3, wz * 1.2),
+            Vec3::new(wx * 0.5, 0.0, wz * 0.4),
+            60.0,
+            320,
+            240,
+            1.0,
+        ),
+        Camera::look_at(
+            Vec3::new(wx * 0.2, top * 1.1 + 5.0, wz * 0.3),
+            Vec3::new(wx * 0.8, 0.0, wz * 0.7),
+            60.0,
+            320,
+            240,
+            0.1,
+        ),
+    ]
+}
+
 /// The gradient map (four fetches per pixel) shades like the first wave's sixteen
 /// height fetches: the full-resolution reference image does not change beyond 8-bit
 /// rounding, with the sky drawn last behind the depth test, on real data and a steep
@@ -334,28 +359,8 @@ fn gradient_map_shading_matches_height_fetches() {
     let ps = heightfield::load(&data("puget_sound/ps_height_1k.png"), &LoadOptions::default()).unwrap();
     let steep = field(129, 129, 2.0, |x, z| ((x as f32 * 0.3).sin() * (z as f32 * 0.2).cos()) * 40.0 + x as f32);
     for hf in [ps, steep] {
-        let (wx, wz) = hf.world_extent();
-        let top = hf.raw.iter().cloned().fold(f32::MIN, f32::max) * hf.height_scale;
         let mut scene = Scene::new(&device, hf, 33, Some(Sun::DEFAULT));
-        let cams = [
-            Camera::look_at(
-                Vec3::new(wx * 0.5, top + wx * 0.3, wz * 1.2),
-                Vec3::new(wx * 0.5, 0.0, wz * 0.4),
-                60.0,
-                320,
-                240,
-                1.0,
-            ),
-            Camera::look_at(
-                Vec3::new(wx * 0.2, top * 1.1 + 5.0, wz * 0.3),
-                Vec3::new(wx * 0.8, 0.0, wz * 0.7),
-                60.0,
-                320,
-                240,
-                0.1,
-            ),
-        ];
-        for cam in &cams {
+        for cam in &shading_views(&scene.hf) {
             let new = scene.render(cam, None, &Shading::default());
             let old = scene.render(cam, None, &Shading { normals: NormalSource::Heights, ..Shading::default() });
             let (rmse, share) = image_difference(&new, &old);
@@ -410,34 +415,25 @@ fn deferred_shading_matches_forward() {
         let ground = hf.surface_height(wx * 0.5, wz * 0.6);
         assert_eq!((hf.side() - 1) as f32 * hf.spacing > wx.max(wz), has_margin);
         let mut scene = Scene::new(&device, hf, 33, Some(Sun::DEFAULT));
-        let cams = [
-            // Over the far corner, looking down at the true extent's far edges.
-            Camera::look_at(Vec3::new(wx * 0.9, top + wx * 0.5, wz * 0.9), Vec3::new(wx, 0.0, wz), 60.0, 320, 240, 0.1),
-            Camera::look_at(
-                Vec3::new(wx * 0.5, top + wx * 0.3, wz * 1.2),
-                Vec3::new(wx * 0.5, 0.0, wz * 0.4),
-                60.0,
-                320,
-                240,
-                1.0,
-            ),
-            Camera::look_at(
-                Vec3::new(wx * 0.2, top * 1.1 + 5.0, wz * 0.3),
-                Vec3::new(wx * 0.8, 0.0, wz * 0.7),
-                60.0,
-                320,
-                240,
-                0.1,
-            ),
-            Camera::look_at(
-                Vec3::new(wx * 0.5, ground + wx * 0.01, wz * 0.6),
-                Vec3::new(wx * 0.5, ground, wz * 0.3),
-                60.0,
-                320,
-                240,
-                0.1,
-            ),
-        ];
+        // First: over the far corner, looking down at the true extent's far edges.
+        let mut cams = vec![Camera::look_at(
+            Vec3::new(wx * 0.9, top + wx * 0.5, wz * 0.9),
+            Vec3::new(wx, 0.0, wz),
+            60.0,
+            320,
+            240,
+            0.1,
+        )];
+        cams.extend(shading_views(&scene.hf));
+        // Close to the ground, looking along it.
+        cams.push(Camera::look_at(
+            Vec3::new(wx * 0.5, ground + wx * 0.01, wz * 0.6),
+            Vec3::new(wx * 0.5, ground, wz * 0.3),
+            60.0,
+            320,
+            240,
+            0.1,
+        ));
         for (i, cam) in cams.iter().enumerate() {
             for background in [Shading::default(), plain()] {
                 let deferred = scene.render(cam, None, &background);
