@@ -11,6 +11,11 @@
 use crate::block_cache::BoundedCache;
 use crate::heightfield::Heightfield;
 use crate::quadtree::{block_vertex, BlockLayout, DrawBlock};
+use foldhash::HashMap;
+use std::ops::RangeInclusive;
+
+/// A placed block vertex: its sample and raw height ([`block_vertex`]).
+type Placed = (i64, i64, f32);
 
 /// Deviation of the stitched strips of one block, in raw height units.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -163,14 +168,18 @@ pub fn edge_regions(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, fixed
         }
         s
     };
-    // Quad (u, v)'s deviation in each of the states `s`.
-    let mut quad_dev = |s: &[DrawBlock], u: u32, v: u32, dev: &mut [f32]| {
+    // Vertex (u, v) in state `st` of the states set `set` (an edge strip's, or a corner
+    // quad's), placed once: neighbouring quads of a strip share two vertices.
+    let mut placed: HashMap<(usize, usize, u32, u32), Placed> = HashMap::default();
+    // Quad (u, v)'s deviation in each of the states `s` of set `set`.
+    let mut quad_dev = |set: usize, s: &[DrawBlock], u: u32, v: u32, dev: &mut [f32]| {
         let corners = [(u, v), (u + 1, v), (u + 1, v + 1), (u, v + 1)];
         let mut pos = [(0i64, 0i64); 4];
         let mut heights = [[0.0f32; 4]; 8];
         for (st, block) in s.iter().enumerate() {
             for (c, &(uu, vv)) in corners.iter().enumerate() {
-                let (x, z, h) = block_vertex(hf, layout, block, uu, vv);
+                let (x, z, h) =
+                    *placed.entry((set, st, uu, vv)).or_insert_with(|| block_vertex(hf, layout, block, uu, vv));
                 debug_assert!(st == 0 || pos[c] == (x, z), "a morph state moved a vertex in x or z");
                 pos[c] = (x, z);
                 heights[st][c] = h;
@@ -190,7 +199,7 @@ pub fn edge_regions(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, fixed
         for t in 1..last {
             let (u, v) = strip_quad(e, t, last);
             dev[..4].fill(0.0);
-            quad_dev(&states, u, v, &mut dev[..4]);
+            quad_dev(e, &states, u, v, &mut dev[..4]);
             let m = &mut out.side[e][strip_segment(t, last)];
             for (m, d) in m.iter_mut().zip(&dev) {
                 *m = m.max(*d);
@@ -202,7 +211,7 @@ pub fn edge_regions(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, fixed
         let states: [DrawBlock; 8] =
             std::array::from_fn(|st| state(st & 4 != 0, &[(ea, st & 2 != 0), (eb, st & 1 != 0)]));
         dev.fill(0.0);
-        quad_dev(&states, u, v, &mut dev);
+        quad_dev(4 + c, &states, u, v, &mut dev);
         out.corner[c] = dev;
     }
     if out.lo > out.hi {
@@ -317,20 +326,52 @@ fn triangle_deviation(hf: &Heightfield, t: &[(i64, i64, f32); 3]) -> f32 {
 /// [`triangle_deviation`] of the triangle with corners `pos` and, in each state `s`, corner
 /// heights `heights[s]`, raised into `dev[s]`.
 fn triangle_deviation_states(hf: &Heightfield, pos: [(i64, i64); 3], heights: &[[f32; 3]], dev: &mut [f32]) {
-    let x0 = pos.iter().map(|p| p.0).min().unwrap_or(0);
-    let x1 = pos.iter().map(|p| p.0).max().unwrap_or(0);
     let z0 = pos.iter().map(|p| p.1).min().unwrap_or(0);
     let z1 = pos.iter().map(|p| p.1).max().unwrap_or(0);
     for z in z0..=z1 {
-        for x in x0..=x1 {
-            if let Some(w) = crate::audit::barycentric(&pos, x, z) {
-                let raw = hf.raw_at(x, z);
-                for (d, h) in dev.iter_mut().zip(heights) {
-                    *d = d.max((raw - crate::audit::weighted(w, *h)).abs());
-                }
+        // Only the row's samples inside the triangle (half of its box, for the
+        // right-angled triangles of a quad) get weights.
+        for x in inside_row(pos, z) {
+            let w = crate::audit::barycentric(&pos, x, z);
+            debug_assert!(w.is_some(), "({x}, {z}) is outside {pos:?}");
+            let Some(w) = w else { continue };
+            let raw = hf.raw_at(x, z);
+            for (d, h) in dev.iter_mut().zip(heights) {
+                *d = d.max((raw - crate::audit::weighted(w, *h)).abs());
             }
         }
     }
+}
+
+/// The samples of row `z` inside the triangle `pos` (edges included; none for a
+/// degenerate one): exactly those for which [`crate::audit::barycentric`] finds weights.
+/// Each of its three edge tests is linear in `x` along the row, `a x + b >= 0`, which
+/// bounds `x` from one side (or, with `a = 0`, keeps or empties the row), in integers.
+fn inside_row(pos: [(i64, i64); 3], z: i64) -> RangeInclusive<i64> {
+    let [(x0, z0), (x1, z1), (x2, z2)] = pos;
+    let det = (x1 - x0) * (z2 - z0) - (x2 - x0) * (z1 - z0);
+    // An empty range.
+    let empty = || RangeInclusive::new(1, 0);
+    if det == 0 {
+        return empty();
+    }
+    let s = det.signum();
+    // barycentric's n1, n2 and n0 = det - n1 - n2 as a x + b, times the sign of det.
+    let (a1, b1) = (z2 - z0, -x0 * (z2 - z0) - (x2 - x0) * (z - z0));
+    let (a2, b2) = (-(z1 - z0), (x1 - x0) * (z - z0) + x0 * (z1 - z0));
+    let (a0, b0) = (-a1 - a2, det - b1 - b2);
+    let (mut lo, mut hi) = (pos.iter().map(|p| p.0).min().unwrap_or(0), pos.iter().map(|p| p.0).max().unwrap_or(0));
+    for (a, b) in [(a1 * s, b1 * s), (a2 * s, b2 * s), (a0 * s, b0 * s)] {
+        match a.signum() {
+            // x >= ceil(-b / a)
+            1 => lo = lo.max(-(b.div_euclid(a))),
+            // x <= floor(b / -a)
+            -1 => hi = hi.min(b.div_euclid(-a)),
+            _ if b < 0 => return empty(),
+            _ => {}
+        }
+    }
+    lo..=hi
 }
 
 #[cfg(test)]
@@ -345,6 +386,48 @@ mod tests {
 
     fn cache_free(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock) -> StripDeviation {
         StitchCache::default().get(hf, layout, b)
+    }
+
+    /// The row scan finds exactly the samples that the barycentric test accepts, for
+    /// triangles of every shape and winding (thin, collinear, on negative coordinates).
+    #[test]
+    fn inside_rows_are_exactly_the_barycentric_samples() {
+        let mut seed = 0x2545f4914f6cdd1du64;
+        let mut next = |n: i64| {
+            seed ^= seed << 13;
+            seed ^= seed >> 7;
+            seed ^= seed << 17;
+            (seed % (2 * n as u64 + 1)) as i64 - n
+        };
+        let mut tris: Vec<[(i64, i64); 3]> = vec![
+            [(0, 0), (8, 0), (8, 8)],
+            [(0, 0), (8, 8), (8, 0)],
+            [(0, 0), (4, 4), (8, 8)],
+            [(3, 3), (3, 3), (3, 3)],
+            [(0, 0), (1, 7), (2, 14)],
+            [(-5, 2), (9, 3), (-4, 4)],
+            [(0, 0), (32, 0), (0, 32)],
+        ];
+        for _ in 0..3000 {
+            let r = if tris.len().is_multiple_of(2) { 3 } else { 40 };
+            tris.push([(next(r), next(r)), (next(r), next(r)), (next(r), next(r))]);
+        }
+        let mut inside = 0;
+        for t in &tris {
+            let z0 = t.iter().map(|p| p.1).min().unwrap();
+            let z1 = t.iter().map(|p| p.1).max().unwrap();
+            let x0 = t.iter().map(|p| p.0).min().unwrap();
+            let x1 = t.iter().map(|p| p.0).max().unwrap();
+            for z in z0 - 1..=z1 + 1 {
+                let row = inside_row(*t, z);
+                for x in x0 - 1..=x1 + 1 {
+                    let want = crate::audit::barycentric(t, x, z).is_some();
+                    assert_eq!(row.contains(&x), want, "{t:?} at ({x}, {z})");
+                    inside += want as usize;
+                }
+            }
+        }
+        assert!(inside > 10_000, "the triangles cover {inside} samples");
     }
 
     #[test]
