@@ -11,11 +11,7 @@
 use crate::block_cache::BoundedCache;
 use crate::heightfield::Heightfield;
 use crate::quadtree::{block_vertex, BlockLayout, DrawBlock};
-use foldhash::HashMap;
 use std::ops::RangeInclusive;
-
-/// A placed block vertex: its sample and raw height ([`block_vertex`]).
-type Placed = (i64, i64, f32);
 
 /// Deviation of the stitched strips of one block, in raw height units.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -168,18 +164,14 @@ pub fn edge_regions(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, fixed
         }
         s
     };
-    // Vertex (u, v) in state `st` of the states set `set` (an edge strip's, or a corner
-    // quad's), placed once: neighbouring quads of a strip share two vertices.
-    let mut placed: HashMap<(usize, usize, u32, u32), Placed> = HashMap::default();
-    // Quad (u, v)'s deviation in each of the states `s` of set `set`.
-    let mut quad_dev = |set: usize, s: &[DrawBlock], u: u32, v: u32, dev: &mut [f32]| {
+    // Quad (u, v)'s deviation in each of the states `s`.
+    let mut quad_dev = |s: &[DrawBlock], u: u32, v: u32, dev: &mut [f32]| {
         let corners = [(u, v), (u + 1, v), (u + 1, v + 1), (u, v + 1)];
         let mut pos = [(0i64, 0i64); 4];
         let mut heights = [[0.0f32; 4]; 8];
         for (st, block) in s.iter().enumerate() {
             for (c, &(uu, vv)) in corners.iter().enumerate() {
-                let (x, z, h) =
-                    *placed.entry((set, st, uu, vv)).or_insert_with(|| block_vertex(hf, layout, block, uu, vv));
+                let (x, z, h) = block_vertex(hf, layout, block, uu, vv);
                 debug_assert!(st == 0 || pos[c] == (x, z), "a morph state moved a vertex in x or z");
                 pos[c] = (x, z);
                 heights[st][c] = h;
@@ -199,7 +191,7 @@ pub fn edge_regions(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, fixed
         for t in 1..last {
             let (u, v) = strip_quad(e, t, last);
             dev[..4].fill(0.0);
-            quad_dev(e, &states, u, v, &mut dev[..4]);
+            quad_dev(&states, u, v, &mut dev[..4]);
             let m = &mut out.side[e][strip_segment(t, last)];
             for (m, d) in m.iter_mut().zip(&dev) {
                 *m = m.max(*d);
@@ -211,7 +203,7 @@ pub fn edge_regions(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, fixed
         let states: [DrawBlock; 8] =
             std::array::from_fn(|st| state(st & 4 != 0, &[(ea, st & 2 != 0), (eb, st & 1 != 0)]));
         dev.fill(0.0);
-        quad_dev(4 + c, &states, u, v, &mut dev);
+        quad_dev(&states, u, v, &mut dev);
         out.corner[c] = dev;
     }
     if out.lo > out.hi {
