@@ -89,8 +89,8 @@ pub struct Shading {
     pub pixels: PixelPass,
 }
 
-/// How terrain pixels are shaded (the image is the same up to rounding, silhouettes
-/// aside: see shade.frag).
+/// How terrain pixels are shaded (the same image up to rounding:
+/// `tests/gpu_render.rs::deferred_shading_matches_forward`).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
 pub enum PixelPass {
     /// The blocks write depth only, then one pass over the target shades each visible
