@@ -970,6 +970,10 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     drop(s);
     summary["validation_messages"] = json!(messages.count());
     summary["morph"] = json!(args.common.morph == crate::cli::OnOff::On);
+    // What was asked for: colour-by-LOD, wireframe, a device without clip distances and
+    // cameras beyond `DEFERRED_MAX_SPACINGS` are shaded forward whatever this says.
+    summary["pixels"] = json!(value_name(args.pixels));
+    summary["shading"] = json!(value_name(args.shading));
     summary["validation_counted_after_device_destruction"] = json!(true);
     let text = serde_json::to_string_pretty(&summary)?;
     let path = args.out.join("summary.json");
@@ -1023,6 +1027,11 @@ fn fidelity(bench: &mut Bench, activity: &ErrorsActivity) -> anyhow::Result<Valu
         }
     }
     Ok(Value::Array(out))
+}
+
+/// The command-line spelling of a value-enum option (`deferred`, `gradient-map`).
+fn value_name(v: impl clap::ValueEnum) -> String {
+    v.to_possible_value().map(|p| p.get_name().to_string()).unwrap_or_default()
 }
 
 #[cfg(test)]

@@ -94,6 +94,7 @@ fn short_bench_writes_every_file_with_documented_fields() {
         assert!(!s[key].is_null() || optional, "summary.json lacks {key}: {s}");
     }
     assert_eq!(s["generations_strictly_increasing"], true);
+    assert_eq!((s["pixels"].as_str(), s["shading"].as_str()), (Some("deferred"), Some("gradient-map")));
     assert!(s["error_updates"].as_u64().unwrap() >= 2);
     for run in ["error", "full", "distance", "ceiling"] {
         assert_eq!(s["compare"][run]["frames"], 24, "{run}");
@@ -351,9 +352,10 @@ fn pose_file_replays_as_a_path() {
     }
     std::fs::write(&poses, &text).unwrap();
     let out = dir.join("out");
-    let s = bench(&out, &["--path", poses.to_str().unwrap(), "--frames", "99", "--no-fidelity"]);
+    let s = bench(&out, &["--path", poses.to_str().unwrap(), "--frames", "99", "--no-fidelity", "--pixels", "forward"]);
     let csv = std::fs::read_to_string(out.join("frames.csv")).unwrap();
     assert_eq!(s["frames"], 7);
+    assert_eq!(s["pixels"], "forward");
     assert_eq!(csv.lines().count(), 1 + 7);
     assert_eq!(s["path"], poses.to_str().unwrap());
     assert!(csv.lines().skip(1).all(|l| l.split(',').nth(4).unwrap().parse::<u64>().unwrap() > 0));
