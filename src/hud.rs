@@ -110,6 +110,8 @@ pub struct Controls {
     pub frozen: bool,
     pub wireframe: bool,
     pub colour_by_lod: bool,
+    /// Deferred shading (else forward; the wireframe and LOD-colour views are forward).
+    pub deferred: bool,
     pub fog_density: f32,
     pub speed: f32,
     /// Set for one frame by the "Home" button.
@@ -235,6 +237,10 @@ fn panel(ui: &mut egui::Ui, r: &Readout, history: &FrameHistory, now: f64, c: &m
             .on_disabled_hover_text("this device has no fillModeNonSolid");
         ui.checkbox(&mut c.colour_by_lod, "LOD colours");
     });
+    let forward_only = c.wireframe || c.colour_by_lod;
+    ui.add_enabled(!forward_only, egui::Checkbox::new(&mut c.deferred, "deferred shading"))
+        .on_hover_text("shade each visible pixel once, after a depth-only pass over the blocks")
+        .on_disabled_hover_text("wireframe and LOD colours are shaded forward");
     if c.colour_by_lod {
         ui.horizontal_wrapped(|ui| {
             ui.label("LOD");
@@ -755,7 +761,8 @@ mod tests {
             morph: true,
             frozen: false,
             wireframe: false,
-            colour_by_lod: true,
+            colour_by_lod: false,
+            deferred: true,
             fog_density: 0.1,
             speed: 10.0,
             go_home: false,
@@ -880,7 +887,9 @@ mod tests {
         let (c, _) = run(true, Ok("morph"));
         assert_eq!(c, Controls { morph: false, ..controls() });
         let (c, _) = run(true, Ok("LOD colours"));
-        assert_eq!(c, Controls { colour_by_lod: false, ..controls() });
+        assert_eq!(c, Controls { colour_by_lod: true, ..controls() });
+        let (c, _) = run(true, Ok("deferred shading"));
+        assert_eq!(c, Controls { deferred: false, ..controls() });
         let (c, _) = run(true, Ok("paper"));
         assert_eq!(c, Controls { mode: ErrorMode::Paper, ..controls() });
         let (c, _) = run(true, Ok("Home"));

@@ -2,7 +2,7 @@
 //! activity (traversal and drawing on the draw queue), with the errors activity live on
 //! its own thread and queue.
 
-use crate::blocks::{BlocksRenderer, DrawStats, FrameDest, FrameSync, Shading, DEPTH_FORMAT};
+use crate::blocks::{BlocksRenderer, DrawStats, FrameDest, FrameSync, PixelPass, Shading, DEPTH_FORMAT};
 use crate::camera::Camera;
 use crate::cli::{near_plane, CommonArgs, InputError};
 use crate::commands::{save_png, Session};
@@ -868,6 +868,7 @@ impl App {
             frozen: self.frozen.is_some(),
             wireframe: self.shading.wireframe,
             colour_by_lod: self.shading.colour_by_lod,
+            deferred: self.shading.pixels == PixelPass::Deferred,
             fog_density: self.shading.fog_density,
             speed: self.ctl.speed,
             go_home: false,
@@ -884,6 +885,7 @@ impl App {
         self.feed.morph = c.morph;
         self.shading.wireframe = c.wireframe;
         self.shading.colour_by_lod = c.colour_by_lod;
+        self.shading.pixels = if c.deferred { PixelPass::Deferred } else { PixelPass::Forward };
         self.shading.fog_density = c.fog_density;
         self.ctl.speed = c.speed;
         self.sun = c.sun;
