@@ -94,9 +94,7 @@ pub enum PathArg {
 impl std::fmt::Display for PathArg {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
-            PathArg::Builtin(p) => {
-                write!(f, "{}", p.to_possible_value().map_or("?".into(), |v| v.get_name().to_string()))
-            }
+            PathArg::Builtin(p) => write!(f, "{}", value_name(*p)),
             PathArg::File(p) => write!(f, "{}", p.display()),
         }
     }
