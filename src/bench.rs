@@ -891,6 +891,7 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
             let increasing = main.generations.windows(2).all(|w| w[0] < w[1]);
             let mut summary = summarize(&main);
             summary["generations_strictly_increasing"] = json!(increasing);
+            summary["most_generations_in_flight"] = json!(activity.most_in_flight());
             summary["rss_samples_mib"] = json!(main.rss);
             summary["interrupted"] = json!(main.interrupted);
             // Comparisons only from runs that went the whole path: a run stopped part way

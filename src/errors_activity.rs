@@ -2,21 +2,26 @@
 //! fragment-shader passes only. Per generation it rasterizes `GIE_i` for LOD `i = 1..=n`
 //! into mip `i-1` of an R32F image (about `4^n / 3` fragments in all), reduces it to one
 //! error per block, and copies only that block-error pyramid to a host-visible buffer.
-//! Two slots (error images + readback buffers) are used in turn; a timeline semaphore
+//! Two slots (error images + readback buffers) are used in turn, by the rules of
+//! [`crate::handoff`], so that up to two generations are in flight; a timeline semaphore
 //! whose value is the generation number hands each finished one to the draw thread.
 
 use crate::gie::{fragments_per_update, BlockErrors, ErrorParams, GroupErrors};
 use crate::gpu_layout::{self as layout, GiePush, ReducePush};
+use crate::handoff::{Handoff, Read};
 use crate::heightfield::{HeightFormat, Heightfield};
 use crate::quadtree::BlockLayout;
 use crate::shaders;
 use crate::terrain_gpu::TerrainGpu;
 use crate::trace::{Trace, ERRORS_TID};
+use crate::vk::wait_any;
 use crate::vk::{
     begin_one_time, host_read_barrier, image_barrier, vk, Buffer, CommandPool, DescriptorPool, DescriptorSetLayout,
-    Device, Fence, GraphicsPipeline, GraphicsPipelineDesc, Image, ImageUse, ImageView, PipelineLayout, QueryPool,
+    Device, GraphicsPipeline, GraphicsPipelineDesc, Image, ImageUse, ImageView, PipelineLayout, QueryPool,
     TimelineSemaphore, VkError, VkResult, VkResultExt,
 };
+use std::collections::VecDeque;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Condvar, Mutex};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
@@ -53,9 +58,9 @@ struct SlotInfo {
     gpu_ms: Option<f64>,
 }
 
-struct Handoff {
-    /// Generation the reader is copying right now.
-    reading: Option<u64>,
+/// The hand-off protocol and what each slot holds, under one lock.
+struct HandoffState {
+    protocol: Handoff,
     slots: [Option<SlotInfo>; 2],
 }
 
@@ -66,11 +71,22 @@ struct Request {
 
 struct Shared {
     request: Mutex<Request>,
-    request_cv: Condvar,
-    handoff: Mutex<Handoff>,
-    handoff_cv: Condvar,
+    handoff: Mutex<HandoffState>,
+    /// Host events for the errors thread, counted: a new request, a released slot, stop.
+    /// (A host-signalled timeline semaphore would let one wait cover the GPU too, but
+    /// the validation layers of Debian bookworm time out on those: VVL issue 4649.)
+    events: Mutex<u64>,
+    events_cv: Condvar,
+    /// Generation `g` is written when this reaches `g`.
     timeline: TimelineSemaphore,
+    /// Counts the errors queue's submissions as they complete (each signals one more).
+    submissions: TimelineSemaphore,
+    /// Each submission waits (on the CPU) for the one before to complete, so that at most
+    /// one submission of error work sits ahead of a draw on a shared queue.
+    paced: bool,
     readbacks: [Buffer; 2],
+    /// The reader's copy of the newest generation it took.
+    copy: Mutex<Option<Generation>>,
     failure: Mutex<Option<VkError>>,
     root_lod: u32,
     /// Two timestamps per submission of a generation, per slot.
@@ -79,12 +95,44 @@ struct Shared {
     /// finished, without vkGetQueryPoolResults, which waits for the queue on lavapipe).
     timestamps: Vec<Buffer>,
     /// Generations finished, for watchdogs.
-    finished: std::sync::atomic::AtomicU64,
-    /// True while the thread waits for a request with new parameters.
-    idle: std::sync::atomic::AtomicBool,
+    finished: AtomicU64,
+    /// True while the thread waits with nothing to do.
+    idle: AtomicBool,
+    /// The host events the thread had seen when it last found nothing to do.
+    idle_seen: AtomicU64,
+    /// Most generations in flight on the GPU at once.
+    most_in_flight: AtomicU64,
     /// Test hook: fail with ERROR_DEVICE_LOST when this generation is submitted (0: never).
-    inject_device_lost_at: std::sync::atomic::AtomicU64,
+    inject_device_lost_at: AtomicU64,
     trace: Trace,
+}
+
+impl Shared {
+    /// Host events so far. Read before looking at the shared state, then wait for more:
+    /// an event that comes in between is not missed.
+    fn seen(&self) -> u64 {
+        *self.events.lock().unwrap()
+    }
+
+    /// Wakes the errors thread if it waits for host events.
+    fn notify(&self) {
+        *self.events.lock().unwrap() += 1;
+        self.events_cv.notify_all();
+    }
+}
+
+/// How the errors thread paces its submissions.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Pacing {
+    /// Paced exactly when the queue is shared with the draw thread.
+    #[default]
+    Auto,
+    /// Each submission waits for the one before: draws interleave on a shared queue, and
+    /// a second generation only queues once the first is done.
+    Paced,
+    /// Submissions go as soon as they are recorded: two generations in flight on the
+    /// errors queue (the separate-queue behaviour; tests force it on a shared queue).
+    Free,
 }
 
 /// Handle held by the draw thread.
@@ -132,8 +180,6 @@ struct ErrorsGpu {
     _reduce_set_layout: DescriptorSetLayout,
     _pool: DescriptorPool,
     _dummy: Image,
-    /// Signalled by each submission of a generation but the last.
-    chunk_fence: Fence,
     commands: CommandPool,
 }
 
@@ -285,7 +331,6 @@ impl ErrorsGpu {
             _reduce_set_layout: reduce_set_layout,
             _pool: pool,
             _dummy: dummy,
-            chunk_fence: Fence::new(device, false)?,
             commands,
         })
     }
@@ -361,7 +406,7 @@ impl ErrorsGpu {
         let n = self.hf.n;
         let root = self.layout.root_lod();
         // SAFETY: the slot's previous submissions (generation g-2) have completed: the
-        // errors thread waits for each generation before starting the next.
+        // hand-off starts g only once g-2 is finished (`Handoff::can_start`).
         unsafe {
             begin_one_time(d, cmd)?;
         }
@@ -603,7 +648,7 @@ impl ErrorsActivity {
         hf: Arc<Heightfield>,
         block_layout: BlockLayout,
     ) -> VkResult<Self> {
-        Self::start_traced(device, terrain, hf, block_layout, Trace::off())
+        Self::start_with(device, terrain, hf, block_layout, Trace::off(), Pacing::Auto)
     }
 
     /// Like [`ErrorsActivity::start`], recording the thread's work into `trace`.
@@ -613,6 +658,18 @@ impl ErrorsActivity {
         hf: Arc<Heightfield>,
         block_layout: BlockLayout,
         trace: Trace,
+    ) -> VkResult<Self> {
+        Self::start_with(device, terrain, hf, block_layout, trace, Pacing::Auto)
+    }
+
+    /// Like [`ErrorsActivity::start_traced`], with the submissions paced as asked.
+    pub fn start_with(
+        device: &Arc<Device>,
+        terrain: Arc<TerrainGpu>,
+        hf: Arc<Heightfield>,
+        block_layout: BlockLayout,
+        trace: Trace,
+        pacing: Pacing,
     ) -> VkResult<Self> {
         let root = block_layout.root_lod();
         let bytes = readback_bytes(root);
@@ -643,20 +700,30 @@ impl ErrorsActivity {
                 .collect::<VkResult<Vec<_>>>()?,
             None => Vec::new(),
         };
+        let paced = match pacing {
+            Pacing::Auto => device.queue_mode == crate::vk::QueueMode::Shared,
+            Pacing::Paced => true,
+            Pacing::Free => false,
+        };
         let shared = Arc::new(Shared {
             request: Mutex::new(Request { params: None, stop: false }),
-            request_cv: Condvar::new(),
-            handoff: Mutex::new(Handoff { reading: None, slots: [None, None] }),
-            handoff_cv: Condvar::new(),
+            handoff: Mutex::new(HandoffState { protocol: Handoff::default(), slots: [None, None] }),
+            events: Mutex::new(0),
+            events_cv: Condvar::new(),
             timeline: TimelineSemaphore::new(device, 0)?,
+            submissions: TimelineSemaphore::new(device, 0)?,
+            paced,
             readbacks: [rb(0)?, rb(1)?],
+            copy: Mutex::new(None),
             failure: Mutex::new(None),
             root_lod: root,
             queries,
             timestamps,
-            finished: std::sync::atomic::AtomicU64::new(0),
-            idle: std::sync::atomic::AtomicBool::new(true),
-            inject_device_lost_at: std::sync::atomic::AtomicU64::new(0),
+            finished: AtomicU64::new(0),
+            idle: AtomicBool::new(true),
+            idle_seen: AtomicU64::new(0),
+            most_in_flight: AtomicU64::new(0),
+            inject_device_lost_at: AtomicU64::new(0),
             trace,
         });
         let cost = UpdateCost {
@@ -676,7 +743,6 @@ impl ErrorsActivity {
                 if let Err(e) = run(gpu, &thread_shared) {
                     *thread_shared.failure.lock().unwrap() =
                         Some(VkError::Thread { stage: "errors activity".into(), source: Box::new(e) });
-                    thread_shared.handoff_cv.notify_all();
                 }
             })
             .map_err(|e| VkError::Setup(format!("cannot start the errors thread: {e}")))?;
@@ -686,10 +752,14 @@ impl ErrorsActivity {
     /// Asks for a generation computed with `params`; does nothing if the latest request
     /// already has them (a camera standing still starts no work).
     pub fn request(&self, params: ErrorParams) {
-        let mut r = self.shared.request.lock().unwrap();
-        if r.params != Some(params) {
+        let changed = {
+            let mut r = self.shared.request.lock().unwrap();
+            let changed = r.params != Some(params);
             r.params = Some(params);
-            self.shared.request_cv.notify_all();
+            changed
+        };
+        if changed {
+            self.shared.notify();
         }
     }
 
@@ -701,46 +771,55 @@ impl ErrorsActivity {
     }
 
     /// The newest finished generation newer than `after`, copied out; never blocks on
-    /// the GPU (reads the timeline counter on the CPU).
+    /// the GPU (the errors thread publishes a generation once the GPU signalled it).
     pub fn latest(&self, after: u64) -> VkResult<Option<Generation>> {
         self.check_failure()?;
         let s = &self.shared;
-        let (g, info) = {
+        // One reader at a time: the lock is held across the copy.
+        let mut copy = s.copy.lock().unwrap();
+        let (g, slot, info) = {
             let mut h = s.handoff.lock().unwrap();
-            // A generation is handed over once the errors thread has published it (its
-            // GPU time recorded), not as soon as the GPU signals it.
-            let g = s.timeline.value()?.min(s.finished.load(std::sync::atomic::Ordering::SeqCst));
-            if g <= after || g == 0 {
-                return Ok(None);
+            match h.protocol.begin_read() {
+                Read::Nothing => return Ok(None),
+                Read::Copied(g) => {
+                    return Ok(copy.as_ref().filter(|c| c.number == g && g > after).cloned());
+                }
+                Read::Copy { generation, slot } => (generation, slot, h.slots[slot]),
             }
-            h.reading = Some(g);
-            (g, h.slots[(g % 2) as usize])
         };
-        let slot = (g % 2) as usize;
-        let bytes = s.readbacks[slot].mapped()?;
-        let len = BlockErrors::packed_len(s.root_lod);
-        let header = u32::from_le_bytes(bytes[0..4].try_into().unwrap());
-        let data: Vec<f32> = bytemuck::pod_collect_to_vec(&bytes[4..4 + len * 4]);
-        let trailer = u32::from_le_bytes(bytes[4 + len * 4..8 + len * 4].try_into().unwrap());
-        // Read inside the reading window: the slot's queries are not reset meanwhile.
-        let gpu_ms = info.and_then(|i| i.gpu_ms);
-        {
-            let mut h = s.handoff.lock().unwrap();
-            h.reading = None;
-            s.handoff_cv.notify_all();
+        if g <= after {
+            // Published after the caller's own copy? Cannot be, but keep the slot free.
+            s.handoff.lock().unwrap().protocol.end_read(g, false);
+            s.notify();
+            return Ok(None);
         }
+        let bytes = s.readbacks[slot].mapped();
+        let read = bytes.map(|bytes| {
+            let len = BlockErrors::packed_len(s.root_lod);
+            let header = u32::from_le_bytes(bytes[0..4].try_into().unwrap());
+            let data: Vec<f32> = bytemuck::pod_collect_to_vec(&bytes[4..4 + len * 4]);
+            let trailer = u32::from_le_bytes(bytes[4 + len * 4..8 + len * 4].try_into().unwrap());
+            (header, data, trailer)
+        });
         let info = info.filter(|i| i.generation == g);
-        match info {
-            Some(info) if header == g as u32 && trailer == g as u32 => Ok(Some(Generation {
+        let taken = match (read, info) {
+            (Ok((header, data, trailer)), Some(info)) if header == g as u32 && trailer == g as u32 => Ok(Generation {
                 number: g,
                 params: info.params,
                 errors: BlockErrors::from_packed(s.root_lod, &data),
-                gpu_ms,
-            })),
-            _ => Err(VkError::Setup(format!(
+                gpu_ms: info.gpu_ms,
+            }),
+            (Err(e), _) => Err(e),
+            (Ok((header, _, trailer)), _) => Err(VkError::Setup(format!(
                 "hand-off broken: generation {g} read as header {header}, trailer {trailer}"
             ))),
-        }
+        };
+        s.handoff.lock().unwrap().protocol.end_read(g, taken.is_ok());
+        // The writer may be waiting for this slot.
+        s.notify();
+        let taken = taken?;
+        *copy = Some(taken.clone());
+        Ok(Some(taken))
     }
 
     /// Requests `params` and blocks until a generation computed with them is finished.
@@ -772,14 +851,33 @@ impl ErrorsActivity {
     /// Test hook: the errors thread fails as if the device were lost when it is about to
     /// submit generation `g`.
     pub fn inject_device_lost_at(&self, g: u64) {
-        self.shared.inject_device_lost_at.store(g, std::sync::atomic::Ordering::SeqCst);
+        self.shared.inject_device_lost_at.store(g, Ordering::SeqCst);
     }
 
-    /// Whether the thread has work (a request with new parameters), and generations
-    /// finished: a watchdog's view of its progress.
+    /// Whether the thread has work (a request with new parameters, or a generation in
+    /// flight), and generations finished: a watchdog's view of its progress.
     pub fn progress(&self) -> (bool, u64) {
-        let done = self.shared.finished.load(std::sync::atomic::Ordering::SeqCst);
-        (!self.shared.idle.load(std::sync::atomic::Ordering::SeqCst), done)
+        let done = self.shared.finished.load(Ordering::SeqCst);
+        (!self.shared.idle.load(Ordering::SeqCst), done)
+    }
+
+    /// True once the thread has looked at every request made so far and found nothing
+    /// to do (no new parameters, nothing in flight): what "a request started no work"
+    /// is checked with, instead of a sleep.
+    pub fn settled(&self) -> bool {
+        let events = self.shared.seen();
+        self.shared.idle.load(Ordering::SeqCst) && self.shared.idle_seen.load(Ordering::SeqCst) >= events
+    }
+
+    /// Generations started so far (recorded; some may still be in flight).
+    pub fn started(&self) -> u64 {
+        self.shared.handoff.lock().unwrap().protocol.started()
+    }
+
+    /// Most generations that were in flight on the GPU at once (1 when paced; 2 when
+    /// requests come faster than updates on a separate queue).
+    pub fn most_in_flight(&self) -> u64 {
+        self.shared.most_in_flight.load(Ordering::SeqCst)
     }
 
     /// The generation counter (timeline value).
@@ -794,11 +892,8 @@ impl ErrorsActivity {
     }
 
     fn shutdown(&mut self) {
-        {
-            let mut r = self.shared.request.lock().unwrap();
-            r.stop = true;
-            self.shared.request_cv.notify_all();
-        }
+        self.shared.request.lock().unwrap().stop = true;
+        self.shared.notify();
         if let Some(t) = self.thread.take() {
             let _ = t.join();
         }
@@ -811,110 +906,196 @@ impl Drop for ErrorsActivity {
     }
 }
 
-/// The errors thread: waits for a request with new parameters, computes it, signals.
+/// A generation recorded and not yet published.
+struct InFlight {
+    g: u64,
+    slot: usize,
+    cmds: Vec<vk::CommandBuffer>,
+    /// Submissions made so far.
+    submitted: usize,
+    /// The value on `Shared::submissions` that its last submission signals, once made.
+    last_signal: u64,
+    started: Instant,
+}
+
+impl InFlight {
+    fn all_submitted(&self) -> bool {
+        self.submitted == self.cmds.len()
+    }
+}
+
+/// The errors thread. Whatever ends it, the GPU is done with its objects before they are
+/// dropped.
 fn run(gpu: ErrorsGpu, s: &Shared) -> VkResult<()> {
+    let mut submissions = 0u64;
+    let result = event_loop(&gpu, s, &mut submissions);
+    if submissions > 0 {
+        // A lost device answers at once; a hung one is given 10 s.
+        let _ = s.submissions.wait(submissions, 10_000_000_000);
+    }
+    result
+}
+
+/// The errors thread's loop over the request, the hand-off and the GPU: it publishes
+/// what the GPU finished, submits the next part of a generation when pacing lets it go,
+/// starts a generation for new parameters when the hand-off has a slot for it, and
+/// otherwise sleeps until the GPU or the host (a request, a released slot, stop) wakes
+/// it. `submissions` is the value the last submission signals on `s.submissions`.
+fn event_loop(gpu: &ErrorsGpu, s: &Shared, submissions: &mut u64) -> VkResult<()> {
+    let mut flight: VecDeque<InFlight> = VecDeque::new();
+    // Parameters of the newest generation started.
     let mut last: Option<ErrorParams> = None;
-    let mut g = 0u64;
     loop {
-        let params = {
-            let mut r = s.request.lock().unwrap();
-            loop {
-                if r.stop {
-                    return Ok(());
-                }
-                match r.params {
-                    Some(p) if Some(p) != last => break p,
-                    _ => {
-                        s.idle.store(true, std::sync::atomic::Ordering::SeqCst);
-                        r = s.request_cv.wait(r).unwrap();
-                    }
-                }
-            }
+        // Read before looking at the shared state, so that no event in between is missed.
+        let seen = s.seen();
+        let done = s.timeline.value()?;
+        while flight.front().is_some_and(|f| f.all_submitted() && f.g <= done) {
+            publish(gpu, s, &flight.pop_front().expect("front"))?;
+        }
+        let (stop, params) = {
+            let r = s.request.lock().unwrap();
+            (r.stop, r.params)
         };
-        s.idle.store(false, std::sync::atomic::Ordering::SeqCst);
-        let started = Instant::now();
-        g += 1;
-        let slot = (g % 2) as usize;
-        {
-            // Generation g-1 is finished (we waited for it), so the reader will never
-            // pick g-2 again; wait only if it is copying g-2 right now.
-            let mut h = s.handoff.lock().unwrap();
-            while h.reading == Some(g.wrapping_sub(2)) {
-                h = s.handoff_cv.wait(h).unwrap();
+        if stop {
+            return Ok(());
+        }
+        let fresh = params.filter(|p| Some(*p) != last);
+        let queue_ready = !s.paced || s.submissions.value()? >= *submissions;
+        if let Some(next) = flight.iter().position(|f| !f.all_submitted()) {
+            if queue_ready {
+                if flight[next].submitted == 0 {
+                    // Generations on the GPU once this one is: the earlier ones whose
+                    // last submission has not completed, and this one.
+                    let completed = s.submissions.value()?;
+                    let earlier = flight.iter().take(next).filter(|e| e.last_signal > completed).count();
+                    s.most_in_flight.fetch_max(1 + earlier as u64, Ordering::SeqCst);
+                }
+                let f = &mut flight[next];
+                submit_next(gpu, s, f, submissions)?;
+                continue;
             }
-            h.slots[slot] = Some(SlotInfo { generation: g, params, chunks: 0, gpu_ms: None });
+        } else if let Some(p) = fresh {
+            let started = {
+                let mut h = s.handoff.lock().unwrap();
+                h.protocol.can_start().then(|| {
+                    let g = h.protocol.start();
+                    let info = SlotInfo { generation: g, params: p, chunks: 0, gpu_ms: None };
+                    h.slots[Handoff::slot(g)] = Some(info);
+                    g
+                })
+            };
+            if let Some(g) = started {
+                s.idle.store(false, Ordering::SeqCst);
+                if s.inject_device_lost_at.load(Ordering::SeqCst) == g {
+                    return Err(vk::Result::ERROR_DEVICE_LOST)
+                        .vk("vkQueueSubmit2 (injected fault)")
+                        .map_err(|e| VkError::Thread { stage: format!("generation {g}"), source: Box::new(e) });
+                }
+                let slot = Handoff::slot(g);
+                let begun = Instant::now();
+                let cmds = gpu.record(slot, g, &p, &s.readbacks[slot], None)?;
+                // Before submitting: the reader looks at this only once g is published.
+                if let Some(info) = s.handoff.lock().unwrap().slots[slot].as_mut() {
+                    info.chunks = cmds.len() as u32;
+                }
+                flight.push_back(InFlight { g, slot, cmds, submitted: 0, last_signal: 0, started: begun });
+                last = Some(p);
+                continue;
+            }
         }
-        if s.inject_device_lost_at.load(std::sync::atomic::Ordering::SeqCst) == g {
-            return Err(vk::Result::ERROR_DEVICE_LOST)
-                .vk("vkQueueSubmit2 (injected fault)")
-                .map_err(|e| VkError::Thread { stage: format!("generation {g}"), source: Box::new(e) });
+        // Nothing to do now: sleep until the GPU or the host has news.
+        let nothing = flight.is_empty() && fresh.is_none();
+        if nothing {
+            s.idle_seen.store(seen, Ordering::SeqCst);
         }
-        let chunks = gpu.record(slot, g, &params, &s.readbacks[slot], None)?;
-        // Before submitting: the reader looks at this only once generation g is signalled.
-        if let Some(info) = s.handoff.lock().unwrap().slots[slot].as_mut() {
-            info.chunks = chunks.len() as u32;
+        s.idle.store(nothing, Ordering::SeqCst);
+        if flight.is_empty() {
+            let events = s.events.lock().unwrap();
+            if *events == seen {
+                // The timeout only bounds the damage of a lost wake-up.
+                drop(s.events_cv.wait_timeout(events, Duration::from_millis(100)).unwrap());
+            }
+        } else {
+            // GPU work in flight: wait for it, looking at host events every 2 ms (a
+            // request that could start a second generation, a released slot, stop).
+            let mut waits = Vec::new();
+            if let Some(f) = flight.front().filter(|f| f.all_submitted()) {
+                waits.push((&s.timeline, f.g));
+            }
+            if flight.iter().any(|f| !f.all_submitted()) {
+                waits.push((&s.submissions, *submissions));
+            }
+            wait_any(&gpu.device, &waits, HOST_LOOK_NS)?;
         }
-        let (&last_chunk, first_chunks) = chunks.split_last().expect("at least one command buffer");
-        for &c in first_chunks {
-            // Each chunk waits for the one before on the CPU, so that a draw submitted
-            // meanwhile runs between them instead of behind the whole generation.
-            let cmds = [vk::CommandBufferSubmitInfo::default().command_buffer(c)];
-            gpu.chunk_fence.reset()?;
-            let submit = [vk::SubmitInfo2::default().command_buffer_infos(&cmds)];
-            let (asked, got) = gpu.device.errors_queue.submit_timed(&gpu.device, &submit, gpu.chunk_fence.handle)?;
-            s.trace.complete(ERRORS_TID, "wait (queue lock)", asked, got, serde_json::json!({"generation": g}));
-            gpu.chunk_fence.wait(u64::MAX)?;
-        }
-        let cmds = [vk::CommandBufferSubmitInfo::default().command_buffer(last_chunk)];
-        let signal = [vk::SemaphoreSubmitInfo::default()
-            .semaphore(s.timeline.handle)
-            .value(g)
-            .stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)];
-        let submit = [vk::SubmitInfo2::default().command_buffer_infos(&cmds).signal_semaphore_infos(&signal)];
-        let (asked, got) = gpu.device.errors_queue.submit_timed(&gpu.device, &submit, vk::Fence::null())?;
-        s.trace.complete(ERRORS_TID, "wait (queue lock)", asked, got, serde_json::json!({"generation": g}));
+    }
+}
+
+/// How often the errors thread looks at host events while it waits for the GPU.
+const HOST_LOOK_NS: u64 = 2_000_000;
+
+/// Submits `f`'s next command buffer. Each submission signals one more on
+/// `s.submissions`; the last also signals generation `f.g` on the timeline.
+fn submit_next(gpu: &ErrorsGpu, s: &Shared, f: &mut InFlight, submissions: &mut u64) -> VkResult<()> {
+    let last = f.submitted + 1 == f.cmds.len();
+    *submissions += 1;
+    if last {
+        f.last_signal = *submissions;
+    }
+    let cmds = [vk::CommandBufferSubmitInfo::default().command_buffer(f.cmds[f.submitted])];
+    let all = vk::PipelineStageFlags2::ALL_COMMANDS;
+    let mut signal =
+        vec![vk::SemaphoreSubmitInfo::default().semaphore(s.submissions.handle).value(*submissions).stage_mask(all)];
+    if last {
+        signal.push(vk::SemaphoreSubmitInfo::default().semaphore(s.timeline.handle).value(f.g).stage_mask(all));
+    }
+    let submit = [vk::SubmitInfo2::default().command_buffer_infos(&cmds).signal_semaphore_infos(&signal)];
+    let (asked, got) = gpu.device.errors_queue.submit_timed(&gpu.device, &submit, vk::Fence::null())?;
+    s.trace.complete(ERRORS_TID, "wait (queue lock)", asked, got, serde_json::json!({"generation": f.g}));
+    f.submitted += 1;
+    if last {
         s.trace.instant(
             ERRORS_TID,
             "submit (errors queue)",
-            serde_json::json!({"generation": g, "signals": g, "submissions": chunks.len()}),
+            serde_json::json!({"generation": f.g, "signals": f.g, "submissions": f.cmds.len()}),
         );
-        // One generation in flight: wait (on the CPU) until it is done.
-        while !s.timeline.wait(g, 100_000_000)? {
-            if s.request.lock().unwrap().stop {
-                // Still let the GPU finish before the objects it uses are destroyed.
-                s.timeline.wait(g, u64::MAX)?;
-                return Ok(());
-            }
+    }
+    Ok(())
+}
+
+/// Generation `f.g` is done on the GPU: reads its GPU time and hands it to the reader.
+fn publish(gpu: &ErrorsGpu, s: &Shared, f: &InFlight) -> VkResult<()> {
+    // The generation's GPU time (sum over its submissions) and GPU spans; the slot's
+    // queries are not reset before g + 2 starts, which needs g published.
+    let shared = gpu.device.queue_mode == crate::vk::QueueMode::Shared;
+    let mut gpu_ms = None;
+    if let (Some(q), Some(buf)) = (&s.queries, s.timestamps.get(f.slot)) {
+        let ticks: Vec<u64> = bytemuck::pod_collect_to_vec(&buf.mapped()?[..f.cmds.len() * 16]);
+        let mut sum = 0.0;
+        for (c, t) in ticks.chunks(2).enumerate() {
+            sum += q.ms([t[0], t[1]]);
+            let args = serde_json::json!({"generation": f.g, "submission": c});
+            s.trace.gpu_span(s.trace.gpu_tid(true, shared), "error passes", [t[0], t[1]], args);
         }
-        // The generation's GPU time (sum over its submissions) and GPU spans; the slot's
-        // queries are not reset before g + 2.
-        let shared = gpu.device.queue_mode == crate::vk::QueueMode::Shared;
-        let mut gpu_ms = None;
-        if let (Some(q), Some(buf)) = (&s.queries, s.timestamps.get(slot)) {
-            let ticks: Vec<u64> = bytemuck::pod_collect_to_vec(&buf.mapped()?[..chunks.len() * 16]);
-            let mut sum = 0.0;
-            for (c, t) in ticks.chunks(2).enumerate() {
-                sum += q.ms([t[0], t[1]]);
-                let args = serde_json::json!({"generation": g, "submission": c});
-                s.trace.gpu_span(s.trace.gpu_tid(true, shared), "error passes", [t[0], t[1]], args);
-            }
-            gpu_ms = Some(sum);
-        }
-        if let Some(info) = s.handoff.lock().unwrap().slots[slot].as_mut() {
+        gpu_ms = Some(sum);
+    }
+    {
+        let mut h = s.handoff.lock().unwrap();
+        if let Some(info) = h.slots[f.slot].as_mut() {
             info.gpu_ms = gpu_ms;
         }
-        s.finished.store(g, std::sync::atomic::Ordering::SeqCst);
-        if s.trace.enabled() {
-            s.trace.flow(ERRORS_TID, true, g);
-        }
-        s.trace.complete(
-            ERRORS_TID,
-            "generation",
-            started,
-            Instant::now(),
-            serde_json::json!({"generation": g, "slot": slot}),
-        );
-        s.trace.counter("errors timeline (signalled)", g);
-        last = Some(params);
+        h.protocol.finish(f.g);
     }
+    s.finished.store(f.g, Ordering::SeqCst);
+    if s.trace.enabled() {
+        s.trace.flow(ERRORS_TID, true, f.g);
+    }
+    s.trace.complete(
+        ERRORS_TID,
+        "generation",
+        f.started,
+        Instant::now(),
+        serde_json::json!({"generation": f.g, "slot": f.slot}),
+    );
+    s.trace.counter("errors timeline (signalled)", f.g);
+    Ok(())
 }

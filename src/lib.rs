@@ -13,6 +13,7 @@ pub mod camera;
 pub mod deviation;
 pub mod gie;
 pub mod gpu_layout;
+pub mod handoff;
 pub mod heightfield;
 pub mod lighting;
 pub mod morph;

@@ -94,6 +94,8 @@ fn short_bench_writes_every_file_with_documented_fields() {
         assert!(!s[key].is_null() || optional, "summary.json lacks {key}: {s}");
     }
     assert_eq!(s["generations_strictly_increasing"], true);
+    // One shared queue: the errors thread paces its submissions, one generation at a time.
+    assert_eq!((s["queue_mode"].as_str(), s["most_generations_in_flight"].as_u64()), (Some("shared"), Some(1)));
     assert_eq!((s["pixels"].as_str(), s["shading"].as_str()), (Some("deferred"), Some("gradient-map")));
     assert!(s["error_updates"].as_u64().unwrap() >= 2);
     for run in ["error", "full", "distance", "ceiling"] {
