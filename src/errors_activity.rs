@@ -14,7 +14,6 @@ use crate::quadtree::BlockLayout;
 use crate::shaders;
 use crate::terrain_gpu::TerrainGpu;
 use crate::trace::{Trace, ERRORS_TID};
-use crate::vk::wait_any;
 use crate::vk::{
     begin_one_time, host_read_barrier, image_barrier, vk, Buffer, CommandPool, DescriptorPool, DescriptorSetLayout,
     Device, GraphicsPipeline, GraphicsPipelineDesc, Image, ImageUse, ImageView, PipelineLayout, QueryPool,
@@ -948,8 +947,9 @@ fn event_loop(gpu: &ErrorsGpu, s: &Shared, submissions: &mut u64) -> VkResult<()
     loop {
         // Read before looking at the shared state, so that no event in between is missed.
         let seen = s.seen();
-        let done = s.timeline.value()?;
-        while flight.front().is_some_and(|f| f.all_submitted() && f.g <= done) {
+        // Submissions complete in order; a generation is done when its last one is.
+        let completed = s.submissions.value()?;
+        while flight.front().is_some_and(|f| f.all_submitted() && f.last_signal <= completed) {
             publish(gpu, s, &flight.pop_front().expect("front"))?;
         }
         let (stop, params) = {
@@ -960,13 +960,12 @@ fn event_loop(gpu: &ErrorsGpu, s: &Shared, submissions: &mut u64) -> VkResult<()
             return Ok(());
         }
         let fresh = params.filter(|p| Some(*p) != last);
-        let queue_ready = !s.paced || s.submissions.value()? >= *submissions;
+        let queue_ready = !s.paced || completed >= *submissions;
         if let Some(next) = flight.iter().position(|f| !f.all_submitted()) {
             if queue_ready {
                 if flight[next].submitted == 0 {
                     // Generations on the GPU once this one is: the earlier ones whose
                     // last submission has not completed, and this one.
-                    let completed = s.submissions.value()?;
                     let earlier = flight.iter().take(next).filter(|e| e.last_signal > completed).count();
                     s.most_in_flight.fetch_max(1 + earlier as u64, Ordering::SeqCst);
                 }
@@ -1016,16 +1015,16 @@ fn event_loop(gpu: &ErrorsGpu, s: &Shared, submissions: &mut u64) -> VkResult<()
                 drop(s.events_cv.wait_timeout(events, Duration::from_millis(100)).unwrap());
             }
         } else {
-            // GPU work in flight: wait for it, looking at host events every 2 ms (a
-            // request that could start a second generation, a released slot, stop).
-            let mut waits = Vec::new();
-            if let Some(f) = flight.front().filter(|f| f.all_submitted()) {
-                waits.push((&s.timeline, f.g));
-            }
-            if flight.iter().any(|f| !f.all_submitted()) {
-                waits.push((&s.submissions, *submissions));
-            }
-            wait_any(&gpu.device, &waits, HOST_LOOK_NS)?;
+            // GPU work in flight: wait for the first completion that matters (the oldest
+            // generation's last submission, or the submission the next one paces on),
+            // looking at host events every 2 ms (a request that could start a second
+            // generation, a released slot, stop). One semaphore: lavapipe's wait for any
+            // of several spins on a core.
+            let next = match flight.front() {
+                Some(f) if f.all_submitted() => f.last_signal,
+                _ => *submissions,
+            };
+            s.submissions.wait(next, HOST_LOOK_NS)?;
         }
     }
 }

@@ -111,20 +111,6 @@ impl TimelineSemaphore {
     }
 }
 
-/// Waits on the CPU until any one of the timeline semaphores reaches its value; false on
-/// timeout.
-pub fn wait_any(device: &Device, waits: &[(&TimelineSemaphore, u64)], timeout_ns: u64) -> VkResult<bool> {
-    let sems: Vec<vk::Semaphore> = waits.iter().map(|(s, _)| s.handle).collect();
-    let values: Vec<u64> = waits.iter().map(|&(_, v)| v).collect();
-    let info = vk::SemaphoreWaitInfo::default().flags(vk::SemaphoreWaitFlags::ANY).semaphores(&sems).values(&values);
-    // SAFETY: live semaphores of `device`; the arrays outlive the call.
-    match unsafe { device.raw.wait_semaphores(&info, timeout_ns) } {
-        Ok(()) => Ok(true),
-        Err(vk::Result::TIMEOUT) => Ok(false),
-        Err(e) => Err(e).vk("vkWaitSemaphores"),
-    }
-}
-
 impl Drop for TimelineSemaphore {
     fn drop(&mut self) {
         // SAFETY: owners wait for the last signal before dropping.

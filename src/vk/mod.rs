@@ -10,7 +10,7 @@ mod resources;
 mod swapchain;
 
 pub use command::{
-    begin_one_time, host_read_barrier, image_barrier, record_query_copy, wait_any, BinarySemaphore, CommandPool, Fence,
+    begin_one_time, host_read_barrier, image_barrier, record_query_copy, BinarySemaphore, CommandPool, Fence,
     FrameTimer, ImageUse, QueryPool, TimelineSemaphore, COPY_SOURCE, FRAGMENT_SAMPLED,
 };
 pub use device::{Device, DeviceOptions, Queue, QueueMode, QueueRequest};
