@@ -127,6 +127,35 @@ fn flat_plane_covers_exactly_its_projection() {
     finish(device);
 }
 
+/// A camera at eye height (2 m) on a summit, looking down ahead, sees ground in every
+/// pixel: the near plane (`cli::near_plane`) is well under eye height. At a twentieth of
+/// the spacing (8 m here, as on Puget Sound 1k) it cut a hole under the camera, and this
+/// view showed nothing.
+#[test]
+fn eye_height_on_a_summit_sees_the_ground_at_its_feet() {
+    let device = gpu();
+    let hf = field(65, 65, 160.0, |x, z| {
+        let (dx, dz) = (x as f32 - 32.0, z as f32 - 32.0);
+        3000.0 - 2.0 * (dx * dx + dz * dz)
+    });
+    let near = vkterrain::cli::near_plane(&hf);
+    let eye = Vec3::new(32.0 * 160.0, 3002.0, 32.0 * 160.0);
+    let cam = Camera::look_at(eye, eye + Vec3::new(0.0, -1.0, 0.3), 60.0, 160, 120, near);
+    let mut scene = Scene::new(&device, hf.clone(), 17, None);
+    let activity = ErrorsActivity::start(&device, scene.terrain.clone(), scene.hf.clone(), scene.layout).unwrap();
+    for errors in [None, Some((&activity, 1.0))] {
+        let px = scene.render(&cam, errors, &plain());
+        let holes = (0..cam.height)
+            .flat_map(|y| (0..cam.width).map(move |x| (x, y)))
+            .filter(|&(x, y)| pixel(&px, cam.width, x, y) == MAGENTA)
+            .count();
+        assert_eq!(holes, 0, "{} of {} pixels show no ground (near plane {near} m)", holes, 160 * 120);
+    }
+    activity.stop().unwrap();
+    drop(scene);
+    finish(device);
+}
+
 #[test]
 fn spike_appears_where_the_camera_projects_it() {
     let device = gpu();
