@@ -76,6 +76,8 @@ struct Shared {
     /// the validation layers of Debian bookworm time out on those: VVL issue 4649.)
     events: Mutex<u64>,
     events_cv: Condvar,
+    /// Notified (with `handoff`) when a generation is published or the thread fails.
+    published: Condvar,
     /// Generation `g` is written when this reaches `g`.
     timeline: TimelineSemaphore,
     /// Counts the errors queue's submissions as they complete (each signals one more).
@@ -709,6 +711,7 @@ impl ErrorsActivity {
             handoff: Mutex::new(HandoffState { protocol: Handoff::default(), slots: [None, None] }),
             events: Mutex::new(0),
             events_cv: Condvar::new(),
+            published: Condvar::new(),
             timeline: TimelineSemaphore::new(device, 0)?,
             submissions: TimelineSemaphore::new(device, 0)?,
             paced,
@@ -742,6 +745,7 @@ impl ErrorsActivity {
                 if let Err(e) = run(gpu, &thread_shared) {
                     *thread_shared.failure.lock().unwrap() =
                         Some(VkError::Thread { stage: "errors activity".into(), source: Box::new(e) });
+                    thread_shared.published.notify_all();
                 }
             })
             .map_err(|e| VkError::Setup(format!("cannot start the errors thread: {e}")))?;
@@ -843,7 +847,11 @@ impl ErrorsActivity {
                     timeout.as_secs_f64()
                 )));
             }
-            self.shared.timeline.wait(after + 1, 50_000_000)?;
+            let h = self.shared.handoff.lock().unwrap();
+            if h.protocol.finished() <= after {
+                // Woken when the next one is published (or the thread failed).
+                drop(self.shared.published.wait_timeout(h, Duration::from_millis(50)).unwrap());
+            }
         }
     }
 
@@ -1016,20 +1024,21 @@ fn event_loop(gpu: &ErrorsGpu, s: &Shared, submissions: &mut u64) -> VkResult<()
             }
         } else {
             // GPU work in flight: wait for the first completion that matters (the oldest
-            // generation's last submission, or the submission the next one paces on),
-            // looking at host events every 2 ms (a request that could start a second
-            // generation, a released slot, stop). One semaphore: lavapipe's wait for any
-            // of several spins on a core.
+            // generation's last submission, or the submission the next one paces on).
+            // One semaphore: lavapipe's wait for any of several spins on a core. Unpaced,
+            // look at host events every 2 ms meanwhile (a request that can start a
+            // second generation, a released slot); paced, nothing can be submitted
+            // before this completes anyway.
             let next = match flight.front() {
                 Some(f) if f.all_submitted() => f.last_signal,
                 _ => *submissions,
             };
-            s.submissions.wait(next, HOST_LOOK_NS)?;
+            s.submissions.wait(next, if s.paced { 100_000_000 } else { HOST_LOOK_NS })?;
         }
     }
 }
 
-/// How often the errors thread looks at host events while it waits for the GPU.
+/// How often the unpaced errors thread looks at host events while it waits for the GPU.
 const HOST_LOOK_NS: u64 = 2_000_000;
 
 /// Submits `f`'s next command buffer. Each submission signals one more on
@@ -1083,6 +1092,7 @@ fn publish(gpu: &ErrorsGpu, s: &Shared, f: &InFlight) -> VkResult<()> {
             info.gpu_ms = gpu_ms;
         }
         h.protocol.finish(f.g);
+        s.published.notify_all();
     }
     s.finished.store(f.g, Ordering::SeqCst);
     if s.trace.enabled() {
