@@ -49,8 +49,6 @@ pub struct UpdateCost {
 struct SlotInfo {
     generation: u64,
     params: ErrorParams,
-    /// Submissions the generation was split into (timestamp pairs to add up).
-    chunks: u32,
     /// The generation's GPU time, read by the errors thread once it finished: reading
     /// query results can wait for the whole queue on some drivers (lavapipe), which
     /// must not stall the draw thread.
@@ -986,7 +984,7 @@ fn event_loop(gpu: &ErrorsGpu, s: &Shared, submissions: &mut u64) -> VkResult<()
                 let mut h = s.handoff.lock().unwrap();
                 h.protocol.can_start().then(|| {
                     let g = h.protocol.start();
-                    let info = SlotInfo { generation: g, params: p, chunks: 0, gpu_ms: None };
+                    let info = SlotInfo { generation: g, params: p, gpu_ms: None };
                     h.slots[Handoff::slot(g)] = Some(info);
                     g
                 })
@@ -1001,10 +999,6 @@ fn event_loop(gpu: &ErrorsGpu, s: &Shared, submissions: &mut u64) -> VkResult<()
                 let slot = Handoff::slot(g);
                 let begun = Instant::now();
                 let cmds = gpu.record(slot, g, &p, &s.readbacks[slot], None)?;
-                // Before submitting: the reader looks at this only once g is published.
-                if let Some(info) = s.handoff.lock().unwrap().slots[slot].as_mut() {
-                    info.chunks = cmds.len() as u32;
-                }
                 flight.push_back(InFlight { g, slot, cmds, submitted: 0, last_signal: 0, started: begun });
                 last = Some(p);
                 continue;
