@@ -799,7 +799,14 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     }
     let rss_start = rss_mib();
     let started = Instant::now();
-    let activity = ErrorsActivity::start_traced(&s.device, s.terrain.clone(), s.hf.clone(), s.layout, trace.clone())?;
+    let activity = ErrorsActivity::start_with(
+        &s.device,
+        s.terrain.clone(),
+        s.hf.clone(),
+        s.layout,
+        trace.clone(),
+        args.common.error_pacing,
+    )?;
     let frames_done = Arc::new(AtomicU64::new(0));
     let failed = Arc::new(AtomicBool::new(false));
     let mut bench = Bench {

@@ -127,6 +127,12 @@ pub struct CommonArgs {
     /// u ms the next request waits u (1/share - 1) ms; stale data keeps the bound.
     #[arg(long, value_name = "SHARE", default_value = "0.05", value_parser = parse_share)]
     pub update_share: f32,
+    /// How the errors thread submits a generation's parts: auto (paced on a shared queue,
+    /// free with separate queues), paced (each part waits for the one before, so draws
+    /// run in between and the GPU has one generation at a time), or free (at once: a
+    /// second generation may queue behind the first, both slots written).
+    #[arg(long, value_enum, default_value_t = crate::errors_activity::Pacing::Auto)]
+    pub error_pacing: crate::errors_activity::Pacing,
     /// Screen-space error bound: strict (guaranteed) or paper (seed 000 eqs. 2-4).
     #[arg(long = "error-mode", alias = "mode", value_enum, default_value_t = ErrorMode::Strict)]
     pub error_mode: ErrorMode,

@@ -120,8 +120,8 @@ impl Shared {
     }
 }
 
-/// How the errors thread paces its submissions.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+/// How the errors thread paces its submissions (`--error-pacing`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
 pub enum Pacing {
     /// Paced exactly when the queue is shared with the draw thread.
     #[default]
@@ -650,18 +650,8 @@ impl ErrorsActivity {
         Self::start_with(device, terrain, hf, block_layout, Trace::off(), Pacing::Auto)
     }
 
-    /// Like [`ErrorsActivity::start`], recording the thread's work into `trace`.
-    pub fn start_traced(
-        device: &Arc<Device>,
-        terrain: Arc<TerrainGpu>,
-        hf: Arc<Heightfield>,
-        block_layout: BlockLayout,
-        trace: Trace,
-    ) -> VkResult<Self> {
-        Self::start_with(device, terrain, hf, block_layout, trace, Pacing::Auto)
-    }
-
-    /// Like [`ErrorsActivity::start_traced`], with the submissions paced as asked.
+    /// Like [`ErrorsActivity::start`], recording the thread's work into `trace`, with the
+    /// submissions paced as asked.
     pub fn start_with(
         device: &Arc<Device>,
         terrain: Arc<TerrainGpu>,

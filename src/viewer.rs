@@ -577,8 +577,14 @@ impl App {
                 None => println!("vkterrain: note: no timestamp queries: the trace has no GPU tracks"),
             }
         }
-        let activity =
-            ErrorsActivity::start_traced(&device, terrain.clone(), self.hf.clone(), self.layout, self.trace.clone())?;
+        let activity = ErrorsActivity::start_with(
+            &device,
+            terrain.clone(),
+            self.hf.clone(),
+            self.layout,
+            self.trace.clone(),
+            self.args.common.error_pacing,
+        )?;
         let acquired = (0..FRAMES_IN_FLIGHT).map(|_| BinarySemaphore::new(&device)).collect::<Result<Vec<_>, _>>()?;
         self.stats.queue_mode = device.queue_mode.as_str().into();
         self.stats.geometry_bytes = crate::commands::renderer_geometry_bytes(self.layout.k());

@@ -210,13 +210,27 @@ fn popping_is_measured_frame_by_frame() {
 fn short_soak_keeps_generations_flowing() {
     let tmp = TempDir::new("soak");
     let out = tmp.path().join("out");
-    // Every frame asks for new data (no refresh rule, no share cap): the hand-off is
-    // exercised as hard as the errors thread can go.
+    // Every frame asks for new data (no refresh rule, no share cap), and the errors
+    // thread submits at once (free pacing, as with separate queues): the hand-off is
+    // exercised as hard as the errors thread can go, two generations in flight.
     let s = bench(
         &out,
-        &["--path", "paper-flyover", "--frames", "400", "--no-fidelity", "--refresh-at", "0", "--update-share", "1"],
+        &[
+            "--path",
+            "paper-flyover",
+            "--frames",
+            "400",
+            "--no-fidelity",
+            "--refresh-at",
+            "0",
+            "--update-share",
+            "1",
+            "--error-pacing",
+            "free",
+        ],
     );
     assert_eq!(s["frames"], 400);
+    assert_eq!(s["most_generations_in_flight"], 2, "free pacing, a request every frame");
     assert_eq!(s["generations_strictly_increasing"], true);
     // A fast camera: generations keep coming all along the run (each quarter of the run
     // draws with newer data than the quarter before).
