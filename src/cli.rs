@@ -229,11 +229,13 @@ pub fn check_scale(hf: &Heightfield) -> Result<(), InputError> {
     Ok(())
 }
 
-/// Near plane: a five-hundredth of the sample spacing (0.32 m on Puget Sound 1k), so that
-/// a camera at eye height on a summit still sees the ground at its feet. Reversed
-/// infinite Z in a float depth buffer keeps the same relative depth precision for any
-/// near plane, so nothing is lost far away; the error passes clamp distances to it, so
-/// the block under such a camera is drawn at full resolution, as it must be.
+/// Near plane: a hundred-thousandth of the sample spacing, at most 1 cm (1.6 mm on Puget
+/// Sound 1k), so that a camera half a metre over any ground, steep slopes and cliffs
+/// included, still sees the ground at its feet (a terrain point closer than this is
+/// clipped). Reversed infinite Z in a float depth buffer keeps the same relative depth
+/// precision for any near plane, so nothing is lost far away; the error passes clamp
+/// distances to it, so the blocks right around such a camera are drawn at full
+/// resolution, as they must be.
 pub fn near_plane(hf: &Heightfield) -> f32 {
     hf.spacing * 0.002
 }

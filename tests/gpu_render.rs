@@ -127,32 +127,40 @@ fn flat_plane_covers_exactly_its_projection() {
     finish(device);
 }
 
-/// A camera at eye height (2 m) on a summit, looking down ahead, sees ground in every
-/// pixel: the near plane (`cli::near_plane`) is well under eye height. At a twentieth of
-/// the spacing (8 m here, as on Puget Sound 1k) it cut a hole under the camera, and this
-/// view showed nothing.
+/// A camera close over the ground sees ground in every pixel: on a summit at eye height
+/// (2 m) looking down ahead, and half a metre over a 3000 m cliff's slope looking at the
+/// wall (0.027 m away along its normal): the near plane (`cli::near_plane`) is under
+/// both. At a twentieth of the spacing (8 m here, as on Puget Sound 1k) the first view
+/// showed nothing; at a 500th (0.32 m) the second did not.
 #[test]
-fn eye_height_on_a_summit_sees_the_ground_at_its_feet() {
+fn a_camera_close_over_the_ground_sees_it_at_its_feet() {
     let device = gpu();
-    let hf = field(65, 65, 160.0, |x, z| {
+    let dome = field(65, 65, 160.0, |x, z| {
         let (dx, dz) = (x as f32 - 32.0, z as f32 - 32.0);
         3000.0 - 2.0 * (dx * dx + dz * dz)
     });
-    let near = vkterrain::cli::near_plane(&hf);
-    let eye = Vec3::new(32.0 * 160.0, 3002.0, 32.0 * 160.0);
-    let cam = Camera::look_at(eye, eye + Vec3::new(0.0, -1.0, 0.3), 60.0, 160, 120, near);
-    let mut scene = Scene::new(&device, hf.clone(), 17, None);
-    let activity = ErrorsActivity::start(&device, scene.terrain.clone(), scene.hf.clone(), scene.layout).unwrap();
-    for errors in [None, Some((&activity, 1.0))] {
-        let px = scene.render(&cam, errors, &plain());
-        let holes = (0..cam.height)
-            .flat_map(|y| (0..cam.width).map(move |x| (x, y)))
-            .filter(|&(x, y)| pixel(&px, cam.width, x, y) == MAGENTA)
-            .count();
-        assert_eq!(holes, 0, "{} of {} pixels show no ground (near plane {near} m)", holes, 160 * 120);
+    let cliff = field(65, 65, 160.0, |x, _| if x > 32 { 3000.0 } else { 0.0 });
+    let summit = Vec3::new(32.0 * 160.0, 3002.0, 32.0 * 160.0);
+    // Over the middle of the slope between columns 32 and 33, half a metre above it.
+    let slope = Vec3::new(32.5 * 160.0, 1500.5, 20.0 * 160.0);
+    for (name, hf, eye, look) in [
+        ("summit", dome, summit, summit + Vec3::new(0.0, -1.0, 0.3)),
+        ("cliff", cliff, slope, slope + Vec3::new(1.0, 0.0, 0.0)),
+    ] {
+        let near = vkterrain::cli::near_plane(&hf);
+        let cam = Camera::look_at(eye, look, 60.0, 160, 120, near);
+        let mut scene = Scene::new(&device, hf, 17, None);
+        let activity = ErrorsActivity::start(&device, scene.terrain.clone(), scene.hf.clone(), scene.layout).unwrap();
+        for errors in [None, Some((&activity, 1.0))] {
+            let px = scene.render(&cam, errors, &plain());
+            let holes = (0..cam.height)
+                .flat_map(|y| (0..cam.width).map(move |x| (x, y)))
+                .filter(|&(x, y)| pixel(&px, cam.width, x, y) == MAGENTA)
+                .count();
+            assert_eq!(holes, 0, "{name}: {holes} of 19200 pixels show no ground (near plane {near} m)");
+        }
+        activity.stop().unwrap();
     }
-    activity.stop().unwrap();
-    drop(scene);
     finish(device);
 }
 
