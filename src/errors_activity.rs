@@ -864,6 +864,11 @@ impl ErrorsActivity {
         self.shared.idle.load(Ordering::SeqCst) && self.shared.idle_seen.load(Ordering::SeqCst) >= events
     }
 
+    /// Whether each submission waits for the one before (`--error-pacing`).
+    pub fn paced(&self) -> bool {
+        self.shared.paced
+    }
+
     /// Generations started so far (recorded; some may still be in flight).
     pub fn started(&self) -> u64 {
         self.shared.handoff.lock().unwrap().protocol.started()

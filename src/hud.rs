@@ -80,6 +80,8 @@ pub struct Readout {
     /// GPU time of the newest error update, when the device has timestamps.
     pub update_ms: Option<f64>,
     pub generations: u64,
+    /// Most generations in flight at once so far, and whether submissions are paced.
+    pub in_flight: (u64, bool),
     pub queue_mode: String,
     pub device: String,
     pub camera_mode: &'static str,
@@ -210,6 +212,8 @@ fn panel(ui: &mut egui::Ui, r: &Readout, history: &FrameHistory, now: f64, c: &m
         row("error age", r.error_age.map_or("-".into(), |a| format!("{a} frames")));
         row("error update", r.update_ms.map_or("- (no timestamps)".into(), |m| format!("{m:.1} ms GPU")));
         row("generations", r.generations.to_string());
+        let (most, paced) = r.in_flight;
+        row("in flight", format!("{most} at most, {}", if paced { "paced" } else { "free" }));
         // The name without the driver's details in brackets (it fits the panel).
         row("device", r.device.split(" (").next().unwrap_or_default().chars().take(24).collect());
         row("queues", r.queue_mode.clone());

@@ -912,6 +912,11 @@ impl App {
             error_age: self.feed.age_frames(self.frame),
             update_ms: self.feed.update_ms(),
             generations: self.stats.error_generations,
+            in_flight: self
+                .gpu
+                .as_ref()
+                .and_then(|g| g.activity.as_ref())
+                .map_or((0, true), |a| (a.most_in_flight(), a.paced())),
             queue_mode: self.stats.queue_mode.clone(),
             device: self.stats.device.clone(),
             camera_mode: if self.args.flyover {
