@@ -309,7 +309,8 @@ impl Progress {
             let decile = done * 10 / self.total.max(1);
             if decile > self.last_decile {
                 self.last_decile = decile;
-                eprintln!("{}: {done}/{} frames ({}%), {fps:.1} fps", self.label, self.total, decile * 10);
+                let percent = done * 100 / self.total.max(1);
+                eprintln!("{}: {done}/{} frames ({percent}%), {fps:.1} fps", self.label, self.total);
             }
         }
         let _ = std::io::stderr().flush();
@@ -769,9 +770,50 @@ fn difference(a: &[u8], b: &[u8], compared: impl Fn(&[u8], &[u8]) -> bool) -> (f
     ((se / (3 * n.max(1)) as f64).sqrt(), over as f64 / n.max(1) as f64)
 }
 
+/// A fault injected for tests (`--inject-fault`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Fault {
+    /// The errors thread loses the device when it starts this generation (from 1).
+    ErrorsDeviceLost(u64),
+    /// The draw thread runs out of device memory at this frame of the main run.
+    DrawOutOfMemory(u64),
+    /// Ctrl-C at this frame of the `--lod full` run that --compare and --popping add.
+    InterruptFull(u64),
+}
+
+/// Parses `--inject-fault FAULT:N`, refusing a fault that could never fire on a path of
+/// `frames` frames (a test that injects one must see it happen).
+fn parse_fault(arg: &str, frames: u64, full_run: bool) -> Result<Fault, InputError> {
+    let bad = |why: &str| InputError(format!("--inject-fault {arg}: {why}"));
+    let (kind, n) = arg.split_once(':').ok_or_else(|| bad("expected FAULT:N"))?;
+    let n: u64 = n.parse().map_err(|_| bad("N is not a whole number"))?;
+    let frame_in_path = |n: u64| {
+        if n < frames {
+            Ok(n)
+        } else {
+            Err(bad(&format!("the path's frames are 0 to {}", frames - 1)))
+        }
+    };
+    match kind {
+        "errors-device-lost" if n == 0 => Err(bad("generations are numbered from 1")),
+        "errors-device-lost" => Ok(Fault::ErrorsDeviceLost(n)),
+        "draw-out-of-memory" => frame_in_path(n).map(Fault::DrawOutOfMemory),
+        "interrupt-full" if !full_run => Err(bad("there is no --lod full run without --compare or --popping")),
+        "interrupt-full" => frame_in_path(n).map(Fault::InterruptFull),
+        _ => Err(bad("unknown fault (errors-device-lost, draw-out-of-memory, interrupt-full)")),
+    }
+}
+
 pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     if args.frames == 0 {
         return Err(InputError("--frames must be at least 1".into()).into());
+    }
+    let stop = Arc::new(AtomicBool::new(false));
+    {
+        let stop = stop.clone();
+        // Ctrl-C stops the run cleanly; what was measured so far is written. Installed
+        // first, so that a Ctrl-C during set-up still ends with a summary.
+        let _ = ctrlc::set_handler(move || stop.store(true, Ordering::SeqCst));
     }
     if args.out.exists() && !args.out.is_dir() {
         return Err(InputError(format!("--out {}: exists and is not a directory", args.out.display())).into());
@@ -781,16 +823,14 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
         PathArg::Builtin(_) => None,
     };
     let frames = poses.as_ref().map_or(args.frames, |p| p.len() as u64);
+    let fault = match &args.inject_fault {
+        Some(f) => Some(parse_fault(f, frames, args.compare || args.popping)?),
+        None => None,
+    };
     let s = Session::open(&args.common)?;
     std::fs::create_dir_all(&args.out).map_err(|e| anyhow::anyhow!("{}: {e}", args.out.display()))?;
     let size = args.common.size.unwrap_or((640, 480));
     s.check_viewport(size)?;
-    let stop = Arc::new(AtomicBool::new(false));
-    {
-        let stop = stop.clone();
-        // Ctrl-C stops the run cleanly; what was measured so far is written.
-        let _ = ctrlc::set_handler(move || stop.store(true, Ordering::SeqCst));
-    }
     let trace_path = args.out.join("trace.json");
     let trace = Trace::to_file(&trace_path).map_err(|e| anyhow::anyhow!("{}: {e}", trace_path.display()))?;
     match crate::vk::QueryPool::calibrate(&s.device)? {
@@ -833,24 +873,11 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
         frames,
         poses,
     };
-    match args.inject_fault.as_deref().and_then(|f| f.split_once(':')) {
-        None if args.inject_fault.is_some() => {
-            return Err(InputError(format!(
-                "--inject-fault {}: expected FAULT:N",
-                args.inject_fault.as_deref().unwrap_or("")
-            ))
-            .into())
-        }
+    match fault {
+        Some(Fault::ErrorsDeviceLost(g)) => activity.inject_device_lost_at(g),
+        Some(Fault::DrawOutOfMemory(f)) => bench.draw_oom_at = Some(f),
+        Some(Fault::InterruptFull(f)) => bench.interrupt_full_at = Some(f),
         None => {}
-        Some((kind, n)) => {
-            let n: u64 = n.parse().map_err(|_| InputError(format!("--inject-fault {kind}:{n}: N is not a number")))?;
-            match kind {
-                "errors-device-lost" => activity.inject_device_lost_at(n),
-                "draw-out-of-memory" => bench.draw_oom_at = Some(n),
-                "interrupt-full" => bench.interrupt_full_at = Some(n),
-                _ => return Err(InputError(format!("--inject-fault {kind}: unknown fault")).into()),
-            }
-        }
     }
 
     let result = std::thread::scope(|scope| -> anyhow::Result<Value> {
@@ -883,7 +910,7 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
                         None
                     };
                     if let Some(who) = stuck {
-                        eprintln!("vkterrain: watchdog: the {who} made no progress for {:.0} s", limit.as_secs_f64());
+                        eprintln!("vkterrain: watchdog: the {who} made no progress for {} s", limit.as_secs_f64());
                         failed.store(true, Ordering::SeqCst);
                         stop.store(true, Ordering::SeqCst);
                         return;
@@ -945,6 +972,7 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
         out
     });
     drop(bench);
+    let started_generations = activity.started();
     let stopped = activity.stop();
     // The trace holds what was measured even when the run failed.
     let traced = trace.finish().map_err(|e| anyhow::anyhow!("{}: {e}", trace_path.display()));
@@ -997,6 +1025,12 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     }
     if stop.load(Ordering::SeqCst) {
         eprintln!("vkterrain: interrupted; partial results in {}", args.out.display());
+    } else if let Some(Fault::ErrorsDeviceLost(g)) = fault {
+        // Reached, it would have failed the run above.
+        return Err(InputError(format!(
+            "--inject-fault errors-device-lost:{g}: never reached, the run started {started_generations} generations"
+        ))
+        .into());
     }
     let n = messages.count();
     if n > 0 {

@@ -732,7 +732,7 @@ impl ErrorsActivity {
             .spawn(move || {
                 if let Err(e) = run(gpu, &thread_shared) {
                     *thread_shared.failure.lock().unwrap() =
-                        Some(VkError::Thread { stage: "errors activity".into(), source: Box::new(e) });
+                        Some(VkError::Thread { stage: "errors activity".into(), cause: Box::new(e) });
                     thread_shared.published.notify_all();
                 }
             })
@@ -989,7 +989,7 @@ fn event_loop(gpu: &ErrorsGpu, s: &Shared, submissions: &mut u64) -> VkResult<()
                 if s.inject_device_lost_at.load(Ordering::SeqCst) == g {
                     return Err(vk::Result::ERROR_DEVICE_LOST)
                         .vk("vkQueueSubmit2 (injected fault)")
-                        .map_err(|e| VkError::Thread { stage: format!("generation {g}"), source: Box::new(e) });
+                        .map_err(|e| VkError::Thread { stage: format!("generation {g}"), cause: Box::new(e) });
                 }
                 let slot = Handoff::slot(g);
                 let begun = Instant::now();

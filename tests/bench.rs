@@ -354,6 +354,85 @@ fn out_of_memory_in_the_draw_thread_fails_cleanly() {
     faulted("draw-out-of-memory:3", &["draw thread, frame 3", "ERROR_OUT_OF_DEVICE_MEMORY"]);
 }
 
+/// A fault that could never fire is refused before anything runs (exit 2, nothing
+/// written), and one that the run never reached fails it: a test that injects a fault
+/// must see it happen.
+#[test]
+fn faults_that_never_fire_are_errors() {
+    let tmp = TempDir::new("unfired");
+    let field = small_field(tmp.path());
+    let run = |fault: &str, extra: &[&str]| {
+        let out = tmp.path().join("out");
+        let _ = std::fs::remove_dir_all(&out);
+        let o = Command::new(env!("CARGO_BIN_EXE_vkterrain"))
+            .args(["bench", "--heightmap", field.to_str().unwrap(), "--raw-size", "257x257", "--spacing", "10"])
+            .args(["--block", "9", "--size", "160x120", "--frames", "20", "--no-fidelity", "--inject-fault", fault])
+            .args(extra)
+            .arg("--out")
+            .arg(&out)
+            .env("RUST_LOG", "error")
+            .output()
+            .unwrap();
+        let stderr = String::from_utf8_lossy(&o.stderr).to_string();
+        assert_eq!(o.status.code(), Some(2), "{fault}: {stderr}");
+        assert!(!stderr.contains("panicked"), "{stderr}");
+        (stderr, out.exists())
+    };
+    for (fault, extra, says) in [
+        ("errors-device-lost:0", &[][..], "numbered from 1"),
+        ("draw-out-of-memory:20", &[][..], "frames are 0 to 19"),
+        ("interrupt-full:3", &[][..], "without --compare or --popping"),
+        ("interrupt-full:20", &["--compare"][..], "frames are 0 to 19"),
+        ("slow-disk:3", &[][..], "unknown fault"),
+        ("errors-device-lost:x", &[][..], "not a whole number"),
+    ] {
+        let (stderr, wrote) = run(fault, extra);
+        assert!(stderr.contains(says), "{fault}: {stderr}");
+        assert!(!wrote, "{fault}: refused, yet the output directory was made");
+    }
+    // Generation 100000 is never started in 20 frames: the run ends, then fails.
+    let (stderr, _) = run("errors-device-lost:100000", &[]);
+    assert!(stderr.contains("never reached, the run started"), "{stderr}");
+}
+
+/// Ctrl-C during set-up (the device is up, no frame drawn yet) still ends the run
+/// cleanly with a summary.
+#[test]
+fn ctrl_c_during_set_up_still_writes_a_summary() {
+    use std::io::BufRead;
+    let tmp = TempDir::new("ctrlc-setup");
+    let out = tmp.path().join("out");
+    // The built-in terrain: its set-up after the device (heights, lighting) takes a while.
+    let mut child = Command::new(env!("CARGO_BIN_EXE_vkterrain"))
+        .args(["bench", "--size", "160x120", "--frames", "100000", "--validation", "on", "--out"])
+        .arg(&out)
+        .env("RUST_LOG", "error")
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut lines = std::io::BufReader::new(child.stderr.take().unwrap()).lines();
+    let mut seen = Vec::new();
+    for line in lines.by_ref() {
+        let line = line.unwrap();
+        let up = line.contains("queue mode");
+        seen.push(line);
+        if up {
+            break;
+        }
+    }
+    assert!(seen.last().is_some_and(|l| l.contains("queue mode")), "no device line: {seen:?}");
+    assert!(Command::new("kill").args(["-INT", &child.id().to_string()]).status().unwrap().success());
+    let rest: Vec<String> = lines.map_while(Result::ok).collect();
+    let status = child.wait().unwrap();
+    assert!(status.success(), "exit {status:?}: {seen:?} {rest:?}");
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
+    assert_eq!(summary["interrupted"], true);
+    assert_eq!(summary["validation_messages"], 0);
+    assert!(summary["frames"].as_u64().unwrap() < 100000);
+}
+
 /// `--path FILE` replays a pose file (one `cx cy cz lx ly lz` a line): frames = poses;
 /// a malformed file is a one-line input error naming the file and line.
 #[test]

@@ -44,13 +44,10 @@ pub enum VkError {
     #[error("{0}")]
     Option(String),
     /// A failure on another thread (the errors activity), kept whole across the thread
-    /// boundary so that the caller still sees, e.g., the device loss.
-    #[error("{stage}: {source}")]
-    Thread {
-        stage: String,
-        #[source]
-        source: Box<VkError>,
-    },
+    /// boundary so that the caller still sees, e.g., the device loss. The message holds
+    /// the cause, so it is not also a `source()` (`{:#}` would print it twice more).
+    #[error("{stage}: {cause}")]
+    Thread { stage: String, cause: Box<VkError> },
 }
 
 impl VkError {
@@ -58,7 +55,7 @@ impl VkError {
     pub fn is_device_lost(&self) -> bool {
         match self {
             VkError::Call { result, .. } => *result == vk::Result::ERROR_DEVICE_LOST,
-            VkError::Thread { source, .. } => source.is_device_lost(),
+            VkError::Thread { cause, .. } => cause.is_device_lost(),
             _ => false,
         }
     }
@@ -86,10 +83,13 @@ mod tests {
         let lost = Err::<(), _>(vk::Result::ERROR_DEVICE_LOST).vk("vkQueueSubmit2").unwrap_err();
         let wrapped = VkError::Thread {
             stage: "errors activity".into(),
-            source: Box::new(VkError::Thread { stage: "generation 5".into(), source: Box::new(lost) }),
+            cause: Box::new(VkError::Thread { stage: "generation 5".into(), cause: Box::new(lost) }),
         };
         assert!(wrapped.is_device_lost());
         assert_eq!(wrapped.to_string(), "errors activity: generation 5: vkQueueSubmit2 failed: ERROR_DEVICE_LOST");
+        // Printed with its chain (as main does), the cause appears once.
+        let chain = format!("{:#}", anyhow::Error::from(wrapped.clone()));
+        assert_eq!(chain.matches("ERROR_DEVICE_LOST").count(), 1, "{chain}");
         assert!(!VkError::Option("--gpu x".into()).is_device_lost());
         let anyhow_err = anyhow::Error::from(wrapped.clone());
         assert!(anyhow_err.downcast_ref::<VkError>().is_some_and(VkError::is_device_lost));
