@@ -237,7 +237,7 @@ pub fn check_scale(hf: &Heightfield) -> Result<(), InputError> {
 /// distances to it, so the blocks right around such a camera are drawn at full
 /// resolution, as they must be.
 pub fn near_plane(hf: &Heightfield) -> f32 {
-    hf.spacing * 0.002
+    (hf.spacing * 1e-5).min(0.01)
 }
 
 /// Above the south edge looking at the terrain's centre, backed away along that
