@@ -49,7 +49,12 @@ fn main() -> ExitCode {
         Err(e) => {
             let text = e.render().to_string();
             let first = text.lines().next().unwrap_or("invalid arguments").trim_start_matches("error: ");
-            eprintln!("vkterrain: {first}");
+            // A value outside a fixed set: name the set on the same line.
+            let possible = text.lines().find_map(|l| l.trim().strip_prefix("[possible values: "));
+            match possible {
+                Some(values) => eprintln!("vkterrain: {first} (one of: {})", values.trim_end_matches(']')),
+                None => eprintln!("vkterrain: {first}"),
+            }
             return ExitCode::from(2);
         }
     };

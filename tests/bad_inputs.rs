@@ -211,6 +211,8 @@ fn bad_options() {
     fails_cleanly(&["render", "--sun", "90,95"], &["--sun", "elevation 95"]);
     fails_cleanly(&["view", "--sun", "west"], &["--sun", "AZ,EL"]);
     fails_cleanly(&["frobnicate"], &["frobnicate"]);
+    fails_cleanly(&["bench", "--error-pacing", "fast"], &["--error-pacing", "'fast'", "one of: auto, paced, free"]);
+    fails_cleanly(&["render", "--pixels", "deferrred"], &["--pixels", "one of: deferred, forward"]);
     let s = Scratch::new();
     fails_cleanly(&["render", "--out", &s.path("picture.jpg").display().to_string()], &["--out", ".png"]);
     fails_cleanly(&["errors", "--repeat", "0"], &["--repeat"]);
