@@ -921,6 +921,9 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
         let out = (|| -> anyhow::Result<Value> {
             let mut main =
                 bench.run(args.lod, (args.lod == LodChoice::Error).then_some(&activity), None, args.compare)?;
+            // A failure after the main run's last frame ends the run now, not after the
+            // comparison runs.
+            activity.check_failure()?;
             // A generation is recorded only when a newer one is observed.
             let increasing = main.generations.windows(2).all(|w| w[0] < w[1]);
             let mut summary = summarize(&main);

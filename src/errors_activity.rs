@@ -754,7 +754,8 @@ impl ErrorsActivity {
         }
     }
 
-    fn check_failure(&self) -> VkResult<()> {
+    /// The errors thread's failure, if it failed.
+    pub fn check_failure(&self) -> VkResult<()> {
         match &*self.shared.failure.lock().unwrap() {
             Some(e) => Err(e.clone()),
             None => Ok(()),
