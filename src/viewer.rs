@@ -236,6 +236,8 @@ struct RunStats {
     avg_fps: f64,
     resizes: u64,
     error_generations: u64,
+    /// Most error generations in flight at once (`--error-pacing`).
+    most_generations_in_flight: u64,
     last_triangles: u64,
     last_draw_calls: u64,
     last_blocks: usize,
@@ -688,6 +690,7 @@ impl App {
         if let Some(n) = self.feed.update(activity, &cam, self.frame)? {
             self.stats.error_generations = n;
         }
+        self.stats.most_generations_in_flight = activity.most_in_flight();
         let blocks = match &self.frozen {
             Some(b) => b.clone(),
             None => self.feed.traverse(&self.hf, &self.mm, &self.layout, &cam, self.delta).blocks,

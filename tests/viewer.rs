@@ -58,6 +58,7 @@ fn flyover_with_resizes_writes_a_screenshot_and_exits_cleanly() {
     assert_eq!(json["validation_messages"], 0, "{stderr}");
     assert!(json["resizes"].as_u64().unwrap() >= 2, "{json}");
     assert!(json["error_generations"].as_u64().unwrap() >= 10, "{json}");
+    assert_eq!(json["most_generations_in_flight"], 1, "paced on lavapipe's one queue: {json}");
     assert!(json["last_triangles"].as_u64().unwrap() > 0);
 
     let img = img.expect("screenshot written");
