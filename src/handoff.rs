@@ -140,7 +140,7 @@ mod tests {
         let mut reader_has = 0u64;
         let mut most_in_flight = 0;
         for _ in 0..steps {
-            match next(5) {
+            match next(6) {
                 0 if h.can_start() => {
                     let g = h.start();
                     let slot = Handoff::slot(g);
@@ -173,6 +173,12 @@ mod tests {
                         assert_eq!(memory[slot], Memory::Holds(g), "generation {g} overwritten while copied");
                         h.end_read(g, true);
                         reader_has = g;
+                    }
+                }
+                // A read that fails (a mapping error): the reader keeps its older copy.
+                5 if next(4) == 0 => {
+                    if let Some((g, _)) = copying.take() {
+                        h.end_read(g, false);
                     }
                 }
                 _ => {}
