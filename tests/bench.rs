@@ -20,6 +20,20 @@ fn small_field(dir: &Path) -> PathBuf {
     p
 }
 
+/// Starts `vkterrain ARGS --out OUT` (errors only in the log, stdout dropped), with
+/// stderr as given: for tests that signal or watch a running bench.
+fn spawn(args: &[&str], out: &Path, stderr: std::process::Stdio) -> std::process::Child {
+    Command::new(env!("CARGO_BIN_EXE_vkterrain"))
+        .args(args)
+        .arg("--out")
+        .arg(out)
+        .env("RUST_LOG", "error")
+        .stdout(std::process::Stdio::null())
+        .stderr(stderr)
+        .spawn()
+        .unwrap()
+}
+
 /// Runs a bench into `out` (inside a test's TempDir, which also gets the field).
 fn bench(out: &Path, extra: &[&str]) -> serde_json::Value {
     let field = small_field(out.parent().unwrap());
@@ -248,16 +262,10 @@ fn ctrl_c_stops_cleanly_and_keeps_what_was_measured() {
     let tmp = TempDir::new("ctrlc");
     let out = tmp.path().join("out");
     let field = small_field(tmp.path());
-    let mut child = Command::new(env!("CARGO_BIN_EXE_vkterrain"))
-        .args(["bench", "--heightmap", field.to_str().unwrap(), "--raw-size", "257x257", "--spacing", "10"])
-        .args(["--block", "9", "--size", "160x120", "--frames", "1000000", "--validation", "on"])
-        .arg("--out")
-        .arg(&out)
-        .env("RUST_LOG", "error")
-        .stdout(std::process::Stdio::null())
-        .stderr(std::process::Stdio::null())
-        .spawn()
-        .unwrap();
+    let args = ["bench", "--heightmap", field.to_str().unwrap(), "--raw-size", "257x257", "--spacing", "10"];
+    let args =
+        [&args[..], &["--block", "9", "--size", "160x120", "--frames", "1000000", "--validation", "on"]].concat();
+    let mut child = spawn(&args, &out, std::process::Stdio::null());
     std::thread::sleep(std::time::Duration::from_secs(4));
     let killed = Command::new("kill").args(["-INT", &child.id().to_string()]).status().unwrap();
     assert!(killed.success());
@@ -316,16 +324,9 @@ fn faulted(fault: &str, needles: &[&str]) {
     let tmp = TempDir::new("fault");
     let out = tmp.path().join("out");
     let field = small_field(tmp.path());
-    let mut child = Command::new(env!("CARGO_BIN_EXE_vkterrain"))
-        .args(["bench", "--heightmap", field.to_str().unwrap(), "--raw-size", "257x257", "--spacing", "10"])
-        .args(["--block", "9", "--size", "160x120", "--frames", "200", "--validation", "on", "--inject-fault", fault])
-        .arg("--out")
-        .arg(&out)
-        .env("RUST_LOG", "error")
-        .stdout(std::process::Stdio::null())
-        .stderr(std::process::Stdio::piped())
-        .spawn()
-        .unwrap();
+    let args = ["bench", "--heightmap", field.to_str().unwrap(), "--raw-size", "257x257", "--spacing", "10"];
+    let rest = ["--block", "9", "--size", "160x120", "--frames", "200", "--validation", "on", "--inject-fault", fault];
+    let mut child = spawn(&[&args[..], &rest].concat(), &out, std::process::Stdio::piped());
     let start = std::time::Instant::now();
     while child.try_wait().unwrap().is_none() {
         assert!(start.elapsed() < std::time::Duration::from_secs(60), "{fault}: the run hangs");
@@ -403,14 +404,8 @@ fn ctrl_c_during_set_up_still_writes_a_summary() {
     let tmp = TempDir::new("ctrlc-setup");
     let out = tmp.path().join("out");
     // The built-in terrain: its set-up after the device (heights, lighting) takes a while.
-    let mut child = Command::new(env!("CARGO_BIN_EXE_vkterrain"))
-        .args(["bench", "--size", "160x120", "--frames", "100000", "--validation", "on", "--out"])
-        .arg(&out)
-        .env("RUST_LOG", "error")
-        .stdout(std::process::Stdio::null())
-        .stderr(std::process::Stdio::piped())
-        .spawn()
-        .unwrap();
+    let args = ["bench", "--size", "160x120", "--frames", "100000", "--validation", "on"];
+    let mut child = spawn(&args, &out, std::process::Stdio::piped());
     let mut lines = std::io::BufReader::new(child.stderr.take().unwrap()).lines();
     let mut seen = Vec::new();
     for line in lines.by_ref() {
