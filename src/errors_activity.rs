@@ -1076,15 +1076,7 @@ fn publish(gpu: &ErrorsGpu, s: &Shared, f: &InFlight) -> VkResult<()> {
         }
         gpu_ms = Some(sum);
     }
-    {
-        let mut h = s.handoff.lock().unwrap();
-        if let Some(info) = h.slots[f.slot].as_mut() {
-            info.gpu_ms = gpu_ms;
-        }
-        h.protocol.finish(f.g);
-        s.published.notify_all();
-    }
-    s.finished.store(f.g, Ordering::SeqCst);
+    // Traced before the reader can see it, so that the hand-off arrow never points back.
     if s.trace.enabled() {
         s.trace.flow(ERRORS_TID, true, f.g);
     }
@@ -1096,5 +1088,14 @@ fn publish(gpu: &ErrorsGpu, s: &Shared, f: &InFlight) -> VkResult<()> {
         serde_json::json!({"generation": f.g, "slot": f.slot}),
     );
     s.trace.counter("errors timeline (signalled)", f.g);
+    {
+        let mut h = s.handoff.lock().unwrap();
+        if let Some(info) = h.slots[f.slot].as_mut() {
+            info.gpu_ms = gpu_ms;
+        }
+        h.protocol.finish(f.g);
+        s.published.notify_all();
+    }
+    s.finished.store(f.g, Ordering::SeqCst);
     Ok(())
 }

@@ -177,6 +177,15 @@ fn short_bench_writes_every_file_with_documented_fields() {
     };
     let (starts, ends) = (ids("s"), ids("f"));
     assert!(!ends.is_empty() && ends.iter().all(|id| starts.contains(id)), "flows: starts {starts:?}, ends {ends:?}");
+    // Each arrow points forward: a generation is traced as finished before the draw
+    // thread can take it.
+    let at = |ph: &str, id: u64| {
+        let e = events.iter().find(|e| e["ph"] == ph && e["name"] == "generation" && e["id"] == id).unwrap();
+        e["ts"].as_f64().unwrap()
+    };
+    for &id in &ends {
+        assert!(at("f", id) >= at("s", id), "generation {id}: taken at {}, finished at {}", at("f", id), at("s", id));
+    }
 }
 
 /// `--popping`: every frame of the error run and of the full run is compared with the one
