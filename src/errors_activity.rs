@@ -93,8 +93,6 @@ struct Shared {
     /// Per slot: the slot's timestamps copied on the GPU (read after the generation
     /// finished, without vkGetQueryPoolResults, which waits for the queue on lavapipe).
     timestamps: Vec<Buffer>,
-    /// Generations finished, for watchdogs.
-    finished: AtomicU64,
     /// True while the thread waits with nothing to do.
     idle: AtomicBool,
     /// The host events the thread had seen when it last found nothing to do.
@@ -709,7 +707,6 @@ impl ErrorsActivity {
             root_lod: root,
             queries,
             timestamps,
-            finished: AtomicU64::new(0),
             idle: AtomicBool::new(true),
             idle_seen: AtomicU64::new(0),
             most_in_flight: AtomicU64::new(0),
@@ -853,7 +850,7 @@ impl ErrorsActivity {
     /// Whether the thread has work (a request with new parameters, or a generation in
     /// flight), and generations finished: a watchdog's view of its progress.
     pub fn progress(&self) -> (bool, u64) {
-        let done = self.shared.finished.load(Ordering::SeqCst);
+        let done = self.shared.handoff.lock().unwrap().protocol.finished();
         (!self.shared.idle.load(Ordering::SeqCst), done)
     }
 
@@ -1096,6 +1093,5 @@ fn publish(gpu: &ErrorsGpu, s: &Shared, f: &InFlight) -> VkResult<()> {
         h.protocol.finish(f.g);
         s.published.notify_all();
     }
-    s.finished.store(f.g, Ordering::SeqCst);
     Ok(())
 }
