@@ -1,40 +1,25 @@
 //! vkterrain: a Vulkan terrain renderer after Yusuf, Mostafa and Elarif, "A
 //! Multi-threaded Multi-context GPU Methodology for Real-time Terrain Rendering".
 //!
-//! Layout: pure logic first ([`heightfield`], [`gie`], [`quadtree`], [`audit`],
-//! [`camera`]), then the thin Vulkan layer ([`vk`]) and the two activities on top of it:
-//! [`errors_activity`] (the GIE pyramid, its own thread and queue) and [`blocks`] (the
-//! block renderer driven by the draw thread).
+//! Layers, each using only those before it (checked by `tests/architecture.rs`):
+//! - [`vk`]: a thin RAII layer over ash;
+//! - [`lod`]: the pure LOD core (heightfield, pyramids, error reference, traversal,
+//!   stitching, morphing, the audit), plain Rust with no Vulkan;
+//! - [`input`]: where heightfields come from (file loaders, the built-in terrain);
+//! - [`trace`]: the Chrome trace every thread writes to;
+//! - [`gpu`]: what both activities share on the GPU (the heightfield image, the layout
+//!   definitions, the compiled shaders);
+//! - [`errors`]: the errors activity (its thread and queue, the GIE passes, the hand-off,
+//!   the feed the draw thread reads);
+//! - [`draw`]: the blocks rendering activity (the one frame step, the block renderer,
+//!   lighting);
+//! - [`app`]: the front-ends (command line, viewer and panel, bench, quality, timeline).
 
-pub mod audit;
-pub mod bench;
-pub mod block_cache;
-pub mod camera;
-pub mod deviation;
-pub mod gie;
-pub mod gpu_layout;
-pub mod handoff;
-pub mod heightfield;
-pub mod lighting;
-pub mod morph;
-pub mod quadtree;
-pub mod quality;
-pub mod stitch;
-
-/// SPIR-V of every shader in `glsl/`, compiled by build.rs.
-pub mod shaders {
-    include!(concat!(env!("OUT_DIR"), "/shaders.rs"));
-}
-
-pub mod blocks;
-pub mod cli;
-pub mod commands;
-pub mod draw_thread;
-pub mod errors_activity;
-pub mod hud;
-pub mod lighting_gpu;
-pub mod terrain_gpu;
-pub mod timeline;
+pub mod app;
+pub mod draw;
+pub mod errors;
+pub mod gpu;
+pub mod input;
+pub mod lod;
 pub mod trace;
-pub mod viewer;
 pub mod vk;

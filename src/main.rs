@@ -1,8 +1,8 @@
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
-use vkterrain::cli::InputError;
-use vkterrain::commands::{self, ErrorsArgs, RenderArgs};
-use vkterrain::viewer::ViewArgs;
+use vkterrain::app::cli::InputError;
+use vkterrain::app::commands::{self, ErrorsArgs, RenderArgs};
+use vkterrain::app::viewer::ViewArgs;
 
 /// vkterrain: a Vulkan terrain renderer with a GPU-rasterized screen-space error
 /// quadtree (Yusuf, Mostafa and Elarif), run as two activities on two queues.
@@ -25,12 +25,12 @@ enum Command {
     /// Compute error generations on the GPU and print their cost as JSON.
     Errors(ErrorsArgs),
     /// Run a camera path headless and write frames.csv, summary.json, plot.png, trace.json.
-    Bench(vkterrain::bench::BenchArgs),
+    Bench(vkterrain::app::bench::BenchArgs),
     /// Sweep delta and the distance factor on CPU along a path: triangles against the
     /// audited maximum error (quality.csv, quality.json, quality.png).
-    Quality(vkterrain::quality::QualityArgs),
+    Quality(vkterrain::app::quality::QualityArgs),
     /// Draw a trace (bench or view --trace) as a picture: one lane per thread and queue.
-    Timeline(vkterrain::timeline::TimelineArgs),
+    Timeline(vkterrain::app::timeline::TimelineArgs),
 }
 
 fn main() -> ExitCode {
@@ -59,13 +59,13 @@ fn main() -> ExitCode {
         }
     };
     let result = match &cli.command {
-        None => vkterrain::viewer::view(&cli.view),
-        Some(Command::View(a)) => vkterrain::viewer::view(a),
+        None => vkterrain::app::viewer::view(&cli.view),
+        Some(Command::View(a)) => vkterrain::app::viewer::view(a),
         Some(Command::Render(a)) => commands::render(a),
         Some(Command::Errors(a)) => commands::errors(a),
-        Some(Command::Bench(a)) => vkterrain::bench::bench(a),
-        Some(Command::Quality(a)) => vkterrain::quality::quality(a),
-        Some(Command::Timeline(a)) => vkterrain::timeline::timeline(a),
+        Some(Command::Bench(a)) => vkterrain::app::bench::bench(a),
+        Some(Command::Quality(a)) => vkterrain::app::quality::quality(a),
+        Some(Command::Timeline(a)) => vkterrain::app::timeline::timeline(a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -2,6 +2,7 @@
 //! work, every queue submission, every timeline-semaphore value signalled and observed.
 //! Events are streamed to the file as they happen, so a run of hours keeps memory flat.
 
+use crate::vk::GpuClock;
 use serde_json::{json, Value};
 use std::fs::File;
 use std::io::{BufWriter, Write};
@@ -16,18 +17,6 @@ pub const ERRORS_TID: u32 = 2;
 /// both activities' work is on [`GPU_DRAW_QUEUE_TID`].
 pub const GPU_DRAW_QUEUE_TID: u32 = 10;
 pub const GPU_ERRORS_QUEUE_TID: u32 = 11;
-
-/// Where GPU timestamps fall on the CPU clock (see `QueryPool::calibrate`).
-#[derive(Clone, Copy, Debug)]
-pub struct GpuClock {
-    pub tick_at: u64,
-    pub cpu_at: Instant,
-    pub period_ns: f64,
-    /// How far off the placement may be, microseconds.
-    pub uncertainty_us: f64,
-    /// How the clocks were related (written into the trace's metadata).
-    pub method: &'static str,
-}
 
 struct Sink {
     out: BufWriter<File>,

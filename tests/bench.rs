@@ -275,7 +275,15 @@ fn ctrl_c_stops_cleanly_and_keeps_what_was_measured() {
     let args =
         [&args[..], &["--block", "9", "--size", "160x120", "--frames", "1000000", "--validation", "on"]].concat();
     let mut child = spawn(&args, &out, std::process::Stdio::null());
-    std::thread::sleep(std::time::Duration::from_secs(4));
+    // Interrupted once frames of the main run are in its streamed trace (whatever the
+    // machine's load), so that there is something to keep.
+    let partial = out.join("trace.json.partial");
+    let start = std::time::Instant::now();
+    while !std::fs::read_to_string(&partial).is_ok_and(|t| t.matches("\"name\":\"error\"").count() >= 3) {
+        assert!(child.try_wait().unwrap().is_none(), "bench exited before it was interrupted");
+        assert!(start.elapsed() < std::time::Duration::from_secs(120), "bench drew no frame in 120 s");
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
     let killed = Command::new("kill").args(["-INT", &child.id().to_string()]).status().unwrap();
     assert!(killed.success());
     let start = std::time::Instant::now();

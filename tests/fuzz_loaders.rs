@@ -8,7 +8,7 @@ use common::TempDir;
 use proptest::prelude::*;
 use std::io::Cursor;
 use std::path::PathBuf;
-use vkterrain::heightfield::{load, LoadOptions};
+use vkterrain::input::load::{load, LoadOptions};
 
 fn seed(ext: &str) -> Vec<u8> {
     match ext {

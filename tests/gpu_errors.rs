@@ -5,12 +5,14 @@ mod common;
 use common::*;
 use glam::Vec3;
 use std::sync::Arc;
-use vkterrain::camera::Camera;
-use vkterrain::errors_activity::compute_once;
-use vkterrain::gie::{block_errors, group_errors, ErrorMode, ErrorParams};
-use vkterrain::heightfield::{self, Heightfield, LoadOptions, MinMaxPyramid};
-use vkterrain::quadtree::BlockLayout;
-use vkterrain::terrain_gpu::TerrainGpu;
+use vkterrain::errors::passes::compute_once;
+use vkterrain::gpu::terrain::TerrainGpu;
+use vkterrain::input::load::{self, LoadOptions};
+use vkterrain::lod::block::BlockLayout;
+use vkterrain::lod::camera::Camera;
+use vkterrain::lod::gie::{block_errors, group_errors, ErrorMode, ErrorParams};
+use vkterrain::lod::heightfield::Heightfield;
+use vkterrain::lod::pyramid::MinMaxPyramid;
 
 /// Compares GPU and CPU for each camera and mode; returns the largest GPU group error.
 fn check(device: &Arc<vkterrain::vk::Device>, hf: Heightfield, k: u32, cameras: &[Vec3]) -> f32 {
@@ -27,7 +29,9 @@ fn check(device: &Arc<vkterrain::vk::Device>, hf: Heightfield, k: u32, cameras: 
             let (gpu_g, gpu_b) = compute_once(device, terrain.clone(), hf.clone(), layout, &p).unwrap();
             let cpu_g = group_errors(&hf, &mm, &p);
             let cpu_b = block_errors(&cpu_g, layout.m);
+            assert_eq!(gpu_g.levels.len(), cpu_g.levels.len(), "{mode:?}: GIE levels");
             for (lod, (a, b)) in gpu_g.levels.iter().zip(&cpu_g.levels).enumerate() {
+                assert_eq!(a.len(), b.len(), "{mode:?} LOD {}: texels", lod + 1);
                 for (i, (x, y)) in a.iter().zip(b).enumerate() {
                     assert!(
                         close(*x, *y, 1e-5),
@@ -38,7 +42,9 @@ fn check(device: &Arc<vkterrain::vk::Device>, hf: Heightfield, k: u32, cameras: 
                     largest = largest.max(*x);
                 }
             }
+            assert_eq!(gpu_b.levels.len(), cpu_b.levels.len(), "{mode:?}: block-error levels");
             for (a, b) in gpu_b.levels.iter().zip(&cpu_b.levels) {
+                assert_eq!(a.len(), b.len(), "{mode:?}: blocks in a level");
                 for (x, y) in a.iter().zip(b) {
                     assert!(close(*x, *y, 1e-5), "{mode:?} block error: GPU {x} CPU {y}");
                 }
@@ -48,6 +54,7 @@ fn check(device: &Arc<vkterrain::vk::Device>, hf: Heightfield, k: u32, cameras: 
         // At LOD 1 (no nesting yet) strict mode bounds paper mode: the exact deviation
         // covers every dropped vertex, and the group's box is nearer than the vertex. From
         // LOD 2 up the paper's nested max may exceed the exact deviation of the parent.
+        assert_eq!(per_mode[0].levels[0].len(), per_mode[1].levels[0].len());
         for (p, s) in per_mode[0].levels[0].iter().zip(&per_mode[1].levels[0]) {
             assert!(*s >= p * (1.0 - 1e-5), "LOD 1: strict {s} < paper {p}");
         }
@@ -90,10 +97,10 @@ fn crafted_fields_match_the_reference() {
 #[test]
 fn real_dems_match_the_reference() {
     let device = gpu();
-    let ps = heightfield::load(&data("puget_sound/ps_height_1k.png"), &LoadOptions::default()).unwrap();
+    let ps = load::load(&data("puget_sound/ps_height_1k.png"), &LoadOptions::default()).unwrap();
     let side = 1024.0 * ps.spacing;
     assert!(check(&device, ps, 33, &cams(side, 4380.0)) > 0.0);
-    let rainier = heightfield::load(&data("srtm3/mt_rainier_90m.tif"), &LoadOptions::default()).unwrap();
+    let rainier = load::load(&data("srtm3/mt_rainier_90m.tif"), &LoadOptions::default()).unwrap();
     let side = 1200.0 * rainier.spacing;
     assert!(check(&device, rainier, 33, &cams(side, 4371.0)) > 0.0);
     finish(device);

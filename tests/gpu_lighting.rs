@@ -1,13 +1,15 @@
 //! The lighting map (sun visibility, ambient occlusion) drawn by `glsl/lighting.frag`
-//! against its CPU reference `vkterrain::lighting`, on crafted fields built to make
+//! against its CPU reference `vkterrain::draw::lighting`, on crafted fields built to make
 //! shadows and occlusion extreme and on real data, under validation.
 
 mod common;
 use common::*;
-use vkterrain::heightfield::{self, Heightfield, LoadOptions, MinMaxPyramid};
-use vkterrain::lighting::{reference, Sun, MAX_LIGHTING_SIDE};
-use vkterrain::lighting_gpu::LightingMap;
-use vkterrain::terrain_gpu::TerrainGpu;
+use vkterrain::draw::lighting::{reference, Sun, MAX_LIGHTING_SIDE};
+use vkterrain::draw::lighting_gpu::LightingMap;
+use vkterrain::gpu::terrain::TerrainGpu;
+use vkterrain::input::load::{self, LoadOptions};
+use vkterrain::lod::heightfield::Heightfield;
+use vkterrain::lod::pyramid::MinMaxPyramid;
 
 /// Differences between the GPU map (8-bit) and the reference: the largest, and the
 /// share of texels off by more than 1.5/255 in either channel (on lavapipe: none).
@@ -82,7 +84,7 @@ fn lighting_map_matches_the_reference() {
     check(&device, "bumps16", &bumps, &[low_east, odd], MAX_LIGHTING_SIDE);
     check(&device, "bumps16 halved", &bumps, &[odd, low_east], 65);
     // Real data: Puget Sound, the sun low in the west.
-    let ps = heightfield::load(&data("puget_sound/ps_height_1k.png"), &LoadOptions::default()).unwrap();
+    let ps = load::load(&data("puget_sound/ps_height_1k.png"), &LoadOptions::default()).unwrap();
     check(&device, "puget sound", &ps, &[Sun { azimuth: 260.0, elevation: 15.0 }], MAX_LIGHTING_SIDE);
     finish(device);
 }

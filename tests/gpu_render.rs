@@ -6,15 +6,18 @@ mod common;
 use common::*;
 use glam::Vec3;
 use std::sync::Arc;
-use vkterrain::bench::image_difference;
-use vkterrain::blocks::{BlocksRenderer, NormalSource, PixelPass, Shading, Target, COLOR_FORMAT};
-use vkterrain::camera::Camera;
-use vkterrain::errors_activity::ErrorsActivity;
-use vkterrain::gie::{ErrorMode, ErrorParams};
-use vkterrain::heightfield::{self, Heightfield, LoadOptions, MinMaxPyramid};
-use vkterrain::lighting::Sun;
-use vkterrain::quadtree::{traverse, BlockLayout, LodSelect};
-use vkterrain::terrain_gpu::{TerrainGpu, Texture};
+use vkterrain::app::bench::image_difference;
+use vkterrain::draw::blocks::{BlocksRenderer, NormalSource, PixelPass, Shading, Target, COLOR_FORMAT};
+use vkterrain::draw::lighting::Sun;
+use vkterrain::errors::activity::ErrorsActivity;
+use vkterrain::gpu::terrain::{TerrainGpu, Texture};
+use vkterrain::input::load::{self, LoadOptions};
+use vkterrain::lod::block::BlockLayout;
+use vkterrain::lod::camera::Camera;
+use vkterrain::lod::gie::{ErrorMode, ErrorParams};
+use vkterrain::lod::heightfield::Heightfield;
+use vkterrain::lod::pyramid::MinMaxPyramid;
+use vkterrain::lod::traversal::{traverse, BlockCaches, LodSelect};
 use vkterrain::vk::Device;
 
 const MAGENTA: [u8; 3] = [255, 0, 255];
@@ -61,7 +64,7 @@ impl Scene {
                 LodSelect::errors(&gen.errors, gen.params.camera, delta, gen.params.mode).with_morph(self.morph)
             }
         };
-        let t = traverse(&self.hf, &self.mm, &self.layout, cam, select);
+        let t = traverse(&self.hf, &self.mm, &BlockCaches::default(), &self.layout, cam, select);
         let (px, _) =
             self.renderer.render_offscreen(&self.hf, &self.terrain, &target, cam, &t.blocks, shading).unwrap();
         px
@@ -129,7 +132,7 @@ fn flat_plane_covers_exactly_its_projection() {
 
 /// A camera close over the ground sees ground in every pixel: on a summit at eye height
 /// (2 m) looking down ahead, and half a metre over a 3000 m cliff's slope looking at the
-/// wall (0.027 m away along its normal): the near plane (`cli::near_plane`) is under
+/// wall (0.027 m away along its normal): the near plane (`lod::view::near_plane`) is under
 /// both. At a twentieth of the spacing (8 m here, as on Puget Sound 1k) the first view
 /// showed nothing; at a 500th (0.32 m) the second did not.
 #[test]
@@ -147,7 +150,7 @@ fn a_camera_close_over_the_ground_sees_it_at_its_feet() {
         ("summit", dome, summit, summit + Vec3::new(0.0, -1.0, 0.3)),
         ("cliff", cliff, slope, slope + Vec3::new(1.0, 0.0, 0.0)),
     ] {
-        let near = vkterrain::cli::near_plane(&hf);
+        let near = vkterrain::lod::view::near_plane(&hf);
         let cam = Camera::look_at(eye, look, 60.0, 160, 120, near);
         let mut scene = Scene::new(&device, hf, 17, None);
         let activity = ErrorsActivity::start(&device, scene.terrain.clone(), scene.hf.clone(), scene.layout).unwrap();
@@ -271,7 +274,7 @@ fn downward_poses(hf: &Heightfield, count: usize) -> Vec<Camera> {
 #[test]
 fn no_cracks_when_the_whole_frame_is_terrain() {
     let device = gpu();
-    let hf = heightfield::load(&data("puget_sound/ps_height_1k.png"), &LoadOptions::default()).unwrap();
+    let hf = load::load(&data("puget_sound/ps_height_1k.png"), &LoadOptions::default()).unwrap();
     let mut frames = 0;
     // Small blocks put many LOD boundaries in view.
     for k in [9, 33] {
@@ -306,7 +309,7 @@ fn no_cracks_when_the_whole_frame_is_terrain() {
 #[test]
 fn fidelity_against_the_full_resolution_render() {
     let device = gpu();
-    let hf = heightfield::load(&data("puget_sound/ps_height_1k.png"), &LoadOptions::default()).unwrap();
+    let hf = load::load(&data("puget_sound/ps_height_1k.png"), &LoadOptions::default()).unwrap();
     let mut scene = Scene::new(&device, hf, 33, Some(Sun::DEFAULT));
     let activity = ErrorsActivity::start(&device, scene.terrain.clone(), scene.hf.clone(), scene.layout).unwrap();
     let (wx, wz) = scene.hf.world_extent();
@@ -393,7 +396,7 @@ fn shading_views(hf: &Heightfield) -> [Camera; 2] {
 #[test]
 fn gradient_map_shading_matches_height_fetches() {
     let device = gpu();
-    let ps = heightfield::load(&data("puget_sound/ps_height_1k.png"), &LoadOptions::default()).unwrap();
+    let ps = load::load(&data("puget_sound/ps_height_1k.png"), &LoadOptions::default()).unwrap();
     let steep = field(129, 129, 2.0, |x, z| ((x as f32 * 0.3).sin() * (z as f32 * 0.2).cos()) * 40.0 + x as f32);
     for hf in [ps, steep] {
         let mut scene = Scene::new(&device, hf, 33, Some(Sun::DEFAULT));
@@ -406,6 +409,7 @@ fn gradient_map_shading_matches_height_fetches() {
                 scene.hf.source,
                 share * 100.0
             );
+            assert_eq!(new.len(), old.len(), "image sizes");
             let off: Vec<_> = (new.chunks(4).zip(old.chunks(4)).enumerate())
                 .filter(|(_, (n, o))| (0..3).any(|c| (n[c] as i32 - o[c] as i32).abs() > 16))
                 .map(|(i, (n, o))| (i % 320, i / 320, n[..3].to_vec(), o[..3].to_vec()))
@@ -417,6 +421,7 @@ fn gradient_map_shading_matches_height_fetches() {
             // every terrain pixel as it was.
             let bare = scene.render(cam, None, &plain());
             let (mut sky, mut terrain) = (0, 0);
+            assert_eq!(new.len(), bare.len(), "image sizes");
             for (n, b) in new.chunks(4).zip(bare.chunks(4)) {
                 if b[..3] == MAGENTA {
                     sky += 1;
@@ -441,7 +446,7 @@ fn gradient_map_shading_matches_height_fetches() {
 #[test]
 fn deferred_shading_matches_forward() {
     let device = gpu();
-    let ps = heightfield::load(&data("puget_sound/ps_height_1k.png"), &LoadOptions::default()).unwrap();
+    let ps = load::load(&data("puget_sound/ps_height_1k.png"), &LoadOptions::default()).unwrap();
     let steep = field(129, 129, 2.0, |x, z| ((x as f32 * 0.3).sin() * (z as f32 * 0.2).cos()) * 40.0 + x as f32);
     // Embedded in a 129 x 129 grid: the margin beyond x = 99 and z = 69 is drawn, and
     // must not show (clipped by the depth pass, discarded by the forward one).
@@ -544,7 +549,7 @@ fn every_shading_variant_takes_its_own_path() {
     let target = Target::new(&device, cam.width, cam.height).unwrap();
     let solid = |rgb: [u8; 3]| Texture { width: 2, height: 2, rgba: [rgb[0], rgb[1], rgb[2], 255].repeat(4) };
     let render_from = |cam: &Camera, base: Option<&Texture>, detail: Option<&Texture>, shading: &Shading| {
-        let blocks = traverse(&hf, &mm, &layout, cam, LodSelect::Full).blocks;
+        let blocks = traverse(&hf, &mm, &BlockCaches::default(), &layout, cam, LodSelect::Full).blocks;
         let terrain = TerrainGpu::new(&device, &hf, &mm, base, detail).unwrap();
         let mut r = BlocksRenderer::new(&device, &hf, &terrain, layout, COLOR_FORMAT, 1, None).unwrap();
         r.render_offscreen(&hf, &terrain, &target, cam, &blocks, shading).unwrap().0

@@ -6,12 +6,14 @@ mod common;
 use common::*;
 use glam::Vec3;
 use std::sync::Arc;
-use vkterrain::blocks::{BlocksRenderer, COLOR_FORMAT};
-use vkterrain::camera::Camera;
-use vkterrain::gie::{block_errors, group_errors, ErrorMode, ErrorParams};
-use vkterrain::heightfield::{Heightfield, MinMaxPyramid};
-use vkterrain::quadtree::{block_vertex, traverse, BlockLayout, LodSelect};
-use vkterrain::terrain_gpu::TerrainGpu;
+use vkterrain::draw::blocks::{BlocksRenderer, COLOR_FORMAT};
+use vkterrain::gpu::terrain::TerrainGpu;
+use vkterrain::lod::block::{block_vertex, BlockLayout};
+use vkterrain::lod::camera::Camera;
+use vkterrain::lod::gie::{block_errors, group_errors, ErrorMode, ErrorParams};
+use vkterrain::lod::heightfield::Heightfield;
+use vkterrain::lod::pyramid::MinMaxPyramid;
+use vkterrain::lod::traversal::{traverse, BlockCaches, LodSelect};
 
 /// Returns (vertices compared, collapsed-edge vertices, on-segment vertices, morphed
 /// interior vertices, vertices that follow a coarser neighbour's morphed edge).
@@ -29,7 +31,14 @@ fn compare(
     let (mut n, mut collapsed, mut lerped, mut morphed, mut following) = (0, 0, 0, 0, 0);
     for cam in cams {
         let errors = block_errors(&group_errors(hf, &mm, &ErrorParams::new(cam, ErrorMode::Strict)), layout.m);
-        let t = traverse(hf, &mm, &layout, cam, LodSelect::errors(&errors, cam.position, delta, ErrorMode::Strict));
+        let t = traverse(
+            hf,
+            &mm,
+            &BlockCaches::default(),
+            &layout,
+            cam,
+            LodSelect::errors(&errors, cam.position, delta, ErrorMode::Strict),
+        );
         let gpu = renderer.capture_vertices(hf, &terrain, cam, &t.blocks).unwrap();
         let kk = layout.k();
         for (i, b) in t.blocks.iter().enumerate() {

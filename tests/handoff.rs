@@ -9,12 +9,12 @@ use common::*;
 use glam::Vec3;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
-use vkterrain::camera::Camera;
-use vkterrain::errors_activity::{ErrorsActivity, Pacing};
-use vkterrain::gie::{block_errors, group_errors, ErrorMode, ErrorParams};
-use vkterrain::heightfield::MinMaxPyramid;
-use vkterrain::quadtree::BlockLayout;
-use vkterrain::terrain_gpu::TerrainGpu;
+use vkterrain::errors::activity::{ErrorsActivity, Pacing};
+use vkterrain::gpu::terrain::TerrainGpu;
+use vkterrain::lod::block::BlockLayout;
+use vkterrain::lod::camera::Camera;
+use vkterrain::lod::gie::{block_errors, group_errors, ErrorMode, ErrorParams};
+use vkterrain::lod::pyramid::MinMaxPyramid;
 use vkterrain::trace::Trace;
 use vkterrain::vk::{QueueMode, QueueRequest};
 
@@ -59,7 +59,9 @@ fn drive(pacing: Pacing, side: usize) -> u64 {
                         // Every 20th generation: the data is the one for its own camera.
                         if seen % 20 == 0 {
                             let reference = block_errors(&group_errors(&hf, &mm, &g.params), layout.m);
-                            for (x, y) in g.errors.packed().iter().zip(reference.packed()) {
+                            let (got, want) = (g.errors.packed(), reference.packed());
+                            assert_eq!(got.len(), want.len(), "generation {}: packed lengths", g.number);
+                            for (x, y) in got.iter().zip(want) {
                                 assert!(close(*x, y, 1e-5), "generation {}: GPU {x}, reference {y}", g.number);
                             }
                             verified += 1;

@@ -6,7 +6,8 @@ use common::data;
 use std::path::{Path, PathBuf};
 use tiff::encoder::{colortype, TiffEncoder};
 use tiff::tags::Tag;
-use vkterrain::heightfield::{load, HeightFormat, Heightfield, LoadOptions};
+use vkterrain::input::load::{load, LoadOptions};
+use vkterrain::lod::heightfield::{HeightFormat, Heightfield};
 
 /// The loaders' scratch files live in one directory removed when the test binary's
 /// last user of it drops the guard (each test holds it while it runs).

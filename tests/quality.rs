@@ -45,6 +45,7 @@ fn quality_curve_on_puget_sound() {
     let morphed = quality("on");
     let strict_on: Vec<&serde_json::Value> =
         morphed["points"].as_array().unwrap().iter().filter(|p| p["method"] == "strict").collect();
+    assert_eq!(strict_on.len(), of("strict").count(), "strict settings with and without morphing");
     for (on, off) in strict_on.iter().zip(of("strict")) {
         let (delta, err) = (on["parameter"].as_f64().unwrap(), on["audited_max_px"].as_f64().unwrap());
         assert!(err <= delta * 1.01, "strict, morphing, at delta {delta}: audited {err}");

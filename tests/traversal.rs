@@ -5,15 +5,16 @@
 mod common;
 use common::*;
 use glam::Vec3;
-use vkterrain::audit::{audit, check_tiling};
-use vkterrain::bench::{path_camera, CameraPath};
-use vkterrain::camera::Camera;
-use vkterrain::gie::{block_errors, group_errors_with, ErrorMode, ErrorParams, WorldPart};
-use vkterrain::heightfield::{self, Heightfield, LoadOptions, MinMaxPyramid};
-use vkterrain::morph::{self, EdgeTerms, MorphRule};
-use vkterrain::quadtree::{
-    block_vertex, morph_value, traverse, BlockLayout, DrawBlock, LodSelect, Traversal, MORPH_ONE,
-};
+use vkterrain::app::paths::{path_camera, CameraPath};
+use vkterrain::input::load::{self, LoadOptions};
+use vkterrain::lod::audit::{audit, check_tiling};
+use vkterrain::lod::block::{block_vertex, morph_value, BlockLayout, DrawBlock, Traversal, MORPH_ONE};
+use vkterrain::lod::camera::Camera;
+use vkterrain::lod::gie::{block_errors, group_errors_with, ErrorMode, ErrorParams, WorldPart};
+use vkterrain::lod::heightfield::Heightfield;
+use vkterrain::lod::morph::{self, EdgeTerms, MorphRule};
+use vkterrain::lod::pyramid::MinMaxPyramid;
+use vkterrain::lod::traversal::{traverse, BlockCaches, LodSelect};
 
 /// A small deterministic generator (no dependency, reproducible poses).
 struct Rng(u64);
@@ -99,10 +100,11 @@ fn frame_with(
     let rule = match variant {
         Variant::MorphUnderpaid => MorphRule::Underpaid,
         Variant::MorphParentSurface => MorphRule::ParentSurface,
-        _ => return traverse(hf, mm, layout, cam, select),
+        _ => return traverse(hf, mm, &BlockCaches::default(), layout, cam, select),
     };
-    let mut t = traverse(hf, mm, layout, cam, select.with_morph(false));
-    morph::assign_with(hf, mm, layout, cam, delta, &mut t, rule);
+    let caches = BlockCaches::default();
+    let mut t = traverse(hf, mm, &caches, layout, cam, select.with_morph(false));
+    morph::assign_with(hf, mm, &caches, layout, cam, delta, &mut t, rule);
     t
 }
 
@@ -147,10 +149,10 @@ fn audit_poses(hf: &Heightfield, k: u32, count: usize, seed: u64) -> (f32, f32) 
 
 #[test]
 fn strict_mode_holds_delta_on_real_data() {
-    let hf = heightfield::load(&data("puget_sound/ps_height_1k.png"), &LoadOptions::default()).unwrap();
+    let hf = load::load(&data("puget_sound/ps_height_1k.png"), &LoadOptions::default()).unwrap();
     let (strict, paper) = audit_poses(&hf, 33, 200, 7);
     println!("Puget Sound 1k, 200 poses: worst audited error / delta: strict {strict:.3}, paper {paper:.3}");
-    let hf = heightfield::load(&data("srtm3/mt_fuji_90m.tif"), &LoadOptions::default()).unwrap();
+    let hf = load::load(&data("srtm3/mt_fuji_90m.tif"), &LoadOptions::default()).unwrap();
     let (strict, paper) = audit_poses(&hf, 17, 40, 11);
     println!("Mt Fuji SRTM3, 40 poses: worst audited error / delta: strict {strict:.3}, paper {paper:.3}");
 }
@@ -202,8 +204,8 @@ fn assert_watertight(hf: &Heightfield, layout: &BlockLayout, t: &Traversal, what
                 if j == i {
                     continue;
                 }
-                let mine = vkterrain::audit::rendered_raw(hf, layout, b, x, z);
-                let theirs = vkterrain::audit::rendered_raw(hf, layout, &t.blocks[j], x, z);
+                let mine = vkterrain::lod::audit::rendered_raw(hf, layout, b, x, z);
+                let theirs = vkterrain::lod::audit::rendered_raw(hf, layout, &t.blocks[j], x, z);
                 let (Some(a), Some(c)) = (mine, theirs) else {
                     panic!("{what}: sample ({x}, {z}) on the edge of {b:?} and {:?} not covered", t.blocks[j])
                 };
@@ -313,7 +315,7 @@ fn full_lod_draws_every_visible_block_at_lod_0() {
     let mm = MinMaxPyramid::build(&hf);
     let layout = BlockLayout::new(hf.n, 17).unwrap();
     let cam = Camera::look_at(Vec3::new(64.0, 200.0, 64.0), Vec3::new(64.0, 0.0, 63.0), 60.0, 640, 480, 0.05);
-    let t = traverse(&hf, &mm, &layout, &cam, LodSelect::Full);
+    let t = traverse(&hf, &mm, &BlockCaches::default(), &layout, &cam, LodSelect::Full);
     assert!(t.blocks.iter().all(|b| b.lod == 0));
     assert_eq!(t.blocks.len(), 64);
     check_tiling(&hf, &mm, &layout, &t.blocks, &cam).unwrap();
@@ -325,7 +327,7 @@ fn full_lod_draws_every_visible_block_at_lod_0() {
 /// could not save a triangle there, as on ATLOD's fly path).
 #[test]
 fn stale_splits_count_only_what_new_data_would_merge() {
-    let ps = heightfield::load(&data("puget_sound/ps_height_1k.png"), &LoadOptions::default()).unwrap();
+    let ps = load::load(&data("puget_sound/ps_height_1k.png"), &LoadOptions::default()).unwrap();
     // Noise of 40 units a sample: every block needs full resolution from this close.
     let rough = field(129, 129, 1.0, |x, z| ((x * 7919 + z * 104729) % 97) as f32 * 0.4);
     for (hf, rough) in [(ps, false), (rough, true)] {
@@ -627,7 +629,7 @@ fn audit_catches_the_broken_bounds() {
 /// The paper's own bound is not one: on its data set it exceeds delta.
 #[test]
 fn paper_mode_exceeds_delta_on_puget_sound() {
-    let hf = heightfield::load(&data("puget_sound/ps_height_1k.png"), &LoadOptions::default()).unwrap();
+    let hf = load::load(&data("puget_sound/ps_height_1k.png"), &LoadOptions::default()).unwrap();
     let mm = MinMaxPyramid::build(&hf);
     let layout = BlockLayout::new(hf.n, 33).unwrap();
     let mut rng = Rng(21);
@@ -679,7 +681,7 @@ fn strict_holds_where_the_deviation_leaves_the_frustum() {
 /// the crafted fields.
 #[test]
 fn audit_catches_unpaid_morphs() {
-    let hf = heightfield::load(&data("puget_sound/ps_height_1k.png"), &LoadOptions::default()).unwrap();
+    let hf = load::load(&data("puget_sound/ps_height_1k.png"), &LoadOptions::default()).unwrap();
     let mut rng = Rng(5);
     let poses: Vec<Camera> = (0..12).map(|i| pose(&hf, &mut rng, [Pose::NearGround, Pose::Horizon][i % 2])).collect();
     let parent = worst_ratio(&hf, 33, &poses, Variant::MorphParentSurface, false);
@@ -709,7 +711,7 @@ fn drawn_surface(hf: &Heightfield, layout: &BlockLayout, t: &Traversal) -> Vec<f
         let side = layout.block_samples(b.lod) as usize;
         for z in oz as usize..(oz as usize + side + 1).min(hf.height) {
             for x in ox as usize..(ox as usize + side + 1).min(hf.width) {
-                if let Some(r) = vkterrain::audit::rendered_raw(hf, layout, b, x as i64, z as i64) {
+                if let Some(r) = vkterrain::lod::audit::rendered_raw(hf, layout, b, x as i64, z as i64) {
                     h[z * hf.width + x] = r;
                 }
             }
@@ -740,7 +742,7 @@ fn surface_displacement(
         }
         let (errors, at) = errors.as_ref().unwrap();
         let select = LodSelect::errors(errors, *at, 1.0, ErrorMode::Strict).with_morph(morph_on);
-        let t = traverse(hf, mm, layout, cam, select);
+        let t = traverse(hf, mm, &BlockCaches::default(), layout, cam, select);
         if morph_on {
             partial += t.blocks.iter().filter(|b| b.morph > 0 && b.morph < MORPH_ONE).count();
             let a = audit(hf, layout, &t, cam);
@@ -750,6 +752,7 @@ fn surface_displacement(
         if let Some(prev) = &previous {
             let vp = cam.view_proj();
             let frustum = cam.frustum();
+            assert_eq!(surface.len(), prev.len(), "surfaces of two frames");
             for (i, (&a, &b)) in surface.iter().zip(prev).enumerate() {
                 if a.is_nan() || b.is_nan() || a == b {
                     continue;
@@ -781,7 +784,7 @@ fn surface_displacement(
 /// and the audit holds on them.
 #[test]
 fn morphing_turns_jumps_into_small_steps() {
-    let hf = heightfield::load(&data("puget_sound/ps_height_1k.png"), &LoadOptions::default()).unwrap();
+    let hf = load::load(&data("puget_sound/ps_height_1k.png"), &LoadOptions::default()).unwrap();
     let mm = MinMaxPyramid::build(&hf);
     let layout = BlockLayout::new(hf.n, 33).unwrap();
     let (wx, wz) = hf.world_extent();
@@ -837,17 +840,19 @@ fn morph_bound_holds_in_every_state() {
     ] {
         let mm = MinMaxPyramid::build(&f);
         let layout = BlockLayout::new(f.n, k).unwrap();
+        let caches = BlockCaches::default();
         for (i, cam) in adversarial_poses(&f, edge, 16, 40 + k as u64).iter().enumerate() {
             let delta = [1.0f32, 0.5, 2.0][i % 3];
             let t = frame(&f, &mm, &layout, cam, cam, ErrorMode::Strict, delta);
             let fixed = morph::fixed_edges(&layout, &t);
+            assert_eq!(fixed.len(), t.blocks.len());
             for ((b, &fx), terms) in
                 t.blocks.iter().zip(&fixed).flat_map(|p| [(p, EdgeTerms::Exact), (p, EdgeTerms::Cheap)])
             {
                 if b.lod == layout.root_lod() {
                     continue;
                 }
-                let c = morph::cost(&f, &mm, &layout, cam, delta, b, fx, terms);
+                let c = morph::cost(&f, &mm, &caches, &layout, cam, delta, b, fx, terms);
                 let mut cut = c;
                 cut.side = c.side.map(|d| d.map(|v| v / 3.0));
                 cut.corner = c.corner.map(|d| d.map(|v| v / 3.0));
@@ -859,7 +864,7 @@ fn morph_bound_holds_in_every_state() {
                         continue;
                     }
                     let s = DrawBlock { morph: q, edge_morph: e, ..*b };
-                    let audited = vkterrain::audit::audit_block(&f, &layout, &s, cam);
+                    let audited = vkterrain::lod::audit::audit_block(&f, &layout, &s, cam);
                     if within {
                         assert!(
                             audited <= delta * 1.01,

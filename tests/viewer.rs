@@ -220,43 +220,68 @@ fn keyboard_and_mouse_drive_the_viewer() {
     let script = format!(
         r#"set -e
 cd "{tmp}"
-"{bin}" view --size 800x600 --validation on >"{out}" 2>"{err}" &
+"{bin}" view --size 800x600 --validation on --frame-counter frames.txt >"{out}" 2>"{err}" &
 pid=$!
+# Synchronisation with the viewer, never by sleeping: input is only known to be seen
+# once frames have been drawn after it (egui decides drags frame by frame), and a
+# screenshot once its file exists. Each wait gives up after 120 s.
+frames() {{ cat frames.txt 2>/dev/null || echo 0; }}
+wait_frames() {{
+  local want=$(( $(frames) + $1 )) t=0
+  while [ "$(frames)" -lt "$want" ]; do
+    kill -0 $pid 2>/dev/null || {{ echo "the viewer exited" >&2; exit 1; }}
+    t=$((t + 1)); [ $t -lt 2400 ] || {{ echo "the viewer drew no frame for 120 s" >&2; exit 1; }}
+    sleep 0.05
+  done
+}}
+wait_file() {{
+  local t=0
+  until [ -f "$1" ]; do
+    kill -0 $pid 2>/dev/null || {{ echo "the viewer exited" >&2; exit 1; }}
+    t=$((t + 1)); [ $t -lt 2400 ] || {{ echo "no $1 after 120 s" >&2; exit 1; }}
+    sleep 0.05
+  done
+  wait_frames 2
+}}
+drag() {{
+  xdotool mousemove --window "$wid" $1 $2 mousedown 1
+  wait_frames 2
+  for i in $(seq $3); do xdotool mousemove_relative -- 10 0; wait_frames 1; done
+  xdotool mouseup 1
+  wait_frames 2
+}}
 wid=$(xdotool search --sync --onlyvisible --name vkterrain | head -1)
 xdotool windowfocus --sync "$wid" || xdotool windowfocus "$wid"
-sleep 4
+wait_frames 3
 xdotool mousemove --window "$wid" 700 550
+wait_frames 2
 xdotool key p
-sleep 2
+wait_file vkterrain-1.png
 xdotool key h
-sleep 1
+wait_frames 2
 xdotool key p
-sleep 2
+wait_file vkterrain-2.png
 xdotool key F1
-sleep 1
+wait_frames 2
 xdotool key p
-sleep 2
+wait_file vkterrain-3.png
 xdotool key F1
 xdotool key h
-sleep 1
 xdotool key bracketright
 xdotool key n
-xdotool mousemove --window "$wid" 100 20 mousedown 1
-for i in 1 2 3 4 5 6 7 8; do xdotool mousemove_relative -- 10 0; sleep 0.2; done
-xdotool mouseup 1
-xdotool mousemove --window "$wid" 500 300 mousedown 1
-for i in 1 2 3 4 5 6 7 8; do xdotool mousemove_relative -- 10 0; sleep 0.2; done
-xdotool mouseup 1
+wait_frames 2
+drag 100 20 8
+drag 500 300 8
 xdotool key o
-xdotool mousemove --window "$wid" 500 300 mousedown 1
-for i in 1 2 3 4 5 6; do xdotool mousemove_relative -- 10 0; sleep 0.2; done
-xdotool mouseup 1
+wait_frames 2
+drag 500 300 6
 xdotool key Home
+wait_frames 2
 xdotool keydown w
-sleep 2
+wait_frames 20
 xdotool keyup w
 xdotool key p p
-sleep 3
+wait_file vkterrain-5.png
 xdotool key Escape
 wait $pid
 "#,

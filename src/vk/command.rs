@@ -1,6 +1,8 @@
 //! Command pools (one per thread), fences and timeline semaphores.
 
-use super::{Device, VkResult, VkResultExt};
+use super::device::Device;
+use super::error::{VkResult, VkResultExt};
+use super::resources::Buffer;
 use ash::vk;
 use std::sync::Arc;
 
@@ -40,6 +42,29 @@ impl Drop for CommandPool {
         // SAFETY: the owner has waited for its submissions; destroying the pool frees its
         // command buffers.
         unsafe { self.device.raw.destroy_command_pool(self.handle, None) };
+    }
+}
+
+// The device's one-shot submission lives beside the pool and fence it uses, so that
+// device.rs needs nothing from this file.
+impl Device {
+    /// Records commands into a one-time command buffer, submits them on the draw queue
+    /// and waits (used for uploads before the activities start).
+    pub fn one_shot(self: &Arc<Self>, pool: &CommandPool, record: impl FnOnce(vk::CommandBuffer)) -> VkResult<()> {
+        let cmd = pool.allocate()?;
+        let begin = vk::CommandBufferBeginInfo::default().flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT);
+        // SAFETY: `cmd` was just allocated from `pool`, which this thread owns.
+        unsafe { self.raw.begin_command_buffer(cmd, &begin) }.vk("vkBeginCommandBuffer")?;
+        record(cmd);
+        // SAFETY: as above.
+        unsafe { self.raw.end_command_buffer(cmd) }.vk("vkEndCommandBuffer")?;
+        let fence = Fence::new(self, false)?;
+        let cmds = [vk::CommandBufferSubmitInfo::default().command_buffer(cmd)];
+        let submit = [vk::SubmitInfo2::default().command_buffer_infos(&cmds)];
+        self.draw_queue.submit(self, &submit, fence.handle)?;
+        fence.wait(u64::MAX)?;
+        pool.free(cmd);
+        Ok(())
     }
 }
 
@@ -194,6 +219,18 @@ impl Drop for BinarySemaphore {
     }
 }
 
+/// Where GPU timestamps fall on the CPU clock (see `QueryPool::calibrate`).
+#[derive(Clone, Copy, Debug)]
+pub struct GpuClock {
+    pub tick_at: u64,
+    pub cpu_at: std::time::Instant,
+    pub period_ns: f64,
+    /// How far off the placement may be, microseconds.
+    pub uncertainty_us: f64,
+    /// How the clocks were related (written into the trace's metadata).
+    pub method: &'static str,
+}
+
 /// A timestamp query pool (optional: only on queues with timestamp bits).
 pub struct QueryPool {
     device: Arc<Device>,
@@ -235,7 +272,7 @@ impl QueryPool {
     /// the draw queue, taken at the midpoint of the CPU's submit-to-fence window (the
     /// device may lack VK_EXT_calibrated_timestamps; this works everywhere, to within
     /// that window).
-    pub fn calibrate(device: &Arc<Device>) -> VkResult<Option<crate::trace::GpuClock>> {
+    pub fn calibrate(device: &Arc<Device>) -> VkResult<Option<GpuClock>> {
         let Some(pool) = QueryPool::timestamps(device, 1)? else { return Ok(None) };
         if let Some(ext) = &device.calibrated_timestamps {
             // The device and CLOCK_MONOTONIC (Rust's Instant on Linux) sampled together;
@@ -249,7 +286,7 @@ impl QueryPool {
             let (stamps, deviation_ns) =
                 unsafe { ext.get_calibrated_timestamps(&infos) }.vk("vkGetCalibratedTimestampsEXT")?;
             let after = std::time::Instant::now();
-            return Ok(Some(crate::trace::GpuClock {
+            return Ok(Some(GpuClock {
                 tick_at: stamps[0],
                 cpu_at: before + (after - before) / 2,
                 period_ns: pool.period_ns,
@@ -271,7 +308,7 @@ impl QueryPool {
         // SAFETY: the submission completed (one_shot waited).
         unsafe { device.raw.get_query_pool_results(pool.handle, 0, &mut tick, vk::QueryResultFlags::TYPE_64) }
             .vk("vkGetQueryPoolResults")?;
-        Ok(Some(crate::trace::GpuClock {
+        Ok(Some(GpuClock {
             tick_at: tick[0],
             cpu_at: before + (after - before) / 2,
             period_ns: pool.period_ns,
@@ -336,13 +373,13 @@ pub unsafe fn host_read_barrier(
 /// has no timestamps.
 pub struct FrameTimer {
     pool: QueryPool,
-    buffer: super::Buffer,
+    buffer: Buffer,
 }
 
 impl FrameTimer {
     pub fn new(device: &Arc<Device>) -> VkResult<Option<Self>> {
         let Some(pool) = QueryPool::timestamps(device, 2)? else { return Ok(None) };
-        let buffer = super::Buffer::new(
+        let buffer = Buffer::new(
             device,
             "frame timestamps",
             16,
@@ -381,5 +418,32 @@ impl FrameTimer {
         let t: Vec<u64> = bytemuck::pod_collect_to_vec(&self.buffer.mapped()?[..16]);
         let ticks = [t[0], t[1]];
         Ok((ticks, self.pool.ms(ticks)))
+    }
+}
+
+/// Records a copy of a whole colour image (in TRANSFER_SRC_OPTIMAL) into `buffer`, then
+/// a barrier that makes the bytes visible to the host after the submission's fence.
+///
+/// # Safety
+/// `cmd` is recording and the image is in TRANSFER_SRC_OPTIMAL; `buffer` must hold `extent` texels of the image's format.
+pub unsafe fn copy_image_to_host(
+    d: &ash::Device,
+    cmd: vk::CommandBuffer,
+    image: vk::Image,
+    extent: vk::Extent2D,
+    buffer: vk::Buffer,
+) {
+    let region = vk::BufferImageCopy::default()
+        .image_subresource(vk::ImageSubresourceLayers {
+            aspect_mask: vk::ImageAspectFlags::COLOR,
+            mip_level: 0,
+            base_array_layer: 0,
+            layer_count: 1,
+        })
+        .image_extent(vk::Extent3D { width: extent.width, height: extent.height, depth: 1 });
+    // SAFETY: guaranteed by the caller (see above).
+    unsafe {
+        d.cmd_copy_image_to_buffer(cmd, image, vk::ImageLayout::TRANSFER_SRC_OPTIMAL, buffer, &[region]);
+        host_read_barrier(d, cmd, buffer, (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_WRITE));
     }
 }

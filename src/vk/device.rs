@@ -1,8 +1,8 @@
 //! Physical device selection, the logical device, its queues (SPEC section 6) and the
 //! memory allocator.
 
-use super::instance::c_name;
-use super::{CommandPool, Fence, Instance, VkError, VkResult, VkResultExt};
+use super::error::{VkError, VkResult, VkResultExt};
+use super::instance::{c_name, Instance};
 use ash::vk;
 use gpu_allocator::vulkan::{Allocator, AllocatorCreateDesc};
 use std::mem::ManuallyDrop;
@@ -355,25 +355,6 @@ impl Device {
 
     pub fn max_image_dimension_2d(&self) -> u32 {
         self.properties.limits.max_image_dimension2_d
-    }
-
-    /// Records commands into a one-time command buffer, submits them on the draw queue
-    /// and waits (used for uploads before the activities start).
-    pub fn one_shot(self: &Arc<Self>, pool: &CommandPool, record: impl FnOnce(vk::CommandBuffer)) -> VkResult<()> {
-        let cmd = pool.allocate()?;
-        let begin = vk::CommandBufferBeginInfo::default().flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT);
-        // SAFETY: `cmd` was just allocated from `pool`, which this thread owns.
-        unsafe { self.raw.begin_command_buffer(cmd, &begin) }.vk("vkBeginCommandBuffer")?;
-        record(cmd);
-        // SAFETY: as above.
-        unsafe { self.raw.end_command_buffer(cmd) }.vk("vkEndCommandBuffer")?;
-        let fence = Fence::new(self, false)?;
-        let cmds = [vk::CommandBufferSubmitInfo::default().command_buffer(cmd)];
-        let submit = [vk::SubmitInfo2::default().command_buffer_infos(&cmds)];
-        self.draw_queue.submit(self, &submit, fence.handle)?;
-        fence.wait(u64::MAX)?;
-        pool.free(cmd);
-        Ok(())
     }
 
     pub fn wait_idle(&self) -> VkResult<()> {

@@ -1,7 +1,7 @@
 //! Instance, validation layers (with synchronization validation) and the debug messenger
 //! that counts every warning and error.
 
-use super::{VkError, VkResult, VkResultExt};
+use super::error::{VkError, VkResult, VkResultExt};
 use ash::vk;
 use std::ffi::{c_void, CStr};
 use std::sync::atomic::{AtomicU64, Ordering};

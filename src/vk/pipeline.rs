@@ -1,7 +1,8 @@
 //! Shader modules, descriptor layouts and pools, pipeline layouts and graphics pipelines
 //! (dynamic rendering, dynamic viewport and scissor).
 
-use super::{Device, VkResult, VkResultExt};
+use super::device::Device;
+use super::error::{VkError, VkResult, VkResultExt};
 use ash::vk;
 use std::sync::Arc;
 
@@ -170,11 +171,16 @@ pub struct GraphicsPipelineDesc<'a> {
 }
 
 impl<'a> GraphicsPipelineDesc<'a> {
-    /// A pass over a whole colour target: one triangle from `pass.vert` (which only
-    /// covers the target; the fragment shader reads gl_FragCoord), no depth.
-    pub fn fullscreen_pass(frag: &'a [u8], color_format: vk::Format, layout: &'a PipelineLayout) -> Self {
+    /// A pass over a whole colour target: one triangle from `vert` (`glsl/pass.vert`,
+    /// which only covers the target; the fragment shader reads gl_FragCoord), no depth.
+    pub fn fullscreen_pass(
+        vert: &'a [u8],
+        frag: &'a [u8],
+        color_format: vk::Format,
+        layout: &'a PipelineLayout,
+    ) -> Self {
         GraphicsPipelineDesc {
-            vert: crate::shaders::PASS_VERT,
+            vert,
             frag: Some(frag),
             rasterizer_discard: false,
             vertex_attribute: None,
@@ -207,7 +213,7 @@ pub struct GraphicsPipeline {
 
 fn shader_module(device: &Device, spirv: &[u8]) -> VkResult<vk::ShaderModule> {
     let words = ash::util::read_spv(&mut std::io::Cursor::new(spirv))
-        .map_err(|e| super::VkError::Setup(format!("bad SPIR-V: {e}")))?;
+        .map_err(|e| VkError::Setup(format!("bad SPIR-V: {e}")))?;
     // SAFETY: `words` is SPIR-V produced by build.rs.
     unsafe { device.raw.create_shader_module(&vk::ShaderModuleCreateInfo::default().code(&words), None) }
         .vk("vkCreateShaderModule")

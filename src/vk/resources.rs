@@ -1,6 +1,7 @@
 //! Buffers, images, image views and samplers backed by gpu-allocator.
 
-use super::{Device, VkError, VkResult, VkResultExt};
+use super::device::Device;
+use super::error::{VkError, VkResult, VkResultExt};
 use ash::vk;
 use gpu_allocator::vulkan::{Allocation, AllocationCreateDesc, AllocationScheme};
 use gpu_allocator::MemoryLocation;

@@ -1,6 +1,8 @@
 //! Window surface and swapchain.
 
-use super::{Device, Instance, VkError, VkResult, VkResultExt};
+use super::device::Device;
+use super::error::{VkError, VkResult, VkResultExt};
+use super::instance::Instance;
 use ash::vk;
 use std::sync::Arc;
 

@@ -5,7 +5,7 @@
 
 use std::path::PathBuf;
 use std::sync::Arc;
-use vkterrain::heightfield::{HeightFormat, Heightfield};
+use vkterrain::lod::heightfield::{HeightFormat, Heightfield};
 use vkterrain::vk::{Device, DeviceOptions, Instance, InstanceOptions, QueueRequest};
 
 /// `../shared/data` next to the repository. Tests that need it fail (not skip) when it

@@ -1,0 +1,221 @@
+//! Command-line options shared by every subcommand (same names, same meanings).
+
+use crate::input::load::{self, LoadOptions};
+use crate::lod::camera::Camera;
+use crate::lod::gie::ErrorMode;
+use crate::lod::heightfield::Heightfield;
+use crate::lod::view::{default_view, near_plane};
+use crate::vk::QueueRequest;
+use clap::{Args, ValueEnum};
+use glam::Vec3;
+use std::path::PathBuf;
+
+/// An error in the user's input (exit code 2), as opposed to a runtime failure.
+#[derive(Debug, thiserror::Error)]
+#[error("{0}")]
+pub struct InputError(pub String);
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum OnOff {
+    On,
+    Off,
+}
+
+fn parse_size(s: &str) -> Result<(u32, u32), String> {
+    let (w, h) = s.split_once(['x', 'X']).ok_or_else(|| format!("'{s}': expected WIDTHxHEIGHT, e.g. 1280x720"))?;
+    let w: u32 = w.trim().parse().map_err(|_| format!("'{s}': width is not a whole number"))?;
+    let h: u32 = h.trim().parse().map_err(|_| format!("'{s}': height is not a whole number"))?;
+    if w == 0 || h == 0 {
+        return Err(format!("'{s}': width and height must be at least 1"));
+    }
+    Ok((w, h))
+}
+
+fn parse_vec3(s: &str) -> Result<Vec3, String> {
+    let parts: Vec<&str> = s.split(',').collect();
+    if parts.len() != 3 {
+        return Err(format!("'{s}': expected X,Y,Z"));
+    }
+    let mut v = [0.0f32; 3];
+    for (i, p) in parts.iter().enumerate() {
+        v[i] = p.trim().parse().map_err(|_| format!("'{s}': '{p}' is not a number"))?;
+        if !v[i].is_finite() {
+            return Err(format!("'{s}': coordinates must be finite numbers"));
+        }
+    }
+    Ok(Vec3::from_array(v))
+}
+
+fn parse_positive(s: &str) -> Result<f32, String> {
+    let v: f32 = s.parse().map_err(|_| format!("'{s}' is not a number"))?;
+    if !(v.is_finite() && v > 0.0) {
+        return Err(format!("'{s}': must be a finite number greater than 0"));
+    }
+    Ok(v)
+}
+
+fn parse_fraction(s: &str) -> Result<f32, String> {
+    let v: f32 = s.parse().map_err(|_| format!("'{s}' is not a number"))?;
+    if !(0.0..1.0).contains(&v) {
+        return Err(format!("'{s}': must be at least 0 and below 1"));
+    }
+    Ok(v)
+}
+
+fn parse_share(s: &str) -> Result<f32, String> {
+    let v: f32 = s.parse().map_err(|_| format!("'{s}' is not a number"))?;
+    if !(v > 0.0 && v <= 1.0) {
+        return Err(format!("'{s}': must be above 0 and at most 1"));
+    }
+    Ok(v)
+}
+
+fn parse_fovy(s: &str) -> Result<f32, String> {
+    let v = parse_positive(s)?;
+    if v >= 179.0 {
+        return Err(format!("'{s}': the field of view must be below 179 degrees"));
+    }
+    Ok(v)
+}
+
+/// Options every subcommand shares.
+#[derive(Args, Clone, Debug)]
+pub struct CommonArgs {
+    /// Heightfield file (.png, .jpg, .tif/.tiff, .r16, .f32, .hgt). Default: the built-in
+    /// procedural terrain (2049 x 2049, 30 m spacing).
+    #[arg(long, value_name = "FILE")]
+    pub heightmap: Option<PathBuf>,
+    /// Size of a raw .r16/.f32 heightfield.
+    #[arg(long, value_name = "WxH", value_parser = parse_size)]
+    pub raw_size: Option<(u32, u32)>,
+    /// Metres between samples (default depends on the file; see README).
+    #[arg(long, value_name = "M", value_parser = parse_positive)]
+    pub spacing: Option<f32>,
+    /// Metres per height unit (default depends on the file; see README).
+    #[arg(long, value_name = "M", value_parser = parse_positive)]
+    pub height_scale: Option<f32>,
+    /// Viewport size in pixels.
+    #[arg(long, value_name = "WxH", value_parser = parse_size)]
+    pub size: Option<(u32, u32)>,
+    /// Camera position in world units (x east, y up, z south). Default: above one edge,
+    /// seeing the whole terrain.
+    #[arg(long, value_name = "X,Y,Z", value_parser = parse_vec3, allow_hyphen_values = true)]
+    pub camera: Option<Vec3>,
+    /// Point the camera looks at. Default: the terrain's centre.
+    #[arg(long, value_name = "X,Y,Z", value_parser = parse_vec3, allow_hyphen_values = true)]
+    pub look_at: Option<Vec3>,
+    /// Vertical field of view in degrees.
+    #[arg(long, value_name = "DEG", default_value = "60", value_parser = parse_fovy)]
+    pub fovy: f32,
+    /// Block side k = 2^m + 1 vertices.
+    #[arg(long = "block", value_name = "K", default_value_t = 33)]
+    pub block: u32,
+    /// Vulkan validation (with synchronization validation). Default: on in debug builds.
+    #[arg(long, value_enum)]
+    pub validation: Option<OnOff>,
+    /// GPU to use, by index or name substring (default: prefer a discrete GPU).
+    #[arg(long, value_name = "NAME|INDEX")]
+    pub gpu: Option<String>,
+    /// Queue arrangement for the two activities.
+    #[arg(long, value_enum, default_value_t = QueueRequest::Auto)]
+    pub queues: QueueRequest,
+    /// New error data is requested when the camera has moved this fraction of the
+    /// distance to the nearest drawn terrain since the last request and the last frame
+    /// split blocks only because its data was stale (0: every frame it moves, stale
+    /// splits or not). Stale data keeps the bound; this only trades updates for triangles.
+    #[arg(long, value_name = "F", default_value = "0.05", value_parser = parse_fraction)]
+    pub refresh_at: f32,
+    /// Largest share of wall time spent on error updates (1: no cap). After an update of
+    /// u ms the next request waits u (1/share - 1) ms; stale data keeps the bound.
+    #[arg(long, value_name = "SHARE", default_value = "0.05", value_parser = parse_share)]
+    pub update_share: f32,
+    /// How the errors thread submits a generation's parts: auto (paced on a shared queue,
+    /// free with separate queues), paced (each part waits for the one before, so draws
+    /// run in between and the GPU has one generation at a time), or free (at once: a
+    /// second generation may queue behind the first, both slots written).
+    #[arg(long, value_enum, default_value_t = crate::errors::activity::Pacing::Auto)]
+    pub error_pacing: crate::errors::activity::Pacing,
+    /// Screen-space error bound: strict (guaranteed) or paper (seed 000 eqs. 2-4).
+    #[arg(long = "error-mode", alias = "mode", value_enum, default_value_t = ErrorMode::Strict)]
+    pub error_mode: ErrorMode,
+    /// Geomorphing: blocks move continuously between LODs instead of popping, with the
+    /// morph paid for inside the error bound.
+    #[arg(long, value_enum, default_value_t = OnOff::On)]
+    pub morph: OnOff,
+    /// Sun for the precomputed shadows and ambient occlusion: compass azimuth and
+    /// elevation in degrees (azimuth 0 is north, the top of the heightmap), or `off`.
+    #[arg(long, value_name = "AZ,EL|off", default_value = "301,54", value_parser = parse_sun)]
+    pub sun: SunArg,
+}
+
+/// The `--sun` option: a sun, or none (no shadows or occlusion).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SunArg(pub Option<crate::draw::lighting::Sun>);
+
+fn parse_sun(s: &str) -> Result<SunArg, String> {
+    crate::draw::lighting::Sun::parse(s).map(SunArg)
+}
+
+impl CommonArgs {
+    pub fn validation(&self) -> bool {
+        match self.validation {
+            Some(OnOff::On) => true,
+            Some(OnOff::Off) => false,
+            None => cfg!(debug_assertions),
+        }
+    }
+
+    /// Loads `--heightmap` (or the built-in terrain); `max_grid_side` is the device's
+    /// image size limit when the device already exists.
+    pub fn load_heightfield(&self, max_grid_side: Option<usize>) -> Result<Heightfield, InputError> {
+        match &self.heightmap {
+            None => Ok(crate::input::procedural::procedural()),
+            Some(path) => {
+                let opts = LoadOptions {
+                    spacing: self.spacing,
+                    height_scale: self.height_scale,
+                    raw_size: self.raw_size.map(|(w, h)| (w as usize, h as usize)),
+                    max_grid_side,
+                };
+                let hf = load::load(path, &opts).map_err(|e| InputError(e.to_string()))?;
+                check_scale(&hf)?;
+                Ok(hf)
+            }
+        }
+    }
+
+    pub fn camera(&self, hf: &Heightfield, default_size: (u32, u32)) -> Result<Camera, InputError> {
+        let (w, h) = self.size.unwrap_or(default_size);
+        let (pos, target) = default_view(hf, self.fovy, w, h);
+        let position = self.camera.unwrap_or(pos);
+        let look_at = self.look_at.unwrap_or(target);
+        if (look_at - position).length() < 1e-6 {
+            return Err(InputError("--look-at must differ from --camera".into()));
+        }
+        if !(position.abs().max_element() <= MAX_WORLD && look_at.abs().max_element() <= MAX_WORLD) {
+            return Err(InputError(format!(
+                "the camera ({position}) or the point it looks at ({look_at}) is beyond {MAX_WORLD:e} world units \
+                 (single-precision positions)"
+            )));
+        }
+        Ok(Camera::look_at(position, look_at, self.fovy, w, h, near_plane(hf)))
+    }
+}
+
+/// The largest world coordinate accepted (terrain extent, heights, camera): positions
+/// are single precision on the CPU and the GPU, and squared distances must not overflow.
+pub const MAX_WORLD: f32 = 1e12;
+
+/// The terrain's world extent and heights must fit [`MAX_WORLD`].
+pub fn check_scale(hf: &Heightfield) -> Result<(), InputError> {
+    let (wx, wz) = hf.world_extent();
+    let top = hf.raw.iter().fold(0.0f32, |m, v| m.max((v * hf.height_scale).abs()));
+    if !(wx.max(wz) <= MAX_WORLD && top <= MAX_WORLD) {
+        return Err(InputError(format!(
+            "{}: {wx:e} x {wz:e} world units with heights up to {top:e}: beyond {MAX_WORLD:e} \
+             (check --spacing and --height-scale)",
+            hf.source
+        )));
+    }
+    Ok(())
+}

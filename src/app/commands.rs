@@ -1,0 +1,362 @@
+//! The subcommands: `render` (one headless frame) and `errors` (one error generation).
+
+use crate::app::cli::OnOff;
+use crate::app::cli::{CommonArgs, InputError};
+use crate::app::outputs::{check_outputs, save_png, write_atomic};
+use crate::draw::blocks::{BlocksRenderer, NormalSource, PixelPass, Shading, Target};
+use crate::draw::frame::{DrawThread, FrameRequest, LodChoice, LodTerrain};
+use crate::errors::activity::ErrorsActivity;
+use crate::errors::feed::{ErrorFeed, RefreshPolicy};
+use crate::gpu::terrain::TerrainGpu;
+use crate::lod::audit;
+use crate::lod::block::BlockLayout;
+use crate::lod::gie::ErrorParams;
+use crate::lod::heightfield::Heightfield;
+use crate::lod::pyramid::MinMaxPyramid;
+use crate::trace::Trace;
+use crate::vk::{Device, DeviceOptions, Instance, InstanceOptions};
+use clap::Args;
+use serde_json::json;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+#[derive(Args, Debug)]
+pub struct RenderArgs {
+    #[command(flatten)]
+    pub common: CommonArgs,
+    /// LOD selection.
+    #[arg(long, value_enum, default_value_t = LodChoice::Error)]
+    pub lod: LodChoice,
+    /// Screen-space error threshold in pixels.
+    #[arg(long, value_name = "PX", default_value = "1", value_parser = positive, allow_negative_numbers = true)]
+    pub delta: f32,
+    /// Output PNG.
+    #[arg(long, value_name = "FILE.png")]
+    pub out: PathBuf,
+    /// Also audit the block list: the largest screen-space error over every visible sample.
+    #[arg(long)]
+    pub audit: bool,
+    /// Plain background instead of the sky (R,G,B in 0..1).
+    #[arg(long, value_name = "R,G,B")]
+    pub background: Option<String>,
+    /// Tint blocks by LOD.
+    #[arg(long)]
+    pub colour_by_lod: bool,
+    /// Exponential fog density per world unit (0 disables).
+    #[arg(long, value_name = "DENSITY", default_value = "0")]
+    pub fog: f32,
+    /// Where normals come from: a gradient map made at load (default), or the first
+    /// wave's sixteen height fetches per pixel (same image up to rounding).
+    #[arg(long, value_enum, default_value_t = NormalSource::GradientMap)]
+    pub shading: NormalSource,
+    /// How pixels are shaded: once each after a depth-only pass over the blocks
+    /// (default), or as the blocks are drawn (the earlier shading, for comparison).
+    #[arg(long, value_enum, default_value_t = PixelPass::Deferred)]
+    pub pixels: PixelPass,
+}
+
+#[derive(Args, Debug)]
+pub struct ErrorsArgs {
+    #[command(flatten)]
+    pub common: CommonArgs,
+    /// Generations to compute (the median update time is reported).
+    #[arg(long, value_name = "N", default_value_t = 1)]
+    pub repeat: u32,
+    /// Write the block-error pyramid as little-endian f32 (see README for the layout).
+    #[arg(long, value_name = "FILE")]
+    pub dump: Option<PathBuf>,
+}
+
+/// Parses a finite number greater than 0.
+pub fn positive(s: &str) -> Result<f32, String> {
+    let v: f32 = s.parse().map_err(|_| format!("'{s}' is not a number"))?;
+    if !(v.is_finite() && v > 0.0) {
+        return Err(format!("'{s}': must be a finite number greater than 0"));
+    }
+    Ok(v)
+}
+
+pub fn non_negative(s: &str) -> Result<f32, String> {
+    let v: f32 = s.parse().map_err(|_| format!("'{s}' is not a number"))?;
+    if !(v.is_finite() && v >= 0.0) {
+        return Err(format!("'{s}': must be a finite number, 0 or more"));
+    }
+    Ok(v)
+}
+
+pub fn at_least_one(s: &str) -> Result<u64, String> {
+    match s.parse::<u64>() {
+        Ok(n) if n >= 1 => Ok(n),
+        _ => Err(format!("'{s}': must be a whole number, 1 or more")),
+    }
+}
+
+/// Everything a command needs on the GPU.
+pub struct Session {
+    pub hf: Arc<Heightfield>,
+    pub mm: MinMaxPyramid,
+    pub layout: BlockLayout,
+    pub device: Arc<Device>,
+    pub terrain: Arc<TerrainGpu>,
+    /// Time to build the group pyramid (min/max and exact deviation) on the CPU.
+    pub pyramid_ms: f64,
+}
+
+impl Session {
+    /// The terrain as the traversal reads it.
+    pub fn lod_terrain(&self) -> LodTerrain<'_> {
+        LodTerrain { hf: &self.hf, mm: &self.mm, layout: &self.layout }
+    }
+
+    pub fn open(common: &CommonArgs) -> anyhow::Result<Self> {
+        // Options first, so that a bad value fails before any file is read.
+        BlockLayout::new(30, common.block).map_err(InputError)?;
+        // The device first: its image size limit bounds what the loader allocates.
+        let instance = Instance::new(&InstanceOptions { validation: common.validation(), extensions: Vec::new() })?;
+        let device =
+            Device::new(instance, &DeviceOptions { gpu: common.gpu.clone(), queues: common.queues, swapchain: false })
+                .map_err(option_error)?;
+        eprintln!("vkterrain: device {}, queue mode {}", device.name, device.queue_mode.as_str());
+        for note in device.notes() {
+            eprintln!("vkterrain: note: {note}");
+        }
+        let hf = common.load_heightfield(Some(device.max_image_dimension_2d() as usize))?;
+        Session::check_size(&device, &hf)?;
+        let layout = BlockLayout::new(hf.n, common.block).map_err(InputError)?;
+        if layout.k() != common.block {
+            tracing::info!("block {} is larger than the terrain; using k = {}", common.block, layout.k());
+        }
+        let t = Instant::now();
+        let mm = MinMaxPyramid::build(&hf);
+        let pyramid_ms = t.elapsed().as_secs_f64() * 1e3;
+        tracing::info!("group pyramid (min/max and exact deviation, {} levels) in {pyramid_ms:.0} ms", hf.n);
+        let terrain = Arc::new(TerrainGpu::new(&device, &hf, &mm, None, None)?);
+        Ok(Session { hf: Arc::new(hf), mm, layout, device, terrain, pyramid_ms })
+    }
+
+    /// The viewport must fit in one image on this device.
+    pub fn check_viewport(&self, (w, h): (u32, u32)) -> Result<(), InputError> {
+        let max = self.device.max_image_dimension_2d();
+        if w > max || h > max {
+            return Err(InputError(format!("--size {w}x{h}: larger than the device's maxImageDimension2D ({max})")));
+        }
+        Ok(())
+    }
+
+    /// The heightfield must fit in one image on this device.
+    pub fn check_size(device: &Device, hf: &Heightfield) -> Result<(), InputError> {
+        let max = device.max_image_dimension_2d() as usize;
+        if hf.side() > max {
+            return Err(InputError(format!(
+                "{}: the {} x {} grid is larger than the device's maxImageDimension2D ({max})",
+                hf.source,
+                hf.side(),
+                hf.side()
+            )));
+        }
+        Ok(())
+    }
+
+    pub fn validation_messages(&self) -> u64 {
+        self.device.instance.validation_messages()
+    }
+}
+
+/// A device that cannot satisfy `--gpu` or `--queues` is a bad option (exit code 2).
+/// The draw thread as the options set it up (its error feed's mode and refresh policy,
+/// morphing), recording into `trace`.
+pub fn draw_thread(common: &CommonArgs, trace: Trace) -> DrawThread {
+    let policy = RefreshPolicy { moved_fraction: common.refresh_at, max_share: common.update_share };
+    DrawThread::new(ErrorFeed::new(common.error_mode, policy), common.morph == OnOff::On, trace)
+}
+
+pub fn option_error(e: crate::vk::VkError) -> anyhow::Error {
+    match e {
+        crate::vk::VkError::Option(m) => InputError(m).into(),
+        e => e.into(),
+    }
+}
+
+fn parse_background(s: &str) -> Result<[f32; 3], InputError> {
+    let v: Vec<f32> = s.split(',').filter_map(|p| p.trim().parse().ok()).collect();
+    if v.len() != 3 || v.iter().any(|c| !(0.0..=1.0).contains(c)) {
+        return Err(InputError(format!("--background '{s}': expected R,G,B with each in 0..1")));
+    }
+    Ok([v[0], v[1], v[2]])
+}
+
+pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
+    if args.out.extension().and_then(|e| e.to_str()).map(|e| e.to_lowercase()) != Some("png".into()) {
+        return Err(InputError(format!("--out {}: the output must be a .png file", args.out.display())).into());
+    }
+    check_outputs(&[("--out", Some(&args.out))], &[("--heightmap", args.common.heightmap.as_deref())])?;
+    let mut shading = Shading {
+        fog_density: args.fog,
+        colour_by_lod: args.colour_by_lod,
+        normals: args.shading,
+        pixels: args.pixels,
+        ..Shading::default()
+    };
+    if let Some(bg) = &args.background {
+        shading.sky = false;
+        shading.background = parse_background(bg)?;
+    }
+    let s = Session::open(&args.common)?;
+    let cam = args.common.camera(&s.hf, (1280, 720))?;
+    s.check_viewport((cam.width, cam.height))?;
+    let mut renderer = BlocksRenderer::new(
+        &s.device,
+        &s.hf,
+        &s.terrain,
+        s.layout,
+        crate::draw::blocks::COLOR_FORMAT,
+        1,
+        args.common.sun.0,
+    )?;
+    let target = Target::new(&s.device, cam.width, cam.height)?;
+
+    let activity = if args.lod == LodChoice::Error {
+        Some(ErrorsActivity::start(&s.device, s.terrain.clone(), s.hf.clone(), s.layout)?)
+    } else {
+        None
+    };
+    // `render` is the draw thread's first frame: it waits for the generation computed at
+    // its own camera, so its output is deterministic.
+    let mut draw = draw_thread(&args.common, Trace::off());
+    let request = FrameRequest { frame: 0, cam: &cam, lod: args.lod, delta: args.delta, blocks: None };
+    let frame = draw.step(activity.as_ref(), s.lod_terrain(), request, |blocks| {
+        let t = Instant::now();
+        let drawn = renderer.render_offscreen(&s.hf, &s.terrain, &target, &cam, blocks, &shading)?;
+        Ok((drawn, t.elapsed().as_secs_f64() * 1e3))
+    })?;
+    let ((pixels, stats), frame_ms) = frame.submitted;
+    let trav = frame.traversal.expect("render traverses");
+    let generation = frame.taken.unwrap_or_default();
+    let errors_ms = activity.is_some().then_some(frame.feed_ms);
+    let traverse_ms = frame.traverse_ms;
+    save_png(&args.out, cam.width, cam.height, &pixels)?;
+    let audited = args.audit.then(|| audit::audit(&s.hf, &s.layout, &trav, &cam));
+    if let Some(a) = activity {
+        a.stop()?;
+    }
+    drop(renderer);
+    drop(target);
+    let mut out = json!({
+        "width": cam.width,
+        "height": cam.height,
+        "lod": format!("{:?}", args.lod).to_lowercase(),
+        "error_mode": args.common.error_mode.as_str(),
+        "delta": args.delta,
+        "triangles": stats.triangles,
+        "draw_calls": stats.draw_calls,
+        "blocks": trav.blocks.len(),
+        "error_generation": generation,
+        "max_block_error_px": trav.max_block_error,
+        "stitch_splits": trav.stitch_splits,
+        "traverse_ms": traverse_ms,
+        "frame_ms": frame_ms,
+        "geometry_bytes": renderer_geometry_bytes(s.layout.k()),
+        "heightfield_bytes": s.hf.gpu_bytes(),
+        "grid": s.hf.side(),
+        "queue_mode": s.device.queue_mode.as_str(),
+        "device": s.device.name,
+        "camera": [cam.position.x, cam.position.y, cam.position.z],
+        "validation_messages": s.validation_messages(),
+    });
+    if let Some(ms) = errors_ms {
+        out["error_update_ms"] = json!(ms);
+    }
+    if let Some(a) = audited {
+        // JSON has no infinity: a drawn point behind the eye (an unbounded error) is
+        // reported as `audit_unbounded` with null figures.
+        out["max_audited_error_px"] = json!(a.max_error_px);
+        out["audited_over_delta"] = json!(a.max_error_px / args.delta);
+        out["audit_unbounded"] = json!(!a.max_error_px.is_finite());
+        out["audit_within_delta"] = json!(a.max_error_px <= args.delta * 1.01);
+        out["audited_samples"] = json!(a.samples);
+        out["uncovered_samples"] = json!(a.uncovered);
+    }
+    println!("{out}");
+    finish(s)
+}
+
+/// Bytes of the shared block mesh (vertex + index buffer).
+pub fn renderer_geometry_bytes(k: u32) -> u64 {
+    let (v, i) = crate::draw::blocks::block_mesh_data(k);
+    let index_size = if k * k <= 65536 { 2 } else { 4 };
+    (v.len() + i.len() * index_size) as u64
+}
+
+/// Destroys the session, then fails when validation reported anything, including the
+/// object tracker's leak reports at vkDestroyDevice / vkDestroyInstance.
+fn finish(s: Session) -> anyhow::Result<()> {
+    let messages = s.device.instance.messages.clone();
+    drop(s);
+    let n = messages.count();
+    if n > 0 {
+        anyhow::bail!("{n} validation message(s); first: {}", messages.messages().first().cloned().unwrap_or_default());
+    }
+    Ok(())
+}
+
+pub fn errors(args: &ErrorsArgs) -> anyhow::Result<()> {
+    if args.repeat == 0 {
+        return Err(InputError("--repeat must be at least 1".into()).into());
+    }
+    let s = Session::open(&args.common)?;
+    let cam = args.common.camera(&s.hf, (1280, 720))?;
+    let activity = ErrorsActivity::start(&s.device, s.terrain.clone(), s.hf.clone(), s.layout)?;
+    let base = ErrorParams::new(&cam, args.common.error_mode);
+    let mut times = Vec::new();
+    let mut gpu_times = Vec::new();
+    let mut last = None;
+    for i in 0..args.repeat {
+        // Each repeat moves the camera by a hundredth of the sample spacing (well above f32
+        // resolution at terrain coordinates) so that a new generation is needed.
+        let mut p = base;
+        p.camera.x += i as f32 * s.hf.spacing * 0.01;
+        let t = Instant::now();
+        let g = activity.wait_for(p, Duration::from_secs(600))?;
+        times.push(t.elapsed().as_secs_f64() * 1e3);
+        gpu_times.extend(g.gpu_ms);
+        if i == 0 {
+            last = Some(g);
+        }
+    }
+    let cost = activity.cost;
+    activity.stop()?;
+    times.sort_by(|a, b| a.partial_cmp(b).unwrap());
+    gpu_times.sort_by(|a, b| a.partial_cmp(b).unwrap());
+    let g = last.expect("at least one generation");
+    if let Some(path) = &args.dump {
+        let bytes: Vec<u8> = g.errors.packed().iter().flat_map(|v| v.to_le_bytes()).collect();
+        write_atomic(path, |tmp| std::fs::write(tmp, &bytes).map_err(|e| anyhow::anyhow!("{}: {e}", path.display())))?;
+    }
+    let n = s.hf.n as u64;
+    let out = json!({
+        "n": n,
+        "grid": s.hf.side(),
+        "levels": cost.levels,
+        "block": s.layout.k(),
+        "block_levels": s.layout.root_lod(),
+        "error_mode": args.common.error_mode.as_str(),
+        "fragments_shaded": cost.fragments_shaded,
+        "naive_fragments_n_4n": n * (1u64 << (2 * n)),
+        "readback_bytes": cost.readback_bytes,
+        "pyramid_ms": s.pyramid_ms,
+        "geometry_bytes": renderer_geometry_bytes(s.layout.k()),
+        "full_error_texture_bytes": (s.hf.side() * s.hf.side() * 4) as u64,
+        "update_ms": times[times.len() / 2],
+        "update_ms_min": times[0],
+        "update_gpu_ms": gpu_times.get(gpu_times.len() / 2),
+        "validation": s.device.instance.validation,
+        "repeat": args.repeat,
+        "root_error_px": g.errors.root_error(),
+        "queue_mode": s.device.queue_mode.as_str(),
+        "device": s.device.name,
+        "validation_messages": s.validation_messages(),
+    });
+    println!("{out}");
+    finish(s)
+}

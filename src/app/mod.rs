@@ -1,0 +1,13 @@
+//! The front-ends: the command line ([`cli`], [`commands`]), the viewer and its panel
+//! ([`viewer`], [`hud`]), the benchmark ([`bench`]), the quality sweep ([`quality`]), the
+//! trace picture ([`timeline`]), and what they write ([`outputs`], [`paths`]).
+
+pub mod bench;
+pub mod cli;
+pub mod commands;
+pub mod hud;
+pub mod outputs;
+pub mod paths;
+pub mod quality;
+pub mod timeline;
+pub mod viewer;

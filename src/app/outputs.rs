@@ -1,0 +1,119 @@
+//! What the commands write: files replaced atomically (no partial file is ever left under
+//! the name asked for), output options checked before any work, PNGs and plots.
+
+use crate::app::cli::InputError;
+use std::path::Path;
+
+/// Writes `bytes` to `path` through a temporary file, so that no partial file is left.
+pub fn write_atomic(path: &Path, write: impl FnOnce(&Path) -> anyhow::Result<()>) -> anyhow::Result<()> {
+    // Through a symbolic link to the file it names (as `cp` does), never onto a
+    // directory, pipe or device.
+    let path = output_target(path).map_err(|e| anyhow::anyhow!(e))?;
+    // A name of this process's own: two runs writing the same file must not share it
+    // (the last rename wins, and neither fails).
+    // It keeps the extension, so that writers that choose the format by it (plotters,
+    // image) still can.
+    let ext = path.extension().map_or(String::new(), |e| format!(".{}", e.to_string_lossy()));
+    let tmp = path.with_extension(format!("{}.partial{ext}", std::process::id()));
+    let written =
+        write(&tmp).and_then(|()| std::fs::rename(&tmp, &path).map_err(|e| anyhow::anyhow!("{}: {e}", path.display())));
+    if written.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    written
+}
+
+/// Checks a command's output options before any work: each names a file that can be
+/// written ([`output_target`]), no two name the same file, and none names an input.
+pub fn check_outputs(outputs: &[(&str, Option<&Path>)], inputs: &[(&str, Option<&Path>)]) -> Result<(), InputError> {
+    // Compared by the canonical directory and the file name (the file may not exist yet).
+    let key = |p: &Path| {
+        let dir = p.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
+        dir.canonicalize().map_or(p.to_path_buf(), |d| d.join(p.file_name().unwrap_or_default()))
+    };
+    let mut seen: Vec<(&str, std::path::PathBuf)> = Vec::new();
+    for &(opt, input) in inputs {
+        if let Some(p) = input {
+            if let Ok(real) = p.canonicalize() {
+                seen.push((opt, real));
+            }
+        }
+    }
+    for &(opt, output) in outputs {
+        let Some(p) = output else { continue };
+        let target = output_target(p).map_err(|e| InputError(format!("{opt} {e}")))?;
+        let k = key(&target);
+        if let Some((other, _)) = seen.iter().find(|(_, t)| *t == k) {
+            return Err(InputError(format!("{opt} {}: the same file as {other}", p.display())));
+        }
+        seen.push((opt, k));
+    }
+    Ok(())
+}
+
+/// The file an output option writes: `path` itself, or the file a symbolic link at
+/// `path` points to. An error (naming the path) when that is a directory, a pipe or a
+/// device, or when its directory does not exist. Checked when options are read, so that
+/// a long run does not fail at its end, and again when writing.
+pub fn output_target(path: &Path) -> Result<std::path::PathBuf, String> {
+    if path.as_os_str().to_string_lossy().ends_with('/') || path.file_name().is_none() {
+        return Err(format!("{}: names a directory, not a file", path.display()));
+    }
+    let mut target = path.to_path_buf();
+    for _ in 0..32 {
+        match std::fs::symlink_metadata(&target) {
+            Ok(m) if m.file_type().is_symlink() => {
+                let link = std::fs::read_link(&target).map_err(|e| format!("{}: {e}", path.display()))?;
+                target = match target.parent() {
+                    Some(dir) => dir.join(link),
+                    None => link,
+                };
+            }
+            Ok(m) if m.is_file() => return Ok(target),
+            Ok(_) => return Err(format!("{}: not a regular file (a directory, pipe or device)", path.display())),
+            Err(_) => {
+                let dir = target.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
+                return if dir.is_dir() {
+                    Ok(target)
+                } else {
+                    Err(format!("{}: directory {} does not exist", path.display(), dir.display()))
+                };
+            }
+        }
+    }
+    Err(format!("{}: too many levels of symbolic links", path.display()))
+}
+
+pub fn save_png(path: &Path, width: u32, height: u32, rgba: &[u8]) -> anyhow::Result<()> {
+    write_atomic(path, |tmp| {
+        image::save_buffer_with_format(
+            tmp,
+            rgba,
+            width,
+            height,
+            image::ExtendedColorType::Rgba8,
+            image::ImageFormat::Png,
+        )
+        .map_err(|e| anyhow::anyhow!("{}: cannot write PNG: {e}", path.display()))
+    })
+}
+
+/// Registers DejaVu Sans for plotters once; false (and a warning) when it is missing.
+pub fn plot_font() -> bool {
+    use plotters::prelude::FontStyle;
+    static FONT: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    let have_font = *FONT.get_or_init(|| {
+        ["/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf", "/usr/share/fonts/TTF/DejaVuSans.ttf"]
+            .iter()
+            .find_map(|p| std::fs::read(p).ok())
+            .map(|bytes| {
+                plotters::style::register_font("sans-serif", FontStyle::Normal, Box::leak(bytes.into_boxed_slice()))
+                    .is_ok()
+            })
+            .unwrap_or(false)
+    });
+    if !have_font {
+        tracing::warn!("no DejaVuSans.ttf (Debian: fonts-dejavu-core): plots have no labels");
+    }
+    have_font
+}

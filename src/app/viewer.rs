@@ -1,0 +1,1229 @@
+//! The desktop viewer: a winit window whose event-loop thread is the blocks rendering
+//! activity (traversal and drawing on the draw queue), with the errors activity live on
+//! its own thread and queue.
+
+use crate::app::cli::{CommonArgs, InputError};
+use crate::app::commands::Session;
+use crate::app::hud::{Controls, Hud, Ranges, Readout};
+use crate::app::outputs::save_png;
+use crate::draw::blocks::{BlocksRenderer, DrawStats, FrameDest, FrameSync, PixelPass, Shading, DEPTH_FORMAT};
+use crate::draw::frame::{DrawThread, FrameRequest, LodChoice, LodTerrain};
+use crate::draw::lighting::Sun;
+use crate::errors::activity::ErrorsActivity;
+use crate::gpu::terrain::{TerrainGpu, Texture};
+use crate::lod::block::{BlockLayout, DrawBlock};
+use crate::lod::camera::Camera;
+use crate::lod::gie::ErrorMode;
+use crate::lod::heightfield::Heightfield;
+use crate::lod::pyramid::MinMaxPyramid;
+use crate::lod::view::near_plane;
+use crate::trace::{Trace, DRAW_TID};
+use crate::vk::{
+    vk, BinarySemaphore, Buffer, Device, DeviceOptions, Image, Instance, InstanceOptions, Surface, Swapchain,
+    VkResultExt,
+};
+use clap::{Args, ValueEnum};
+use glam::Vec3;
+use raw_window_handle::{HasDisplayHandle, HasWindowHandle};
+use serde_json::json;
+use std::collections::HashSet;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+use winit::application::ApplicationHandler;
+use winit::dpi::PhysicalSize;
+use winit::event::{ElementState, MouseButton, MouseScrollDelta, WindowEvent};
+use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop};
+use winit::keyboard::{KeyCode, PhysicalKey};
+use winit::window::{Window, WindowId};
+
+use crate::draw::frame::FRAMES_IN_FLIGHT;
+/// The largest window side X11 and Wayland accept.
+const MAX_WINDOW_SIDE: u32 = 32767;
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum PresentMode {
+    Fifo,
+    Mailbox,
+    Immediate,
+}
+
+#[derive(Args, Debug, Clone)]
+pub struct ViewArgs {
+    #[command(flatten)]
+    pub common: CommonArgs,
+    /// Screen-space error threshold in pixels (keys [ and ] halve and double it).
+    #[arg(long, value_name = "PX", default_value = "1", value_parser = crate::app::commands::positive, allow_negative_numbers = true)]
+    pub delta: f32,
+    /// Base colour texture, stretched over the whole terrain (seed 000 eq. 9).
+    #[arg(long, value_name = "FILE")]
+    pub texture: Option<PathBuf>,
+    /// Detail texture, tiled (eq. 10).
+    #[arg(long, value_name = "FILE")]
+    pub detail: Option<PathBuf>,
+    /// Detail tiling factor DTF: detail coordinates are DTF times the base coordinates.
+    #[arg(long, value_name = "DTF", default_value = "64", value_parser = crate::app::commands::positive)]
+    pub detail_tiling: f32,
+    /// Weight alpha of the base colour in eq. 11 (1 ignores the detail texture).
+    #[arg(long, value_name = "ALPHA", default_value = "0.7")]
+    pub detail_weight: f32,
+    /// Exponential fog density per world unit (default: a haze at the terrain's scale).
+    #[arg(long, value_name = "DENSITY", value_parser = crate::app::commands::non_negative, allow_negative_numbers = true)]
+    pub fog: Option<f32>,
+    #[arg(long, value_enum, default_value_t = PresentMode::Fifo)]
+    pub present_mode: PresentMode,
+    /// Exit after N frames.
+    #[arg(long, value_name = "N", value_parser = crate::app::commands::at_least_one, allow_negative_numbers = true)]
+    pub frames: Option<u64>,
+    /// Fly north from the south edge, three quarters of the way across, over the run
+    /// (with --frames) or every 60 seconds.
+    #[arg(long)]
+    pub flyover: bool,
+    /// Write the last frame to this PNG before exiting.
+    #[arg(long, value_name = "FILE.png")]
+    pub screenshot: Option<PathBuf>,
+    /// Record the flight: every frame's camera position and look-at point, written at
+    /// exit in the pose format `bench --path FILE` replays.
+    #[arg(long, value_name = "FILE")]
+    pub record_path: Option<PathBuf>,
+    /// Write a Chrome trace of both threads (Perfetto: the draw thread's phases, error
+    /// requests, submissions, generations signalled and observed), as `bench` does.
+    #[arg(long, value_name = "FILE.json")]
+    pub trace: Option<PathBuf>,
+    /// Start in walk mode (follow the ground).
+    #[arg(long)]
+    pub walk: bool,
+    /// Start with the on-screen panel hidden (H shows it).
+    #[arg(long)]
+    pub no_hud: bool,
+    /// Resize the window at a frame, e.g. 20:800x600 (repeatable; for tests).
+    #[arg(long, value_name = "FRAME:WxH")]
+    pub resize_at: Vec<String>,
+    /// After every frame, write the number of frames drawn so far to this file (replaced
+    /// atomically): scripts that drive the viewer with synthetic input wait on it for
+    /// their events to be seen, instead of sleeping.
+    #[arg(long, value_name = "FILE")]
+    pub frame_counter: Option<PathBuf>,
+}
+
+fn load_texture(path: &PathBuf) -> Result<Texture, InputError> {
+    let img = image::open(path).map_err(|e| InputError(format!("{}: cannot read texture: {e}", path.display())))?;
+    let rgba = img.to_rgba8();
+    Ok(Texture { width: rgba.width(), height: rgba.height(), rgba: rgba.into_raw() })
+}
+
+/// The viewer's start (and Home) view: over the south part of the terrain, above its
+/// highest point, looking north over it.
+fn start_view(hf: &Heightfield, mm: &MinMaxPyramid) -> (Vec3, Vec3) {
+    let (wx, wz) = hf.world_extent();
+    let [lo, hi] = mm.range().map(|r| r * hf.height_scale);
+    let l = wx.max(wz);
+    (Vec3::new(wx * 0.5, hi + 0.08 * l, wz * 0.92), Vec3::new(wx * 0.5, lo, wz * 0.35))
+}
+
+/// The first point of the terrain along the ray from `from` in direction `dir` (marched in
+/// steps of a sample spacing up to twice the terrain's size), or the point a quarter of
+/// the terrain's size ahead, on the ground.
+fn ground_hit(hf: &Heightfield, from: Vec3, dir: Vec3) -> Vec3 {
+    let (wx, wz) = hf.world_extent();
+    let l = wx.max(wz);
+    let ground = |p: Vec3| hf.surface_height(p.x.clamp(0.0, wx), p.z.clamp(0.0, wz));
+    let steps = (2.0 * l / hf.spacing).min(20_000.0) as usize;
+    for i in 1..=steps {
+        let p = from + dir * (i as f32 * 2.0 * l / steps as f32);
+        if p.y <= ground(p) && (0.0..=wx).contains(&p.x) && (0.0..=wz).contains(&p.z) {
+            return p;
+        }
+    }
+    let p = from + dir * 0.25 * l;
+    Vec3::new(p.x, ground(p), p.z)
+}
+
+/// Camera state driven by input or a flyover path.
+struct Controller {
+    position: Vec3,
+    yaw: f32,
+    pitch: f32,
+    speed: f32,
+    walk: bool,
+    held: HashSet<KeyCode>,
+    looking: bool,
+    /// Orbit mode (O): the point looked at and the distance to it; dragging turns the
+    /// camera around it, W/S move in and out.
+    orbit: Option<(Vec3, f32)>,
+}
+
+impl Controller {
+    fn forward(&self) -> Vec3 {
+        Vec3::new(self.yaw.cos() * self.pitch.cos(), self.pitch.sin(), self.yaw.sin() * self.pitch.cos())
+    }
+
+    fn update(&mut self, hf: &Heightfield, dt: f32) {
+        if let Some((pivot, radius)) = &mut self.orbit {
+            let k = |c| self.held.contains(&c);
+            let zoom = k(KeyCode::KeyS) as i32 - k(KeyCode::KeyW) as i32;
+            *radius = (*radius * (1.0 + 1.5 * dt * zoom as f32)).max(hf.spacing);
+            let (pivot, radius) = (*pivot, *radius);
+            self.position = pivot - self.forward() * radius;
+            self.clamp_to_ground(hf);
+            return;
+        }
+        let fwd = self.forward();
+        let flat = Vec3::new(fwd.x, 0.0, fwd.z).normalize_or_zero();
+        let right = flat.cross(Vec3::Y);
+        let mut v = Vec3::ZERO;
+        let k = |c| self.held.contains(&c);
+        if k(KeyCode::KeyW) {
+            v += if self.walk { flat } else { fwd };
+        }
+        if k(KeyCode::KeyS) {
+            v -= if self.walk { flat } else { fwd };
+        }
+        if k(KeyCode::KeyD) {
+            v += right;
+        }
+        if k(KeyCode::KeyA) {
+            v -= right;
+        }
+        if k(KeyCode::KeyE) {
+            v += Vec3::Y;
+        }
+        if k(KeyCode::KeyQ) {
+            v -= Vec3::Y;
+        }
+        let boost = if k(KeyCode::ShiftLeft) || k(KeyCode::ShiftRight) { 5.0 } else { 1.0 };
+        self.position += v.normalize_or_zero() * self.speed * boost * dt;
+        self.clamp_to_ground(hf);
+    }
+
+    /// Never below the terrain (seed 002); in walk mode, on the terrain at eye height
+    /// (walking off an edge, or switching to walk outside, lands on its border).
+    fn clamp_to_ground(&mut self, hf: &Heightfield) {
+        let (wx, wz) = hf.world_extent();
+        let ground = hf.surface_height(self.position.x.clamp(0.0, wx), self.position.z.clamp(0.0, wz));
+        let eye = (2.0f32).max(near_plane(hf) * 4.0);
+        if self.walk {
+            self.position.x = self.position.x.clamp(0.0, wx);
+            self.position.z = self.position.z.clamp(0.0, wz);
+            self.position.y = ground + eye;
+        } else {
+            self.position.y = self.position.y.max(ground + eye);
+        }
+    }
+}
+
+/// Everything that lives while the window is open, in drop order.
+struct Gpu {
+    hud: Hud,
+    /// Per frame slot: the swapchain image's acquire semaphore. The slot's commands,
+    /// fence and timestamps are the renderer's (`BlocksRenderer::submit_frame`).
+    acquired: Vec<BinarySemaphore>,
+    depth: Image,
+    swapchain: Swapchain,
+    renderer: BlocksRenderer,
+    activity: Option<ErrorsActivity>,
+    terrain: Arc<TerrainGpu>,
+    surface: Surface,
+    device: Arc<Device>,
+}
+
+impl Drop for Gpu {
+    fn drop(&mut self) {
+        // Nothing may be destroyed while the GPU still uses it; then stop the errors thread.
+        let _ = self.device.wait_idle();
+        if let Some(a) = self.activity.take() {
+            let _ = a.stop();
+        }
+    }
+}
+
+#[derive(Default, serde::Serialize)]
+struct RunStats {
+    frames: u64,
+    seconds: f64,
+    avg_fps: f64,
+    resizes: u64,
+    error_generations: u64,
+    /// Most error generations in flight at once (`--error-pacing`).
+    most_generations_in_flight: u64,
+    last_triangles: u64,
+    last_draw_calls: u64,
+    last_blocks: usize,
+    queue_mode: String,
+    device: String,
+    geometry_bytes: u64,
+    validation_messages: u64,
+    screenshot: Option<String>,
+    /// State at exit: camera position, yaw and pitch (radians), delta, geomorphing.
+    final_position: [f32; 3],
+    final_yaw: f32,
+    final_pitch: f32,
+    final_delta: f32,
+    final_morph: bool,
+    /// Where the camera started, and how far (radians of yaw) dragging the mouse turned it.
+    start_position: [f32; 3],
+    mouse_turn: f32,
+    /// Yaw turned by dragging in orbit mode, and the largest change of the distance to
+    /// the orbit's centre while turning (relative).
+    orbit_turn: f32,
+    orbit_drift: f32,
+    /// How far (yaw, radians) pressing O turned the camera to face the point under the cursor.
+    orbit_aim_turn: f32,
+    /// Whether the panel was shown at exit, and in how many frames it was drawn.
+    hud_visible: bool,
+    hud_frames: u64,
+    /// The sun of the lighting map at exit (azimuth, elevation), if any.
+    final_sun: Option<[f32; 2]>,
+}
+
+struct App {
+    args: ViewArgs,
+    hf: Arc<Heightfield>,
+    mm: MinMaxPyramid,
+    layout: BlockLayout,
+    base: Option<Texture>,
+    detail: Option<Texture>,
+    window: Option<Arc<Window>>,
+    gpu: Option<Gpu>,
+    error: Option<anyhow::Error>,
+    ctl: Controller,
+    /// Where Home puts the camera: position, yaw, pitch.
+    home: (Vec3, f32, f32),
+    /// Horizontal speed over the last frame (world units per second), for the title.
+    ground_speed: f32,
+    /// Last cursor position in the window, for drag-to-look.
+    cursor: Option<(f32, f32)>,
+    shading: Shading,
+    delta: f32,
+    mode: ErrorMode,
+    /// The sun asked for (the panel); the lighting map follows when no slider is held.
+    sun: Option<Sun>,
+    frozen: Option<Vec<DrawBlock>>,
+    /// The draw thread's state: its error feed, caches and last selection.
+    draw: DrawThread,
+    frame: u64,
+    slot: usize,
+    swapchain_dirty: bool,
+    minimized: bool,
+    /// The window is fully hidden (winit's Occluded): nothing is drawn either.
+    occluded: bool,
+    /// Poses of the frames drawn, for --record-path.
+    flight: Vec<(Vec3, Vec3)>,
+    trace: Trace,
+    /// Set by Ctrl-C: the viewer closes as if its window were closed, so the trace and
+    /// the recorded flight are written.
+    interrupted: Arc<std::sync::atomic::AtomicBool>,
+    last_frame: Instant,
+    started: Instant,
+    title_at: Instant,
+    fps_frames: u64,
+    last_stats: DrawStats,
+    /// GPU time of the last finished frame (timestamps), when the device has them.
+    last_gpu_ms: Option<f64>,
+    /// How long the draw thread was blocked by the last finished frame: waiting for its
+    /// slot (the frame two back) and for the queue's lock (ms).
+    last_waits: (f64, f64),
+    /// The frame submitted from each slot and not yet traced.
+    slot_frames: [Option<u64>; FRAMES_IN_FLIGHT],
+    last_blocks: usize,
+    /// The block list of the last frame (frozen with Space).
+    blocks: Vec<DrawBlock>,
+    screenshot_next: Option<PathBuf>,
+    /// P presses not yet served.
+    screenshots_asked: u64,
+    resizes: Vec<(u64, u32, u32)>,
+    stats: RunStats,
+}
+
+pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
+    // Output paths are checked before the run, not when it ends: distinct files that
+    // are not inputs.
+    crate::app::outputs::check_outputs(
+        &[
+            ("--record-path", args.record_path.as_deref()),
+            ("--frame-counter", args.frame_counter.as_deref()),
+            ("--screenshot", args.screenshot.as_deref()),
+            ("--trace", args.trace.as_deref()),
+        ],
+        &[
+            ("--heightmap", args.common.heightmap.as_deref()),
+            ("--texture", args.texture.as_deref()),
+            ("--detail", args.detail.as_deref()),
+        ],
+    )?;
+    let hf = args.common.load_heightfield(None)?;
+    let layout = BlockLayout::new(hf.n, args.common.block).map_err(InputError)?;
+    let trace = match &args.trace {
+        Some(p) => Trace::to_file(p).map_err(|e| InputError(format!("--trace {}: {e}", p.display())))?,
+        None => Trace::off(),
+    };
+    let interrupted = Arc::new(std::sync::atomic::AtomicBool::new(false));
+    {
+        let flag = interrupted.clone();
+        // Ctrl-C ends the session cleanly: the trace stays valid JSON.
+        let _ = ctrlc::set_handler(move || flag.store(true, std::sync::atomic::Ordering::SeqCst));
+    }
+    if !(0.0..=1.0).contains(&args.detail_weight) {
+        return Err(InputError(format!("--detail-weight {}: must be within 0..1", args.detail_weight)).into());
+    }
+    let mut resizes = Vec::new();
+    for r in &args.resize_at {
+        let parsed = r.split_once(':').and_then(|(f, s)| {
+            let (w, h) = s.split_once('x')?;
+            Some((f.parse().ok()?, w.parse().ok()?, h.parse().ok()?))
+        });
+        match parsed {
+            Some((f, w, h)) if w > 0 && h > 0 => resizes.push((f, w, h)),
+            Some(_) => return Err(InputError(format!("--resize-at {r}: the size must be at least 1x1")).into()),
+            _ => return Err(InputError(format!("--resize-at {r}: expected FRAME:WxH")).into()),
+        }
+    }
+    // Window systems take 16-bit signed sizes (winit panics beyond); the device's image
+    // limit is checked once it exists.
+    let sizes = args.common.size.iter().map(|&(w, h)| ("--size".to_string(), w, h));
+    for (opt, w, h) in sizes.chain(resizes.iter().map(|&(f, w, h)| (format!("--resize-at {f}"), w, h))) {
+        if w > MAX_WINDOW_SIDE || h > MAX_WINDOW_SIDE {
+            return Err(InputError(format!(
+                "{opt} {w}x{h}: larger than a window can be ({MAX_WINDOW_SIDE} pixels a side)"
+            ))
+            .into());
+        }
+    }
+    let base = args.texture.as_ref().map(load_texture).transpose()?;
+    let detail = args.detail.as_ref().map(load_texture).transpose()?;
+    let mm = MinMaxPyramid::build(&hf);
+    let (w, h) = args.common.size.unwrap_or((1280, 720));
+    let cam = if args.common.camera.is_none() && args.common.look_at.is_none() {
+        // Inside the terrain's extent, above its highest point, looking over it: walk
+        // mode (G) lands on ground from here.
+        let (position, target) = start_view(&hf, &mm);
+        Camera::look_at(position, target, args.common.fovy, w, h, near_plane(&hf))
+    } else {
+        args.common.camera(&hf, (w, h))?
+    };
+    let f = cam.forward;
+    let (wx, wz) = hf.world_extent();
+    let l = wx.max(wz);
+    let fog = args.fog.unwrap_or_else(|| default_fog(&hf));
+    let event_loop = EventLoop::new().map_err(|e| {
+        anyhow::anyhow!("cannot open a window ({e}); is DISPLAY set? Use `vkterrain render` for headless output")
+    })?;
+    event_loop.set_control_flow(ControlFlow::Poll);
+    // The same table as the panel's key help (F1).
+    println!("keys:");
+    for (k, what) in crate::app::hud::KEYS {
+        println!("  {k:<13} {what}");
+    }
+    let now = Instant::now();
+    let mut app = App {
+        args: args.clone(),
+        hf: Arc::new(hf),
+        mm,
+        layout,
+        base,
+        detail,
+        window: None,
+        gpu: None,
+        error: None,
+        home: (cam.position, f.z.atan2(f.x), f.y.clamp(-1.0, 1.0).asin()),
+        ground_speed: 0.0,
+        cursor: None,
+        ctl: Controller {
+            position: cam.position,
+            yaw: f.z.atan2(f.x),
+            pitch: f.y.clamp(-1.0, 1.0).asin(),
+            speed: l / 60.0,
+            walk: args.walk,
+            held: HashSet::new(),
+            looking: false,
+            orbit: None,
+        },
+        shading: Shading {
+            fog_density: fog,
+            detail_tiling: args.detail_tiling,
+            detail_weight: if args.detail.is_some() { args.detail_weight } else { 1.0 },
+            ..Shading::default()
+        },
+        delta: args.delta,
+        mode: args.common.error_mode,
+        sun: args.common.sun.0,
+        frozen: None,
+        draw: crate::app::commands::draw_thread(&args.common, trace.clone()),
+        trace: trace.clone(),
+        interrupted: interrupted.clone(),
+        frame: 0,
+        slot: 0,
+        swapchain_dirty: false,
+        minimized: false,
+        occluded: false,
+        flight: Vec::new(),
+        last_frame: now,
+        started: now,
+        title_at: now,
+        fps_frames: 0,
+        last_stats: DrawStats::default(),
+        last_gpu_ms: None,
+        last_waits: (0.0, 0.0),
+        slot_frames: [None; FRAMES_IN_FLIGHT],
+        last_blocks: 0,
+        blocks: Vec::new(),
+        screenshot_next: None,
+        screenshots_asked: 0,
+        resizes,
+        stats: RunStats::default(),
+    };
+    event_loop.run_app(&mut app)?;
+    let counter = app.gpu.as_ref().map(|g| g.device.instance.messages.clone());
+    // Waits for the GPU, joins the errors thread, destroys the device and instance, so
+    // that the object tracker's leak reports are counted below.
+    drop(app.gpu.take());
+    if let Some(p) = &args.trace {
+        app.trace.finish().map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))?;
+        println!("vkterrain: trace {}", p.display());
+    }
+    let validation = counter.as_ref().map(|c| c.count());
+    let first_message = counter.as_ref().and_then(|c| c.messages().first().cloned());
+    if let Some(e) = app.error.take() {
+        return Err(e);
+    }
+    if let Some(path) = &args.record_path {
+        let text = crate::app::bench::write_poses(&app.flight);
+        crate::app::outputs::write_atomic(path, |tmp| {
+            std::fs::write(tmp, &text).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))
+        })?;
+        println!("vkterrain: recorded {} poses to {}", app.flight.len(), path.display());
+    }
+    let secs = app.started.elapsed().as_secs_f64();
+    app.stats.frames = app.frame;
+    app.stats.seconds = secs;
+    app.stats.avg_fps = app.frame as f64 / secs.max(1e-9);
+    app.stats.validation_messages = validation.unwrap_or(0);
+    app.stats.final_position = app.ctl.position.to_array();
+    (app.stats.final_yaw, app.stats.final_pitch) = (app.ctl.yaw, app.ctl.pitch);
+    app.stats.final_delta = app.delta;
+    app.stats.final_morph = app.draw.morph;
+    app.stats.start_position = app.home.0.to_array();
+    println!("{}", serde_json::to_string(&app.stats)?);
+    if let Some(n) = validation.filter(|&n| n > 0) {
+        anyhow::bail!("{n} validation message(s); first: {}", first_message.unwrap_or_default());
+    }
+    Ok(())
+}
+
+impl App {
+    fn fail(&mut self, event_loop: &ActiveEventLoop, e: anyhow::Error) {
+        if self.error.is_none() {
+            self.error = Some(e);
+        }
+        event_loop.exit();
+    }
+
+    fn open(&mut self, event_loop: &ActiveEventLoop) -> anyhow::Result<()> {
+        let (w, h) = self.args.common.size.unwrap_or((1280, 720));
+        let attrs = Window::default_attributes()
+            .with_title(format!("vkterrain: {}", self.hf.source))
+            .with_inner_size(PhysicalSize::new(w, h));
+        let window = Arc::new(event_loop.create_window(attrs)?);
+        let display = window.display_handle()?.as_raw();
+        let exts: Vec<&'static std::ffi::CStr> = ash_window::enumerate_required_extensions(display)
+            .vk("enumerate surface extensions")?
+            .iter()
+            // SAFETY: ash-window returns pointers to static NUL-terminated extension names.
+            .map(|&p| unsafe { std::ffi::CStr::from_ptr(p) })
+            .collect();
+        let instance = Instance::new(&InstanceOptions { validation: self.args.common.validation(), extensions: exts })?;
+        // SAFETY: the window outlives the surface: `Gpu` (holding the surface) is dropped
+        // before `App::window`.
+        let surface = unsafe { Surface::new(&instance, display, window.window_handle()?.as_raw())? };
+        let device = Device::new(
+            instance,
+            &DeviceOptions { gpu: self.args.common.gpu.clone(), queues: self.args.common.queues, swapchain: true },
+        )
+        .map_err(crate::app::commands::option_error)?;
+        println!("vkterrain: device {}, queue mode {}", device.name, device.queue_mode.as_str());
+        for note in device.notes() {
+            println!("vkterrain: note: {note}");
+        }
+        Session::check_size(&device, &self.hf)?;
+        let max = device.max_image_dimension_2d();
+        let requested = self.args.common.size.iter().map(|&(w, h)| ("--size".to_string(), w, h));
+        let resizes = self.resizes.iter().map(|&(f, w, h)| (format!("--resize-at {f}"), w, h));
+        for (opt, w, h) in requested.chain(resizes) {
+            if w > max || h > max {
+                return Err(
+                    InputError(format!("{opt} {w}x{h}: larger than the device's maxImageDimension2D ({max})")).into()
+                );
+            }
+        }
+        let terrain = Arc::new(TerrainGpu::new(&device, &self.hf, &self.mm, self.base.as_ref(), self.detail.as_ref())?);
+        let size = window.inner_size();
+        let present = match self.args.present_mode {
+            PresentMode::Fifo => vk::PresentModeKHR::FIFO,
+            PresentMode::Mailbox => vk::PresentModeKHR::MAILBOX,
+            PresentMode::Immediate => vk::PresentModeKHR::IMMEDIATE,
+        };
+        let swapchain = Swapchain::new(&device, &surface, (size.width, size.height), present, None)?;
+        let depth = depth_image(&device, swapchain.extent)?;
+        let renderer = BlocksRenderer::new(
+            &device,
+            &self.hf,
+            &terrain,
+            self.layout,
+            swapchain.format,
+            FRAMES_IN_FLIGHT,
+            self.args.common.sun.0,
+        )?;
+        if let Some(sun) = renderer.lighting().sun() {
+            println!(
+                "vkterrain: sun at azimuth {}, elevation {}: shadow and occlusion map in {:.0} ms",
+                sun.azimuth,
+                sun.elevation,
+                renderer.lighting().last_ms()
+            );
+        }
+        let mut hud = Hud::new(&device, &window, swapchain.format, DEPTH_FORMAT, FRAMES_IN_FLIGHT)?;
+        hud.visible = !self.args.no_hud;
+        if self.trace.enabled() {
+            match crate::vk::QueryPool::calibrate(&device)? {
+                Some(clock) => self.trace.set_gpu_clock(clock, device.queue_mode == crate::vk::QueueMode::Shared),
+                None => println!("vkterrain: note: no timestamp queries: the trace has no GPU tracks"),
+            }
+        }
+        let activity = ErrorsActivity::start_with(
+            &device,
+            terrain.clone(),
+            self.hf.clone(),
+            self.layout,
+            self.trace.clone(),
+            self.args.common.error_pacing,
+        )?;
+        let acquired = (0..FRAMES_IN_FLIGHT).map(|_| BinarySemaphore::new(&device)).collect::<Result<Vec<_>, _>>()?;
+        self.stats.queue_mode = device.queue_mode.as_str().into();
+        self.stats.geometry_bytes = crate::app::commands::renderer_geometry_bytes(self.layout.k());
+        self.stats.device = device.name.clone();
+        self.gpu =
+            Some(Gpu { hud, acquired, depth, swapchain, renderer, activity: Some(activity), terrain, surface, device });
+        self.window = Some(window);
+        Ok(())
+    }
+
+    fn recreate_swapchain(&mut self) -> anyhow::Result<()> {
+        let (Some(gpu), Some(window)) = (self.gpu.as_mut(), self.window.as_ref()) else { return Ok(()) };
+        let size = window.inner_size();
+        if size.width == 0 || size.height == 0 {
+            return Ok(());
+        }
+        gpu.device.wait_idle()?;
+        let present = match self.args.present_mode {
+            PresentMode::Fifo => vk::PresentModeKHR::FIFO,
+            PresentMode::Mailbox => vk::PresentModeKHR::MAILBOX,
+            PresentMode::Immediate => vk::PresentModeKHR::IMMEDIATE,
+        };
+        let new = Swapchain::new(&gpu.device, &gpu.surface, (size.width, size.height), present, Some(&gpu.swapchain))?;
+        gpu.swapchain = new;
+        gpu.depth = depth_image(&gpu.device, gpu.swapchain.extent)?;
+        gpu.hud.set_format(gpu.swapchain.format, DEPTH_FORMAT)?;
+        self.swapchain_dirty = false;
+        self.stats.resizes += 1;
+        Ok(())
+    }
+
+    /// The camera for this frame: the flyover path or the controller.
+    fn camera(&mut self, dt: f32) -> Camera {
+        let gpu = self.gpu.as_ref().unwrap();
+        let extent = gpu.swapchain.extent;
+        if self.args.flyover {
+            let (wx, wz) = self.hf.world_extent();
+            let t = match self.args.frames {
+                Some(n) => self.frame as f32 / n.max(1) as f32,
+                None => (self.started.elapsed().as_secs_f32() / 60.0).fract(),
+            };
+            let top = self.mm.range()[1] * self.hf.height_scale;
+            // South edge to three quarters of the way north, so the view ends on terrain.
+            self.ctl.position = Vec3::new(wx * 0.5, top + 0.05 * wx.max(wz), wz * (1.0 - 0.75 * t));
+            self.ctl.yaw = -std::f32::consts::FRAC_PI_2;
+            self.ctl.pitch = -0.35;
+            self.ctl.clamp_to_ground(&self.hf);
+        } else {
+            let before = self.ctl.position;
+            self.ctl.update(&self.hf, dt);
+            let moved = self.ctl.position - before;
+            self.ground_speed = if dt > 0.0 { Vec3::new(moved.x, 0.0, moved.z).length() / dt } else { 0.0 };
+            if let Some((pivot, radius)) = self.ctl.orbit {
+                let drift = ((self.ctl.position - pivot).length() - radius).abs() / radius;
+                self.stats.orbit_drift = self.stats.orbit_drift.max(drift);
+            }
+        }
+        let target = self.ctl.position + self.ctl.forward();
+        Camera::look_at(
+            self.ctl.position,
+            target,
+            self.args.common.fovy,
+            extent.width,
+            extent.height,
+            near_plane(&self.hf),
+        )
+    }
+
+    fn draw(&mut self) -> anyhow::Result<()> {
+        if self.gpu.is_none() {
+            return Ok(()); // opening failed; the event loop is exiting with that error
+        }
+        if self.swapchain_dirty {
+            self.recreate_swapchain()?;
+        }
+        if self.minimized || self.occluded {
+            return Ok(()); // nothing is rendered while minimized or hidden
+        }
+        let now = Instant::now();
+        let interval = (now - self.last_frame).as_secs_f32();
+        let dt = interval.min(0.25);
+        self.last_frame = now;
+        self.panel(interval)?;
+        let cam = self.camera(dt);
+        if self.args.record_path.is_some() {
+            self.flight.push((cam.position, cam.position + cam.forward));
+        }
+        let frame_start = Instant::now();
+        let slot_index = self.slot;
+        let gpu = self.gpu.as_mut().unwrap();
+        // The slot's previous frame must be done before its acquire semaphore is reused.
+        if let Some(done) = gpu.renderer.wait_frame(slot_index)? {
+            self.trace_frame(slot_index, &done);
+        }
+        // The frame step: the newest finished error generation (never waiting on the errors
+        // queue after the first frame, which waits for data at its camera so the bound
+        // holds from the start), the blocks (or the frozen ones), the submission.
+        let gpu = self.gpu.as_mut().unwrap();
+        let activity = gpu.activity.as_ref().unwrap();
+        self.draw.feed.set_mode(self.mode);
+        let terrain = LodTerrain { hf: &self.hf, mm: &self.mm, layout: &self.layout };
+        let request = FrameRequest {
+            frame: self.frame,
+            cam: &cam,
+            lod: LodChoice::Error,
+            delta: self.delta,
+            blocks: self.frozen.as_deref(),
+        };
+        let (hf, shading) = (&self.hf, &self.shading);
+        let (screenshot_next, screenshots_asked) = (&mut self.screenshot_next, &mut self.screenshots_asked);
+        let frame = self.draw.step(Some(activity), terrain, request, |blocks| {
+            let acquired = gpu.acquired[slot_index].handle;
+            // SAFETY: the swapchain and semaphore are live; the acquire semaphore of this
+            // slot is unsignalled (its previous frame completed: waited for above).
+            let acquire = unsafe {
+                gpu.swapchain.loader.acquire_next_image(gpu.swapchain.handle, u64::MAX, acquired, vk::Fence::null())
+            };
+            let (image_index, suboptimal) = match acquire {
+                Ok(r) => r,
+                Err(vk::Result::ERROR_OUT_OF_DATE_KHR) => return Ok(None),
+                Err(e) => return Err(e).vk("vkAcquireNextImageKHR").map_err(Into::into),
+            };
+            let extent = gpu.swapchain.extent;
+            let screenshot = screenshot_next.take().or_else(|| {
+                (*screenshots_asked > 0).then(|| {
+                    *screenshots_asked -= 1;
+                    next_free_screenshot()
+                })
+            });
+            let readback = match (&screenshot, gpu.swapchain.can_copy) {
+                (Some(_), true) => Some(Buffer::new(
+                    &gpu.device,
+                    "screenshot",
+                    extent.width as u64 * extent.height as u64 * 4,
+                    vk::BufferUsageFlags::TRANSFER_DST,
+                    gpu_allocator::MemoryLocation::GpuToCpu,
+                )?),
+                (Some(p), false) => {
+                    tracing::warn!("{}: this swapchain cannot be copied from; no screenshot", p.display());
+                    None
+                }
+                _ => None,
+            };
+            let dest = FrameDest {
+                image: gpu.swapchain.images[image_index as usize],
+                view: gpu.swapchain.views[image_index as usize],
+                extent,
+                depth: &gpu.depth,
+                // The acquire semaphore orders this after the presentation engine's read.
+                last_use: (vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT, vk::AccessFlags2::NONE),
+                copy_to: readback.as_ref().map(|b| b.handle),
+                present: true,
+            };
+            let render_done = gpu.swapchain.render_done[image_index as usize];
+            let waits = [vk::SemaphoreSubmitInfo::default()
+                .semaphore(acquired)
+                .stage_mask(vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT)];
+            let signals = [vk::SemaphoreSubmitInfo::default()
+                .semaphore(render_done)
+                .stage_mask(vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT | vk::PipelineStageFlags2::COPY)];
+            let hud = &mut gpu.hud;
+            let mut hud_error = None;
+            let mut draw_hud = |cmd| {
+                if let Err(e) = hud.record(cmd, extent) {
+                    hud_error = Some(e);
+                }
+            };
+            let recording = Instant::now();
+            gpu.renderer.submit_frame(
+                slot_index,
+                hf,
+                &gpu.terrain,
+                &dest,
+                &cam,
+                blocks,
+                shading,
+                Some(&mut draw_hud),
+                FrameSync { wait: &waits, signal: &signals },
+            )?;
+            if let Some(e) = hud_error {
+                return Err(e);
+            }
+            Ok(Some(Submitted { image_index, suboptimal, extent, screenshot, readback, render_done, recording }))
+        })?;
+        if let Some(n) = frame.taken {
+            self.stats.error_generations = n;
+        }
+        self.stats.most_generations_in_flight = activity.most_in_flight();
+        let Some(Submitted { image_index, suboptimal, extent, screenshot, readback, render_done, recording }) =
+            frame.submitted
+        else {
+            self.swapchain_dirty = true;
+            return Ok(());
+        };
+        let blocks = frame.blocks;
+        let gpu = self.gpu.as_mut().unwrap();
+        self.trace.complete(DRAW_TID, "record and submit", recording, Instant::now(), json!({"blocks": blocks.len()}));
+        self.trace.instant(DRAW_TID, "submit (draw queue)", json!({"frame": self.frame}));
+        self.slot_frames[slot_index] = Some(self.frame);
+        let stats = gpu.renderer.pending(slot_index).unwrap_or_default();
+        self.stats.hud_visible = gpu.hud.visible;
+        self.stats.final_sun = gpu.renderer.lighting().sun().map(|s| [s.azimuth, s.elevation]);
+        if gpu.hud.visible {
+            self.stats.hud_frames += 1;
+        }
+        let presenting = Instant::now();
+        let swapchains = [gpu.swapchain.handle];
+        let indices = [image_index];
+        let wait_present = [render_done];
+        let present = vk::PresentInfoKHR::default()
+            .wait_semaphores(&wait_present)
+            .swapchains(&swapchains)
+            .image_indices(&indices);
+        let presented = {
+            let _q = gpu.device.draw_queue.lock();
+            // SAFETY: the queue is locked (external synchronization); handles are live.
+            unsafe { gpu.swapchain.loader.queue_present(gpu.device.draw_queue.handle, &present) }
+        };
+        self.trace.complete(DRAW_TID, "present", presenting, Instant::now(), json!({"frame": self.frame}));
+        self.trace.complete(DRAW_TID, "frame", frame_start, Instant::now(), json!({"frame": self.frame}));
+        match presented {
+            Ok(sub) => self.swapchain_dirty |= sub || suboptimal,
+            Err(vk::Result::ERROR_OUT_OF_DATE_KHR) => self.swapchain_dirty = true,
+            Err(e) => return Err(e).vk("vkQueuePresentKHR").map_err(Into::into),
+        }
+        if let (Some(path), Some(buf)) = (screenshot, readback) {
+            let gpu = self.gpu.as_mut().unwrap();
+            if let Some(done) = gpu.renderer.wait_frame(slot_index)? {
+                self.trace_frame(slot_index, &done);
+            }
+            let gpu = self.gpu.as_ref().unwrap();
+            let mut px = buf.mapped()?[..(extent.width * extent.height * 4) as usize].to_vec();
+            if gpu.swapchain.format == vk::Format::B8G8R8A8_SRGB || gpu.swapchain.format == vk::Format::B8G8R8A8_UNORM {
+                px.chunks_mut(4).for_each(|p| p.swap(0, 2));
+            }
+            save_png(&path, extent.width, extent.height, &px)?;
+            println!("vkterrain: screenshot {}", path.display());
+            self.stats.screenshot = Some(path.display().to_string());
+        }
+        self.last_stats = stats;
+        self.last_blocks = blocks.len();
+        self.blocks = blocks;
+        self.slot = (self.slot + 1) % FRAMES_IN_FLIGHT;
+        self.frame += 1;
+        if let Some(path) = &self.args.frame_counter {
+            let frames = self.frame.to_string();
+            crate::app::outputs::write_atomic(path, |tmp| {
+                std::fs::write(tmp, &frames).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))
+            })?;
+        }
+        self.fps_frames += 1;
+        self.stats.last_triangles = stats.triangles;
+        self.stats.last_draw_calls = stats.draw_calls;
+        self.stats.last_blocks = self.last_blocks;
+        self.update_title(&cam);
+        Ok(())
+    }
+
+    /// Trace spans of a finished frame: its GPU time, the waits for the queue and for it.
+    fn trace_frame(&mut self, slot: usize, done: &DrawStats) {
+        let Some(frame) = self.slot_frames[slot].take() else { return };
+        if let Some(g) = &self.gpu {
+            let shared = g.device.queue_mode == crate::vk::QueueMode::Shared;
+            if let Some(t) = done.gpu_ticks {
+                self.trace.gpu_span(self.trace.gpu_tid(false, shared), "frame", t, json!({"frame": frame}));
+            }
+        }
+        if let Some((asked, got)) = done.queue_lock {
+            self.trace.complete(DRAW_TID, "wait (queue lock)", asked, got, json!({"frame": frame}));
+        }
+        if let Some((from, to)) = done.waited {
+            self.trace.complete(DRAW_TID, "wait (frame slot)", from, to, json!({"frame": frame}));
+        }
+        self.last_gpu_ms = done.gpu_ms;
+        let lock = done.queue_lock.map_or(0.0, |(a, g)| (g - a).as_secs_f64() * 1e3);
+        self.last_waits = (done.wait_ms, lock);
+    }
+
+    /// The direction through the cursor, or the view's centre when the cursor is not in
+    /// the window.
+    fn cursor_ray(&self) -> Vec3 {
+        let fwd = self.ctl.forward();
+        let (Some((x, y)), Some(window)) = (self.cursor, &self.window) else { return fwd };
+        let size = window.inner_size();
+        let right = fwd.cross(Vec3::Y).normalize_or_zero();
+        if size.width == 0 || size.height == 0 || right == Vec3::ZERO {
+            return fwd;
+        }
+        let up = right.cross(fwd);
+        let t = (self.args.common.fovy.to_radians() * 0.5).tan();
+        let (nx, ny) = (2.0 * x / size.width as f32 - 1.0, 1.0 - 2.0 * y / size.height as f32);
+        (fwd + right * (nx * t * size.width as f32 / size.height as f32) + up * (ny * t)).normalize()
+    }
+
+    fn go_home(&mut self) {
+        (self.ctl.position, self.ctl.yaw, self.ctl.pitch) = self.home;
+        self.ctl.walk = false;
+        self.ctl.orbit = None;
+    }
+
+    /// The state the panel and the keys both change.
+    fn controls(&self) -> Controls {
+        Controls {
+            delta: self.delta,
+            mode: self.mode,
+            morph: self.draw.morph,
+            frozen: self.frozen.is_some(),
+            wireframe: self.shading.wireframe,
+            colour_by_lod: self.shading.colour_by_lod,
+            deferred: self.shading.pixels == PixelPass::Deferred,
+            fog_density: self.shading.fog_density,
+            speed: self.ctl.speed,
+            go_home: false,
+            sun: self.sun,
+        }
+    }
+
+    fn apply(&mut self, c: Controls) {
+        if c.frozen != self.frozen.is_some() {
+            self.frozen = c.frozen.then(|| self.blocks.clone());
+        }
+        self.delta = c.delta;
+        self.mode = c.mode;
+        self.draw.morph = c.morph;
+        self.shading.wireframe = c.wireframe;
+        self.shading.colour_by_lod = c.colour_by_lod;
+        self.shading.pixels = if c.deferred { PixelPass::Deferred } else { PixelPass::Forward };
+        self.shading.fog_density = c.fog_density;
+        self.ctl.speed = c.speed;
+        self.sun = c.sun;
+        if c.go_home {
+            self.go_home();
+        }
+    }
+
+    /// This frame's panel: the last frame's figures shown, its controls applied.
+    /// `interval` is the time since the last frame began (the plotted frame time).
+    fn panel(&mut self, interval: f32) -> anyhow::Result<()> {
+        let (wx, wz) = self.hf.world_extent();
+        let p = self.ctl.position;
+        let mut readout = Readout {
+            triangles: self.last_stats.triangles,
+            draw_calls: self.last_stats.draw_calls,
+            blocks: self.last_blocks,
+            error_age: self.draw.feed.age_frames(self.frame),
+            update_ms: self.draw.feed.update_ms(),
+            generations: self.stats.error_generations,
+            in_flight: self
+                .gpu
+                .as_ref()
+                .and_then(|g| g.activity.as_ref())
+                .map_or((0, true), |a| (a.most_in_flight(), a.paced())),
+            queue_mode: self.stats.queue_mode.clone(),
+            device: self.stats.device.clone(),
+            camera_mode: if self.args.flyover {
+                "flyover"
+            } else if self.ctl.walk {
+                "walk"
+            } else if self.ctl.orbit.is_some() {
+                "orbit"
+            } else {
+                "fly"
+            },
+            position: p,
+            above_ground: p.y - self.hf.surface_height(p.x.clamp(0.0, wx), p.z.clamp(0.0, wz)),
+            ground_speed: self.ground_speed,
+            gpu_frame_ms: self.last_gpu_ms,
+            waits_ms: self.last_waits,
+            ..Readout::default()
+        };
+        let l = wx.max(wz);
+        readout.ranges = Ranges { fog_default: default_fog(&self.hf), speed: (l / 6000.0, l / 6.0) };
+        let before = self.controls();
+        let mut after = before;
+        let (Some(gpu), Some(window)) = (self.gpu.as_mut(), self.window.as_ref()) else { return Ok(()) };
+        readout.panel_ms = gpu.hud.last_ms;
+        readout.wireframe_available = gpu.device.features.wireframe;
+        readout.lighting_ms = gpu.renderer.lighting().last_ms();
+        readout.lit_sun = gpu.renderer.lighting().sun();
+        if self.frame > 0 {
+            let t = gpu.hud.now();
+            gpu.hud.history.push(t, interval * 1e3);
+        }
+        gpu.hud.prepare(window, &readout, &mut after)?;
+        if after != before {
+            self.apply(after);
+        }
+        let gpu = self.gpu.as_mut().unwrap();
+        if gpu.renderer.lighting().sun() != self.sun && !gpu.hud.pointer_busy() {
+            gpu.renderer.set_sun(&self.hf, self.sun)?;
+        }
+        Ok(())
+    }
+
+    /// Live statistics in the title bar, a few times a second.
+    fn update_title(&mut self, cam: &Camera) {
+        let elapsed = self.title_at.elapsed();
+        if elapsed < Duration::from_millis(250) {
+            return;
+        }
+        let fps = self.fps_frames as f64 / elapsed.as_secs_f64();
+        self.title_at = Instant::now();
+        self.fps_frames = 0;
+        let age = self.draw.feed.age_frames(self.frame).map_or("-".to_string(), |a| a.to_string());
+        let queue = self.gpu.as_ref().map_or("", |g| g.device.queue_mode.as_str());
+        let (wx, wz) = self.hf.world_extent();
+        let title = format!(
+            "vkterrain | {fps:.1} fps {:.1} ms | {} tris {} draws {} blocks | delta {} {} {} | errors age {age} frames | queue {queue}{}{} | {:.0} above ground, {:.0}/s | ({:.0}, {:.0}, {:.0})",
+            1000.0 / fps.max(1e-6),
+            self.last_stats.triangles,
+            self.last_stats.draw_calls,
+            self.last_blocks,
+            self.delta,
+            self.mode.as_str(),
+            if self.draw.morph { "morph" } else { "no morph" },
+            if self.frozen.is_some() { " | FROZEN" } else { "" },
+            if self.ctl.walk { " | walk" } else if self.ctl.orbit.is_some() { " | orbit" } else { "" },
+            cam.position.y - self.hf.surface_height(cam.position.x.clamp(0.0, wx), cam.position.z.clamp(0.0, wz)),
+            self.ground_speed,
+            cam.position.x,
+            cam.position.y,
+            cam.position.z,
+        );
+        if let Some(w) = &self.window {
+            w.set_title(&title);
+        }
+    }
+
+    fn key(&mut self, code: KeyCode, event_loop: &ActiveEventLoop) {
+        match code {
+            KeyCode::Escape => event_loop.exit(),
+            KeyCode::BracketRight | KeyCode::Equal | KeyCode::NumpadAdd => self.delta *= 2.0,
+            KeyCode::BracketLeft | KeyCode::Minus | KeyCode::NumpadSubtract => {
+                self.delta = (self.delta * 0.5).max(0.0625)
+            }
+            KeyCode::KeyM => {
+                self.mode = if self.mode == ErrorMode::Strict { ErrorMode::Paper } else { ErrorMode::Strict }
+            }
+            KeyCode::KeyN => self.draw.morph = !self.draw.morph,
+            KeyCode::KeyF => {
+                self.shading.wireframe = !self.shading.wireframe;
+                if self.gpu.as_ref().is_some_and(|g| !g.device.features.wireframe) {
+                    println!("vkterrain: this device has no wireframe (fillModeNonSolid)");
+                }
+            }
+            KeyCode::KeyL => self.shading.colour_by_lod = !self.shading.colour_by_lod,
+            KeyCode::KeyH => {
+                if let Some(g) = self.gpu.as_mut() {
+                    g.hud.visible = !g.hud.visible;
+                }
+            }
+            KeyCode::F1 => {
+                if let Some(g) = self.gpu.as_mut() {
+                    g.hud.help = !g.hud.help;
+                }
+            }
+            KeyCode::Space => self.frozen = if self.frozen.is_some() { None } else { Some(self.blocks.clone()) },
+            KeyCode::KeyG => {
+                self.ctl.walk = !self.ctl.walk;
+                self.ctl.clamp_to_ground(&self.hf);
+            }
+            KeyCode::Home => self.go_home(),
+            KeyCode::KeyO => {
+                self.ctl.orbit = match self.ctl.orbit {
+                    Some(_) => None,
+                    None => {
+                        // Around the terrain point under the cursor (ahead when the cursor
+                        // is outside the window), turning to face it.
+                        let pivot = ground_hit(&self.hf, self.ctl.position, self.cursor_ray());
+                        let to = pivot - self.ctl.position;
+                        if to.length() > 0.0 {
+                            let d = to.normalize();
+                            let yaw = d.z.atan2(d.x);
+                            self.stats.orbit_aim_turn = (yaw - self.ctl.yaw).abs();
+                            (self.ctl.yaw, self.ctl.pitch) = (yaw, d.y.clamp(-1.0, 1.0).asin());
+                        }
+                        self.ctl.walk = false;
+                        Some((pivot, to.length().max(self.hf.spacing)))
+                    }
+                };
+            }
+            // One screenshot per frame, however fast P is pressed.
+            KeyCode::KeyP => self.screenshots_asked += 1,
+            _ => {}
+        }
+    }
+}
+
+/// The first `vkterrain-N.png` in the working directory that names nothing (not even a
+/// broken link): screenshots never overwrite. Taken when the frame is written, so that
+/// numbers are not skipped.
+/// A haze at the terrain's scale: 18% fog across its width.
+/// A frame handed to the swapchain's queue: what presenting and the screenshot need.
+struct Submitted {
+    image_index: u32,
+    suboptimal: bool,
+    extent: vk::Extent2D,
+    screenshot: Option<PathBuf>,
+    readback: Option<Buffer>,
+    render_done: vk::Semaphore,
+    recording: Instant,
+}
+
+fn default_fog(hf: &Heightfield) -> f32 {
+    let (wx, wz) = hf.world_extent();
+    0.2 / wx.max(wz)
+}
+
+fn next_free_screenshot() -> PathBuf {
+    (1..)
+        .map(|n| PathBuf::from(format!("vkterrain-{n}.png")))
+        .find(|p| std::fs::symlink_metadata(p).is_err())
+        .expect("a free name")
+}
+
+fn depth_image(device: &Arc<Device>, extent: vk::Extent2D) -> anyhow::Result<Image> {
+    Ok(crate::draw::blocks::depth_target(device, "depth", extent)?)
+}
+
+impl ApplicationHandler for App {
+    fn resumed(&mut self, event_loop: &ActiveEventLoop) {
+        if self.gpu.is_none() {
+            if let Err(e) = self.open(event_loop) {
+                self.fail(event_loop, e);
+            }
+        }
+    }
+
+    fn window_event(&mut self, event_loop: &ActiveEventLoop, _id: WindowId, event: WindowEvent) {
+        // The panel sees every event first; what it takes (a click on it, dragging one of
+        // its sliders) does not also move the camera.
+        let taken = match (self.gpu.as_mut(), self.window.as_ref()) {
+            (Some(g), Some(w)) => g.hud.on_event(w, &event),
+            _ => false,
+        };
+        if taken
+            && matches!(
+                event,
+                WindowEvent::KeyboardInput { .. } | WindowEvent::MouseInput { .. } | WindowEvent::MouseWheel { .. }
+            )
+        {
+            if let WindowEvent::MouseInput { state: ElementState::Released, .. } = event {
+                self.ctl.looking = false;
+            }
+            return;
+        }
+        match event {
+            WindowEvent::CloseRequested => event_loop.exit(),
+            WindowEvent::Occluded(hidden) => self.occluded = hidden,
+            WindowEvent::Resized(size) => {
+                self.minimized = size.width == 0 || size.height == 0;
+                self.swapchain_dirty = true;
+            }
+            WindowEvent::KeyboardInput { event, .. } => {
+                if let PhysicalKey::Code(code) = event.physical_key {
+                    if event.state == ElementState::Pressed {
+                        if !event.repeat {
+                            self.key(code, event_loop);
+                        }
+                        self.ctl.held.insert(code);
+                    } else {
+                        self.ctl.held.remove(&code);
+                    }
+                }
+            }
+            WindowEvent::MouseInput { state, button: MouseButton::Left | MouseButton::Right, .. } => {
+                self.ctl.looking = state == ElementState::Pressed;
+            }
+            WindowEvent::CursorMoved { position, .. } => {
+                // Drag to look: the cursor's motion inside the window turns the camera.
+                let at = (position.x as f32, position.y as f32);
+                if let (true, Some(last)) = (self.ctl.looking, self.cursor) {
+                    let (dx, dy) = (at.0 - last.0, at.1 - last.1);
+                    self.ctl.yaw += dx * 0.003;
+                    self.ctl.pitch = (self.ctl.pitch - dy * 0.003).clamp(-1.55, 1.55);
+                    self.stats.mouse_turn += (dx * 0.003).abs();
+                    if self.ctl.orbit.is_some() {
+                        self.stats.orbit_turn += (dx * 0.003).abs();
+                    }
+                }
+                self.cursor = Some(at);
+            }
+            WindowEvent::CursorLeft { .. } => self.cursor = None,
+            WindowEvent::MouseWheel { delta, .. } => {
+                let steps = match delta {
+                    MouseScrollDelta::LineDelta(_, y) => y,
+                    MouseScrollDelta::PixelDelta(p) => (p.y / 40.0) as f32,
+                };
+                self.ctl.speed *= 1.25f32.powf(steps);
+            }
+            WindowEvent::RedrawRequested => {
+                if let Some((_, w, h)) = self.resizes.iter().find(|r| r.0 == self.frame).copied() {
+                    if let Some(win) = &self.window {
+                        let _ = win.request_inner_size(PhysicalSize::new(w, h));
+                    }
+                }
+                let last = self.args.frames.is_some_and(|n| self.frame + 1 >= n);
+                if last {
+                    if let Some(p) = self.args.screenshot.clone() {
+                        self.screenshot_next = Some(p);
+                    }
+                }
+                if let Err(e) = self.draw() {
+                    self.fail(event_loop, e);
+                    return;
+                }
+                if self.args.frames.is_some_and(|n| self.frame >= n) {
+                    event_loop.exit();
+                }
+            }
+            _ => {}
+        }
+    }
+
+    fn about_to_wait(&mut self, event_loop: &ActiveEventLoop) {
+        if self.interrupted.load(std::sync::atomic::Ordering::SeqCst) {
+            event_loop.exit();
+            return;
+        }
+        // While minimized or hidden no redraw is asked for and the loop waits for the next
+        // event (the one that shows the window again) instead of polling.
+        let hidden = self.minimized || self.occluded;
+        event_loop.set_control_flow(if hidden { ControlFlow::Wait } else { ControlFlow::Poll });
+        if let Some(w) = &self.window {
+            if !hidden {
+                w.request_redraw();
+            }
+        }
+    }
+}

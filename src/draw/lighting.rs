@@ -1,0 +1,223 @@
+//! Precomputed sun shadows and ambient occlusion from the heightfield: the CPU reference
+//! of `glsl/lighting.frag`, which computes the same map on the GPU at load and whenever
+//! the sun moves. Per texel: how much of the sun is visible above the terrain's horizon
+//! in its direction (soft over [`SUN_SOFTNESS`]), and the share of the sky seen above
+//! the horizon in eight directions (1 on open flat ground).
+//!
+//! The shader and this file follow the same steps on the same f32 inputs (the march
+//! constants and directions come from `gpu_layout`), so they agree up to the rounding of
+//! a few operations; `tests/gpu_lighting.rs` compares them.
+
+use crate::gpu::layout::{AO_DIRECTIONS, AO_DISTANCES, SUN_MAX_STEPS, SUN_SOFTNESS, SUN_STEP_GROWTH};
+use crate::lod::heightfield::Heightfield;
+use glam::Vec3;
+
+/// The largest side of the lighting map: larger grids use one texel per 2, 4, ..
+/// samples (a 4097 grid gets 2049 texels, one per two samples).
+pub const MAX_LIGHTING_SIDE: usize = 2049;
+
+/// Where the sun is: compass azimuth (degrees clockwise from north, which is -z) and
+/// elevation above the horizon (degrees).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Sun {
+    pub azimuth: f32,
+    pub elevation: f32,
+}
+
+impl Sun {
+    /// West-north-west, 54 degrees up: close to the fixed light of the first wave.
+    pub const DEFAULT: Sun = Sun { azimuth: 301.0, elevation: 54.0 };
+
+    /// Unit vector towards the sun (world: x east, y up, z south).
+    pub fn direction(&self) -> Vec3 {
+        let (az, el) = (self.azimuth.to_radians(), self.elevation.to_radians());
+        Vec3::new(az.sin() * el.cos(), el.sin(), -az.cos() * el.cos())
+    }
+
+    /// The horizontal unit direction towards the sun in samples (x, z) and the tangent
+    /// of its elevation, as the shader receives them.
+    pub fn march(&self) -> ([f32; 2], f32) {
+        let az = self.azimuth.to_radians();
+        ([az.sin(), -az.cos()], self.elevation.to_radians().tan())
+    }
+
+    /// `AZ,EL` in degrees (azimuth 0..360, elevation 0..90 exclusive), or `off`.
+    pub fn parse(s: &str) -> Result<Option<Sun>, String> {
+        if s.trim().eq_ignore_ascii_case("off") {
+            return Ok(None);
+        }
+        let bad = || format!("{s}: expected AZ,EL in degrees (e.g. 301,54) or off");
+        let (a, e) = s.split_once(',').ok_or_else(bad)?;
+        let azimuth: f32 = a.trim().parse().map_err(|_| bad())?;
+        let elevation: f32 = e.trim().parse().map_err(|_| bad())?;
+        if !(0.0..=360.0).contains(&azimuth) {
+            return Err(format!("{s}: azimuth {azimuth} is outside 0..360"));
+        }
+        if !(elevation > 0.0 && elevation < 90.0) {
+            return Err(format!("{s}: elevation {elevation} must be above 0 and below 90"));
+        }
+        Ok(Some(Sun { azimuth, elevation }))
+    }
+}
+
+/// Samples per lighting texel (a power of two) for a grid of `side` samples and a map
+/// of at most `max_side` texels a side ([`MAX_LIGHTING_SIDE`] but in tests).
+pub fn samples_per_texel(side: usize, max_side: usize) -> usize {
+    let mut step = 1;
+    while (side - 1) / step + 1 > max_side {
+        step *= 2;
+    }
+    step
+}
+
+/// Side of the lighting map for a grid of `side` samples.
+pub fn lighting_side(side: usize, max_side: usize) -> usize {
+    (side - 1) / samples_per_texel(side, max_side) + 1
+}
+
+/// Sun visibility (0 shadowed .. 1 lit) and ambient occlusion (share of open sky, 1 on
+/// flat open ground) at sample `(x, z)`, or `[1, 1]` without a sun.
+pub fn light_at(hf: &Heightfield, x: i64, z: i64, sun: Option<Sun>) -> [f32; 2] {
+    let Some(sun) = sun else { return [1.0, 1.0] };
+    let (w, h) = (hf.width as i64, hf.height as i64);
+    let h0 = hf.height_at(x, z);
+    let p = [x as f32, z as f32];
+    // Nearest sample to p + d t; None outside the true extent (nothing there casts).
+    let at = |d: [f32; 2], t: f32| -> Option<f32> {
+        let qx = (p[0] + d[0] * t + 0.5).floor() as i64;
+        let qz = (p[1] + d[1] * t + 0.5).floor() as i64;
+        (qx >= 0 && qz >= 0 && qx < w && qz < h).then(|| hf.height_at(qx, qz))
+    };
+    let (d, tan_sun) = sun.march();
+    let mut horizon = f32::MIN;
+    let mut t = 1.0f32;
+    for _ in 0..SUN_MAX_STEPS {
+        let Some(hq) = at(d, t) else { break };
+        horizon = horizon.max((hq - h0) / (t * hf.spacing));
+        t += (t * SUN_STEP_GROWTH).max(1.0);
+    }
+    let visible = (0.5 + (tan_sun - horizon) / (2.0 * SUN_SOFTNESS)).clamp(0.0, 1.0);
+    let mut open = 0.0;
+    for d in AO_DIRECTIONS {
+        let mut tan = 0.0f32;
+        for t in AO_DISTANCES {
+            let Some(hq) = at(d, t) else { break };
+            tan = tan.max((hq - h0) / (t * hf.spacing));
+        }
+        // 1 - sin of the horizon's elevation: the sky seen above it in this direction.
+        open += 1.0 - tan / (1.0 + tan * tan).sqrt();
+    }
+    [visible, open / AO_DIRECTIONS.len() as f32]
+}
+
+/// The whole map, row-major, `lighting_side` texels a side: texel `(i, j)` is sample
+/// `(i, j) * samples_per_texel`.
+pub fn reference(hf: &Heightfield, sun: Option<Sun>, max_side: usize) -> Vec<[f32; 2]> {
+    let (side, step) = (lighting_side(hf.side(), max_side), samples_per_texel(hf.side(), max_side) as i64);
+    (0..side * side).map(|i| light_at(hf, (i % side) as i64 * step, (i / side) as i64 * step, sun)).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn field(side: usize, f: impl Fn(usize, usize) -> f32) -> Heightfield {
+        crate::lod::heightfield::test_field(side, side, f)
+    }
+
+    #[test]
+    fn parse_accepts_degrees_and_off_and_names_the_problem() {
+        assert_eq!(Sun::parse("301,54"), Ok(Some(Sun { azimuth: 301.0, elevation: 54.0 })));
+        assert_eq!(Sun::parse(" 90 , 10.5 "), Ok(Some(Sun { azimuth: 90.0, elevation: 10.5 })));
+        assert_eq!(Sun::parse("off"), Ok(None));
+        for bad in ["", "90", "a,b", "400,10", "90,0", "90,90", "90,-5", "NaN,10"] {
+            let e = Sun::parse(bad).unwrap_err();
+            assert!(e.starts_with(bad), "{bad}: {e}");
+        }
+    }
+
+    #[test]
+    fn directions_follow_the_compass() {
+        let east = Sun { azimuth: 90.0, elevation: 30.0 }.direction();
+        assert!((east - Vec3::new(30f32.to_radians().cos(), 0.5, 0.0)).length() < 1e-6, "{east}");
+        let north = Sun { azimuth: 0.0, elevation: 45.0 }.direction();
+        assert!(north.z < -0.7 && north.x.abs() < 1e-6, "{north}");
+        // The default is the first wave's light, (-0.5, 0.8, -0.3) normalised, within 1 degree.
+        let old = Vec3::new(-0.5, 0.8, -0.3).normalize();
+        assert!(Sun::DEFAULT.direction().angle_between(old) < 1f32.to_radians());
+    }
+
+    #[test]
+    fn map_sizes_cap_at_the_largest_side() {
+        let m = MAX_LIGHTING_SIDE;
+        assert_eq!((samples_per_texel(1025, m), lighting_side(1025, m)), (1, 1025));
+        assert_eq!((samples_per_texel(2049, m), lighting_side(2049, m)), (1, 2049));
+        assert_eq!((samples_per_texel(4097, m), lighting_side(4097, m)), (2, 2049));
+        assert_eq!((samples_per_texel(16385, m), lighting_side(16385, m)), (8, 2049));
+        assert_eq!((samples_per_texel(129, 65), lighting_side(129, 65)), (2, 65));
+    }
+
+    #[test]
+    fn flat_ground_is_lit_and_open() {
+        let hf = field(33, |_, _| 5.0);
+        for sun in [Sun::DEFAULT, Sun { azimuth: 10.0, elevation: 5.0 }] {
+            for l in reference(&hf, Some(sun), MAX_LIGHTING_SIDE) {
+                assert_eq!(l, [1.0, 1.0]);
+            }
+        }
+        assert!(reference(&hf, None, MAX_LIGHTING_SIDE).iter().all(|&l| l == [1.0, 1.0]));
+    }
+
+    /// A wall 10 high along x = 40: with the sun in the east (+x) at 30 degrees, ground
+    /// west of the wall is in shadow out to 10 / tan 30 = 17.3 samples, and lit beyond;
+    /// the same ground is lit with the sun in the west, and with the sun at 60 degrees
+    /// the shadow is 5.8 samples long.
+    #[test]
+    fn a_wall_casts_a_shadow_of_the_right_length() {
+        let hf = field(65, |x, _| if x == 40 { 10.0 } else { 0.0 });
+        let east = Some(Sun { azimuth: 90.0, elevation: 30.0 });
+        let shadow_len = 10.0 / 30f32.to_radians().tan();
+        for x in 0..40i64 {
+            let v = light_at(&hf, x, 32, east)[0];
+            let dist = (40 - x) as f32;
+            if dist < shadow_len - 1.0 {
+                assert_eq!(v, 0.0, "x {x} is in the wall's shadow");
+            } else if dist > shadow_len + 1.0 {
+                assert_eq!(v, 1.0, "x {x} is beyond the shadow");
+            }
+        }
+        let west = Some(Sun { azimuth: 270.0, elevation: 30.0 });
+        assert_eq!(light_at(&hf, 35, 32, west)[0], 1.0);
+        let high = Some(Sun { azimuth: 90.0, elevation: 60.0 });
+        assert_eq!(light_at(&hf, 36, 32, high)[0], 0.0);
+        assert_eq!(light_at(&hf, 30, 32, high)[0], 1.0);
+        // The wall itself sees the sun.
+        assert_eq!(light_at(&hf, 40, 32, east)[0], 1.0);
+    }
+
+    /// A pit is more occluded than the rim around it, which is more occluded than a
+    /// peak; occlusion falls with the depth of the pit.
+    #[test]
+    fn occlusion_orders_pits_below_rims_below_peaks() {
+        let pit = |depth: f32| {
+            field(65, move |x, z| {
+                let r = ((x as f32 - 32.0).powi(2) + (z as f32 - 32.0).powi(2)).sqrt();
+                if r < 4.0 {
+                    -depth
+                } else {
+                    0.0
+                }
+            })
+        };
+        let shallow = light_at(&pit(2.0), 32, 32, Some(Sun::DEFAULT))[1];
+        let deep = light_at(&pit(20.0), 32, 32, Some(Sun::DEFAULT))[1];
+        let rim = light_at(&pit(20.0), 32, 40, Some(Sun::DEFAULT))[1];
+        assert!(deep < shallow && shallow < 1.0, "deep {deep}, shallow {shallow}");
+        assert!(deep < 0.2, "a pit 20 deep and 8 wide sees little sky: {deep}");
+        assert!(rim == 1.0, "ground beside a pit is open: {rim}");
+        let peak = field(65, |x, z| if (x, z) == (32, 32) { 30.0 } else { 0.0 });
+        assert_eq!(light_at(&peak, 32, 32, Some(Sun::DEFAULT))[1], 1.0);
+        let beside = light_at(&peak, 33, 32, Some(Sun::DEFAULT))[1];
+        assert!(beside < 1.0 && beside > 0.8, "one direction of eight is blocked: {beside}");
+    }
+}

@@ -1,0 +1,222 @@
+//! The lighting map on the GPU: `glsl/lighting.frag` drawn over an RG8 image (sun
+//! visibility, ambient occlusion), at load and whenever the sun moves. The terrain
+//! shader samples it; `crate::draw::lighting` is its CPU reference.
+
+use crate::draw::lighting::{lighting_side, samples_per_texel, Sun, MAX_LIGHTING_SIDE};
+use crate::gpu::layout::{self as layout, LightingPush};
+use crate::gpu::shaders;
+use crate::gpu::terrain::TerrainGpu;
+use crate::lod::heightfield::{HeightFormat, Heightfield};
+use crate::vk::{
+    image_barrier, vk, Buffer, CommandPool, DescriptorPool, DescriptorSetLayout, Device, GraphicsPipeline,
+    GraphicsPipelineDesc, Image, PipelineLayout, Sampler, VkResult, COPY_SOURCE, FRAGMENT_SAMPLED,
+};
+use std::sync::Arc;
+
+pub const LIGHTING_FORMAT: vk::Format = vk::Format::R8G8_UNORM;
+
+pub struct LightingMap {
+    pub image: Image,
+    /// Linear filtering, clamped: the terrain shader reads between texels.
+    pub sampler: Sampler,
+    pipeline: GraphicsPipeline,
+    layout: PipelineLayout,
+    set: vk::DescriptorSet,
+    _pool: DescriptorPool,
+    _set_layout: DescriptorSetLayout,
+    commands: CommandPool,
+    sun: Option<Sun>,
+    max_side: usize,
+    /// Wall time of the last redraw (ms).
+    last_ms: f64,
+    device: Arc<Device>,
+}
+
+impl LightingMap {
+    /// The map of `terrain` (the heightfield `hf` on the GPU) for `sun` (`None`: all lit).
+    pub fn new(device: &Arc<Device>, hf: &Heightfield, terrain: &TerrainGpu, sun: Option<Sun>) -> VkResult<Self> {
+        Self::with_max_side(device, hf, terrain, sun, MAX_LIGHTING_SIDE)
+    }
+
+    /// As [`Self::new`] with at most `max_side` texels a side (tests of small maps).
+    pub fn with_max_side(
+        device: &Arc<Device>,
+        hf: &Heightfield,
+        terrain: &TerrainGpu,
+        sun: Option<Sun>,
+        max_side: usize,
+    ) -> VkResult<Self> {
+        let side = lighting_side(hf.side(), max_side) as u32;
+        let image = Image::new(
+            device,
+            "lighting map",
+            vk::Extent2D { width: side, height: side },
+            LIGHTING_FORMAT,
+            1,
+            vk::ImageUsageFlags::COLOR_ATTACHMENT | vk::ImageUsageFlags::SAMPLED | vk::ImageUsageFlags::TRANSFER_SRC,
+            false,
+        )?;
+        let frag = vk::ShaderStageFlags::FRAGMENT;
+        let sampler_ty = vk::DescriptorType::COMBINED_IMAGE_SAMPLER;
+        let set_layout = DescriptorSetLayout::new(device, &[(layout::LIGHTING_BINDING_HEIGHTS, sampler_ty, frag)])?;
+        let pipeline_layout =
+            PipelineLayout::new(device, &set_layout, std::mem::size_of::<LightingPush>() as u32, frag)?;
+        let pipeline = GraphicsPipeline::new(
+            device,
+            &GraphicsPipelineDesc::fullscreen_pass(
+                shaders::PASS_VERT,
+                shaders::LIGHTING_FRAG,
+                LIGHTING_FORMAT,
+                &pipeline_layout,
+            ),
+        )?;
+        let pool = DescriptorPool::new(device, 1, &[(sampler_ty, 1)])?;
+        let set = pool.allocate(&set_layout)?;
+        pool.write(set, &[(layout::LIGHTING_BINDING_HEIGHTS, terrain.heights.view, terrain.nearest.handle)], &[]);
+        let mut map = LightingMap {
+            image,
+            sampler: Sampler::new(device, vk::Filter::LINEAR, vk::SamplerAddressMode::CLAMP_TO_EDGE)?,
+            pipeline,
+            layout: pipeline_layout,
+            set,
+            _pool: pool,
+            _set_layout: set_layout,
+            commands: CommandPool::new(device, device.draw_queue.family)?,
+            sun: None,
+            max_side,
+            last_ms: 0.0,
+            device: device.clone(),
+        };
+        map.draw(hf, sun, true)?;
+        Ok(map)
+    }
+
+    pub fn sun(&self) -> Option<Sun> {
+        self.sun
+    }
+
+    /// Wall time of the last redraw, submission to completion (ms).
+    pub fn last_ms(&self) -> f64 {
+        self.last_ms
+    }
+
+    /// Redraws the map for `sun` on the draw queue and waits. Frames already submitted
+    /// that sample the map finish first (the barrier below orders the rewrite after
+    /// their fragment shaders); frames recorded after this call see the new map.
+    pub fn set_sun(&mut self, hf: &Heightfield, sun: Option<Sun>) -> VkResult<()> {
+        if sun != self.sun {
+            self.draw(hf, sun, false)?;
+        }
+        Ok(())
+    }
+
+    fn draw(&mut self, hf: &Heightfield, sun: Option<Sun>, first: bool) -> VkResult<()> {
+        let (d, tan) = sun.map_or(([0.0; 2], 0.0), |s| s.march());
+        let push = LightingPush {
+            sun: [d[0], tan, d[1], sun.is_some() as i32 as f32],
+            grid: [
+                hf.width as i32,
+                hf.height as i32,
+                samples_per_texel(hf.side(), self.max_side) as i32,
+                (hf.format == HeightFormat::Unorm16) as i32,
+            ],
+            params: [hf.spacing, hf.height_scale, 0.0, 0.0],
+        };
+        let extent = self.image.extent;
+        let raw = &self.device.raw;
+        let image = self.image.handle;
+        let range = self.image.range(0, 1);
+        // Before the first draw nothing used the image; after, terrain fragment shaders did.
+        let before = if first {
+            (vk::PipelineStageFlags2::NONE, vk::AccessFlags2::NONE, vk::ImageLayout::UNDEFINED)
+        } else {
+            (
+                vk::PipelineStageFlags2::FRAGMENT_SHADER,
+                vk::AccessFlags2::SHADER_SAMPLED_READ,
+                vk::ImageLayout::UNDEFINED,
+            )
+        };
+        let target = (
+            vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT,
+            vk::AccessFlags2::COLOR_ATTACHMENT_WRITE,
+            vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL,
+        );
+        let sampled = FRAGMENT_SAMPLED;
+        let started = std::time::Instant::now();
+        self.device.one_shot(&self.commands, |cmd| {
+            let att = [vk::RenderingAttachmentInfo::default()
+                .image_view(self.image.view)
+                .image_layout(vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL)
+                .load_op(vk::AttachmentLoadOp::DONT_CARE)
+                .store_op(vk::AttachmentStoreOp::STORE)];
+            let area = vk::Rect2D { offset: vk::Offset2D::default(), extent };
+            let rendering = vk::RenderingInfo::default().render_area(area).layer_count(1).color_attachments(&att);
+            let viewport = vk::Viewport {
+                width: extent.width as f32,
+                height: extent.height as f32,
+                max_depth: 1.0,
+                ..Default::default()
+            };
+            // SAFETY: `cmd` is recording on this thread; every object outlives the wait in
+            // one_shot; the barriers order the write after earlier reads and before later
+            // ones.
+            unsafe {
+                image_barrier(raw, cmd, image, range, before, target);
+                raw.cmd_begin_rendering(cmd, &rendering);
+                raw.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, self.pipeline.handle);
+                raw.cmd_bind_descriptor_sets(
+                    cmd,
+                    vk::PipelineBindPoint::GRAPHICS,
+                    self.layout.handle,
+                    0,
+                    &[self.set],
+                    &[],
+                );
+                raw.cmd_push_constants(
+                    cmd,
+                    self.layout.handle,
+                    vk::ShaderStageFlags::FRAGMENT,
+                    0,
+                    bytemuck::bytes_of(&push),
+                );
+                raw.cmd_set_viewport(cmd, 0, &[viewport]);
+                raw.cmd_set_scissor(cmd, 0, &[area]);
+                raw.cmd_draw(cmd, 3, 1, 0, 0);
+                raw.cmd_end_rendering(cmd);
+                image_barrier(raw, cmd, image, range, target, sampled);
+            }
+        })?;
+        self.last_ms = started.elapsed().as_secs_f64() * 1e3;
+        if sun.is_some() {
+            tracing::info!("lighting map {}x{} for sun {sun:?}: {:.0} ms", extent.width, extent.height, self.last_ms);
+        }
+        self.sun = sun;
+        Ok(())
+    }
+
+    /// The map read back to the host, row-major RG8 (tests).
+    pub fn read(&self) -> VkResult<Vec<[u8; 2]>> {
+        let extent = self.image.extent;
+        let bytes = extent.width as u64 * extent.height as u64 * 2;
+        let buffer = Buffer::new(
+            &self.device,
+            "lighting readback",
+            bytes,
+            vk::BufferUsageFlags::TRANSFER_DST,
+            gpu_allocator::MemoryLocation::GpuToCpu,
+        )?;
+        let raw = &self.device.raw;
+        let (image, range) = (self.image.handle, self.image.range(0, 1));
+        let sampled = FRAGMENT_SAMPLED;
+        let source = COPY_SOURCE;
+        self.device.one_shot(&self.commands, |cmd| {
+            // SAFETY: as in `draw`; the buffer (two bytes a texel) outlives the wait.
+            unsafe {
+                image_barrier(raw, cmd, image, range, sampled, source);
+                crate::vk::copy_image_to_host(raw, cmd, image, extent, buffer.handle);
+                image_barrier(raw, cmd, image, range, source, sampled);
+            }
+        })?;
+        Ok(bytemuck::pod_collect_to_vec(&buffer.mapped()?[..bytes as usize]))
+    }
+}

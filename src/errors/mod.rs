@@ -1,0 +1,8 @@
+//! The errors activity: its own CPU thread and queue rasterize the screen-space error
+//! pyramid ([`activity`], its GPU work in [`passes`]), hand each finished generation over by the rules of
+//! [`handoff`], and the draw thread reads them through the [`feed`].
+
+pub mod activity;
+pub mod feed;
+pub mod handoff;
+pub mod passes;

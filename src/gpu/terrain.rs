@@ -1,0 +1,176 @@
+//! GPU resources both activities share: the heightfield image (read-only after upload),
+//! the min/max pyramid, samplers and the colour textures.
+
+use crate::lod::heightfield::{HeightFormat, Heightfield};
+use crate::lod::pyramid::MinMaxPyramid;
+use crate::vk::{image_barrier, vk, Buffer, CommandPool, Device, Image, Sampler, VkResult};
+use std::sync::Arc;
+
+pub struct TerrainGpu {
+    pub heights: Image,
+    pub minmax: Image,
+    /// Exact group deviations `D_L` (R32F, LOD L in mip L-1): strict mode's world part.
+    pub deviation: Image,
+    /// Per-sample gradients and sea flags for shading ([`Heightfield::gradient_map`]'s
+    /// two i16 per texel, read as one R32_UINT so that one gather brings four samples).
+    pub gradients: Image,
+    pub gradient_scale: f32,
+    /// World height at or below which level ground is water ([`Heightfield::sea_level`]).
+    pub sea_level: f32,
+    pub nearest: Sampler,
+    pub linear: Sampler,
+    pub base: Image,
+    pub detail: Image,
+    pub has_base: bool,
+    pub has_detail: bool,
+    /// Raw height range (min, max) of the whole grid.
+    pub raw_range: [f32; 2],
+    pub bytes: u64,
+}
+
+/// An RGBA8 texture given to `TerrainGpu::new`.
+pub struct Texture {
+    pub width: u32,
+    pub height: u32,
+    pub rgba: Vec<u8>,
+}
+
+impl TerrainGpu {
+    pub fn new(
+        device: &Arc<Device>,
+        hf: &Heightfield,
+        mm: &MinMaxPyramid,
+        base: Option<&Texture>,
+        detail: Option<&Texture>,
+    ) -> VkResult<Self> {
+        let pool = CommandPool::new(device, device.draw_queue.family)?;
+        let side = hf.side() as u32;
+        let (format, bytes): (vk::Format, Vec<u8>) = match hf.format {
+            HeightFormat::Unorm16 => {
+                (vk::Format::R16_UNORM, hf.raw.iter().flat_map(|&v| (v as u16).to_le_bytes()).collect())
+            }
+            HeightFormat::Float32 => (vk::Format::R32_SFLOAT, bytemuck::cast_slice(&hf.raw).to_vec()),
+        };
+        let usage = vk::ImageUsageFlags::SAMPLED | vk::ImageUsageFlags::TRANSFER_DST;
+        let extent = |w: u32, h: u32| vk::Extent2D { width: w, height: h };
+        let heights = Image::new(device, "heightfield", extent(side, side), format, 1, usage, true)?;
+        upload(device, &pool, &heights, &[&bytes])?;
+
+        let mips: Vec<Vec<u8>> = mm.levels.iter().map(|l| bytemuck::cast_slice(l).to_vec()).collect();
+        let mip_refs: Vec<&[u8]> = mips.iter().map(|m| m.as_slice()).collect();
+        let mm_side = 1u32 << (hf.n - 1);
+        let minmax = Image::new(
+            device,
+            "min/max pyramid",
+            extent(mm_side, mm_side),
+            vk::Format::R32G32_SFLOAT,
+            hf.n,
+            usage,
+            true,
+        )?;
+        upload(device, &pool, &minmax, &mip_refs)?;
+        let dev_mips: Vec<&[u8]> = mm.dev.iter().map(|l| bytemuck::cast_slice(l)).collect();
+        let deviation = Image::new(
+            device,
+            "group deviation pyramid",
+            extent(mm_side, mm_side),
+            vk::Format::R32_SFLOAT,
+            hf.n,
+            usage,
+            true,
+        )?;
+        upload(device, &pool, &deviation, &dev_mips)?;
+
+        let sea_level = hf.sea_level(mm.range());
+        let (grads, gradient_scale) = hf.gradient_map(sea_level);
+        let gradients = Image::new(device, "gradient map", extent(side, side), vk::Format::R32_UINT, 1, usage, false)?;
+        upload(device, &pool, &gradients, &[bytemuck::cast_slice(&grads)])?;
+
+        let white = Texture { width: 1, height: 1, rgba: vec![255; 4] };
+        let tex = |name: &str, t: &Texture| -> VkResult<Image> {
+            let img = Image::new(device, name, extent(t.width, t.height), vk::Format::R8G8B8A8_SRGB, 1, usage, false)?;
+            upload(device, &pool, &img, &[&t.rgba])?;
+            Ok(img)
+        };
+        let base_img = tex("base texture", base.unwrap_or(&white))?;
+        let detail_img = tex("detail texture", detail.unwrap_or(&white))?;
+        let total = bytes.len()
+            + mips.iter().map(|m| m.len()).sum::<usize>()
+            + mm.dev.iter().map(|l| l.len() * 4).sum::<usize>()
+            + grads.len() * 4;
+        Ok(TerrainGpu {
+            heights,
+            minmax,
+            deviation,
+            gradients,
+            gradient_scale,
+            sea_level,
+            nearest: Sampler::new(device, vk::Filter::NEAREST, vk::SamplerAddressMode::CLAMP_TO_EDGE)?,
+            linear: Sampler::new(device, vk::Filter::LINEAR, vk::SamplerAddressMode::REPEAT)?,
+            base: base_img,
+            detail: detail_img,
+            has_base: base.is_some(),
+            has_detail: detail.is_some(),
+            raw_range: mm.range(),
+            bytes: total as u64,
+        })
+    }
+}
+
+/// Uploads every mip level of `image` and leaves it in SHADER_READ_ONLY_OPTIMAL.
+pub fn upload(device: &Arc<Device>, pool: &CommandPool, image: &Image, mips: &[&[u8]]) -> VkResult<()> {
+    let total: usize = mips.iter().map(|m| m.len()).sum();
+    let mut staging = Buffer::new(
+        device,
+        "staging",
+        total as u64,
+        vk::BufferUsageFlags::TRANSFER_SRC,
+        gpu_allocator::MemoryLocation::CpuToGpu,
+    )?;
+    let mut regions = Vec::new();
+    {
+        let dst = staging.mapped_mut()?;
+        let mut at = 0usize;
+        for (level, data) in mips.iter().enumerate() {
+            dst[at..at + data.len()].copy_from_slice(data);
+            let w = (image.extent.width >> level).max(1);
+            let h = (image.extent.height >> level).max(1);
+            regions.push(
+                vk::BufferImageCopy::default()
+                    .buffer_offset(at as u64)
+                    .image_subresource(vk::ImageSubresourceLayers {
+                        aspect_mask: vk::ImageAspectFlags::COLOR,
+                        mip_level: level as u32,
+                        base_array_layer: 0,
+                        layer_count: 1,
+                    })
+                    .image_extent(vk::Extent3D { width: w, height: h, depth: 1 }),
+            );
+            at += data.len();
+        }
+    }
+    let range = image.range(0, image.mip_levels);
+    device.one_shot(pool, |cmd| {
+        let undefined = (vk::PipelineStageFlags2::NONE, vk::AccessFlags2::NONE, vk::ImageLayout::UNDEFINED);
+        let written =
+            (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_WRITE, vk::ImageLayout::TRANSFER_DST_OPTIMAL);
+        let sampled = (
+            vk::PipelineStageFlags2::VERTEX_SHADER | vk::PipelineStageFlags2::FRAGMENT_SHADER,
+            vk::AccessFlags2::SHADER_SAMPLED_READ,
+            vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
+        );
+        // SAFETY: `cmd` is recording; the staging buffer and image outlive the wait in
+        // one_shot.
+        unsafe {
+            image_barrier(&device.raw, cmd, image.handle, range, undefined, written);
+            device.raw.cmd_copy_buffer_to_image(
+                cmd,
+                staging.handle,
+                image.handle,
+                vk::ImageLayout::TRANSFER_DST_OPTIMAL,
+                &regions,
+            );
+            image_barrier(&device.raw, cmd, image.handle, range, written, sampled);
+        }
+    })
+}

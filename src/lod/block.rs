@@ -1,0 +1,306 @@
+//! Blocks (SPEC section 5): the layout of the quadtree's blocks, the block a frame draws
+//! (LOD, neighbours, corners, morph factors), the selection a traversal produces, and the
+//! vertex shader's placement of a block's vertices in plain Rust.
+
+use crate::lod::camera::Frustum;
+use crate::lod::heightfield::Heightfield;
+use crate::lod::pyramid::MinMaxPyramid;
+use glam::Vec3;
+
+/// Block geometry: `k = 2^m + 1` vertices a side; a block of LOD `j` covers `2^(m+j)`
+/// samples; the root is at LOD `n - m`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct BlockLayout {
+    pub n: u32,
+    pub m: u32,
+}
+
+impl BlockLayout {
+    /// `k` must be `2^m + 1` with `m >= 1`; a block larger than the terrain is shrunk to
+    /// the terrain.
+    pub fn new(n: u32, k: u32) -> Result<Self, String> {
+        if k < 3 || !(k - 1).is_power_of_two() {
+            return Err(format!("--block {k}: the block side must be 2^m + 1 (3, 5, 9, 17, 33, 65, ...)"));
+        }
+        if k > 257 {
+            return Err(format!("--block {k}: at most 257 (vertex coordinates are 8-bit)"));
+        }
+        let m = (k - 1).trailing_zeros().min(n);
+        Ok(BlockLayout { n, m })
+    }
+    pub fn k(&self) -> u32 {
+        (1 << self.m) + 1
+    }
+    pub fn root_lod(&self) -> u32 {
+        self.n - self.m
+    }
+    /// Samples a block of this LOD covers, edge to edge.
+    pub fn block_samples(&self, lod: u32) -> u32 {
+        1 << (self.m + lod)
+    }
+    /// Cells of the finest block grid a side (`2^(n-m)`).
+    pub fn cells(&self) -> usize {
+        1 << self.root_lod()
+    }
+    /// Triangles in one block.
+    pub fn triangles_per_block(&self) -> u64 {
+        let q = (self.k() - 1) as u64;
+        2 * q * q
+    }
+}
+
+/// Morph factors are multiples of `1 / MORPH_ONE`, exact in f32 on the CPU and the GPU.
+pub const MORPH_ONE: u16 = 1024;
+
+/// A morph factor as the shaders get it.
+pub fn morph_value(q: u16) -> f32 {
+    q as f32 / MORPH_ONE as f32
+}
+
+/// A block to draw: LOD, block coordinates at that LOD, the stride of each coarser
+/// neighbour (0 when the neighbour is not coarser): north (-z), east (+x), south (+z),
+/// west (-x), and its geomorph (see [`crate::lod::morph`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct DrawBlock {
+    pub lod: u32,
+    pub bx: u32,
+    pub bz: u32,
+    pub coarser: [u32; 4],
+    /// Morph factor of the interior vertices: 0 puts the block's odd vertices on its
+    /// parent's surface, [`MORPH_ONE`] on its own samples.
+    pub morph: u16,
+    /// Morph factor of the vertices on each edge; on an edge next to a coarser block, of
+    /// that block's vertices there, which this block's edge follows.
+    pub edge_morph: [u16; 4],
+    /// Raw height of each corner (NW, NE, SE, SW) as f32 bits, or [`CORNER_UNRESOLVED`]:
+    /// a corner inside a coarser neighbour's edge lies on that edge, whose own corners
+    /// may lie on a coarser one's, so the traversal resolves them ([`resolve_corners`]).
+    pub corner_raw: [u32; 4],
+}
+
+/// A corner whose height is its sample's (blocks made outside the traversal).
+pub const CORNER_UNRESOLVED: u32 = u32::MAX;
+
+/// The corners at the start and the end of each edge (north, east, south, west), in the
+/// direction of increasing x or z.
+pub const EDGE_CORNERS: [[usize; 2]; 4] = [[0, 1], [1, 2], [3, 2], [0, 3]];
+
+impl DrawBlock {
+    /// An unmorphed block with no coarser neighbour.
+    pub fn new(lod: u32, bx: u32, bz: u32) -> Self {
+        DrawBlock {
+            lod,
+            bx,
+            bz,
+            coarser: [0; 4],
+            morph: MORPH_ONE,
+            edge_morph: [MORPH_ONE; 4],
+            corner_raw: [CORNER_UNRESOLVED; 4],
+        }
+    }
+    /// Raw height of corner `c` at sample `(x, z)`.
+    pub fn corner(&self, c: usize, hf: &Heightfield, x: i64, z: i64) -> f32 {
+        match self.corner_raw[c] {
+            CORNER_UNRESOLVED => hf.raw_at(x, z),
+            bits => f32::from_bits(bits),
+        }
+    }
+    /// The block with every vertex at its own LOD (factor 1): the surface the selection
+    /// bounds.
+    pub fn unmorphed(&self) -> Self {
+        DrawBlock { morph: MORPH_ONE, edge_morph: [MORPH_ONE; 4], ..*self }
+    }
+    pub fn origin(&self, layout: &BlockLayout) -> (u32, u32) {
+        let s = layout.block_samples(self.lod);
+        (self.bx * s, self.bz * s)
+    }
+    pub fn stride(&self) -> u32 {
+        1 << self.lod
+    }
+    /// The finest-grid cell just across each edge (north, east, south, west) from the
+    /// edge's first cell; it may lie outside the grid.
+    pub fn cells_across(&self) -> [(i64, i64); 4] {
+        let span = 1i64 << self.lod;
+        let (cx, cz) = (self.bx as i64 * span, self.bz as i64 * span);
+        [(cx, cz - 1), (cx + span, cz), (cx, cz + span), (cx - 1, cz)]
+    }
+}
+
+#[derive(Clone, Debug, Default)]
+pub struct Traversal {
+    pub blocks: Vec<DrawBlock>,
+    /// Largest error (pixels) the traversal accepted for a drawn block: stale-corrected,
+    /// with the block's off-axis factor and stitched strips in strict mode.
+    pub max_block_error: f32,
+    /// LOD of the drawn block over each finest-grid cell, -1 where nothing is drawn.
+    pub lod_map: Vec<i8>,
+    /// Blocks split only because a finer neighbour's stitched strip exceeded delta or the
+    /// neighbour was more than `m` LODs finer.
+    pub stitch_splits: usize,
+    /// Distance from the camera to the nearest drawn block's box.
+    pub nearest: Option<f32>,
+    /// Blocks drawn part way between their parent's surface and their own.
+    pub morphing: usize,
+    /// Blocks split only because their error data is stale: the stale-corrected error
+    /// exceeds delta, but the data scaled to this camera's distance (`1 / d`, the
+    /// estimate of what a new generation would hold) does not. New data can pay only
+    /// when this is above zero (the refresh policy).
+    pub stale_splits: usize,
+    /// Per drawn block: the error the selection accepted for it and the one for which it
+    /// split its parent (pixels; 0 where not error-driven, infinite for the root).
+    pub selection_errors: Vec<[f32; 2]>,
+}
+
+/// World-space AABB of a block.
+pub fn block_aabb(
+    hf: &Heightfield,
+    mm: &MinMaxPyramid,
+    layout: &BlockLayout,
+    lod: u32,
+    bx: u32,
+    bz: u32,
+) -> (Vec3, Vec3) {
+    let level = layout.m + lod;
+    let s = layout.block_samples(lod) as f32 * hf.spacing;
+    let [lo, hi] = mm.get(level, bx as usize, bz as usize);
+    (
+        Vec3::new(bx as f32 * s, lo * hf.height_scale, bz as f32 * s),
+        Vec3::new((bx + 1) as f32 * s, hi * hf.height_scale, (bz + 1) as f32 * s),
+    )
+}
+
+/// LOD of the drawn block over each finest-grid cell (-1: nothing drawn there).
+pub fn lod_map(layout: &BlockLayout, blocks: &[DrawBlock]) -> Vec<i8> {
+    let cells = layout.cells();
+    let mut map = vec![-1i8; cells * cells];
+    for b in blocks {
+        let span = 1usize << b.lod;
+        let (cx, cz) = (b.bx as usize * span, b.bz as usize * span);
+        for z in cz..cz + span {
+            map[z * cells + cx..z * cells + cx + span].fill(b.lod as i8);
+        }
+    }
+    map
+}
+
+/// The vertex shader's placement of block vertex `(u, v)`, in plain Rust: the sample it
+/// lands on and its raw height, stitched and morphed (SPEC section 5). Must match
+/// `glsl/block_vertex.glsl` bit for bit.
+pub fn block_vertex(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, u: u32, v: u32) -> (i64, i64, f32) {
+    let last = layout.k() - 1;
+    let stride = b.stride() as i64;
+    let (ox, oz) = b.origin(layout);
+    let (mut sx, mut sz) = (ox as i64 + u as i64 * stride, oz as i64 + v as i64 * stride);
+    if let Some(c) = [(0, 0), (last, 0), (last, last), (0, last)].iter().position(|&p| p == (u, v)) {
+        return (sx, sz, b.corner(c, hf, sx, sz));
+    }
+    // Other edge vertices next to a coarser block follow that block's edge.
+    let side =
+        [(0, v == 0), (2, v == last), (1, u == last), (3, u == 0)].into_iter().find(|&(s, on)| on && b.coarser[s] > 0);
+    let Some((side, _)) = side else {
+        return (sx, sz, own_vertex_raw(hf, b, last, u, v, sx, sz));
+    };
+    let best = b.coarser[side] as i64;
+    let along = if side % 2 == 0 { u } else { v };
+    let coord = if side % 2 == 0 { sx } else { sz };
+    let rem = coord % best;
+    let [first, second] = EDGE_CORNERS[side];
+    if rem == 0 {
+        // A vertex of the coarser block, inside its edge.
+        (sx, sz, coarse_vertex_raw(hf, b, side, sx, sz))
+    } else if best <= last as i64 * stride {
+        // The neighbour has vertices at both ends of this edge: collapse onto the one
+        // below (degenerate triangles, no T-junction).
+        if side % 2 == 0 {
+            sx -= rem;
+        } else {
+            sz -= rem;
+        }
+        let h = if along as i64 * stride == rem {
+            b.corner(first, hf, sx, sz)
+        } else {
+            coarse_vertex_raw(hf, b, side, sx, sz)
+        };
+        (sx, sz, h)
+    } else {
+        // The whole edge lies inside one segment of the neighbour (LODs more than m
+        // apart: never in the traversal's block lists, which split such neighbours, but
+        // a block list may come from elsewhere): on the line between this edge's
+        // corners, which lie on that segment.
+        let (ca, cb) = if side % 2 == 0 {
+            (b.corner(first, hf, ox as i64, sz), b.corner(second, hf, ox as i64 + last as i64 * stride, sz))
+        } else {
+            (b.corner(first, hf, sx, oz as i64), b.corner(second, hf, sx, oz as i64 + last as i64 * stride))
+        };
+        (sx, sz, ca + (cb - ca) * (along as f32 / last as f32))
+    }
+}
+
+/// Height of the coarser neighbour's vertex at `(sx, sz)` on the edge across `side`, as
+/// that block draws it: its odd vertices morph with the edge's factor, which both blocks
+/// are given ([`crate::lod::morph`]), between the mean of the two vertices around it along
+/// the edge and their own sample. The neighbour's origin is a multiple of twice its
+/// stride, so a vertex's parity is that of its coordinate over the stride.
+fn coarse_vertex_raw(hf: &Heightfield, b: &DrawBlock, side: usize, sx: i64, sz: i64) -> f32 {
+    let raw = hf.raw_at(sx, sz);
+    let best = b.coarser[side] as i64;
+    let along_x = side.is_multiple_of(2);
+    let coord = if along_x { sx } else { sz };
+    let f = morph_value(b.edge_morph[side]);
+    if (coord / best) % 2 == 0 || f >= 1.0 {
+        return raw;
+    }
+    let (dx, dz) = if along_x { (best, 0) } else { (0, best) };
+    let p = (hf.raw_at(sx - dx, sz - dz) + hf.raw_at(sx + dx, sz + dz)) * 0.5;
+    morph_raw(p, raw, f)
+}
+
+/// `raw` moved towards the parent surface's height `p`: factor 1 is `raw` itself.
+#[inline]
+pub fn morph_raw(p: f32, raw: f32, f: f32) -> f32 {
+    if f >= 1.0 {
+        raw
+    } else {
+        p + (raw - p) * f
+    }
+}
+
+/// Height of the block's own vertex `(u, v)` at sample `(sx, sz)`: a vertex at an odd
+/// position lies on an edge or the a-i diagonal of its parent's quad, where the parent
+/// surface is the mean of the two samples around it.
+fn own_vertex_raw(hf: &Heightfield, b: &DrawBlock, last: u32, u: u32, v: u32, sx: i64, sz: i64) -> f32 {
+    let raw = hf.raw_at(sx, sz);
+    let (odd_u, odd_v) = (u % 2 == 1, v % 2 == 1);
+    let q = match (v, u) {
+        (0, _) => b.edge_morph[0],
+        (_, _) if v == last => b.edge_morph[2],
+        (_, _) if u == last => b.edge_morph[1],
+        (_, 0) => b.edge_morph[3],
+        _ => b.morph,
+    };
+    let f = morph_value(q);
+    if !(odd_u || odd_v) || f >= 1.0 {
+        return raw;
+    }
+    let s = b.stride() as i64;
+    let (dx, dz) = (if odd_u { s } else { 0 }, if odd_v { s } else { 0 });
+    let p = (hf.raw_at(sx - dx, sz - dz) + hf.raw_at(sx + dx, sz + dz)) * 0.5;
+    morph_raw(p, raw, f)
+}
+
+/// Frustum-visible test for the finest cell `(cx, cz)` (used by the tiling check).
+pub fn cell_visible(
+    hf: &Heightfield,
+    mm: &MinMaxPyramid,
+    layout: &BlockLayout,
+    frustum: &Frustum,
+    cx: u32,
+    cz: u32,
+) -> bool {
+    let s = layout.block_samples(0);
+    if (cx * s) as usize >= hf.width - 1 || (cz * s) as usize >= hf.height - 1 {
+        return false;
+    }
+    let (min, max) = block_aabb(hf, mm, layout, 0, cx, cz);
+    frustum.intersects_aabb(min, max)
+}

@@ -1,0 +1,301 @@
+//! The heightfield (SPEC section 1): raw samples embedded in a `2^n + 1` grid, the true
+//! extent, and a CPU height query. Files and the built-in terrain become one in
+//! [`crate::input`].
+
+use thiserror::Error;
+
+/// Largest grid side we accept from a file header before allocating (2^15 + 1).
+pub const MAX_SIDE: usize = 32769;
+
+/// Why a heightfield could not be loaded. Every message names the file.
+#[derive(Debug, Error)]
+pub enum HeightfieldError {
+    #[error("{path}: {message}")]
+    Invalid { path: String, message: String },
+    #[error("{path}: {source}")]
+    Io {
+        path: String,
+        #[source]
+        source: std::io::Error,
+    },
+}
+
+impl HeightfieldError {
+    pub fn invalid(path: &str, message: impl Into<String>) -> Self {
+        HeightfieldError::Invalid { path: path.to_string(), message: message.into() }
+    }
+}
+
+/// The smallest `2^n + 1` (n >= 1) that is at least `samples`.
+pub fn grid_side(samples: usize) -> usize {
+    let mut n = 1;
+    while (1usize << n) + 1 < samples {
+        n += 1;
+    }
+    (1usize << n) + 1
+}
+
+/// How heights are stored on the GPU.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum HeightFormat {
+    /// Integer samples 0..=65535 in an R16_UNORM image (16- and 8-bit inputs).
+    Unorm16,
+    /// Anything else (signed, float) in an R32_SFLOAT image.
+    Float32,
+}
+
+/// A heightfield embedded in a square grid of side `2^n + 1`.
+#[derive(Clone, Debug)]
+pub struct Heightfield {
+    /// `n` of the grid side `2^n + 1`.
+    pub n: u32,
+    /// Raw samples (the file's units), row-major: index `z * side + x`.
+    pub raw: Vec<f32>,
+    /// True extent in samples (columns, rows); the rest is the clamped margin.
+    pub width: usize,
+    pub height: usize,
+    /// Metres (world units) between samples.
+    pub spacing: f32,
+    /// World units per raw unit.
+    pub height_scale: f32,
+    pub format: HeightFormat,
+    /// Where the data came from, for messages and stats.
+    pub source: String,
+}
+
+impl Heightfield {
+    /// Embeds `width x height` raw samples (row-major) in the smallest `2^n + 1` grid,
+    /// clamping to the edge.
+    pub fn embed(
+        source: &str,
+        width: usize,
+        height: usize,
+        samples: &[f32],
+        format: HeightFormat,
+        spacing: f32,
+        height_scale: f32,
+    ) -> Result<Self, HeightfieldError> {
+        if width < 3 || height < 3 {
+            return Err(HeightfieldError::invalid(
+                source,
+                format!("{width} x {height} is too small: a heightfield needs at least 3 x 3 samples"),
+            ));
+        }
+        if width > MAX_SIDE || height > MAX_SIDE {
+            return Err(HeightfieldError::invalid(
+                source,
+                format!("{width} x {height} is larger than the supported {MAX_SIDE} samples a side"),
+            ));
+        }
+        if samples.len() != width * height {
+            return Err(HeightfieldError::invalid(
+                source,
+                format!("expected {} samples, found {}", width * height, samples.len()),
+            ));
+        }
+        if let Some(i) = samples.iter().position(|v| !v.is_finite()) {
+            return Err(HeightfieldError::invalid(
+                source,
+                format!("sample at column {}, row {} is not a finite number", i % width, i / width),
+            ));
+        }
+        let side = grid_side(width.max(height));
+        let n = (side - 1).trailing_zeros();
+        let mut raw = vec![0.0f32; side * side];
+        for z in 0..side {
+            let sz = z.min(height - 1);
+            for x in 0..side {
+                raw[z * side + x] = samples[sz * width + x.min(width - 1)];
+            }
+        }
+        Ok(Heightfield { n, raw, width, height, spacing, height_scale, format, source: source.to_string() })
+    }
+
+    /// Grid side `2^n + 1`.
+    pub fn side(&self) -> usize {
+        (1usize << self.n) + 1
+    }
+
+    /// Raw sample at integer coordinates (clamped to the grid).
+    #[inline]
+    pub fn raw_at(&self, x: i64, z: i64) -> f32 {
+        let s = self.side() as i64;
+        let x = x.clamp(0, s - 1) as usize;
+        let z = z.clamp(0, s - 1) as usize;
+        self.raw[z * self.side() + x]
+    }
+
+    /// World height of a sample, computed as the shaders do (raw * scale in f32).
+    #[inline]
+    pub fn height_at(&self, x: i64, z: i64) -> f32 {
+        self.raw_at(x, z) * self.height_scale
+    }
+
+    /// Height of the full-resolution surface the renderer draws at world `(wx, wz)`:
+    /// each quad is split along the diagonal from `(x, z)` to `(x+1, z+1)`.
+    pub fn surface_height(&self, wx: f32, wz: f32) -> f32 {
+        let max = (self.side() - 1) as f32;
+        let px = (wx / self.spacing).clamp(0.0, max);
+        let pz = (wz / self.spacing).clamp(0.0, max);
+        let x0 = (px.floor() as i64).min(self.side() as i64 - 2);
+        let z0 = (pz.floor() as i64).min(self.side() as i64 - 2);
+        let fx = px - x0 as f32;
+        let fz = pz - z0 as f32;
+        let h00 = self.height_at(x0, z0);
+        let h10 = self.height_at(x0 + 1, z0);
+        let h01 = self.height_at(x0, z0 + 1);
+        let h11 = self.height_at(x0 + 1, z0 + 1);
+        if fx >= fz {
+            h00 + fx * (h10 - h00) + fz * (h11 - h10)
+        } else {
+            h00 + fz * (h01 - h00) + fx * (h11 - h01)
+        }
+    }
+
+    /// World size of the true extent (x, z).
+    pub fn world_extent(&self) -> (f32, f32) {
+        ((self.width - 1) as f32 * self.spacing, (self.height - 1) as f32 * self.spacing)
+    }
+
+    /// World height at or below which level ground is shaded as water: the lowest
+    /// height plus a thousandth of the height range (`raw_range`, raw units), sea level
+    /// in most DEMs.
+    pub fn sea_level(&self, raw_range: [f32; 2]) -> f32 {
+        let (lo, hi) = (raw_range[0] * self.height_scale, raw_range[1] * self.height_scale);
+        lo + 1e-3 * (hi - lo).max(1e-6)
+    }
+
+    /// The terrain shader's per-sample data, computed once so that a pixel fetches four
+    /// texels instead of twenty heights: the gradient `(dH/dx, dH/dz)` in world units
+    /// (central differences, edges clamped) as R16G16_SNORM texels, with the scale that
+    /// turns `[-1, 1]` back into gradients; and in the lowest bit of the z texel, whether
+    /// the sample's world height is at most `sea_level` (the water test; the z gradient
+    /// is then rounded to even units, one unit in 32767 at most).
+    pub fn gradient_map(&self, sea_level: f32) -> (Vec<[i16; 2]>, f32) {
+        let side = self.side() as i64;
+        let h = |x: i64, z: i64| self.height_at(x.clamp(0, side - 1), z.clamp(0, side - 1));
+        let inv = 1.0 / (2.0 * self.spacing);
+        let grads: Vec<[f32; 2]> = (0..side * side)
+            .map(|i| {
+                let (x, z) = (i % side, i / side);
+                [(h(x + 1, z) - h(x - 1, z)) * inv, (h(x, z + 1) - h(x, z - 1)) * inv]
+            })
+            .collect();
+        let scale = grads.iter().flatten().fold(0.0f32, |m, g| m.max(g.abs())).max(f32::MIN_POSITIVE);
+        let texel = |v: f32| (v / scale * 32767.0).round() as i16;
+        // The z texel is the nearest even integer (one unit off at most, level ground
+        // exact), plus the flag; the shader clears the flag before using the gradient.
+        // -32768 reads back as -1.0 like -32767, so it is never written.
+        let flagged = |v: f32, flag: bool| {
+            let even = (2.0 * (v / scale * 32767.0 / 2.0).round()).clamp(-32766.0, 32766.0) as i16;
+            even | flag as i16
+        };
+        let texels = (grads.iter().enumerate())
+            .map(|(i, g)| {
+                let sea = self.height_at(i as i64 % side, i as i64 / side) <= sea_level;
+                [texel(g[0]), flagged(g[1], sea)]
+            })
+            .collect();
+        (texels, scale)
+    }
+
+    /// Bytes of the heightfield image on the GPU.
+    pub fn gpu_bytes(&self) -> usize {
+        let texel = match self.format {
+            HeightFormat::Unorm16 => 2,
+            HeightFormat::Float32 => 4,
+        };
+        self.side() * self.side() * texel
+    }
+}
+
+/// A crafted float field of `w x h` samples at spacing 1, for the core's unit tests.
+#[cfg(test)]
+pub(crate) fn test_field(w: usize, h: usize, f: impl Fn(usize, usize) -> f32) -> Heightfield {
+    let s: Vec<f32> = (0..w * h).map(|i| f(i % w, i / w)).collect();
+    Heightfield::embed("test", w, h, &s, HeightFormat::Float32, 1.0, 1.0).unwrap()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::test_field as field;
+    use super::*;
+
+    #[test]
+    fn embeds_in_smallest_grid_with_clamped_margin() {
+        let hf = field(5, 3, |x, z| (x + 10 * z) as f32);
+        assert_eq!(hf.side(), 5);
+        assert_eq!((hf.width, hf.height), (5, 3));
+        assert_eq!(hf.raw_at(4, 4), hf.raw_at(4, 2));
+        let hf = field(6, 3, |x, _| x as f32);
+        assert_eq!(hf.side(), 9);
+        assert_eq!(hf.raw_at(8, 0), 5.0);
+        let hf = field(1201, 1201, |_, _| 0.0);
+        assert_eq!(hf.side(), 2049);
+    }
+
+    #[test]
+    fn rejects_tiny_and_non_finite() {
+        let e = Heightfield::embed("f.r16", 2, 2, &[0.0; 4], HeightFormat::Float32, 1.0, 1.0);
+        assert!(e.unwrap_err().to_string().starts_with("f.r16: 2 x 2 is too small"));
+        let mut s = vec![0.0; 9];
+        s[4] = f32::NAN;
+        let e = Heightfield::embed("g.tif", 3, 3, &s, HeightFormat::Float32, 1.0, 1.0);
+        assert!(e.unwrap_err().to_string().contains("column 1, row 1 is not a finite"));
+    }
+
+    /// The shader reads the sea flag back as `round(snorm * 32767) & 1`; check that on
+    /// the texels most likely to break it (the largest gradients of either sign, where
+    /// clamping meets the bit) and that the flag is exactly `height <= sea_level`.
+    #[test]
+    fn gradient_map_keeps_the_sea_flag_and_the_gradient() {
+        // A sea-level band (rows 3 to 5) between two ridges: the largest gradients, of
+        // both signs, fall on sea samples at the band's edges.
+        let hf =
+            field(9, 9, |x, z| if (3..=5).contains(&z) { 0.0 } else { (4.0 - (x as f32 - 4.0).abs()) * 100.0 + 50.0 });
+        let sea = hf.sea_level([0.0, 450.0]);
+        let (texels, scale) = hf.gradient_map(sea);
+        let side = hf.side();
+        let mut seen = [0; 2];
+        for (i, t) in texels.iter().enumerate() {
+            let (x, z) = ((i % side) as i64, (i / side) as i64);
+            let as_read = |v: i16| (v as f32 / 32767.0).max(-1.0);
+            let units = (as_read(t[1]) * 32767.0).round() as i32;
+            let bit = units & 1 != 0;
+            assert_eq!(bit, hf.height_at(x, z) <= sea, "sample ({x}, {z})");
+            seen[bit as usize] += 1;
+            let gx = (hf.height_at(x + 1, z) - hf.height_at(x - 1, z)) / (2.0 * hf.spacing);
+            let gz = (hf.height_at(x, z + 1) - hf.height_at(x, z - 1)) / (2.0 * hf.spacing);
+            assert!((as_read(t[0]) * scale - gx).abs() <= 0.51 * scale / 32767.0, "gx at ({x}, {z})");
+            let even = (units & !1) as f32 / 32767.0;
+            assert!((even * scale - gz).abs() <= 1.01 * scale / 32767.0, "gz at ({x}, {z})");
+            if gz == 0.0 {
+                assert_eq!(even, 0.0, "level ground at ({x}, {z})");
+            }
+        }
+        assert!(seen[0] > 0 && seen[1] > 0, "{seen:?}");
+        assert!(texels.iter().any(|t| t[1] == -32765), "the negative extreme was not exercised");
+        assert!(texels.iter().any(|t| t[1] == -32766), "the negative extreme was not exercised");
+        assert!(texels.iter().any(|t| t[1] == 32767), "the positive extreme was not exercised");
+    }
+
+    #[test]
+    fn surface_height_uses_the_a_i_diagonal() {
+        // Only the far corner is raised: the a-i diagonal split puts the centre at 0.5.
+        let hf = field(3, 3, |x, z| {
+            if x >= 1 && z >= 1 {
+                if x == 1 && z == 1 {
+                    1.0
+                } else {
+                    0.0
+                }
+            } else {
+                0.0
+            }
+        });
+        assert_eq!(hf.surface_height(0.5, 0.5), 0.5);
+        // On the b-h (anti-)diagonal the answer would differ: check a point off the diagonal.
+        assert_eq!(hf.surface_height(0.75, 0.25), 0.25);
+        assert_eq!(hf.surface_height(1.0, 1.0), 1.0);
+    }
+}

@@ -1,0 +1,515 @@
+//! What stitching costs in the bound (SPEC section 5, cracks). An edge next to a coarser
+//! block collapses its in-between vertices onto the coarser block's vertices (or, when the
+//! whole edge lies inside one coarse segment, moves them onto it): watertight with no
+//! T-junction, but the first strip of quads along that edge is re-triangulated with fan
+//! triangles whose surface neither block's error covers. This module measures that strip
+//! exactly: `max |H - S|` over the samples under the stitched strip `S`, which depends on
+//! the block and its neighbours' LODs but not on the camera, so it is computed once per
+//! configuration and cached, for both ends of the morph (see `morph.rs`). The traversal
+//! projects it like any world-space deviation.
+
+use crate::lod::block::{block_vertex, BlockLayout, DrawBlock};
+use crate::lod::block_cache::BoundedCache;
+use crate::lod::heightfield::Heightfield;
+use crate::lod::pyramid::MinMaxPyramid;
+use std::ops::RangeInclusive;
+
+/// Deviation of the stitched strips of one block, in raw height units.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct StripDeviation {
+    /// `max |H - S|` over the strip along each edge (north, east, south, west); 0 for
+    /// edges without a coarser neighbour.
+    pub edge: [f32; 4],
+    /// Raw height range of the stitched strips' surface: vertices moved onto a coarse
+    /// segment may leave the block's own min/max (the AABB the bound projects with).
+    pub lo: f32,
+    pub hi: f32,
+}
+
+impl StripDeviation {
+    pub fn max(&self) -> f32 {
+        self.edge.iter().cloned().fold(0.0, f32::max)
+    }
+}
+
+/// The block size (`m`), the block (LOD, position, neighbours, corners; unmorphed) and
+/// the edges measured.
+type Key = (u32, DrawBlock, u8);
+
+/// Strip deviations and edge regions already computed, by block and neighbour strides.
+/// None depends on the camera, so a block keeps its entries while it stays drawn.
+#[derive(Clone, Debug, Default)]
+pub struct StitchCache {
+    strips: BoundedCache<Key, StripDeviation>,
+    regions: BoundedCache<Key, EdgeRegions>,
+    bounds: BoundedCache<Key, EdgeRegions>,
+}
+
+/// Exact deviation (raw units) of a block's edge regions in every combination of the
+/// morph states of the vertex groups they touch (`morph.rs`): the strip along each edge
+/// without its corner quads touches the interior vertices (factor `f`) and that edge's
+/// (`e`); a corner quad touches the interior and both edges meeting there. Vertices on
+/// the edges in `fixed` never morph.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct EdgeRegions {
+    /// Per edge and segment of its strip ([`strip_segment`]), state `2 f + e` (0:
+    /// parent, 1: own): each segment is projected from its own box.
+    pub side: [[[f32; 4]; STRIP_SEGMENTS]; 4],
+    /// Per corner (NW, NE, SE, SW, between the edges in [`CORNER_EDGES`]), state
+    /// `4 f + 2 e_a + e_b`.
+    pub corner: [[f32; 8]; 4],
+    /// Raw height range of the vertices in every state.
+    pub lo: f32,
+    pub hi: f32,
+}
+
+/// Segments a strip is measured in, so that each is projected from its own distance.
+pub const STRIP_SEGMENTS: usize = 8;
+
+/// The segment of quad `t` (0..=`last`, along the edge) of a strip.
+pub fn strip_segment(t: u32, last: u32) -> usize {
+    (t as usize * STRIP_SEGMENTS) / (last as usize + 1)
+}
+
+/// Quad `t` (0..=`last`) of the first row along edge `e`.
+fn strip_quad(e: usize, t: u32, last: u32) -> (u32, u32) {
+    match e {
+        0 => (t, 0),
+        1 => (last, t),
+        2 => (t, last),
+        _ => (0, t),
+    }
+}
+
+/// The two edges meeting at each corner (NW, NE, SE, SW).
+pub const CORNER_EDGES: [[usize; 2]; 4] = [[0, 3], [0, 1], [2, 1], [2, 3]];
+
+impl StitchCache {
+    /// The edge regions of `b` (its morph factors ignored) whose edges in `fixed` do not
+    /// morph.
+    pub fn regions(&self, hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, fixed: u8) -> EdgeRegions {
+        self.regions.get_or_compute((layout.m, b.unmorphed(), fixed), || edge_regions(hf, layout, b, fixed))
+    }
+
+    /// [`edge_regions_bound`] of `b` (its morph factors ignored), cached: it is asked for
+    /// every drawn block every frame.
+    pub fn regions_bound(
+        &self,
+        hf: &Heightfield,
+        mm: &MinMaxPyramid,
+        layout: &BlockLayout,
+        b: &DrawBlock,
+        fixed: u8,
+    ) -> EdgeRegions {
+        self.bounds
+            .get_or_compute((layout.m, b.unmorphed(), fixed), || edge_regions_bound(hf, mm, self, layout, b, fixed))
+    }
+
+    /// The stitched strips of `b` (the edges next to a coarser block), unmorphed.
+    pub fn get(&self, hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock) -> StripDeviation {
+        let sides = coarser_sides(b);
+        self.strips
+            .get_or_compute((layout.m, b.unmorphed(), sides), || strip_deviation(hf, layout, &b.unmorphed(), sides))
+    }
+}
+
+/// Bit `e` set for each edge `e` next to a coarser block.
+pub fn coarser_sides(b: &DrawBlock) -> u8 {
+    (0..4).filter(|&e| b.coarser[e] > 0).fold(0, |m, e| m | 1 << e)
+}
+
+/// Exact deviation of the strips of `b` along the edges in `sides`: the first row of
+/// quads along an edge, where collapsed (stitched) vertices and edge vertices with their
+/// own morph factor sit.
+pub fn strip_deviation(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, sides: u8) -> StripDeviation {
+    let mut out = StripDeviation { edge: [0.0; 4], lo: f32::INFINITY, hi: f32::NEG_INFINITY };
+    let last = layout.k() - 2; // last quad index
+    for e in 0..4 {
+        if sides & (1 << e) == 0 {
+            continue;
+        }
+        let mut m = 0.0f32;
+        for t in 0..=last {
+            let (u, v) = strip_quad(e, t, last);
+            let vert = |uu: u32, vv: u32| block_vertex(hf, layout, b, uu, vv);
+            let (a, c, i, g) = (vert(u, v), vert(u + 1, v), vert(u + 1, v + 1), vert(u, v + 1));
+            for tri in [[a, c, i], [a, i, g]] {
+                for p in &tri {
+                    out.lo = out.lo.min(p.2);
+                    out.hi = out.hi.max(p.2);
+                }
+                m = m.max(triangle_deviation(hf, &tri));
+            }
+        }
+        out.edge[e] = m;
+    }
+    if out.lo > out.hi {
+        out.lo = 0.0;
+        out.hi = 0.0;
+    }
+    out
+}
+
+/// See [`EdgeRegions`]. The triangulation is the same in every state (only heights
+/// move), so each sample's barycentric weights are found once for all states.
+pub fn edge_regions(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, fixed: u8) -> EdgeRegions {
+    use crate::lod::block::MORPH_ONE;
+    let last = layout.k() - 2; // last quad index
+    let mut out = EdgeRegions { lo: f32::INFINITY, hi: f32::NEG_INFINITY, ..Default::default() };
+    let state = |f: bool, edges: &[(usize, bool)]| {
+        let q = |on: bool| if on { MORPH_ONE } else { 0 };
+        let mut s = DrawBlock { morph: q(f), edge_morph: [MORPH_ONE; 4], ..*b };
+        for &(e, on) in edges {
+            if fixed & (1 << e) == 0 {
+                s.edge_morph[e] = q(on);
+            }
+        }
+        s
+    };
+    // Quad (u, v)'s deviation in each of the states `s`.
+    let mut quad_dev = |s: &[DrawBlock], u: u32, v: u32, dev: &mut [f32]| {
+        let corners = [(u, v), (u + 1, v), (u + 1, v + 1), (u, v + 1)];
+        let mut pos = [(0i64, 0i64); 4];
+        let mut heights = [[0.0f32; 4]; 8];
+        for (st, block) in s.iter().enumerate() {
+            for (c, &(uu, vv)) in corners.iter().enumerate() {
+                let (x, z, h) = block_vertex(hf, layout, block, uu, vv);
+                debug_assert!(st == 0 || pos[c] == (x, z), "a morph state moved a vertex in x or z");
+                pos[c] = (x, z);
+                heights[st][c] = h;
+                out.lo = out.lo.min(h);
+                out.hi = out.hi.max(h);
+            }
+        }
+        for tri in [[0, 1, 2], [0, 2, 3]] {
+            let p = tri.map(|c| pos[c]);
+            let h: [[f32; 3]; 8] = std::array::from_fn(|st| tri.map(|c| heights[st][c]));
+            triangle_deviation_states(hf, p, &h[..s.len()], dev);
+        }
+    };
+    let mut dev = [0.0f32; 8];
+    for e in 0..4 {
+        let states: [DrawBlock; 4] = std::array::from_fn(|st| state(st & 2 != 0, &[(e, st & 1 != 0)]));
+        for t in 1..last {
+            let (u, v) = strip_quad(e, t, last);
+            dev[..4].fill(0.0);
+            quad_dev(&states, u, v, &mut dev[..4]);
+            let m = &mut out.side[e][strip_segment(t, last)];
+            for (m, d) in m.iter_mut().zip(&dev) {
+                *m = m.max(*d);
+            }
+        }
+    }
+    for (c, [ea, eb]) in CORNER_EDGES.iter().copied().enumerate() {
+        let (u, v) = [(0, 0), (last, 0), (last, last), (0, last)][c];
+        let states: [DrawBlock; 8] =
+            std::array::from_fn(|st| state(st & 4 != 0, &[(ea, st & 2 != 0), (eb, st & 1 != 0)]));
+        dev.fill(0.0);
+        quad_dev(&states, u, v, &mut dev);
+        out.corner[c] = dev;
+    }
+    if out.lo > out.hi {
+        out.lo = 0.0;
+        out.hi = 0.0;
+    }
+    out
+}
+
+/// A cheap upper bound on [`edge_regions`], for blocks seen for the first time (the exact
+/// regions cost `O(k * stride^2)` samples per state; this costs `O(k)` vertices). In any
+/// state the drawn surface is the unmorphed one with each vertex moved by its own
+/// group's displacement times `1 - factor`, and a point of a triangle moves by at most
+/// its vertices' largest move, so a region's deviation is at most the unmorphed
+/// surface's there (the quad's `D_j`, or the stitched strip's exact deviation along an
+/// edge next to a coarser block, which the selection has measured) plus the largest move
+/// of a vertex group it touches, scaled by that group's `1 - factor`.
+pub fn edge_regions_bound(
+    hf: &Heightfield,
+    mm: &MinMaxPyramid,
+    strips: &StitchCache,
+    layout: &BlockLayout,
+    b: &DrawBlock,
+    fixed: u8,
+) -> EdgeRegions {
+    use crate::lod::block::MORPH_ONE;
+    let last = layout.k() - 2; // last quad index
+    let kk = layout.k() - 1; // last vertex index
+    let one = b.unmorphed();
+    let zero = DrawBlock {
+        morph: 0,
+        edge_morph: std::array::from_fn(|s| if fixed & (1 << s) != 0 { MORPH_ONE } else { 0 }),
+        ..*b
+    };
+    let stitched = if coarser_sides(b) != 0 { strips.get(hf, layout, b).edge } else { [0.0; 4] };
+    let (ox, oz) = b.origin(layout);
+    let st = b.stride();
+    let quad_dev = |u: u32, v: u32| {
+        if b.lod == 0 {
+            0.0
+        } else {
+            mm.deviation(b.lod, (ox / st + u) as usize, (oz / st + v) as usize)
+        }
+    };
+    let mut out = EdgeRegions { lo: f32::INFINITY, hi: f32::NEG_INFINITY, ..Default::default() };
+    // How far vertex (u, v) moves between factor 0 and 1 of its group, and the group:
+    // Some(edge) or None for the interior (the corners never move).
+    // Each vertex is shared by up to four quads of the strips: measured once.
+    let mut measured: Vec<Option<f32>> = vec![None; (kk as usize + 1).pow(2)];
+    let mut moves = |u: u32, v: u32| -> (f32, Option<usize>) {
+        let m = *measured[(v * (kk + 1) + u) as usize].get_or_insert_with(|| {
+            let a = block_vertex(hf, layout, &one, u, v).2;
+            let z = block_vertex(hf, layout, &zero, u, v).2;
+            out.lo = out.lo.min(a.min(z));
+            out.hi = out.hi.max(a.max(z));
+            (a - z).abs()
+        });
+        let group = [(0, v == 0), (2, v == kk), (1, u == kk), (3, u == 0)].into_iter().find(|g| g.1).map(|g| g.0);
+        (m, group)
+    };
+    let mut side = [[[0.0f32, 0.0, 0.0, 0.0]; STRIP_SEGMENTS]; 4];
+    let mut seg = [[[0.0f32; 3]; STRIP_SEGMENTS]; 4]; // unmorphed deviation, interior move, edge move
+    for (e, segs) in seg.iter_mut().enumerate() {
+        for t in 1..last {
+            let (u, v) = strip_quad(e, t, last);
+            let g = &mut segs[strip_segment(t, last)];
+            g[0] = g[0].max(if b.coarser[e] > 0 { stitched[e] } else { quad_dev(u, v) });
+            for (vu, vv) in [(u, v), (u + 1, v), (u + 1, v + 1), (u, v + 1)] {
+                let (m, group) = moves(vu, vv);
+                let at = if group == Some(e) { 2 } else { 1 };
+                g[at] = g[at].max(m);
+            }
+        }
+    }
+    for (e, segs) in seg.iter().enumerate() {
+        for (g, &[d, int, edge]) in segs.iter().enumerate() {
+            // State 2 f + e.
+            side[e][g] = [d + int.max(edge), d + int, d + edge, d];
+        }
+    }
+    out.side = side;
+    for (c, [ea, eb]) in CORNER_EDGES.iter().copied().enumerate() {
+        let (u, v) = [(0, 0), (last, 0), (last, last), (0, last)][c];
+        let d = quad_dev(u, v).max(stitched[ea]).max(stitched[eb]);
+        let (mut int, mut a, mut bm) = (0.0f32, 0.0f32, 0.0f32);
+        for (vu, vv) in [(u, v), (u + 1, v), (u + 1, v + 1), (u, v + 1)] {
+            match moves(vu, vv) {
+                (m, Some(g)) if g == ea => a = a.max(m),
+                (m, Some(g)) if g == eb => bm = bm.max(m),
+                (m, _) => int = int.max(m),
+            }
+        }
+        for st in 0..8 {
+            let off = |on: bool, m: f32| if on { 0.0 } else { m };
+            out.corner[c][st] = d + off(st & 4 != 0, int).max(off(st & 2 != 0, a)).max(off(st & 1 != 0, bm));
+        }
+    }
+    if out.lo > out.hi {
+        out.lo = 0.0;
+        out.hi = 0.0;
+    }
+    out
+}
+
+/// `max |H - T|` over the integer samples inside triangle `t` (edges included); 0 for a
+/// degenerate (collapsed) triangle, which covers nothing.
+fn triangle_deviation(hf: &Heightfield, t: &[(i64, i64, f32); 3]) -> f32 {
+    let mut m = [0.0f32];
+    triangle_deviation_states(hf, t.map(|p| (p.0, p.1)), &[t.map(|p| p.2)], &mut m);
+    m[0]
+}
+
+/// [`triangle_deviation`] of the triangle with corners `pos` and, in each state `s`, corner
+/// heights `heights[s]`, raised into `dev[s]`.
+fn triangle_deviation_states(hf: &Heightfield, pos: [(i64, i64); 3], heights: &[[f32; 3]], dev: &mut [f32]) {
+    let z0 = pos.iter().map(|p| p.1).min().unwrap_or(0);
+    let z1 = pos.iter().map(|p| p.1).max().unwrap_or(0);
+    for z in z0..=z1 {
+        // Only the row's samples inside the triangle (half of its box, for the
+        // right-angled triangles of a quad) get weights.
+        for x in inside_row(pos, z) {
+            let w = crate::lod::geometry::barycentric(&pos, x, z);
+            debug_assert!(w.is_some(), "({x}, {z}) is outside {pos:?}");
+            let Some(w) = w else { continue };
+            let raw = hf.raw_at(x, z);
+            for (d, h) in dev.iter_mut().zip(heights) {
+                *d = d.max((raw - crate::lod::geometry::weighted(w, *h)).abs());
+            }
+        }
+    }
+}
+
+/// The samples of row `z` inside the triangle `pos` (edges included; none for a
+/// degenerate one): exactly those for which [`crate::lod::geometry::barycentric`] finds weights.
+/// Each of its three edge tests is linear in `x` along the row, `a x + b >= 0`, which
+/// bounds `x` from one side (or, with `a = 0`, keeps or empties the row), in integers.
+fn inside_row(pos: [(i64, i64); 3], z: i64) -> RangeInclusive<i64> {
+    let [(x0, z0), (x1, z1), (x2, z2)] = pos;
+    let det = (x1 - x0) * (z2 - z0) - (x2 - x0) * (z1 - z0);
+    // An empty range.
+    let empty = || RangeInclusive::new(1, 0);
+    if det == 0 {
+        return empty();
+    }
+    let s = det.signum();
+    // barycentric's n1, n2 and n0 = det - n1 - n2 as a x + b, times the sign of det.
+    let (a1, b1) = (z2 - z0, -x0 * (z2 - z0) - (x2 - x0) * (z - z0));
+    let (a2, b2) = (-(z1 - z0), (x1 - x0) * (z - z0) + x0 * (z1 - z0));
+    let (a0, b0) = (-a1 - a2, det - b1 - b2);
+    let (mut lo, mut hi) = (pos.iter().map(|p| p.0).min().unwrap_or(0), pos.iter().map(|p| p.0).max().unwrap_or(0));
+    for (a, b) in [(a1 * s, b1 * s), (a2 * s, b2 * s), (a0 * s, b0 * s)] {
+        match a.signum() {
+            // x >= ceil(-b / a)
+            1 => lo = lo.max(-(b.div_euclid(a))),
+            // x <= floor(b / -a)
+            -1 => hi = hi.min(b.div_euclid(-a)),
+            _ if b < 0 => return empty(),
+            _ => {}
+        }
+    }
+    lo..=hi
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn field(side: usize, f: impl Fn(usize, usize) -> f32) -> Heightfield {
+        crate::lod::heightfield::test_field(side, side, f)
+    }
+
+    fn cache_free(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock) -> StripDeviation {
+        StitchCache::default().get(hf, layout, b)
+    }
+
+    /// The row scan finds exactly the samples that the barycentric test accepts, for
+    /// triangles of every shape and winding (thin, collinear, on negative coordinates).
+    #[test]
+    fn inside_rows_are_exactly_the_barycentric_samples() {
+        let mut seed = 0x2545f4914f6cdd1du64;
+        let mut next = |n: i64| {
+            seed ^= seed << 13;
+            seed ^= seed >> 7;
+            seed ^= seed << 17;
+            (seed % (2 * n as u64 + 1)) as i64 - n
+        };
+        let mut tris: Vec<[(i64, i64); 3]> = vec![
+            [(0, 0), (8, 0), (8, 8)],
+            [(0, 0), (8, 8), (8, 0)],
+            [(0, 0), (4, 4), (8, 8)],
+            [(3, 3), (3, 3), (3, 3)],
+            [(0, 0), (1, 7), (2, 14)],
+            [(-5, 2), (9, 3), (-4, 4)],
+            [(0, 0), (32, 0), (0, 32)],
+        ];
+        for _ in 0..3000 {
+            let r = if tris.len().is_multiple_of(2) { 3 } else { 40 };
+            tris.push([(next(r), next(r)), (next(r), next(r)), (next(r), next(r))]);
+        }
+        let mut inside = 0;
+        for t in &tris {
+            let z0 = t.iter().map(|p| p.1).min().unwrap();
+            let z1 = t.iter().map(|p| p.1).max().unwrap();
+            let x0 = t.iter().map(|p| p.0).min().unwrap();
+            let x1 = t.iter().map(|p| p.0).max().unwrap();
+            for z in z0 - 1..=z1 + 1 {
+                let row = inside_row(*t, z);
+                for x in x0 - 1..=x1 + 1 {
+                    let want = crate::lod::geometry::barycentric(t, x, z).is_some();
+                    assert_eq!(row.contains(&x), want, "{t:?} at ({x}, {z})");
+                    inside += want as usize;
+                }
+            }
+        }
+        assert!(inside > 10_000, "the triangles cover {inside} samples");
+    }
+
+    #[test]
+    fn no_coarser_neighbour_costs_nothing() {
+        let hf = field(33, |x, z| ((x * 5 + z * 3) % 7) as f32);
+        let layout = BlockLayout::new(hf.n, 9).unwrap();
+        let b = DrawBlock::new(0, 1, 1);
+        assert_eq!(cache_free(&hf, &layout, &b).max(), 0.0);
+    }
+
+    /// A ridge perpendicular to the north edge, in the first interior row: the collapsed
+    /// fan spreads the ridge's height over the strip, which neither block's error covers
+    /// (the LOD-0 block has none, the coarse block never sees row 1).
+    #[test]
+    fn a_ridge_in_the_first_row_shows_in_the_strip() {
+        let hf = field(33, |x, z| {
+            if z == 8 && x == 3 {
+                10.0
+            } else if z == 9 && x == 3 {
+                50.0
+            } else {
+                0.0
+            }
+        });
+        let layout = BlockLayout::new(hf.n, 9).unwrap();
+        // LOD-0 block (0, 1) spans z = 8..16; its north neighbour is coarser (stride 2).
+        let b = DrawBlock { coarser: [2, 0, 0, 0], ..DrawBlock::new(0, 0, 1) };
+        let d = strip_deviation(&hf, &layout, &b, coarser_sides(&b));
+        assert!(d.edge[0] > 0.0 && d.edge[1..] == [0.0; 3], "{d:?}");
+        let cache = StitchCache::default();
+        assert_eq!(cache.get(&hf, &layout, &b), d);
+        assert_eq!(cache.get(&hf, &layout, &b), d);
+    }
+
+    /// The regions measured one state at a time, quad by quad (what `edge_regions`
+    /// computes with each sample's weights shared across states).
+    fn regions_state_by_state(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, fixed: u8) -> EdgeRegions {
+        use crate::lod::block::MORPH_ONE;
+        let last = layout.k() - 2;
+        let mut out = EdgeRegions::default();
+        let state = |f: bool, edges: &[(usize, bool)]| {
+            let q = |on: bool| if on { MORPH_ONE } else { 0 };
+            let mut s = DrawBlock { morph: q(f), edge_morph: [MORPH_ONE; 4], ..*b };
+            for &(e, on) in edges {
+                if fixed & (1 << e) == 0 {
+                    s.edge_morph[e] = q(on);
+                }
+            }
+            s
+        };
+        let quad = |s: &DrawBlock, u: u32, v: u32| {
+            let vert = |uu: u32, vv: u32| block_vertex(hf, layout, s, uu, vv);
+            let (a, c, i, g) = (vert(u, v), vert(u + 1, v), vert(u + 1, v + 1), vert(u, v + 1));
+            triangle_deviation(hf, &[a, c, i]).max(triangle_deviation(hf, &[a, i, g]))
+        };
+        for e in 0..4 {
+            for st in 0..4 {
+                let s = state(st & 2 != 0, &[(e, st & 1 != 0)]);
+                for t in 1..last {
+                    let (u, v) = strip_quad(e, t, last);
+                    let m = &mut out.side[e][strip_segment(t, last)][st];
+                    *m = m.max(quad(&s, u, v));
+                }
+            }
+        }
+        for (c, [ea, eb]) in CORNER_EDGES.iter().copied().enumerate() {
+            let (u, v) = [(0, 0), (last, 0), (last, last), (0, last)][c];
+            for st in 0..8 {
+                out.corner[c][st] = quad(&state(st & 4 != 0, &[(ea, st & 2 != 0), (eb, st & 1 != 0)]), u, v);
+            }
+        }
+        out
+    }
+
+    /// Rough terrain, a LOD-1 block with coarser blocks on two sides (collapsed, stitched
+    /// vertices) and every choice of fixed edges: every region in every state equals the
+    /// state-by-state measure.
+    #[test]
+    fn edge_regions_equal_the_state_by_state_measure() {
+        let hf = field(65, |x, z| ((x * 7919 + z * 104_729) % 61) as f32 + (x as f32 * 0.3).sin() * 20.0);
+        let layout = BlockLayout::new(hf.n, 9).unwrap();
+        for coarser in [[0, 0, 0, 0], [4, 0, 0, 8], [0, 4, 8, 0]] {
+            let b = DrawBlock { coarser, ..DrawBlock::new(1, 1, 1) };
+            for fixed in 0..16u8 {
+                let got = edge_regions(&hf, &layout, &b, fixed);
+                let want = regions_state_by_state(&hf, &layout, &b, fixed);
+                assert_eq!((got.side, got.corner), (want.side, want.corner), "coarser {coarser:?}, fixed {fixed:b}");
+                assert!(got.side.iter().flatten().flatten().any(|&d| d > 0.0));
+            }
+        }
+    }
+}

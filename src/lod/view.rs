@@ -1,0 +1,55 @@
+//! The default ways to look at a terrain: the near plane for its sample spacing, and a
+//! view of the whole of it.
+
+use crate::lod::camera::Camera;
+use crate::lod::heightfield::Heightfield;
+use glam::Vec3;
+
+/// Near plane: a hundred-thousandth of the sample spacing, at most 1 cm (1.6 mm on Puget
+/// Sound 1k), so that a camera half a metre over any ground, steep slopes and cliffs
+/// included, still sees the ground at its feet (a terrain point closer than this is
+/// clipped). Reversed infinite Z in a float depth buffer keeps the same relative depth
+/// precision for any near plane, so nothing is lost far away; the error passes clamp
+/// distances to it, so the blocks right around such a camera are drawn at full
+/// resolution, as they must be.
+pub fn near_plane(hf: &Heightfield) -> f32 {
+    (hf.spacing * 1e-5).min(0.01)
+}
+
+/// Above the south edge looking at the terrain's centre, backed away along that
+/// direction until the whole terrain (its bounding box) fits in the frame.
+pub fn default_view(hf: &Heightfield, fovy_deg: f32, width: u32, height: u32) -> (Vec3, Vec3) {
+    let (wx, wz) = hf.world_extent();
+    let l = wx.max(wz);
+    let (lo, hi) = hf.raw.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), &v| (a.min(v), b.max(v)));
+    let (bottom, top) = (lo * hf.height_scale, hi * hf.height_scale);
+    let target = Vec3::new(wx * 0.5, bottom, wz * 0.5);
+    // About 35 degrees down, from the south.
+    let dir = Vec3::new(0.0, 0.7, 1.0).normalize();
+    let corners: Vec<Vec3> = (0..8)
+        .map(|i| {
+            Vec3::new(
+                if i & 1 == 0 { 0.0 } else { wx },
+                if i & 2 == 0 { bottom } else { top },
+                if i & 4 == 0 { 0.0 } else { wz },
+            )
+        })
+        .collect();
+    let mut dist = 0.3 * l + (top - bottom);
+    for _ in 0..200 {
+        let pos = target + dir * dist;
+        let cam = Camera::look_at(pos, target, fovy_deg, width, height, near_plane(hf));
+        let vp = cam.view_proj();
+        let fits = corners.iter().all(|&c| {
+            cam.project(&vp, c).is_some_and(|(x, y)| {
+                let (fx, fy) = (x / width as f32, y / height as f32);
+                (0.03..=0.97).contains(&fx) && (0.03..=0.97).contains(&fy)
+            })
+        });
+        if fits {
+            return (pos, target);
+        }
+        dist *= 1.05;
+    }
+    (target + dir * dist, target)
+}
