@@ -6,7 +6,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 bash tools/install-deps.sh
 source tools/env.sh
-cargo build --quiet
+bash tools/cargo.sh build
 bin="$CARGO_TARGET_DIR/debug/vkterrain"
 if [ $# -eq 0 ]; then
   if [ -n "${DISPLAY:-}${WAYLAND_DISPLAY:-}" ]; then

@@ -8,7 +8,7 @@ source tools/env.sh
 echo "== cargo fmt --check" >&2
 cargo fmt --all -- --check
 echo "== cargo clippy --all-targets -- -D warnings" >&2
-cargo clippy --all-targets --quiet -- -D warnings
+bash tools/cargo.sh clippy --all-targets -- -D warnings
 echo "== cargo test (lavapipe, validation + synchronization validation)" >&2
 # Window tests need an X server; everything else is headless.
 log=$(mktemp)
