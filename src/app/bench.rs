@@ -994,16 +994,15 @@ fn fidelity(bench: &mut Bench, activity: &ErrorsActivity) -> anyhow::Result<Valu
         let caches = BlockCaches::default();
         let full_blocks = traverse(&s.hf, &s.mm, &caches, &s.layout, &cam, LodSelect::Full).blocks;
         let (full, _) =
-            bench.renderer.render_timed(&s.hf, &s.terrain, &bench.targets[0], &cam, &full_blocks, &shading, true)?;
-        let full = full.unwrap_or_default();
+            bench.renderer.render_offscreen(&s.hf, &s.terrain, &bench.targets[0], &cam, &full_blocks, &shading)?;
         let g = activity.wait_for(ErrorParams::new(&cam, bench.args.common.error_mode), Duration::from_secs(600))?;
         for delta in [0.5f32, 1.0, 2.0, 5.0] {
             let sel = LodSelect::errors(&g.errors, g.params.camera, delta, g.params.mode)
                 .with_morph(bench.args.common.morph == crate::app::cli::OnOff::On);
             let blocks = traverse(&s.hf, &s.mm, &caches, &s.layout, &cam, sel).blocks;
             let (img, stats) =
-                bench.renderer.render_timed(&s.hf, &s.terrain, &bench.targets[0], &cam, &blocks, &shading, true)?;
-            let (rmse, share) = image_difference(&full, &img.unwrap_or_default());
+                bench.renderer.render_offscreen(&s.hf, &s.terrain, &bench.targets[0], &cam, &blocks, &shading)?;
+            let (rmse, share) = image_difference(&full, &img);
             out.push(json!({
                 "time_s": time_s, "delta": delta, "rmse": rmse, "share_off_by_more_than_16": share,
                 "triangles": stats.triangles, "full_triangles": full_blocks.len() as u64 * s.layout.triangles_per_block(),

@@ -734,7 +734,9 @@ impl BlocksRenderer {
         Ok(())
     }
 
-    /// Renders one frame into `target` and reads it back as RGBA8 (sRGB).
+    /// Renders one frame into `target` (copying it to host memory, the headless stand-in
+    /// for presenting), waits for it, and returns it as RGBA8 (sRGB) with the stats (the
+    /// GPU time from timestamps when the device has them).
     pub fn render_offscreen(
         &mut self,
         hf: &Heightfield,
@@ -744,32 +746,9 @@ impl BlocksRenderer {
         blocks: &[DrawBlock],
         shading: &Shading,
     ) -> VkResult<(Vec<u8>, DrawStats)> {
-        let (pixels, stats) = self.render_timed(hf, terrain, target, cam, blocks, shading, true)?;
-        Ok((pixels.unwrap_or_default(), stats))
-    }
-
-    /// Renders one frame into `target` (copying it to host memory, the headless stand-in
-    /// for presenting) and waits; returns the pixels when `read` is set and the stats
-    /// (with the GPU time from timestamps when the device has them).
-    #[allow(clippy::too_many_arguments)]
-    pub fn render_timed(
-        &mut self,
-        hf: &Heightfield,
-        terrain: &TerrainGpu,
-        target: &Target,
-        cam: &Camera,
-        blocks: &[DrawBlock],
-        shading: &Shading,
-        read: bool,
-    ) -> VkResult<(Option<Vec<u8>>, DrawStats)> {
         self.submit_offscreen(0, hf, terrain, target, cam, blocks, shading)?;
         let stats = self.wait_frame(0)?.expect("a frame was just submitted");
-        let pixels = if read {
-            Some(target.readback.mapped()?[..(target.width * target.height * 4) as usize].to_vec())
-        } else {
-            None
-        };
-        Ok((pixels, stats))
+        Ok((target.pixels()?, stats))
     }
 
     /// Offscreen frames that can be in flight at once (one per uniform slot).

@@ -113,7 +113,11 @@ impl DrawThread {
     ) -> anyhow::Result<Frame<R>> {
         let started = Instant::now();
         let taken = match activity {
-            Some(a) => self.feed.update(a, req.cam, req.frame, self.last)?,
+            Some(a) => {
+                let taken = self.feed.update(a, req.cam, req.frame, self.last)?;
+                self.trace.complete(DRAW_TID, "error feed", started, Instant::now(), json!({"frame": req.frame}));
+                taken
+            }
             None => None,
         };
         let feed_ms = started.elapsed().as_secs_f64() * 1e3;

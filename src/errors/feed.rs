@@ -143,19 +143,6 @@ impl ErrorFeed {
         frame: u64,
         last: LastSelection,
     ) -> VkResult<Option<u64>> {
-        let started = Instant::now();
-        let taken = self.update_inner(activity, cam, frame, last)?;
-        self.trace.complete(DRAW_TID, "error feed", started, Instant::now(), json!({"frame": frame}));
-        Ok(taken)
-    }
-
-    fn update_inner(
-        &mut self,
-        activity: &ErrorsActivity,
-        cam: &Camera,
-        frame: u64,
-        last: LastSelection,
-    ) -> VkResult<Option<u64>> {
         let params = ErrorParams::new(cam, self.mode);
         let mut taken = None;
         if self.usable().is_none() {
