@@ -12,7 +12,7 @@ fi
 cat >&2 <<EOF
 vkterrain: first build on this machine: about 300 crates and shaderc's C++ (glslang and
   SPIRV-Tools, built from source: Debian's libshaderc does not link). Measured on 2 cores:
-  about 20 minutes in all, most of it the C++. Progress is shown below. Later builds reuse
+  about 24 minutes in all, most of it the C++. Progress is shown below. Later builds reuse
   it (target dir: $target).
 EOF
 start=$(date +%s)

@@ -4,6 +4,12 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash tools/install-deps.sh
+# A private runtime dir (the Vulkan loader wants one) and the log, both removed at exit:
+# the suite leaves nothing behind in /tmp.
+XDG_RUNTIME_DIR=$(mktemp -d)
+log=$(mktemp)
+trap 'rm -rf "$XDG_RUNTIME_DIR" "$log"' EXIT
+export XDG_RUNTIME_DIR
 source tools/env.sh
 echo "== cargo fmt --check" >&2
 cargo fmt --all -- --check
@@ -11,8 +17,6 @@ echo "== cargo clippy --all-targets -- -D warnings" >&2
 bash tools/cargo.sh clippy --all-targets -- -D warnings
 echo "== cargo test (lavapipe, validation + synchronization validation)" >&2
 # Window tests need an X server; everything else is headless.
-log=$(mktemp)
-trap 'rm -f "$log"' EXIT
 set +e
 xvfb-run -a -s "-screen 0 1280x1024x24" cargo test "$@" 2>&1 | tee "$log"
 status=${PIPESTATUS[0]}
