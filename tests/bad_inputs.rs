@@ -41,11 +41,25 @@ fn fails_cleanly(args: &[&str], needles: &[&str]) {
     if args.first() == Some(&"render") && !args.contains(&"--out") {
         full.extend(["--out".into(), out_png.display().to_string()]);
     }
-    let out = Command::new(env!("CARGO_BIN_EXE_vkterrain"))
+    let mut child = Command::new(env!("CARGO_BIN_EXE_vkterrain"))
         .args(&full)
         .env("RUST_LOG", "error")
-        .output()
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
         .expect("run vkterrain");
+    // A bad input must end the run, never block it (a FIFO read would): past a minute the
+    // run is killed and the test fails.
+    let start = std::time::Instant::now();
+    while child.try_wait().unwrap().is_none() {
+        if start.elapsed() > std::time::Duration::from_secs(60) {
+            let _ = child.kill();
+            let _ = child.wait();
+            panic!("{full:?}: still running after 60 s (a hang)");
+        }
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    let out = child.wait_with_output().unwrap();
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert_eq!(out.status.code(), Some(2), "{full:?}: exit {:?}, stderr: {stderr}", out.status.code());
     assert!(!stderr.contains("panicked"), "{full:?} panicked: {stderr}");
@@ -284,6 +298,26 @@ fn bad_output_paths_fail_before_the_run() {
     let fifo = s.path("fifo.png");
     assert!(Command::new("mkfifo").arg(&fifo).status().unwrap().success());
     fails_cleanly(&["render", "--out", fifo.to_str().unwrap()], &["--out", "not a regular file"]);
+}
+
+/// A FIFO or a device as an input is refused before anything reads it (a read would
+/// block forever, with no message): the heightmap, the textures, a bench pose file and a
+/// trace to draw; exit 2, one line naming the option or the file.
+#[test]
+fn inputs_that_are_not_regular_files_are_refused_without_a_hang() {
+    let s = Scratch::new();
+    let fifo = s.path("fifo.png");
+    assert!(Command::new("mkfifo").arg(&fifo).status().unwrap().success());
+    let f = fifo.to_str().unwrap();
+    let problem = "not a regular file";
+    fails_cleanly(&["render", "--heightmap", f], &[f, problem]);
+    fails_cleanly(&["render", "--heightmap", "/dev/zero"], &["/dev/zero", problem]);
+    fails_cleanly(&["view", "--texture", f, "--frames", "1"], &["--texture", problem]);
+    fails_cleanly(&["view", "--detail", f, "--frames", "1"], &["--detail", problem]);
+    let out = s.path("bench-out").display().to_string();
+    fails_cleanly(&["bench", "--path", f, "--out", &out], &["--path", problem]);
+    let png = s.path("t.png").display().to_string();
+    fails_cleanly(&["timeline", "--trace", f, "--out", &png], &["--trace", problem]);
 }
 
 /// An output path that is a symbolic link is written through: the link stays, the file

@@ -104,6 +104,7 @@ fn parse_path_arg(s: &str) -> Result<PathArg, String> {
 
 /// Reads a pose file: one `cx cy cz lx ly lz` a line. Errors name the file and line.
 pub fn read_poses(path: &Path) -> Result<Vec<(Vec3, Vec3)>, InputError> {
+    crate::input::regular_file(path).map_err(|e| InputError(format!("--path {e}")))?;
     let text = std::fs::read_to_string(path).map_err(|e| InputError(format!("--path {}: {e}", path.display())))?;
     let mut poses = Vec::new();
     for (n, line) in text.lines().enumerate() {

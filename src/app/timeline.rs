@@ -31,6 +31,7 @@ struct Span {
 }
 
 pub fn timeline(args: &TimelineArgs) -> anyhow::Result<()> {
+    crate::input::regular_file(&args.trace).map_err(|e| InputError(format!("--trace {e}")))?;
     let text = std::fs::read_to_string(&args.trace)
         .map_err(|e| InputError(format!("--trace {}: {e}", args.trace.display())))?;
     let trace: Value = serde_json::from_str(&text)

@@ -106,7 +106,8 @@ pub struct ViewArgs {
     pub frame_counter: Option<PathBuf>,
 }
 
-fn load_texture(path: &PathBuf) -> Result<Texture, InputError> {
+fn load_texture(option: &str, path: &PathBuf) -> Result<Texture, InputError> {
+    crate::input::regular_file(path).map_err(|e| InputError(format!("{option} {e}")))?;
     let img = image::open(path).map_err(|e| InputError(format!("{}: cannot read texture: {e}", path.display())))?;
     let rgba = img.to_rgba8();
     Ok(Texture { width: rgba.width(), height: rgba.height(), rgba: rgba.into_raw() })
@@ -389,8 +390,8 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
             .into());
         }
     }
-    let base = args.texture.as_ref().map(load_texture).transpose()?;
-    let detail = args.detail.as_ref().map(load_texture).transpose()?;
+    let base = args.texture.as_ref().map(|p| load_texture("--texture", p)).transpose()?;
+    let detail = args.detail.as_ref().map(|p| load_texture("--detail", p)).transpose()?;
     let mm = MinMaxPyramid::build(&hf);
     let (w, h) = args.common.size.unwrap_or((1280, 720));
     let cam = if args.common.camera.is_none() && args.common.look_at.is_none() {

@@ -44,8 +44,8 @@ fn defaults(path: &str, bits: u32, signed_or_float: bool) -> (f32, f32) {
 pub fn load(path: &Path, opts: &LoadOptions) -> Result<Heightfield, HeightfieldError> {
     let shown = path.display().to_string();
     let meta = std::fs::metadata(path).map_err(|source| HeightfieldError::Io { path: shown.clone(), source })?;
-    if meta.is_dir() {
-        return Err(HeightfieldError::invalid(&shown, "is a directory, not a heightfield file"));
+    if let Some(problem) = crate::input::not_a_file(&meta) {
+        return Err(HeightfieldError::invalid(&shown, problem));
     }
     let bytes = std::fs::read(path).map_err(|source| HeightfieldError::Io { path: shown.clone(), source })?;
     if bytes.is_empty() {
