@@ -181,3 +181,146 @@ fn srtm_hgt_big_endian_with_voids() {
     let e = load(&p, &LoadOptions::default()).unwrap_err().to_string();
     assert!(e.contains("N00E000.hgt") && e.contains("1000 bytes"), "{e}");
 }
+
+/// The Everest tile's voids (nodata -32768) as the file has them.
+fn everest_raw() -> (Vec<f32>, usize, usize) {
+    let bytes = std::fs::read(data("srtm3/mt_everest_90m.tif")).unwrap();
+    let mut dec = tiff::decoder::Decoder::new(std::io::Cursor::new(bytes)).unwrap();
+    let (w, h) = dec.dimensions().unwrap();
+    let tiff::decoder::DecodingResult::I16(v) = dec.read_image().unwrap() else { panic!("int16 expected") };
+    (v.into_iter().map(|x| x as f32).collect(), w as usize, h as usize)
+}
+
+/// Steps (absolute height differences) between 4-neighbours: `(largest and 99th
+/// percentile of those touching a filled sample, largest between valid samples, 99th
+/// percentile between valid samples within 5 samples of a void)`.
+fn void_steps(filled: &[f32], void: &[bool], w: usize, h: usize) -> (f32, f32, f32, f32) {
+    assert_eq!(filled.len(), void.len());
+    // Distance (in samples, Chebyshev) to the nearest void, up to 6.
+    let mut near = vec![false; void.len()];
+    for (i, _) in void.iter().enumerate().filter(|(_, v)| **v) {
+        let (x, z) = ((i % w) as i64, (i / w) as i64);
+        for dz in -5..=5i64 {
+            for dx in -5..=5i64 {
+                let (nx, nz) = (x + dx, z + dz);
+                if nx >= 0 && nz >= 0 && nx < w as i64 && nz < h as i64 {
+                    near[(nz * w as i64 + nx) as usize] = true;
+                }
+            }
+        }
+    }
+    let (mut touching, mut valid_near, mut valid_max) = (Vec::new(), Vec::new(), 0.0f32);
+    for z in 0..h {
+        for x in 0..w {
+            let i = z * w + x;
+            for j in [(x + 1 < w).then(|| i + 1), (z + 1 < h).then(|| i + w)].into_iter().flatten() {
+                let step = (filled[i] - filled[j]).abs();
+                if void[i] || void[j] {
+                    touching.push(step);
+                } else {
+                    valid_max = valid_max.max(step);
+                    if near[i] || near[j] {
+                        valid_near.push(step);
+                    }
+                }
+            }
+        }
+    }
+    let p99 = |v: &mut Vec<f32>| {
+        v.sort_by(f32::total_cmp);
+        v[((v.len() - 1) as f64 * 0.99).round() as usize]
+    };
+    let largest = touching.iter().fold(0.0f32, |m, s| m.max(*s));
+    (largest, p99(&mut touching), valid_max, p99(&mut valid_near))
+}
+
+/// The fill passes: at most the steepest step between valid samples, and a 99th
+/// percentile at most 1.5x that of the valid steps near the voids.
+fn fill_is_smooth(steps: (f32, f32, f32, f32)) -> bool {
+    let (largest, p99, valid_max, valid_near_p99) = steps;
+    largest <= valid_max && p99 <= 1.5 * valid_near_p99
+}
+
+/// Voids are filled with no walls: on the Everest tile (9 % void), every step that
+/// touches a filled sample is no steeper than the data's steepest, and their 99th
+/// percentile within 1.5x that of the real steps around the voids. The count is reported.
+/// Two fills that leave walls fail the same check: fronts of nearest values meeting in
+/// steps (the loader's earlier fill) and one flat value per void.
+#[test]
+fn voids_are_filled_without_walls() {
+    let (raw, w, h) = everest_raw();
+    let void: Vec<bool> = raw.iter().map(|&v| v == -32768.0).collect();
+    let voids = void.iter().filter(|v| **v).count();
+    assert!(voids * 20 > raw.len(), "the Everest tile should be about 9% void, is {voids} of {}", raw.len());
+    let hf = load(&data("srtm3/mt_everest_90m.tif"), &LoadOptions::default()).unwrap();
+    assert_eq!(hf.void_samples, voids);
+    let side = hf.side();
+    let filled: Vec<f32> = (0..w * h).map(|i| hf.raw[(i / w) * side + i % w]).collect();
+    let steps = void_steps(&filled, &void, w, h);
+    println!("Laplace fill: largest {:.0}, p99 {:.0}; valid: largest {:.0}, p99 near voids {:.0}", steps.0, steps.1, steps.2, steps.3);
+    assert!(fill_is_smooth(steps), "the fill leaves steps the data does not have: {steps:?}");
+    for (i, &v) in raw.iter().enumerate() {
+        if !void[i] {
+            assert_eq!(filled[i], v, "a valid sample changed at {i}");
+        }
+    }
+
+    // Mutant 1: fronts of nearest values, in waves (each void next to filled samples takes
+    // their mean), with no smoothing after.
+    let mut fronts = raw.clone();
+    let mut done: Vec<bool> = void.iter().map(|v| !v).collect();
+    loop {
+        let next: Vec<(usize, f32)> = (0..fronts.len())
+            .filter(|&i| !done[i])
+            .filter_map(|i| {
+                let (x, z) = (i % w, i / w);
+                let nb = [(x > 0).then(|| i - 1), (x + 1 < w).then(|| i + 1), (z > 0).then(|| i - w), (z + 1 < h).then(|| i + w)];
+                let known: Vec<f32> = nb.into_iter().flatten().filter(|&j| done[j]).map(|j| fronts[j]).collect();
+                (!known.is_empty()).then(|| (i, known.iter().sum::<f32>() / known.len() as f32))
+            })
+            .collect();
+        if next.is_empty() {
+            break;
+        }
+        for (i, v) in next {
+            fronts[i] = v;
+            done[i] = true;
+        }
+    }
+    let s = void_steps(&fronts, &void, w, h);
+    println!("fronts: largest {:.0}, p99 {:.0}", s.0, s.1);
+    assert!(!fill_is_smooth(s), "the check passes fronts of nearest values: {s:?}");
+
+    // Mutant 2: each void region one flat value (the mean of the valid samples around it).
+    let mut flat = raw.clone();
+    let mut seen = vec![false; raw.len()];
+    for start in 0..raw.len() {
+        if !void[start] || seen[start] {
+            continue;
+        }
+        let (mut region, mut stack, mut rim) = (Vec::new(), vec![start], Vec::new());
+        seen[start] = true;
+        while let Some(i) = stack.pop() {
+            region.push(i);
+            let (x, z) = (i % w, i / w);
+            for j in [(x > 0).then(|| i - 1), (x + 1 < w).then(|| i + 1), (z > 0).then(|| i - w), (z + 1 < h).then(|| i + w)]
+                .into_iter()
+                .flatten()
+            {
+                if !void[j] {
+                    rim.push(raw[j]);
+                } else if !seen[j] {
+                    seen[j] = true;
+                    stack.push(j);
+                }
+            }
+        }
+        let mean = rim.iter().sum::<f32>() / rim.len().max(1) as f32;
+        for i in region {
+            flat[i] = mean;
+        }
+    }
+    let s = void_steps(&flat, &void, w, h);
+    println!("flat per void: largest {:.0}, p99 {:.0}", s.0, s.1);
+    assert!(!fill_is_smooth(s), "the check passes a flat fill per void: {s:?}");
+}

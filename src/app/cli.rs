@@ -178,6 +178,14 @@ impl CommonArgs {
                     max_grid_side,
                 };
                 let hf = load::load(path, &opts).map_err(|e| InputError(e.to_string()))?;
+                if hf.void_samples > 0 {
+                    let share = 100.0 * hf.void_samples as f64 / (hf.width * hf.height) as f64;
+                    eprintln!(
+                        "vkterrain: note: {}: {} void (nodata) samples ({share:.1}%) filled smoothly (Laplace)",
+                        path.display(),
+                        hf.void_samples
+                    );
+                }
                 check_scale(&hf)?;
                 Ok(hf)
             }

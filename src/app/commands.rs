@@ -259,6 +259,7 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
         "geometry_bytes": renderer_geometry_bytes(s.layout.k()),
         "heightfield_bytes": s.hf.gpu_bytes(),
         "grid": s.hf.side(),
+        "void_samples": s.hf.void_samples,
         "queue_mode": s.device.queue_mode.as_str(),
         "device": s.device.name,
         "camera": [cam.position.x, cam.position.y, cam.position.z],
@@ -337,6 +338,7 @@ pub fn errors(args: &ErrorsArgs) -> anyhow::Result<()> {
     let out = json!({
         "n": n,
         "grid": s.hf.side(),
+        "void_samples": s.hf.void_samples,
         "levels": cost.levels,
         "block": s.layout.k(),
         "block_levels": s.layout.root_lod(),

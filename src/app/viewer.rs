@@ -253,6 +253,8 @@ struct RunStats {
     queue_mode: String,
     device: String,
     geometry_bytes: u64,
+    /// Void samples the heightmap's file marked, filled at load.
+    void_samples: usize,
     validation_messages: u64,
     screenshot: Option<String>,
     /// State at exit: camera position, yaw and pitch (radians), delta, geomorphing.
@@ -601,6 +603,7 @@ impl App {
         let acquired = (0..FRAMES_IN_FLIGHT).map(|_| BinarySemaphore::new(&device)).collect::<Result<Vec<_>, _>>()?;
         self.stats.queue_mode = device.queue_mode.as_str().into();
         self.stats.geometry_bytes = crate::app::commands::renderer_geometry_bytes(self.layout.k());
+        self.stats.void_samples = self.hf.void_samples;
         self.stats.device = device.name.clone();
         self.gpu =
             Some(Gpu { hud, acquired, depth, swapchain, renderer, activity: Some(activity), terrain, surface, device });

@@ -61,6 +61,8 @@ pub struct Heightfield {
     pub format: HeightFormat,
     /// Where the data came from, for messages and stats.
     pub source: String,
+    /// Samples the file marked as voids (nodata), filled at load ([`crate::input::load`]).
+    pub void_samples: usize,
 }
 
 impl Heightfield {
@@ -108,7 +110,7 @@ impl Heightfield {
                 raw[z * side + x] = samples[sz * width + x.min(width - 1)];
             }
         }
-        Ok(Heightfield { n, raw, width, height, spacing, height_scale, format, source: source.to_string() })
+        Ok(Heightfield { n, raw, width, height, spacing, height_scale, format, source: source.to_string(), void_samples: 0 })
     }
 
     /// Grid side `2^n + 1`.
