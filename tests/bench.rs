@@ -477,3 +477,53 @@ fn pose_file_replays_as_a_path() {
     assert_eq!(o.status.code(), Some(2), "{stderr}");
     assert!(stderr.contains("bad.txt:2:"), "{stderr}");
 }
+
+/// Textures need no window: `render` drapes `--texture` and `--detail` (the picture
+/// changes, and differs again with the detail blended in), and a short `bench` draws
+/// with them; zero validation messages throughout.
+#[test]
+fn render_and_bench_take_textures_headless() {
+    let tmp = TempDir::new("textured");
+    let height = common::data("puget_sound/ps_height_1k.png");
+    let texture = common::data("puget_sound/ps_texture_1k.png");
+    let (h, t) = (height.to_str().unwrap(), texture.to_str().unwrap());
+    let render = |name: &str, extra: &[&str]| -> (serde_json::Value, image::RgbaImage) {
+        let out = tmp.path().join(name);
+        let o = Command::new(env!("CARGO_BIN_EXE_vkterrain"))
+            .args(["render", "--heightmap", h, "--size", "160x120", "--validation", "on", "--out"])
+            .arg(&out)
+            .args(extra)
+            .env("RUST_LOG", "error")
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{extra:?}: {}", String::from_utf8_lossy(&o.stderr));
+        let json: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+        assert_eq!(json["validation_messages"], 0, "{extra:?}");
+        (json, image::open(&out).unwrap().to_rgba8())
+    };
+    let mean_difference = |a: &image::RgbaImage, b: &image::RgbaImage| {
+        assert_eq!(a.dimensions(), b.dimensions());
+        let sum: u64 = a.pixels().zip(b.pixels()).map(|(p, q)| (0..3).map(|c| p[c].abs_diff(q[c]) as u64).sum::<u64>()).sum();
+        sum as f64 / (3 * a.width() * a.height()) as f64
+    };
+    let (_, bare) = render("bare.png", &[]);
+    let (_, textured) = render("textured.png", &["--texture", t]);
+    let (_, detailed) = render("detailed.png", &["--texture", t, "--detail", t, "--detail-weight", "0.5"]);
+    let d1 = mean_difference(&bare, &textured);
+    let d2 = mean_difference(&textured, &detailed);
+    assert!(d1 > 5.0, "the texture changed the picture by only {d1:.2} levels");
+    assert!(d2 > 0.5, "the detail texture changed the picture by only {d2:.2} levels");
+    let out = tmp.path().join("bench");
+    let o = Command::new(env!("CARGO_BIN_EXE_vkterrain"))
+        .args(["bench", "--heightmap", h, "--texture", t, "--detail", t, "--frames", "6", "--size", "160x120"])
+        .args(["--validation", "on", "--no-fidelity", "--out"])
+        .arg(&out)
+        .env("RUST_LOG", "error")
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
+    assert_eq!(summary["frames"], 6);
+    assert_eq!(summary["validation_messages"], 0);
+}

@@ -629,3 +629,40 @@ fn shoreline_moves_continuously() {
     drop(scene);
     finish(device);
 }
+
+/// The sky is one smooth gradient from 1 m to 10^6 m above the terrain, in both pixel
+/// passes: down a column of sky no two neighbouring rows differ by more than 3 levels
+/// (the gradient spans about a hundred over the frame), and it does change. The ray of a
+/// sky pixel used to be unprojected at depth 0.5, two near planes from the camera, and the
+/// camera's position subtracted from it in f32: at 10^4 to 10^5 m that quantized the ray
+/// into a few flat bands with hard edges.
+#[test]
+fn the_sky_is_smooth_at_every_altitude() {
+    let device = gpu();
+    let hf = field(65, 65, 30.0, |x, z| ((x * 7 + z * 3) % 5) as f32);
+    let near = vkterrain::lod::view::near_plane(&hf);
+    let mut scene = Scene::new(&device, hf, 9, None);
+    for pixels in [PixelPass::Deferred, PixelPass::Forward] {
+        for altitude in [1.0f32, 1e2, 1e3, 1e4, 3e4, 1e5, 3e5, 1e6] {
+            // Pitched 40 degrees up with a 60-degree field of view: every pixel is sky.
+            let pos = Vec3::new(960.0, altitude, 960.0);
+            let dir = Vec3::new(0.3, 40f32.to_radians().tan(), -1.0);
+            let cam = Camera::look_at(pos, pos + dir, 60.0, 96, 240, near);
+            let img = scene.render(&cam, None, &Shading { pixels, ..Shading::default() });
+            let at = |x: usize, y: usize, c: usize| img[(y * 96 + x) * 4 + c] as i32;
+            let mut largest_step = 0;
+            for x in [10usize, 48, 85] {
+                for y in 0..239 {
+                    for c in 0..3 {
+                        largest_step = largest_step.max((at(x, y + 1, c) - at(x, y, c)).abs());
+                    }
+                }
+            }
+            let span = (0..3).map(|c| (at(48, 0, c) - at(48, 239, c)).abs()).max().unwrap();
+            assert!(largest_step <= 3, "{pixels:?}, {altitude} m: the sky jumps by {largest_step} levels between rows");
+            assert!(span >= 20, "{pixels:?}, {altitude} m: the sky is flat (top and bottom differ by {span})");
+        }
+    }
+    drop(scene);
+    finish(device);
+}

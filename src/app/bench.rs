@@ -2,7 +2,7 @@
 //! 360-degree turn), writing per-frame figures, a summary, a plot like the paper's
 //! Figure 8, and a Chrome trace of both activities.
 
-use crate::app::cli::{CommonArgs, InputError};
+use crate::app::cli::{CommonArgs, InputError, TextureArgs};
 use crate::app::commands::{draw_thread, positive, Session};
 use crate::app::outputs::{plot_font, write_atomic};
 use crate::app::paths::{path_camera, CameraPath};
@@ -28,6 +28,8 @@ use std::time::{Duration, Instant};
 pub struct BenchArgs {
     #[command(flatten)]
     pub common: CommonArgs,
+    #[command(flatten)]
+    pub textures: TextureArgs,
     /// Camera path: `paper-flyover`, `rotate360`, or a file of poses, one a line:
     /// `cx cy cz lx ly lz` (camera position and look-at point in world units; blank lines
     /// and `#` comments skipped). With a file, frames = poses and --frames is ignored.
@@ -409,7 +411,11 @@ impl Bench<'_> {
             (None, LodChoice::Distance) => "distance",
         };
         let mut progress = Progress::new(label, self.frames);
-        let shading = Shading { normals: self.args.shading, pixels: self.args.pixels, ..Shading::default() };
+        let shading = self.args.textures.shade(Shading {
+            normals: self.args.shading,
+            pixels: self.args.pixels,
+            ..Shading::default()
+        });
         let mut run = Run {
             rows: Vec::new(),
             blocks: Vec::new(),
@@ -768,7 +774,7 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
         Some(f) => Some(parse_fault(f, frames, args.compare || args.popping)?),
         None => None,
     };
-    let s = Session::open(&args.common)?;
+    let s = Session::open(&args.common, Some(&args.textures))?;
     std::fs::create_dir_all(&args.out).map_err(|e| anyhow::anyhow!("{}: {e}", args.out.display()))?;
     let size = args.common.size.unwrap_or((640, 480));
     s.check_viewport(size)?;

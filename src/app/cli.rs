@@ -1,6 +1,8 @@
 //! Command-line options shared by every subcommand (same names, same meanings).
 
 use crate::input::load::{self, LoadOptions};
+use crate::draw::blocks::Shading;
+use crate::gpu::terrain::Texture;
 use crate::lod::camera::Camera;
 use crate::lod::gie::ErrorMode;
 use crate::lod::heightfield::Heightfield;
@@ -226,4 +228,59 @@ pub fn check_scale(hf: &Heightfield) -> Result<(), InputError> {
         )));
     }
     Ok(())
+}
+
+/// Texturing (seed 000 eqs. 9-11), for every command that draws: `view`, `render`, `bench`.
+#[derive(Args, Debug, Clone)]
+pub struct TextureArgs {
+    /// Base colour texture, stretched over the whole terrain (seed 000 eq. 9).
+    #[arg(long, value_name = "FILE")]
+    pub texture: Option<PathBuf>,
+    /// Detail texture, tiled (eq. 10).
+    #[arg(long, value_name = "FILE")]
+    pub detail: Option<PathBuf>,
+    /// Detail tiling factor DTF: detail coordinates are DTF times the base coordinates.
+    #[arg(long, value_name = "DTF", default_value = "64", value_parser = parse_positive)]
+    pub detail_tiling: f32,
+    /// Weight alpha of the base colour in eq. 11 (1 ignores the detail texture).
+    #[arg(long, value_name = "ALPHA", default_value = "0.7")]
+    pub detail_weight: f32,
+}
+
+/// The textures a [`TextureArgs`] names, read and checked.
+#[derive(Default)]
+pub struct Textures {
+    pub base: Option<Texture>,
+    pub detail: Option<Texture>,
+}
+
+impl TextureArgs {
+    /// Input paths, for the commands' output checks.
+    pub fn inputs(&self) -> [(&'static str, Option<&std::path::Path>); 2] {
+        [("--texture", self.texture.as_deref()), ("--detail", self.detail.as_deref())]
+    }
+
+    /// Reads the textures (each error names the option and the file).
+    pub fn load(&self) -> Result<Textures, InputError> {
+        if !(0.0..=1.0).contains(&self.detail_weight) {
+            return Err(InputError(format!("--detail-weight {}: must be within 0..1", self.detail_weight)));
+        }
+        let read = |option: &str, path: &PathBuf| -> Result<Texture, InputError> {
+            crate::input::regular_file(path).map_err(|e| InputError(format!("{option} {e}")))?;
+            let img = image::open(path)
+                .map_err(|e| InputError(format!("{option} {}: cannot read texture: {e}", path.display())))?;
+            let rgba = img.to_rgba8();
+            Ok(Texture { width: rgba.width(), height: rgba.height(), rgba: rgba.into_raw() })
+        };
+        Ok(Textures {
+            base: self.texture.as_ref().map(|p| read("--texture", p)).transpose()?,
+            detail: self.detail.as_ref().map(|p| read("--detail", p)).transpose()?,
+        })
+    }
+
+    /// `shading` with the detail blend these options ask for (none without a detail texture).
+    pub fn shade(&self, shading: Shading) -> Shading {
+        let detail_weight = if self.detail.is_some() { self.detail_weight } else { 1.0 };
+        Shading { detail_tiling: self.detail_tiling, detail_weight, ..shading }
+    }
 }

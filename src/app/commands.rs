@@ -1,7 +1,7 @@
 //! The subcommands: `render` (one headless frame) and `errors` (one error generation).
 
 use crate::app::cli::OnOff;
-use crate::app::cli::{CommonArgs, InputError};
+use crate::app::cli::{CommonArgs, InputError, TextureArgs};
 use crate::app::outputs::{check_outputs, save_png, write_atomic};
 use crate::draw::blocks::{BlocksRenderer, NormalSource, PixelPass, Shading, Target};
 use crate::draw::frame::{DrawThread, FrameRequest, LodChoice, LodTerrain};
@@ -25,6 +25,8 @@ use std::time::{Duration, Instant};
 pub struct RenderArgs {
     #[command(flatten)]
     pub common: CommonArgs,
+    #[command(flatten)]
+    pub textures: TextureArgs,
     /// LOD selection.
     #[arg(long, value_enum, default_value_t = LodChoice::Error)]
     pub lod: LodChoice,
@@ -109,7 +111,9 @@ impl Session {
         LodTerrain { hf: &self.hf, mm: &self.mm, layout: &self.layout }
     }
 
-    pub fn open(common: &CommonArgs) -> anyhow::Result<Self> {
+    /// Opens the device, loads the heightfield and `textures` (none for `errors`), and
+    /// uploads them.
+    pub fn open(common: &CommonArgs, textures: Option<&TextureArgs>) -> anyhow::Result<Self> {
         // Options first, so that a bad value fails before any file is read.
         BlockLayout::new(30, common.block).map_err(InputError)?;
         // The device first: its image size limit bounds what the loader allocates.
@@ -131,7 +135,8 @@ impl Session {
         let mm = MinMaxPyramid::build(&hf);
         let pyramid_ms = t.elapsed().as_secs_f64() * 1e3;
         tracing::info!("group pyramid (min/max and exact deviation, {} levels) in {pyramid_ms:.0} ms", hf.n);
-        let terrain = Arc::new(TerrainGpu::new(&device, &hf, &mm, None, None)?);
+        let tex = textures.map(TextureArgs::load).transpose()?.unwrap_or_default();
+        let terrain = Arc::new(TerrainGpu::new(&device, &hf, &mm, tex.base.as_ref(), tex.detail.as_ref())?);
         Ok(Session { hf: Arc::new(hf), mm, layout, device, terrain, pyramid_ms })
     }
 
@@ -190,7 +195,8 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
     if args.out.extension().and_then(|e| e.to_str()).map(|e| e.to_lowercase()) != Some("png".into()) {
         return Err(InputError(format!("--out {}: the output must be a .png file", args.out.display())).into());
     }
-    check_outputs(&[("--out", Some(&args.out))], &[("--heightmap", args.common.heightmap.as_deref())])?;
+    let [texture, detail] = args.textures.inputs();
+    check_outputs(&[("--out", Some(&args.out))], &[("--heightmap", args.common.heightmap.as_deref()), texture, detail])?;
     let mut shading = Shading {
         fog_density: args.fog,
         colour_by_lod: args.colour_by_lod,
@@ -202,7 +208,8 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
         shading.sky = false;
         shading.background = parse_background(bg)?;
     }
-    let s = Session::open(&args.common)?;
+    let shading = args.textures.shade(shading);
+    let s = Session::open(&args.common, Some(&args.textures))?;
     let cam = args.common.camera(&s.hf, (1280, 720))?;
     s.check_viewport((cam.width, cam.height))?;
     let mut renderer = BlocksRenderer::new(
@@ -305,7 +312,7 @@ pub fn errors(args: &ErrorsArgs) -> anyhow::Result<()> {
     if args.repeat == 0 {
         return Err(InputError("--repeat must be at least 1".into()).into());
     }
-    let s = Session::open(&args.common)?;
+    let s = Session::open(&args.common, None)?;
     let cam = args.common.camera(&s.hf, (1280, 720))?;
     let activity = ErrorsActivity::start(&s.device, s.terrain.clone(), s.hf.clone(), s.layout)?;
     let base = ErrorParams::new(&cam, args.common.error_mode);

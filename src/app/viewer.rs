@@ -2,7 +2,7 @@
 //! activity (traversal and drawing on the draw queue), with the errors activity live on
 //! its own thread and queue.
 
-use crate::app::cli::{CommonArgs, InputError};
+use crate::app::cli::{CommonArgs, InputError, TextureArgs, Textures};
 use crate::app::commands::Session;
 use crate::app::hud::{Controls, Hud, Ranges, Readout};
 use crate::app::outputs::save_png;
@@ -55,18 +55,8 @@ pub struct ViewArgs {
     /// Screen-space error threshold in pixels (keys [ and ] halve and double it).
     #[arg(long, value_name = "PX", default_value = "1", value_parser = crate::app::commands::positive, allow_negative_numbers = true)]
     pub delta: f32,
-    /// Base colour texture, stretched over the whole terrain (seed 000 eq. 9).
-    #[arg(long, value_name = "FILE")]
-    pub texture: Option<PathBuf>,
-    /// Detail texture, tiled (eq. 10).
-    #[arg(long, value_name = "FILE")]
-    pub detail: Option<PathBuf>,
-    /// Detail tiling factor DTF: detail coordinates are DTF times the base coordinates.
-    #[arg(long, value_name = "DTF", default_value = "64", value_parser = crate::app::commands::positive)]
-    pub detail_tiling: f32,
-    /// Weight alpha of the base colour in eq. 11 (1 ignores the detail texture).
-    #[arg(long, value_name = "ALPHA", default_value = "0.7")]
-    pub detail_weight: f32,
+    #[command(flatten)]
+    pub textures: TextureArgs,
     /// Exponential fog density per world unit (default: a haze at the terrain's scale).
     #[arg(long, value_name = "DENSITY", value_parser = crate::app::commands::non_negative, allow_negative_numbers = true)]
     pub fog: Option<f32>,
@@ -104,13 +94,6 @@ pub struct ViewArgs {
     /// their events to be seen, instead of sleeping.
     #[arg(long, value_name = "FILE")]
     pub frame_counter: Option<PathBuf>,
-}
-
-fn load_texture(option: &str, path: &PathBuf) -> Result<Texture, InputError> {
-    crate::input::regular_file(path).map_err(|e| InputError(format!("{option} {e}")))?;
-    let img = image::open(path).map_err(|e| InputError(format!("{}: cannot read texture: {e}", path.display())))?;
-    let rgba = img.to_rgba8();
-    Ok(Texture { width: rgba.width(), height: rgba.height(), rgba: rgba.into_raw() })
 }
 
 /// The viewer's start (and Home) view: over the south part of the terrain, above its
@@ -350,8 +333,8 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
         ],
         &[
             ("--heightmap", args.common.heightmap.as_deref()),
-            ("--texture", args.texture.as_deref()),
-            ("--detail", args.detail.as_deref()),
+            args.textures.inputs()[0],
+            args.textures.inputs()[1],
         ],
     )?;
     let hf = args.common.load_heightfield(None)?;
@@ -365,9 +348,6 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
         let flag = interrupted.clone();
         // Ctrl-C ends the session cleanly: the trace stays valid JSON.
         let _ = ctrlc::set_handler(move || flag.store(true, std::sync::atomic::Ordering::SeqCst));
-    }
-    if !(0.0..=1.0).contains(&args.detail_weight) {
-        return Err(InputError(format!("--detail-weight {}: must be within 0..1", args.detail_weight)).into());
     }
     let mut resizes = Vec::new();
     for r in &args.resize_at {
@@ -392,8 +372,7 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
             .into());
         }
     }
-    let base = args.texture.as_ref().map(|p| load_texture("--texture", p)).transpose()?;
-    let detail = args.detail.as_ref().map(|p| load_texture("--detail", p)).transpose()?;
+    let Textures { base, detail } = args.textures.load()?;
     let mm = MinMaxPyramid::build(&hf);
     let (w, h) = args.common.size.unwrap_or((1280, 720));
     let cam = if args.common.camera.is_none() && args.common.look_at.is_none() {
@@ -441,12 +420,7 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
             looking: false,
             orbit: None,
         },
-        shading: Shading {
-            fog_density: fog,
-            detail_tiling: args.detail_tiling,
-            detail_weight: if args.detail.is_some() { args.detail_weight } else { 1.0 },
-            ..Shading::default()
-        },
+        shading: args.textures.shade(Shading { fog_density: fog, ..Shading::default() }),
         delta: args.delta,
         mode: args.common.error_mode,
         sun: args.common.sun.0,

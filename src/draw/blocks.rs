@@ -518,7 +518,9 @@ impl BlocksRenderer {
         let light = self.lighting.sun().unwrap_or(Sun::DEFAULT).direction();
         FrameUniforms {
             view_proj: vp.to_cols_array_2d(),
-            inv_view_proj: vp.inverse().to_cols_array_2d(),
+            // Inverted in f64: the columns the sky and the deferred pass use for directions
+            // stay exact rotations beside the large translation column.
+            inv_view_proj: vp.as_dmat4().inverse().as_mat4().to_cols_array_2d(),
             camera_fog: [cam.position.x, cam.position.y, cam.position.z, shading.fog_density],
             terrain: [
                 hf.spacing,
