@@ -503,7 +503,8 @@ fn render_and_bench_take_textures_headless() {
     };
     let mean_difference = |a: &image::RgbaImage, b: &image::RgbaImage| {
         assert_eq!(a.dimensions(), b.dimensions());
-        let sum: u64 = a.pixels().zip(b.pixels()).map(|(p, q)| (0..3).map(|c| p[c].abs_diff(q[c]) as u64).sum::<u64>()).sum();
+        let sum: u64 =
+            a.pixels().zip(b.pixels()).map(|(p, q)| (0..3).map(|c| p[c].abs_diff(q[c]) as u64).sum::<u64>()).sum();
         sum as f64 / (3 * a.width() * a.height()) as f64
     };
     let (_, bare) = render("bare.png", &[]);

@@ -257,7 +257,10 @@ fn voids_are_filled_without_walls() {
     let side = hf.side();
     let filled: Vec<f32> = (0..w * h).map(|i| hf.raw[(i / w) * side + i % w]).collect();
     let steps = void_steps(&filled, &void, w, h);
-    println!("Laplace fill: largest {:.0}, p99 {:.0}; valid: largest {:.0}, p99 near voids {:.0}", steps.0, steps.1, steps.2, steps.3);
+    println!(
+        "Laplace fill: largest {:.0}, p99 {:.0}; valid: largest {:.0}, p99 near voids {:.0}",
+        steps.0, steps.1, steps.2, steps.3
+    );
     assert!(fill_is_smooth(steps), "the fill leaves steps the data does not have: {steps:?}");
     for (i, &v) in raw.iter().enumerate() {
         if !void[i] {
@@ -274,7 +277,12 @@ fn voids_are_filled_without_walls() {
             .filter(|&i| !done[i])
             .filter_map(|i| {
                 let (x, z) = (i % w, i / w);
-                let nb = [(x > 0).then(|| i - 1), (x + 1 < w).then(|| i + 1), (z > 0).then(|| i - w), (z + 1 < h).then(|| i + w)];
+                let nb = [
+                    (x > 0).then(|| i - 1),
+                    (x + 1 < w).then(|| i + 1),
+                    (z > 0).then(|| i - w),
+                    (z + 1 < h).then(|| i + w),
+                ];
                 let known: Vec<f32> = nb.into_iter().flatten().filter(|&j| done[j]).map(|j| fronts[j]).collect();
                 (!known.is_empty()).then(|| (i, known.iter().sum::<f32>() / known.len() as f32))
             })
@@ -303,9 +311,10 @@ fn voids_are_filled_without_walls() {
         while let Some(i) = stack.pop() {
             region.push(i);
             let (x, z) = (i % w, i / w);
-            for j in [(x > 0).then(|| i - 1), (x + 1 < w).then(|| i + 1), (z > 0).then(|| i - w), (z + 1 < h).then(|| i + w)]
-                .into_iter()
-                .flatten()
+            for j in
+                [(x > 0).then(|| i - 1), (x + 1 < w).then(|| i + 1), (z > 0).then(|| i - w), (z + 1 < h).then(|| i + w)]
+                    .into_iter()
+                    .flatten()
             {
                 if !void[j] {
                     rim.push(raw[j]);

@@ -1,8 +1,8 @@
 //! Command-line options shared by every subcommand (same names, same meanings).
 
-use crate::input::load::{self, LoadOptions};
 use crate::draw::blocks::Shading;
 use crate::gpu::terrain::Texture;
+use crate::input::load::{self, LoadOptions};
 use crate::lod::camera::Camera;
 use crate::lod::gie::ErrorMode;
 use crate::lod::heightfield::Heightfield;

@@ -196,7 +196,10 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
         return Err(InputError(format!("--out {}: the output must be a .png file", args.out.display())).into());
     }
     let [texture, detail] = args.textures.inputs();
-    check_outputs(&[("--out", Some(&args.out))], &[("--heightmap", args.common.heightmap.as_deref()), texture, detail])?;
+    check_outputs(
+        &[("--out", Some(&args.out))],
+        &[("--heightmap", args.common.heightmap.as_deref()), texture, detail],
+    )?;
     let mut shading = Shading {
         fog_density: args.fog,
         colour_by_lod: args.colour_by_lod,

@@ -331,11 +331,7 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
             ("--screenshot", args.screenshot.as_deref()),
             ("--trace", args.trace.as_deref()),
         ],
-        &[
-            ("--heightmap", args.common.heightmap.as_deref()),
-            args.textures.inputs()[0],
-            args.textures.inputs()[1],
-        ],
+        &[("--heightmap", args.common.heightmap.as_deref()), args.textures.inputs()[0], args.textures.inputs()[1]],
     )?;
     let hf = args.common.load_heightfield(None)?;
     let layout = BlockLayout::new(hf.n, args.common.block).map_err(InputError)?;

@@ -83,8 +83,15 @@ pub fn load(path: &Path, opts: &LoadOptions) -> Result<Heightfield, HeightfieldE
     let (dspacing, dscale) = defaults(&shown, decoded.bits, decoded.format == HeightFormat::Float32);
     let spacing = opts.spacing.unwrap_or(dspacing);
     let height_scale = opts.height_scale.unwrap_or(dscale);
-    let mut hf =
-        Heightfield::embed(&shown, decoded.width, decoded.height, &decoded.samples, decoded.format, spacing, height_scale)?;
+    let mut hf = Heightfield::embed(
+        &shown,
+        decoded.width,
+        decoded.height,
+        &decoded.samples,
+        decoded.format,
+        spacing,
+        height_scale,
+    )?;
     hf.void_samples = decoded.voids;
     Ok(hf)
 }

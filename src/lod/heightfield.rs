@@ -110,7 +110,17 @@ impl Heightfield {
                 raw[z * side + x] = samples[sz * width + x.min(width - 1)];
             }
         }
-        Ok(Heightfield { n, raw, width, height, spacing, height_scale, format, source: source.to_string(), void_samples: 0 })
+        Ok(Heightfield {
+            n,
+            raw,
+            width,
+            height,
+            spacing,
+            height_scale,
+            format,
+            source: source.to_string(),
+            void_samples: 0,
+        })
     }
 
     /// Grid side `2^n + 1`.
