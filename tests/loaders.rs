@@ -191,6 +191,14 @@ fn everest_raw() -> (Vec<f32>, usize, usize) {
     (v.into_iter().map(|x| x as f32).collect(), w as usize, h as usize)
 }
 
+/// The 4-neighbours of sample `i` in a `w x h` grid.
+fn neighbours(i: usize, w: usize, h: usize) -> impl Iterator<Item = usize> {
+    let (x, z) = (i % w, i / w);
+    [(x > 0).then(|| i - 1), (x + 1 < w).then(|| i + 1), (z > 0).then(|| i - w), (z + 1 < h).then(|| i + w)]
+        .into_iter()
+        .flatten()
+}
+
 /// Steps (absolute height differences) between 4-neighbours: `(largest and 99th
 /// percentile of those touching a filled sample, largest between valid samples, 99th
 /// percentile between valid samples within 5 samples of a void)`.
@@ -276,14 +284,7 @@ fn voids_are_filled_without_walls() {
         let next: Vec<(usize, f32)> = (0..fronts.len())
             .filter(|&i| !done[i])
             .filter_map(|i| {
-                let (x, z) = (i % w, i / w);
-                let nb = [
-                    (x > 0).then(|| i - 1),
-                    (x + 1 < w).then(|| i + 1),
-                    (z > 0).then(|| i - w),
-                    (z + 1 < h).then(|| i + w),
-                ];
-                let known: Vec<f32> = nb.into_iter().flatten().filter(|&j| done[j]).map(|j| fronts[j]).collect();
+                let known: Vec<f32> = neighbours(i, w, h).filter(|&j| done[j]).map(|j| fronts[j]).collect();
                 (!known.is_empty()).then(|| (i, known.iter().sum::<f32>() / known.len() as f32))
             })
             .collect();
@@ -310,12 +311,7 @@ fn voids_are_filled_without_walls() {
         seen[start] = true;
         while let Some(i) = stack.pop() {
             region.push(i);
-            let (x, z) = (i % w, i / w);
-            for j in
-                [(x > 0).then(|| i - 1), (x + 1 < w).then(|| i + 1), (z > 0).then(|| i - w), (z + 1 < h).then(|| i + w)]
-                    .into_iter()
-                    .flatten()
-            {
+            for j in neighbours(i, w, h) {
                 if !void[j] {
                     rim.push(raw[j]);
                 } else if !seen[j] {

@@ -505,7 +505,7 @@ impl Bench<'_> {
                     row.error_age_frames = draw.feed.age_frames(i);
                 }
             }
-            let blocks = frame.blocks;
+            let (blocks, _) = frame.into_parts();
             if let (Some(stats), Some(r)) = (done, pending[slot].take()) {
                 fill(&mut run.rows[r], &stats, r);
             }

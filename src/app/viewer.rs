@@ -759,13 +759,13 @@ impl App {
             self.stats.error_generations = n;
         }
         self.stats.most_generations_in_flight = activity.most_in_flight();
+        let (blocks, submitted) = frame.into_parts();
         let Some(Submitted { image_index, suboptimal, extent, screenshot, readback, render_done, recording }) =
-            frame.submitted
+            submitted
         else {
             self.swapchain_dirty = true;
             return Ok(());
         };
-        let blocks = frame.blocks;
         let gpu = self.gpu.as_mut().unwrap();
         self.trace.complete(DRAW_TID, "record and submit", recording, Instant::now(), json!({"blocks": blocks.len()}));
         self.trace.instant(DRAW_TID, "submit (draw queue)", json!({"frame": self.frame}));

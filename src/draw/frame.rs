@@ -55,13 +55,26 @@ pub struct Frame<R> {
     pub taken: Option<u64>,
     /// Milliseconds in the error feed (the first frame waits for its generation there).
     pub feed_ms: f64,
-    /// The traversal, when the frame traversed.
+    /// The traversal, when the frame traversed (its blocks are the ones drawn).
     pub traversal: Option<Traversal>,
     pub traverse_ms: f64,
-    /// The blocks drawn.
-    pub blocks: Vec<DrawBlock>,
+    /// The blocks the request brought, when it did not traverse.
+    given: Vec<DrawBlock>,
     /// What the submission returned.
     pub submitted: R,
+}
+
+impl<R> Frame<R> {
+    /// The blocks drawn.
+    pub fn blocks(&self) -> &[DrawBlock] {
+        self.traversal.as_ref().map_or(&self.given, |t| &t.blocks)
+    }
+
+    /// The blocks drawn and what the submission returned, moved out of the frame (no
+    /// copy of the blocks).
+    pub fn into_parts(self) -> (Vec<DrawBlock>, R) {
+        (self.traversal.map_or(self.given, |t| t.blocks), self.submitted)
+    }
 }
 
 /// The draw thread's state between frames.
@@ -122,20 +135,19 @@ impl DrawThread {
         };
         let feed_ms = started.elapsed().as_secs_f64() * 1e3;
         let t = Instant::now();
-        let (traversal, blocks) = match req.blocks {
+        let (traversal, given) = match req.blocks {
             Some(b) => (None, b.to_vec()),
             None => {
                 let tr = self.traverse(terrain, req.cam, self.select(req.lod, req.delta));
                 let args = json!({"blocks": tr.blocks.len(), "morphing": tr.morphing});
                 self.trace.complete(DRAW_TID, "traverse", t, Instant::now(), args);
                 self.last = LastSelection::of(&tr);
-                let blocks = tr.blocks.clone();
-                (Some(tr), blocks)
+                (Some(tr), Vec::new())
             }
         };
         let traverse_ms = t.elapsed().as_secs_f64() * 1e3;
-        let submitted = submit(&blocks)?;
-        Ok(Frame { taken, feed_ms, traversal, traverse_ms, blocks, submitted })
+        let submitted = submit(traversal.as_ref().map_or(&given, |t| &t.blocks))?;
+        Ok(Frame { taken, feed_ms, traversal, traverse_ms, given, submitted })
     }
 }
 
@@ -167,10 +179,10 @@ mod tests {
         assert_eq!(draw.last, LastSelection::default());
         let req = FrameRequest { frame: 0, cam: &cam, lod: LodChoice::Distance, delta: 1.0, blocks: None };
         let f = draw.step(None, terrain, req, |b| Ok(b.to_vec())).unwrap();
+        assert_eq!(f.blocks(), &f.submitted[..]);
         let t = f.traversal.expect("traversed");
         assert!(!t.blocks.is_empty());
         assert_eq!(f.submitted, t.blocks);
-        assert_eq!(f.blocks, t.blocks);
         assert_eq!(draw.last, LastSelection::of(&t));
         assert!(draw.last.nearest.is_some());
         let given = [t.blocks[0]];
@@ -178,6 +190,7 @@ mod tests {
         let f = draw.step(None, terrain, req, |b| Ok(b.len())).unwrap();
         assert!(f.traversal.is_none());
         assert_eq!(f.submitted, 1);
+        assert_eq!(f.into_parts(), (given.to_vec(), 1));
         assert_eq!(draw.last, LastSelection::of(&t), "a frame with given blocks leaves the selection as it was");
         let full = draw.traverse(terrain, &cam, draw.select(LodChoice::Full, 1.0));
         assert!(full.blocks.iter().all(|b| b.lod == 0));
