@@ -99,5 +99,5 @@ vec3 place_block_vertex(ivec2 local) {
     float raw = raw_at(s);
     precise float p = (raw_at(s - d) + raw_at(s + d)) * 0.5;
     float h = given ? given_raw : (d == ivec2(0) ? raw : morph_raw(p, raw, f));
-    return vec3(float(s.x) * frame.terrain.x, h * frame.terrain.y, float(s.y) * frame.terrain.x);
+    return vec3(float(s.x) * frame.spacing.x, h * frame.terrain.y, float(s.y) * frame.spacing.y);
 }

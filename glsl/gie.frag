@@ -28,7 +28,7 @@ void main() {
         out_gie = 0.0;
         return;
     }
-    float spacing = gie_pc.params.x;
+    vec2 spacing = gie_pc.params.xw;
     float hscale = gie_pc.params.y;
     float near_d = gie_pc.params.z;
     vec3 cam = gie_pc.camera.xyz;
@@ -42,8 +42,8 @@ void main() {
         // measured against the full-resolution surface. The traversal applies the block's
         // own 1 / cos^2, so this data does not depend on the camera's rotation.
         vec2 mm = texelFetch(minmax, g, lod - 1).rg;
-        vec3 bmin = vec3(float(corner.x) * spacing, mm.x * hscale, float(corner.y) * spacing);
-        vec3 bmax = vec3(float(corner.x + size) * spacing, mm.y * hscale, float(corner.y + size) * spacing);
+        vec3 bmin = vec3(float(corner.x) * spacing.x, mm.x * hscale, float(corner.y) * spacing.y);
+        vec3 bmax = vec3(float(corner.x + size) * spacing.x, mm.y * hscale, float(corner.y + size) * spacing.y);
         vec3 dv = max(max(bmin - cam, cam - bmax), vec3(0.0));
         float d = max(length(dv), near_d);
         float dev = texelFetch(deviation, g, lod - 1).r;
@@ -65,7 +65,7 @@ void main() {
         ivec2 s = corner + offs[k] * h;
         precise float rv = raw_at(s);
         precise float wie = (rv - (lo[k] + hi[k]) * 0.5) * hscale;
-        vec3 p = vec3(float(s.x) * spacing, rv * hscale, float(s.y) * spacing);
+        vec3 p = vec3(float(s.x) * spacing.x, rv * hscale, float(s.y) * spacing.y);
         float d = max(length(p - cam), near_d);
         level_err = max(level_err, abs(wie) * kappa / d);
     }

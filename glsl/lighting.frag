@@ -29,14 +29,14 @@ void main() {
     ivec2 s = ivec2(gl_FragCoord.xy) * lighting_pc.grid.z;
     vec2 p = vec2(s);
     float h0 = height_at(s);
-    float spacing = lighting_pc.params.x;
+    vec2 spacing = lighting_pc.params.xz;
 
     float horizon = -3.4028235e38; // f32::MIN, as on the CPU
     float t = 1.0;
     float h;
     for (uint k = 0u; k < SUN_MAX_STEPS; k++) {
         if (!sample_along(p, lighting_pc.sun.xz, t, h)) break;
-        horizon = max(horizon, (h - h0) / (t * spacing));
+        horizon = max(horizon, (h - h0) / (t * lighting_pc.params.w));
         t += max(t * SUN_STEP_GROWTH, 1.0);
     }
     float visible = clamp(0.5 + (lighting_pc.sun.y - horizon) / (2.0 * SUN_SOFTNESS), 0.0, 1.0);
@@ -46,9 +46,11 @@ void main() {
     float open = 0.0;
     for (int i = 0; i < dirs.length(); i++) {
         float tan_h = 0.0;
+        vec2 m = dirs[i] * spacing; // metres per unit of distance along this direction
+        float metres = sqrt(m.x * m.x + m.y * m.y);
         for (int j = 0; j < dists.length(); j++) {
             if (!sample_along(p, dirs[i], dists[j], h)) break;
-            tan_h = max(tan_h, (h - h0) / (dists[j] * spacing));
+            tan_h = max(tan_h, (h - h0) / (dists[j] * metres));
         }
         open += 1.0 - tan_h / sqrt(1.0 + tan_h * tan_h);
     }

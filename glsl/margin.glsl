@@ -5,7 +5,7 @@
 // beyond them. Linear in the world position, so that it clips exactly where the
 // forward pass discards.
 vec2 inside_extent(vec3 world) {
-    return vec2(frame.extent.xy - 1) + 1e-3 - world.xz / frame.terrain.x;
+    return vec2(frame.extent.xy - 1) + 1e-3 - world.xz / frame.spacing.xy;
 }
 
 bool beyond_extent(vec3 world) {

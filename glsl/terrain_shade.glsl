@@ -29,7 +29,7 @@ struct Sample {
 
 Sample from_heights(ivec2 s) {
     vec2 g = vec2(world_height(s + ivec2(1, 0)) - world_height(s - ivec2(1, 0)),
-                  world_height(s + ivec2(0, 1)) - world_height(s - ivec2(0, 1))) / (2.0 * frame.terrain.x);
+                  world_height(s + ivec2(0, 1)) - world_height(s - ivec2(0, 1))) / (2.0 * frame.spacing.xy);
     return Sample(g, world_height(s) <= frame.texturing.w);
 }
 
@@ -80,8 +80,7 @@ vec3 ramp(float t, float slope) {
 // (the colour-by-LOD view only). Derivatives (fwidth, implicit texture LOD) are taken
 // across the pixel quad, which in the deferred pass may straddle two triangles.
 vec3 shade_terrain(vec3 world, int lod) {
-    float spacing = frame.terrain.x;
-    vec2 p = world.xz / spacing;
+    vec2 p = world.xz / frame.spacing.xy;
     vec2 extent = vec2(frame.extent.xy - 1);
 
     ivec2 i0 = ivec2(floor(p));
@@ -112,7 +111,7 @@ vec3 shade_terrain(vec3 world, int lod) {
         // At least one sample spacing: a height recovered from depth (deferred) is off by
         // a tiny fraction of the distance, which over a flat field's zero range would
         // pick colours at random.
-        float range = max(frame.terrain.w - frame.terrain.z, spacing);
+        float range = max(frame.terrain.w - frame.terrain.z, min(frame.spacing.x, frame.spacing.y));
         float t = clamp((world.y - frame.terrain.z) / range, 0.0, 1.0);
         albedo = ramp(t, 1.0 - n.y);
         // The lowest ground is water (sea level in most DEMs): where the samples around

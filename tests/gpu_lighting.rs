@@ -61,7 +61,7 @@ fn lighting_map_matches_the_reference() {
     let odd = Sun { azimuth: 217.5, elevation: 33.0 };
     // Walls of several heights along x and z, a pit and a spike: long shadows, deep
     // occlusion, shadow edges at every angle.
-    let walls = field(97, 97, 2.0, |x, z| {
+    let walls = field(97, 97, [2.0, 5.0], |x, z| {
         let (fx, fz) = (x as f32 - 48.0, z as f32 - 48.0);
         if x % 24 == 12 {
             (z % 7) as f32 * 3.0

@@ -261,12 +261,12 @@ fn downward_poses(hf: &Heightfield, count: usize) -> Vec<Camera> {
             let z = wz * (0.35 + 0.3 * ((f * 7.3).fract()));
             let ground = hf.surface_height(x, z);
             // High enough that the view spans many blocks of different LODs.
-            let alt = hf.spacing * (60.0 + 190.0 * ((f * 3.7).fract()));
+            let alt = hf.spacing.min() * (60.0 + 190.0 * ((f * 3.7).fract()));
             let pos = Vec3::new(x, ground + alt, z);
             let pitch = (65.0f32 + 23.0 * ((f * 5.1).fract())).to_radians();
             let yaw = f * std::f32::consts::TAU * 3.0;
             let dir = Vec3::new(yaw.cos() * pitch.cos(), -pitch.sin(), yaw.sin() * pitch.cos());
-            Camera::look_at(pos, pos + dir, 50.0, 200, 150, hf.spacing * 0.05)
+            Camera::look_at(pos, pos + dir, 50.0, 200, 150, hf.spacing.min() * 0.05)
         })
         .collect()
 }
@@ -455,7 +455,7 @@ fn deferred_shading_matches_forward() {
         let (wx, wz) = hf.world_extent();
         let top = hf.raw.iter().cloned().fold(f32::MIN, f32::max) * hf.height_scale;
         let ground = hf.surface_height(wx * 0.5, wz * 0.6);
-        assert_eq!((hf.side() - 1) as f32 * hf.spacing > wx.max(wz), has_margin);
+        assert_eq!((hf.side() - 1) as f32 * hf.spacing.min() > wx.max(wz), has_margin);
         let mut scene = Scene::new(&device, hf, 33, Some(Sun::DEFAULT));
         // First: over the far corner, looking down at the true extent's far edges.
         let mut cams = vec![Camera::look_at(

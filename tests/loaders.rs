@@ -43,7 +43,7 @@ fn puget_sound_16bit_png() {
     assert_eq!((hf.width, hf.height, hf.side(), hf.n), (1025, 1025, 1025, 10));
     assert_eq!(hf.format, HeightFormat::Unorm16);
     assert_eq!(range(&hf), (0.0, 43798.0));
-    assert_eq!((hf.spacing, hf.height_scale), (160.0, 0.1));
+    assert_eq!((hf.spacing, hf.height_scale), (160.0.into(), 0.1));
     assert_eq!(hf.raw.iter().filter(|&&v| v == 0.0).count(), 39_421);
 }
 
@@ -69,7 +69,7 @@ fn grand_canyon_rgb_png_with_equal_channels() {
     let hf = load_default(&data("grand_canyon/gcanyon_height_4k2k.png"));
     assert_eq!((hf.width, hf.height, hf.side()), (4097, 2049, 4097));
     assert_eq!(range(&hf), (13.0, 187.0));
-    assert_eq!((hf.spacing, hf.height_scale), (60.0, 10.0));
+    assert_eq!((hf.spacing, hf.height_scale), (60.0.into(), 10.0));
     // The margin below row 2048 repeats the last row.
     assert_eq!(hf.raw_at(100, 4096), hf.raw_at(100, 2048));
 }

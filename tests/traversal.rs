@@ -11,7 +11,7 @@ use vkterrain::lod::audit::{audit, check_tiling};
 use vkterrain::lod::block::{block_vertex, morph_value, BlockLayout, DrawBlock, Traversal, MORPH_ONE};
 use vkterrain::lod::camera::Camera;
 use vkterrain::lod::gie::{block_errors, group_errors_with, ErrorMode, ErrorParams, WorldPart};
-use vkterrain::lod::heightfield::Heightfield;
+use vkterrain::lod::heightfield::{Heightfield, Spacing};
 use vkterrain::lod::morph::{self, EdgeTerms, MorphRule};
 use vkterrain::lod::pyramid::MinMaxPyramid;
 use vkterrain::lod::traversal::{traverse, BlockCaches, LodSelect};
@@ -41,15 +41,15 @@ fn pose(hf: &Heightfield, rng: &mut Rng, kind: Pose) -> Camera {
     let ground = hf.surface_height(x, z);
     let yaw = rng.next() * std::f32::consts::TAU;
     let (y, pitch) = match kind {
-        Pose::NearGround => (ground + hf.spacing * (0.3 + 3.0 * rng.next()), -0.4 * rng.next()),
+        Pose::NearGround => (ground + hf.spacing.min() * (0.3 + 3.0 * rng.next()), -0.4 * rng.next()),
         Pose::High => (ground + l * (0.2 + 0.8 * rng.next()), -0.3 - 0.8 * rng.next()),
-        Pose::LookingDown => (ground + hf.spacing * (5.0 + 100.0 * rng.next()), -1.5),
-        Pose::Horizon => (ground + hf.spacing * (1.0 + 20.0 * rng.next()), 0.05 * (rng.next() - 0.5)),
+        Pose::LookingDown => (ground + hf.spacing.min() * (5.0 + 100.0 * rng.next()), -1.5),
+        Pose::Horizon => (ground + hf.spacing.min() * (1.0 + 20.0 * rng.next()), 0.05 * (rng.next() - 0.5)),
     };
     let dir = Vec3::new(yaw.cos() * pitch.cos(), pitch.sin(), yaw.sin() * pitch.cos());
     let pos = Vec3::new(x, y, z);
     let size = if rng.next() < 0.5 { (640, 480) } else { (1280, 720) };
-    Camera::look_at(pos, pos + dir, 40.0 + 50.0 * rng.next(), size.0, size.1, hf.spacing * 0.05)
+    Camera::look_at(pos, pos + dir, 40.0 + 50.0 * rng.next(), size.0, size.1, hf.spacing.min() * 0.05)
 }
 
 fn frame(
@@ -77,6 +77,9 @@ enum Variant {
     MorphUnderpaid,
     /// Every block drawn on its parent's surface.
     MorphParentSurface,
+    /// Errors and selection computed with the x spacing for both axes (the code before
+    /// spacings per axis), drawn and audited on the true field.
+    OneSpacing,
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -90,6 +93,11 @@ fn frame_with(
     delta: f32,
     variant: Variant,
 ) -> Traversal {
+    if variant == Variant::OneSpacing {
+        let mut iso = hf.clone();
+        iso.spacing = Spacing::from(hf.spacing.x);
+        return frame_with(&iso, mm, layout, cam, computed_at, mode, delta, Variant::Renderer);
+    }
     let p = ErrorParams::new(computed_at, mode);
     let world = if variant == Variant::NestedMax { WorldPart::NestedMax } else { WorldPart::Exact };
     let b = block_errors(&group_errors_with(hf, mm, &p, world), layout.m);
@@ -125,8 +133,8 @@ fn audit_poses(hf: &Heightfield, k: u32, count: usize, seed: u64) -> (f32, f32) 
             cam
         } else {
             let mut o = cam;
-            o.position += Vec3::new(rng.next() - 0.5, 0.0, rng.next() - 0.5) * 40.0 * hf.spacing;
-            o.position.y = o.position.y.max(hf.surface_height(o.position.x, o.position.z) + hf.spacing * 0.3);
+            o.position += Vec3::new(rng.next() - 0.5, 0.0, rng.next() - 0.5) * 40.0 * hf.spacing.min();
+            o.position.y = o.position.y.max(hf.surface_height(o.position.x, o.position.z) + hf.spacing.min() * 0.3);
             o
         };
         let t = frame(hf, &mm, &layout, &cam, &old, ErrorMode::Strict, delta);
@@ -173,6 +181,35 @@ fn strict_mode_holds_delta_on_crafted_fields() {
     assert_tight("spikes", audit_poses(&spikes, 9, 100, 3));
     let ridges = field(200, 131, 2.0, |x, z| ((x as f32 * 0.2).sin() * (z as f32 * 0.15).cos()).abs() * 25.0);
     assert_tight("ridges (non-square)", audit_poses(&ridges, 5, 100, 5));
+}
+
+/// Spacings that differ per axis (SPEC section 1): geographic tiles away from the
+/// equator, non-square pixels. Real data (Mt Rainier at 64 x 92.6 m) and crafted fields
+/// stretched up to 8:1 either way, rectangular ones included, hold the bound tightly.
+#[test]
+fn strict_mode_holds_delta_on_anisotropic_fields() {
+    let hf = load::load(&data("srtm3/mt_rainier_90m.tif"), &LoadOptions::default()).unwrap();
+    assert!((hf.spacing.x - 64.0).abs() < 0.1 && (hf.spacing.z - 92.6).abs() < 0.1, "{:?}", hf.spacing);
+    assert_tight("Mt Rainier SRTM3 (64 x 92.6 m), 100 poses", audit_poses(&hf, 17, 100, 13));
+    let spike = |x: usize, z: usize| if (x * 7 + z * 13) % 97 == 0 { 6.0 } else { ((x as f32) * 0.05).sin() * 4.0 };
+    assert_tight("spikes, 1 x 8", audit_poses(&field(257, 257, [1.0, 8.0], spike), 9, 100, 17));
+    assert_tight("spikes, 8 x 1", audit_poses(&field(257, 257, [8.0, 1.0], spike), 9, 100, 19));
+    let ridges = |x: usize, z: usize| ((x as f32 * 0.2).sin() * (z as f32 * 0.15).cos()).abs() * 25.0;
+    assert_tight("ridges 200 x 131, 3 x 0.7", audit_poses(&field(200, 131, [3.0, 0.7], ridges), 5, 100, 23));
+}
+
+/// Mutation: errors and selection that use one spacing for both axes fail the audit on
+/// an anisotropic field (cliffs across z, seen from along z, where the z spacing
+/// decides every distance), while the renderer holds it on the same poses.
+#[test]
+fn audit_catches_one_spacing_for_both_axes() {
+    let cliffs =
+        field(257, 257, [1.0, 6.0], |x, z| ((z / 8) % 2) as f32 * 30.0 + ((x * 31 + z * 17) % 11) as f32 * 0.3);
+    let poses = adversarial_poses(&cliffs, 128.0, 80, 61);
+    let one = worst_ratio(&cliffs, 9, &poses, Variant::OneSpacing, false);
+    assert!(one > 1.5, "one spacing for both axes: worst audited / delta only {one}");
+    let right = worst_ratio(&cliffs, 9, &poses, Variant::Renderer, true);
+    println!("anisotropic cliffs, worst audited / delta: one spacing {one:.2}, per axis {right:.3}");
 }
 
 /// Every drawn edge vertex lies on the neighbour's surface: for LOD differences up to m
@@ -343,9 +380,9 @@ fn stale_splits_count_only_what_new_data_would_merge() {
         let (wx, wz) = hf.world_extent();
         let target = Vec3::new(wx * 0.5, 0.0, wz * 0.5);
         let eye = Vec3::new(wx * 0.5, wx * 0.15, wz * 1.05);
-        let cam = Camera::look_at(eye, target, 60.0, 640, 480, hf.spacing * 0.05);
+        let cam = Camera::look_at(eye, target, 60.0, 640, 480, hf.spacing.min() * 0.05);
         // The same view from 4 % further back along the line of sight.
-        let back = Camera::look_at(eye + (eye - target) * 0.04, target, 60.0, 640, 480, hf.spacing * 0.05);
+        let back = Camera::look_at(eye + (eye - target) * 0.04, target, 60.0, 640, 480, hf.spacing.min() * 0.05);
         for mode in [ErrorMode::Strict, ErrorMode::Paper] {
             let fresh = frame(&hf, &mm, &layout, &cam, &cam, mode, 1.0);
             let stale = frame(&hf, &mm, &layout, &cam, &back, mode, 1.0);
@@ -373,11 +410,11 @@ fn stale_splits_count_only_what_new_data_would_merge() {
 
 /// A camera near the ground at `(x, z)` (samples), looking along `yaw` and down `pitch`.
 fn cam_at(hf: &Heightfield, x: f32, z: f32, above: f32, yaw: f32, pitch: f32, fovy: f32) -> Camera {
-    let pos = Vec3::new(x * hf.spacing, 0.0, z * hf.spacing);
-    let y = hf.surface_height(pos.x, pos.z) + above * hf.spacing;
+    let pos = Vec3::new(x * hf.spacing.x, 0.0, z * hf.spacing.z);
+    let y = hf.surface_height(pos.x, pos.z) + above * hf.spacing.min();
     let pos = Vec3::new(pos.x, y, pos.z);
     let dir = Vec3::new(yaw.cos() * pitch.cos(), pitch.sin(), yaw.sin() * pitch.cos());
-    Camera::look_at(pos, pos + dir, fovy, 640, 480, hf.spacing * 0.05)
+    Camera::look_at(pos, pos + dir, fovy, 640, 480, hf.spacing.min() * 0.05)
 }
 
 /// Poses that put LOD boundaries of the crafted fields on screen: along and across the
@@ -416,11 +453,15 @@ fn worst_ratio(hf: &Heightfield, k: u32, poses: &[Camera], variant: Variant, req
             *cam
         } else {
             let mut o = *cam;
-            o.position += Vec3::new(3.0, 0.5, -2.0) * hf.spacing;
+            o.position += Vec3::new(3.0, 0.5, -2.0) * hf.spacing.min();
             o
         };
         let t = frame_with(hf, &mm, &layout, cam, &old, ErrorMode::Strict, delta, variant);
         let a = audit(hf, &layout, &t, cam);
+        if !require && a.uncovered > 0 {
+            // A broken variant may also cull what is visible: that fails the audit too.
+            return f32::INFINITY;
+        }
         assert_eq!(a.uncovered, 0, "pose {i}: visible samples not covered");
         if require {
             check_tiling(hf, &mm, &layout, &t.blocks, cam).unwrap_or_else(|e| panic!("pose {i}: {e}"));
@@ -764,14 +805,14 @@ fn surface_displacement(
                 if a.is_nan() || b.is_nan() || a == b {
                     continue;
                 }
-                let (x, z) = ((i % hf.width) as f32 * hf.spacing, (i / hf.width) as f32 * hf.spacing);
+                let (x, z) = ((i % hf.width) as f32 * hf.spacing.x, (i / hf.width) as f32 * hf.spacing.z);
                 let pa = Vec3::new(x, a * hf.height_scale, z);
                 let pb = Vec3::new(x, b * hf.height_scale, z);
                 if !frustum.contains_point(pa) || !frustum.contains_point(pb) {
                     continue;
                 }
                 if let (Some(qa), Some(qb)) = (cam.project(&vp, pa), cam.project(&vp, pb)) {
-                    let area = (hf.spacing * cam.kappa() / (pa - cam.position).length()).powi(2).min(1e4);
+                    let area = (hf.spacing.min() * cam.kappa() / (pa - cam.position).length()).powi(2).min(1e4);
                     energy += (((qa.0 - qb.0).powi(2) + (qa.1 - qb.1).powi(2)) * area) as f64;
                 }
             }

@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Installs what vkterrain needs on a fresh Debian 12 machine: the Vulkan loader,
 # lavapipe (CPU Vulkan driver), validation layers, Xvfb and xdotool for window tests, and the
-# toolchain shaderc's build-from-source needs (cmake, ninja, python3, g++).
+# toolchain shaderc's build-from-source needs (cmake, ninja, python3, g++), and GDAL (the
+# terrain file reader: libgdal-dev, about 60 MB with its libraries).
 # Idempotent: does nothing when everything is present.
 set -euo pipefail
 
@@ -9,7 +10,7 @@ need=()
 have_pkg() { dpkg-query -W -f='${Status}' "$1" 2>/dev/null | grep -q "install ok installed"; }
 for p in libvulkan1 mesa-vulkan-drivers vulkan-validationlayers vulkan-tools \
          xvfb xauth xdotool cmake ninja-build python3 g++ pkg-config curl ca-certificates fonts-dejavu-core procps libx11-dev libxkbcommon-x11-0 \
-         libwayland-client0 libxcursor1 libxrandr2 libxi6; do
+         libwayland-client0 libxcursor1 libxrandr2 libxi6 libgdal-dev; do
   have_pkg "$p" || need+=("$p")
 done
 

@@ -945,7 +945,7 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     summary["readback_bytes_per_update"] = json!(crate::lod::gie::BlockErrors::packed_len(s.layout.root_lod()) * 4 + 8);
     summary["geometry_bytes"] = json!(crate::app::commands::renderer_geometry_bytes(s.layout.k()));
     summary["heightfield_bytes"] = json!(s.hf.gpu_bytes());
-    summary["void_samples"] = json!(s.hf.void_samples);
+    crate::app::outputs::TerrainFacts::of(&s.hf).merge_into(&mut summary);
     summary["queue_mode"] = json!(s.device.queue_mode.as_str());
     summary["device"] = json!(s.device.name);
     summary["validation"] = json!(s.device.instance.validation);

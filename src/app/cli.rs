@@ -5,7 +5,7 @@ use crate::gpu::terrain::Texture;
 use crate::input::load::{self, LoadOptions};
 use crate::lod::camera::Camera;
 use crate::lod::gie::ErrorMode;
-use crate::lod::heightfield::Heightfield;
+use crate::lod::heightfield::{Heightfield, Spacing};
 use crate::lod::view::{default_view, near_plane};
 use crate::vk::QueueRequest;
 use clap::{Args, ValueEnum};
@@ -80,6 +80,13 @@ fn parse_fovy(s: &str) -> Result<f32, String> {
     Ok(v)
 }
 
+fn parse_spacing(s: &str) -> Result<Spacing, String> {
+    match s.split_once(',') {
+        Some((x, z)) => Ok(Spacing { x: parse_positive(x.trim())?, z: parse_positive(z.trim())? }),
+        None => parse_positive(s).map(Spacing::from),
+    }
+}
+
 /// Options every subcommand shares.
 #[derive(Args, Clone, Debug)]
 pub struct CommonArgs {
@@ -90,10 +97,11 @@ pub struct CommonArgs {
     /// Size of a raw .r16/.f32 heightfield.
     #[arg(long, value_name = "WxH", value_parser = parse_size)]
     pub raw_size: Option<(u32, u32)>,
-    /// Metres between samples (default depends on the file; see README).
-    #[arg(long, value_name = "M", value_parser = parse_positive)]
-    pub spacing: Option<f32>,
-    /// Metres per height unit (default depends on the file; see README).
+    /// Metres between samples, or X,Z for different spacings along columns (x) and rows
+    /// (z). Default: what the file's georeferencing says (printed at load).
+    #[arg(long, value_name = "M[,Z]", value_parser = parse_spacing)]
+    pub spacing: Option<Spacing>,
+    /// Metres per height unit. Default: what the file says (printed at load).
     #[arg(long, value_name = "M", value_parser = parse_positive)]
     pub height_scale: Option<f32>,
     /// Viewport size in pixels.
@@ -180,13 +188,8 @@ impl CommonArgs {
                     max_grid_side,
                 };
                 let hf = load::load(path, &opts).map_err(|e| InputError(e.to_string()))?;
-                if hf.void_samples > 0 {
-                    let share = 100.0 * hf.void_samples as f64 / (hf.width * hf.height) as f64;
-                    eprintln!(
-                        "vkterrain: note: {}: {} void (nodata) samples ({share:.1}%) filled smoothly (Laplace)",
-                        path.display(),
-                        hf.void_samples
-                    );
+                for line in crate::input::describe(&hf) {
+                    eprintln!("vkterrain: note: {line}");
                 }
                 check_scale(&hf)?;
                 Ok(hf)

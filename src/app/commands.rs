@@ -269,12 +269,12 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
         "geometry_bytes": renderer_geometry_bytes(s.layout.k()),
         "heightfield_bytes": s.hf.gpu_bytes(),
         "grid": s.hf.side(),
-        "void_samples": s.hf.void_samples,
         "queue_mode": s.device.queue_mode.as_str(),
         "device": s.device.name,
         "camera": [cam.position.x, cam.position.y, cam.position.z],
         "validation_messages": s.validation_messages(),
     });
+    crate::app::outputs::TerrainFacts::of(&s.hf).merge_into(&mut out);
     if let Some(ms) = errors_ms {
         out["error_update_ms"] = json!(ms);
     }
@@ -326,7 +326,7 @@ pub fn errors(args: &ErrorsArgs) -> anyhow::Result<()> {
         // Each repeat moves the camera by a hundredth of the sample spacing (well above f32
         // resolution at terrain coordinates) so that a new generation is needed.
         let mut p = base;
-        p.camera.x += i as f32 * s.hf.spacing * 0.01;
+        p.camera.x += i as f32 * s.hf.spacing.x * 0.01;
         let t = Instant::now();
         let g = activity.wait_for(p, Duration::from_secs(600))?;
         times.push(t.elapsed().as_secs_f64() * 1e3);
@@ -345,10 +345,9 @@ pub fn errors(args: &ErrorsArgs) -> anyhow::Result<()> {
         write_atomic(path, |tmp| std::fs::write(tmp, &bytes).map_err(|e| anyhow::anyhow!("{}: {e}", path.display())))?;
     }
     let n = s.hf.n as u64;
-    let out = json!({
+    let mut out = json!({
         "n": n,
         "grid": s.hf.side(),
-        "void_samples": s.hf.void_samples,
         "levels": cost.levels,
         "block": s.layout.k(),
         "block_levels": s.layout.root_lod(),
@@ -369,6 +368,7 @@ pub fn errors(args: &ErrorsArgs) -> anyhow::Result<()> {
         "device": s.device.name,
         "validation_messages": s.validation_messages(),
     });
+    crate::app::outputs::TerrainFacts::of(&s.hf).merge_into(&mut out);
     println!("{out}");
     finish(s)
 }

@@ -117,3 +117,44 @@ pub fn plot_font() -> bool {
     }
     have_font
 }
+
+/// What every JSON output says about the terrain: where it is and its scale (SPEC
+/// section 9) as the loader decided them, and the voids it filled.
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct TerrainFacts {
+    /// The CRS ("EPSG:4326"), or null when the file has none.
+    pub crs: Option<String>,
+    /// World metres per sample along x (columns) and z (rows).
+    pub spacing_m: [f32; 2],
+    /// Metres per raw height unit.
+    pub height_scale_m: f32,
+    /// CRS coordinates of the first sample's centre (null without a CRS or world file).
+    pub origin: Option<[f64; 2]>,
+    /// Samples in the true extent (columns, rows).
+    pub samples: [usize; 2],
+    /// Void (nodata) samples filled at load.
+    pub void_samples: usize,
+}
+
+impl TerrainFacts {
+    pub fn of(hf: &crate::lod::heightfield::Heightfield) -> Self {
+        let g = &hf.georef;
+        TerrainFacts {
+            crs: g.crs.clone(),
+            spacing_m: [hf.spacing.x, hf.spacing.z],
+            height_scale_m: hf.height_scale,
+            origin: (g.step != [0.0; 2]).then_some(g.origin),
+            samples: [hf.width, hf.height],
+            void_samples: hf.void_samples,
+        }
+    }
+
+    /// Adds these fields to a JSON object.
+    pub fn merge_into(&self, out: &mut serde_json::Value) {
+        if let (Some(o), serde_json::Value::Object(me)) =
+            (out.as_object_mut(), serde_json::to_value(self).unwrap_or_default())
+        {
+            o.extend(me);
+        }
+    }
+}

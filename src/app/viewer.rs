@@ -112,7 +112,7 @@ fn ground_hit(hf: &Heightfield, from: Vec3, dir: Vec3) -> Vec3 {
     let (wx, wz) = hf.world_extent();
     let l = wx.max(wz);
     let ground = |p: Vec3| hf.surface_height(p.x.clamp(0.0, wx), p.z.clamp(0.0, wz));
-    let steps = (2.0 * l / hf.spacing).min(20_000.0) as usize;
+    let steps = (2.0 * l / hf.spacing.min()).min(20_000.0) as usize;
     for i in 1..=steps {
         let p = from + dir * (i as f32 * 2.0 * l / steps as f32);
         if p.y <= ground(p) && (0.0..=wx).contains(&p.x) && (0.0..=wz).contains(&p.z) {
@@ -146,7 +146,7 @@ impl Controller {
         if let Some((pivot, radius)) = &mut self.orbit {
             let k = |c| self.held.contains(&c);
             let zoom = k(KeyCode::KeyS) as i32 - k(KeyCode::KeyW) as i32;
-            *radius = (*radius * (1.0 + 1.5 * dt * zoom as f32)).max(hf.spacing);
+            *radius = (*radius * (1.0 + 1.5 * dt * zoom as f32)).max(hf.spacing.min());
             let (pivot, radius) = (*pivot, *radius);
             self.position = pivot - self.forward() * radius;
             self.clamp_to_ground(hf);
@@ -236,8 +236,9 @@ struct RunStats {
     queue_mode: String,
     device: String,
     geometry_bytes: u64,
-    /// Void samples the heightmap's file marked, filled at load.
-    void_samples: usize,
+    /// Where the terrain is, its scale and the voids filled at load.
+    #[serde(flatten)]
+    terrain: crate::app::outputs::TerrainFacts,
     validation_messages: u64,
     screenshot: Option<String>,
     /// State at exit: camera position, yaw and pitch (radians), delta, geomorphing.
@@ -573,7 +574,7 @@ impl App {
         let acquired = (0..FRAMES_IN_FLIGHT).map(|_| BinarySemaphore::new(&device)).collect::<Result<Vec<_>, _>>()?;
         self.stats.queue_mode = device.queue_mode.as_str().into();
         self.stats.geometry_bytes = crate::app::commands::renderer_geometry_bytes(self.layout.k());
-        self.stats.void_samples = self.hf.void_samples;
+        self.stats.terrain = crate::app::outputs::TerrainFacts::of(&self.hf);
         self.stats.device = device.name.clone();
         self.gpu =
             Some(Gpu { hud, acquired, depth, swapchain, renderer, activity: Some(activity), terrain, surface, device });
@@ -1048,7 +1049,7 @@ impl App {
                             (self.ctl.yaw, self.ctl.pitch) = (yaw, d.y.clamp(-1.0, 1.0).asin());
                         }
                         self.ctl.walk = false;
-                        Some((pivot, to.length().max(self.hf.spacing)))
+                        Some((pivot, to.length().max(self.hf.spacing.min())))
                     }
                 };
             }

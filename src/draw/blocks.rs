@@ -216,7 +216,7 @@ pub fn depth_precise_enough(hf: &Heightfield, terrain: &TerrainGpu, cam: &Camera
     let (wx, wz) = hf.world_extent();
     let min = glam::Vec3::new(0.0, terrain.raw_range[0] * hf.height_scale, 0.0);
     let max = glam::Vec3::new(wx, terrain.raw_range[1] * hf.height_scale, wz);
-    crate::lod::camera::distance_to_aabb(cam.position, min, max) <= DEFERRED_MAX_SPACINGS * hf.spacing
+    crate::lod::camera::distance_to_aabb(cam.position, min, max) <= DEFERRED_MAX_SPACINGS * hf.spacing.min()
 }
 
 /// A depth attachment that the deferred shading pass also samples.
@@ -523,11 +523,12 @@ impl BlocksRenderer {
             inv_view_proj: vp.as_dmat4().inverse().as_mat4().to_cols_array_2d(),
             camera_fog: [cam.position.x, cam.position.y, cam.position.z, shading.fog_density],
             terrain: [
-                hf.spacing,
+                0.0,
                 hf.height_scale,
                 terrain.raw_range[0] * hf.height_scale,
                 terrain.raw_range[1] * hf.height_scale,
             ],
+            spacing: [hf.spacing.x, hf.spacing.z, 0.0, 0.0],
             light: [light.x, light.y, light.z, 0.25],
             texturing: [shading.detail_tiling, shading.detail_weight, terrain.gradient_scale, terrain.sea_level],
             extent: [hf.width as i32, hf.height as i32, hf.side() as i32, self.layout.k() as i32],

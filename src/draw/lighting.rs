@@ -9,7 +9,7 @@
 //! a few operations; `tests/gpu_lighting.rs` compares them.
 
 use crate::gpu::layout::{AO_DIRECTIONS, AO_DISTANCES, SUN_MAX_STEPS, SUN_SOFTNESS, SUN_STEP_GROWTH};
-use crate::lod::heightfield::Heightfield;
+use crate::lod::heightfield::{Heightfield, Spacing};
 use glam::Vec3;
 
 /// The largest side of the lighting map: larger grids use one texel per 2, 4, ..
@@ -34,11 +34,15 @@ impl Sun {
         Vec3::new(az.sin() * el.cos(), el.sin(), -az.cos() * el.cos())
     }
 
-    /// The horizontal unit direction towards the sun in samples (x, z) and the tangent
-    /// of its elevation, as the shader receives them.
-    pub fn march(&self) -> ([f32; 2], f32) {
+    /// The horizontal direction towards the sun in samples (x, z), unit in sample steps,
+    /// the tangent of its elevation and the metres one such step covers, as the shader
+    /// receives them. With `spacing.x != spacing.z` a world direction is a different
+    /// direction in samples.
+    pub fn march(&self, spacing: Spacing) -> ([f32; 2], f32, f32) {
         let az = self.azimuth.to_radians();
-        ([az.sin(), -az.cos()], self.elevation.to_radians().tan())
+        let (sx, sz) = (az.sin() / spacing.x, -az.cos() / spacing.z);
+        let len = (sx * sx + sz * sz).sqrt();
+        ([sx / len, sz / len], self.elevation.to_radians().tan(), 1.0 / len)
     }
 
     /// `AZ,EL` in degrees (azimuth 0..360, elevation 0..90 exclusive), or `off`.
@@ -88,21 +92,24 @@ pub fn light_at(hf: &Heightfield, x: i64, z: i64, sun: Option<Sun>) -> [f32; 2] 
         let qz = (p[1] + d[1] * t + 0.5).floor() as i64;
         (qx >= 0 && qz >= 0 && qx < w && qz < h).then(|| hf.height_at(qx, qz))
     };
-    let (d, tan_sun) = sun.march();
+    let (d, tan_sun, metres_per_step) = sun.march(hf.spacing);
     let mut horizon = f32::MIN;
     let mut t = 1.0f32;
     for _ in 0..SUN_MAX_STEPS {
         let Some(hq) = at(d, t) else { break };
-        horizon = horizon.max((hq - h0) / (t * hf.spacing));
+        horizon = horizon.max((hq - h0) / (t * metres_per_step));
         t += (t * SUN_STEP_GROWTH).max(1.0);
     }
     let visible = (0.5 + (tan_sun - horizon) / (2.0 * SUN_SOFTNESS)).clamp(0.0, 1.0);
     let mut open = 0.0;
     for d in AO_DIRECTIONS {
         let mut tan = 0.0f32;
+        // Metres per unit of `t` along this direction in samples.
+        let (mx, mz) = (d[0] * hf.spacing.x, d[1] * hf.spacing.z);
+        let metres = (mx * mx + mz * mz).sqrt();
         for t in AO_DISTANCES {
             let Some(hq) = at(d, t) else { break };
-            tan = tan.max((hq - h0) / (t * hf.spacing));
+            tan = tan.max((hq - h0) / (t * metres));
         }
         // 1 - sin of the horizon's elevation: the sky seen above it in this direction.
         open += 1.0 - tan / (1.0 + tan * tan).sqrt();

@@ -111,7 +111,7 @@ impl LightingMap {
     }
 
     fn draw(&mut self, hf: &Heightfield, sun: Option<Sun>, first: bool) -> VkResult<()> {
-        let (d, tan) = sun.map_or(([0.0; 2], 0.0), |s| s.march());
+        let (d, tan, metres_per_step) = sun.map_or(([0.0; 2], 0.0, 1.0), |s| s.march(hf.spacing));
         let push = LightingPush {
             sun: [d[0], tan, d[1], sun.is_some() as i32 as f32],
             grid: [
@@ -120,7 +120,7 @@ impl LightingMap {
                 samples_per_texel(hf.side(), self.max_side) as i32,
                 (hf.format == HeightFormat::Unorm16) as i32,
             ],
-            params: [hf.spacing, hf.height_scale, 0.0, 0.0],
+            params: [hf.spacing.x, hf.height_scale, hf.spacing.z, metres_per_step],
         };
         let extent = self.image.extent;
         let raw = &self.device.raw;

@@ -353,7 +353,7 @@ impl ErrorsGpu {
                 level: [lod as i32, n as i32, 0, unorm],
                 extent: [self.hf.width as i32, self.hf.height as i32, side as i32, 0],
                 camera: [p.camera.x, p.camera.y, p.camera.z, p.kappa],
-                params: [self.hf.spacing, self.hf.height_scale, p.near, 0.0],
+                params: [self.hf.spacing.x, self.hf.height_scale, p.near, self.hf.spacing.z],
             };
             let band = ((budget / side as u64).max(1) as u32).min(side);
             let mut row = 0;

@@ -121,8 +121,10 @@ gpu_block! {
         inv_view_proj: [[f32; 4]; 4] => "mat4",
         /// xyz: camera position, w: fog density.
         camera_fog: [f32; 4] => "vec4",
-        /// spacing, height_scale, min height, max height (world units).
+        /// unused, height_scale, min height, max height (world units).
         terrain: [f32; 4] => "vec4",
+        /// Sample spacing x, z (world units), unused x 2.
+        spacing: [f32; 4] => "vec4",
         /// xyz: direction towards the light, w: ambient.
         light: [f32; 4] => "vec4",
         /// detail tiling factor (DTF), base weight alpha, gradient-map scale, sea level
@@ -149,7 +151,7 @@ gpu_block! {
         extent: [i32; 4] => "ivec4",
         /// xyz: camera position, w: kappa (pixels per unit of tangent).
         camera: [f32; 4] => "vec4",
-        /// spacing, height_scale, near, unused.
+        /// spacing x, height_scale, near, spacing z.
         params: [f32; 4] => "vec4",
     }
 }
@@ -157,12 +159,13 @@ gpu_block! {
 gpu_block! {
     /// Constants of the sun-visibility and ambient-occlusion pass (`lighting.frag`).
     push_constant LightingPush as lighting_pc {
-        /// xz: unit horizontal direction towards the sun (samples), y: tangent of its
+        /// xz: horizontal direction towards the sun in samples (unit in sample steps; see
+        /// `Sun::march`), y: tangent of its
         /// elevation, w: 1 = shadows and occlusion, 0 = everything lit.
         sun: [f32; 4] => "vec4",
         /// true extent in samples (x, z), samples per lighting texel, heights are unorm16.
         grid: [i32; 4] => "ivec4",
-        /// spacing, height_scale, unused, unused.
+        /// spacing x, height_scale, spacing z, metres per unit step along `sun.xz`.
         params: [f32; 4] => "vec4",
     }
 }

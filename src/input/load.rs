@@ -1,15 +1,15 @@
-//! Heightfield loaders: PNG/JPEG (grayscale, or RGB with equal channels), TIFF/GeoTIFF
-//! (8/16-bit, signed 16-bit, 32-bit float; tiled or striped; voids filled), raw `.r16`
-//! and `.f32`, and SRTM `.hgt`.
+//! Heightfield loaders: everything GDAL reads (GeoTIFF, SRTM `.hgt`, PNG and JPEG with
+//! or without world files, VRT, ...: [`georef`]), and raw `.r16` / `.f32`; voids filled.
 
-use crate::lod::heightfield::{grid_side, HeightFormat, Heightfield, HeightfieldError, MAX_SIDE};
+use crate::input::georef;
+use crate::lod::heightfield::{grid_side, HeightFormat, Heightfield, HeightfieldError, Spacing, MAX_SIDE};
 use std::path::Path;
 
 /// Options shared by every subcommand that loads a heightfield.
 #[derive(Clone, Debug, Default)]
 pub struct LoadOptions {
-    /// Metres between samples; `None` picks the format's (or the known file's) default.
-    pub spacing: Option<f32>,
+    /// Metres between samples (x, z); `None` takes the file's georeferencing.
+    pub spacing: Option<Spacing>,
     /// World units per raw unit; `None` picks the default.
     pub height_scale: Option<f32>,
     /// Size of a raw `.r16`/`.f32` file.
@@ -19,36 +19,16 @@ pub struct LoadOptions {
     pub max_grid_side: Option<usize>,
 }
 
-/// Defaults for data sets we know by name (shared/data/README.md), else by sample type.
-fn defaults(path: &str, bits: u32, signed_or_float: bool) -> (f32, f32) {
-    let name = Path::new(path).file_name().map(|n| n.to_string_lossy().to_lowercase()).unwrap_or_default();
-    if name.starts_with("ps_height_1k") {
-        (160.0, 0.1)
-    } else if name.starts_with("ps_height_4k") && bits == 8 {
-        // The 8-bit JPEG: one unit is about 25.7 m (h16 / 257 * 0.1 m).
-        (40.0, 25.7)
-    } else if name.starts_with("ps_height_4k") {
-        (40.0, 0.1)
-    } else if name.starts_with("gcanyon") {
-        (60.0, 10.0)
-    } else if signed_or_float {
-        (90.0, 1.0)
-    } else if bits == 8 {
-        (30.0, 8.0)
-    } else {
-        (30.0, 0.1)
-    }
-}
-
-/// Loads a heightfield file; every error names the file and the problem.
+/// Loads a heightfield file; every error names the file and the problem. What the file
+/// says about itself (georeferencing, units, nodata) is read first ([`georef`]) and
+/// recorded in the heightfield's `georef.notes`, which the front-ends print.
 pub fn load(path: &Path, opts: &LoadOptions) -> Result<Heightfield, HeightfieldError> {
     let shown = path.display().to_string();
     let meta = std::fs::metadata(path).map_err(|source| HeightfieldError::Io { path: shown.clone(), source })?;
     if let Some(problem) = crate::input::not_a_file(&meta) {
         return Err(HeightfieldError::invalid(&shown, problem));
     }
-    let bytes = std::fs::read(path).map_err(|source| HeightfieldError::Io { path: shown.clone(), source })?;
-    if bytes.is_empty() {
+    if meta.len() == 0 {
         return Err(HeightfieldError::invalid(&shown, "file is empty"));
     }
     let ext = path.extension().map(|e| e.to_string_lossy().to_lowercase()).unwrap_or_default();
@@ -56,54 +36,116 @@ pub fn load(path: &Path, opts: &LoadOptions) -> Result<Heightfield, HeightfieldE
         // The file's own header gives its size; a size given anyway is a mistake.
         return Err(HeightfieldError::invalid(&shown, "--raw-size is only for raw .r16 and .f32 files"));
     }
-    let decoded = match ext.as_str() {
-        "png" | "jpg" | "jpeg" => decode_image(&shown, &bytes)?,
-        "tif" | "tiff" => decode_tiff(&shown, &bytes)?,
-        "r16" | "f32" => decode_raw(&shown, &bytes, &ext, opts.raw_size)?,
-        "hgt" => decode_hgt(&shown, &bytes)?,
+    let mut raster = match ext.as_str() {
+        "r16" | "f32" => {
+            let bytes = std::fs::read(path).map_err(|source| HeightfieldError::Io { path: shown.clone(), source })?;
+            decode_raw(&shown, &bytes, &ext, opts.raw_size)?
+        }
         _ => {
-            return Err(HeightfieldError::invalid(
-                &shown,
-                format!("unknown extension '{ext}': expected .png, .jpg, .tif, .tiff, .r16, .f32 or .hgt"),
-            ))
+            if ext == "hgt" {
+                check_hgt(&shown, path, meta.len())?;
+            }
+            georef::read(path)?
         }
     };
+    check_dims(&shown, raster.width, raster.height)?;
     if let Some(max) = opts.max_grid_side {
-        let side = grid_side(decoded.width.max(decoded.height));
+        let side = grid_side(raster.width.max(raster.height));
         if side > max {
             return Err(HeightfieldError::invalid(
                 &shown,
                 format!(
                     "{} x {} samples need a {side} x {side} grid, larger than the device's maxImageDimension2D ({max})",
-                    decoded.width, decoded.height
+                    raster.width, raster.height
                 ),
             ));
         }
     }
-    let (dspacing, dscale) = defaults(&shown, decoded.bits, decoded.format == HeightFormat::Float32);
-    let spacing = opts.spacing.unwrap_or(dspacing);
-    let height_scale = opts.height_scale.unwrap_or(dscale);
+    // Only files without georeferencing are looked up among the known data sets (their
+    // scale is documented beside them, not in them).
+    let known = if raster.transform.is_none() && raster.crs_wkt.is_none() {
+        let bytes = std::fs::read(path).map_err(|source| HeightfieldError::Io { path: shown.clone(), source })?;
+        georef::known_dataset(&bytes)
+    } else {
+        None
+    };
+    let scale = georef::decide(&shown, &raster, opts.spacing, opts.height_scale, known)?;
+    let voids = fill_file_voids(&shown, &mut raster)?;
     let mut hf = Heightfield::embed(
         &shown,
-        decoded.width,
-        decoded.height,
-        &decoded.samples,
-        decoded.format,
-        spacing,
-        height_scale,
+        raster.width,
+        raster.height,
+        &raster.samples,
+        raster.format,
+        scale.spacing,
+        scale.height_scale,
     )?;
-    hf.void_samples = decoded.voids;
+    hf.void_samples = voids;
+    hf.georef = scale.georef;
     Ok(hf)
 }
 
-struct Decoded {
-    width: usize,
-    height: usize,
-    samples: Vec<f32>,
-    format: HeightFormat,
-    bits: u32,
-    /// Void samples filled.
-    voids: usize,
+/// SRTM tiles are 1201 or 3601 samples a side and placed by their name.
+fn check_hgt(shown: &str, path: &Path, len: u64) -> Result<(), HeightfieldError> {
+    if len != 1201 * 1201 * 2 && len != 3601 * 3601 * 2 {
+        return Err(HeightfieldError::invalid(
+            shown,
+            format!(
+                "SRTM .hgt files are 1201 x 1201 ({} bytes) or 3601 x 3601 ({} bytes); this one has {len} bytes",
+                1201 * 1201 * 2,
+                3601 * 3601 * 2
+            ),
+        ));
+    }
+    let name = path.file_stem().map(|s| s.to_string_lossy().to_uppercase()).unwrap_or_default();
+    let b = name.as_bytes();
+    let placed = b.len() >= 7
+        && matches!(b[0], b'N' | b'S')
+        && b[1..3].iter().all(u8::is_ascii_digit)
+        && matches!(b[3], b'E' | b'W')
+        && b[4..7].iter().all(u8::is_ascii_digit);
+    if !placed {
+        return Err(HeightfieldError::invalid(
+            shown,
+            "an SRTM .hgt tile is placed by its name (its south-west corner, like N46W122.hgt), and this name places it nowhere: rename it",
+        ));
+    }
+    Ok(())
+}
+
+/// Applies the band's offset (in raw units, so that `raw * height_scale` stays the
+/// height), rejects non-finite samples the file does not call nodata, and fills the
+/// voids; returns how many there were.
+fn fill_file_voids(shown: &str, r: &mut georef::Raster) -> Result<usize, HeightfieldError> {
+    // Signed 16-bit rasters without a declared nodata: SRTM's void value.
+    let nodata = r.nodata.or((r.format == HeightFormat::Float32 && r.bits == 16).then_some(-32768.0));
+    let nan_is_void = nodata.is_some_and(|v| v.is_nan());
+    if !nan_is_void {
+        if let Some(i) = r.samples.iter().position(|v| !v.is_finite()) {
+            return Err(HeightfieldError::invalid(
+                shown,
+                format!(
+                    "sample at column {}, row {} is {} (not a height, and the file declares no NaN nodata)",
+                    i % r.width,
+                    i / r.width,
+                    r.samples[i]
+                ),
+            ));
+        }
+    }
+    let is_void = |v: f32| match nodata {
+        Some(nd) if nd.is_nan() => v.is_nan(),
+        Some(nd) => v == nd as f32,
+        None => false,
+    };
+    if let Some(offset) = r.offset {
+        let raw_offset = (offset / r.scale.unwrap_or(1.0)) as f32;
+        for v in r.samples.iter_mut().filter(|v| !is_void(**v)) {
+            *v += raw_offset;
+        }
+        r.format = HeightFormat::Float32;
+    }
+    fill_voids(shown, &mut r.samples, r.width, r.height, is_void)
 }
 
 fn check_dims(path: &str, w: usize, h: usize) -> Result<(), HeightfieldError> {
@@ -119,135 +161,12 @@ fn check_dims(path: &str, w: usize, h: usize) -> Result<(), HeightfieldError> {
     Ok(())
 }
 
-fn decode_image(path: &str, bytes: &[u8]) -> Result<Decoded, HeightfieldError> {
-    use image::DynamicImage as D;
-    let reader = image::ImageReader::new(std::io::Cursor::new(bytes))
-        .with_guessed_format()
-        .map_err(|e| HeightfieldError::invalid(path, e.to_string()))?;
-    let (w, h) =
-        reader.into_dimensions().map_err(|e| HeightfieldError::invalid(path, format!("not a readable image: {e}")))?;
-    check_dims(path, w as usize, h as usize)?;
-    let img = image::ImageReader::new(std::io::Cursor::new(bytes))
-        .with_guessed_format()
-        .map_err(|e| HeightfieldError::invalid(path, e.to_string()))?
-        .decode()
-        .map_err(|e| HeightfieldError::invalid(path, format!("cannot decode image: {e}")))?;
-    let (w, h) = (img.width() as usize, img.height() as usize);
-    let (samples, bits): (Vec<f32>, u32) = match &img {
-        D::ImageLuma8(b) => (b.as_raw().iter().map(|&v| v as f32).collect(), 8),
-        D::ImageLumaA8(b) => (b.as_raw().chunks(2).map(|p| p[0] as f32).collect(), 8),
-        D::ImageLuma16(b) => (b.as_raw().iter().map(|&v| v as f32).collect(), 16),
-        D::ImageLumaA16(b) => (b.as_raw().chunks(2).map(|p| p[0] as f32).collect(), 16),
-        D::ImageRgb8(b) => (equal_channels(path, b.as_raw(), 3, w)?, 8),
-        D::ImageRgba8(b) => (equal_channels(path, b.as_raw(), 4, w)?, 8),
-        D::ImageRgb16(b) => (equal_channels(path, b.as_raw(), 3, w)?, 16),
-        D::ImageRgba16(b) => (equal_channels(path, b.as_raw(), 4, w)?, 16),
-        _ => {
-            return Err(HeightfieldError::invalid(
-                path,
-                format!("unsupported pixel format {:?}: expected 8- or 16-bit grayscale", img.color()),
-            ))
-        }
-    };
-    Ok(Decoded { width: w, height: h, samples, format: HeightFormat::Unorm16, bits, voids: 0 })
-}
-
-/// Published height maps are sometimes saved as RGB with R = G = B; anything else is a
-/// colour picture, not heights.
-fn equal_channels<T: Copy + Into<f32> + PartialEq>(
+fn decode_raw(
     path: &str,
-    data: &[T],
-    channels: usize,
-    width: usize,
-) -> Result<Vec<f32>, HeightfieldError> {
-    let mut out = Vec::with_capacity(data.len() / channels);
-    for (i, p) in data.chunks(channels).enumerate() {
-        if p[0] != p[1] || p[1] != p[2] {
-            return Err(HeightfieldError::invalid(
-                path,
-                format!(
-                    "colour image (channels differ at column {}, row {}): a height map must be grayscale or have equal R, G, B",
-                    i % width,
-                    i / width
-                ),
-            ));
-        }
-        out.push(p[0].into());
-    }
-    Ok(out)
-}
-
-fn decode_tiff(path: &str, bytes: &[u8]) -> Result<Decoded, HeightfieldError> {
-    use tiff::decoder::{Decoder, DecodingResult as R};
-    use tiff::tags::Tag;
-    let terr = |e: tiff::TiffError| HeightfieldError::invalid(path, format!("cannot decode TIFF: {e}"));
-    let mut dec = Decoder::new(std::io::Cursor::new(bytes)).map_err(terr)?;
-    let (w, h) = dec.dimensions().map_err(terr)?;
-    let (w, h) = (w as usize, h as usize);
-    check_dims(path, w, h)?;
-    match dec.colortype().map_err(terr)? {
-        tiff::ColorType::Gray(_) => {}
-        other => {
-            return Err(HeightfieldError::invalid(
-                path,
-                format!("unsupported TIFF colour type {other:?}: expected one grayscale band"),
-            ))
-        }
-    }
-    // GDAL_NODATA (tag 42113) is an ASCII number.
-    let nodata: Option<f64> = dec
-        .find_tag(Tag::Unknown(42113))
-        .ok()
-        .flatten()
-        .and_then(|v| v.into_string().ok())
-        .and_then(|s| s.trim().trim_end_matches('\0').parse::<f64>().ok());
-    let image = dec.read_image().map_err(terr)?;
-    let (mut samples, format, bits, void_default): (Vec<f32>, HeightFormat, u32, Option<f64>) = match image {
-        R::U8(v) => (v.into_iter().map(|x| x as f32).collect(), HeightFormat::Unorm16, 8, None),
-        R::U16(v) => (v.into_iter().map(|x| x as f32).collect(), HeightFormat::Unorm16, 16, None),
-        R::I16(v) => (v.into_iter().map(|x| x as f32).collect(), HeightFormat::Float32, 16, Some(-32768.0)),
-        R::I32(v) => (v.into_iter().map(|x| x as f32).collect(), HeightFormat::Float32, 32, None),
-        R::F32(v) => (v, HeightFormat::Float32, 32, None),
-        R::F64(v) => (v.into_iter().map(|x| x as f32).collect(), HeightFormat::Float32, 64, None),
-        _ => {
-            return Err(HeightfieldError::invalid(
-                path,
-                "unsupported TIFF sample type: expected 8/16-bit unsigned, 16/32-bit signed or 32/64-bit float",
-            ))
-        }
-    };
-    if samples.len() != w * h {
-        return Err(HeightfieldError::invalid(
-            path,
-            format!("TIFF holds {} samples, expected {w} x {h}", samples.len()),
-        ));
-    }
-    let nodata = nodata.or(void_default);
-    let nan_is_void = nodata.is_some_and(|v| v.is_nan());
-    if !nan_is_void {
-        if let Some(i) = samples.iter().position(|v| !v.is_finite()) {
-            return Err(HeightfieldError::invalid(
-                path,
-                format!(
-                    "sample at column {}, row {} is {} (not a height, and the file declares no NaN nodata)",
-                    i % w,
-                    i / w,
-                    samples[i]
-                ),
-            ));
-        }
-    }
-    let voids = match nodata {
-        Some(nd) => {
-            let nd = nd as f32;
-            fill_voids(path, &mut samples, w, h, |v| v == nd || (v.is_nan() && nan_is_void))?
-        }
-        None => 0,
-    };
-    Ok(Decoded { width: w, height: h, samples, format, bits, voids })
-}
-
-fn decode_raw(path: &str, bytes: &[u8], ext: &str, size: Option<(usize, usize)>) -> Result<Decoded, HeightfieldError> {
+    bytes: &[u8],
+    ext: &str,
+    size: Option<(usize, usize)>,
+) -> Result<georef::Raster, HeightfieldError> {
     let Some((w, h)) = size else {
         return Err(HeightfieldError::invalid(path, "raw heightfields need --raw-size WxH"));
     };
@@ -269,27 +188,21 @@ fn decode_raw(path: &str, bytes: &[u8], ext: &str, size: Option<(usize, usize)>)
             32,
         )
     };
-    Ok(Decoded { width: w, height: h, samples, format, bits, voids: 0 })
-}
-
-fn decode_hgt(path: &str, bytes: &[u8]) -> Result<Decoded, HeightfieldError> {
-    let side = match bytes.len() {
-        n if n == 1201 * 1201 * 2 => 1201,
-        n if n == 3601 * 3601 * 2 => 3601,
-        n => {
-            return Err(HeightfieldError::invalid(
-                path,
-                format!(
-                    "SRTM .hgt files are 1201 x 1201 ({} bytes) or 3601 x 3601 ({} bytes); this one has {n} bytes",
-                    1201 * 1201 * 2,
-                    3601 * 3601 * 2
-                ),
-            ))
-        }
-    };
-    let mut samples: Vec<f32> = bytes.chunks_exact(2).map(|c| i16::from_be_bytes([c[0], c[1]]) as f32).collect();
-    let voids = fill_voids(path, &mut samples, side, side, |v| v == -32768.0)?;
-    Ok(Decoded { width: side, height: side, samples, format: HeightFormat::Float32, bits: 16, voids })
+    Ok(georef::Raster {
+        width: w,
+        height: h,
+        samples,
+        format,
+        bits,
+        nodata: None,
+        scale: None,
+        offset: None,
+        vertical_unit: None,
+        driver: "raw".into(),
+        transform: None,
+        crs_wkt: None,
+        outside: 0,
+    })
 }
 
 /// Fills the voids (nodata samples) smoothly and returns how many there were: each void

@@ -80,7 +80,7 @@ pub fn audit(hf: &Heightfield, layout: &BlockLayout, traversal: &Traversal, cam:
     for z in 0..hf.height as i64 {
         for x in 0..hf.width as i64 {
             let raw = hf.raw_at(x, z);
-            let p = Vec3::new(x as f32 * hf.spacing, raw * hf.height_scale, z as f32 * hf.spacing);
+            let p = hf.world_position(x, z, raw);
             if !frustum.contains_point(p) {
                 continue;
             }
@@ -144,7 +144,7 @@ pub fn audit_block(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, cam: &
     let mut worst = 0.0f32;
     for z in oz as i64..=(oz as i64 + size).min(hf.height as i64 - 1) {
         for x in ox as i64..=(ox as i64 + size).min(hf.width as i64 - 1) {
-            let p = Vec3::new(x as f32 * hf.spacing, hf.raw_at(x, z) * hf.height_scale, z as f32 * hf.spacing);
+            let p = hf.world_position(x, z, hf.raw_at(x, z));
             if frustum.contains_point(p) {
                 worst = worst.max(rendered_error(hf, layout, b, cam, &vp, (x, z, p)));
             }

@@ -161,12 +161,10 @@ pub fn block_aabb(
     bz: u32,
 ) -> (Vec3, Vec3) {
     let level = layout.m + lod;
-    let s = layout.block_samples(lod) as f32 * hf.spacing;
+    let s = layout.block_samples(lod) as i64;
     let [lo, hi] = mm.get(level, bx as usize, bz as usize);
-    (
-        Vec3::new(bx as f32 * s, lo * hf.height_scale, bz as f32 * s),
-        Vec3::new((bx + 1) as f32 * s, hi * hf.height_scale, (bz + 1) as f32 * s),
-    )
+    let (x0, z0) = (bx as i64 * s, bz as i64 * s);
+    hf.world_box(x0, z0, x0 + s, z0 + s, [lo * hf.height_scale, hi * hf.height_scale])
 }
 
 /// LOD of the drawn block over each finest-grid cell (-1: nothing drawn there).

@@ -87,7 +87,6 @@ pub fn group_errors(hf: &Heightfield, mm: &MinMaxPyramid, p: &ErrorParams) -> Gr
 /// [`group_errors`] with a chosen world part for strict mode (see [`WorldPart`]).
 pub fn group_errors_with(hf: &Heightfield, mm: &MinMaxPyramid, p: &ErrorParams, world: WorldPart) -> GroupErrors {
     let n = hf.n;
-    let spacing = hf.spacing;
     let hscale = hf.height_scale;
     let mut levels: Vec<Vec<f32>> = Vec::with_capacity(n as usize);
     // Nested world deviations (raw units) of the previous LOD, for the mutation variants.
@@ -121,8 +120,7 @@ pub fn group_errors_with(hf: &Heightfield, mm: &MinMaxPyramid, p: &ErrorParams, 
                 level[b * side + a] = match p.mode {
                     ErrorMode::Strict => {
                         let [mn, mx] = mm.get(lod, a, b);
-                        let bmin = Vec3::new(cx as f32 * spacing, mn * hscale, cz as f32 * spacing);
-                        let bmax = Vec3::new((cx + size) as f32 * spacing, mx * hscale, (cz + size) as f32 * spacing);
+                        let (bmin, bmax) = hf.world_box(cx, cz, cx + size, cz + size, [mn * hscale, mx * hscale]);
                         let d = distance_to_aabb(p.camera, bmin, bmax).max(p.near);
                         let dev = match world {
                             WorldPart::Exact => mm.deviation(lod, a, b),
@@ -146,7 +144,7 @@ pub fn group_errors_with(hf: &Heightfield, mm: &MinMaxPyramid, p: &ErrorParams, 
                             let (sx, sz) = (cx + ox * h, cz + oz * h);
                             let rv = hf.raw_at(sx, sz);
                             let wie = (rv - (lo[k] + hi[k]) * 0.5) * hscale;
-                            let pv = Vec3::new(sx as f32 * spacing, rv * hscale, sz as f32 * spacing);
+                            let pv = hf.world_position(sx, sz, rv);
                             let d = (pv - p.camera).length().max(p.near);
                             e = e.max(wie.abs() * p.kappa / d);
                         }

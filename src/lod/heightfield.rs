@@ -44,6 +44,61 @@ pub enum HeightFormat {
     Float32,
 }
 
+/// World units between samples along each axis (SPEC section 1): `x` along image
+/// columns (east for north-up data), `z` along rows (south). Different for geographic
+/// inputs away from the equator and for any projected input with non-square pixels.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Spacing {
+    pub x: f32,
+    pub z: f32,
+}
+
+impl Spacing {
+    pub fn min(self) -> f32 {
+        self.x.min(self.z)
+    }
+
+    pub fn max(self) -> f32 {
+        self.x.max(self.z)
+    }
+}
+
+impl From<f32> for Spacing {
+    fn from(s: f32) -> Self {
+        Spacing { x: s, z: s }
+    }
+}
+
+impl From<[f32; 2]> for Spacing {
+    fn from([x, z]: [f32; 2]) -> Self {
+        Spacing { x, z }
+    }
+}
+
+/// What the input said about where it is (SPEC section 9), kept for messages, JSON
+/// outputs and the viewer's coordinates. Plain data: the reader fills it
+/// ([`crate::input::georef`]).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Georef {
+    /// The CRS as "EPSG:4326" when it has an authority code, else its name; `None` when
+    /// the file has no georeferencing.
+    pub crs: Option<String>,
+    /// The CRS as WKT, for coordinate transforms (empty when not georeferenced).
+    pub wkt: String,
+    /// CRS coordinates of sample (0, 0)'s centre.
+    pub origin: [f64; 2],
+    /// CRS units per sample step along x and z (signed: a north-up raster has a
+    /// negative z step).
+    pub step: [f64; 2],
+    /// Degrees (a geographic CRS) rather than linear units.
+    pub geographic: bool,
+    /// Geographic inputs: the largest relative difference, anywhere in the extent,
+    /// between the true metres per sample and the one spacing per axis used.
+    pub worst_stretch: f64,
+    /// How spacing and height scale were decided, in words, for the load message.
+    pub notes: Vec<String>,
+}
+
 /// A heightfield embedded in a square grid of side `2^n + 1`.
 #[derive(Clone, Debug)]
 pub struct Heightfield {
@@ -54,8 +109,8 @@ pub struct Heightfield {
     /// True extent in samples (columns, rows); the rest is the clamped margin.
     pub width: usize,
     pub height: usize,
-    /// Metres (world units) between samples.
-    pub spacing: f32,
+    /// Metres (world units) between samples, per axis.
+    pub spacing: Spacing,
     /// World units per raw unit.
     pub height_scale: f32,
     pub format: HeightFormat,
@@ -63,6 +118,8 @@ pub struct Heightfield {
     pub source: String,
     /// Samples the file marked as voids (nodata), filled at load ([`crate::input::load`]).
     pub void_samples: usize,
+    /// Where the file says it is.
+    pub georef: Georef,
 }
 
 impl Heightfield {
@@ -74,9 +131,16 @@ impl Heightfield {
         height: usize,
         samples: &[f32],
         format: HeightFormat,
-        spacing: f32,
+        spacing: impl Into<Spacing>,
         height_scale: f32,
     ) -> Result<Self, HeightfieldError> {
+        let spacing = spacing.into();
+        if !(spacing.x.is_finite() && spacing.z.is_finite() && spacing.x > 0.0 && spacing.z > 0.0) {
+            return Err(HeightfieldError::invalid(
+                source,
+                format!("sample spacing {} x {} is not a positive distance", spacing.x, spacing.z),
+            ));
+        }
         if width < 3 || height < 3 {
             return Err(HeightfieldError::invalid(
                 source,
@@ -120,6 +184,7 @@ impl Heightfield {
             format,
             source: source.to_string(),
             void_samples: 0,
+            georef: Georef::default(),
         })
     }
 
@@ -137,6 +202,23 @@ impl Heightfield {
         self.raw[z * self.side() + x]
     }
 
+    /// World position of sample `(x, z)` with raw height `raw` (SPEC section 1), in the
+    /// order the shaders compute it (`block_vertex.glsl`).
+    #[inline]
+    pub fn world_position(&self, x: i64, z: i64, raw: f32) -> glam::Vec3 {
+        glam::Vec3::new(x as f32 * self.spacing.x, raw * self.height_scale, z as f32 * self.spacing.z)
+    }
+
+    /// World box over samples `x0..=x1`, `z0..=z1` between world heights `y[0]` and
+    /// `y[1]`: the one place where sample coordinates become a box's x and z.
+    #[inline]
+    pub fn world_box(&self, x0: i64, z0: i64, x1: i64, z1: i64, y: [f32; 2]) -> (glam::Vec3, glam::Vec3) {
+        (
+            glam::Vec3::new(x0 as f32 * self.spacing.x, y[0], z0 as f32 * self.spacing.z),
+            glam::Vec3::new(x1 as f32 * self.spacing.x, y[1], z1 as f32 * self.spacing.z),
+        )
+    }
+
     /// World height of a sample, computed as the shaders do (raw * scale in f32).
     #[inline]
     pub fn height_at(&self, x: i64, z: i64) -> f32 {
@@ -147,8 +229,8 @@ impl Heightfield {
     /// each quad is split along the diagonal from `(x, z)` to `(x+1, z+1)`.
     pub fn surface_height(&self, wx: f32, wz: f32) -> f32 {
         let max = (self.side() - 1) as f32;
-        let px = (wx / self.spacing).clamp(0.0, max);
-        let pz = (wz / self.spacing).clamp(0.0, max);
+        let px = (wx / self.spacing.x).clamp(0.0, max);
+        let pz = (wz / self.spacing.z).clamp(0.0, max);
         let x0 = (px.floor() as i64).min(self.side() as i64 - 2);
         let z0 = (pz.floor() as i64).min(self.side() as i64 - 2);
         let fx = px - x0 as f32;
@@ -166,7 +248,7 @@ impl Heightfield {
 
     /// World size of the true extent (x, z).
     pub fn world_extent(&self) -> (f32, f32) {
-        ((self.width - 1) as f32 * self.spacing, (self.height - 1) as f32 * self.spacing)
+        ((self.width - 1) as f32 * self.spacing.x, (self.height - 1) as f32 * self.spacing.z)
     }
 
     /// World height at or below which level ground is shaded as water: the lowest
@@ -186,11 +268,11 @@ impl Heightfield {
     pub fn gradient_map(&self, sea_level: f32) -> (Vec<[i16; 2]>, f32) {
         let side = self.side() as i64;
         let h = |x: i64, z: i64| self.height_at(x.clamp(0, side - 1), z.clamp(0, side - 1));
-        let inv = 1.0 / (2.0 * self.spacing);
+        let (inv_x, inv_z) = (1.0 / (2.0 * self.spacing.x), 1.0 / (2.0 * self.spacing.z));
         let grads: Vec<[f32; 2]> = (0..side * side)
             .map(|i| {
                 let (x, z) = (i % side, i / side);
-                [(h(x + 1, z) - h(x - 1, z)) * inv, (h(x, z + 1) - h(x, z - 1)) * inv]
+                [(h(x + 1, z) - h(x - 1, z)) * inv_x, (h(x, z + 1) - h(x, z - 1)) * inv_z]
             })
             .collect();
         let scale = grads.iter().flatten().fold(0.0f32, |m, g| m.max(g.abs())).max(f32::MIN_POSITIVE);
@@ -276,8 +358,8 @@ mod tests {
             let bit = units & 1 != 0;
             assert_eq!(bit, hf.height_at(x, z) <= sea, "sample ({x}, {z})");
             seen[bit as usize] += 1;
-            let gx = (hf.height_at(x + 1, z) - hf.height_at(x - 1, z)) / (2.0 * hf.spacing);
-            let gz = (hf.height_at(x, z + 1) - hf.height_at(x, z - 1)) / (2.0 * hf.spacing);
+            let gx = (hf.height_at(x + 1, z) - hf.height_at(x - 1, z)) / (2.0 * hf.spacing.x);
+            let gz = (hf.height_at(x, z + 1) - hf.height_at(x, z - 1)) / (2.0 * hf.spacing.z);
             assert!((as_read(t[0]) * scale - gx).abs() <= 0.51 * scale / 32767.0, "gx at ({x}, {z})");
             let even = (units & !1) as f32 / 32767.0;
             assert!((even * scale - gz).abs() <= 1.01 * scale / 32767.0, "gz at ({x}, {z})");

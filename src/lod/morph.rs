@@ -46,7 +46,6 @@ use crate::lod::heightfield::Heightfield;
 use crate::lod::pyramid::MinMaxPyramid;
 use crate::lod::stitch::{strip_segment, StitchCache, CORNER_EDGES, STRIP_SEGMENTS};
 use foldhash::HashMap;
-use glam::Vec3;
 
 /// What a block's morph costs, in pixels for this frame's camera.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -148,9 +147,7 @@ pub fn cost(
     let (size, st) = (layout.block_samples(j), b.stride());
     let last = layout.k() - 2; // last quad index
     let px = |[x0, z0, x1, z1]: [u32; 4]| {
-        let sp = hf.spacing;
-        let lo = Vec3::new(x0 as f32 * sp, min.y, z0 as f32 * sp);
-        let hi = Vec3::new(x1 as f32 * sp, max.y, z1 as f32 * sp);
+        let (lo, hi) = hf.world_box(x0 as i64, z0 as i64, x1 as i64, z1 as i64, [min.y, max.y]);
         per_group * hs / distance_to_aabb(cam.position, lo, hi).max(cam.near)
     };
     // Box of quads `t0..=t1` along edge `e`, in samples `[x0, z0, x1, z1]`.
@@ -281,10 +278,10 @@ fn interior(
 ) -> (f32, f32) {
     let tiles = caches.interiors.get_or_compute((layout.m, b.lod, b.bx, b.bz), || InteriorTiles::new(mm, layout, b));
     let hs = hf.height_scale;
-    let world = (1u32 << (b.lod + 1)) as f32 * hf.spacing;
+    let group = 1i64 << (b.lod + 1);
     let scale = |[x0, z0, x1, z1]: [u32; 4], lo: f32, hi: f32| {
-        let gmin = Vec3::new(x0 as f32 * world, lo * hs, z0 as f32 * world);
-        let gmax = Vec3::new(x1 as f32 * world, hi * hs, z1 as f32 * world);
+        let g = |v: u32| v as i64 * group;
+        let (gmin, gmax) = hf.world_box(g(x0), g(z0), g(x1), g(z1), [lo * hs, hi * hs]);
         per_group / distance_to_aabb(cam.position, gmin, gmax).max(cam.near)
     };
     let mut order: [(f32, usize); TILES * TILES] = std::array::from_fn(|t| {
@@ -621,6 +618,7 @@ impl EdgeVars {
 mod tests {
     use super::*;
     use crate::lod::heightfield::HeightFormat;
+    use glam::Vec3;
 
     /// Every parent group's term, no tiles: the maximum the pruned search must find.
     fn interior_all_groups(
@@ -632,14 +630,14 @@ mod tests {
         per_group: f32,
     ) -> (f32, f32) {
         let [ga, gb, ge, gf] = interior_groups(mm, layout, b);
-        let (hs, world) = (hf.height_scale, (1u32 << (b.lod + 1)) as f32 * hf.spacing);
+        let (hs, group) = (hf.height_scale, 1i64 << (b.lod + 1));
         let (mut parent, mut own) = (0.0f32, 0.0f32);
         for gz in gb..gf {
             for gx in ga..ge {
                 let (d0, dc) = group_deviations(mm, b.lod, gx, gz);
                 let [lo, hi] = mm.get(b.lod + 1, gx, gz);
-                let gmin = Vec3::new(gx as f32 * world, lo * hs, gz as f32 * world);
-                let gmax = Vec3::new((gx + 1) as f32 * world, hi * hs, (gz + 1) as f32 * world);
+                let (x0, z0) = (gx as i64 * group, gz as i64 * group);
+                let (gmin, gmax) = hf.world_box(x0, z0, x0 + group, z0 + group, [lo * hs, hi * hs]);
                 let f = per_group / distance_to_aabb(cam.position, gmin, gmax).max(cam.near);
                 parent = parent.max(d0 * hs * f);
                 own = own.max(dc * hs * f);

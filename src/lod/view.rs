@@ -13,7 +13,7 @@ use glam::Vec3;
 /// distances to it, so the blocks right around such a camera are drawn at full
 /// resolution, as they must be.
 pub fn near_plane(hf: &Heightfield) -> f32 {
-    (hf.spacing * 1e-5).min(0.01)
+    (hf.spacing.min() * 1e-5).min(0.01)
 }
 
 /// Above the south edge looking at the terrain's centre, backed away along that

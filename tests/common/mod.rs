@@ -44,13 +44,24 @@ pub fn finish(device: Arc<Device>) {
 }
 
 /// A crafted float heightfield.
-pub fn field(w: usize, h: usize, spacing: f32, f: impl Fn(usize, usize) -> f32) -> Heightfield {
+pub fn field(
+    w: usize,
+    h: usize,
+    spacing: impl Into<vkterrain::lod::heightfield::Spacing>,
+    f: impl Fn(usize, usize) -> f32,
+) -> Heightfield {
     let s: Vec<f32> = (0..w * h).map(|i| f(i % w, i / w)).collect();
     Heightfield::embed("crafted", w, h, &s, HeightFormat::Float32, spacing, 1.0).unwrap()
 }
 
 /// A crafted 16-bit heightfield (stored as R16_UNORM on the GPU).
-pub fn field16(w: usize, h: usize, spacing: f32, scale: f32, f: impl Fn(usize, usize) -> u16) -> Heightfield {
+pub fn field16(
+    w: usize,
+    h: usize,
+    spacing: impl Into<vkterrain::lod::heightfield::Spacing>,
+    scale: f32,
+    f: impl Fn(usize, usize) -> u16,
+) -> Heightfield {
     let s: Vec<f32> = (0..w * h).map(|i| f(i % w, i / w) as f32).collect();
     Heightfield::embed("crafted16", w, h, &s, HeightFormat::Unorm16, spacing, scale).unwrap()
 }

@@ -1,0 +1,558 @@
+//! What a file says about where it is and what its numbers mean (SPEC section 9), read
+//! through GDAL: the reader QGIS and most GIS tools use, so that whatever opens there
+//! (GeoTIFF and BigTIFF with their GeoKeys, SRTM `.hgt` placed by its name, PNG or JPEG
+//! with a world file and `.prj`, VRT mosaics, cloud-optimised GeoTIFF, some 200 formats)
+//! opens here with the same georeferencing, nodata, scale and offset.
+//!
+//! Then the world frame: a projected CRS gives metres per sample directly (feet and other
+//! units converted); a geographic one gives degrees, which become metres per axis at the
+//! extent's centre latitude on the CRS's own ellipsoid, or, when one spacing per axis is off
+//! by more than [`MAX_STRETCH`] somewhere, the raster is warped to a local transverse
+//! Mercator projection first.
+
+use crate::lod::heightfield::{Georef, HeightFormat, HeightfieldError, Spacing, MAX_SIDE};
+use gdal::raster::GdalDataType;
+use gdal::spatial_ref::SpatialRef;
+use gdal::Dataset;
+use std::path::Path;
+use std::sync::Once;
+
+/// The largest relative error of one spacing per axis, anywhere in the extent, before a
+/// geographic raster is reprojected instead.
+pub const MAX_STRETCH: f64 = 0.01;
+
+/// A raster band of heights as GDAL read it, with what the file says about it.
+pub struct Raster {
+    pub width: usize,
+    pub height: usize,
+    /// Row-major, `width * height`, the file's own numbers (no scale or offset applied).
+    pub samples: Vec<f32>,
+    pub format: HeightFormat,
+    /// Bits per sample in the file.
+    pub bits: u32,
+    /// The band's nodata value, if it declares one (NaN included).
+    pub nodata: Option<f64>,
+    /// Band scale and offset (height = value * scale + offset, in `unit`).
+    pub scale: Option<f64>,
+    pub offset: Option<f64>,
+    /// Metres per height unit, from the band's unit type or the vertical CRS, with the
+    /// unit's name.
+    pub vertical_unit: Option<(f64, String)>,
+    /// GDAL's driver, for messages ("GTiff", "SRTMHGT", "PNG").
+    pub driver: String,
+    /// The geotransform, when the file has one.
+    pub transform: Option<[f64; 6]>,
+    /// The CRS, when the file has one (WKT).
+    pub crs_wkt: Option<String>,
+    /// Samples that lie outside the source raster after a reprojection (NaN).
+    pub outside: usize,
+}
+
+/// GDAL reports problems both as return values (which become our messages) and through
+/// its error handler, which by default prints them; route the printed copies to
+/// `tracing` so that a bad file produces one message, ours. Also ask the GeoTIFF driver
+/// for the vertical part of a compound CRS (the vertical units).
+fn init_gdal() {
+    static INIT: Once = Once::new();
+    INIT.call_once(|| {
+        gdal::config::set_error_handler(|class, code, msg| {
+            tracing::debug!("GDAL {class:?} {code}: {msg}");
+        });
+        // A failure here only loses the vertical units of compound CRSs.
+        let _ = gdal::config::set_config_option("GTIFF_REPORT_COMPD_CS", "YES");
+    });
+}
+
+/// GDAL's own words for a failure, without the file name it repeats.
+fn gdal_message(shown: &str, e: gdal::errors::GdalError) -> String {
+    use gdal::errors::GdalError as E;
+    let msg = match e {
+        E::CplError { msg, .. } => msg,
+        E::NullPointer { msg, .. } => msg,
+        other => other.to_string(),
+    };
+    let msg = msg.trim();
+    let msg = msg.strip_prefix(shown).map(|m| m.trim_start_matches([':', ',', ' '])).unwrap_or(msg);
+    if msg.is_empty() {
+        "no GDAL driver recognises it".into()
+    } else {
+        msg.to_string()
+    }
+}
+
+/// Metres per unit of a vertical unit's name, for the names GDAL and PROJ use.
+pub fn metres_per_unit(name: &str) -> Option<f64> {
+    let n = name.trim().to_lowercase();
+    match n.as_str() {
+        "m" | "metre" | "metres" | "meter" | "meters" => Some(1.0),
+        "ft" | "foot" | "feet" | "international foot" | "foot (international)" => Some(0.3048),
+        "us-ft" | "ftus" | "us survey foot" | "us_survey_foot" | "foot_us" | "foot (us survey)" => {
+            Some(1200.0 / 3937.0)
+        }
+        "cm" | "centimetre" | "centimeter" => Some(0.01),
+        "dm" | "decimetre" | "decimeter" => Some(0.1),
+        "mm" | "millimetre" | "millimeter" => Some(0.001),
+        "km" | "kilometre" | "kilometer" => Some(1000.0),
+        _ => None,
+    }
+}
+
+/// The vertical CRS's unit in a compound CRS, from its PROJJSON.
+fn vertical_crs_unit(srs: &SpatialRef) -> Option<(f64, String)> {
+    let json: serde_json::Value = serde_json::from_str(&srs.to_projjson().ok()?).ok()?;
+    let vertical = json["components"].as_array()?.iter().find(|c| c["type"] == "VerticalCRS")?;
+    let unit = &vertical["coordinate_system"]["axis"][0]["unit"];
+    match unit {
+        serde_json::Value::String(name) => metres_per_unit(name).map(|m| (m, name.clone())),
+        serde_json::Value::Object(o) => {
+            let name = o.get("name")?.as_str()?.to_string();
+            Some((o.get("conversion_factor")?.as_f64()?, name))
+        }
+        _ => None,
+    }
+}
+
+fn crs_label(srs: &SpatialRef) -> String {
+    match (srs.auth_name(), srs.auth_code()) {
+        (Some(a), Ok(c)) => format!("{a}:{c}"),
+        _ => srs.name().unwrap_or_else(|| "unnamed CRS".into()),
+    }
+}
+
+/// Opens `path` with GDAL and reads its height band and what it says about itself.
+pub fn read(path: &Path) -> Result<Raster, HeightfieldError> {
+    init_gdal();
+    let shown = path.display().to_string();
+    let bad = |m: String| HeightfieldError::invalid(&shown, m);
+    let why = |e: gdal::errors::GdalError| gdal_message(&shown, e);
+    let ds = Dataset::open(path).map_err(|e| {
+        bad(format!(
+            "not a raster I can read: {} (GeoTIFF, SRTM .hgt, PNG, JPEG and the other GDAL rasters are; raw .r16/.f32 need --raw-size)",
+            why(e)
+        ))
+    })?;
+    let (w, h) = ds.raster_size();
+    if w == 0 || h == 0 {
+        return Err(bad(format!("image is {w} x {h}: no samples")));
+    }
+    if w > MAX_SIDE || h > MAX_SIDE {
+        return Err(bad(format!("{w} x {h} is larger than the supported {MAX_SIDE} samples a side")));
+    }
+    let bands = ds.raster_count();
+    let band = ds.rasterband(1).map_err(|e| bad(format!("cannot decode band 1: {}", why(e))))?;
+    let read_band = |i: usize| -> Result<Vec<f32>, HeightfieldError> {
+        let b = ds.rasterband(i).map_err(|e| bad(format!("cannot decode band {i}: {}", why(e))))?;
+        let buf = b
+            .read_as::<f32>((0, 0), (w, h), (w, h), None)
+            .map_err(|e| bad(format!("cannot decode band {i}: {}", why(e))))?;
+        Ok(buf.into_shape_and_vec().1)
+    };
+    let samples = match bands {
+        1 | 2 => read_band(1)?, // gray, or gray and alpha
+        3 | 4 => {
+            // Published height maps are sometimes saved as RGB with R = G = B; anything
+            // else is a colour picture, not heights.
+            let r = read_band(1)?;
+            for c in 2..=3 {
+                let other = read_band(c)?;
+                if let Some(i) = (0..r.len()).find(|&i| r[i] != other[i]) {
+                    return Err(bad(format!(
+                        "colour image (channels differ at column {}, row {}): a height map must be grayscale or have equal R, G, B",
+                        i % w,
+                        i / w
+                    )));
+                }
+            }
+            r
+        }
+        n => return Err(bad(format!("{n} bands: expected one band of heights (or equal R, G, B)"))),
+    };
+    let (format, bits) = match band.band_type() {
+        GdalDataType::UInt8 => (HeightFormat::Unorm16, 8),
+        GdalDataType::UInt16 => (HeightFormat::Unorm16, 16),
+        GdalDataType::Int16 => (HeightFormat::Float32, 16),
+        GdalDataType::UInt32 | GdalDataType::Int32 | GdalDataType::Float32 => (HeightFormat::Float32, 32),
+        GdalDataType::UInt64 | GdalDataType::Int64 | GdalDataType::Float64 => (HeightFormat::Float32, 64),
+        other => return Err(bad(format!("unsupported sample type {other:?}: expected integers or floats"))),
+    };
+    let srs = ds.spatial_ref().ok();
+    let unit_name = band.unit();
+    let vertical_unit = match metres_per_unit(&unit_name) {
+        Some(m) => Some((m, unit_name)),
+        None if !unit_name.trim().is_empty() => {
+            return Err(bad(format!("height unit '{unit_name}' is not one I know (metres, feet, ...)")))
+        }
+        None => srs.as_ref().and_then(vertical_crs_unit),
+    };
+    // GDAL answers a default transform with an error when the file has none.
+    let transform = ds.geo_transform().ok();
+    let raster = Raster {
+        width: w,
+        height: h,
+        samples,
+        format,
+        bits,
+        nodata: band.no_data_value(),
+        scale: band.scale().filter(|s| *s != 1.0),
+        offset: band.offset().filter(|o| *o != 0.0),
+        vertical_unit,
+        driver: ds.driver().short_name(),
+        transform,
+        crs_wkt: srs.as_ref().and_then(|s| s.to_wkt().ok()),
+        outside: 0,
+    };
+    match (&raster.transform, &srs) {
+        (Some(t), Some(s)) if s.is_geographic() => {
+            let frame = geographic_frame(t, w, h, s);
+            if frame.worst_stretch > MAX_STRETCH {
+                return reproject(&shown, &ds, raster, s, &frame);
+            }
+            Ok(raster)
+        }
+        _ => Ok(raster),
+    }
+}
+
+/// Prime-vertical and meridional radii of curvature at latitude `phi` (radians) on an
+/// ellipsoid of semi-major axis `a` and first eccentricity squared `e2`.
+pub fn radii(a: f64, e2: f64, phi: f64) -> (f64, f64) {
+    let w = 1.0 - e2 * phi.sin().powi(2);
+    (a / w.sqrt(), a * (1.0 - e2) / w.powf(1.5))
+}
+
+/// Metres per sample of a geographic raster at its centre latitude, and the worst
+/// relative stretch of that one spacing per axis over the extent.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct GeographicFrame {
+    pub spacing_m: [f64; 2],
+    pub centre: [f64; 2],
+    pub worst_stretch: f64,
+}
+
+/// [`GeographicFrame`] from the raster's transform (degrees, or the CRS's angular unit),
+/// size and ellipsoid.
+pub fn geographic_frame(t: &[f64; 6], w: usize, h: usize, srs: &SpatialRef) -> GeographicFrame {
+    let a = srs.semi_major().unwrap_or(6_378_137.0);
+    let b = srs.semi_minor().unwrap_or(6_356_752.314_245);
+    let rad = srs.angular_units();
+    let rad = if rad > 0.0 { rad } else { std::f64::consts::PI / 180.0 };
+    frame_on_ellipsoid(t, w, h, a, 1.0 - (b / a).powi(2), rad)
+}
+
+/// The pure part of [`geographic_frame`].
+pub fn frame_on_ellipsoid(t: &[f64; 6], w: usize, h: usize, a: f64, e2: f64, rad_per_unit: f64) -> GeographicFrame {
+    let (dlon, dlat) = (t[1].abs() * rad_per_unit, t[5].abs() * rad_per_unit);
+    // Latitudes of the first and last rows' sample centres, and the middle.
+    let lat_first = (t[3] + 0.5 * t[5]) * rad_per_unit;
+    let lat_last = (t[3] + (h as f64 - 0.5) * t[5]) * rad_per_unit;
+    let lon_centre = (t[0] + 0.5 * w as f64 * t[1]) * rad_per_unit;
+    let phi_c = 0.5 * (lat_first + lat_last);
+    let at = |phi: f64| {
+        let (n, m) = radii(a, e2, phi);
+        [n * phi.cos() * dlon, m * dlat]
+    };
+    let c = at(phi_c);
+    let (lo, hi) = (lat_first.min(lat_last), lat_first.max(lat_last));
+    let mut worst = 0.0f64;
+    for phi in [lo, hi, 0.0f64.clamp(lo, hi)] {
+        let s = at(phi);
+        worst = worst.max((s[0] / c[0] - 1.0).abs()).max((s[1] / c[1] - 1.0).abs());
+    }
+    GeographicFrame { spacing_m: c, centre: [lon_centre.to_degrees(), phi_c.to_degrees()], worst_stretch: worst }
+}
+
+/// Warps a geographic raster too large for one spacing per axis to a transverse Mercator
+/// projection centred on it, at its centre spacings; samples outside the source come
+/// back as NaN (counted in `outside`, then filled as voids).
+fn reproject(
+    shown: &str,
+    src: &Dataset,
+    mut raster: Raster,
+    srs: &SpatialRef,
+    frame: &GeographicFrame,
+) -> Result<Raster, HeightfieldError> {
+    let bad = |m: String| HeightfieldError::invalid(shown, m);
+    let a = srs.semi_major().unwrap_or(6_378_137.0);
+    let b = srs.semi_minor().unwrap_or(6_356_752.314_245);
+    let def = format!(
+        "+proj=tmerc +lat_0={} +lon_0={} +k=1 +x_0=0 +y_0=0 +a={a} +b={b} +units=m +no_defs",
+        frame.centre[1], frame.centre[0]
+    );
+    let mut dst_srs = SpatialRef::from_proj4(&def).map_err(|e| bad(format!("cannot make a local projection: {e}")))?;
+    let mut src_srs = srs.clone();
+    for s in [&mut dst_srs, &mut src_srs] {
+        s.set_axis_mapping_strategy(gdal::spatial_ref::AxisMappingStrategy::TraditionalGisOrder);
+    }
+    let t = raster.transform.expect("geographic rasters have a transform");
+    let (w, h) = (raster.width as f64, raster.height as f64);
+    let bounds = [t[0], t[3] + h * t[5], t[0] + w * t[1], t[3]];
+    let to = gdal::spatial_ref::CoordTransform::new(&src_srs, &dst_srs)
+        .map_err(|e| bad(format!("cannot transform to the local projection: {e}")))?;
+    let [x0, y0, x1, y1] = to
+        .transform_bounds(
+            &[bounds[0].min(bounds[2]), bounds[1].min(bounds[3]), bounds[0].max(bounds[2]), bounds[1].max(bounds[3])],
+            21,
+        )
+        .map_err(|e| bad(format!("cannot transform the extent: {e}")))?;
+    let [sx, sz] = frame.spacing_m;
+    let (nw, nh) = (((x1 - x0) / sx).ceil() as usize, ((y1 - y0) / sz).ceil() as usize);
+    if nw > MAX_SIDE || nh > MAX_SIDE {
+        return Err(bad(format!("reprojected to {nw} x {nh} samples: larger than {MAX_SIDE} a side")));
+    }
+    let driver =
+        gdal::DriverManager::get_driver_by_name("MEM").map_err(|e| bad(format!("GDAL has no MEM driver: {e}")))?;
+    let mut dst = driver
+        .create_with_band_type::<f32, _>("", nw, nh, 1)
+        .map_err(|e| bad(format!("cannot allocate the reprojected raster: {e}")))?;
+    dst.set_geo_transform(&[x0, sx, 0.0, y1, 0.0, -sz]).map_err(|e| bad(e.to_string()))?;
+    dst.set_spatial_ref(&dst_srs).map_err(|e| bad(e.to_string()))?;
+    {
+        let mut band = dst.rasterband(1).map_err(|e| bad(e.to_string()))?;
+        band.set_no_data_value(Some(f64::NAN)).map_err(|e| bad(e.to_string()))?;
+        band.fill(f64::NAN, None).map_err(|e| bad(e.to_string()))?;
+    }
+    gdal::raster::reproject(src, &dst).map_err(|e| bad(format!("reprojection failed: {e}")))?;
+    let band = dst.rasterband(1).map_err(|e| bad(e.to_string()))?;
+    let samples =
+        band.read_as::<f32>((0, 0), (nw, nh), (nw, nh), None).map_err(|e| bad(e.to_string()))?.into_shape_and_vec().1;
+    // The source's voids come back as NaN too (GDAL skips nodata when warping).
+    raster.outside = samples.iter().filter(|v| v.is_nan()).count();
+    raster.samples = samples;
+    raster.width = nw;
+    raster.height = nh;
+    raster.format = HeightFormat::Float32;
+    raster.transform = Some([x0, sx, 0.0, y1, 0.0, -sz]);
+    raster.crs_wkt = dst_srs.to_wkt().ok();
+    raster.nodata = Some(f64::NAN);
+    Ok(raster)
+}
+
+/// What the loader decided, from the file and the options.
+#[derive(Clone, Debug)]
+pub struct Scale {
+    pub spacing: Spacing,
+    pub height_scale: f32,
+    pub georef: Georef,
+}
+
+/// Decides spacing and height scale for `raster`: `--spacing` / `--height-scale` when
+/// given (said in a note), else what the file says, else the defaults of a data set we
+/// know by its contents (`known`), else assumed values, said loudly.
+pub fn decide(
+    shown: &str,
+    raster: &Raster,
+    spacing: Option<Spacing>,
+    height_scale: Option<f32>,
+    known: Option<&KnownDataset>,
+) -> Result<Scale, HeightfieldError> {
+    let bad = |m: String| HeightfieldError::invalid(shown, m);
+    let mut g = Georef::default();
+    let mut notes = Vec::new();
+    let srs = raster.crs_wkt.as_deref().and_then(|w| SpatialRef::from_wkt(w).ok());
+    // Spacing the file implies, with the words that say where it came from.
+    let from_file: Option<(Spacing, String)> = match (&raster.transform, &srs) {
+        (Some(t), _) if t[2] != 0.0 || t[4] != 0.0 => {
+            return Err(bad(format!(
+                "the raster is rotated or sheared (geotransform {t:?}): warp it north-up first (gdalwarp)"
+            )))
+        }
+        (Some(t), Some(s)) => {
+            g.crs = Some(crs_label(s));
+            g.wkt = raster.crs_wkt.clone().unwrap_or_default();
+            g.origin = [t[0] + 0.5 * t[1], t[3] + 0.5 * t[5]];
+            g.step = [t[1], t[5]];
+            if s.is_geographic() {
+                g.geographic = true;
+                let f = geographic_frame(t, raster.width, raster.height, s);
+                g.worst_stretch = f.worst_stretch;
+                let sp = Spacing { x: f.spacing_m[0] as f32, z: f.spacing_m[1] as f32 };
+                let words = format!(
+                    "{:.6} x {:.6} degrees a sample at {:.4} {} -> {:.2} x {:.2} m (one spacing per axis is off by at most {:.2} % over the extent)",
+                    t[1].abs(),
+                    t[5].abs(),
+                    f.centre[1].abs(),
+                    if f.centre[1] >= 0.0 { "N" } else { "S" },
+                    sp.x,
+                    sp.z,
+                    100.0 * f.worst_stretch
+                );
+                Some((sp, words))
+            } else {
+                let unit = s.linear_units();
+                let unit = if unit > 0.0 { unit } else { 1.0 };
+                let sp = Spacing { x: (t[1].abs() * unit) as f32, z: (t[5].abs() * unit) as f32 };
+                let uname = s.linear_units_name().unwrap_or_else(|| "unit".into());
+                Some((sp, format!("{} x {} {uname} a sample -> {:.3} x {:.3} m", t[1].abs(), t[5].abs(), sp.x, sp.z)))
+            }
+        }
+        (Some(t), None) => {
+            // A world file without a .prj: the pixel size is in unknown units.
+            if t[1].abs() < 0.01 {
+                return Err(bad(format!(
+                    "the world file gives {} units per sample but no CRS (.prj) says what a unit is (degrees?): \
+                     add a .prj or give --spacing",
+                    t[1].abs()
+                )));
+            }
+            g.origin = [t[0] + 0.5 * t[1], t[3] + 0.5 * t[5]];
+            g.step = [t[1], t[5]];
+            let sp = Spacing { x: t[1].abs() as f32, z: t[5].abs() as f32 };
+            Some((sp, format!("{} x {} a sample from the world file, no CRS: taken as metres", t[1].abs(), t[5].abs())))
+        }
+        (None, _) => None,
+    };
+    if raster.outside > 0 {
+        notes.push(format!(
+            "reprojected to a local transverse Mercator projection (one spacing per axis would have been off by more than {} %); \
+             {} samples outside the source (or void in it) are filled like voids",
+            100.0 * MAX_STRETCH,
+            raster.outside
+        ));
+    }
+    let spacing = match (spacing, &from_file, known) {
+        (Some(s), Some((_, words)), _) => {
+            notes.push(format!("spacing {} x {} m from --spacing (the file says {words})", s.x, s.z));
+            s
+        }
+        (Some(s), None, _) => {
+            notes.push(format!("spacing {} x {} m from --spacing", s.x, s.z));
+            s
+        }
+        (None, Some((s, words)), _) => {
+            notes.push(format!("spacing: {words}"));
+            *s
+        }
+        (None, None, Some(k)) => {
+            notes
+                .push(format!("not georeferenced; known data set {} by its contents: spacing {} m", k.name, k.spacing));
+            Spacing::from(k.spacing)
+        }
+        (None, None, None) => {
+            let s = 30.0;
+            notes.push(format!(
+                "WARNING: not georeferenced (no CRS, geotransform or world file): spacing {s} m ASSUMED; give --spacing"
+            ));
+            Spacing::from(s)
+        }
+    };
+    // Height scale: the file's scale times its unit, else the known data set's, else
+    // metres for georeferenced files, else a default by bit depth.
+    let file_scale = raster.scale.unwrap_or(1.0);
+    let georeferenced = g.crs.is_some();
+    let file_height: Option<(f64, String)> = match &raster.vertical_unit {
+        Some((m, name)) => Some((file_scale * m, format!("{file_scale} {name} a unit"))),
+        None if raster.scale.is_some() => {
+            Some((file_scale, format!("scale {file_scale} a unit, unit not given: metres assumed")))
+        }
+        None if georeferenced => Some((1.0, "unit not given: metres assumed".into())),
+        None => None,
+    };
+    let height_scale = match (height_scale, &file_height, known) {
+        (Some(v), Some((_, words)), _) => {
+            notes.push(format!("height scale {v} m a unit from --height-scale (the file says {words})"));
+            v
+        }
+        (Some(v), None, _) => {
+            notes.push(format!("height scale {v} m a unit from --height-scale"));
+            v
+        }
+        (None, Some((v, words)), _) => {
+            notes.push(format!("heights: {words} -> {v} m a unit"));
+            *v as f32
+        }
+        (None, None, Some(k)) => {
+            notes.push(format!("heights: {} m a unit (known data set {})", k.height_scale, k.name));
+            k.height_scale
+        }
+        (None, None, None) => {
+            let v = match (raster.format, raster.bits) {
+                (HeightFormat::Float32, _) => 1.0,
+                (_, 8) => 8.0,
+                _ => 0.1,
+            };
+            notes.push(format!("WARNING: height unit not given: {v} m a unit ASSUMED; give --height-scale"));
+            v
+        }
+    };
+    if let Some(nd) = raster.nodata {
+        notes.push(format!("nodata {nd}"));
+    }
+    g.notes = notes;
+    Ok(Scale { spacing, height_scale, georef: g })
+}
+
+/// A data set from `shared/data` that carries no georeferencing, recognised by the
+/// SHA-256 of its bytes (not its name: a renamed copy keeps its scale), with the scale
+/// its publisher documents.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct KnownDataset {
+    pub name: &'static str,
+    pub sha256: &'static str,
+    pub spacing: f32,
+    pub height_scale: f32,
+}
+
+pub const KNOWN: &[KnownDataset] = &[
+    KnownDataset {
+        name: "Puget Sound 1k (16-bit PNG)",
+        sha256: "80229c93fb119e579fb440fe5bcd9cf7d8290681a80136840b938f7f1a6ebfea",
+        spacing: 160.0,
+        height_scale: 0.1,
+    },
+    KnownDataset {
+        // One unit is about 25.7 m (h16 / 257 * 0.1 m).
+        name: "Puget Sound 4k (8-bit JPEG)",
+        sha256: "50b4f2d90a39b4ee2eca1abd3a2f18f48b64b1e171724a41613ff0aa46a06c10",
+        spacing: 40.0,
+        height_scale: 25.7,
+    },
+    KnownDataset {
+        name: "Grand Canyon 4k x 2k (8-bit PNG)",
+        sha256: "7eda80965b3a4cab6c60d8598598e2c79602c3c525b6c2683dad92721fffbe2b",
+        spacing: 60.0,
+        height_scale: 10.0,
+    },
+];
+
+/// The known data set whose bytes are `bytes`, if any.
+pub fn known_dataset(bytes: &[u8]) -> Option<&'static KnownDataset> {
+    use sha2::Digest;
+    let digest = sha2::Sha256::digest(bytes);
+    let hex: String = digest.iter().map(|b| format!("{b:02x}")).collect();
+    KNOWN.iter().find(|k| k.sha256 == hex)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Against published values: at 46.5 N on WGS 84, 3 arc-seconds are about 64.0 m
+    /// east-west and 92.6 m north-south; at the equator 92.8 m and 92.1 m.
+    #[test]
+    fn srtm_spacing_on_wgs84() {
+        let (a, f) = (6_378_137.0, 1.0 / 298.257_223_563);
+        let e2 = f * (2.0 - f);
+        let d = 3.0 / 3600.0;
+        let rainier = [-122.0 - d / 2.0, d, 0.0, 47.0 + d / 2.0, 0.0, -d];
+        let fr = frame_on_ellipsoid(&rainier, 1201, 1201, a, e2, std::f64::consts::PI / 180.0);
+        assert!((fr.centre[1] - 46.5).abs() < 1e-9, "{fr:?}");
+        assert!((fr.spacing_m[0] - 64.0).abs() < 0.1, "{fr:?}");
+        assert!((fr.spacing_m[1] - 92.6).abs() < 0.1, "{fr:?}");
+        // cos varies by about 0.9 % over the tile at this latitude: just under the limit.
+        assert!(fr.worst_stretch > 0.008 && fr.worst_stretch < MAX_STRETCH, "{fr:?}");
+        let equator = [0.0, d, 0.0, 0.5, 0.0, -d];
+        let fe = frame_on_ellipsoid(&equator, 1201, 1201, a, e2, std::f64::consts::PI / 180.0);
+        assert!((fe.spacing_m[0] - 92.77).abs() < 0.05 && (fe.spacing_m[1] - 92.12).abs() < 0.05, "{fe:?}");
+        // Ten degrees tall at 50 N: far over the limit.
+        let tall = [0.0, 0.01, 0.0, 55.0, 0.0, -0.01];
+        assert!(frame_on_ellipsoid(&tall, 100, 1000, a, e2, std::f64::consts::PI / 180.0).worst_stretch > 0.05);
+    }
+
+    #[test]
+    fn unit_names() {
+        assert_eq!(metres_per_unit("ft"), Some(0.3048));
+        assert_eq!(metres_per_unit("metre"), Some(1.0));
+        assert!((metres_per_unit("US survey foot").unwrap() - 0.3048006).abs() < 1e-6);
+        assert_eq!(metres_per_unit("furlong"), None);
+    }
+}

@@ -1,0 +1,237 @@
+//! Georeferencing is read from the file (SPEC section 9): the SRTM tiles' degrees become
+//! metres per axis on WGS 84, a projected GeoTIFF written here with known tags loads at
+//! its own scale and units, a world file places a PNG, a renamed copy of a known data set
+//! keeps its scale, options override and say so, and a geographic raster too tall for
+//! one spacing per axis is reprojected.
+
+mod common;
+use common::{data, TempDir};
+use std::path::Path;
+use tiff::encoder::{colortype, TiffEncoder};
+use tiff::tags::Tag;
+use vkterrain::input::load::{load, LoadOptions};
+use vkterrain::lod::heightfield::{Heightfield, Spacing};
+
+fn load_default(p: &Path) -> Heightfield {
+    load(p, &LoadOptions::default()).unwrap_or_else(|e| panic!("{e}"))
+}
+
+/// Metres per degree of longitude and latitude at `lat` on WGS 84, written out from the
+/// ellipsoid's definition (not the loader's code): the parallel's radius over 360
+/// degrees and the meridian's radius of curvature.
+fn wgs84_metres_per_degree(lat: f64) -> (f64, f64) {
+    let a = 6_378_137.0f64;
+    let f = 1.0 / 298.257_223_563;
+    let e2 = 2.0 * f - f * f;
+    let s = lat.to_radians().sin();
+    let parallel = a * lat.to_radians().cos() / (1.0 - e2 * s * s).sqrt();
+    let meridian = a * (1.0 - e2) / (1.0 - e2 * s * s).powf(1.5);
+    (parallel * std::f64::consts::PI / 180.0, meridian * std::f64::consts::PI / 180.0)
+}
+
+#[test]
+fn srtm_tiles_are_metres_per_axis_on_wgs84() {
+    for (name, centre_lat) in [("mt_rainier_90m.tif", 46.5), ("mt_fuji_90m.tif", 35.5), ("mt_everest_90m.tif", 27.5)] {
+        let hf = load_default(&data(&format!("srtm3/{name}")));
+        let (ex, ez) = wgs84_metres_per_degree(centre_lat);
+        let (ex, ez) = (ex * 3.0 / 3600.0, ez * 3.0 / 3600.0);
+        let (sx, sz) = (hf.spacing.x as f64, hf.spacing.z as f64);
+        assert!(
+            (sx / ex - 1.0).abs() < 0.005 && (sz / ez - 1.0).abs() < 0.005,
+            "{name}: {sx} x {sz}, want {ex} x {ez}"
+        );
+        assert_eq!(hf.georef.crs.as_deref(), Some("EPSG:4326"), "{name}");
+        assert!(hf.georef.geographic);
+        assert_eq!(hf.height_scale, 1.0, "{name}: SRTM heights are metres");
+        assert!(hf.georef.worst_stretch < 0.01, "{name}: {}", hf.georef.worst_stretch);
+    }
+    // The figures for Rainier: about 64.0 m east-west by 92.6 m north-south.
+    let r = load_default(&data("srtm3/mt_rainier_90m.tif"));
+    assert!((r.spacing.x - 64.0).abs() < 0.1 && (r.spacing.z - 92.6).abs() < 0.1, "{:?}", r.spacing);
+    // The first sample's centre: the tie point (upper-left corner) plus half a sample.
+    let d = 3.0 / 3600.0;
+    assert!((r.georef.origin[0] - (-122.000417 + d / 2.0)).abs() < 1e-5, "{:?}", r.georef.origin);
+    assert!((r.georef.origin[1] - (47.000417 - d / 2.0)).abs() < 1e-5, "{:?}", r.georef.origin);
+}
+
+/// GeoKey directory entries (key, value), all stored inline (SHORT values).
+fn geokeys(keys: &[(u16, u16)]) -> Vec<u16> {
+    let mut v = vec![1, 1, 0, keys.len() as u16];
+    for &(k, val) in keys {
+        v.extend([k, 0, 1, val]);
+    }
+    v
+}
+
+/// A GeoTIFF of `w x h` float samples with the given tags, written with the `tiff`
+/// crate (not GDAL, so that the reader is checked against the tags themselves).
+fn write_geotiff(
+    path: &Path,
+    (w, h): (u32, u32),
+    samples: &[f32],
+    pixel: [f64; 2],
+    tie: [f64; 2],
+    keys: &[(u16, u16)],
+    nodata: Option<&str>,
+) {
+    let file = std::fs::File::create(path).unwrap();
+    let mut enc = TiffEncoder::new(file).unwrap();
+    let mut img = enc.new_image::<colortype::Gray32Float>(w, h).unwrap();
+    img.encoder().write_tag(Tag::Unknown(33550), &[pixel[0], pixel[1], 0.0][..]).unwrap();
+    img.encoder().write_tag(Tag::Unknown(33922), &[0.0, 0.0, 0.0, tie[0], tie[1], 0.0][..]).unwrap();
+    img.encoder().write_tag(Tag::Unknown(34735), &geokeys(keys)[..]).unwrap();
+    if let Some(nd) = nodata {
+        img.encoder().write_tag(Tag::Unknown(42113), nd).unwrap();
+    }
+    img.write_data(samples).unwrap();
+}
+
+/// UTM zone 10N, 25 m pixels, heights in international feet, nodata -9999: loads at
+/// 25 m, 0.3048 m a unit, the voids filled and counted, the origin at the first
+/// sample's centre.
+#[test]
+fn projected_geotiff_loads_at_its_own_scale() {
+    let dir = TempDir::new("georef");
+    let path = dir.path().join("utm_feet.tif");
+    let (w, h) = (65u32, 49u32);
+    let mut s: Vec<f32> = (0..w * h).map(|i| 1000.0 + (i % w) as f32 * 3.0 + (i / w) as f32).collect();
+    for i in [5 * w + 7, 20 * w + 30, 20 * w + 31] {
+        s[i as usize] = -9999.0;
+    }
+    let keys = [(1024, 1), (1025, 1), (3072, 32610), (4096, 8228), (4099, 9002)];
+    write_geotiff(&path, (w, h), &s, [25.0, 25.0], [500_000.0, 5_200_000.0], &keys, Some("-9999"));
+    let hf = load_default(&path);
+    assert_eq!(hf.spacing, Spacing { x: 25.0, z: 25.0 });
+    assert!((hf.height_scale - 0.3048).abs() < 1e-6, "height scale {} (feet are 0.3048 m)", hf.height_scale);
+    assert_eq!(hf.void_samples, 3);
+    assert_eq!(
+        hf.georef.crs.as_deref().map(|c| c.starts_with("EPSG:32610") || c.contains("UTM zone 10N")),
+        Some(true),
+        "{:?}",
+        hf.georef.crs
+    );
+    assert_eq!(hf.georef.origin, [500_012.5, 5_199_987.5]);
+    assert!(!hf.georef.geographic);
+    // The filled samples lie between their neighbours (a plane is its own fill).
+    assert!((hf.raw_at(7, 5) - (1000.0 + 21.0 + 5.0)).abs() < 0.01, "{}", hf.raw_at(7, 5));
+
+    // Options override, and the note says what the file said.
+    let o = LoadOptions { spacing: Some(Spacing { x: 10.0, z: 12.0 }), height_scale: Some(1.0), ..Default::default() };
+    let hf = load(&path, &o).unwrap();
+    assert_eq!((hf.spacing, hf.height_scale), (Spacing { x: 10.0, z: 12.0 }, 1.0));
+    let notes = hf.georef.notes.join("\n");
+    assert!(notes.contains("--spacing") && notes.contains("25 x 25"), "{notes}");
+    assert!(notes.contains("--height-scale") && notes.contains("foot"), "{notes}");
+}
+
+/// Non-square pixels in a projected CRS: the spacing differs per axis.
+#[test]
+fn non_square_pixels_give_two_spacings() {
+    let dir = TempDir::new("georef");
+    let path = dir.path().join("rect.tif");
+    let s = vec![10.0f32; 17 * 9];
+    write_geotiff(
+        &path,
+        (17, 9),
+        &s,
+        [2.0, 5.0],
+        [300_000.0, 4_000_000.0],
+        &[(1024, 1), (1025, 1), (3072, 32633)],
+        None,
+    );
+    let hf = load_default(&path);
+    assert_eq!(hf.spacing, Spacing { x: 2.0, z: 5.0 });
+    assert_eq!(hf.height_scale, 1.0);
+}
+
+/// A PNG with a world file: placed by it (units taken as metres without a CRS, and said);
+/// a world file in degrees without a CRS is refused rather than drawn a million times
+/// too small.
+#[test]
+fn world_files_place_pngs() {
+    let dir = TempDir::new("georef");
+    let png = dir.path().join("hill.png");
+    image::ImageBuffer::<image::Luma<u16>, _>::from_fn(33, 17, |x, y| image::Luma([(x * 100 + y) as u16]))
+        .save(&png)
+        .unwrap();
+    std::fs::write(dir.path().join("hill.pgw"), "7.5\n0\n0\n-7.5\n1000.0\n2000.0\n").unwrap();
+    let hf = load_default(&png);
+    assert_eq!(hf.spacing, Spacing::from(7.5));
+    assert_eq!(hf.georef.origin, [1000.0, 2000.0]);
+    assert!(hf.georef.notes.join(" ").contains("world file"), "{:?}", hf.georef.notes);
+    std::fs::write(dir.path().join("hill.pgw"), "0.000833333\n0\n0\n-0.000833333\n-122.0\n47.0\n").unwrap();
+    let e = load(&png, &LoadOptions::default()).unwrap_err().to_string();
+    assert!(e.contains("hill.png") && e.contains("no CRS"), "{e}");
+}
+
+/// A copy of Puget Sound 1k under another name keeps its documented scale (the scale came
+/// from the file name once: 160 m became 30 m on renaming).
+#[test]
+fn a_renamed_known_data_set_keeps_its_scale() {
+    let dir = TempDir::new("georef");
+    let copy = dir.path().join("my_terrain.png");
+    std::fs::copy(data("puget_sound/ps_height_1k.png"), &copy).unwrap();
+    let hf = load_default(&copy);
+    assert_eq!((hf.spacing, hf.height_scale), (Spacing::from(160.0), 0.1));
+    // An unknown file without georeferencing gets assumed values, said as a warning.
+    let other = dir.path().join("unknown.png");
+    image::ImageBuffer::<image::Luma<u16>, _>::from_fn(9, 9, |x, y| image::Luma([(x + y) as u16]))
+        .save(&other)
+        .unwrap();
+    let hf = load_default(&other);
+    let notes = hf.georef.notes.join("\n");
+    assert!(notes.contains("WARNING") && notes.contains("ASSUMED") && notes.contains("--spacing"), "{notes}");
+    assert_eq!(hf.georef.crs, None);
+}
+
+/// A geographic raster 12 degrees tall at 50 N: one spacing per axis would be off by
+/// 15 % at its edges, so it is warped to a local transverse Mercator projection; its
+/// heights (a function of latitude) land where that projection puts their latitudes.
+#[test]
+fn tall_geographic_rasters_are_reprojected() {
+    let dir = TempDir::new("georef");
+    let path = dir.path().join("tall.tif");
+    let (w, h) = (41u32, 241u32);
+    let (top, step) = (56.0f64, 0.05f64);
+    // Height = 100 m per degree of latitude above 40 N, at each sample's centre.
+    let s: Vec<f32> = (0..w * h).map(|i| ((top - (i / w) as f64 * step - step / 2.0 - 40.0) * 100.0) as f32).collect();
+    write_geotiff(&path, (w, h), &s, [step, step], [10.0, top], &[(1024, 2), (1025, 1), (2048, 4326)], None);
+    let hf = load_default(&path);
+    let notes = hf.georef.notes.join("\n");
+    assert!(notes.contains("reprojected"), "{notes}");
+    assert!(!hf.georef.geographic && hf.georef.crs.is_some());
+    // The centre spacings at 50 N: 0.05 degrees of longitude and latitude in metres.
+    let (ex, ez) = wgs84_metres_per_degree(50.0);
+    assert!((hf.spacing.x as f64 / (ex * step) - 1.0).abs() < 0.005, "{:?}", hf.spacing);
+    assert!((hf.spacing.z as f64 / (ez * step) - 1.0).abs() < 0.005, "{:?}", hf.spacing);
+    // Each sample's height is its latitude's: the georeferencing the loader reports
+    // (origin and step in the local projection) transformed back to WGS 84 by PROJ.
+    let mut local = gdal::spatial_ref::SpatialRef::from_wkt(&hf.georef.wkt).unwrap();
+    let mut wgs84 = gdal::spatial_ref::SpatialRef::from_epsg(4326).unwrap();
+    for s in [&mut local, &mut wgs84] {
+        s.set_axis_mapping_strategy(gdal::spatial_ref::AxisMappingStrategy::TraditionalGisOrder);
+    }
+    let back = gdal::spatial_ref::CoordTransform::new(&local, &wgs84).unwrap();
+    let mut checked = 0;
+    for (x, z) in [(20, 120), (5, 30), (35, 200), (hf.width as i64 / 2, hf.height as i64 / 2)] {
+        let mut e = [hf.georef.origin[0] + x as f64 * hf.georef.step[0]];
+        let mut n = [hf.georef.origin[1] + z as f64 * hf.georef.step[1]];
+        back.transform_coords(&mut e, &mut n, &mut []).unwrap();
+        let (lon, lat) = (e[0], n[0]);
+        if !(10.05..10.0 + w as f64 * step - 0.05).contains(&lon)
+            || !(top - h as f64 * step + 0.05..top - 0.05).contains(&lat)
+        {
+            continue; // outside the source (filled like a void)
+        }
+        let want = (lat - 40.0) * 100.0;
+        // Bilinear resampling of a function linear in latitude: exact but for the
+        // curvature of parallels within one sample (well under a metre here).
+        assert!(
+            (hf.raw_at(x, z) as f64 - want).abs() < 0.5,
+            "sample ({x}, {z}) at {lon:.4} E {lat:.4} N: {} for {want}",
+            hf.raw_at(x, z)
+        );
+        checked += 1;
+    }
+    assert!(checked >= 3, "only {checked} samples inside the source");
+}
