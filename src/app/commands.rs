@@ -36,6 +36,10 @@ pub struct RenderArgs {
     /// Output PNG.
     #[arg(long, value_name = "FILE.png")]
     pub out: PathBuf,
+    /// Also write the drawn mesh (blocks, stitched edges, morph factors applied) as
+    /// binary glTF, in world units (metres for georeferenced inputs).
+    #[arg(long, value_name = "FILE.glb")]
+    pub export_mesh: Option<PathBuf>,
     /// Also audit the block list: the largest screen-space error over every visible sample.
     #[arg(long)]
     pub audit: bool,
@@ -195,9 +199,18 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
     if args.out.extension().and_then(|e| e.to_str()).map(|e| e.to_lowercase()) != Some("png".into()) {
         return Err(InputError(format!("--out {}: the output must be a .png file", args.out.display())).into());
     }
+    if let Some(p) = &args.export_mesh {
+        if p.extension().and_then(|e| e.to_str()).map(|e| e.to_lowercase()) != Some("glb".into()) {
+            return Err(InputError(format!(
+                "--export-mesh {}: the mesh is written as binary glTF, a .glb file",
+                p.display()
+            ))
+            .into());
+        }
+    }
     let [texture, detail] = args.textures.inputs();
     check_outputs(
-        &[("--out", Some(&args.out))],
+        &[("--out", Some(&args.out)), ("--export-mesh", args.export_mesh.as_deref())],
         &[("--heightmap", args.common.heightmap.as_deref()), texture, detail],
     )?;
     let mut shading = Shading {
@@ -246,6 +259,14 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
     let errors_ms = activity.is_some().then_some(frame.feed_ms);
     let traverse_ms = frame.traverse_ms;
     save_png(&args.out, cam.width, cam.height, &pixels)?;
+    let exported = match &args.export_mesh {
+        Some(path) => {
+            let mesh = crate::lod::mesh::drawn_mesh(&s.hf, &s.layout, &trav.blocks);
+            crate::app::export::write_glb(path, &mesh, &crate::app::outputs::TerrainFacts::of(&s.hf))?;
+            Some(mesh)
+        }
+        None => None,
+    };
     let audited = args.audit.then(|| audit::audit(&s.hf, &s.layout, &trav, &cam));
     if let Some(a) = activity {
         a.stop()?;
@@ -275,6 +296,11 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
         "validation_messages": s.validation_messages(),
     });
     crate::app::outputs::TerrainFacts::of(&s.hf).merge_into(&mut out);
+    if let Some(m) = &exported {
+        out["mesh_vertices"] = json!(m.positions.len());
+        out["mesh_triangles"] = json!(m.triangles());
+        out["mesh_triangles_beyond_extent"] = json!(m.beyond_extent);
+    }
     if let Some(ms) = errors_ms {
         out["error_update_ms"] = json!(ms);
     }
@@ -294,7 +320,7 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
 
 /// Bytes of the shared block mesh (vertex + index buffer).
 pub fn renderer_geometry_bytes(k: u32) -> u64 {
-    let (v, i) = crate::draw::blocks::block_mesh_data(k);
+    let (v, i) = crate::lod::block::block_mesh_data(k);
     let index_size = if k * k <= 65536 { 2 } else { 4 };
     (v.len() + i.len() * index_size) as u64
 }

@@ -31,31 +31,9 @@ pub struct BlockMesh {
     pub bytes: u64,
 }
 
-/// Vertex bytes and indices of a k x k block.
-pub fn block_mesh_data(k: u32) -> (Vec<u8>, Vec<u32>) {
-    let mut verts = Vec::with_capacity((k * k * 2) as usize);
-    for v in 0..k {
-        for u in 0..k {
-            verts.push(u as u8);
-            verts.push(v as u8);
-        }
-    }
-    let mut idx = Vec::with_capacity(((k - 1) * (k - 1) * 6) as usize);
-    for v in 0..k - 1 {
-        for u in 0..k - 1 {
-            let a = v * k + u;
-            let c = a + 1;
-            let g = a + k;
-            let i = g + 1;
-            idx.extend_from_slice(&[a, c, i, a, i, g]);
-        }
-    }
-    (verts, idx)
-}
-
 impl BlockMesh {
     pub fn new(device: &Arc<Device>, k: u32) -> VkResult<Self> {
-        let (verts, idx) = block_mesh_data(k);
+        let (verts, idx) = crate::lod::block::block_mesh_data(k);
         let (index_bytes, index_type) = if k * k <= 65536 {
             let v: Vec<u16> = idx.iter().map(|&i| i as u16).collect();
             (bytemuck::cast_slice(&v).to_vec(), vk::IndexType::UINT16)

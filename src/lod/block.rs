@@ -302,3 +302,26 @@ pub fn cell_visible(
     let (min, max) = block_aabb(hf, mm, layout, 0, cx, cz);
     frustum.intersects_aabb(min, max)
 }
+
+/// Vertex bytes (u, v) and indices of a k x k block: the one mesh every block is drawn
+/// from, each quad split along its a-i diagonal (triangles a-c-i and a-i-g).
+pub fn block_mesh_data(k: u32) -> (Vec<u8>, Vec<u32>) {
+    let mut verts = Vec::with_capacity((k * k * 2) as usize);
+    for v in 0..k {
+        for u in 0..k {
+            verts.push(u as u8);
+            verts.push(v as u8);
+        }
+    }
+    let mut idx = Vec::with_capacity(((k - 1) * (k - 1) * 6) as usize);
+    for v in 0..k - 1 {
+        for u in 0..k - 1 {
+            let a = v * k + u;
+            let c = a + 1;
+            let g = a + k;
+            let i = g + 1;
+            idx.extend_from_slice(&[a, c, i, a, i, g]);
+        }
+    }
+    (verts, idx)
+}

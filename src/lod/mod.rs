@@ -10,6 +10,7 @@ pub mod deviation;
 pub mod geometry;
 pub mod gie;
 pub mod heightfield;
+pub mod mesh;
 pub mod morph;
 pub mod pyramid;
 pub mod stitch;
