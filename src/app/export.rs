@@ -51,10 +51,10 @@ pub fn glb_bytes(mesh: &DrawnMesh, facts: &TerrainFacts) -> Vec<u8> {
     });
     let mut json_chunk = serde_json::to_vec(&doc).expect("a JSON value serialises");
     // Chunks are 4-byte aligned: JSON padded with spaces, binary with zeros.
-    while json_chunk.len() % 4 != 0 {
+    while !json_chunk.len().is_multiple_of(4) {
         json_chunk.push(b' ');
     }
-    while bin.len() % 4 != 0 {
+    while !bin.len().is_multiple_of(4) {
         bin.push(0);
     }
     let total = 12 + 8 + json_chunk.len() + 8 + bin.len();
