@@ -12,7 +12,7 @@ mod gpu_layout;
 
 use gpu_layout::{
     all_blocks, glsl_align_size, BlockInfo, BlockKind, AO_DIRECTIONS, AO_DISTANCES, GLSL_CONSTANTS, LOD_PALETTE,
-    SPEC_CONSTANTS, SUN_SOFTNESS, SUN_STEP_GROWTH,
+    RAMP_COLOURS, RAMP_SNOW, RAMP_SNOW_FROM, RAMP_STOPS, SPEC_CONSTANTS, SUN_SOFTNESS, SUN_STEP_GROWTH, WATER_COLOUR,
 };
 
 fn main() {
@@ -100,6 +100,19 @@ fn generate_header(blocks: &[BlockInfo]) -> Result<String, String> {
     let colours: Vec<String> =
         LOD_PALETTE.iter().map(|c| format!("vec3({:?}, {:?}, {:?})", c[0], c[1], c[2])).collect();
     writeln!(s, "#define LOD_PALETTE vec3[{}]({})", LOD_PALETTE.len(), colours.join(", ")).unwrap();
+    let vec3 = |c: &[f32; 3]| format!("vec3({:?}, {:?}, {:?})", c[0], c[1], c[2]);
+    writeln!(
+        s,
+        "#define RAMP_COLOURS vec3[{}]({})",
+        RAMP_COLOURS.len(),
+        RAMP_COLOURS.iter().map(vec3).collect::<Vec<_>>().join(", ")
+    )
+    .unwrap();
+    let stops: Vec<String> = RAMP_STOPS.iter().map(|v| format!("{v:?}")).collect();
+    writeln!(s, "#define RAMP_STOPS float[{}]({})", stops.len(), stops.join(", ")).unwrap();
+    writeln!(s, "#define RAMP_SNOW {}", vec3(&RAMP_SNOW)).unwrap();
+    writeln!(s, "#define RAMP_SNOW_FROM vec2({:?}, {:?})", RAMP_SNOW_FROM[0], RAMP_SNOW_FROM[1]).unwrap();
+    writeln!(s, "#define WATER_COLOUR {}", vec3(&WATER_COLOUR)).unwrap();
     // Floats written with `{:?}`: the shortest text that reads back as the same f32.
     writeln!(s, "#define SUN_STEP_GROWTH {:?}", SUN_STEP_GROWTH).unwrap();
     writeln!(s, "#define SUN_SOFTNESS {:?}", SUN_SOFTNESS).unwrap();

@@ -66,14 +66,14 @@ float procedural_detail(vec2 p) {
     return 1.0 + 0.35 * (d - 0.5) * fade;
 }
 
+// The colour ramp (src/gpu/layout.rs, RAMP_*): `t` in [0, 1], steep slopes towards rock.
 vec3 ramp(float t, float slope) {
-    vec3 low = vec3(0.10, 0.22, 0.07);
-    vec3 mid = vec3(0.30, 0.27, 0.14);
-    vec3 high = vec3(0.32, 0.30, 0.28);
-    vec3 snow = vec3(0.85, 0.87, 0.90);
-    vec3 c = t < 0.35 ? mix(low, mid, t / 0.35) : mix(mid, high, clamp((t - 0.35) / 0.35, 0.0, 1.0));
-    c = mix(c, high, smoothstep(0.35, 0.7, slope));
-    return mix(c, snow, smoothstep(0.72, 0.8, t) * (1.0 - smoothstep(0.5, 0.8, slope)));
+    vec3 cs[] = RAMP_COLOURS;
+    float st[] = RAMP_STOPS;
+    vec3 c = t < st[1] ? mix(cs[0], cs[1], (t - st[0]) / (st[1] - st[0]))
+                       : mix(cs[1], cs[2], clamp((t - st[1]) / (st[2] - st[1]), 0.0, 1.0));
+    c = mix(c, cs[2], smoothstep(0.35, 0.7, slope));
+    return mix(c, RAMP_SNOW, smoothstep(RAMP_SNOW_FROM.x, RAMP_SNOW_FROM.y, t) * (1.0 - smoothstep(0.5, 0.8, slope)));
 }
 
 // The lit, fogged colour of the terrain surface at `world`; `lod` is the block's level
@@ -112,7 +112,9 @@ vec3 shade_terrain(vec3 world, int lod) {
         // a tiny fraction of the distance, which over a flat field's zero range would
         // pick colours at random.
         float range = max(frame.terrain.w - frame.terrain.z, min(frame.spacing.x, frame.spacing.y));
-        float t = clamp((world.y - frame.terrain.z) / range, 0.0, 1.0);
+        // Absolute heights (terrain.x: metres of the ramp's top) or the terrain's range.
+        float t = frame.terrain.x > 0.0 ? clamp(world.y / frame.terrain.x, 0.0, 1.0)
+                                        : clamp((world.y - frame.terrain.z) / range, 0.0, 1.0);
         albedo = ramp(t, 1.0 - n.y);
         // The lowest ground is water (sea level in most DEMs): where the samples around
         // the pixel are at sea level (their flags). Blended, not tested, so that the
@@ -126,8 +128,8 @@ vec3 shade_terrain(vec3 world, int lod) {
         // keeps coarse triangles that rise well above the sea dry.
         float sea = mix(mix(float(s00.sea), float(s10.sea), f.x), mix(float(s01.sea), float(s11.sea), f.x), f.y);
         float w = smoothstep(0.5, 1.0, sea);
-        if (world.y > frame.terrain.z + 0.05 * range) w = 0.0;
-        albedo = mix(albedo, vec3(0.05, 0.16, 0.30), w);
+        if (world.y > frame.texturing.w + 0.05 * range) w = 0.0;
+        albedo = mix(albedo, WATER_COLOUR, w);
     }
     if (DETAIL_TEXTURE) {
         vec3 detail = texture(detail_tex, uv * frame.texturing.x).rgb;

@@ -630,6 +630,66 @@ fn shoreline_moves_continuously() {
     finish(device);
 }
 
+/// Water is at or below 0 m when heights are metres above sea level, never "the lowest
+/// sample": an inland plateau (lowest ground 200 m) shows no water when its heights are
+/// absolute, and its lowest ground is water when they are only relative; a coast that
+/// dips below 0 m shows water exactly where the ground is at or below 0 m.
+#[test]
+fn water_is_at_sea_level_when_heights_are_absolute() {
+    let device = gpu();
+    let water = |px: &[u8]| px[2] as i32 > px[0] as i32 + 40 && px[2] as i32 > px[1] as i32 + 15;
+    let wet = |img: &[u8]| (0..img.len() / 4).filter(|&i| water(&img[4 * i..4 * i + 3])).count();
+    let cam = {
+        let pos = Vec3::new(640.0, 900.0, 640.0);
+        Camera::look_at(pos, pos + Vec3::new(0.0, -1.0, -0.01), 70.0, 160, 120, 1.0)
+    };
+    // A plateau: half of it level at 200 m, the other half rising to 600 m.
+    let plateau = |absolute: bool| {
+        let mut hf = field(129, 129, 10.0, |x, _| 200.0 + (x as f32 - 64.0).max(0.0) * 6.0);
+        hf.georef.absolute_heights = absolute;
+        hf
+    };
+    let mut relative = Scene::new(&device, plateau(false), 33, None);
+    let rel = wet(&relative.render(&cam, None, &plain()));
+    drop(relative);
+    let mut absolute = Scene::new(&device, plateau(true), 33, None);
+    let abs = wet(&absolute.render(&cam, None, &plain()));
+    drop(absolute);
+    let n = 160 * 120;
+    assert!(rel > n / 4, "relative heights: the lowest ground should be water ({rel} of {n} pixels)");
+    assert_eq!(abs, 0, "absolute heights at 200 m and above: no water, found {abs} pixels");
+    // A coast: a level seabed 5 m below 0 on the left half, land rising from 5 m on the
+    // right: water on the left only.
+    let mut coast = field(129, 129, 10.0, |x, _| if x < 64 { -5.0 } else { 5.0 + (x as f32 - 64.0) * 2.0 });
+    coast.georef.absolute_heights = true;
+    let mut scene = Scene::new(&device, coast, 33, None);
+    let img = scene.render(&cam, None, &plain());
+    let vp = cam.view_proj();
+    let (mut sea, mut land) = ((0, 0), (0, 0)); // (wet, seen)
+    for z in (4..125).step_by(6) {
+        for x in (2..127).step_by(3) {
+            if (61..=66).contains(&x) {
+                continue; // the shoreline blends over the quad at the coast
+            }
+            let p =
+                Vec3::new(x as f32 * 10.0, if x < 64 { -5.0 } else { 5.0 + (x as f32 - 64.0) * 2.0 }, z as f32 * 10.0);
+            let Some((px, py)) = cam.project(&vp, p) else { continue };
+            if !(0.0..160.0).contains(&px) || !(0.0..120.0).contains(&py) {
+                continue;
+            }
+            let i = ((py as usize) * 160 + px as usize) * 4;
+            let c = if x < 64 { &mut sea } else { &mut land };
+            c.0 += water(&img[i..i + 3]) as usize;
+            c.1 += 1;
+        }
+    }
+    assert!(sea.1 > 100 && land.1 > 100, "points seen: sea {}, land {}", sea.1, land.1);
+    assert_eq!(sea.0, sea.1, "the sea 5 m below 0 is not all water");
+    assert_eq!(land.0, 0, "land above 0 m shaded as water at {} of {} points", land.0, land.1);
+    drop(scene);
+    finish(device);
+}
+
 /// The sky is one smooth gradient from 1 m to 10^6 m above the terrain, in both pixel
 /// passes: down a column of sky no two neighbouring rows differ by more than 3 levels
 /// (the gradient spans about 80 over the frame, one level per row at most), and it does change. The ray of a

@@ -354,3 +354,77 @@ wait $pid
     let aim = json["orbit_aim_turn"].as_f64().unwrap();
     assert!((0.2..0.45).contains(&aim), "O turns to the point under the cursor: {aim} rad");
 }
+
+/// Where am I: over Mt Rainier's SRTM tile, looking straight down with the cursor in the
+/// window's centre, the panel reads the latitude and longitude of the ground point under
+/// it; they agree with the tile's own tie point (47.000417 N, 122.000417 W, 3 arc-seconds
+/// a sample: data/README.md) at that point's sample position, to a millionth of a degree.
+/// `--go-to` (the panel's go-to) puts the camera over Rainier's summit.
+#[test]
+fn the_panel_reads_latitude_and_longitude_under_the_cursor() {
+    let dem = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/srtm3/mt_rainier_90m.tif");
+    let tmp = std::env::temp_dir().join(format!("vkterrain-geo-{}", std::process::id()));
+    std::fs::create_dir_all(&tmp).unwrap();
+    let (out, err) = (tmp.join("out.txt"), tmp.join("err.txt"));
+    let script = format!(
+        r#"set -e
+cd "{tmp}"
+"{bin}" view --heightmap "{dem}" --size 640x480 --validation on --frame-counter frames.txt \
+  --camera 40000,9000,50000 --look-at 40000,0,50000.5 >"{out}" 2>"{err}" &
+pid=$!
+frames() {{ cat frames.txt 2>/dev/null || echo 0; }}
+wait_frames() {{
+  local want=$(( $(frames) + $1 )) t=0
+  while [ "$(frames)" -lt "$want" ]; do
+    kill -0 $pid 2>/dev/null || {{ echo "the viewer exited" >&2; exit 1; }}
+    t=$((t + 1)); [ $t -lt 2400 ] || {{ echo "the viewer drew no frame for 120 s" >&2; exit 1; }}
+    sleep 0.05
+  done
+}}
+wid=$(xdotool search --sync --onlyvisible --name vkterrain | head -1)
+xdotool windowfocus --sync "$wid" || xdotool windowfocus "$wid"
+wait_frames 3
+xdotool mousemove --window "$wid" 320 240
+wait_frames 4
+xdotool key Escape
+wait $pid
+"{bin}" view --heightmap "{dem}" --size 320x240 --frames 3 --validation on --go-to "46.8529 N 121.7604 W" >>"{out}" 2>>"{err}"
+"#,
+        tmp = tmp.display(),
+        bin = env!("CARGO_BIN_EXE_vkterrain"),
+        dem = dem.display(),
+        out = out.display(),
+        err = err.display()
+    );
+    let status = Command::new("xvfb-run")
+        .args(["-a", "-s", "-screen 0 1024x768x24", "bash", "-c", &script])
+        .env("RUST_LOG", "error")
+        .status()
+        .expect("xvfb-run and xdotool (tools/install-deps.sh)");
+    let stdout = std::fs::read_to_string(&out).unwrap_or_default();
+    let stderr = std::fs::read_to_string(&err).unwrap_or_default();
+    let _ = std::fs::remove_dir_all(&tmp);
+    assert!(status.success(), "{stderr}\n{stdout}");
+    let runs: Vec<serde_json::Value> = stdout.lines().filter_map(|l| serde_json::from_str(l).ok()).collect();
+    assert_eq!(runs.len(), 2, "{stdout}");
+    let j = &runs[0];
+    assert_eq!(j["validation_messages"], 0, "{stderr}");
+    assert_eq!(j["crs"], "EPSG:4326");
+    let c = &j["cursor_place"];
+    let f = |v: &serde_json::Value| v.as_f64().unwrap_or_else(|| panic!("{j}"));
+    let (sx, sz) = (f(&j["spacing_m"][0]), f(&j["spacing_m"][1]));
+    let (wx, wz) = (f(&c["world"][0]), f(&c["world"][2]));
+    // Straight down from (40000, 50000): the point under the centre is below the camera.
+    assert!((wx - 40000.0).abs() < 2.0 * sx && (wz - 50000.0).abs() < 2.0 * sz, "{c}");
+    let d = 3.0 / 3600.0;
+    let lon = -122.000417 + (wx / sx + 0.5) * d;
+    let lat = 47.000417 - (wz / sz + 0.5) * d;
+    assert!((f(&c["lon"]) - lon).abs() < 1e-6 && (f(&c["lat"]) - lat).abs() < 1e-6, "{c}: want {lat}, {lon}");
+    // The camera is over the same place.
+    assert!((f(&j["camera_lat_lon"][0]) - 47.000417 + (50000.0 / sz + 0.5) * d).abs() < 1e-5, "{j}");
+    // --go-to: the camera starts over the summit.
+    let g = &runs[1];
+    assert_eq!(g["validation_messages"], 0, "{stderr}");
+    let (glat, glon) = (f(&g["camera_lat_lon"][0]), f(&g["camera_lat_lon"][1]));
+    assert!((glat - 46.8529).abs() < 1e-4 && (glon + 121.7604).abs() < 1e-4, "{g}");
+}

@@ -101,6 +101,34 @@ pub struct Readout {
     pub wireframe_available: bool,
     /// The fog and speed sliders' ranges.
     pub ranges: Ranges,
+    /// Where the camera and the cursor are on the map (georeferenced terrains only).
+    pub place: Option<Place>,
+    /// The colour ramp's legend (no base texture).
+    pub legend: Option<Legend>,
+}
+
+/// The panel's map section.
+#[derive(Debug, Clone, Default)]
+pub struct Place {
+    pub crs: String,
+    /// The camera's map position and its height above sea level (m).
+    pub camera: String,
+    pub camera_elevation_m: f32,
+    /// The terrain point under the cursor: map position and ground height (m).
+    pub cursor: Option<(String, f32)>,
+    /// Metres per window pixel at the ground in the view's centre (the scale bar).
+    pub metres_per_pixel: f32,
+    /// Screen angle of north, clockwise from up (radians).
+    pub north: f32,
+}
+
+/// What the ground colours mean: absolute heights (metres above sea level, water at or
+/// below 0 m) or the terrain's own range.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Legend {
+    pub absolute: bool,
+    /// The terrain's lowest and highest ground (m).
+    pub range_m: [f32; 2],
 }
 
 /// What the panel (and the keys) change.
@@ -120,6 +148,8 @@ pub struct Controls {
     pub go_home: bool,
     /// Sun of the shadows and occlusion (`None`: off).
     pub sun: Option<Sun>,
+    /// Set for one frame by the map's "go": latitude and longitude (degrees).
+    pub go_to: Option<[f64; 2]>,
 }
 
 /// Ranges of the sliders that have no natural one.
@@ -222,6 +252,12 @@ fn panel(ui: &mut egui::Ui, r: &Readout, history: &FrameHistory, now: f64, c: &m
         row("above ground", format!("{:.0}", r.above_ground));
         row("ground speed", format!("{:.0}/s", r.ground_speed));
     });
+    if let Some(p) = &r.place {
+        map_section(ui, p, c);
+    }
+    if let Some(l) = &r.legend {
+        legend(ui, l);
+    }
     ui.separator();
     ui.horizontal(|ui| {
         ui.label("delta (px)");
@@ -403,6 +439,102 @@ pub fn panel_at(ctx: &egui::Context, pos: Pos2) -> bool {
 }
 
 /// A line plot of (time, value) over the last [`PLOT_SECONDS`], scaled to its largest value.
+/// Map coordinates of the camera and the cursor, a scale bar, a north arrow and a go-to.
+fn map_section(ui: &mut egui::Ui, p: &Place, c: &mut Controls) {
+    ui.separator();
+    egui::Grid::new("map").num_columns(2).show(ui, |ui| {
+        let mut row = |k: &str, v: String| {
+            ui.label(k);
+            ui.monospace(v);
+            ui.end_row();
+        };
+        row("CRS", p.crs.clone());
+        row("camera", p.camera.clone());
+        row("camera height", format!("{:.0} m above sea", p.camera_elevation_m));
+        match &p.cursor {
+            Some((at, h)) => {
+                row("cursor", at.clone());
+                row("ground there", format!("{h:.0} m"));
+            }
+            None => row("cursor", "- (not over the terrain)".into()),
+        }
+    });
+    let ppp = ui.ctx().pixels_per_point();
+    ui.horizontal(|ui| {
+        // The bar in points: a window pixel is 1 / ppp points.
+        if let Some((metres, pixels)) = crate::app::geo::scale_bar(p.metres_per_pixel, 120.0 * ppp) {
+            let (rect, _) = ui.allocate_exact_size(Vec2::new(pixels / ppp, 10.0), Sense::hover());
+            let stroke = egui::Stroke::new(2.0, Color32::WHITE);
+            ui.painter().line_segment([rect.left_bottom(), rect.right_bottom()], stroke);
+            ui.painter().line_segment([rect.left_top(), rect.left_bottom()], stroke);
+            ui.painter().line_segment([rect.right_top(), rect.right_bottom()], stroke);
+            ui.label(if metres >= 1000.0 { format!("{} km", metres / 1000.0) } else { format!("{metres} m") });
+        }
+        // North arrow, turned with the view.
+        let (rect, _) = ui.allocate_exact_size(Vec2::splat(22.0), Sense::hover());
+        let (s, cs) = p.north.sin_cos();
+        let at = |along: f32, across: f32| {
+            rect.center() + Vec2::new(along * s + across * cs, -along * cs + across * s) * 9.0
+        };
+        let painter = ui.painter();
+        painter.add(egui::Shape::convex_polygon(
+            vec![at(1.0, 0.0), at(-0.6, 0.5), at(-0.3, 0.0), at(-0.6, -0.5)],
+            Color32::WHITE,
+            egui::Stroke::NONE,
+        ));
+        painter.text(at(-1.2, 0.0), egui::Align2::CENTER_CENTER, "N", egui::FontId::proportional(9.0), Color32::WHITE);
+    });
+    let id = ui.id().with("go-to text");
+    ui.horizontal(|ui| {
+        ui.label("go to");
+        let mut text = ui.data_mut(|d| d.get_temp::<String>(id)).unwrap_or_default();
+        let edit = ui.add(egui::TextEdit::singleline(&mut text).desired_width(130.0).hint_text("lat, lon"));
+        let go = ui.button("go").clicked() || (edit.lost_focus() && ui.input(|i| i.key_pressed(egui::Key::Enter)));
+        if go {
+            match crate::app::geo::parse_lat_lon(&text) {
+                Ok(ll) => {
+                    c.go_to = Some(ll);
+                    ui.data_mut(|d| d.remove::<String>(id.with("error")));
+                }
+                Err(e) => ui.data_mut(|d| {
+                    d.insert_temp(id.with("error"), e);
+                }),
+            }
+        }
+        ui.data_mut(|d| d.insert_temp(id, text));
+    });
+    if let Some(e) = ui.data(|d| d.get_temp::<String>(id.with("error"))) {
+        ui.small(e);
+    }
+}
+
+/// Swatches of the colour ramp with the heights they stand for.
+fn legend(ui: &mut egui::Ui, l: &Legend) {
+    use crate::gpu::layout::{RAMP_COLOURS, RAMP_SNOW, RAMP_SNOW_FROM, RAMP_STOPS, RAMP_TOP_M, WATER_COLOUR};
+    let metres = |u: f32| if l.absolute { u * RAMP_TOP_M } else { l.range_m[0] + u * (l.range_m[1] - l.range_m[0]) };
+    let rgb = |c: [f32; 3]| {
+        let v = |x: f32| (x * 255.0).round() as u8;
+        Color32::from_rgb(v(c[0]), v(c[1]), v(c[2]))
+    };
+    ui.horizontal_wrapped(|ui| {
+        let swatch = |ui: &mut egui::Ui, c: [f32; 3], text: String| {
+            let (rect, _) = ui.allocate_exact_size(Vec2::splat(12.0), Sense::hover());
+            ui.painter().rect_filled(rect, 2.0, rgb(c));
+            ui.label(text);
+        };
+        swatch(ui, WATER_COLOUR, if l.absolute { "<= 0 m".into() } else { "lowest".into() });
+        for (u, c) in RAMP_STOPS.iter().zip(RAMP_COLOURS) {
+            swatch(ui, c, format!("{:.0} m", metres(*u)));
+        }
+        swatch(ui, RAMP_SNOW, format!(">= {:.0} m", metres(RAMP_SNOW_FROM[0])));
+    });
+    ui.small(if l.absolute {
+        "ground colours by height above sea level; steep slopes are rock"
+    } else {
+        "ground colours span this terrain's heights (not known to be above sea level)"
+    });
+}
+
 fn plot(ui: &mut egui::Ui, name: &str, points: Vec<(f64, f32)>, now: f64, colour: Color32) {
     let (rect, _) = ui.allocate_exact_size(Vec2::new(ui.available_width(), 44.0), Sense::hover());
     let painter = ui.painter_at(rect);
@@ -771,6 +903,7 @@ mod tests {
             speed: 10.0,
             go_home: false,
             sun: Some(Sun::DEFAULT),
+            go_to: None,
         }
     }
 
@@ -847,6 +980,79 @@ mod tests {
             assert!(target.is_some(), "no text {text:?} in the panel on {screen:?}");
         }
         (c, shapes)
+    }
+
+    /// The map section's go-to, driven headless: click into the box, type, click "go":
+    /// the controls carry the latitude and longitude typed; a bad entry shows why and
+    /// goes nowhere.
+    fn go_to_after_typing(typed: &str) -> (Controls, Vec<String>) {
+        use egui::epaint::Shape as S;
+        let ctx = egui::Context::default();
+        let mut c = controls();
+        let place = Place { crs: "EPSG:4326".into(), camera: "x".into(), metres_per_pixel: 10.0, ..Place::default() };
+        let readout = Readout {
+            ranges: Ranges { fog_default: 0.1, speed: (1.0, 100.0) },
+            place: Some(place),
+            legend: Some(Legend { absolute: true, range_m: [0.0, 4000.0] }),
+            ..Readout::default()
+        };
+        let h = FrameHistory::default();
+        let (mut field, mut button, mut texts) = (None, None, Vec::new());
+        let click = |at: Pos2| {
+            let b = |pressed| egui::Event::PointerButton {
+                pos: at,
+                button: egui::PointerButton::Primary,
+                pressed,
+                modifiers: Default::default(),
+            };
+            vec![egui::Event::PointerMoved(at), b(true), b(false)]
+        };
+        for pass in 0..12 {
+            let events = match pass {
+                4 => click(field.expect("the go-to box")),
+                6 => vec![egui::Event::Text(typed.into())],
+                8 => click(button.expect("the go button")),
+                _ => Vec::new(),
+            };
+            let input = egui::RawInput {
+                screen_rect: Some(egui::Rect::from_min_size(Pos2::ZERO, Vec2::new(1280.0, 1400.0))),
+                time: Some(pass as f64),
+                predicted_dt: 1.0,
+                events,
+                ..Default::default()
+            };
+            let mut help = false;
+            if pass == 9 {
+                // The go is for one frame: the viewer applies it and hands fresh controls.
+                assert!(c.go_to.is_some() || !texts.is_empty());
+            }
+            let mut out = ctx.run_ui(input, |ui| build_ui(ui.ctx(), true, &mut help, &readout, &h, 3.0, &mut c));
+            out.textures_delta.clear();
+            texts.clear();
+            for clipped in &out.shapes {
+                if let S::Text(t) = &clipped.shape {
+                    let r = t.visual_bounding_rect();
+                    match t.galley.text() {
+                        "lat, lon" => field = Some(r.center()),
+                        "go" => button = Some(r.center()),
+                        other => texts.push(other.to_string()),
+                    }
+                }
+            }
+        }
+        (c, texts)
+    }
+
+    #[test]
+    fn the_map_section_goes_to_what_is_typed() {
+        let (c, texts) = go_to_after_typing("46.85 N, 121.76 W");
+        assert_eq!(c.go_to, Some([46.85, -121.76]));
+        assert!(texts.iter().any(|t| t == "EPSG:4326"), "{texts:?}");
+        assert!(texts.iter().any(|t| t == "1 km"), "scale bar at 10 m a pixel: {texts:?}");
+        assert!(texts.iter().any(|t| t == "<= 0 m") && texts.iter().any(|t| t == "1750 m"), "legend: {texts:?}");
+        let (c, texts) = go_to_after_typing("somewhere");
+        assert_eq!(c.go_to, None);
+        assert!(texts.iter().any(|t| t.contains("expected latitude, longitude")), "{texts:?}");
     }
 
     #[test]

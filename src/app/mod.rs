@@ -1,11 +1,12 @@
 //! The front-ends: the command line ([`cli`], [`commands`]), the viewer and its panel
 //! ([`viewer`], [`hud`]), the benchmark ([`bench`]), the quality sweep ([`quality`]), the
-//! trace picture ([`timeline`]), and what they write ([`outputs`], [`export`], [`paths`]).
+//! trace picture ([`timeline`]), and what they write ([`outputs`], [`export`], [`paths`]); map coordinates ([`geo`]).
 
 pub mod bench;
 pub mod cli;
 pub mod commands;
 pub mod export;
+pub mod geo;
 pub mod hud;
 pub mod outputs;
 pub mod paths;

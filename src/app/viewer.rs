@@ -80,6 +80,10 @@ pub struct ViewArgs {
     /// requests, submissions, generations signalled and observed), as `bench` does.
     #[arg(long, value_name = "FILE.json")]
     pub trace: Option<PathBuf>,
+    /// Start over this latitude and longitude (degrees, e.g. 46.85,-121.76 or
+    /// "46.85 N 121.76 W"), as the panel's go-to does; georeferenced terrains only.
+    #[arg(long, value_name = "LAT,LON", value_parser = crate::app::geo::parse_lat_lon, allow_hyphen_values = true)]
+    pub go_to: Option<[f64; 2]>,
     /// Start in walk mode (follow the ground).
     #[arg(long)]
     pub walk: bool,
@@ -239,6 +243,11 @@ struct RunStats {
     /// Where the terrain is, its scale and the voids filled at load.
     #[serde(flatten)]
     terrain: crate::app::outputs::TerrainFacts,
+    /// The last panel's map readout: the camera's latitude and longitude, and the terrain
+    /// point under the cursor (latitude, longitude, ground height in metres, world
+    /// position), when the terrain is georeferenced.
+    camera_lat_lon: Option<[f64; 2]>,
+    cursor_place: Option<serde_json::Value>,
     validation_messages: u64,
     screenshot: Option<String>,
     /// State at exit: camera position, yaw and pitch (radians), delta, geomorphing.
@@ -276,6 +285,8 @@ struct App {
     ctl: Controller,
     /// Where Home puts the camera: position, yaw, pitch.
     home: (Vec3, f32, f32),
+    /// The terrain's map frame (georeferenced inputs).
+    geo: Option<crate::app::geo::Geo>,
     /// Horizontal speed over the last frame (world units per second), for the title.
     ground_speed: f32,
     /// Last cursor position in the window, for drag-to-look.
@@ -394,6 +405,7 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
         println!("  {k:<13} {what}");
     }
     let now = Instant::now();
+    let geo = crate::app::geo::Geo::new(&hf.georef, hf.spacing);
     let mut app = App {
         args: args.clone(),
         hf: Arc::new(hf),
@@ -405,6 +417,7 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
         gpu: None,
         error: None,
         home: (cam.position, f.z.atan2(f.x), f.y.clamp(-1.0, 1.0).asin()),
+        geo,
         ground_speed: 0.0,
         cursor: None,
         ctl: Controller {
@@ -446,6 +459,16 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
         resizes,
         stats: RunStats::default(),
     };
+    if let Some([lat, lon]) = args.go_to {
+        if app.geo.is_none() {
+            return Err(InputError(format!(
+                "--go-to: {} says nothing about where it is (no CRS or geotransform)",
+                app.hf.source
+            ))
+            .into());
+        }
+        app.go_to(lat, lon);
+    }
     event_loop.run_app(&mut app)?;
     let counter = app.gpu.as_ref().map(|g| g.device.instance.messages.clone());
     // Waits for the GPU, joins the errors thread, destroys the device and instance, so
@@ -886,6 +909,7 @@ impl App {
             speed: self.ctl.speed,
             go_home: false,
             sun: self.sun,
+            go_to: None,
         }
     }
 
@@ -905,6 +929,47 @@ impl App {
         if c.go_home {
             self.go_home();
         }
+        if let Some([lat, lon]) = c.go_to {
+            self.go_to(lat, lon);
+        }
+    }
+
+    /// Moves the camera over a latitude and longitude, as high above the ground there as
+    /// it is above the ground here (at least a fiftieth of the terrain's size), heading
+    /// and pitch kept.
+    fn go_to(&mut self, lat: f64, lon: f64) {
+        let Some((x, z)) = self.geo.as_ref().and_then(|g| g.world_of(lat, lon)) else { return };
+        let (wx, wz) = self.hf.world_extent();
+        let ground = |x: f32, z: f32| self.hf.surface_height(x.clamp(0.0, wx), z.clamp(0.0, wz));
+        let p = self.ctl.position;
+        let above = (p.y - ground(p.x, p.z)).max(0.02 * wx.max(wz));
+        self.ctl.position = Vec3::new(x, ground(x, z) + above, z);
+        self.ctl.orbit = None;
+    }
+
+    /// The panel's map section: the camera and the terrain point under the cursor on the
+    /// map, the scale at the view's centre and where north is on screen.
+    fn place(&self) -> Option<crate::app::hud::Place> {
+        let geo = self.geo.as_ref()?;
+        let p = self.ctl.position;
+        let (wx, wz) = self.hf.world_extent();
+        let inside = |q: Vec3| (0.0..=wx).contains(&q.x) && (0.0..=wz).contains(&q.z);
+        let ray = self.cursor_ray();
+        let cursor = self.cursor.map(|_| ground_hit(&self.hf, p, ray)).filter(|&q| inside(q));
+        let centre = ground_hit(&self.hf, p, self.ctl.forward());
+        let height = self.window.as_ref().map_or(1, |w| w.inner_size().height.max(1)) as f32;
+        let metres_per_pixel = (centre - p).length() * 2.0 * (self.args.common.fovy.to_radians() * 0.5).tan() / height;
+        let f = self.ctl.forward();
+        let (up, right) = (glam::Vec2::new(f.x, f.z), glam::Vec2::new(-f.z, f.x));
+        let n = glam::Vec2::from(geo.north());
+        Some(crate::app::hud::Place {
+            crs: geo.crs().to_string(),
+            camera: geo.describe(p.x, p.z),
+            camera_elevation_m: p.y,
+            cursor: cursor.map(|q| (geo.describe(q.x, q.z), q.y)),
+            metres_per_pixel,
+            north: n.dot(right).atan2(n.dot(up)),
+        })
     }
 
     /// This frame's panel: the last frame's figures shown, its controls applied.
@@ -942,6 +1007,21 @@ impl App {
             waits_ms: self.last_waits,
             ..Readout::default()
         };
+        readout.place = self.place();
+        if let Some(geo) = &self.geo {
+            self.stats.camera_lat_lon = geo.lat_lon(p.x, p.z);
+            let hit = self.cursor.map(|_| ground_hit(&self.hf, p, self.cursor_ray()));
+            self.stats.cursor_place =
+                hit.filter(|q| (0.0..=wx).contains(&q.x) && (0.0..=wz).contains(&q.z)).and_then(|q| {
+                    let [lat, lon] = geo.lat_lon(q.x, q.z)?;
+                    Some(serde_json::json!({ "lat": lat, "lon": lon, "ground_m": q.y, "world": [q.x, q.y, q.z] }))
+                });
+        }
+        if self.base.is_none() {
+            let [lo, hi] = self.mm.range().map(|r| r * self.hf.height_scale);
+            readout.legend =
+                Some(crate::app::hud::Legend { absolute: self.hf.georef.absolute_heights, range_m: [lo, hi] });
+        }
         let l = wx.max(wz);
         readout.ranges = Ranges { fog_default: default_fog(&self.hf), speed: (l / 6000.0, l / 6.0) };
         let before = self.controls();

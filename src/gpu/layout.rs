@@ -121,7 +121,8 @@ gpu_block! {
         inv_view_proj: [[f32; 4]; 4] => "mat4",
         /// xyz: camera position, w: fog density.
         camera_fog: [f32; 4] => "vec4",
-        /// unused, height_scale, min height, max height (world units).
+        /// metres at the top of the colour ramp for absolute heights (0: the ramp spans
+        /// the terrain's range), height_scale, min height, max height (world units).
         terrain: [f32; 4] => "vec4",
         /// Sample spacing x, z (world units), unused x 2.
         spacing: [f32; 4] => "vec4",
@@ -253,6 +254,18 @@ pub const AO_DISTANCES: [f32; 12] = [1.0, 2.0, 3.0, 4.0, 6.0, 8.0, 11.0, 16.0, 2
 /// shader's palette and the viewer's legend.
 pub const LOD_PALETTE: [[f32; 3]; 6] =
     [[1.0, 0.2, 0.2], [1.0, 0.7, 0.1], [0.9, 1.0, 0.2], [0.2, 1.0, 0.3], [0.2, 0.6, 1.0], [0.7, 0.3, 1.0]];
+
+/// The terrain's colours where no base texture is given, for the shader and the
+/// viewer's legend: colour `RAMP_COLOURS[i]` at `u = RAMP_STOPS[i]`, linear between, snow
+/// blended in over `RAMP_SNOW_FROM` (on gentle slopes), water below the sea level. `u` is
+/// metres above sea level over [`RAMP_TOP_M`] when heights are absolute (a georeferenced
+/// DEM; snow from 3600 m), else the height's share of the terrain's own range.
+pub const RAMP_STOPS: [f32; 3] = [0.0, 0.35, 0.7];
+pub const RAMP_COLOURS: [[f32; 3]; 3] = [[0.10, 0.22, 0.07], [0.30, 0.27, 0.14], [0.32, 0.30, 0.28]];
+pub const RAMP_SNOW: [f32; 3] = [0.85, 0.87, 0.90];
+pub const RAMP_SNOW_FROM: [f32; 2] = [0.72, 0.8];
+pub const RAMP_TOP_M: f32 = 5000.0;
+pub const WATER_COLOUR: [f32; 3] = [0.05, 0.16, 0.30];
 
 /// Every block, for the header generator and the SPIR-V check.
 pub fn all_blocks() -> Vec<BlockInfo> {

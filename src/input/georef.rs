@@ -477,6 +477,12 @@ pub fn decide(
     if let Some(nd) = raster.nodata {
         notes.push(format!("nodata {nd}"));
     }
+    g.absolute_heights = georeferenced || known.is_some_and(|k| k.absolute);
+    notes.push(if g.absolute_heights {
+        "heights are metres above sea level: water at or below 0 m, colours by absolute height".into()
+    } else {
+        "heights are relative: the lowest ground is shaded as water, colours span the range".into()
+    });
     g.notes = notes;
     Ok(Scale { spacing, height_scale, georef: g })
 }
@@ -490,6 +496,8 @@ pub struct KnownDataset {
     pub sha256: &'static str,
     pub spacing: f32,
     pub height_scale: f32,
+    /// Heights are metres above sea level (0 is the sea), not relative.
+    pub absolute: bool,
 }
 
 pub const KNOWN: &[KnownDataset] = &[
@@ -498,6 +506,7 @@ pub const KNOWN: &[KnownDataset] = &[
         sha256: "80229c93fb119e579fb440fe5bcd9cf7d8290681a80136840b938f7f1a6ebfea",
         spacing: 160.0,
         height_scale: 0.1,
+        absolute: true,
     },
     KnownDataset {
         // One unit is about 25.7 m (h16 / 257 * 0.1 m).
@@ -505,12 +514,15 @@ pub const KNOWN: &[KnownDataset] = &[
         sha256: "50b4f2d90a39b4ee2eca1abd3a2f18f48b64b1e171724a41613ff0aa46a06c10",
         spacing: 40.0,
         height_scale: 25.7,
+        absolute: true,
     },
     KnownDataset {
         name: "Grand Canyon 4k x 2k (8-bit PNG)",
         sha256: "7eda80965b3a4cab6c60d8598598e2c79602c3c525b6c2683dad92721fffbe2b",
         spacing: 60.0,
         height_scale: 10.0,
+        // Values 13..187 of 10 m: 130-1870 m, far below the real canyon's 700-2800 m.
+        absolute: false,
     },
 ];
 

@@ -97,6 +97,10 @@ pub struct Georef {
     pub worst_stretch: f64,
     /// How spacing and height scale were decided, in words, for the load message.
     pub notes: Vec<String>,
+    /// Heights are metres above the vertical datum (sea level): water is at or below
+    /// 0 m and colours follow absolute heights. Otherwise heights are only relative and
+    /// the lowest ground is taken as the water.
+    pub absolute_heights: bool,
 }
 
 /// A heightfield embedded in a square grid of side `2^n + 1`.
@@ -251,10 +255,13 @@ impl Heightfield {
         ((self.width - 1) as f32 * self.spacing.x, (self.height - 1) as f32 * self.spacing.z)
     }
 
-    /// World height at or below which level ground is shaded as water: the lowest
-    /// height plus a thousandth of the height range (`raw_range`, raw units), sea level
-    /// in most DEMs.
+    /// World height at or below which level ground is shaded as water: 0 m when heights
+    /// are metres above sea level, else the lowest height plus a thousandth of the
+    /// height range (`raw_range`, raw units).
     pub fn sea_level(&self, raw_range: [f32; 2]) -> f32 {
+        if self.georef.absolute_heights {
+            return 0.0;
+        }
         let (lo, hi) = (raw_range[0] * self.height_scale, raw_range[1] * self.height_scale);
         lo + 1e-3 * (hi - lo).max(1e-6)
     }
