@@ -176,6 +176,18 @@ fn srtm_hgt_big_endian_with_voids() {
     let hf = load_default(&p);
     assert_eq!((hf.width, hf.height, hf.side()), (1201, 1201, 2049));
     assert_eq!(hf.raw_at(1, 0), 1.0);
+    // Placed by its name: the tile south-west of N1 E1, 3 arc-seconds a sample, on WGS 84
+    // (92.8 x 92.1 m at 0.5 N).
+    assert_eq!(hf.georef.crs.as_deref(), Some("EPSG:4326"));
+    let d = 3.0 / 3600.0;
+    assert!((hf.georef.origin[0] - 0.0).abs() < 1e-9 && (hf.georef.origin[1] - 1.0).abs() < 1e-9, "{:?}", hf.georef.origin);
+    assert!((hf.georef.step[0] - d).abs() < 1e-12 && (hf.georef.step[1] + d).abs() < 1e-12);
+    assert!((hf.spacing.x - 92.77).abs() < 0.05 && (hf.spacing.z - 92.12).abs() < 0.05, "{:?}", hf.spacing);
+    // A tile named nowhere is refused with the reason.
+    let q = tmp("tile.hgt");
+    std::fs::write(&q, &v).unwrap();
+    let e = load(&q, &LoadOptions::default()).unwrap_err().to_string();
+    assert!(e.contains("tile.hgt") && e.contains("N46W122.hgt"), "{e}");
     assert_ne!(hf.raw_at(5000 % 1201, 5000 / 1201), -32768.0);
     std::fs::write(&p, &v[..1000]).unwrap();
     let e = load(&p, &LoadOptions::default()).unwrap_err().to_string();
