@@ -16,5 +16,6 @@ layout(location = 0) out vec4 out_color;
 
 void main() {
     if (beyond_extent(v_world)) discard;
+    if (HOLES && in_hole(v_world)) discard;
     out_color = vec4(shade_terrain(v_world, v_lod), 1.0);
 }

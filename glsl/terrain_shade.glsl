@@ -36,7 +36,19 @@ Sample from_heights(ivec2 s) {
 Sample from_texel(uint t) {
     int x_units = int(t << 16) >> 16;
     int z_units = int(t) >> 16;
-    return Sample(vec2(float(x_units), float(z_units & ~1)) * (frame.texturing.z / 32767.0), (z_units & 1) != 0);
+    return Sample(vec2(float(x_units & ~1), float(z_units & ~1)) * (frame.texturing.z / 32767.0), (z_units & 1) != 0);
+}
+
+// `--voids hole`: whether the surface point `world` lies in a hole, the bilinear share of
+// hole samples around it (the flag in the lowest bit of the gradient map's x unit) at
+// least one half, so that a lone void cuts the quads around it.
+bool in_hole(vec3 world) {
+    vec2 p = world.xz / frame.spacing.xy;
+    ivec2 i0 = ivec2(floor(p));
+    vec2 f = p - vec2(i0);
+    uvec4 t = textureGather(gradients, (vec2(i0) + 1.0) / float(frame.extent.z));
+    vec4 h = vec4(t & 1u); // (0,1), (1,1), (1,0), (0,0)
+    return mix(mix(h.w, h.z, f.x), mix(h.x, h.y, f.x), f.y) >= 0.5;
 }
 
 // Hash of an integer lattice point to [0, 1] (integer arithmetic: the same on every GPU).

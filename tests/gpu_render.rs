@@ -690,6 +690,65 @@ fn water_is_at_sea_level_when_heights_are_absolute() {
     finish(device);
 }
 
+/// `--voids hole`: a void region shows what is behind it (here the background), in both
+/// pixel passes (deferred shading falls back to forward), and nothing else changes: the
+/// same view with the voids filled shows terrain there.
+#[test]
+fn voids_drawn_as_holes_show_the_background() {
+    let device = gpu();
+    let void = |x: usize, z: usize| (40..80).contains(&x) && (50..90).contains(&z);
+    let make = |holes: bool| {
+        let mut hf = field(129, 129, 10.0, |x, z| ((x as f32 * 0.1).sin() + (z as f32 * 0.07).cos()) * 20.0);
+        if holes {
+            hf.void_mask = Some((0..129 * 129).map(|i| void(i % 129, i / 129)).collect());
+        }
+        hf
+    };
+    let cam = {
+        let pos = Vec3::new(640.0, 1400.0, 700.0);
+        Camera::look_at(pos, pos + Vec3::new(0.0, -1.0, -0.01), 60.0, 160, 120, 1.0)
+    };
+    let vp = cam.view_proj();
+    let mut seen = Vec::new();
+    for holes in [false, true] {
+        let mut scene = Scene::new(&device, make(holes), 33, None);
+        for pixels in [PixelPass::Deferred, PixelPass::Forward] {
+            let img = scene.render(&cam, None, &Shading { pixels, ..plain() });
+            let (mut inside, mut outside) = ((0, 0), (0, 0)); // (background, seen)
+            for z in (2..127).step_by(4) {
+                for x in (2..127).step_by(4) {
+                    // Keep clear of the hole's edge, where the bilinear share decides.
+                    let near_edge = (38..=42).contains(&x)
+                        || (78..=82).contains(&x)
+                        || (48..=52).contains(&z)
+                        || (88..=92).contains(&z);
+                    if near_edge {
+                        continue;
+                    }
+                    let p = Vec3::new(x as f32 * 10.0, 0.0, z as f32 * 10.0);
+                    let Some((px, py)) = cam.project(&vp, p) else { continue };
+                    if !(0.0..160.0).contains(&px) || !(0.0..120.0).contains(&py) {
+                        continue;
+                    }
+                    let c = pixel(&img, 160, px as u32, py as u32);
+                    let bucket = if void(x, z) { &mut inside } else { &mut outside };
+                    bucket.0 += (c == MAGENTA) as usize;
+                    bucket.1 += 1;
+                }
+            }
+            assert!(inside.1 > 30 && outside.1 > 100, "{inside:?} {outside:?}");
+            assert_eq!(outside.0, 0, "holes {holes}, {pixels:?}: background outside the voids");
+            seen.push((holes, pixels, inside));
+        }
+        drop(scene);
+    }
+    for (holes, pixels, (bg, n)) in seen {
+        let want = if holes { n } else { 0 };
+        assert_eq!(bg, want, "holes {holes}, {pixels:?}: {bg} of {n} points inside the voids show the background");
+    }
+    finish(device);
+}
+
 /// The sky is one smooth gradient from 1 m to 10^6 m above the terrain, in both pixel
 /// passes: down a column of sky no two neighbouring rows differ by more than 3 levels
 /// (the gradient spans about 80 over the frame, one level per row at most), and it does change. The ray of a

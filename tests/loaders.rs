@@ -180,7 +180,11 @@ fn srtm_hgt_big_endian_with_voids() {
     // (92.8 x 92.1 m at 0.5 N).
     assert_eq!(hf.georef.crs.as_deref(), Some("EPSG:4326"));
     let d = 3.0 / 3600.0;
-    assert!((hf.georef.origin[0] - 0.0).abs() < 1e-9 && (hf.georef.origin[1] - 1.0).abs() < 1e-9, "{:?}", hf.georef.origin);
+    assert!(
+        (hf.georef.origin[0] - 0.0).abs() < 1e-9 && (hf.georef.origin[1] - 1.0).abs() < 1e-9,
+        "{:?}",
+        hf.georef.origin
+    );
     assert!((hf.georef.step[0] - d).abs() < 1e-12 && (hf.georef.step[1] + d).abs() < 1e-12);
     assert!((hf.spacing.x - 92.77).abs() < 0.05 && (hf.spacing.z - 92.12).abs() < 0.05, "{:?}", hf.spacing);
     // A tile named nowhere is refused with the reason.
@@ -340,4 +344,24 @@ fn voids_are_filled_without_walls() {
     let s = void_steps(&flat, &void, w, h);
     println!("flat per void: largest {:.0}, p99 {:.0}", s.0, s.1);
     assert!(!fill_is_smooth(s), "the check passes a flat fill per void: {s:?}");
+}
+
+/// `--voids hole`: the voids are still filled (the LOD bound needs heights) and also
+/// remembered, sample by sample, to be cut out of the picture.
+#[test]
+fn voids_can_be_kept_as_holes() {
+    let opts = LoadOptions { voids: vkterrain::input::load::VoidMode::Hole, ..LoadOptions::default() };
+    let hf = load(&data("srtm3/mt_everest_90m.tif"), &opts).unwrap();
+    let mask = hf.void_mask.as_ref().expect("a hole mask");
+    assert_eq!(mask.len(), hf.width * hf.height);
+    assert_eq!(mask.iter().filter(|&&v| v).count(), hf.void_samples);
+    assert_eq!(hf.void_samples, 130_953);
+    let (raw, w, _) = everest_raw();
+    let i = raw.iter().position(|&v| v == -32768.0).unwrap();
+    assert!(hf.is_hole((i % w) as i64, (i / w) as i64));
+    assert!(hf.raw_at((i % w) as i64, (i / w) as i64) > 0.0, "filled under the hole");
+    let j = raw.iter().position(|&v| v != -32768.0).unwrap();
+    assert!(!hf.is_hole((j % w) as i64, (j / w) as i64));
+    // The default fills and keeps no mask.
+    assert!(load(&data("srtm3/mt_everest_90m.tif"), &LoadOptions::default()).unwrap().void_mask.is_none());
 }

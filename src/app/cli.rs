@@ -2,7 +2,7 @@
 
 use crate::draw::blocks::Shading;
 use crate::gpu::terrain::Texture;
-use crate::input::load::{self, LoadOptions};
+use crate::input::load::{self, LoadOptions, VoidMode};
 use crate::lod::camera::Camera;
 use crate::lod::gie::ErrorMode;
 use crate::lod::heightfield::{Heightfield, Spacing};
@@ -101,6 +101,10 @@ pub struct CommonArgs {
     /// (z). Default: what the file's georeferencing says (printed at load).
     #[arg(long, value_name = "M[,Z]", value_parser = parse_spacing)]
     pub spacing: Option<Spacing>,
+    /// What voids (nodata samples) become: filled smoothly and drawn, or holes in the
+    /// picture (still filled for the LOD bound; shading is then forward).
+    #[arg(long, value_enum, default_value_t = VoidMode::Fill)]
+    pub voids: VoidMode,
     /// Metres per height unit. Default: what the file says (printed at load).
     #[arg(long, value_name = "M", value_parser = parse_positive)]
     pub height_scale: Option<f32>,
@@ -186,6 +190,7 @@ impl CommonArgs {
                     height_scale: self.height_scale,
                     raw_size: self.raw_size.map(|(w, h)| (w as usize, h as usize)),
                     max_grid_side,
+                    voids: self.voids,
                 };
                 let hf = load::load(path, &opts).map_err(|e| InputError(e.to_string()))?;
                 for line in crate::input::describe(&hf) {

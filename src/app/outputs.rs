@@ -134,6 +134,8 @@ pub struct TerrainFacts {
     pub samples: [usize; 2],
     /// Void (nodata) samples filled at load.
     pub void_samples: usize,
+    /// Whether they are drawn ("fill") or cut out ("hole").
+    pub voids: crate::input::load::VoidMode,
 }
 
 impl TerrainFacts {
@@ -146,6 +148,11 @@ impl TerrainFacts {
             origin: (g.step != [0.0; 2]).then_some(g.origin),
             samples: [hf.width, hf.height],
             void_samples: hf.void_samples,
+            voids: if hf.void_mask.is_some() {
+                crate::input::load::VoidMode::Hole
+            } else {
+                crate::input::load::VoidMode::Fill
+            },
         }
     }
 

@@ -254,6 +254,9 @@ pub struct BlocksRenderer {
     color_format: vk::Format,
     /// Whether the terrain has a base and a detail texture (fixed per renderer).
     textures: (bool, bool),
+    /// Voids are drawn as holes: forward shading only (a hole must show what is behind
+    /// it, which the deferred pass's one depth per pixel cannot).
+    holes: bool,
     /// Terrain pipelines made so far, one per shading variant (made on first use).
     terrain_pipelines: Vec<(TerrainVariant, GraphicsPipeline)>,
     /// Deferred shading's first pass: the blocks, depth only, the embedding margin
@@ -403,6 +406,7 @@ impl BlocksRenderer {
             pipeline_layout,
             color_format,
             textures: (terrain.has_base, terrain.has_detail),
+            holes: hf.void_mask.is_some(),
             terrain_pipelines: Vec::new(),
             depth_pipeline,
             sky_pipeline,
@@ -422,7 +426,8 @@ impl BlocksRenderer {
     /// `depth_precise`: the depth can stand for the position (see [`depth_precise_enough`]).
     fn frame_pipelines(&mut self, shading: &Shading, depth_precise: bool) -> VkResult<FramePipelines> {
         // Deferred needs the depth pass, which needs clip distances.
-        let depth_pass = self.depth_pipeline.as_ref().map(|p| p.handle).filter(|_| shading.deferred() && depth_precise);
+        let depth_pass = (self.depth_pipeline.as_ref().map(|p| p.handle))
+            .filter(|_| shading.deferred() && depth_precise && !self.holes);
         let variant = TerrainVariant {
             normals: shading.normals,
             colour_by_lod: shading.colour_by_lod,
@@ -448,6 +453,7 @@ impl BlocksRenderer {
             (layout::SPEC_BASE_TEXTURE, base),
             (layout::SPEC_DETAIL_TEXTURE, detail),
             (layout::SPEC_COLOUR_BY_LOD, variant.colour_by_lod),
+            (layout::SPEC_HOLES, self.holes),
         ];
         let desc = if variant.deferred {
             // Over the whole target, with the depth attached read-only (as the viewer's

@@ -202,12 +202,15 @@ pub const SPEC_DETAIL_TEXTURE: u32 = 2;
 pub const SPEC_COLOUR_BY_LOD: u32 = 3;
 /// gie.frag: strict mode (else the paper's eqs. 2-4).
 pub const SPEC_STRICT_ERRORS: u32 = 4;
+/// terrain.frag: voids are drawn as holes (`--voids hole`; flags in the gradient map).
+pub const SPEC_HOLES: u32 = 5;
 
 pub const SPEC_CONSTANTS: &[SpecConstant] = &[
     SpecConstant { group: "TerrainSpec", name: "NORMALS_FROM_HEIGHTS", id: SPEC_NORMALS_FROM_HEIGHTS },
     SpecConstant { group: "TerrainSpec", name: "BASE_TEXTURE", id: SPEC_BASE_TEXTURE },
     SpecConstant { group: "TerrainSpec", name: "DETAIL_TEXTURE", id: SPEC_DETAIL_TEXTURE },
     SpecConstant { group: "TerrainSpec", name: "COLOUR_BY_LOD", id: SPEC_COLOUR_BY_LOD },
+    SpecConstant { group: "TerrainSpec", name: "HOLES", id: SPEC_HOLES },
     SpecConstant { group: "GieSpec", name: "STRICT_ERRORS", id: SPEC_STRICT_ERRORS },
 ];
 

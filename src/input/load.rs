@@ -17,6 +17,19 @@ pub struct LoadOptions {
     /// The device's maxImageDimension2D, when known: checked before the grid is
     /// allocated.
     pub max_grid_side: Option<usize>,
+    /// What voids (nodata) become.
+    pub voids: VoidMode,
+}
+
+/// What the renderer draws where the file has no data.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum VoidMode {
+    /// Filled smoothly (Laplace) and drawn as terrain.
+    #[default]
+    Fill,
+    /// Filled for the LOD machinery, but cut out of the picture.
+    Hole,
 }
 
 /// Loads a heightfield file; every error names the file and the problem. What the file
@@ -70,7 +83,7 @@ pub fn load(path: &Path, opts: &LoadOptions) -> Result<Heightfield, HeightfieldE
         None
     };
     let scale = georef::decide(&shown, &raster, opts.spacing, opts.height_scale, known)?;
-    let voids = fill_file_voids(&shown, &mut raster)?;
+    let (voids, mask) = fill_file_voids(&shown, &mut raster, opts.voids)?;
     let mut hf = Heightfield::embed(
         &shown,
         raster.width,
@@ -81,6 +94,7 @@ pub fn load(path: &Path, opts: &LoadOptions) -> Result<Heightfield, HeightfieldE
         scale.height_scale,
     )?;
     hf.void_samples = voids;
+    hf.void_mask = mask;
     hf.georef = scale.georef;
     Ok(hf)
 }
@@ -115,8 +129,12 @@ fn check_hgt(shown: &str, path: &Path, len: u64) -> Result<(), HeightfieldError>
 
 /// Applies the band's offset (in raw units, so that `raw * height_scale` stays the
 /// height), rejects non-finite samples the file does not call nodata, and fills the
-/// voids; returns how many there were.
-fn fill_file_voids(shown: &str, r: &mut georef::Raster) -> Result<usize, HeightfieldError> {
+/// voids; returns how many there were, and with [`VoidMode::Hole`] which they were.
+fn fill_file_voids(
+    shown: &str,
+    r: &mut georef::Raster,
+    mode: VoidMode,
+) -> Result<(usize, Option<Vec<bool>>), HeightfieldError> {
     // Signed 16-bit rasters without a declared nodata: SRTM's void value.
     let nodata = r.nodata.or((r.format == HeightFormat::Float32 && r.bits == 16).then_some(-32768.0));
     let nan_is_void = nodata.is_some_and(|v| v.is_nan());
@@ -145,7 +163,9 @@ fn fill_file_voids(shown: &str, r: &mut georef::Raster) -> Result<usize, Heightf
         }
         r.format = HeightFormat::Float32;
     }
-    fill_voids(shown, &mut r.samples, r.width, r.height, is_void)
+    let mask = (mode == VoidMode::Hole).then(|| r.samples.iter().map(|&v| is_void(v)).collect::<Vec<bool>>());
+    let n = fill_voids(shown, &mut r.samples, r.width, r.height, is_void)?;
+    Ok((n, mask.filter(|_| n > 0)))
 }
 
 fn check_dims(path: &str, w: usize, h: usize) -> Result<(), HeightfieldError> {

@@ -51,8 +51,10 @@ pub fn describe(hf: &Heightfield) -> Vec<String> {
     if hf.void_samples > 0 {
         let share = 100.0 * hf.void_samples as f64 / (hf.width * hf.height) as f64;
         lines.push(format!(
-            "{}: {} void (nodata) samples ({share:.1}%) filled smoothly (Laplace)",
-            hf.source, hf.void_samples
+            "{}: {} void (nodata) samples ({share:.1}%) filled smoothly (Laplace){}",
+            hf.source,
+            hf.void_samples,
+            if hf.void_mask.is_some() { ", drawn as holes" } else { "" }
         ));
     }
     lines

@@ -124,6 +124,9 @@ pub struct Heightfield {
     pub void_samples: usize,
     /// Where the file says it is.
     pub georef: Georef,
+    /// `--voids hole`: which samples of the true extent (row-major, `width * height`)
+    /// were voids, drawn as holes; `None` when voids are filled and drawn.
+    pub void_mask: Option<Vec<bool>>,
 }
 
 impl Heightfield {
@@ -189,6 +192,7 @@ impl Heightfield {
             source: source.to_string(),
             void_samples: 0,
             georef: Georef::default(),
+            void_mask: None,
         })
     }
 
@@ -266,12 +270,22 @@ impl Heightfield {
         lo + 1e-3 * (hi - lo).max(1e-6)
     }
 
+    /// Whether grid sample `(x, z)` is drawn as a hole (`--voids hole`): a void of the
+    /// file, or a margin sample clamped to one.
+    pub fn is_hole(&self, x: i64, z: i64) -> bool {
+        self.void_mask.as_ref().is_some_and(|m| {
+            let (x, z) = (x.clamp(0, self.width as i64 - 1) as usize, z.clamp(0, self.height as i64 - 1) as usize);
+            m[z * self.width + x]
+        })
+    }
+
     /// The terrain shader's per-sample data, computed once so that a pixel fetches four
     /// texels instead of twenty heights: the gradient `(dH/dx, dH/dz)` in world units
     /// (central differences, edges clamped) as R16G16_SNORM texels, with the scale that
-    /// turns `[-1, 1]` back into gradients; and in the lowest bit of the z texel, whether
-    /// the sample's world height is at most `sea_level` (the water test; the z gradient
-    /// is then rounded to even units, one unit in 32767 at most).
+    /// turns `[-1, 1]` back into gradients; and two flags in the texels' lowest bits:
+    /// in z, whether the sample's world height is at most `sea_level` (the water test);
+    /// in x, whether it is a hole ([`Self::is_hole`]). The gradients are then rounded to
+    /// even units, one unit in 32767 at most.
     pub fn gradient_map(&self, sea_level: f32) -> (Vec<[i16; 2]>, f32) {
         let side = self.side() as i64;
         let h = |x: i64, z: i64| self.height_at(x.clamp(0, side - 1), z.clamp(0, side - 1));
@@ -283,9 +297,8 @@ impl Heightfield {
             })
             .collect();
         let scale = grads.iter().flatten().fold(0.0f32, |m, g| m.max(g.abs())).max(f32::MIN_POSITIVE);
-        let texel = |v: f32| (v / scale * 32767.0).round() as i16;
-        // The z texel is the nearest even integer (one unit off at most, level ground
-        // exact), plus the flag; the shader clears the flag before using the gradient.
+        // Each texel is the nearest even integer (one unit off at most, level ground
+        // exact), plus its flag; the shader clears the flag before using the gradient.
         // -32768 reads back as -1.0 like -32767, so it is never written.
         let flagged = |v: f32, flag: bool| {
             let even = (2.0 * (v / scale * 32767.0 / 2.0).round()).clamp(-32766.0, 32766.0) as i16;
@@ -293,8 +306,8 @@ impl Heightfield {
         };
         let texels = (grads.iter().enumerate())
             .map(|(i, g)| {
-                let sea = self.height_at(i as i64 % side, i as i64 / side) <= sea_level;
-                [texel(g[0]), flagged(g[1], sea)]
+                let (x, z) = (i as i64 % side, i as i64 / side);
+                [flagged(g[0], self.is_hole(x, z)), flagged(g[1], self.height_at(x, z) <= sea_level)]
             })
             .collect();
         (texels, scale)
@@ -367,7 +380,9 @@ mod tests {
             seen[bit as usize] += 1;
             let gx = (hf.height_at(x + 1, z) - hf.height_at(x - 1, z)) / (2.0 * hf.spacing.x);
             let gz = (hf.height_at(x, z + 1) - hf.height_at(x, z - 1)) / (2.0 * hf.spacing.z);
-            assert!((as_read(t[0]) * scale - gx).abs() <= 0.51 * scale / 32767.0, "gx at ({x}, {z})");
+            let x_units = (as_read(t[0]) * 32767.0).round() as i32;
+            assert_eq!(x_units & 1, 0, "no holes: the x flag is clear at ({x}, {z})");
+            assert!(((x_units & !1) as f32 / 32767.0 * scale - gx).abs() <= 1.01 * scale / 32767.0, "gx at ({x}, {z})");
             let even = (units & !1) as f32 / 32767.0;
             assert!((even * scale - gz).abs() <= 1.01 * scale / 32767.0, "gz at ({x}, {z})");
             if gz == 0.0 {
