@@ -235,3 +235,81 @@ fn tall_geographic_rasters_are_reprojected() {
     }
     assert!(checked >= 3, "only {checked} samples inside the source");
 }
+
+/// A georeferenced colour image drapes by its own georeferencing: an RGB GeoTIFF at 5 m
+/// pixels, larger than the terrain and offset from it, with a red square at known UTM
+/// coordinates, is warped onto a 10 m terrain so that the square's texels are where the
+/// square is on the ground; a picture without georeferencing is stretched as before.
+#[test]
+fn georeferenced_textures_drape_by_their_coordinates() {
+    let dir = TempDir::new("georef");
+    let dem = dir.path().join("dem.tif");
+    let s = vec![100.0f32; 65 * 65];
+    write_geotiff(
+        &dem,
+        (65, 65),
+        &s,
+        [10.0, 10.0],
+        [500_000.0, 5_200_000.0],
+        &[(1024, 1), (1025, 1), (3072, 32610)],
+        None,
+    );
+    let hf = load_default(&dem);
+    let tex = dir.path().join("colour.tif");
+    let red = |e: f64, n: f64| (500_200.0..500_300.0).contains(&e) && (5_199_700.0..5_199_800.0).contains(&n);
+    let (tw, th) = (200u32, 200u32);
+    let mut rgb = Vec::with_capacity((tw * th * 3) as usize);
+    for row in 0..th {
+        for col in 0..tw {
+            let (e, n) = (499_900.0 + (col as f64 + 0.5) * 5.0, 5_200_100.0 - (row as f64 + 0.5) * 5.0);
+            rgb.extend_from_slice(if red(e, n) { &[220, 20, 20] } else { &[20, 160, 40] });
+        }
+    }
+    {
+        let file = std::fs::File::create(&tex).unwrap();
+        let mut enc = TiffEncoder::new(file).unwrap();
+        let mut img = enc.new_image::<colortype::RGB8>(tw, th).unwrap();
+        img.encoder().write_tag(Tag::Unknown(33550), &[5.0, 5.0, 0.0][..]).unwrap();
+        img.encoder().write_tag(Tag::Unknown(33922), &[0.0, 0.0, 0.0, 499_900.0, 5_200_100.0, 0.0][..]).unwrap();
+        img.encoder().write_tag(Tag::Unknown(34735), &geokeys(&[(1024, 1), (1025, 1), (3072, 32610)])[..]).unwrap();
+        img.write_data(&rgb).unwrap();
+    }
+    let args =
+        vkterrain::app::cli::TextureArgs { texture: Some(tex), detail: None, detail_tiling: 64.0, detail_weight: 0.7 };
+    let t = args.load(&hf).unwrap().base.expect("a base texture");
+    // The terrain spans 640 m from sample 0 to 64: 128 texels of 5 m.
+    assert_eq!((t.width, t.height), (128, 128));
+    let texel = |e: f64, n: f64| {
+        let (i, j) = (((e - 500_005.0) / 5.0) as usize, ((5_199_995.0 - n) / 5.0) as usize);
+        let k = (j * t.width as usize + i) * 4;
+        [t.rgba[k], t.rgba[k + 1], t.rgba[k + 2]]
+    };
+    let mut checked = 0;
+    for n in (5_199_400..5_199_990).step_by(15) {
+        for e in (500_010..500_640).step_by(15) {
+            let (e, n) = (e as f64, n as f64);
+            // Clear of the square's edges, where the bilinear warp blends.
+            let edge = [500_200.0, 500_300.0].iter().any(|v: &f64| (e - v).abs() < 8.0)
+                || [5_199_700.0, 5_199_800.0].iter().any(|v: &f64| (n - v).abs() < 8.0);
+            if edge {
+                continue;
+            }
+            let c = texel(e, n);
+            let is_red = c[0] > 150 && c[1] < 80;
+            assert_eq!(is_red, red(e, n), "E {e} N {n}: texel {c:?}");
+            checked += 1;
+        }
+    }
+    assert!(checked > 1000, "{checked}");
+    // Without georeferencing the picture is used as it is.
+    let plain = dir.path().join("plain.png");
+    image::RgbImage::from_pixel(7, 5, image::Rgb([1, 2, 3])).save(&plain).unwrap();
+    let args = vkterrain::app::cli::TextureArgs {
+        texture: Some(plain),
+        detail: None,
+        detail_tiling: 64.0,
+        detail_weight: 0.7,
+    };
+    let t = args.load(&hf).unwrap().base.unwrap();
+    assert_eq!((t.width, t.height, &t.rgba[..4]), (7, 5, &[1u8, 2, 3, 255][..]));
+}

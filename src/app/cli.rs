@@ -268,8 +268,11 @@ impl TextureArgs {
         [("--texture", self.texture.as_deref()), ("--detail", self.detail.as_deref())]
     }
 
-    /// Reads the textures (each error names the option and the file).
-    pub fn load(&self) -> Result<Textures, InputError> {
+    /// Reads the textures (each error names the option and the file). A georeferenced
+    /// base texture over a georeferenced terrain is warped onto it by both files'
+    /// georeferencing ([`crate::input::georef::drape`]); any other is stretched over the
+    /// terrain's extent.
+    pub fn load(&self, hf: &Heightfield) -> Result<Textures, InputError> {
         if !(0.0..=1.0).contains(&self.detail_weight) {
             return Err(InputError(format!("--detail-weight {}: must be within 0..1", self.detail_weight)));
         }
@@ -280,8 +283,23 @@ impl TextureArgs {
             let rgba = img.to_rgba8();
             Ok(Texture { width: rgba.width(), height: rgba.height(), rgba: rgba.into_raw() })
         };
+        let base = |path: &PathBuf| -> Result<Texture, InputError> {
+            crate::input::regular_file(path).map_err(|e| InputError(format!("--texture {e}")))?;
+            match crate::input::georef::drape(path, &hf.georef, (hf.width, hf.height))
+                .map_err(|e| InputError(format!("--texture {e}")))?
+            {
+                Some((width, height, rgba)) => {
+                    eprintln!(
+                        "vkterrain: note: --texture {}: georeferenced, warped onto the terrain ({width} x {height} texels)",
+                        path.display()
+                    );
+                    Ok(Texture { width, height, rgba })
+                }
+                None => read("--texture", path),
+            }
+        };
         Ok(Textures {
-            base: self.texture.as_ref().map(|p| read("--texture", p)).transpose()?,
+            base: self.texture.as_ref().map(base).transpose()?,
             detail: self.detail.as_ref().map(|p| read("--detail", p)).transpose()?,
         })
     }

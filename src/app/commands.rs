@@ -139,7 +139,7 @@ impl Session {
         let mm = MinMaxPyramid::build(&hf);
         let pyramid_ms = t.elapsed().as_secs_f64() * 1e3;
         tracing::info!("group pyramid (min/max and exact deviation, {} levels) in {pyramid_ms:.0} ms", hf.n);
-        let tex = textures.map(TextureArgs::load).transpose()?.unwrap_or_default();
+        let tex = textures.map(|t| t.load(&hf)).transpose()?.unwrap_or_default();
         let terrain = Arc::new(TerrainGpu::new(&device, &hf, &mm, tex.base.as_ref(), tex.detail.as_ref())?);
         Ok(Session { hf: Arc::new(hf), mm, layout, device, terrain, pyramid_ms })
     }

@@ -380,7 +380,7 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
             .into());
         }
     }
-    let Textures { base, detail } = args.textures.load()?;
+    let Textures { base, detail } = args.textures.load(&hf)?;
     let mm = MinMaxPyramid::build(&hf);
     let (w, h) = args.common.size.unwrap_or((1280, 720));
     let cam = if args.common.camera.is_none() && args.common.look_at.is_none() {

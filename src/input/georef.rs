@@ -327,6 +327,74 @@ fn reproject(
     Ok(raster)
 }
 
+/// An RGB(A) raster warped onto the terrain (SPEC section 9): texel `(i, j)` of the
+/// result covers the terrain's true extent in equal steps from sample 0 to sample
+/// `width - 1` (the shader's `uv = sample / (extent - 1)`), whatever the image's own CRS,
+/// extent and resolution. `None` when the image or the terrain carries no georeferencing
+/// (the image is then stretched over the terrain as it is). Where the image has no data,
+/// texels are mid-grey.
+pub fn drape(path: &Path, dem: &Georef, dem_size: (usize, usize)) -> Result<Option<(u32, u32, Vec<u8>)>, String> {
+    init_gdal();
+    let shown = path.display().to_string();
+    if dem.wkt.is_empty() || dem.step == [0.0; 2] {
+        return Ok(None);
+    }
+    let Ok(src) = Dataset::open(path) else { return Ok(None) };
+    let (Ok(t), Ok(src_srs)) = (src.geo_transform(), src.spatial_ref()) else { return Ok(None) };
+    let bands = src.raster_count();
+    if !(3..=4).contains(&bands) {
+        return Err(format!("{shown}: {bands} bands: a georeferenced texture needs red, green and blue"));
+    }
+    let mut dem_srs = SpatialRef::from_wkt(&dem.wkt).map_err(|e| format!("{shown}: the terrain's CRS: {e}"))?;
+    let mut src_srs = src_srs;
+    for s in [&mut dem_srs, &mut src_srs] {
+        s.set_axis_mapping_strategy(gdal::spatial_ref::AxisMappingStrategy::TraditionalGisOrder);
+    }
+    // The terrain's extent in its CRS, sample centre 0 to sample centre (w - 1).
+    let (w, h) = (dem_size.0 as f64, dem_size.1 as f64);
+    let (x0, y0) = (dem.origin[0], dem.origin[1]);
+    let (span_x, span_y) = ((w - 1.0) * dem.step[0], (h - 1.0) * dem.step[1]);
+    // The image's resolution over that extent: its pixel size taken into the terrain's
+    // CRS, at most 8192 texels a side.
+    let (sw, sh) = src.raster_size();
+    let to_dem = gdal::spatial_ref::CoordTransform::new(&src_srs, &dem_srs).map_err(|e| format!("{shown}: {e}"))?;
+    let (ix0, ix1) = (t[0].min(t[0] + sw as f64 * t[1]), t[0].max(t[0] + sw as f64 * t[1]));
+    let (iy0, iy1) = (t[3].min(t[3] + sh as f64 * t[5]), t[3].max(t[3] + sh as f64 * t[5]));
+    let b = to_dem.transform_bounds(&[ix0, iy0, ix1, iy1], 21).map_err(|e| format!("{shown}: its extent: {e}"))?;
+    let pixel = ((b[2] - b[0]) / sw as f64).min((b[3] - b[1]) / sh as f64).abs().max(f64::MIN_POSITIVE);
+    let tw = ((span_x.abs() / pixel).round() as usize).clamp(1, 8192);
+    let th = ((span_y.abs() / pixel).round() as usize).clamp(1, 8192);
+    let driver = gdal::DriverManager::get_driver_by_name("MEM").map_err(|e| format!("GDAL: {e}"))?;
+    let mut dst = driver.create_with_band_type::<u8, _>("", tw, th, 4).map_err(|e| format!("{shown}: {e}"))?;
+    dst.set_geo_transform(&[x0, span_x / tw as f64, 0.0, y0, 0.0, span_y / th as f64]).map_err(|e| e.to_string())?;
+    dst.set_spatial_ref(&dem_srs).map_err(|e| e.to_string())?;
+    gdal::raster::reproject(&src, &dst).map_err(|e| format!("{shown}: warping onto the terrain failed: {e}"))?;
+    let mut planes = Vec::with_capacity(4);
+    for i in 1..=4 {
+        let band = dst.rasterband(i).map_err(|e| e.to_string())?;
+        planes.push(
+            band.read_as::<u8>((0, 0), (tw, th), (tw, th), None).map_err(|e| e.to_string())?.into_shape_and_vec().1,
+        );
+    }
+    // Where nothing was warped in (outside the image), GDAL leaves zeros in every band
+    // of a 3-band source: the alpha band the warper fills tells; a 4-band source brings
+    // its own alpha.
+    let covered: Vec<bool> = if bands == 3 {
+        (0..tw * th).map(|i| planes[0][i] != 0 || planes[1][i] != 0 || planes[2][i] != 0).collect()
+    } else {
+        planes[3].iter().map(|&a| a != 0).collect()
+    };
+    let mut rgba = Vec::with_capacity(tw * th * 4);
+    for (i, &cov) in covered.iter().enumerate() {
+        if cov {
+            rgba.extend_from_slice(&[planes[0][i], planes[1][i], planes[2][i], 255]);
+        } else {
+            rgba.extend_from_slice(&[128, 128, 128, 255]);
+        }
+    }
+    Ok(Some((tw as u32, th as u32, rgba)))
+}
+
 /// What the loader decided, from the file and the options.
 #[derive(Clone, Debug)]
 pub struct Scale {
