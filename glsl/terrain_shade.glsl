@@ -11,7 +11,7 @@ layout(set = 0, binding = TERRAIN_BINDING_GRADIENTS) uniform usampler2D gradient
 layout(set = 0, binding = TERRAIN_BINDING_LIGHTING) uniform sampler2D lighting;
 
 float world_height(ivec2 s) {
-    s = clamp(s, ivec2(0), ivec2(frame.extent.z - 1));
+    s = clamp(s, ivec2(0), textureSize(heights, 0) - 1);
     return decode_raw(texelFetch(heights, s, 0).r, frame.flags.x) * frame.terrain.y;
 }
 
@@ -46,7 +46,7 @@ bool in_hole(vec3 world) {
     vec2 p = world.xz / frame.spacing.xy;
     ivec2 i0 = ivec2(floor(p));
     vec2 f = p - vec2(i0);
-    uvec4 t = textureGather(gradients, (vec2(i0) + 1.0) / float(frame.extent.z));
+    uvec4 t = textureGather(gradients, (vec2(i0) + 1.0) / vec2(textureSize(gradients, 0)));
     vec4 h = vec4(t & 1u); // (0,1), (1,1), (1,0), (0,0)
     return mix(mix(h.w, h.z, f.x), mix(h.x, h.y, f.x), f.y) >= 0.5;
 }
@@ -106,7 +106,7 @@ vec3 shade_terrain(vec3 world, int lod) {
     } else {
         // Texels i0 and i0 + 1 on each axis (clamped at the far edge): the coordinate is
         // midway between their centres. Gather order: (0,1), (1,1), (1,0), (0,0).
-        uvec4 t = textureGather(gradients, (vec2(i0) + 1.0) / float(frame.extent.z));
+        uvec4 t = textureGather(gradients, (vec2(i0) + 1.0) / vec2(textureSize(gradients, 0)));
         s00 = from_texel(t.w);
         s10 = from_texel(t.z);
         s01 = from_texel(t.x);
@@ -155,9 +155,10 @@ vec3 shade_terrain(vec3 world, int lod) {
         albedo = mix(albedo, palette[lod % palette.length()], 0.6);
     }
     // Sun visibility and ambient occlusion, precomputed per lighting texel (lighting.frag):
-    // texel i is sample i * (N - 1) / (side - 1).
-    float texels = float(textureSize(lighting, 0).x);
-    vec2 lit = texture(lighting, (p * (texels - 1.0) / float(frame.extent.z - 1) + 0.5) / texels).rg;
+    // texel i is sample i * (grid - 1) / (texels - 1) on each axis.
+    vec2 texels = vec2(textureSize(lighting, 0));
+    vec2 grid = vec2(textureSize(heights, 0));
+    vec2 lit = texture(lighting, (p * (texels - 1.0) / (grid - 1.0) + 0.5) / texels).rg;
     vec3 l = normalize(frame.light.xyz);
     vec3 color = albedo * (frame.light.w * lit.g + (1.0 - frame.light.w) * max(dot(n, l), 0.0) * lit.r);
     float dist = length(world - frame.camera_fog.xyz);

@@ -87,7 +87,7 @@ fn the_glb_is_the_drawn_surface() {
         (x as f32 * 0.06).sin() * (z as f32 * 0.05).cos() * 10.0 + if (x, z) == (70, 40) { 30.0 } else { 0.0 }
     });
     let mm = MinMaxPyramid::build(&hf);
-    let layout = BlockLayout::new(hf.n, 9).unwrap();
+    let layout = BlockLayout::of(&hf, 9).unwrap();
     let eye = Vec3::new(20.0 * 3.0, 40.0, 10.0 * 1.25);
     let cam = Camera::look_at(eye, Vec3::new(100.0 * 3.0, 0.0, 80.0 * 1.25), 60.0, 640, 480, 0.05);
     let errors = block_errors(&group_errors(&hf, &mm, &ErrorParams::new(&cam, ErrorMode::Strict)), layout.m);

@@ -17,7 +17,7 @@ use vkterrain::lod::pyramid::MinMaxPyramid;
 /// Compares GPU and CPU for each camera and mode; returns the largest GPU group error.
 fn check(device: &Arc<vkterrain::vk::Device>, hf: Heightfield, k: u32, cameras: &[Vec3]) -> f32 {
     let mm = MinMaxPyramid::build(&hf);
-    let layout = BlockLayout::new(hf.n, k).unwrap();
+    let layout = BlockLayout::of(&hf, k).unwrap();
     let terrain = Arc::new(TerrainGpu::new(device, &hf, &mm, None, None).unwrap());
     let hf = Arc::new(hf);
     let mut largest = 0.0f32;

@@ -37,7 +37,7 @@ impl Scene {
     /// A scene lit by `sun` (`None`: no shadows or occlusion, for tests of geometry).
     fn new(device: &Arc<Device>, hf: Heightfield, k: u32, sun: Option<Sun>) -> Scene {
         let mm = MinMaxPyramid::build(&hf);
-        let layout = BlockLayout::new(hf.n, k).unwrap();
+        let layout = BlockLayout::of(&hf, k).unwrap();
         let terrain = Arc::new(TerrainGpu::new(device, &hf, &mm, None, None).unwrap());
         let renderer = BlocksRenderer::new(device, &hf, &terrain, layout, COLOR_FORMAT, 1, sun).unwrap();
         Scene { device: device.clone(), hf: Arc::new(hf), mm, layout, terrain, renderer, morph: true }
@@ -455,7 +455,8 @@ fn deferred_shading_matches_forward() {
         let (wx, wz) = hf.world_extent();
         let top = hf.raw.iter().cloned().fold(f32::MIN, f32::max) * hf.height_scale;
         let ground = hf.surface_height(wx * 0.5, wz * 0.6);
-        assert_eq!((hf.side() - 1) as f32 * hf.spacing.min() > wx.max(wz), has_margin);
+        let [gw, gh] = hf.grid();
+        assert_eq!((gw - 1) as f32 * hf.spacing.x > wx || (gh - 1) as f32 * hf.spacing.z > wz, has_margin);
         let mut scene = Scene::new(&device, hf, 33, Some(Sun::DEFAULT));
         // First: over the far corner, looking down at the true extent's far edges.
         let mut cams = vec![Camera::look_at(
@@ -545,7 +546,7 @@ fn every_shading_variant_takes_its_own_path() {
     let cam =
         Camera::look_at(Vec3::new(wx * 0.5, 150.0, wz * 1.1), Vec3::new(wx * 0.5, 0.0, wz * 0.4), 60.0, 160, 120, 0.1);
     let mm = MinMaxPyramid::build(&hf);
-    let layout = BlockLayout::new(hf.n, 33).unwrap();
+    let layout = BlockLayout::of(&hf, 33).unwrap();
     let target = Target::new(&device, cam.width, cam.height).unwrap();
     let solid = |rgb: [u8; 3]| Texture { width: 2, height: 2, rgba: [rgb[0], rgb[1], rgb[2], 255].repeat(4) };
     let render_from = |cam: &Camera, base: Option<&Texture>, detail: Option<&Texture>, shading: &Shading| {

@@ -30,7 +30,7 @@ fn drive(pacing: Pacing, side: usize) -> u64 {
         ((x as f32 * 0.21).sin() * (z as f32 * 0.17).cos()) * 15.0 + ((x * z) % 7) as f32
     });
     let mm = MinMaxPyramid::build(&hf);
-    let layout = BlockLayout::new(hf.n, 9).unwrap();
+    let layout = BlockLayout::of(&hf, 9).unwrap();
     let terrain = Arc::new(TerrainGpu::new(&device, &hf, &mm, None, None).unwrap());
     let hf = Arc::new(hf);
     let activity =

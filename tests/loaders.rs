@@ -22,7 +22,7 @@ thread_local! {
 fn range(hf: &Heightfield) -> (f32, f32) {
     let mut lo = f32::INFINITY;
     let mut hi = f32::NEG_INFINITY;
-    let side = hf.side();
+    let side = hf.grid()[0];
     for z in 0..hf.height {
         for x in 0..hf.width {
             let v = hf.raw[z * side + x];
@@ -40,7 +40,7 @@ fn load_default(p: &Path) -> Heightfield {
 #[test]
 fn puget_sound_16bit_png() {
     let hf = load_default(&data("puget_sound/ps_height_1k.png"));
-    assert_eq!((hf.width, hf.height, hf.side(), hf.n), (1025, 1025, 1025, 10));
+    assert_eq!((hf.width, hf.height, hf.grid(), hf.n), (1025, 1025, [1025, 1025], 10));
     assert_eq!(hf.format, HeightFormat::Unorm16);
     assert_eq!(range(&hf), (0.0, 43798.0));
     assert_eq!((hf.spacing, hf.height_scale), (160.0.into(), 0.1));
@@ -55,7 +55,8 @@ fn srtm_geotiffs_with_voids_are_filled() {
         ("mt_everest_90m.tif", 192.0, 8642.0),
     ] {
         let hf = load_default(&data(&format!("srtm3/{name}")));
-        assert_eq!((hf.width, hf.height, hf.side()), (1201, 1201, 2049), "{name}");
+        // 3 x 3 roots of 513: 1537^2 samples, not the 2049^2 one root would take.
+        assert_eq!((hf.width, hf.height, hf.grid(), hf.roots), (1201, 1201, [1537, 1537], [3, 3]), "{name}");
         assert_eq!(hf.format, HeightFormat::Float32);
         let (a, b) = range(&hf);
         // Voids are filled from valid neighbours, so the range stays the valid range.
@@ -67,17 +68,19 @@ fn srtm_geotiffs_with_voids_are_filled() {
 #[test]
 fn grand_canyon_rgb_png_with_equal_channels() {
     let hf = load_default(&data("grand_canyon/gcanyon_height_4k2k.png"));
-    assert_eq!((hf.width, hf.height, hf.side()), (4097, 2049, 4097));
+    // Two 2049^2 roots side by side: memory for 4097 x 2049 samples, not 4097^2.
+    assert_eq!((hf.width, hf.height, hf.grid(), hf.roots), (4097, 2049, [4097, 2049], [2, 1]));
+    assert_eq!(hf.raw.len(), 4097 * 2049);
     assert_eq!(range(&hf), (13.0, 187.0));
     assert_eq!((hf.spacing, hf.height_scale), (60.0.into(), 10.0));
-    // The margin below row 2048 repeats the last row.
+    // Beyond the grid, heights clamp to its edge.
     assert_eq!(hf.raw_at(100, 4096), hf.raw_at(100, 2048));
 }
 
 #[test]
 fn puget_sound_4096_jpeg_embeds_in_4097() {
     let hf = load_default(&data("puget_sound/ps_height_4k.jpg"));
-    assert_eq!((hf.width, hf.height, hf.side(), hf.n), (4096, 4096, 4097, 12));
+    assert_eq!((hf.width, hf.height, hf.grid(), hf.n), (4096, 4096, [4097, 4097], 12));
     let (_, hi) = range(&hf);
     assert!((160.0..=180.0).contains(&hi), "max {hi}");
 }
@@ -174,7 +177,7 @@ fn srtm_hgt_big_endian_with_voids() {
     }
     std::fs::write(&p, &v).unwrap();
     let hf = load_default(&p);
-    assert_eq!((hf.width, hf.height, hf.side()), (1201, 1201, 2049));
+    assert_eq!((hf.width, hf.height, hf.grid()), (1201, 1201, [1537, 1537]));
     assert_eq!(hf.raw_at(1, 0), 1.0);
     // Placed by its name: the tile south-west of N1 E1, 3 arc-seconds a sample, on WGS 84
     // (92.8 x 92.1 m at 0.5 N).
@@ -278,7 +281,7 @@ fn voids_are_filled_without_walls() {
     assert!(voids * 20 > raw.len(), "the Everest tile should be about 9% void, is {voids} of {}", raw.len());
     let hf = load(&data("srtm3/mt_everest_90m.tif"), &LoadOptions::default()).unwrap();
     assert_eq!(hf.void_samples, voids);
-    let side = hf.side();
+    let side = hf.grid()[0];
     let filled: Vec<f32> = (0..w * h).map(|i| hf.raw[(i / w) * side + i % w]).collect();
     let steps = void_steps(&filled, &void, w, h);
     println!(

@@ -119,7 +119,7 @@ fn frame_with(
 /// Runs `count` random poses of every kind; returns the worst audited error per mode.
 fn audit_poses(hf: &Heightfield, k: u32, count: usize, seed: u64) -> (f32, f32) {
     let mm = MinMaxPyramid::build(hf);
-    let layout = BlockLayout::new(hf.n, k).unwrap();
+    let layout = BlockLayout::of(&hf, k).unwrap();
     let mut rng = Rng(seed);
     let kinds = [Pose::NearGround, Pose::High, Pose::LookingDown, Pose::Horizon];
     let (mut worst_strict, mut worst_paper) = (0.0f32, 0.0f32);
@@ -199,6 +199,43 @@ fn strict_mode_holds_delta_on_anisotropic_fields() {
     assert_tight("ridges 200 x 131, 3 x 0.7", audit_poses(&field(200, 131, [3.0, 0.7], ridges), 5, 100, 23));
 }
 
+/// Rectangular inputs are covered by a grid of square roots sharing their border samples
+/// (SPEC section 1), so memory follows the input's size; the bound holds across the roots'
+/// shared edges: crafted strips and rectangles with a cliff and spikes exactly on a root
+/// boundary, anisotropic too, random poses and poses along the boundary.
+#[test]
+fn strict_mode_holds_delta_on_rectangular_grids() {
+    let strip = field(513, 129, 1.0, |x, z| {
+        let cliff = if x >= 256 { 25.0 } else { 0.0 };
+        let spike = if x == 256 && z % 16 == 5 { 18.0 } else { 0.0 };
+        cliff + spike + ((x as f32 * 0.07).sin() * (z as f32 * 0.11).cos()) * 6.0
+    });
+    assert_eq!((strip.roots, strip.grid()), ([4, 1], [513, 129]), "a 513 x 129 strip: four roots of 129");
+    assert_tight("strip 513 x 129 (4 x 1 roots), 100 poses", audit_poses(&strip, 9, 100, 31));
+    let r = worst_ratio(&strip, 9, &adversarial_poses(&strip, 256.0, 60, 33), Variant::Renderer, true);
+    let wide = field(1000, 300, [2.0, 3.5], |x, z| {
+        let ridge = ((x as f32 * 0.03).sin() + (z as f32 * 0.05).cos()) * 12.0;
+        let wall = if x >= 512 { 30.0 } else { 0.0 };
+        ridge + wall + if (x * 13 + z * 7) % 89 == 0 { 9.0 } else { 0.0 }
+    });
+    assert_eq!((wide.roots, wide.grid()), ([2, 1], [1025, 513]));
+    assert_tight("1000 x 300 (2 x 1 roots), 2 x 3.5 m, 100 poses", audit_poses(&wide, 17, 100, 37));
+    let w = worst_ratio(&wide, 17, &adversarial_poses(&wide, 512.0, 60, 41), Variant::Renderer, true);
+    println!("rectangular grids, worst audited / delta along root boundaries: strip {r:.3}, wide {w:.3}");
+    // No crack across the roots' shared edges: frames with blocks of several LODs on
+    // both sides of x = 256 (strip) and x = 512 (wide).
+    for (f, k, edge) in [(&strip, 9u32, 256.0), (&wide, 17, 512.0)] {
+        let mm = MinMaxPyramid::build(f);
+        let layout = BlockLayout::of(f, k).unwrap();
+        let mut compared = 0;
+        for (i, cam) in adversarial_poses(f, edge, 30, 43).iter().enumerate() {
+            let t = frame(f, &mm, &layout, cam, cam, ErrorMode::Strict, 1.0);
+            compared += assert_watertight(f, &layout, &t, &format!("{} pose {i}", f.source));
+        }
+        assert!(compared > 1000, "only {compared} edge samples compared");
+    }
+}
+
 /// Mutation: errors and selection that use one spacing for both axes fail the audit on
 /// an anisotropic field (cliffs across z, seen from along z, where the z spacing
 /// decides every distance), while the renderer holds it on the same poses.
@@ -218,10 +255,10 @@ fn audit_catches_one_spacing_for_both_axes() {
 /// Every sample on the boundary between two drawn blocks has the same rendered height in
 /// both (stitched and morphed): no crack. Returns the samples compared.
 fn assert_watertight(hf: &Heightfield, layout: &BlockLayout, t: &Traversal, what: &str) -> usize {
-    let cells = layout.cells() as i64;
+    let [cells, rows] = layout.cells().map(|c| c as i64);
     let cell = 1i64 << layout.m;
     let at = |cx: i64, cz: i64| -> Option<usize> {
-        if cx < 0 || cz < 0 || cx >= cells || cz >= cells {
+        if cx < 0 || cz < 0 || cx >= cells || cz >= rows {
             return None;
         }
         let l = t.lod_map[(cz * cells + cx) as usize];
@@ -274,7 +311,7 @@ fn stitching_matches_coarser_neighbours() {
     let mm = MinMaxPyramid::build(&hf);
     let mut seen = std::collections::BTreeSet::new();
     for k in [3u32, 5, 9, 17] {
-        let layout = BlockLayout::new(hf.n, k).unwrap();
+        let layout = BlockLayout::of(&hf, k).unwrap();
         let mut rng = Rng(k as u64);
         for i in 0..60 {
             let cam = pose(&hf, &mut rng, [Pose::NearGround, Pose::LookingDown, Pose::Horizon][i % 3]);
@@ -326,7 +363,7 @@ fn stitching_matches_coarser_neighbours() {
     // while the spike's blocks go down to LOD 0, so neighbours differ by many levels.
     let lone = field(257, 257, 1.0, |x, z| if (x, z) == (129, 129) { 50.0 } else { 0.0 });
     let lone_mm = MinMaxPyramid::build(&lone);
-    let layout = BlockLayout::new(lone.n, 3).unwrap();
+    let layout = BlockLayout::of(&lone, 3).unwrap();
     let cam = Camera::look_at(Vec3::new(128.0, 300.0, 128.0), Vec3::new(128.0, 0.0, 127.0), 70.0, 640, 480, 0.05);
     let t = frame(&lone, &lone_mm, &layout, &cam, &cam, ErrorMode::Strict, 1.0);
     for b in &t.blocks {
@@ -358,7 +395,7 @@ fn stitching_matches_coarser_neighbours() {
 fn full_lod_draws_every_visible_block_at_lod_0() {
     let hf = field(129, 129, 1.0, |x, z| (x + z) as f32 * 0.1);
     let mm = MinMaxPyramid::build(&hf);
-    let layout = BlockLayout::new(hf.n, 17).unwrap();
+    let layout = BlockLayout::of(&hf, 17).unwrap();
     let cam = Camera::look_at(Vec3::new(64.0, 200.0, 64.0), Vec3::new(64.0, 0.0, 63.0), 60.0, 640, 480, 0.05);
     let t = traverse(&hf, &mm, &BlockCaches::default(), &layout, &cam, LodSelect::Full);
     assert!(t.blocks.iter().all(|b| b.lod == 0));
@@ -377,7 +414,7 @@ fn stale_splits_count_only_what_new_data_would_merge() {
     let rough = field(129, 129, 1.0, |x, z| ((x * 7919 + z * 104729) % 97) as f32 * 0.4);
     for (hf, rough) in [(ps, false), (rough, true)] {
         let mm = MinMaxPyramid::build(&hf);
-        let layout = BlockLayout::new(hf.n, 17).unwrap();
+        let layout = BlockLayout::of(&hf, 17).unwrap();
         let (wx, wz) = hf.world_extent();
         let target = Vec3::new(wx * 0.5, 0.0, wz * 0.5);
         let eye = Vec3::new(wx * 0.5, wx * 0.15, wz * 1.05);
@@ -446,7 +483,7 @@ fn adversarial_poses(hf: &Heightfield, edge: f32, count: usize, seed: u64) -> Ve
 /// With `require` the strict bound is asserted on every pose.
 fn worst_ratio(hf: &Heightfield, k: u32, poses: &[Camera], variant: Variant, require: bool) -> f32 {
     let mm = MinMaxPyramid::build(hf);
-    let layout = BlockLayout::new(hf.n, k).unwrap();
+    let layout = BlockLayout::of(&hf, k).unwrap();
     let mut worst = 0.0f32;
     for (i, cam) in poses.iter().enumerate() {
         let delta = [1.0f32, 0.5, 2.0][i % 3];
@@ -636,7 +673,7 @@ fn strict_holds_delta_across_every_lod_jump() {
     });
     let mm = MinMaxPyramid::build(&lone);
     for k in [3u32, 5, 9] {
-        let layout = BlockLayout::new(lone.n, k).unwrap();
+        let layout = BlockLayout::of(&lone, k).unwrap();
         let mut jumps = std::collections::BTreeSet::new();
         let mut poses = adversarial_poses(&lone, 129.0, 30, k as u64 + 100);
         poses.extend(adversarial_poses(&lone, 61.0, 20, k as u64 + 200));
@@ -680,7 +717,7 @@ fn audit_catches_the_broken_bounds() {
 fn paper_mode_exceeds_delta_on_puget_sound() {
     let hf = load::load(&data("puget_sound/ps_height_1k.png"), &LoadOptions::default()).unwrap();
     let mm = MinMaxPyramid::build(&hf);
-    let layout = BlockLayout::new(hf.n, 33).unwrap();
+    let layout = BlockLayout::of(&hf, 33).unwrap();
     let mut rng = Rng(21);
     let mut worst = 0.0f32;
     for i in 0..40 {
@@ -711,7 +748,7 @@ fn strict_holds_where_the_deviation_leaves_the_frustum() {
     for (height, delta, eye, target, fovy, (w, h), k) in cases {
         let hf = field(513, 513, 1.0, move |x, z| if (x, z) == (257, 200) { height } else { 0.0 });
         let mm = MinMaxPyramid::build(&hf);
-        let layout = BlockLayout::new(hf.n, k).unwrap();
+        let layout = BlockLayout::of(&hf, k).unwrap();
         let cam = Camera::look_at(Vec3::from(eye), Vec3::from(target), fovy, w, h, 0.05);
         let t = frame(&hf, &mm, &layout, &cam, &cam, ErrorMode::Strict, delta);
         let a = audit(&hf, &layout, &t, &cam);
@@ -835,7 +872,7 @@ fn surface_displacement(
 fn morphing_turns_jumps_into_small_steps() {
     let hf = load::load(&data("puget_sound/ps_height_1k.png"), &LoadOptions::default()).unwrap();
     let mm = MinMaxPyramid::build(&hf);
-    let layout = BlockLayout::new(hf.n, 33).unwrap();
+    let layout = BlockLayout::of(&hf, 33).unwrap();
     let (wx, wz) = hf.world_extent();
     let low: Vec<Camera> = (0..24)
         .map(|i| {
@@ -888,7 +925,7 @@ fn morph_bound_holds_in_every_state() {
         (blancmange(), 128.0, 5),
     ] {
         let mm = MinMaxPyramid::build(&f);
-        let layout = BlockLayout::new(f.n, k).unwrap();
+        let layout = BlockLayout::of(&f, k).unwrap();
         let caches = BlockCaches::default();
         for (i, cam) in adversarial_poses(&f, edge, 16, 40 + k as u64).iter().enumerate() {
             let delta = [1.0f32, 0.5, 2.0][i % 3];

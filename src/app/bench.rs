@@ -942,7 +942,8 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     summary["delta"] = json!(args.delta);
     summary["size"] = json!([size.0, size.1]);
     summary["heightmap"] = json!(s.hf.source);
-    summary["readback_bytes_per_update"] = json!(crate::lod::gie::BlockErrors::packed_len(s.layout.root_lod()) * 4 + 8);
+    summary["readback_bytes_per_update"] =
+        json!(crate::lod::gie::BlockErrors::packed_len(s.layout.root_lod(), s.layout.roots) * 4 + 8);
     summary["geometry_bytes"] = json!(crate::app::commands::renderer_geometry_bytes(s.layout.k()));
     summary["heightfield_bytes"] = json!(s.hf.gpu_bytes());
     crate::app::outputs::TerrainFacts::of(&s.hf).merge_into(&mut summary);

@@ -119,7 +119,7 @@ impl Session {
     /// uploads them.
     pub fn open(common: &CommonArgs, textures: Option<&TextureArgs>) -> anyhow::Result<Self> {
         // Options first, so that a bad value fails before any file is read.
-        BlockLayout::new(30, common.block).map_err(InputError)?;
+        BlockLayout::check(common.block).map_err(InputError)?;
         // The device first: its image size limit bounds what the loader allocates.
         let instance = Instance::new(&InstanceOptions { validation: common.validation(), extensions: Vec::new() })?;
         let device =
@@ -131,7 +131,7 @@ impl Session {
         }
         let hf = common.load_heightfield(Some(device.max_image_dimension_2d() as usize))?;
         Session::check_size(&device, &hf)?;
-        let layout = BlockLayout::new(hf.n, common.block).map_err(InputError)?;
+        let layout = BlockLayout::of(&hf, common.block).map_err(InputError)?;
         if layout.k() != common.block {
             tracing::info!("block {} is larger than the terrain; using k = {}", common.block, layout.k());
         }
@@ -156,12 +156,11 @@ impl Session {
     /// The heightfield must fit in one image on this device.
     pub fn check_size(device: &Device, hf: &Heightfield) -> Result<(), InputError> {
         let max = device.max_image_dimension_2d() as usize;
-        if hf.side() > max {
+        let [gw, gh] = hf.grid();
+        if gw.max(gh) > max {
             return Err(InputError(format!(
-                "{}: the {} x {} grid is larger than the device's maxImageDimension2D ({max})",
-                hf.source,
-                hf.side(),
-                hf.side()
+                "{}: the {gw} x {gh} grid is larger than the device's maxImageDimension2D ({max})",
+                hf.source
             )));
         }
         Ok(())
@@ -289,7 +288,8 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
         "frame_ms": frame_ms,
         "geometry_bytes": renderer_geometry_bytes(s.layout.k()),
         "heightfield_bytes": s.hf.gpu_bytes(),
-        "grid": s.hf.side(),
+        "grid": s.hf.grid(),
+        "roots": s.hf.roots,
         "queue_mode": s.device.queue_mode.as_str(),
         "device": s.device.name,
         "camera": [cam.position.x, cam.position.y, cam.position.z],
@@ -373,17 +373,18 @@ pub fn errors(args: &ErrorsArgs) -> anyhow::Result<()> {
     let n = s.hf.n as u64;
     let mut out = json!({
         "n": n,
-        "grid": s.hf.side(),
+        "grid": s.hf.grid(),
+        "roots": s.hf.roots,
         "levels": cost.levels,
         "block": s.layout.k(),
         "block_levels": s.layout.root_lod(),
         "error_mode": args.common.error_mode.as_str(),
         "fragments_shaded": cost.fragments_shaded,
-        "naive_fragments_n_4n": n * (1u64 << (2 * n)),
+        "naive_fragments_n_4n": n * ((s.hf.grid()[0] - 1) * (s.hf.grid()[1] - 1)) as u64,
         "readback_bytes": cost.readback_bytes,
         "pyramid_ms": s.pyramid_ms,
         "geometry_bytes": renderer_geometry_bytes(s.layout.k()),
-        "full_error_texture_bytes": (s.hf.side() * s.hf.side() * 4) as u64,
+        "full_error_texture_bytes": (s.hf.grid()[0] * s.hf.grid()[1] * 4) as u64,
         "update_ms": times[times.len() / 2],
         "update_ms_min": times[0],
         "update_gpu_ms": gpu_times.get(gpu_times.len() / 2),

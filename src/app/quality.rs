@@ -53,7 +53,7 @@ pub fn quality(args: &QualityArgs) -> anyhow::Result<()> {
     }
     std::fs::create_dir_all(&args.out).map_err(|e| anyhow::anyhow!("{}: {e}", args.out.display()))?;
     let hf = args.common.load_heightfield(None)?;
-    let layout = BlockLayout::new(hf.n, args.common.block).map_err(InputError)?;
+    let layout = BlockLayout::of(&hf, args.common.block).map_err(InputError)?;
     let mm = MinMaxPyramid::build(&hf);
     let size = args.common.size.unwrap_or((640, 480));
     let cams: Vec<_> = (0..args.poses)

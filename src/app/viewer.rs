@@ -346,7 +346,7 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
         &[("--heightmap", args.common.heightmap.as_deref()), args.textures.inputs()[0], args.textures.inputs()[1]],
     )?;
     let hf = args.common.load_heightfield(None)?;
-    let layout = BlockLayout::new(hf.n, args.common.block).map_err(InputError)?;
+    let layout = BlockLayout::of(&hf, args.common.block).map_err(InputError)?;
     let trace = match &args.trace {
         Some(p) => Trace::to_file(p).map_err(|e| InputError(format!("--trace {}: {e}", p.display())))?,
         None => Trace::off(),

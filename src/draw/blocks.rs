@@ -515,7 +515,7 @@ impl BlocksRenderer {
             spacing: [hf.spacing.x, hf.spacing.z, 0.0, 0.0],
             light: [light.x, light.y, light.z, 0.25],
             texturing: [shading.detail_tiling, shading.detail_weight, terrain.gradient_scale, terrain.sea_level],
-            extent: [hf.width as i32, hf.height as i32, hf.side() as i32, self.layout.k() as i32],
+            extent: [hf.width as i32, hf.height as i32, hf.grid()[0] as i32, self.layout.k() as i32],
             flags: [(hf.format == crate::lod::heightfield::HeightFormat::Unorm16) as i32, 0, 0, 0],
             sky_zenith: [SKY_ZENITH[0], SKY_ZENITH[1], SKY_ZENITH[2], sky],
             sky_horizon: [horizon[0], horizon[1], horizon[2], 1.0],

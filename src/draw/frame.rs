@@ -164,7 +164,7 @@ mod tests {
     fn one_step_selects_submits_and_remembers_the_selection() {
         let hf = crate::input::procedural::procedural_sized(129);
         let mm = MinMaxPyramid::build(&hf);
-        let layout = BlockLayout::new(hf.n, 9).unwrap();
+        let layout = BlockLayout::of(&hf, 9).unwrap();
         let terrain = LodTerrain { hf: &hf, mm: &mm, layout: &layout };
         let (wx, wz) = hf.world_extent();
         let cam = Camera::look_at(

@@ -79,6 +79,14 @@ pub fn lighting_side(side: usize, max_side: usize) -> usize {
     (side - 1) / samples_per_texel(side, max_side) + 1
 }
 
+/// Texels of the lighting map along x and z for `hf`'s grid, and the samples per texel
+/// (the same on both axes, chosen for the longer one).
+pub fn lighting_size(hf: &Heightfield, max_side: usize) -> ([usize; 2], usize) {
+    let [gw, gh] = hf.grid();
+    let step = samples_per_texel(gw.max(gh), max_side);
+    ([(gw - 1) / step + 1, (gh - 1) / step + 1], step)
+}
+
 /// Sun visibility (0 shadowed .. 1 lit) and ambient occlusion (share of open sky, 1 on
 /// flat open ground) at sample `(x, z)`, or `[1, 1]` without a sun.
 pub fn light_at(hf: &Heightfield, x: i64, z: i64, sun: Option<Sun>) -> [f32; 2] {
@@ -117,11 +125,12 @@ pub fn light_at(hf: &Heightfield, x: i64, z: i64, sun: Option<Sun>) -> [f32; 2] 
     [visible, open / AO_DIRECTIONS.len() as f32]
 }
 
-/// The whole map, row-major, `lighting_side` texels a side: texel `(i, j)` is sample
+/// The whole map, row-major, [`lighting_size`] texels: texel `(i, j)` is sample
 /// `(i, j) * samples_per_texel`.
 pub fn reference(hf: &Heightfield, sun: Option<Sun>, max_side: usize) -> Vec<[f32; 2]> {
-    let (side, step) = (lighting_side(hf.side(), max_side), samples_per_texel(hf.side(), max_side) as i64);
-    (0..side * side).map(|i| light_at(hf, (i % side) as i64 * step, (i / side) as i64 * step, sun)).collect()
+    let ([w, h], step) = lighting_size(hf, max_side);
+    let step = step as i64;
+    (0..w * h).map(|i| light_at(hf, (i % w) as i64 * step, (i / w) as i64 * step, sun)).collect()
 }
 
 #[cfg(test)]

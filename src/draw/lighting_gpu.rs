@@ -2,7 +2,7 @@
 //! visibility, ambient occlusion), at load and whenever the sun moves. The terrain
 //! shader samples it; `crate::draw::lighting` is its CPU reference.
 
-use crate::draw::lighting::{lighting_side, samples_per_texel, Sun, MAX_LIGHTING_SIDE};
+use crate::draw::lighting::{lighting_size, Sun, MAX_LIGHTING_SIDE};
 use crate::gpu::layout::{self as layout, LightingPush};
 use crate::gpu::shaders;
 use crate::gpu::terrain::TerrainGpu;
@@ -46,11 +46,11 @@ impl LightingMap {
         sun: Option<Sun>,
         max_side: usize,
     ) -> VkResult<Self> {
-        let side = lighting_side(hf.side(), max_side) as u32;
+        let ([w, h], _) = lighting_size(hf, max_side);
         let image = Image::new(
             device,
             "lighting map",
-            vk::Extent2D { width: side, height: side },
+            vk::Extent2D { width: w as u32, height: h as u32 },
             LIGHTING_FORMAT,
             1,
             vk::ImageUsageFlags::COLOR_ATTACHMENT | vk::ImageUsageFlags::SAMPLED | vk::ImageUsageFlags::TRANSFER_SRC,
@@ -117,7 +117,7 @@ impl LightingMap {
             grid: [
                 hf.width as i32,
                 hf.height as i32,
-                samples_per_texel(hf.side(), self.max_side) as i32,
+                lighting_size(hf, self.max_side).1 as i32,
                 (hf.format == HeightFormat::Unorm16) as i32,
             ],
             params: [hf.spacing.x, hf.height_scale, hf.spacing.z, metres_per_step],

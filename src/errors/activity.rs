@@ -79,6 +79,7 @@ struct Shared {
     copy: Mutex<Option<Generation>>,
     failure: Mutex<Option<VkError>>,
     root_lod: u32,
+    roots: [usize; 2],
     /// True while the thread waits with nothing to do.
     idle: AtomicBool,
     /// The host events the thread had seen when it last found nothing to do.
@@ -147,7 +148,7 @@ impl ErrorsActivity {
         pacing: Pacing,
     ) -> VkResult<Self> {
         let root = block_layout.root_lod();
-        let bytes = readback_bytes(root);
+        let bytes = readback_bytes(&block_layout);
         let rb = |i: usize| {
             Buffer::new(
                 device,
@@ -175,6 +176,7 @@ impl ErrorsActivity {
             copy: Mutex::new(None),
             failure: Mutex::new(None),
             root_lod: root,
+            roots: block_layout.roots,
             idle: AtomicBool::new(true),
             idle_seen: AtomicU64::new(0),
             most_in_flight: AtomicU64::new(0),
@@ -182,7 +184,7 @@ impl ErrorsActivity {
             trace,
         });
         let cost = UpdateCost {
-            fragments_shaded: fragments_per_update(hf.n, block_layout.m),
+            fragments_shaded: fragments_per_update(hf.n, block_layout.m, hf.roots),
             readback_bytes: bytes,
             levels: hf.n,
         };
@@ -250,7 +252,7 @@ impl ErrorsActivity {
         }
         let bytes = s.readbacks[slot].mapped();
         let read = bytes.map(|bytes| {
-            let len = BlockErrors::packed_len(s.root_lod);
+            let len = BlockErrors::packed_len(s.root_lod, s.roots);
             let header = u32::from_le_bytes(bytes[0..4].try_into().unwrap());
             let data: Vec<f32> = bytemuck::pod_collect_to_vec(&bytes[4..4 + len * 4]);
             let trailer = u32::from_le_bytes(bytes[4 + len * 4..8 + len * 4].try_into().unwrap());
@@ -261,7 +263,7 @@ impl ErrorsActivity {
             (Ok((header, data, trailer)), Some(info)) if header == g as u32 && trailer == g as u32 => Ok(Generation {
                 number: g,
                 params: info.params,
-                errors: BlockErrors::from_packed(s.root_lod, &data),
+                errors: BlockErrors::from_packed(s.root_lod, s.roots, &data),
                 gpu_ms: info.gpu_ms,
             }),
             (Err(e), _) => Err(e),

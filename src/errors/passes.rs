@@ -61,13 +61,13 @@ pub(crate) struct ErrorsGpu {
     commands: CommandPool,
 }
 
-/// Copy regions for every mip of a square R32F image, packed one after another from
-/// `offset` (mip 0 first, rows tightly packed): the block-error layout of the README.
+/// Copy regions for every mip of an R32F image, packed one after another from `offset`
+/// (mip 0 first, rows tightly packed): the block-error layout of the README.
 pub(crate) fn mip_copy_regions(image: &Image, offset: u64) -> Vec<vk::BufferImageCopy> {
     let mut at = offset;
     (0..image.mip_levels)
         .map(|mip| {
-            let side = (image.extent.width >> mip).max(1);
+            let (width, height) = ((image.extent.width >> mip).max(1), (image.extent.height >> mip).max(1));
             let region = vk::BufferImageCopy::default()
                 .buffer_offset(at)
                 .image_subresource(vk::ImageSubresourceLayers {
@@ -76,16 +76,16 @@ pub(crate) fn mip_copy_regions(image: &Image, offset: u64) -> Vec<vk::BufferImag
                     base_array_layer: 0,
                     layer_count: 1,
                 })
-                .image_extent(vk::Extent3D { width: side, height: side, depth: 1 });
-            at += side as u64 * side as u64 * 4;
+                .image_extent(vk::Extent3D { width, height, depth: 1 });
+            at += width as u64 * height as u64 * 4;
             region
         })
         .collect()
 }
 
-pub(crate) fn readback_bytes(root_lod: u32) -> u64 {
+pub(crate) fn readback_bytes(layout: &BlockLayout) -> u64 {
     // Header and trailer words hold the generation number (torn-read check).
-    (BlockErrors::packed_len(root_lod) * 4 + 8) as u64
+    (BlockErrors::packed_len(layout.root_lod(), layout.roots) * 4 + 8) as u64
 }
 
 impl ErrorsGpu {
@@ -143,13 +143,14 @@ impl ErrorsGpu {
         let upload_pool = CommandPool::new(device, device.draw_queue.family)?;
         crate::gpu::terrain::upload(device, &upload_pool, &dummy, &[&0f32.to_le_bytes()])?;
 
-        let gie_side = 1u32 << (n - 1);
+        // Mip i - 1 holds the groups of LOD i: roots << (n - i) along x and z.
+        let [gie_w, gie_h] = hf.cells(1).map(|c| c as u32);
         let mut slots = Vec::new();
         for s in 0..2 {
             let gie = Image::new(
                 device,
                 &format!("GIE pyramid {s}"),
-                vk::Extent2D { width: gie_side, height: gie_side },
+                vk::Extent2D { width: gie_w, height: gie_h },
                 GIE_FORMAT,
                 n,
                 usage_rt,
@@ -157,11 +158,11 @@ impl ErrorsGpu {
             )?;
             let gie_mips = (0..n).map(|m| gie.mip_view(m, 1)).collect::<VkResult<Vec<_>>>()?;
             let (tbe, tbe_mips) = if root > 0 {
-                let side = 1u32 << (root - 1);
+                let [w, h] = block_layout.blocks(1).map(|c| c as u32);
                 let img = Image::new(
                     device,
                     &format!("block errors {s}"),
-                    vk::Extent2D { width: side, height: side },
+                    vk::Extent2D { width: w, height: h },
                     GIE_FORMAT,
                     root,
                     vk::ImageUsageFlags::COLOR_ATTACHMENT | vk::ImageUsageFlags::TRANSFER_SRC,
@@ -246,7 +247,7 @@ impl ErrorsGpu {
         &self,
         cmd: vk::CommandBuffer,
         view: vk::ImageView,
-        side: u32,
+        [width, height]: [u32; 2],
         rows: std::ops::Range<u32>,
         (pipeline, pl): (&GraphicsPipeline, &PipelineLayout),
         set: vk::DescriptorSet,
@@ -255,7 +256,7 @@ impl ErrorsGpu {
         let d = &self.device.raw;
         let area = vk::Rect2D {
             offset: vk::Offset2D { x: 0, y: rows.start as i32 },
-            extent: vk::Extent2D { width: side, height: rows.end - rows.start },
+            extent: vk::Extent2D { width, height: rows.end - rows.start },
         };
         let att = [vk::RenderingAttachmentInfo::default()
             .image_view(view)
@@ -272,8 +273,8 @@ impl ErrorsGpu {
                 &[vk::Viewport {
                     x: 0.0,
                     y: 0.0,
-                    width: side as f32,
-                    height: side as f32,
+                    width: width as f32,
+                    height: height as f32,
                     min_depth: 0.0,
                     max_depth: 1.0,
                 }],
@@ -344,21 +345,21 @@ impl ErrorsGpu {
         let unorm = (self.hf.format == HeightFormat::Unorm16) as i32;
         let gie_pipeline = &self.gie_pipelines[(p.mode == crate::lod::gie::ErrorMode::Strict) as usize];
         // About equal fragment counts per submission; one pass may span several.
-        let total: u64 = (1..=n).map(|lod| 1u64 << (2 * (n - lod))).sum();
+        let total: u64 = (1..=n).map(|lod| self.hf.cells(lod).iter().product::<usize>() as u64).sum();
         let budget = total.div_ceil(CHUNKS as u64).max(1);
         let mut in_chunk = 0u64;
         for lod in 1..=n {
-            let side = 1u32 << (n - lod);
+            let [side, groups_z] = self.hf.cells(lod).map(|c| c as u32);
             let push = GiePush {
                 level: [lod as i32, n as i32, 0, unorm],
-                extent: [self.hf.width as i32, self.hf.height as i32, side as i32, 0],
+                extent: [self.hf.width as i32, self.hf.height as i32, side as i32, groups_z as i32],
                 camera: [p.camera.x, p.camera.y, p.camera.z, p.kappa],
                 params: [self.hf.spacing.x, self.hf.height_scale, p.near, self.hf.spacing.z],
             };
-            let band = ((budget / side as u64).max(1) as u32).min(side);
+            let band = ((budget / side as u64).max(1) as u32).min(groups_z);
             let mut row = 0;
-            while row < side {
-                let rows = row..(row + band).min(side);
+            while row < groups_z {
+                let rows = row..(row + band).min(groups_z);
                 let fragments = (rows.end - rows.start) as u64 * side as u64;
                 if in_chunk > 0 && in_chunk + fragments > budget && used < slot.cmds.len() {
                     // SAFETY: `cmd` is recording; the next buffer of this slot is idle
@@ -381,7 +382,7 @@ impl ErrorsGpu {
                 self.pass(
                     cmd,
                     slot.gie_mips[(lod - 1) as usize].handle,
-                    side,
+                    [side, groups_z],
                     rows.clone(),
                     (gie_pipeline, &self.gie_layout),
                     slot.gie_sets[(lod - 1) as usize],
@@ -392,16 +393,17 @@ impl ErrorsGpu {
             }
             self.barrier(cmd, &slot.gie, lod - 1, 1, (color, write, rt), (frag, read, ro));
         }
-        let data_bytes = BlockErrors::packed_len(root) as u64 * 4;
+        let data_bytes = BlockErrors::packed_len(root, self.layout.roots) as u64 * 4;
         if let Some(tbe) = &slot.tbe {
             self.barrier(cmd, tbe, 0, root, (copy | color, write, vk::ImageLayout::UNDEFINED), (color, write, rt));
             for j in 1..=root {
                 let push = ReducePush { level: [j as i32, j as i32 - 1, (self.layout.k() - 1) as i32, 0] };
+                let [w, h] = self.layout.blocks(j).map(|c| c as u32);
                 self.pass(
                     cmd,
                     slot.tbe_mips[(j - 1) as usize].handle,
-                    1u32 << (root - j),
-                    0..1u32 << (root - j),
+                    [w, h],
+                    0..h,
                     (&self.reduce_pipeline, &self.reduce_layout),
                     slot.reduce_set,
                     bytemuck::bytes_of(&push),
@@ -502,15 +504,17 @@ pub fn compute_once(
 ) -> VkResult<(GroupErrors, BlockErrors)> {
     let n = hf.n;
     let root = block_layout.root_lod();
+    let roots = hf.roots;
+    let cells: Vec<usize> = (1..=n).map(|i| hf.cells(i).iter().product()).collect();
     let gpu = ErrorsGpu::new(device, terrain, hf, block_layout)?;
     let readback = Buffer::new(
         device,
         "block-error readback",
-        readback_bytes(root),
+        readback_bytes(&block_layout),
         vk::BufferUsageFlags::TRANSFER_DST,
         gpu_allocator::MemoryLocation::GpuToCpu,
     )?;
-    let texels: u64 = (1..=n).map(|i| 1u64 << (2 * (n - i))).sum();
+    let texels: u64 = cells.iter().sum::<usize>() as u64;
     let dump = Buffer::new(
         device,
         "GIE dump",
@@ -534,13 +538,12 @@ pub fn compute_once(
     let data: Vec<f32> = bytemuck::pod_collect_to_vec(dump.mapped()?);
     let mut levels = Vec::new();
     let mut at = 0;
-    for lod in 1..=n {
-        let len = 1usize << (2 * (n - lod));
+    for len in cells {
         levels.push(data[at..at + len].to_vec());
         at += len;
     }
     let rb = readback.mapped()?;
-    let len = BlockErrors::packed_len(root);
+    let len = BlockErrors::packed_len(root, roots);
     let blocks: Vec<f32> = bytemuck::pod_collect_to_vec(&rb[4..4 + len * 4]);
-    Ok((GroupErrors { n, levels }, BlockErrors::from_packed(root, &blocks)))
+    Ok((GroupErrors { n, roots, levels }, BlockErrors::from_packed(root, roots, &blocks)))
 }

@@ -131,7 +131,8 @@ gpu_block! {
         /// detail tiling factor (DTF), base weight alpha, gradient-map scale, sea level
         /// (world height at or below which level ground is water).
         texturing: [f32; 4] => "vec4",
-        /// true extent in samples (x, z), grid side N, block side k.
+        /// true extent in samples (x, z), grid samples along x (the shaders take the
+        /// grid's size from the images), block side k.
         extent: [i32; 4] => "ivec4",
         /// heights are unorm16 (1) or float (0), unused x 3. Switches that select a
         /// shading path are specialization constants (`TerrainSpec`), not flags.

@@ -44,7 +44,7 @@ impl TerrainGpu {
         detail: Option<&Texture>,
     ) -> VkResult<Self> {
         let pool = CommandPool::new(device, device.draw_queue.family)?;
-        let side = hf.side() as u32;
+        let [gw, gh] = hf.grid().map(|v| v as u32);
         let (format, bytes): (vk::Format, Vec<u8>) = match hf.format {
             HeightFormat::Unorm16 => {
                 (vk::Format::R16_UNORM, hf.raw.iter().flat_map(|&v| (v as u16).to_le_bytes()).collect())
@@ -53,27 +53,21 @@ impl TerrainGpu {
         };
         let usage = vk::ImageUsageFlags::SAMPLED | vk::ImageUsageFlags::TRANSFER_DST;
         let extent = |w: u32, h: u32| vk::Extent2D { width: w, height: h };
-        let heights = Image::new(device, "heightfield", extent(side, side), format, 1, usage, true)?;
+        let heights = Image::new(device, "heightfield", extent(gw, gh), format, 1, usage, true)?;
         upload(device, &pool, &heights, &[&bytes])?;
 
         let mips: Vec<Vec<u8>> = mm.levels.iter().map(|l| bytemuck::cast_slice(l).to_vec()).collect();
         let mip_refs: Vec<&[u8]> = mips.iter().map(|m| m.as_slice()).collect();
-        let mm_side = 1u32 << (hf.n - 1);
-        let minmax = Image::new(
-            device,
-            "min/max pyramid",
-            extent(mm_side, mm_side),
-            vk::Format::R32G32_SFLOAT,
-            hf.n,
-            usage,
-            true,
-        )?;
+        // Mip l - 1 holds level l: roots << (n - l) cells along x and z.
+        let [mm_w, mm_h] = hf.cells(1).map(|c| c as u32);
+        let minmax =
+            Image::new(device, "min/max pyramid", extent(mm_w, mm_h), vk::Format::R32G32_SFLOAT, hf.n, usage, true)?;
         upload(device, &pool, &minmax, &mip_refs)?;
         let dev_mips: Vec<&[u8]> = mm.dev.iter().map(|l| bytemuck::cast_slice(l)).collect();
         let deviation = Image::new(
             device,
             "group deviation pyramid",
-            extent(mm_side, mm_side),
+            extent(mm_w, mm_h),
             vk::Format::R32_SFLOAT,
             hf.n,
             usage,
@@ -83,7 +77,7 @@ impl TerrainGpu {
 
         let sea_level = hf.sea_level(mm.range());
         let (grads, gradient_scale) = hf.gradient_map(sea_level);
-        let gradients = Image::new(device, "gradient map", extent(side, side), vk::Format::R32_UINT, 1, usage, false)?;
+        let gradients = Image::new(device, "gradient map", extent(gw, gh), vk::Format::R32_UINT, 1, usage, false)?;
         upload(device, &pool, &gradients, &[bytemuck::cast_slice(&grads)])?;
 
         let white = Texture { width: 1, height: 1, rgba: vec![255; 4] };

@@ -22,8 +22,8 @@ pub struct AuditResult {
 
 /// Index of the drawn block over each finest-grid cell.
 fn block_index_map(layout: &BlockLayout, blocks: &[DrawBlock]) -> Vec<u32> {
-    let cells = layout.cells();
-    let mut map = vec![u32::MAX; cells * cells];
+    let [cells, rows] = layout.cells();
+    let mut map = vec![u32::MAX; cells * rows];
     for (i, b) in blocks.iter().enumerate() {
         let span = 1usize << b.lod;
         let (cx, cz) = (b.bx as usize * span, b.bz as usize * span);
@@ -74,7 +74,7 @@ pub fn audit(hf: &Heightfield, layout: &BlockLayout, traversal: &Traversal, cam:
     let frustum = cam.frustum();
     let vp = cam.view_proj();
     let map = block_index_map(layout, &traversal.blocks);
-    let cells = layout.cells() as i64;
+    let [cells, rows] = layout.cells().map(|c| c as i64);
     let m = layout.m;
     let mut r = AuditResult::default();
     for z in 0..hf.height as i64 {
@@ -90,7 +90,7 @@ pub fn audit(hf: &Heightfield, layout: &BlockLayout, traversal: &Traversal, cam:
             let mut idx = u32::MAX;
             'find: for cz in [z >> m, (z - 1).max(0) >> m] {
                 for cx in [x >> m, (x - 1).max(0) >> m] {
-                    let (cx, cz) = (cx.min(cells - 1), cz.min(cells - 1));
+                    let (cx, cz) = (cx.min(cells - 1), cz.min(rows - 1));
                     idx = map[(cz * cells + cx) as usize];
                     if idx != u32::MAX {
                         break 'find;
@@ -162,8 +162,8 @@ pub fn check_tiling(
     blocks: &[DrawBlock],
     cam: &Camera,
 ) -> Result<(), String> {
-    let cells = layout.cells();
-    let mut count = vec![0u8; cells * cells];
+    let [cells, rows] = layout.cells();
+    let mut count = vec![0u8; cells * rows];
     for b in blocks {
         let span = 1usize << b.lod;
         for z in b.bz as usize * span..(b.bz as usize + 1) * span {
@@ -176,7 +176,7 @@ pub fn check_tiling(
         }
     }
     let frustum = cam.frustum();
-    for z in 0..cells {
+    for z in 0..rows {
         for x in 0..cells {
             if count[z * cells + x] == 0 && cell_visible(hf, mm, layout, &frustum, x as u32, z as u32) {
                 return Err(format!("visible cell ({x}, {z}) is not covered"));

@@ -8,25 +8,31 @@ use crate::lod::pyramid::MinMaxPyramid;
 use glam::Vec3;
 
 /// Block geometry: `k = 2^m + 1` vertices a side; a block of LOD `j` covers `2^(m+j)`
-/// samples; the root is at LOD `n - m`.
+/// samples; each of the heightfield's roots is one block at LOD `n - m`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct BlockLayout {
     pub n: u32,
     pub m: u32,
+    /// Roots along x and z (the heightfield's).
+    pub roots: [usize; 2],
 }
 
 impl BlockLayout {
-    /// `k` must be `2^m + 1` with `m >= 1`; a block larger than the terrain is shrunk to
-    /// the terrain.
-    pub fn new(n: u32, k: u32) -> Result<Self, String> {
+    /// The `m` of a block side `k`: `k` must be `2^m + 1` with `m >= 1`, at most 257.
+    pub fn check(k: u32) -> Result<u32, String> {
         if k < 3 || !(k - 1).is_power_of_two() {
             return Err(format!("--block {k}: the block side must be 2^m + 1 (3, 5, 9, 17, 33, 65, ...)"));
         }
         if k > 257 {
             return Err(format!("--block {k}: at most 257 (vertex coordinates are 8-bit)"));
         }
-        let m = (k - 1).trailing_zeros().min(n);
-        Ok(BlockLayout { n, m })
+        Ok((k - 1).trailing_zeros())
+    }
+
+    /// The layout of blocks of side `k` over `hf`; a block larger than a root is shrunk
+    /// to the root.
+    pub fn of(hf: &Heightfield, k: u32) -> Result<Self, String> {
+        Ok(BlockLayout { n: hf.n, m: Self::check(k)?.min(hf.n), roots: hf.roots })
     }
     pub fn k(&self) -> u32 {
         (1 << self.m) + 1
@@ -38,9 +44,14 @@ impl BlockLayout {
     pub fn block_samples(&self, lod: u32) -> u32 {
         1 << (self.m + lod)
     }
-    /// Cells of the finest block grid a side (`2^(n-m)`).
-    pub fn cells(&self) -> usize {
-        1 << self.root_lod()
+    /// Cells of the finest block grid (LOD 0 blocks) along x and z: `roots << (n - m)`.
+    pub fn cells(&self) -> [usize; 2] {
+        [self.roots[0] << self.root_lod(), self.roots[1] << self.root_lod()]
+    }
+
+    /// Blocks of LOD `lod` along x and z.
+    pub fn blocks(&self, lod: u32) -> [usize; 2] {
+        [self.roots[0] << (self.root_lod() - lod), self.roots[1] << (self.root_lod() - lod)]
     }
     /// Triangles in one block.
     pub fn triangles_per_block(&self) -> u64 {
@@ -169,8 +180,8 @@ pub fn block_aabb(
 
 /// LOD of the drawn block over each finest-grid cell (-1: nothing drawn there).
 pub fn lod_map(layout: &BlockLayout, blocks: &[DrawBlock]) -> Vec<i8> {
-    let cells = layout.cells();
-    let mut map = vec![-1i8; cells * cells];
+    let [cells, rows] = layout.cells();
+    let mut map = vec![-1i8; cells * rows];
     for b in blocks {
         let span = 1usize << b.lod;
         let (cx, cz) = (b.bx as usize * span, b.bz as usize * span);

@@ -21,20 +21,20 @@ fn quad_surface(ra: f32, rc: f32, rg: f32, ri: f32, inv_s: f32, lx: i64, lz: i64
 }
 
 /// `D_l` (raw height units) for every level `l = 1..=n`: `levels[l-1]` is row-major with
-/// `2^(n-l)` groups a side. Groups wholly outside the true extent are 0 (never drawn).
+/// `hf.cells(l)` groups along x and z. Groups wholly outside the true extent are 0 (never drawn).
 pub fn exact_deviation(hf: &Heightfield) -> Vec<Vec<f32>> {
     (1..=hf.n).map(|l| level_deviation(hf, l)).collect()
 }
 
 fn level_deviation(hf: &Heightfield, l: u32) -> Vec<f32> {
-    let side = 1usize << (hf.n - l);
-    let mut level = vec![0.0f32; side * side];
-    let threads = std::thread::available_parallelism().map_or(1, |t| t.get()).min(side);
-    let rows_per = side.div_ceil(threads);
+    let [cx, cz] = hf.cells(l);
+    let mut level = vec![0.0f32; cx * cz];
+    let threads = std::thread::available_parallelism().map_or(1, |t| t.get()).min(cz);
+    let rows_per = cz.div_ceil(threads);
     std::thread::scope(|scope| {
-        for (t, chunk) in level.chunks_mut(rows_per * side).enumerate() {
+        for (t, chunk) in level.chunks_mut(rows_per * cx).enumerate() {
             scope.spawn(move || {
-                for (r, row) in chunk.chunks_mut(side).enumerate() {
+                for (r, row) in chunk.chunks_mut(cx).enumerate() {
                     let b = t * rows_per + r;
                     for (a, out) in row.iter_mut().enumerate() {
                         *out = group_deviation(hf, l, a, b);
@@ -58,7 +58,7 @@ fn group_deviation(hf: &Heightfield, l: u32, a: usize, b: usize) -> f32 {
     let rg = hf.raw_at(cx, cz + s);
     let ri = hf.raw_at(cx + s, cz + s);
     let inv_s = 1.0 / s as f32;
-    let side = hf.side();
+    let side = hf.grid()[0];
     let mut m = 0.0f32;
     for lz in 0..=s {
         // Rows of the grid are contiguous: index them directly (the group lies inside).
@@ -111,11 +111,11 @@ mod tests {
         let hf = field(33, |x, z| ((x * 7 + z * 13) % 11) as f32 + ((x as f32) * 0.3).sin() * 4.0);
         let d = exact_deviation(&hf);
         for l in 1..=hf.n {
-            let side = 1usize << (hf.n - l);
-            for b in 0..side {
-                for a in 0..side {
+            let [cx, cz] = hf.cells(l);
+            for b in 0..cz {
+                for a in 0..cx {
                     let want = naive(&hf, l, a, b);
-                    let got = d[(l - 1) as usize][b * side + a] as f64;
+                    let got = d[(l - 1) as usize][b * cx + a] as f64;
                     assert!((got - want).abs() <= 1e-4 * want.max(1.0), "level {l} group ({a},{b}): {got} vs {want}");
                 }
             }
@@ -137,7 +137,7 @@ mod tests {
         let hf = field(17, |x, z| if (x, z) == (5, 9) { 8.0 } else { 0.0 });
         let d = exact_deviation(&hf);
         for l in 1..=hf.n {
-            let side = 1usize << (hf.n - l);
+            let side = hf.cells(l)[0];
             let (a, b) = (5 >> l, 9 >> l);
             assert_eq!(d[(l - 1) as usize][b * side + a], 8.0, "level {l}");
         }

@@ -59,19 +59,21 @@ pub enum WorldPart {
 }
 
 /// `GIE_i` for every group of every LOD `i = 1..=n`: `levels[i-1]` is row-major with
-/// `2^(n-i)` groups a side; group `(a, b)` is the cell `[2^i a, 2^i (a+1)]^2`.
+/// `roots << (n-i)` groups along x and z; group `(a, b)` is the cell `[2^i a, 2^i (a+1)]^2`.
 #[derive(Clone, Debug)]
 pub struct GroupErrors {
     pub n: u32,
+    pub roots: [usize; 2],
     pub levels: Vec<Vec<f32>>,
 }
 
 impl GroupErrors {
-    pub fn side(&self, lod: u32) -> usize {
-        1usize << (self.n - lod)
+    /// Groups of LOD `lod` along x and z.
+    pub fn groups(&self, lod: u32) -> [usize; 2] {
+        [self.roots[0] << (self.n - lod), self.roots[1] << (self.n - lod)]
     }
     pub fn get(&self, lod: u32, a: usize, b: usize) -> f32 {
-        self.levels[(lod - 1) as usize][b * self.side(lod) + a]
+        self.levels[(lod - 1) as usize][b * self.groups(lod)[0] + a]
     }
 }
 
@@ -92,12 +94,12 @@ pub fn group_errors_with(hf: &Heightfield, mm: &MinMaxPyramid, p: &ErrorParams, 
     // Nested world deviations (raw units) of the previous LOD, for the mutation variants.
     let mut nested_prev: Vec<f32> = Vec::new();
     for lod in 1..=n {
-        let side = 1usize << (n - lod);
+        let [side, rows] = hf.cells(lod);
         let size = 1i64 << lod;
         let h = size >> 1;
-        let mut level = vec![0.0f32; side * side];
-        let mut nested = vec![0.0f32; if world == WorldPart::Exact { 0 } else { side * side }];
-        for b in 0..side {
+        let mut level = vec![0.0f32; side * rows];
+        let mut nested = vec![0.0f32; if world == WorldPart::Exact { 0 } else { side * rows }];
+        for b in 0..rows {
             for a in 0..side {
                 let cx = a as i64 * size;
                 let cz = b as i64 * size;
@@ -157,50 +159,53 @@ pub fn group_errors_with(hf: &Heightfield, mm: &MinMaxPyramid, p: &ErrorParams, 
         levels.push(level);
         nested_prev = nested;
     }
-    GroupErrors { n, levels }
+    GroupErrors { n, roots: hf.roots, levels }
 }
 
 /// One error per drawable block (`TBE`), for block LODs `j = 1..=root_lod`:
-/// `levels[j-1]` is row-major with `2^(root_lod - j)` blocks a side. Blocks of LOD 0 have
-/// no error. The packed form (LOD 1 first, then 2, ...) is what the GPU reads back.
+/// `levels[j-1]` is row-major with `roots << (root_lod - j)` blocks along x and z. Blocks
+/// of LOD 0 have no error. The packed form (LOD 1 first, then 2, ...) is what the GPU
+/// reads back.
 #[derive(Clone, Debug, PartialEq)]
 pub struct BlockErrors {
     pub root_lod: u32,
+    pub roots: [usize; 2],
     pub levels: Vec<Vec<f32>>,
 }
 
 impl BlockErrors {
-    pub fn side(&self, lod: u32) -> usize {
-        1usize << (self.root_lod - lod)
+    /// Blocks of LOD `lod` along x and z.
+    pub fn blocks(&self, lod: u32) -> [usize; 2] {
+        [self.roots[0] << (self.root_lod - lod), self.roots[1] << (self.root_lod - lod)]
     }
 
     pub fn get(&self, lod: u32, bx: usize, bz: usize) -> f32 {
-        self.levels[(lod - 1) as usize][bz * self.side(lod) + bx]
+        self.levels[(lod - 1) as usize][bz * self.blocks(lod)[0] + bx]
     }
 
     /// Floats in the packed form.
-    pub fn packed_len(root_lod: u32) -> usize {
-        (1..=root_lod).map(|j| 1usize << (2 * (root_lod - j))).sum()
+    pub fn packed_len(root_lod: u32, roots: [usize; 2]) -> usize {
+        (1..=root_lod).map(|j| (roots[0] * roots[1]) << (2 * (root_lod - j))).sum()
     }
 
-    pub fn from_packed(root_lod: u32, data: &[f32]) -> Self {
+    pub fn from_packed(root_lod: u32, roots: [usize; 2], data: &[f32]) -> Self {
         let mut levels = Vec::with_capacity(root_lod as usize);
         let mut at = 0;
         for j in 1..=root_lod {
-            let len = 1usize << (2 * (root_lod - j));
+            let len = (roots[0] * roots[1]) << (2 * (root_lod - j));
             levels.push(data[at..at + len].to_vec());
             at += len;
         }
-        BlockErrors { root_lod, levels }
+        BlockErrors { root_lod, roots, levels }
     }
 
     pub fn packed(&self) -> Vec<f32> {
         self.levels.concat()
     }
 
-    /// The error of the root block, or 0 when the root is at LOD 0.
+    /// The largest error of a root block, or 0 when the roots are at LOD 0.
     pub fn root_error(&self) -> f32 {
-        self.levels.last().map_or(0.0, |l| l[0])
+        self.levels.last().map_or(0.0, |l| l.iter().cloned().fold(0.0, f32::max))
     }
 }
 
@@ -210,9 +215,9 @@ pub fn block_errors(g: &GroupErrors, block_m: u32) -> BlockErrors {
     let groups = 1usize << block_m;
     let mut levels = Vec::with_capacity(root_lod as usize);
     for j in 1..=root_lod {
-        let side = 1usize << (root_lod - j);
-        let mut level = vec![0.0f32; side * side];
-        for bz in 0..side {
+        let [side, rows] = [g.roots[0] << (root_lod - j), g.roots[1] << (root_lod - j)];
+        let mut level = vec![0.0f32; side * rows];
+        for bz in 0..rows {
             for bx in 0..side {
                 let mut m = 0.0f32;
                 for gz in 0..groups {
@@ -225,13 +230,14 @@ pub fn block_errors(g: &GroupErrors, block_m: u32) -> BlockErrors {
         }
         levels.push(level);
     }
-    BlockErrors { root_lod, levels }
+    BlockErrors { root_lod, roots: g.roots, levels }
 }
 
 /// Fragments one GPU update shades: one per group of LOD 1..=n, plus one per block.
-pub fn fragments_per_update(n: u32, block_m: u32) -> u64 {
-    let groups: u64 = (1..=n).map(|i| 1u64 << (2 * (n - i))).sum();
-    groups + BlockErrors::packed_len(n - block_m) as u64
+pub fn fragments_per_update(n: u32, block_m: u32, roots: [usize; 2]) -> u64 {
+    let r = (roots[0] * roots[1]) as u64;
+    let groups: u64 = (1..=n).map(|i| r << (2 * (n - i))).sum();
+    groups + BlockErrors::packed_len(n - block_m, roots) as u64
 }
 
 #[cfg(test)]
@@ -317,12 +323,14 @@ mod tests {
         let g = group_errors(&h, &MinMaxPyramid::build(&h), &params(ErrorMode::Strict));
         let b = block_errors(&g, 2); // k = 5, root LOD 2
         assert_eq!(b.levels.len(), 2);
-        assert_eq!(b.side(1), 2);
+        assert_eq!(b.blocks(1), [2, 2]);
         assert_eq!(b.get(2, 0, 0), g.levels[1].iter().cloned().fold(0.0, f32::max));
         let packed = b.packed();
-        assert_eq!(packed.len(), BlockErrors::packed_len(2));
-        assert_eq!(BlockErrors::from_packed(2, &packed), b);
-        assert_eq!(BlockErrors::packed_len(7), 5461); // n = 12, k = 33: 21,844 bytes
-        assert_eq!(fragments_per_update(2, 1), 4 + 1 + 1);
+        assert_eq!(packed.len(), BlockErrors::packed_len(2, [1, 1]));
+        assert_eq!(BlockErrors::from_packed(2, [1, 1], &packed), b);
+        assert_eq!(BlockErrors::packed_len(7, [1, 1]), 5461); // n = 12, k = 33: 21,844 bytes
+        assert_eq!(BlockErrors::packed_len(6, [2, 1]), 2 * 1365); // 4097 x 2049, k = 33
+        assert_eq!(fragments_per_update(2, 1, [1, 1]), 4 + 1 + 1);
+        assert_eq!(fragments_per_update(2, 1, [3, 2]), 6 * (4 + 1 + 1));
     }
 }

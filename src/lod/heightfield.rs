@@ -35,6 +35,32 @@ pub fn grid_side(samples: usize) -> usize {
     (1usize << n) + 1
 }
 
+/// The most square roots a grid is made of (SPEC section 1): more would save little
+/// memory and cost the coarsest views one block per root.
+pub const MAX_ROOTS: usize = 16;
+
+/// How a `width x height` input is covered (SPEC section 1): `n` and the roots (columns,
+/// rows) of a grid of `2^n + 1` squares sharing their border samples, the one that takes
+/// the fewest samples with at most [`MAX_ROOTS`] roots (the larger `n` on a tie). A
+/// 4097 x 2049 input is two 2049^2 roots side by side (4097 x 2049 samples, not 4097^2);
+/// 1201 x 1201 is 3 x 3 roots of 513 (1537^2, not 2049^2).
+pub fn grid_cover(width: usize, height: usize) -> (u32, [usize; 2]) {
+    let top = (grid_side(width.max(height)) - 1).trailing_zeros();
+    let mut best = (top, [1, 1], usize::MAX);
+    for n in (1..=top).rev() {
+        let r = 1usize << n;
+        let roots = [(width - 1).div_ceil(r).max(1), (height - 1).div_ceil(r).max(1)];
+        if roots[0] * roots[1] > MAX_ROOTS {
+            break;
+        }
+        let area = (roots[0] * r + 1) * (roots[1] * r + 1);
+        if area < best.2 {
+            best = (n, roots, area);
+        }
+    }
+    (best.0, best.1)
+}
+
 /// How heights are stored on the GPU.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum HeightFormat {
@@ -103,12 +129,16 @@ pub struct Georef {
     pub absolute_heights: bool,
 }
 
-/// A heightfield embedded in a square grid of side `2^n + 1`.
+/// A heightfield embedded in a grid of `roots[0] x roots[1]` squares of side `2^n + 1`
+/// sharing their border samples ([`grid_cover`]).
 #[derive(Clone, Debug)]
 pub struct Heightfield {
-    /// `n` of the grid side `2^n + 1`.
+    /// `n` of the roots' side `2^n + 1`.
     pub n: u32,
-    /// Raw samples (the file's units), row-major: index `z * side + x`.
+    /// Roots along x and z.
+    pub roots: [usize; 2],
+    /// Raw samples (the file's units), row-major over the grid ([`Self::grid`]): index
+    /// `z * grid[0] + x`.
     pub raw: Vec<f32>,
     /// True extent in samples (columns, rows); the rest is the clamped margin.
     pub width: usize,
@@ -172,17 +202,18 @@ impl Heightfield {
                 format!("sample at column {}, row {} is not a finite number", i % width, i / width),
             ));
         }
-        let side = grid_side(width.max(height));
-        let n = (side - 1).trailing_zeros();
-        let mut raw = vec![0.0f32; side * side];
-        for z in 0..side {
+        let (n, roots) = grid_cover(width, height);
+        let [gw, gh] = [roots[0] * (1 << n) + 1, roots[1] * (1 << n) + 1];
+        let mut raw = vec![0.0f32; gw * gh];
+        for z in 0..gh {
             let sz = z.min(height - 1);
-            for x in 0..side {
-                raw[z * side + x] = samples[sz * width + x.min(width - 1)];
+            for x in 0..gw {
+                raw[z * gw + x] = samples[sz * width + x.min(width - 1)];
             }
         }
         Ok(Heightfield {
             n,
+            roots,
             raw,
             width,
             height,
@@ -196,18 +227,23 @@ impl Heightfield {
         })
     }
 
-    /// Grid side `2^n + 1`.
-    pub fn side(&self) -> usize {
-        (1usize << self.n) + 1
+    /// Samples of the grid along x and z: `roots * 2^n + 1`.
+    pub fn grid(&self) -> [usize; 2] {
+        [self.roots[0] * (1 << self.n) + 1, self.roots[1] * (1 << self.n) + 1]
+    }
+
+    /// Cells of level `l` (`2^l` samples a side) along x and z.
+    pub fn cells(&self, l: u32) -> [usize; 2] {
+        [self.roots[0] << (self.n - l), self.roots[1] << (self.n - l)]
     }
 
     /// Raw sample at integer coordinates (clamped to the grid).
     #[inline]
     pub fn raw_at(&self, x: i64, z: i64) -> f32 {
-        let s = self.side() as i64;
-        let x = x.clamp(0, s - 1) as usize;
-        let z = z.clamp(0, s - 1) as usize;
-        self.raw[z * self.side() + x]
+        let [gw, gh] = self.grid();
+        let x = x.clamp(0, gw as i64 - 1) as usize;
+        let z = z.clamp(0, gh as i64 - 1) as usize;
+        self.raw[z * gw + x]
     }
 
     /// World position of sample `(x, z)` with raw height `raw` (SPEC section 1), in the
@@ -236,11 +272,11 @@ impl Heightfield {
     /// Height of the full-resolution surface the renderer draws at world `(wx, wz)`:
     /// each quad is split along the diagonal from `(x, z)` to `(x+1, z+1)`.
     pub fn surface_height(&self, wx: f32, wz: f32) -> f32 {
-        let max = (self.side() - 1) as f32;
-        let px = (wx / self.spacing.x).clamp(0.0, max);
-        let pz = (wz / self.spacing.z).clamp(0.0, max);
-        let x0 = (px.floor() as i64).min(self.side() as i64 - 2);
-        let z0 = (pz.floor() as i64).min(self.side() as i64 - 2);
+        let [gw, gh] = self.grid();
+        let px = (wx / self.spacing.x).clamp(0.0, (gw - 1) as f32);
+        let pz = (wz / self.spacing.z).clamp(0.0, (gh - 1) as f32);
+        let x0 = (px.floor() as i64).min(gw as i64 - 2);
+        let z0 = (pz.floor() as i64).min(gh as i64 - 2);
         let fx = px - x0 as f32;
         let fz = pz - z0 as f32;
         let h00 = self.height_at(x0, z0);
@@ -287,12 +323,12 @@ impl Heightfield {
     /// in x, whether it is a hole ([`Self::is_hole`]). The gradients are then rounded to
     /// even units, one unit in 32767 at most.
     pub fn gradient_map(&self, sea_level: f32) -> (Vec<[i16; 2]>, f32) {
-        let side = self.side() as i64;
-        let h = |x: i64, z: i64| self.height_at(x.clamp(0, side - 1), z.clamp(0, side - 1));
+        let [gw, gh] = self.grid().map(|v| v as i64);
+        let h = |x: i64, z: i64| self.height_at(x, z);
         let (inv_x, inv_z) = (1.0 / (2.0 * self.spacing.x), 1.0 / (2.0 * self.spacing.z));
-        let grads: Vec<[f32; 2]> = (0..side * side)
+        let grads: Vec<[f32; 2]> = (0..gw * gh)
             .map(|i| {
-                let (x, z) = (i % side, i / side);
+                let (x, z) = (i % gw, i / gw);
                 [(h(x + 1, z) - h(x - 1, z)) * inv_x, (h(x, z + 1) - h(x, z - 1)) * inv_z]
             })
             .collect();
@@ -306,7 +342,7 @@ impl Heightfield {
         };
         let texels = (grads.iter().enumerate())
             .map(|(i, g)| {
-                let (x, z) = (i as i64 % side, i as i64 / side);
+                let (x, z) = (i as i64 % gw, i as i64 / gw);
                 [flagged(g[0], self.is_hole(x, z)), flagged(g[1], self.height_at(x, z) <= sea_level)]
             })
             .collect();
@@ -319,7 +355,7 @@ impl Heightfield {
             HeightFormat::Unorm16 => 2,
             HeightFormat::Float32 => 4,
         };
-        self.side() * self.side() * texel
+        self.raw.len() * texel
     }
 }
 
@@ -336,16 +372,25 @@ mod tests {
     use super::*;
 
     #[test]
-    fn embeds_in_smallest_grid_with_clamped_margin() {
+    fn embeds_in_the_smallest_grid_of_roots_with_clamped_margin() {
         let hf = field(5, 3, |x, z| (x + 10 * z) as f32);
-        assert_eq!(hf.side(), 5);
+        assert_eq!((hf.n, hf.roots, hf.grid()), (1, [2, 1], [5, 3]));
         assert_eq!((hf.width, hf.height), (5, 3));
         assert_eq!(hf.raw_at(4, 4), hf.raw_at(4, 2));
         let hf = field(6, 3, |x, _| x as f32);
-        assert_eq!(hf.side(), 9);
-        assert_eq!(hf.raw_at(8, 0), 5.0);
+        assert_eq!(hf.grid(), [7, 3]);
+        assert_eq!(hf.raw_at(6, 0), 5.0);
+        // The real data's shapes: memory follows the input's own size.
+        assert_eq!(grid_cover(4097, 2049), (11, [2, 1]));
+        assert_eq!(grid_cover(1201, 1201), (9, [3, 3]));
+        assert_eq!(grid_cover(1025, 1025), (10, [1, 1]));
+        assert_eq!(grid_cover(4096, 4096), (12, [1, 1]));
+        assert_eq!(grid_cover(257, 257), (8, [1, 1]));
+        // A long strip: as many roots as allowed, the grid no wider than it must be.
+        let (n, roots) = grid_cover(20000, 2);
+        assert!(roots[0] * roots[1] <= MAX_ROOTS && roots[0] << n >= 19999, "{n} {roots:?}");
         let hf = field(1201, 1201, |_, _| 0.0);
-        assert_eq!(hf.side(), 2049);
+        assert_eq!(hf.grid(), [1537, 1537]);
     }
 
     #[test]
@@ -369,7 +414,7 @@ mod tests {
             field(9, 9, |x, z| if (3..=5).contains(&z) { 0.0 } else { (4.0 - (x as f32 - 4.0).abs()) * 100.0 + 50.0 });
         let sea = hf.sea_level([0.0, 450.0]);
         let (texels, scale) = hf.gradient_map(sea);
-        let side = hf.side();
+        let side = hf.grid()[0];
         let mut seen = [0; 2];
         for (i, t) in texels.iter().enumerate() {
             let (x, z) = ((i % side) as i64, (i / side) as i64);

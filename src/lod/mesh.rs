@@ -65,7 +65,7 @@ mod tests {
     #[test]
     fn one_block_is_the_field() {
         let hf = test_field(9, 9, |x, z| (x * 10 + z) as f32);
-        let layout = BlockLayout::new(hf.n, 9).unwrap();
+        let layout = BlockLayout::of(&hf, 9).unwrap();
         let b = DrawBlock::new(0, 0, 0);
         let m = drawn_mesh(&hf, &layout, &[b]);
         assert_eq!((m.positions.len(), m.triangles(), m.beyond_extent), (81, 128, 0));

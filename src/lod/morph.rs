@@ -233,8 +233,8 @@ fn interior_groups(mm: &MinMaxPyramid, layout: &BlockLayout, b: &DrawBlock) -> [
     let per_side = (layout.k() as usize - 1) / 2;
     let (ox, oz) = b.origin(layout);
     let (ga, gb) = (ox as usize / gs, oz as usize / gs);
-    let side = mm.cells(b.lod + 1);
-    [ga, gb, (ga + per_side).min(side), (gb + per_side).min(side)]
+    let [cells, rows] = mm.cells(b.lod + 1);
+    [ga, gb, (ga + per_side).min(cells), (gb + per_side).min(rows)]
 }
 
 impl InteriorTiles {
@@ -530,7 +530,7 @@ impl EdgeVars {
         let n = t.blocks.len();
         let index: HashMap<(u32, u32, u32), usize> =
             t.blocks.iter().enumerate().map(|(i, b)| ((b.lod, b.bx, b.bz), i)).collect();
-        let cells = layout.cells() as i64;
+        let [cells, rows] = layout.cells().map(|c| c as i64);
         let mut var = vec![[None; 4]; n];
         let mut start: Vec<Vec<usize>> = Vec::new();
         let mut new_var = |from: Vec<usize>| {
@@ -546,7 +546,7 @@ impl EdgeVars {
             }
             let span = 1i64 << b.lod;
             for (s, (nx, nz)) in b.cells_across().into_iter().enumerate() {
-                if nx < 0 || nz < 0 || nx >= cells || nz >= cells {
+                if nx < 0 || nz < 0 || nx >= cells || nz >= rows {
                     var[i][s] = new_var(vec![i]);
                     continue;
                 }
@@ -665,7 +665,7 @@ mod tests {
         let mut compared = 0;
         let mut differ_from_block_box = 0;
         for k in [17, 33] {
-            let layout = BlockLayout::new(hf.n, k).unwrap();
+            let layout = BlockLayout::of(&hf, k).unwrap();
             let cams = [
                 Vec3::new(201.0, 40.0, 38.0),
                 Vec3::new(10.0, 600.0, 250.0),
@@ -675,9 +675,9 @@ mod tests {
             for p in cams {
                 let cam = Camera::look_at(p, Vec3::new(128.0, 0.0, 128.0), 60.0, 640, 480, 0.05);
                 for lod in 0..3.min(layout.root_lod()) {
-                    let n = layout.cells() >> lod;
-                    for bz in 0..n as u32 {
-                        for bx in 0..n as u32 {
+                    let [nx, nz] = layout.blocks(lod);
+                    for bz in 0..nz as u32 {
+                        for bx in 0..nx as u32 {
                             let b = DrawBlock::new(lod, bx, bz);
                             let want = interior_all_groups(&hf, &mm, &layout, &cam, &b, 1.5);
                             assert_eq!(

@@ -426,7 +426,7 @@ mod tests {
     #[test]
     fn no_coarser_neighbour_costs_nothing() {
         let hf = field(33, |x, z| ((x * 5 + z * 3) % 7) as f32);
-        let layout = BlockLayout::new(hf.n, 9).unwrap();
+        let layout = BlockLayout::of(&hf, 9).unwrap();
         let b = DrawBlock::new(0, 1, 1);
         assert_eq!(cache_free(&hf, &layout, &b).max(), 0.0);
     }
@@ -445,7 +445,7 @@ mod tests {
                 0.0
             }
         });
-        let layout = BlockLayout::new(hf.n, 9).unwrap();
+        let layout = BlockLayout::of(&hf, 9).unwrap();
         // LOD-0 block (0, 1) spans z = 8..16; its north neighbour is coarser (stride 2).
         let b = DrawBlock { coarser: [2, 0, 0, 0], ..DrawBlock::new(0, 0, 1) };
         let d = strip_deviation(&hf, &layout, &b, coarser_sides(&b));
@@ -501,7 +501,7 @@ mod tests {
     #[test]
     fn edge_regions_equal_the_state_by_state_measure() {
         let hf = field(65, |x, z| ((x * 7919 + z * 104_729) % 61) as f32 + (x as f32 * 0.3).sin() * 20.0);
-        let layout = BlockLayout::new(hf.n, 9).unwrap();
+        let layout = BlockLayout::of(&hf, 9).unwrap();
         for coarser in [[0, 0, 0, 0], [4, 0, 0, 8], [0, 4, 8, 0]] {
             let b = DrawBlock { coarser, ..DrawBlock::new(1, 1, 1) };
             for fixed in 0..16u8 {

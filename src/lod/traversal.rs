@@ -85,7 +85,7 @@ fn select_blocks(
             _ => None,
         };
         let before = forced.len();
-        let cells = layout.cells() as i64;
+        let [cells, rows] = layout.cells().map(|c| c as i64);
         for b in &out.blocks {
             if b.coarser == [0; 4] {
                 continue;
@@ -116,7 +116,7 @@ fn select_blocks(
                 if !(t_junction || over) {
                     continue;
                 }
-                if nx >= 0 && nz >= 0 && nx < cells && nz < cells {
+                if nx >= 0 && nz >= 0 && nx < cells && nz < rows {
                     let lod = out.lod_map[(nz * cells + nx) as usize];
                     if lod > 0 {
                         forced.insert((lod as u32, (nx >> lod) as u32, (nz >> lod) as u32));
@@ -141,7 +141,10 @@ fn traverse_once(
     let frustum = cam.frustum();
     let mut out = Traversal::default();
     // Blocks still to visit, with their parent's selection error.
-    let mut stack = vec![(layout.root_lod(), 0u32, 0u32, f32::INFINITY)];
+    // Every root, the last first (the stack pops in reverse).
+    let [rx, rz] = layout.roots.map(|r| r as u32);
+    let mut stack: Vec<(u32, u32, u32, f32)> =
+        (0..rz).flat_map(|bz| (0..rx).map(move |bx| (layout.root_lod(), bx, bz, f32::INFINITY))).rev().collect();
     while let Some((lod, bx, bz, parent_err)) = stack.pop() {
         let (ox, oz) = (bx * layout.block_samples(lod), bz * layout.block_samples(lod));
         if ox as usize >= hf.width - 1 || oz as usize >= hf.height - 1 {
@@ -222,9 +225,9 @@ pub fn stale_corrected(err: f32, old: Vec3, now: Vec3, min: Vec3, max: Vec3) -> 
     }
 }
 fn assign_neighbours(layout: &BlockLayout, blocks: &mut [DrawBlock], map: &[i8]) {
-    let cells = layout.cells() as i64;
+    let [cells, rows] = layout.cells().map(|c| c as i64);
     let at = |x: i64, z: i64| -> i8 {
-        if x < 0 || z < 0 || x >= cells || z >= cells {
+        if x < 0 || z < 0 || x >= cells || z >= rows {
             -1
         } else {
             map[(z * cells + x) as usize]
@@ -244,7 +247,7 @@ fn assign_neighbours(layout: &BlockLayout, blocks: &mut [DrawBlock], map: &[i8])
 /// lies on that edge's line between its vertices; those are raw samples, or that
 /// neighbour's own corners, resolved before (coarsest first).
 pub fn resolve_corners(hf: &Heightfield, layout: &BlockLayout, blocks: &mut [DrawBlock], map: &[i8]) {
-    let cells = layout.cells() as i64;
+    let cells = layout.cells()[0] as i64;
     let index: foldhash::HashMap<(u32, u32, u32), usize> =
         blocks.iter().enumerate().map(|(i, b)| ((b.lod, b.bx, b.bz), i)).collect();
     let mut order: Vec<usize> = (0..blocks.len()).collect();
