@@ -25,7 +25,7 @@ fn compare(
     delta: f32,
 ) -> (usize, usize, usize, usize, usize) {
     let mm = MinMaxPyramid::build(hf);
-    let layout = BlockLayout::of(&hf, k).unwrap();
+    let layout = BlockLayout::of(hf, k).unwrap();
     let terrain = TerrainGpu::new(device, hf, &mm, None, None).unwrap();
     let mut renderer = BlocksRenderer::new(device, hf, &terrain, layout, COLOR_FORMAT, 1, None).unwrap();
     let (mut n, mut collapsed, mut lerped, mut morphed, mut following) = (0, 0, 0, 0, 0);

@@ -119,7 +119,7 @@ fn frame_with(
 /// Runs `count` random poses of every kind; returns the worst audited error per mode.
 fn audit_poses(hf: &Heightfield, k: u32, count: usize, seed: u64) -> (f32, f32) {
     let mm = MinMaxPyramid::build(hf);
-    let layout = BlockLayout::of(&hf, k).unwrap();
+    let layout = BlockLayout::of(hf, k).unwrap();
     let mut rng = Rng(seed);
     let kinds = [Pose::NearGround, Pose::High, Pose::LookingDown, Pose::Horizon];
     let (mut worst_strict, mut worst_paper) = (0.0f32, 0.0f32);
@@ -483,7 +483,7 @@ fn adversarial_poses(hf: &Heightfield, edge: f32, count: usize, seed: u64) -> Ve
 /// With `require` the strict bound is asserted on every pose.
 fn worst_ratio(hf: &Heightfield, k: u32, poses: &[Camera], variant: Variant, require: bool) -> f32 {
     let mm = MinMaxPyramid::build(hf);
-    let layout = BlockLayout::of(&hf, k).unwrap();
+    let layout = BlockLayout::of(hf, k).unwrap();
     let mut worst = 0.0f32;
     for (i, cam) in poses.iter().enumerate() {
         let delta = [1.0f32, 0.5, 2.0][i % 3];
