@@ -750,6 +750,47 @@ fn voids_drawn_as_holes_show_the_background() {
     finish(device);
 }
 
+/// Vertical exaggeration keeps the terrain's images: a heightfield drawn at three times
+/// its height scale over images made at its own scale (the viewer's live control: the
+/// gradient map and sea level scale with the height scale) renders as the same samples
+/// loaded at three times the scale, in both pixel passes.
+#[test]
+fn exaggeration_renders_as_the_scaled_heightfield() {
+    let device = gpu();
+    let samples = |x: usize, z: usize| ((x as f32 * 0.21).sin() * (z as f32 * 0.13).cos()) * 40.0 + (x as f32 * 0.2);
+    // A low sun: the shadows and occlusion at three times the heights differ from the
+    // heightfield's own (the lighting map must be redrawn).
+    let sun = Some(Sun { azimuth: 100.0, elevation: 20.0 });
+    let base = field(129, 129, 10.0, samples);
+    let mut scaled = base.clone();
+    scaled.height_scale = 3.0;
+    let cam = Camera::look_at(Vec3::new(-200.0, 400.0, 700.0), Vec3::new(640.0, 0.0, 640.0), 60.0, 200, 150, 1.0);
+    // Images made at the heightfield's own scale, frames drawn at three times it.
+    let mm = MinMaxPyramid::build(&base);
+    let layout = BlockLayout::of(&base, 33).unwrap();
+    let terrain = Arc::new(TerrainGpu::new(&device, &base, &mm, None, None).unwrap());
+    // Made for the heightfield as loaded, then its lighting redrawn at the new scale, as
+    // the viewer does.
+    let mut renderer = BlocksRenderer::new(&device, &base, &terrain, layout, COLOR_FORMAT, 1, sun).unwrap();
+    renderer.redraw_lighting(&scaled).unwrap();
+    let t = traverse(&scaled, &mm, &BlockCaches::default(), &layout, &cam, LodSelect::Full);
+    let mut want = Scene::new(&device, scaled.clone(), 33, sun);
+    for pixels in [PixelPass::Deferred, PixelPass::Forward] {
+        let target = Target::new(&device, cam.width, cam.height).unwrap();
+        let shading = Shading { pixels, ..plain() };
+        let (got, _) = renderer.render_offscreen(&scaled, &terrain, &target, &cam, &t.blocks, &shading).unwrap();
+        let reference = want.render(&cam, None, &shading);
+        let worst = got.iter().zip(&reference).map(|(a, b)| (*a as i32 - *b as i32).abs()).max().unwrap();
+        assert_eq!(got.len(), reference.len());
+        let terrain_px = (0..got.len() / 4).filter(|&i| got[4 * i..4 * i + 3] != MAGENTA).count();
+        println!("{pixels:?}: {terrain_px} terrain pixels, worst difference {worst} levels");
+        assert!(terrain_px > got.len() / 8, "{pixels:?}: only {terrain_px} terrain pixels");
+        assert!(worst <= 1, "{pixels:?}: exaggerated frame differs from the scaled heightfield by {worst} levels");
+    }
+    drop((renderer, terrain, want));
+    finish(device);
+}
+
 /// The sky is one smooth gradient from 1 m to 10^6 m above the terrain, in both pixel
 /// passes: down a column of sky no two neighbouring rows differ by more than 3 levels
 /// (the gradient spans about 80 over the frame, one level per row at most), and it does change. The ray of a

@@ -359,7 +359,9 @@ wait $pid
 /// window's centre, the panel reads the latitude and longitude of the ground point under
 /// it; they agree with the tile's own tie point (47.000417 N, 122.000417 W, 3 arc-seconds
 /// a sample: data/README.md) at that point's sample position, to a millionth of a degree.
-/// `--go-to` (the panel's go-to) puts the camera over Rainier's summit.
+/// `--go-to` (the panel's go-to) puts the camera over Rainier's summit. X (vertical
+/// exaggeration) redraws the terrain at 1.5 times its heights, errors and lighting
+/// recomputed, with no validation message.
 #[test]
 fn the_panel_reads_latitude_and_longitude_under_the_cursor() {
     let dem = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/srtm3/mt_rainier_90m.tif");
@@ -385,6 +387,10 @@ wid=$(xdotool search --sync --onlyvisible --name vkterrain | head -1)
 xdotool windowfocus --sync "$wid" || xdotool windowfocus "$wid"
 wait_frames 3
 xdotool mousemove --window "$wid" 320 240
+wait_frames 4
+xdotool key x
+wait_frames 3
+xdotool key x
 wait_frames 4
 xdotool key Escape
 wait $pid
@@ -420,6 +426,10 @@ wait $pid
     let lon = -122.000417 + (wx / sx + 0.5) * d;
     let lat = 47.000417 - (wz / sz + 0.5) * d;
     assert!((f(&c["lon"]) - lon).abs() < 1e-6 && (f(&c["lat"]) - lat).abs() < 1e-6, "{c}: want {lat}, {lon}");
+    // X twice: 1.5^2 = 2.25 times the heights, the errors recomputed (validation clean);
+    // the map still reads metres.
+    assert!((f(&j["exaggeration"]) - 2.25).abs() < 1e-6 && (f(&j["height_scale_m"]) - 2.25).abs() < 1e-6, "{j}");
+    assert!((f(&c["ground_m"]) * 2.25 - f(&c["world"][1])).abs() < 0.01, "{c}");
     // The camera is over the same place.
     assert!((f(&j["camera_lat_lon"][0]) - 47.000417 + (50000.0 / sz + 0.5) * d).abs() < 1e-5, "{j}");
     // --go-to: the camera starts over the summit.

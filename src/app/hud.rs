@@ -150,6 +150,8 @@ pub struct Controls {
     pub sun: Option<Sun>,
     /// Set for one frame by the map's "go": latitude and longitude (degrees).
     pub go_to: Option<[f64; 2]>,
+    /// Vertical exaggeration: heights drawn this many times their true scale.
+    pub exaggeration: f32,
 }
 
 /// Ranges of the sliders that have no natural one.
@@ -171,6 +173,7 @@ pub const KEYS: &[(&str, &str)] = &[
     ("Home", "back to the start view"),
     ("[ and ]", "halve / double delta"),
     ("M", "strict / paper error mode"),
+    ("Z / X", "less / more vertical exaggeration"),
     ("N", "geomorphing on / off"),
     ("F", "wireframe"),
     ("L", "colour blocks by LOD"),
@@ -297,6 +300,12 @@ fn panel(ui: &mut egui::Ui, r: &Readout, history: &FrameHistory, now: f64, c: &m
         });
         ui.small("0 is the finest level; colours repeat every 6 levels, mixed 60 % over the ground.");
     }
+    ui.horizontal(|ui| {
+        ui.label("vertical x");
+        ui.add(egui::Slider::new(&mut c.exaggeration, 0.25..=20.0).logarithmic(true).fixed_decimals(2)).on_hover_text(
+            "vertical exaggeration: heights drawn this many times their scale (errors recomputed on release)",
+        );
+    });
     ui.horizontal(|ui| {
         ui.label("fog");
         // In multiples of the default haze: a range that does not follow the value.
@@ -904,6 +913,7 @@ mod tests {
             go_home: false,
             sun: Some(Sun::DEFAULT),
             go_to: None,
+            exaggeration: 1.0,
         }
     }
 

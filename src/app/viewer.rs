@@ -84,6 +84,10 @@ pub struct ViewArgs {
     /// "46.85 N 121.76 W"), as the panel's go-to does; georeferenced terrains only.
     #[arg(long, value_name = "LAT,LON", value_parser = crate::app::geo::parse_lat_lon, allow_hyphen_values = true)]
     pub go_to: Option<[f64; 2]>,
+    /// Vertical exaggeration: heights drawn this many times their scale (the panel's
+    /// slider changes it live).
+    #[arg(long, value_name = "X", default_value = "1", value_parser = crate::app::commands::positive, allow_negative_numbers = true)]
+    pub exaggeration: f32,
     /// Start in walk mode (follow the ground).
     #[arg(long)]
     pub walk: bool,
@@ -247,6 +251,8 @@ struct RunStats {
     /// point under the cursor (latitude, longitude, ground height in metres, world
     /// position), when the terrain is georeferenced.
     camera_lat_lon: Option<[f64; 2]>,
+    /// Vertical exaggeration at exit.
+    exaggeration: f32,
     cursor_place: Option<serde_json::Value>,
     validation_messages: u64,
     screenshot: Option<String>,
@@ -287,6 +293,10 @@ struct App {
     home: (Vec3, f32, f32),
     /// The terrain's map frame (georeferenced inputs).
     geo: Option<crate::app::geo::Geo>,
+    /// Vertical exaggeration (the panel's slider, `--exaggeration`) over the file's own
+    /// height scale.
+    exaggeration: f32,
+    true_height_scale: f32,
     /// Horizontal speed over the last frame (world units per second), for the title.
     ground_speed: f32,
     /// Last cursor position in the window, for drag-to-look.
@@ -345,7 +355,9 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
         ],
         &[("--heightmap", args.common.heightmap.as_deref()), args.textures.inputs()[0], args.textures.inputs()[1]],
     )?;
-    let hf = args.common.load_heightfield(None)?;
+    let mut hf = args.common.load_heightfield(None)?;
+    let true_height_scale = hf.height_scale;
+    hf.height_scale *= args.exaggeration;
     let layout = BlockLayout::of(&hf, args.common.block).map_err(InputError)?;
     let trace = match &args.trace {
         Some(p) => Trace::to_file(p).map_err(|e| InputError(format!("--trace {}: {e}", p.display())))?,
@@ -418,6 +430,8 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
         error: None,
         home: (cam.position, f.z.atan2(f.x), f.y.clamp(-1.0, 1.0).asin()),
         geo,
+        exaggeration: args.exaggeration,
+        true_height_scale,
         ground_speed: 0.0,
         cursor: None,
         ctl: Controller {
@@ -459,6 +473,7 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
         resizes,
         stats: RunStats::default(),
     };
+    app.stats.exaggeration = args.exaggeration;
     if let Some([lat, lon]) = args.go_to {
         if app.geo.is_none() {
             return Err(InputError(format!(
@@ -910,6 +925,7 @@ impl App {
             go_home: false,
             sun: self.sun,
             go_to: None,
+            exaggeration: self.exaggeration,
         }
     }
 
@@ -932,6 +948,39 @@ impl App {
         if let Some([lat, lon]) = c.go_to {
             self.go_to(lat, lon);
         }
+        self.exaggeration = c.exaggeration;
+    }
+
+    /// Draws heights at `self.exaggeration` times the file's scale: a new heightfield
+    /// (the same samples, a new height scale) for the traversal and the frames, the
+    /// errors activity restarted on it and its old data dropped (it bounded the old
+    /// surface), the lighting map redrawn. Called when the slider is let go.
+    fn apply_exaggeration(&mut self) -> anyhow::Result<()> {
+        let scale = self.true_height_scale * self.exaggeration;
+        if scale == self.hf.height_scale {
+            return Ok(());
+        }
+        let mut hf = (*self.hf).clone();
+        hf.height_scale = scale;
+        let hf = Arc::new(hf);
+        let Some(gpu) = self.gpu.as_mut() else { return Ok(()) };
+        if let Some(old) = gpu.activity.take() {
+            old.stop()?;
+        }
+        gpu.activity = Some(ErrorsActivity::start_with(
+            &gpu.device,
+            gpu.terrain.clone(),
+            hf.clone(),
+            self.layout,
+            self.trace.clone(),
+            self.args.common.error_pacing,
+        )?);
+        gpu.renderer.redraw_lighting(&hf)?;
+        self.draw.feed.reset();
+        self.hf = hf;
+        self.stats.terrain = crate::app::outputs::TerrainFacts::of(&self.hf);
+        self.stats.exaggeration = self.exaggeration;
+        Ok(())
     }
 
     /// Moves the camera over a latitude and longitude, as high above the ground there as
@@ -965,8 +1014,9 @@ impl App {
         Some(crate::app::hud::Place {
             crs: geo.crs().to_string(),
             camera: geo.describe(p.x, p.z),
-            camera_elevation_m: p.y,
-            cursor: cursor.map(|q| (geo.describe(q.x, q.z), q.y)),
+            // World heights are exaggerated; the map shows metres.
+            camera_elevation_m: p.y / self.exaggeration,
+            cursor: cursor.map(|q| (geo.describe(q.x, q.z), q.y / self.exaggeration)),
             metres_per_pixel,
             north: n.dot(right).atan2(n.dot(up)),
         })
@@ -1014,7 +1064,8 @@ impl App {
             self.stats.cursor_place =
                 hit.filter(|q| (0.0..=wx).contains(&q.x) && (0.0..=wz).contains(&q.z)).and_then(|q| {
                     let [lat, lon] = geo.lat_lon(q.x, q.z)?;
-                    Some(serde_json::json!({ "lat": lat, "lon": lon, "ground_m": q.y, "world": [q.x, q.y, q.z] }))
+                    let ground_m = q.y / self.exaggeration;
+                    Some(serde_json::json!({ "lat": lat, "lon": lon, "ground_m": ground_m, "world": [q.x, q.y, q.z] }))
                 });
         }
         if self.base.is_none() {
@@ -1042,6 +1093,9 @@ impl App {
         let gpu = self.gpu.as_mut().unwrap();
         if gpu.renderer.lighting().sun() != self.sun && !gpu.hud.pointer_busy() {
             gpu.renderer.set_sun(&self.hf, self.sun)?;
+        }
+        if !gpu.hud.pointer_busy() {
+            self.apply_exaggeration()?;
         }
         Ok(())
     }
@@ -1091,6 +1145,8 @@ impl App {
                 self.mode = if self.mode == ErrorMode::Strict { ErrorMode::Paper } else { ErrorMode::Strict }
             }
             KeyCode::KeyN => self.draw.morph = !self.draw.morph,
+            KeyCode::KeyX => self.exaggeration = (self.exaggeration * 1.5).min(20.0),
+            KeyCode::KeyZ => self.exaggeration = (self.exaggeration / 1.5).max(0.25),
             KeyCode::KeyF => {
                 self.shading.wireframe = !self.shading.wireframe;
                 if self.gpu.as_ref().is_some_and(|g| !g.device.features.wireframe) {

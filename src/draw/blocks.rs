@@ -514,7 +514,12 @@ impl BlocksRenderer {
             ],
             spacing: [hf.spacing.x, hf.spacing.z, 0.0, 0.0],
             light: [light.x, light.y, light.z, 0.25],
-            texturing: [shading.detail_tiling, shading.detail_weight, terrain.gradient_scale, terrain.sea_level],
+            texturing: [
+                shading.detail_tiling,
+                shading.detail_weight,
+                terrain.gradient_scale(hf),
+                terrain.sea_level(hf),
+            ],
             extent: [hf.width as i32, hf.height as i32, hf.grid()[0] as i32, self.layout.k() as i32],
             flags: [(hf.format == crate::lod::heightfield::HeightFormat::Unorm16) as i32, 0, 0, 0],
             sky_zenith: [SKY_ZENITH[0], SKY_ZENITH[1], SKY_ZENITH[2], sky],
@@ -699,6 +704,11 @@ impl BlocksRenderer {
     /// recorded from now on use it.
     pub fn set_sun(&mut self, hf: &Heightfield, sun: Option<Sun>) -> VkResult<()> {
         self.lighting.set_sun(hf, sun)
+    }
+
+    /// Redraws the lighting map over `hf` at its (new) height scale.
+    pub fn redraw_lighting(&mut self, hf: &Heightfield) -> VkResult<()> {
+        self.lighting.redraw(hf)
     }
 
     /// The lighting map (tests read it back).

@@ -110,6 +110,12 @@ impl LightingMap {
         Ok(())
     }
 
+    /// Redraws the map for the same sun over `hf` with a new height scale (the viewer's
+    /// vertical exaggeration), as [`Self::set_sun`] does.
+    pub fn redraw(&mut self, hf: &Heightfield) -> VkResult<()> {
+        self.draw(hf, self.sun, false)
+    }
+
     fn draw(&mut self, hf: &Heightfield, sun: Option<Sun>, first: bool) -> VkResult<()> {
         let (d, tan, metres_per_step) = sun.map_or(([0.0; 2], 0.0, 1.0), |s| s.march(hf.spacing));
         let push = LightingPush {

@@ -123,6 +123,13 @@ impl ErrorFeed {
         self.mode
     }
 
+    /// Forgets the generation in use (made for a heightfield that has changed: the
+    /// viewer's vertical exaggeration): the next update waits for data at its camera.
+    pub fn reset(&mut self) {
+        self.current = None;
+        self.requested_at = None;
+    }
+
     /// Switches the error mode; data made for the other mode is no longer used.
     pub fn set_mode(&mut self, mode: ErrorMode) {
         if mode != self.mode {

@@ -14,9 +14,12 @@ pub struct TerrainGpu {
     /// Per-sample gradients and sea flags for shading ([`Heightfield::gradient_map`]'s
     /// two i16 per texel, read as one R32_UINT so that one gather brings four samples).
     pub gradients: Image,
-    pub gradient_scale: f32,
-    /// World height at or below which level ground is water ([`Heightfield::sea_level`]).
-    pub sea_level: f32,
+    /// The gradient map's scale and the sea level, per unit of height scale: the world
+    /// values are these times the heightfield's `height_scale`, so that the viewer's
+    /// vertical exaggeration (a new height scale over the same samples) keeps this image
+    /// (gradients and heights scale alike, and the same samples stay at sea level).
+    pub gradient_scale_per_unit: f32,
+    pub sea_level_per_unit: f32,
     pub nearest: Sampler,
     pub linear: Sampler,
     pub base: Image,
@@ -36,6 +39,16 @@ pub struct Texture {
 }
 
 impl TerrainGpu {
+    /// The gradient map's scale for `hf` (these samples at its height scale).
+    pub fn gradient_scale(&self, hf: &Heightfield) -> f32 {
+        self.gradient_scale_per_unit * hf.height_scale
+    }
+
+    /// World height at or below which level ground is water ([`Heightfield::sea_level`]).
+    pub fn sea_level(&self, hf: &Heightfield) -> f32 {
+        self.sea_level_per_unit * hf.height_scale
+    }
+
     pub fn new(
         device: &Arc<Device>,
         hf: &Heightfield,
@@ -97,8 +110,8 @@ impl TerrainGpu {
             minmax,
             deviation,
             gradients,
-            gradient_scale,
-            sea_level,
+            gradient_scale_per_unit: gradient_scale / hf.height_scale,
+            sea_level_per_unit: sea_level / hf.height_scale,
             nearest: Sampler::new(device, vk::Filter::NEAREST, vk::SamplerAddressMode::CLAMP_TO_EDGE)?,
             linear: Sampler::new(device, vk::Filter::LINEAR, vk::SamplerAddressMode::REPEAT)?,
             base: base_img,
