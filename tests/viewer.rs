@@ -201,30 +201,30 @@ fn mean_difference(a: &image::RgbaImage, b: &image::RgbaImage, (x0, x1): (u32, u
     sum as f64 / (3 * (x1 - x0) * (y1 - y0)) as f64
 }
 
-/// A user at the keyboard and mouse, played by xdotool in a private Xvfb:
-/// - P takes a screenshot with the on-screen panel, H hides it and P takes another, F1
-///   shows the key help for a third: the panel and the help are drawn where expected and
-///   nowhere else;
-/// - `]` doubles delta, N turns geomorphing off;
-/// - a drag on the panel moves the panel, not the camera; a drag beside it turns the view;
-/// - O and a drag orbit the point ahead, Home returns to the start view (leaving orbit
-///   mode), holding W flies forward from there, Escape quits.
-///
-/// The state the viewer reports at exit shows each of them, with zero validation messages.
-#[test]
-fn keyboard_and_mouse_drive_the_viewer() {
-    let tmp = std::env::temp_dir().join(format!("vkterrain-xdotool-{}", std::process::id()));
+/// Runs the viewer (`view_args`, in the shell's quoting) in a private Xvfb and drives it
+/// with the xdotool commands of `steps`, which may use `wait_frames N` (frames drawn after
+/// the input: synchronisation with the viewer, never by sleeping), `wait_file F` and
+/// `drag X Y STEPS`; `after` runs once the viewer has exited. The scratch directory
+/// (the working directory: screenshots land there) is given to `check` with the run's
+/// status, stdout and stderr, then removed.
+fn xdotool_session(
+    tag: &str,
+    view_args: &str,
+    steps: &str,
+    after: &str,
+    check: impl FnOnce(&std::path::Path, bool, &str, &str),
+) {
+    let tmp = std::env::temp_dir().join(format!("vkterrain-{tag}-{}", std::process::id()));
     std::fs::create_dir_all(&tmp).unwrap();
     let (out, err) = (tmp.join("out.txt"), tmp.join("err.txt"));
-    // Screenshots go to the working directory, as vkterrain-1.png, -2.png, -3.png.
     let script = format!(
         r#"set -e
 cd "{tmp}"
-"{bin}" view --size 800x600 --validation on --frame-counter frames.txt >"{out}" 2>"{err}" &
+"{bin}" view {view_args} --frame-counter frames.txt >"{out}" 2>"{err}" &
 pid=$!
-# Synchronisation with the viewer, never by sleeping: input is only known to be seen
-# once frames have been drawn after it (egui decides drags frame by frame), and a
-# screenshot once its file exists. Each wait gives up after 120 s.
+# Input is only known to be seen once frames have been drawn after it (egui decides
+# drags frame by frame), and a screenshot once its file exists. Each wait gives up
+# after 120 s.
 frames() {{ cat frames.txt 2>/dev/null || echo 0; }}
 wait_frames() {{
   local want=$(( $(frames) + $1 )) t=0
@@ -253,7 +253,44 @@ drag() {{
 wid=$(xdotool search --sync --onlyvisible --name vkterrain | head -1)
 xdotool windowfocus --sync "$wid" || xdotool windowfocus "$wid"
 wait_frames 3
-xdotool mousemove --window "$wid" 700 550
+{steps}
+wait $pid
+{after}
+"#,
+        tmp = tmp.display(),
+        bin = env!("CARGO_BIN_EXE_vkterrain"),
+        out = out.display(),
+        err = err.display()
+    );
+    let status = Command::new("xvfb-run")
+        .args(["-a", "-s", "-screen 0 1024x768x24", "bash", "-c", &script])
+        .env("RUST_LOG", "error")
+        .status()
+        .expect("xvfb-run and xdotool (tools/install-deps.sh installs them)");
+    let stdout = std::fs::read_to_string(&out).unwrap_or_default();
+    let stderr = std::fs::read_to_string(&err).unwrap_or_default();
+    // The checks run on the files first, then everything is removed, whatever they find.
+    let result =
+        std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| check(&tmp, status.success(), &stdout, &stderr)));
+    let _ = std::fs::remove_dir_all(&tmp);
+    if let Err(e) = result {
+        std::panic::resume_unwind(e);
+    }
+}
+
+/// A user at the keyboard and mouse, played by xdotool in a private Xvfb:
+/// - P takes a screenshot with the on-screen panel, H hides it and P takes another, F1
+///   shows the key help for a third: the panel and the help are drawn where expected and
+///   nowhere else;
+/// - `]` doubles delta, N turns geomorphing off;
+/// - a drag on the panel moves the panel, not the camera; a drag beside it turns the view;
+/// - O and a drag orbit the point ahead, Home returns to the start view (leaving orbit
+///   mode), holding W flies forward from there, Escape quits.
+///
+/// The state the viewer reports at exit shows each of them, with zero validation messages.
+#[test]
+fn keyboard_and_mouse_drive_the_viewer() {
+    let steps = r#"xdotool mousemove --window "$wid" 700 550
 wait_frames 2
 xdotool key p
 wait_file vkterrain-1.png
@@ -283,76 +320,67 @@ xdotool keyup w
 xdotool key p p
 wait_file vkterrain-5.png
 xdotool key Escape
-wait $pid
-"#,
-        tmp = tmp.display(),
-        bin = env!("CARGO_BIN_EXE_vkterrain"),
-        out = out.display(),
-        err = err.display()
-    );
-    let status = Command::new("xvfb-run")
-        .args(["-a", "-s", "-screen 0 1024x768x24", "bash", "-c", &script])
-        .env("RUST_LOG", "error")
-        .status()
-        .expect("xvfb-run (tools/install-deps.sh installs it, and xdotool)");
-    let stdout = std::fs::read_to_string(&out).unwrap_or_default();
-    let stderr = std::fs::read_to_string(&err).unwrap_or_default();
-    let shots: Vec<_> =
-        (1..=3).map(|i| image::open(tmp.join(format!("vkterrain-{i}.png"))).map(|i| i.to_rgba8())).collect();
-    // P twice in one frame: two screenshots, the next two free numbers.
-    let double_p = [4, 5, 6].map(|i| tmp.join(format!("vkterrain-{i}.png")).exists());
-    let _ = std::fs::remove_dir_all(&tmp);
-    assert!(status.success(), "viewer under xdotool failed: {stderr}\n{stdout}");
-    let json: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
-    println!("{json}");
-    assert_eq!(json["validation_messages"], 0, "{stderr}");
+"#;
+    xdotool_session("xdotool", "--size 800x600 --validation on", steps, "", |tmp, ok, stdout, stderr| {
+        let shots: Vec<_> =
+            (1..=3).map(|i| image::open(tmp.join(format!("vkterrain-{i}.png"))).map(|i| i.to_rgba8())).collect();
+        // P twice in one frame: two screenshots, the next two free numbers.
+        let double_p = [4, 5, 6].map(|i| tmp.join(format!("vkterrain-{i}.png")).exists());
+        assert!(ok, "viewer under xdotool failed: {stderr}\n{stdout}");
+        let json: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
+        println!("{json}");
+        assert_eq!(json["validation_messages"], 0, "{stderr}");
 
-    // The panel (top left) is in the first screenshot and not the second; the rest of
-    // the picture is the same frame give or take LOD updates. The help overlay sits in
-    // the middle of the third.
-    let shots: Vec<image::RgbaImage> = shots.into_iter().map(|s| s.expect("three screenshots (P)")).collect();
-    for s in &shots {
-        assert_eq!(s.dimensions(), (800, 600));
-    }
-    let panel = mean_difference(&shots[0], &shots[1], (10, 250), (40, 400));
-    let beside = mean_difference(&shots[0], &shots[1], (320, 800), (0, 600));
-    println!("panel region {panel:.1}, beside it {beside:.2}");
-    assert!(panel > 15.0, "the panel is drawn, and H hides it: mean difference {panel:.1}");
-    assert!(beside < 1.0, "nothing else changes with the panel: mean difference {beside:.2}");
-    let help = mean_difference(&shots[1], &shots[2], (330, 470), (220, 380));
-    let corner = mean_difference(&shots[1], &shots[2], (600, 800), (500, 600));
-    println!("help region {help:.1}, corner {corner:.2}");
-    assert!(help > 15.0, "F1 shows the key help: mean difference {help:.1}");
-    assert!(corner < 1.0, "the help leaves the corner alone: mean difference {corner:.2}");
-    assert_eq!(json["hud_visible"], true, "H shows the panel again: {json}");
-    assert_eq!(double_p, [true, true, false], "P pressed twice quickly writes vkterrain-4 and -5");
+        // The panel (top left) is in the first screenshot and not the second; the rest of
+        // the picture is the same frame give or take LOD updates. The help overlay sits in
+        // the middle of the third.
+        let shots: Vec<image::RgbaImage> = shots.into_iter().map(|s| s.expect("three screenshots (P)")).collect();
+        for s in &shots {
+            assert_eq!(s.dimensions(), (800, 600));
+        }
+        let panel = mean_difference(&shots[0], &shots[1], (10, 250), (40, 400));
+        let beside = mean_difference(&shots[0], &shots[1], (320, 800), (0, 600));
+        println!("panel region {panel:.1}, beside it {beside:.2}");
+        assert!(panel > 15.0, "the panel is drawn, and H hides it: mean difference {panel:.1}");
+        assert!(beside < 1.0, "nothing else changes with the panel: mean difference {beside:.2}");
+        let help = mean_difference(&shots[1], &shots[2], (330, 470), (220, 380));
+        let corner = mean_difference(&shots[1], &shots[2], (600, 800), (500, 600));
+        println!("help region {help:.1}, corner {corner:.2}");
+        assert!(help > 15.0, "F1 shows the key help: mean difference {help:.1}");
+        assert!(corner < 1.0, "the help leaves the corner alone: mean difference {corner:.2}");
+        assert_eq!(json["hud_visible"], true, "H shows the panel again: {json}");
+        assert_eq!(double_p, [true, true, false], "P pressed twice quickly writes vkterrain-4 and -5");
 
-    assert_eq!(json["final_delta"], 2.0, "] doubles delta: {json}");
-    assert_eq!(json["final_morph"], false, "N turns morphing off: {json}");
-    let frames = json["frames"].as_u64().unwrap();
-    assert!(frames >= 10, "{json}");
-    // Started above the terrain looking north (-z): Home restored that view, so after
-    // the drag the yaw is back, and W moved the camera north from the start.
-    let yaw = json["final_yaw"].as_f64().unwrap();
-    assert!((yaw + std::f64::consts::FRAC_PI_2).abs() < 0.05, "Home restores the start view's heading: {json}");
-    let p = &json["final_position"];
-    let z = p[2].as_f64().unwrap();
-    // The built-in terrain spans 0..wz; the start view is at 0.92 wz.
-    let start_z = json["start_position"][2].as_f64().unwrap();
-    assert!(z < start_z - 1.0, "W flew north from the start view: z {z}, started at {start_z}");
-    // Two drags of 80 pixels, 0.003 rad each: one beside the panel turns the view by
-    // 0.24 rad, the one on the panel's title bar (which moves the panel) does not.
-    let turn = json["mouse_turn"].as_f64().unwrap();
-    assert!(turn > 0.1, "dragging with the left button turned the view: {json}");
-    // O then a drag: the camera circled the point it looked at, at a constant distance.
-    let orbit = json["orbit_turn"].as_f64().unwrap();
-    assert!(orbit > 0.05, "O and a drag orbit: {json}");
-    assert!(turn - orbit < 0.3, "a drag on the panel does not turn the camera: {turn} turned, {orbit} of it orbiting");
-    assert!(json["orbit_drift"].as_f64().unwrap() < 1e-3, "the orbit kept its distance: {json}");
-    // O was pressed with the cursor 180 pixels right of the centre (of 800, 60 degrees
-    // vertical field of view): the camera turned about 0.33 rad to face that point.
-    let aim = json["orbit_aim_turn"].as_f64().unwrap();
-    assert!((0.2..0.45).contains(&aim), "O turns to the point under the cursor: {aim} rad");
+        assert_eq!(json["final_delta"], 2.0, "] doubles delta: {json}");
+        assert_eq!(json["final_morph"], false, "N turns morphing off: {json}");
+        let frames = json["frames"].as_u64().unwrap();
+        assert!(frames >= 10, "{json}");
+        // Started above the terrain looking north (-z): Home restored that view, so after
+        // the drag the yaw is back, and W moved the camera north from the start.
+        let yaw = json["final_yaw"].as_f64().unwrap();
+        assert!((yaw + std::f64::consts::FRAC_PI_2).abs() < 0.05, "Home restores the start view's heading: {json}");
+        let p = &json["final_position"];
+        let z = p[2].as_f64().unwrap();
+        // The built-in terrain spans 0..wz; the start view is at 0.92 wz.
+        let start_z = json["start_position"][2].as_f64().unwrap();
+        assert!(z < start_z - 1.0, "W flew north from the start view: z {z}, started at {start_z}");
+        // Two drags of 80 pixels, 0.003 rad each: one beside the panel turns the view by
+        // 0.24 rad, the one on the panel's title bar (which moves the panel) does not.
+        let turn = json["mouse_turn"].as_f64().unwrap();
+        assert!(turn > 0.1, "dragging with the left button turned the view: {json}");
+        // O then a drag: the camera circled the point it looked at, at a constant distance.
+        let orbit = json["orbit_turn"].as_f64().unwrap();
+        assert!(orbit > 0.05, "O and a drag orbit: {json}");
+        assert!(
+            turn - orbit < 0.3,
+            "a drag on the panel does not turn the camera: {turn} turned, {orbit} of it orbiting"
+        );
+        assert!(json["orbit_drift"].as_f64().unwrap() < 1e-3, "the orbit kept its distance: {json}");
+        // O was pressed with the cursor 180 pixels right of the centre (of 800, 60 degrees
+        // vertical field of view): the camera turned about 0.33 rad to face that point.
+        let aim = json["orbit_aim_turn"].as_f64().unwrap();
+        assert!((0.2..0.45).contains(&aim), "O turns to the point under the cursor: {aim} rad");
+    });
 }
 
 /// Where am I: over Mt Rainier's SRTM tile, looking straight down with the cursor in the
@@ -365,76 +393,50 @@ wait $pid
 #[test]
 fn the_panel_reads_latitude_and_longitude_under_the_cursor() {
     let dem = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/srtm3/mt_rainier_90m.tif");
-    let tmp = std::env::temp_dir().join(format!("vkterrain-geo-{}", std::process::id()));
-    std::fs::create_dir_all(&tmp).unwrap();
-    let (out, err) = (tmp.join("out.txt"), tmp.join("err.txt"));
-    let script = format!(
-        r#"set -e
-cd "{tmp}"
-"{bin}" view --heightmap "{dem}" --size 640x480 --validation on --frame-counter frames.txt \
-  --camera 40000,9000,50000 --look-at 40000,0,50000.5 >"{out}" 2>"{err}" &
-pid=$!
-frames() {{ cat frames.txt 2>/dev/null || echo 0; }}
-wait_frames() {{
-  local want=$(( $(frames) + $1 )) t=0
-  while [ "$(frames)" -lt "$want" ]; do
-    kill -0 $pid 2>/dev/null || {{ echo "the viewer exited" >&2; exit 1; }}
-    t=$((t + 1)); [ $t -lt 2400 ] || {{ echo "the viewer drew no frame for 120 s" >&2; exit 1; }}
-    sleep 0.05
-  done
-}}
-wid=$(xdotool search --sync --onlyvisible --name vkterrain | head -1)
-xdotool windowfocus --sync "$wid" || xdotool windowfocus "$wid"
-wait_frames 3
-xdotool mousemove --window "$wid" 320 240
+    let steps = r#"xdotool mousemove --window "$wid" 320 240
 wait_frames 4
 xdotool key x
 wait_frames 3
 xdotool key x
 wait_frames 4
 xdotool key Escape
-wait $pid
-"{bin}" view --heightmap "{dem}" --size 320x240 --frames 3 --validation on --go-to "46.8529 N 121.7604 W" >>"{out}" 2>>"{err}"
-"#,
-        tmp = tmp.display(),
-        bin = env!("CARGO_BIN_EXE_vkterrain"),
-        dem = dem.display(),
-        out = out.display(),
-        err = err.display()
+"#;
+    let dem = dem.display();
+    let view = format!(
+        "--heightmap \"{dem}\" --size 640x480 --validation on --camera 40000,9000,50000 --look-at 40000,0,50000.5"
     );
-    let status = Command::new("xvfb-run")
-        .args(["-a", "-s", "-screen 0 1024x768x24", "bash", "-c", &script])
-        .env("RUST_LOG", "error")
-        .status()
-        .expect("xvfb-run and xdotool (tools/install-deps.sh)");
-    let stdout = std::fs::read_to_string(&out).unwrap_or_default();
-    let stderr = std::fs::read_to_string(&err).unwrap_or_default();
-    let _ = std::fs::remove_dir_all(&tmp);
-    assert!(status.success(), "{stderr}\n{stdout}");
-    let runs: Vec<serde_json::Value> = stdout.lines().filter_map(|l| serde_json::from_str(l).ok()).collect();
-    assert_eq!(runs.len(), 2, "{stdout}");
-    let j = &runs[0];
-    assert_eq!(j["validation_messages"], 0, "{stderr}");
-    assert_eq!(j["crs"], "EPSG:4326");
-    let c = &j["cursor_place"];
-    let f = |v: &serde_json::Value| v.as_f64().unwrap_or_else(|| panic!("{j}"));
-    let (sx, sz) = (f(&j["spacing_m"][0]), f(&j["spacing_m"][1]));
-    let (wx, wz) = (f(&c["world"][0]), f(&c["world"][2]));
-    // Straight down from (40000, 50000): the point under the centre is below the camera.
-    assert!((wx - 40000.0).abs() < 2.0 * sx && (wz - 50000.0).abs() < 2.0 * sz, "{c}");
-    let d = 3.0 / 3600.0;
-    let lon = -122.000417 + (wx / sx + 0.5) * d;
-    let lat = 47.000417 - (wz / sz + 0.5) * d;
-    assert!((f(&c["lon"]) - lon).abs() < 1e-6 && (f(&c["lat"]) - lat).abs() < 1e-6, "{c}: want {lat}, {lon}");
-    // X twice: 1.5^2 = 2.25 times the heights, the errors recomputed (validation clean);
-    // the map still reads metres.
-    assert!((f(&j["exaggeration"]) - 2.25).abs() < 1e-6 && (f(&j["height_scale_m"]) - 2.25).abs() < 1e-6, "{j}");
-    assert!((f(&c["ground_m"]) * 2.25 - f(&c["world"][1])).abs() < 0.01, "{c}");
-    // The camera is over the same place.
-    assert!((f(&j["camera_lat_lon"][0]) - 47.000417 + (50000.0 / sz + 0.5) * d).abs() < 1e-5, "{j}");
-    // --go-to: the camera starts over the summit.
-    let g = &runs[1];
-    assert_eq!(g["validation_messages"], 0, "{stderr}");
-    let (glat, glon) = (f(&g["camera_lat_lon"][0]), f(&g["camera_lat_lon"][1]));
-    assert!((glat - 46.8529).abs() < 1e-4 && (glon + 121.7604).abs() < 1e-4, "{g}");
+    // Then a second run, started over Rainier's summit.
+    let bin = env!("CARGO_BIN_EXE_vkterrain");
+    let go_to = format!(
+        "\"{bin}\" view --heightmap \"{dem}\" --size 320x240 --frames 3 --validation on --go-to \"46.8529 N 121.7604 W\" >>out.txt 2>>err.txt"
+    );
+    xdotool_session("geo", &view, steps, &go_to, |_, ok, stdout, stderr| {
+        assert!(ok, "{stderr}\n{stdout}");
+        let runs: Vec<serde_json::Value> = stdout.lines().filter_map(|l| serde_json::from_str(l).ok()).collect();
+        assert_eq!(runs.len(), 2, "{stdout}");
+        let j = &runs[0];
+        assert_eq!(j["validation_messages"], 0, "{stderr}");
+        assert_eq!(j["crs"], "EPSG:4326");
+        let c = &j["cursor_place"];
+        let f = |v: &serde_json::Value| v.as_f64().unwrap_or_else(|| panic!("{j}"));
+        let (sx, sz) = (f(&j["spacing_m"][0]), f(&j["spacing_m"][1]));
+        let (wx, wz) = (f(&c["world"][0]), f(&c["world"][2]));
+        // Straight down from (40000, 50000): the point under the centre is below the camera.
+        assert!((wx - 40000.0).abs() < 2.0 * sx && (wz - 50000.0).abs() < 2.0 * sz, "{c}");
+        let d = 3.0 / 3600.0;
+        let lon = -122.000417 + (wx / sx + 0.5) * d;
+        let lat = 47.000417 - (wz / sz + 0.5) * d;
+        assert!((f(&c["lon"]) - lon).abs() < 1e-6 && (f(&c["lat"]) - lat).abs() < 1e-6, "{c}: want {lat}, {lon}");
+        // X twice: 1.5^2 = 2.25 times the heights, the errors recomputed (validation clean);
+        // the map still reads metres.
+        assert!((f(&j["exaggeration"]) - 2.25).abs() < 1e-6 && (f(&j["height_scale_m"]) - 2.25).abs() < 1e-6, "{j}");
+        assert!((f(&c["ground_m"]) * 2.25 - f(&c["world"][1])).abs() < 0.01, "{c}");
+        // The camera is over the same place.
+        assert!((f(&j["camera_lat_lon"][0]) - 47.000417 + (50000.0 / sz + 0.5) * d).abs() < 1e-5, "{j}");
+        // --go-to: the camera starts over the summit.
+        let g = &runs[1];
+        assert_eq!(g["validation_messages"], 0, "{stderr}");
+        let (glat, glon) = (f(&g["camera_lat_lon"][0]), f(&g["camera_lat_lon"][1]));
+        assert!((glat - 46.8529).abs() < 1e-4 && (glon + 121.7604).abs() < 1e-4, "{g}");
+    });
 }
