@@ -169,8 +169,19 @@ fn render_exports_the_mesh() {
     assert_eq!(j["mesh_triangles"], j["triangles"], "the file holds every triangle drawn");
     assert_eq!(pos.len() as u64, j["mesh_vertices"].as_u64().unwrap());
     assert_eq!(extras["terrain"]["spacing_m"], serde_json::json!([2.0, 3.0]));
-    // Every vertex lies over the terrain's extent.
+    // Every vertex lies over the terrain's extent, and every triangle that is not
+    // collapsed faces up (counter-clockwise seen from +y: glTF's front face).
     assert!(pos.iter().all(|p| (0.0..=256.0).contains(&p[0]) && (0.0..=384.0).contains(&p[2])));
+    let mut up = 0;
+    for t in idx.chunks_exact(3) {
+        let [a, b, c] = [0, 1, 2].map(|j| Vec3::from(pos[t[j] as usize]));
+        let n = (b - a).cross(c - a);
+        if n.length() > 1e-6 {
+            assert!(n.y > 0.0, "triangle {t:?} faces down");
+            up += 1;
+        }
+    }
+    assert!(up > idx.len() / 6, "{up} triangles checked");
     // A wrong extension is refused before anything runs.
     let bad = Command::new(env!("CARGO_BIN_EXE_vkterrain"))
         .args(["render", "--out", dir.path().join("x.png").to_str().unwrap(), "--export-mesh", "mesh.obj"])

@@ -199,7 +199,14 @@ fn tall_geographic_rasters_are_reprojected() {
     let hf = load_default(&path);
     let notes = hf.georef.notes.join("\n");
     assert!(notes.contains("reprojected"), "{notes}");
-    assert!(!hf.georef.geographic && hf.georef.crs.is_some());
+    assert!(!hf.georef.geographic);
+    // The local projection is named by its PROJ string, which says where it is.
+    assert!(hf.georef.crs.as_deref().is_some_and(|c| c.starts_with("+proj=tmerc +lat_0=49.97")), "{:?}", hf.georef.crs);
+    // What lies outside the source is drawn as a hole, not invented terrain; the file
+    // had no voids of its own.
+    let holes = hf.void_mask.as_ref().expect("the grid outside the source is a hole");
+    assert!(holes.iter().any(|&h| h) && !holes.iter().all(|&h| h));
+    assert_eq!(hf.void_samples, 0, "the file has no voids");
     // The centre spacings at 50 N: 0.05 degrees of longitude and latitude in metres.
     let (ex, ez) = wgs84_metres_per_degree(50.0);
     assert!((hf.spacing.x as f64 / (ex * step) - 1.0).abs() < 0.005, "{:?}", hf.spacing);
@@ -312,4 +319,86 @@ fn georeferenced_textures_drape_by_their_coordinates() {
     };
     let t = args.load(&hf).unwrap().base.unwrap();
     assert_eq!((t.width, t.height, &t.rgba[..4]), (7, 5, &[1u8, 2, 3, 255][..]));
+}
+
+/// World x runs east and z south whatever the file's order: a south-up raster (rows
+/// running north, by a ModelTransformation with a positive y step) and one whose columns
+/// run west are mirrored at load, with a note; otherwise the terrain would be drawn with
+/// its handedness flipped.
+#[test]
+fn south_up_and_west_running_rasters_are_mirrored() {
+    let dir = TempDir::new("georef");
+    let (w, h) = (65u32, 49u32);
+    let s: Vec<f32> = (0..w * h).map(|i| ((i % w) + 100 * (i / w)) as f32).collect();
+    for (name, (a, f)) in [("south_up.tif", (25.0, 35.0)), ("west.tif", (-25.0, -35.0))] {
+        let path = dir.path().join(name);
+        {
+            let file = std::fs::File::create(&path).unwrap();
+            let mut enc = TiffEncoder::new(file).unwrap();
+            let mut img = enc.new_image::<colortype::Gray32Float>(w, h).unwrap();
+            #[rustfmt::skip]
+            let m = [a, 0.0, 0.0, 500_000.0, 0.0, f, 0.0, 5_200_000.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0];
+            img.encoder().write_tag(Tag::Unknown(34264), &m[..]).unwrap();
+            img.encoder().write_tag(Tag::Unknown(34735), &geokeys(&[(1024, 1), (1025, 1), (3072, 32610)])[..]).unwrap();
+            img.write_data(&s).unwrap();
+        }
+        let hf = load_default(&path);
+        let notes = hf.georef.notes.join("\n");
+        assert_eq!(hf.spacing, Spacing { x: 25.0, z: 35.0 }, "{name}");
+        assert!(hf.georef.step[0] > 0.0 && hf.georef.step[1] < 0.0, "{name}: {:?}", hf.georef.step);
+        let (wl, hl) = (w as i64 - 1, h as i64 - 1);
+        if name == "south_up.tif" {
+            assert!(notes.contains("south-up"), "{notes}");
+            // The file's last row is the northernmost: it comes first.
+            assert_eq!(hf.raw_at(0, 0), (100 * hl) as f32);
+            assert_eq!(hf.raw_at(wl, hl), wl as f32);
+            // The first sample's centre: the north-west corner.
+            assert_eq!(hf.georef.origin, [500_012.5, 5_200_000.0 + 35.0 * (h as f64 - 0.5)]);
+        } else {
+            assert!(notes.contains("run west"), "{notes}");
+            // The file's last column is the westernmost.
+            assert_eq!(hf.raw_at(0, 0), wl as f32);
+            assert_eq!(hf.georef.origin, [500_000.0 - 25.0 * (w as f64 - 0.5), 5_200_000.0 - 17.5]);
+        }
+    }
+}
+
+/// Georeferencing that cannot be right is refused, naming the problem, and what was
+/// assumed or added is said: a raster beyond the pole, a CRS with a zero pixel size, a
+/// world file in degrees without a CRS; a metric world file without one gets a WARNING; a
+/// `.prj` beside a PNG's world file gives its CRS (US survey feet); a band offset is said.
+#[test]
+fn broken_georeferencing_is_refused_and_assumptions_said() {
+    let dir = TempDir::new("georef");
+    let err = |p: &Path| load(p, &LoadOptions::default()).unwrap_err().to_string();
+    let pole = dir.path().join("pole.tif");
+    write_geotiff(&pole, (11, 11), &[1.0; 121], [1.0, 1.0], [0.0, 95.0], &[(1024, 2), (1025, 1), (2048, 4326)], None);
+    let e = err(&pole);
+    assert!(e.contains("pole.tif") && e.contains("beyond a pole"), "{e}");
+    let zero = dir.path().join("zero.tif");
+    write_geotiff(
+        &zero,
+        (9, 9),
+        &[1.0; 81],
+        [0.0, 30.0],
+        [500_000.0, 5_200_000.0],
+        &[(1024, 1), (1025, 1), (3072, 32610)],
+        None,
+    );
+    let e = err(&zero);
+    assert!(e.contains("zero.tif") && e.contains("geotransform"), "{e}");
+    let png = dir.path().join("wf.png");
+    image::ImageBuffer::<image::Luma<u16>, _>::from_fn(9, 9, |x, y| image::Luma([(x + y) as u16])).save(&png).unwrap();
+    std::fs::write(dir.path().join("wf.pgw"), "0.01\n0\n0\n-0.01\n-122.0\n47.0\n").unwrap();
+    let e = err(&png);
+    assert!(e.contains("wf.png") && e.contains("degrees"), "{e}");
+    std::fs::write(dir.path().join("wf.pgw"), "10\n0\n0\n-10\n600000.0\n4200000.0\n").unwrap();
+    let hf = load_default(&png);
+    let notes = hf.georef.notes.join("\n");
+    assert!(notes.contains("WARNING") && notes.contains("ASSUMED"), "{notes}");
+    let wkt = gdal::spatial_ref::SpatialRef::from_epsg(2227).unwrap().to_wkt().unwrap();
+    std::fs::write(dir.path().join("wf.prj"), wkt).unwrap();
+    let hf = load_default(&png);
+    assert!((hf.spacing.x - 3.048006).abs() < 1e-5, "10 US survey feet: {:?}", hf.spacing);
+    assert_eq!(hf.georef.crs.as_deref(), Some("EPSG:2227"));
 }

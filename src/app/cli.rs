@@ -295,7 +295,20 @@ impl TextureArgs {
                     );
                     Ok(Texture { width, height, rgba })
                 }
-                None => read("--texture", path),
+                None => {
+                    // Stretched: say so when one side has coordinates the other lacks.
+                    let terrain_placed = hf.georef.step != [0.0; 2];
+                    eprintln!(
+                        "vkterrain: note: --texture {}: stretched over the terrain's whole extent{}",
+                        path.display(),
+                        if terrain_placed {
+                            " (the image has no georeferencing to drape by)"
+                        } else {
+                            " (the terrain has no georeferencing)"
+                        }
+                    );
+                    read("--texture", path)
+                }
             }
         };
         Ok(Textures {

@@ -300,6 +300,7 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
         out["mesh_vertices"] = json!(m.positions.len());
         out["mesh_triangles"] = json!(m.triangles());
         out["mesh_triangles_beyond_extent"] = json!(m.beyond_extent);
+        out["mesh_triangles_in_holes"] = json!(m.in_holes);
     }
     if let Some(ms) = errors_ms {
         out["error_update_ms"] = json!(ms);

@@ -894,11 +894,11 @@ impl App {
         let fwd = self.ctl.forward();
         let (Some((x, y)), Some(window)) = (self.cursor, &self.window) else { return fwd };
         let size = window.inner_size();
-        let right = fwd.cross(Vec3::Y).normalize_or_zero();
-        if size.width == 0 || size.height == 0 || right == Vec3::ZERO {
+        if size.width == 0 || size.height == 0 {
             return fwd;
         }
-        let up = right.cross(fwd);
+        // The drawn camera's own basis, so that the ray meets what is under the cursor.
+        let (right, up) = Camera::look_at(Vec3::ZERO, fwd, 60.0, 1, 1, 1.0).basis();
         let t = (self.args.common.fovy.to_radians() * 0.5).tan();
         let (nx, ny) = (2.0 * x / size.width as f32 - 1.0, 1.0 - 2.0 * y / size.height as f32);
         (fwd + right * (nx * t * size.width as f32 / size.height as f32) + up * (ny * t)).normalize()

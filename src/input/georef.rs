@@ -42,10 +42,18 @@ pub struct Raster {
     pub driver: String,
     /// The geotransform, when the file has one.
     pub transform: Option<[f64; 6]>,
-    /// The CRS, when the file has one (WKT).
+    /// The CRS, when the file has one (WKT), and its name when it has no code (the local
+    /// projection of a reprojected raster, as its PROJ string).
     pub crs_wkt: Option<String>,
-    /// Samples that lie outside the source raster after a reprojection (NaN).
+    pub crs_name: Option<String>,
+    /// Samples that lie outside the source raster after a reprojection: how many, and
+    /// which (drawn as holes whatever `--voids` says: nothing outside the data is drawn).
     pub outside: usize,
+    pub outside_mask: Option<Vec<bool>>,
+    /// The file's nodata when the raster was reprojected (its `nodata` is then NaN).
+    pub reprojected_nodata: Option<f64>,
+    /// What reading did to the samples, for the load message.
+    pub notes: Vec<String>,
 }
 
 /// GDAL reports problems both as return values (which become our messages) and through
@@ -112,9 +120,28 @@ fn vertical_crs_unit(srs: &SpatialRef) -> Option<(f64, String)> {
     }
 }
 
+/// "EPSG:32610"; a compound CRS without a code of its own as its parts' codes joined by
+/// "+" ("EPSG:2227+8228", as PROJ writes them); else the CRS's name.
 fn crs_label(srs: &SpatialRef) -> String {
-    match (srs.auth_name(), srs.auth_code()) {
-        (Some(a), Ok(c)) => format!("{a}:{c}"),
+    if let (Some(a), Ok(c)) = (srs.auth_name(), srs.auth_code()) {
+        return format!("{a}:{c}");
+    }
+    let parts: Option<Vec<String>> = (|| {
+        let json: serde_json::Value = serde_json::from_str(&srs.to_projjson().ok()?).ok()?;
+        json["components"]
+            .as_array()?
+            .iter()
+            .map(|c| Some(format!("{}:{}", c["id"]["authority"].as_str()?, c["id"]["code"])))
+            .collect()
+    })();
+    match parts {
+        Some(p) if !p.is_empty() => {
+            let (first, rest) = p.split_first().expect("not empty");
+            let authority = first.split(':').next().unwrap_or_default().to_string();
+            let codes: Vec<String> =
+                rest.iter().map(|r| r.trim_start_matches(&format!("{authority}:")).to_string()).collect();
+            std::iter::once(first.clone()).chain(codes).collect::<Vec<_>>().join("+")
+        }
         _ => srs.name().unwrap_or_else(|| "unnamed CRS".into()),
     }
 }
@@ -175,7 +202,38 @@ pub fn read(path: &Path) -> Result<Raster, HeightfieldError> {
         GdalDataType::UInt64 | GdalDataType::Int64 | GdalDataType::Float64 => (HeightFormat::Float32, 64),
         other => return Err(bad(format!("unsupported sample type {other:?}: expected integers or floats"))),
     };
-    let srs = ds.spatial_ref().ok();
+    let mut notes = Vec::new();
+    // A .prj beside the file (as QGIS reads it) when the file itself names no CRS.
+    let srs = ds.spatial_ref().ok().or_else(|| {
+        let prj = path.with_extension("prj");
+        let text = std::fs::read_to_string(&prj).ok()?;
+        let s = SpatialRef::from_esri(&text).or_else(|_| SpatialRef::from_definition(text.trim())).ok()?;
+        notes.push(format!("CRS from {}", prj.display()));
+        Some(s)
+    });
+    // GDAL answers a default transform with an error when the file has none.
+    let transform = ds.geo_transform().ok();
+    if transform.is_none() {
+        if !ds.gcps().is_empty() {
+            return Err(bad(format!(
+                "no usable geotransform: georeferenced by {} ground control point(s) only, or a zero pixel size: warp it to a grid first (gdalwarp)",
+                ds.gcps().len()
+            )));
+        }
+        if srs.is_some() {
+            return Err(bad(
+                "it names a CRS but has no usable geotransform (a zero pixel size?): its georeferencing is broken"
+                    .into(),
+            ));
+        }
+        let stem = path.with_extension("");
+        for ext in ["wld", "pgw", "pngw", "jgw", "jpgw", "tfw", "tifw"] {
+            let wf = stem.with_extension(ext);
+            if wf.is_file() {
+                return Err(bad(format!("its world file {} could not be used (a zero pixel size?)", wf.display())));
+            }
+        }
+    }
     let unit_name = band.unit();
     let vertical_unit = match metres_per_unit(&unit_name) {
         Some(m) => Some((m, unit_name)),
@@ -184,8 +242,9 @@ pub fn read(path: &Path) -> Result<Raster, HeightfieldError> {
         }
         None => srs.as_ref().and_then(vertical_crs_unit),
     };
-    // GDAL answers a default transform with an error when the file has none.
-    let transform = ds.geo_transform().ok();
+    if band.scale() == Some(0.0) {
+        return Err(bad("its band scale is 0: every height would be 0".into()));
+    }
     let raster = Raster {
         width: w,
         height: h,
@@ -199,17 +258,61 @@ pub fn read(path: &Path) -> Result<Raster, HeightfieldError> {
         driver: ds.driver().short_name(),
         transform,
         crs_wkt: srs.as_ref().and_then(|s| s.to_wkt().ok()),
+        crs_name: None,
         outside: 0,
+        outside_mask: None,
+        reprojected_nodata: None,
+        notes,
     };
-    match (&raster.transform, &srs) {
-        (Some(t), Some(s)) if s.is_geographic() => {
+    let mut raster = raster;
+    if let (Some(t), Some(s)) = (&raster.transform, &srs) {
+        if s.is_geographic() {
+            // Sample centres' latitudes: beyond a pole the georeferencing is wrong.
+            let unit = if s.angular_units() > 0.0 { s.angular_units().to_degrees() } else { 1.0 };
+            let lats = [t[3] + 0.5 * t[5], t[3] + (h as f64 - 0.5) * t[5]].map(|v| v * unit);
+            if lats.iter().any(|l| !(-90.0..=90.0).contains(l)) {
+                return Err(bad(format!(
+                    "its georeferencing puts samples at latitude {:.4} to {:.4}: beyond a pole",
+                    lats[0].min(lats[1]),
+                    lats[0].max(lats[1])
+                )));
+            }
+        }
+        if s.is_geographic() && t[2] == 0.0 && t[4] == 0.0 {
             let frame = geographic_frame(t, w, h, s);
             if frame.worst_stretch > MAX_STRETCH {
                 return reproject(&shown, &ds, raster, s, &frame);
             }
-            Ok(raster)
         }
-        _ => Ok(raster),
+    }
+    orient_east_and_south(&mut raster);
+    Ok(raster)
+}
+
+/// World x runs east and z south (SPEC section 1): a raster whose columns run west or
+/// whose rows run north (a negative x step, a positive y step) is mirrored into that
+/// order, its transform with it, and says so. A mirrored terrain would otherwise be drawn
+/// with its handedness flipped, silently.
+pub fn orient_east_and_south(r: &mut Raster) {
+    let Some(t) = r.transform.as_mut() else { return };
+    if t[2] != 0.0 || t[4] != 0.0 {
+        return; // rotated: refused when the scale is decided
+    }
+    let (w, h) = (r.width, r.height);
+    if t[1] < 0.0 {
+        for row in r.samples.chunks_mut(w) {
+            row.reverse();
+        }
+        t[0] += w as f64 * t[1];
+        t[1] = -t[1];
+        r.notes.push("columns run west in the file: mirrored so that x runs east".into());
+    }
+    if t[5] > 0.0 {
+        let rows: Vec<Vec<f32>> = r.samples.chunks(w).rev().map(|c| c.to_vec()).collect();
+        r.samples = rows.concat();
+        t[3] += h as f64 * t[5];
+        t[5] = -t[5];
+        r.notes.push("rows run north in the file (south-up): mirrored so that z runs south".into());
     }
 }
 
@@ -315,14 +418,38 @@ fn reproject(
     let band = dst.rasterband(1).map_err(|e| bad(e.to_string()))?;
     let samples =
         band.read_as::<f32>((0, 0), (nw, nh), (nw, nh), None).map_err(|e| bad(e.to_string()))?.into_shape_and_vec().1;
-    // The source's voids come back as NaN too (GDAL skips nodata when warping).
-    raster.outside = samples.iter().filter(|v| v.is_nan()).count();
+    // Which samples lie outside the source: their centres taken back to the source's CRS,
+    // row by row. (The source's own voids come back as NaN too, GDAL skipping nodata,
+    // but inside the footprint: they stay voids.)
+    let back = gdal::spatial_ref::CoordTransform::new(&dst_srs, &src_srs)
+        .map_err(|e| bad(format!("cannot transform back from the local projection: {e}")))?;
+    let (lo_x, hi_x) = (bounds[0].min(bounds[2]), bounds[0].max(bounds[2]));
+    let (lo_y, hi_y) = (bounds[1].min(bounds[3]), bounds[1].max(bounds[3]));
+    let mut outside = vec![true; nw * nh];
+    for j in 0..nh {
+        let mut xs: Vec<f64> = (0..nw).map(|i| x0 + (i as f64 + 0.5) * sx).collect();
+        let mut ys = vec![y1 - (j as f64 + 0.5) * sz; nw];
+        if back.transform_coords(&mut xs, &mut ys, &mut []).is_ok() {
+            for i in 0..nw {
+                outside[j * nw + i] = !((lo_x..=hi_x).contains(&xs[i]) && (lo_y..=hi_y).contains(&ys[i]));
+            }
+        }
+    }
+    raster.outside = outside.iter().filter(|&&o| o).count();
+    raster.outside_mask = Some(outside);
     raster.samples = samples;
     raster.width = nw;
     raster.height = nh;
     raster.format = HeightFormat::Float32;
     raster.transform = Some([x0, sx, 0.0, y1, 0.0, -sz]);
     raster.crs_wkt = dst_srs.to_wkt().ok();
+    raster.crs_name = Some(def.replace(" +no_defs", ""));
+    // NaN marks what has no data now; the file's own nodata (if any) is reported as read.
+    raster.notes.push(format!(
+        "reprojected to a local transverse Mercator projection centred at {:.4}, {:.4} (one spacing per axis would have been off by {:.1} %): {nw} x {nh} samples of {sx:.2} x {sz:.2} m",
+        frame.centre[1], frame.centre[0], 100.0 * frame.worst_stretch
+    ));
+    raster.reprojected_nodata = raster.nodata;
     raster.nodata = Some(f64::NAN);
     Ok(raster)
 }
@@ -425,7 +552,7 @@ pub fn decide(
             )))
         }
         (Some(t), Some(s)) => {
-            g.crs = Some(crs_label(s));
+            g.crs = Some(raster.crs_name.clone().unwrap_or_else(|| crs_label(s)));
             g.wkt = raster.crs_wkt.clone().unwrap_or_default();
             g.origin = [t[0] + 0.5 * t[1], t[3] + 0.5 * t[5]];
             g.step = [t[1], t[5]];
@@ -454,8 +581,10 @@ pub fn decide(
             }
         }
         (Some(t), None) => {
-            // A world file without a .prj: the pixel size is in unknown units.
-            if t[1].abs() < 0.01 {
+            // A world file without a .prj: the pixel size is in unknown units. Degrees
+            // look like a small pixel at a place on the globe.
+            let on_globe = (-180.0..=360.0).contains(&t[0]) && (-90.0..=90.0).contains(&t[3]);
+            if spacing.is_none() && (t[1].abs() < 0.01 || (on_globe && t[1].abs() < 1.0)) {
                 return Err(bad(format!(
                     "the world file gives {} units per sample but no CRS (.prj) says what a unit is (degrees?): \
                      add a .prj or give --spacing",
@@ -465,15 +594,21 @@ pub fn decide(
             g.origin = [t[0] + 0.5 * t[1], t[3] + 0.5 * t[5]];
             g.step = [t[1], t[5]];
             let sp = Spacing { x: t[1].abs() as f32, z: t[5].abs() as f32 };
-            Some((sp, format!("{} x {} a sample from the world file, no CRS: taken as metres", t[1].abs(), t[5].abs())))
+            Some((
+                sp,
+                format!(
+                    "{} x {} a sample from the world file; WARNING: no CRS (.prj), so its unit is ASSUMED to be the metre",
+                    t[1].abs(),
+                    t[5].abs()
+                ),
+            ))
         }
         (None, _) => None,
     };
+    notes.extend(raster.notes.iter().cloned());
     if raster.outside > 0 {
         notes.push(format!(
-            "reprojected to a local transverse Mercator projection (one spacing per axis would have been off by more than {} %); \
-             {} samples outside the source (or void in it) are filled like voids",
-            100.0 * MAX_STRETCH,
+            "{} samples of the reprojected grid lie outside the source: drawn as holes (filled only for the LOD bound)",
             raster.outside
         ));
     }
@@ -542,7 +677,10 @@ pub fn decide(
             v
         }
     };
-    if let Some(nd) = raster.nodata {
+    if let Some(o) = raster.offset {
+        notes.push(format!("band offset {o} (in the height unit) added to every sample"));
+    }
+    if let Some(nd) = if raster.outside_mask.is_some() { raster.reprojected_nodata } else { raster.nodata } {
         notes.push(format!("nodata {nd}"));
     }
     g.absolute_heights = georeferenced || known.is_some_and(|k| k.absolute);

@@ -25,9 +25,11 @@ impl Camera {
         self.width as f32 / self.height as f32
     }
 
-    /// Camera basis (right, up) for the current forward.
+    /// Camera basis (right, up) for the current forward. Looking (nearly) straight down
+    /// or up, the screen's up is north (-z), which is where it tends for a view tilted
+    /// north: the picture does not turn over as the view passes that threshold.
     pub fn basis(&self) -> (Vec3, Vec3) {
-        let world_up = if self.forward.y.abs() > 0.999 { Vec3::Z } else { Vec3::Y };
+        let world_up = if self.forward.y.abs() > 0.999 { Vec3::NEG_Z } else { Vec3::Y };
         let right = self.forward.cross(world_up).normalize();
         (right, right.cross(self.forward))
     }
@@ -192,6 +194,18 @@ pub fn angular_factor(cam: &Camera, min: Vec3, max: Vec3, delta: f32) -> f32 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Looking down, tilted north by less and less down to none: the screen's up stays
+    /// north (it turned to south below about 2.6 degrees, an adversarial review found).
+    #[test]
+    fn the_view_does_not_turn_over_near_nadir() {
+        for tilt_deg in [10.0f32, 3.0, 2.5, 1.0, 0.1, 0.0] {
+            let t = tilt_deg.to_radians();
+            let cam = Camera::look_at(Vec3::ZERO, Vec3::new(0.0, -t.cos(), -t.sin()), 60.0, 100, 100, 0.1);
+            let (right, up) = cam.basis();
+            assert!(up.z < -0.5 && right.x > 0.5, "tilt {tilt_deg}: up {up}, right {right}");
+        }
+    }
 
     /// The image and the culling frustum are the same pyramid: the frustum's edge
     /// directions project onto the image's edges, also far from the origin and looking

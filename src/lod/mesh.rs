@@ -1,8 +1,11 @@
 //! The drawn surface as one triangle mesh, for export: every drawn block's `k x k`
 //! vertices where the vertex shader puts them ([`block_vertex`], its CPU mirror: stitched
 //! edges, collapsed strips and morph factors applied), in world units, with the shared
-//! block index pattern ([`block_mesh_data`]). Triangles beyond the true extent (the
-//! margin, whose pixels the renderer discards) are left out.
+//! block index pattern ([`block_mesh_data`]), wound counter-clockwise seen from above
+//! (glTF's front faces; the renderer draws both sides). Left out, as the renderer leaves
+//! their pixels out: triangles beyond the true extent (the margin), and with `--voids
+//! hole` those whose centre lies in a hole (the shader's rule, at the centre); the
+//! vertices only those triangles use go too.
 
 use crate::lod::block::{block_mesh_data, block_vertex, BlockLayout, DrawBlock};
 use crate::lod::heightfield::Heightfield;
@@ -14,6 +17,8 @@ pub struct DrawnMesh {
     pub indices: Vec<u32>,
     /// Triangles of drawn blocks left out because a vertex lies beyond the true extent.
     pub beyond_extent: usize,
+    /// Triangles left out because their centre lies in a hole (`--voids hole`).
+    pub in_holes: usize,
 }
 
 impl DrawnMesh {
@@ -27,31 +32,57 @@ pub fn drawn_mesh(hf: &Heightfield, layout: &BlockLayout, blocks: &[DrawBlock]) 
     let k = layout.k();
     let (_, pattern) = block_mesh_data(k);
     let per_block = (k * k) as usize;
-    let mut mesh = DrawnMesh {
-        positions: Vec::with_capacity(blocks.len() * per_block),
-        indices: Vec::with_capacity(blocks.len() * pattern.len()),
-        beyond_extent: 0,
-    };
+    let mut mesh = DrawnMesh::default();
     let (last_x, last_z) = (hf.width as i64 - 1, hf.height as i64 - 1);
-    let mut inside = vec![false; per_block];
+    // Block-local vertices: sample position, world position, inside the true extent.
+    let mut local: Vec<((i64, i64), [f32; 3], bool)> = Vec::with_capacity(per_block);
+    // Index of each block vertex in the mesh, once a kept triangle uses it.
+    let mut index = vec![u32::MAX; per_block];
     for b in blocks {
-        let base = mesh.positions.len() as u32;
+        local.clear();
+        index.fill(u32::MAX);
         for v in 0..k {
             for u in 0..k {
                 let (sx, sz, raw) = block_vertex(hf, layout, b, u, v);
-                inside[(v * k + u) as usize] = sx <= last_x && sz <= last_z;
-                mesh.positions.push(hf.world_position(sx, sz, raw).to_array());
+                local.push(((sx, sz), hf.world_position(sx, sz, raw).to_array(), sx <= last_x && sz <= last_z));
             }
         }
         for t in pattern.chunks_exact(3) {
-            if t.iter().all(|&i| inside[i as usize]) {
-                mesh.indices.extend(t.iter().map(|&i| base + i));
-            } else {
+            if !t.iter().all(|&i| local[i as usize].2) {
                 mesh.beyond_extent += 1;
+                continue;
+            }
+            if hf.void_mask.is_some() && in_hole(hf, t.iter().map(|&i| local[i as usize].0)) {
+                mesh.in_holes += 1;
+                continue;
+            }
+            // The block pattern is clockwise seen from above: a, i, c instead of a, c, i.
+            for &i in [t[0], t[2], t[1]].iter() {
+                let i = i as usize;
+                if index[i] == u32::MAX {
+                    index[i] = mesh.positions.len() as u32;
+                    mesh.positions.push(local[i].1);
+                }
+                mesh.indices.push(index[i]);
             }
         }
     }
     mesh
+}
+
+/// The shader's hole rule (`terrain_shade.glsl::in_hole`) at a triangle's centre: the
+/// bilinear share of hole samples around it is at least one half.
+fn in_hole(hf: &Heightfield, corners: impl Iterator<Item = (i64, i64)>) -> bool {
+    let (mut x, mut z) = (0.0f64, 0.0f64);
+    for (sx, sz) in corners {
+        x += sx as f64 / 3.0;
+        z += sz as f64 / 3.0;
+    }
+    let (x0, z0) = (x.floor() as i64, z.floor() as i64);
+    let (fx, fz) = (x - x0 as f64, z - z0 as f64);
+    let h = |dx: i64, dz: i64| hf.is_hole(x0 + dx, z0 + dz) as u8 as f64;
+    let share = (h(0, 0) * (1.0 - fx) + h(1, 0) * fx) * (1.0 - fz) + (h(0, 1) * (1.0 - fx) + h(1, 1) * fx) * fz;
+    share >= 0.5
 }
 
 #[cfg(test)]
@@ -69,9 +100,34 @@ mod tests {
         let b = DrawBlock::new(0, 0, 0);
         let m = drawn_mesh(&hf, &layout, &[b]);
         assert_eq!((m.positions.len(), m.triangles(), m.beyond_extent), (81, 128, 0));
-        assert_eq!(m.positions[9 * 3 + 2], [2.0, 23.0, 3.0]);
-        let small = test_field(7, 5, |x, z| (x + z) as f32);
-        let m = drawn_mesh(&small, &layout, &[b]);
-        assert_eq!((m.triangles(), m.beyond_extent), (6 * 4 * 2, 128 - 48));
+        assert!(m.positions.contains(&[2.0, 23.0, 3.0]));
+        // Counter-clockwise seen from above: every normal points up.
+        for t in m.indices.chunks_exact(3) {
+            let [a, b, c] = [0, 1, 2].map(|j| glam::Vec3::from(m.positions[t[j] as usize]));
+            assert!((b - a).cross(c - a).y > 0.0, "triangle {t:?} faces down");
+        }
+        // A 13 x 10 field in a 13 x 13 grid: the margin's triangles and the vertices only
+        // they use go.
+        let small = test_field(13, 10, |x, z| (x + z) as f32);
+        let layout = BlockLayout::of(&small, 5).unwrap();
+        let [bx, bz] = layout.blocks(0);
+        let blocks: Vec<DrawBlock> =
+            (0..bz as u32).flat_map(|z| (0..bx as u32).map(move |x| DrawBlock::new(0, x, z))).collect();
+        let m = drawn_mesh(&small, &layout, &blocks);
+        assert_eq!(small.grid(), [13, 13]);
+        assert_eq!((m.triangles(), m.beyond_extent), (12 * 9 * 2, 12 * 12 * 2 - 12 * 9 * 2));
+        assert!(m.positions.iter().all(|p| p[2] <= 9.0), "a margin vertex is left in");
+    }
+
+    /// With holes, the triangles whose centre is in a hole are left out, and their
+    /// vertices with them.
+    #[test]
+    fn holes_are_left_out() {
+        let mut hf = test_field(9, 9, |x, z| (x + z) as f32);
+        hf.void_mask = Some((0..81).map(|i| (3..6).contains(&(i % 9)) && (3..6).contains(&(i / 9))).collect());
+        let layout = BlockLayout::of(&hf, 9).unwrap();
+        let m = drawn_mesh(&hf, &layout, &[DrawBlock::new(0, 0, 0)]);
+        assert!(m.in_holes >= 8 && m.in_holes + m.triangles() == 128, "{} in holes", m.in_holes);
+        assert!(!m.positions.contains(&[4.0, 8.0, 4.0]), "the hole's centre vertex is left out");
     }
 }
