@@ -36,12 +36,21 @@ pub fn grid_side(samples: usize) -> usize {
 }
 
 /// The most square roots a grid is made of (SPEC section 1): more would save little
-/// memory and cost the coarsest views one block per root.
+/// memory and cost the coarsest views one block per root. A long strip may take more
+/// (see [`max_roots`]).
 pub const MAX_ROOTS: usize = 16;
+
+/// The most roots for a `width x height` input: [`MAX_ROOTS`], or for a strip longer
+/// than that about two per square of its short side, so that its memory too follows its
+/// size (an 8193 x 3 strip is 4096 roots of 3, not 16 roots of 1025).
+pub fn max_roots(width: usize, height: usize) -> usize {
+    let (long, short) = (width.max(height) - 1, width.min(height).max(2) - 1);
+    MAX_ROOTS.max(2 * long.div_ceil(short))
+}
 
 /// How a `width x height` input is covered (SPEC section 1): `n` and the roots (columns,
 /// rows) of a grid of `2^n + 1` squares sharing their border samples, the one that takes
-/// the fewest samples with at most [`MAX_ROOTS`] roots (the larger `n` on a tie). A
+/// the fewest samples with at most [`max_roots`] roots (the larger `n` on a tie). A
 /// 4097 x 2049 input is two 2049^2 roots side by side (4097 x 2049 samples, not 4097^2);
 /// 1201 x 1201 is 3 x 3 roots of 513 (1537^2, not 2049^2).
 pub fn grid_cover(width: usize, height: usize) -> (u32, [usize; 2]) {
@@ -50,7 +59,7 @@ pub fn grid_cover(width: usize, height: usize) -> (u32, [usize; 2]) {
     for n in (1..=top).rev() {
         let r = 1usize << n;
         let roots = [(width - 1).div_ceil(r).max(1), (height - 1).div_ceil(r).max(1)];
-        if roots[0] * roots[1] > MAX_ROOTS {
+        if roots[0] * roots[1] > max_roots(width, height) {
             break;
         }
         let area = (roots[0] * r + 1) * (roots[1] * r + 1);
@@ -386,9 +395,12 @@ mod tests {
         assert_eq!(grid_cover(1025, 1025), (10, [1, 1]));
         assert_eq!(grid_cover(4096, 4096), (12, [1, 1]));
         assert_eq!(grid_cover(257, 257), (8, [1, 1]));
-        // A long strip: as many roots as allowed, the grid no wider than it must be.
-        let (n, roots) = grid_cover(20000, 2);
-        assert!(roots[0] * roots[1] <= MAX_ROOTS && roots[0] << n >= 19999, "{n} {roots:?}");
+        // Long strips: memory follows their size too.
+        assert_eq!(grid_cover(8193, 3), (1, [4096, 1]));
+        assert_eq!(grid_cover(3, 8193), (1, [1, 4096]));
+        let (n, roots) = grid_cover(20000, 5);
+        assert!(roots[0] * roots[1] <= max_roots(20000, 5) && roots[0] << n >= 19999, "{n} {roots:?}");
+        assert!(((roots[0] << n) + 1) * ((roots[1] << n) + 1) < 2 * 20000 * 5, "{n} {roots:?}");
         let hf = field(1201, 1201, |_, _| 0.0);
         assert_eq!(hf.grid(), [1537, 1537]);
     }
