@@ -996,15 +996,18 @@ impl App {
         self.ctl.orbit = None;
     }
 
-    /// The panel's map section: the camera and the terrain point under the cursor on the
-    /// map, the scale at the view's centre and where north is on screen.
-    fn place(&self) -> Option<crate::app::hud::Place> {
+    /// The terrain point under the cursor, when the cursor is over the terrain.
+    fn cursor_ground(&self) -> Option<Vec3> {
+        let (wx, wz) = self.hf.world_extent();
+        let inside = |q: &Vec3| (0.0..=wx).contains(&q.x) && (0.0..=wz).contains(&q.z);
+        self.cursor.map(|_| ground_hit(&self.hf, self.ctl.position, self.cursor_ray())).filter(inside)
+    }
+
+    /// The panel's map section: the camera and `cursor` (the terrain point under the
+    /// cursor) on the map, the scale at the view's centre and where north is on screen.
+    fn place(&self, cursor: Option<Vec3>) -> Option<crate::app::hud::Place> {
         let geo = self.geo.as_ref()?;
         let p = self.ctl.position;
-        let (wx, wz) = self.hf.world_extent();
-        let inside = |q: Vec3| (0.0..=wx).contains(&q.x) && (0.0..=wz).contains(&q.z);
-        let ray = self.cursor_ray();
-        let cursor = self.cursor.map(|_| ground_hit(&self.hf, p, ray)).filter(|&q| inside(q));
         let centre = ground_hit(&self.hf, p, self.ctl.forward());
         let height = self.window.as_ref().map_or(1, |w| w.inner_size().height.max(1)) as f32;
         let metres_per_pixel = (centre - p).length() * 2.0 * (self.args.common.fovy.to_radians() * 0.5).tan() / height;
@@ -1057,16 +1060,16 @@ impl App {
             waits_ms: self.last_waits,
             ..Readout::default()
         };
-        readout.place = self.place();
+        // One march along the cursor's ray a frame, for the panel and the exit figures.
+        let cursor = self.geo.as_ref().and(self.cursor_ground());
+        readout.place = self.place(cursor);
         if let Some(geo) = &self.geo {
             self.stats.camera_lat_lon = geo.lat_lon(p.x, p.z);
-            let hit = self.cursor.map(|_| ground_hit(&self.hf, p, self.cursor_ray()));
-            self.stats.cursor_place =
-                hit.filter(|q| (0.0..=wx).contains(&q.x) && (0.0..=wz).contains(&q.z)).and_then(|q| {
-                    let [lat, lon] = geo.lat_lon(q.x, q.z)?;
-                    let ground_m = q.y / self.exaggeration;
-                    Some(serde_json::json!({ "lat": lat, "lon": lon, "ground_m": ground_m, "world": [q.x, q.y, q.z] }))
-                });
+            self.stats.cursor_place = cursor.and_then(|q| {
+                let [lat, lon] = geo.lat_lon(q.x, q.z)?;
+                let ground_m = q.y / self.exaggeration;
+                Some(serde_json::json!({ "lat": lat, "lon": lon, "ground_m": ground_m, "world": [q.x, q.y, q.z] }))
+            });
         }
         if self.base.is_none() {
             let [lo, hi] = self.mm.range().map(|r| r * self.hf.height_scale);

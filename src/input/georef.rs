@@ -332,11 +332,15 @@ pub struct GeographicFrame {
     pub worst_stretch: f64,
 }
 
+/// Semi-major and semi-minor axes of the CRS's ellipsoid (WGS 84's when it names none).
+fn ellipsoid(srs: &SpatialRef) -> (f64, f64) {
+    (srs.semi_major().unwrap_or(6_378_137.0), srs.semi_minor().unwrap_or(6_356_752.314_245))
+}
+
 /// [`GeographicFrame`] from the raster's transform (degrees, or the CRS's angular unit),
 /// size and ellipsoid.
 pub fn geographic_frame(t: &[f64; 6], w: usize, h: usize, srs: &SpatialRef) -> GeographicFrame {
-    let a = srs.semi_major().unwrap_or(6_378_137.0);
-    let b = srs.semi_minor().unwrap_or(6_356_752.314_245);
+    let (a, b) = ellipsoid(srs);
     let rad = srs.angular_units();
     let rad = if rad > 0.0 { rad } else { std::f64::consts::PI / 180.0 };
     frame_on_ellipsoid(t, w, h, a, 1.0 - (b / a).powi(2), rad)
@@ -375,8 +379,7 @@ fn reproject(
     frame: &GeographicFrame,
 ) -> Result<Raster, HeightfieldError> {
     let bad = |m: String| HeightfieldError::invalid(shown, m);
-    let a = srs.semi_major().unwrap_or(6_378_137.0);
-    let b = srs.semi_minor().unwrap_or(6_356_752.314_245);
+    let (a, b) = ellipsoid(srs);
     let def = format!(
         "+proj=tmerc +lat_0={} +lon_0={} +k=1 +x_0=0 +y_0=0 +a={a} +b={b} +units=m +no_defs",
         frame.centre[1], frame.centre[0]

@@ -281,13 +281,16 @@ pub fn fill_voids(
     Ok(count)
 }
 
+/// The 4-neighbours of sample `i` of a `w x h` grid (fewer on its edges).
+fn grid_neighbours(i: usize, w: usize, h: usize) -> [Option<usize>; 4] {
+    let (x, z) = (i % w, i / w);
+    [(x > 0).then(|| i - 1), (x + 1 < w).then(|| i + 1), (z > 0).then(|| i - w), (z + 1 < h).then(|| i + w)]
+}
+
 /// Voids of a grid with at least one valid sample, filled (see [`fill_voids`]).
 fn laplace_fill(samples: &mut [f32], void: &[bool], w: usize, h: usize) {
     let voids: Vec<usize> = (0..samples.len()).filter(|&i| void[i]).collect();
-    let neighbours = |i: usize| {
-        let (x, z) = (i % w, i / w);
-        [(x > 0).then(|| i - 1), (x + 1 < w).then(|| i + 1), (z > 0).then(|| i - w), (z + 1 < h).then(|| i + w)]
-    };
+    let neighbours = |i: usize| grid_neighbours(i, w, h);
     if voids.len() > 4096 && w >= 8 && h >= 8 {
         coarse_guess(samples, void, w, h);
     } else {
@@ -412,10 +415,7 @@ fn waves(samples: &mut [f32], filled: &mut [bool], target: &[bool], neighbours: 
 /// half the grid is not. The file's own voids inside are left for the smooth fill.
 fn fill_outside(samples: &mut [f32], outside: &[bool], is_void: impl Fn(f32) -> bool, w: usize, h: usize) {
     let mut filled: Vec<bool> = samples.iter().zip(outside).map(|(&v, &o)| !o && !is_void(v)).collect();
-    let neighbours = |i: usize| {
-        let (x, z) = (i % w, i / w);
-        [(x > 0).then(|| i - 1), (x + 1 < w).then(|| i + 1), (z > 0).then(|| i - w), (z + 1 < h).then(|| i + w)]
-    };
+    let neighbours = |i: usize| grid_neighbours(i, w, h);
     waves(samples, &mut filled, outside, neighbours);
 }
 
