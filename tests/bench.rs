@@ -75,13 +75,19 @@ fn short_bench_writes_every_file_with_documented_fields() {
     assert_eq!(
         lines.next().unwrap(),
         "time_s,frame_ms,traverse_ms,gpu_ms,triangles,draw_calls,blocks,error_generation,error_age_frames,\
-         error_update_ms,queue_wait_ms,morphing,temporal_rmse,popping,lod_change_rmse,lod_change_over16"
+         error_update_ms,queue_wait_ms,morphing,temporal_rmse,popping,lod_change_rmse,lod_change_over16,occluded"
     );
     let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
     assert_eq!(rows.len(), 24);
-    assert!(rows.iter().all(|r| r.len() == 16));
+    assert!(rows.iter().all(|r| r.len() == 17));
     // Without --popping no frame is read back for it.
-    assert!(rows.iter().all(|r| r[12..] == ["", "", "", ""]));
+    assert!(rows.iter().all(|r| r[12..16] == ["", "", "", ""]));
+    // Occlusion culling (on by default): blocks left undrawn where it ran, empty where it
+    // was paused or skipped; the summary counts the frames it ran on.
+    let ran = rows.iter().filter(|r| !r[16].is_empty()).count();
+    assert!(rows.iter().all(|r| r[16].is_empty() || r[16].parse::<usize>().is_ok()));
+    assert!(ran >= 1, "the first frame always runs the sweep");
+    assert_eq!(s["occlusion_culled_frames"], ran);
     // Terrain is ahead for the first three quarters of the path (at the far edge the
     // camera looks out past it, as at the end of the paper's Figure 8).
     assert!(rows[..18].iter().all(|r| r[4].parse::<u64>().unwrap() > 0), "frames with terrain ahead draw triangles");
@@ -120,6 +126,13 @@ fn short_bench_writes_every_file_with_documented_fields() {
     let (median, p99) =
         (s["compare"]["median_excess_over_ceiling_ms"].as_f64(), s["compare"]["p99_excess_over_ceiling_ms"].as_f64());
     assert!(matches!((median, p99), (Some(m), Some(p)) if p >= m), "{median:?} {p99:?}");
+    // The stall target: the larger of a quarter of the ceiling's median frame and 1.5x
+    // the p99 gap between two ceiling runs, and whether the excess meets it.
+    let c = &s["compare"];
+    let (gap, target) = (c["p99_ceiling_gap_ms"].as_f64().unwrap(), c["stall_target_ms"].as_f64().unwrap());
+    let quarter = 0.25 * c["ceiling"]["median_frame_ms"].as_f64().unwrap();
+    assert!((target - quarter.max(1.5 * gap)).abs() < 1e-9, "target {target}, gap {gap}, quarter {quarter}");
+    assert_eq!(c["stall_target_met"], serde_json::json!(p99.unwrap() <= target));
     assert_eq!(s["fidelity"].as_array().unwrap().len(), 12);
     let plot = image::open(out.join("plot.png")).unwrap();
     assert_eq!((plot.width(), plot.height()), (960, 640));
@@ -213,7 +226,7 @@ fn popping_is_measured_frame_by_frame() {
         let csv = std::fs::read_to_string(out.join("frames.csv")).unwrap();
         let rows: Vec<Vec<String>> = csv.lines().skip(1).map(|l| l.split(',').map(String::from).collect()).collect();
         let num = |r: &[String], c: usize| r[c].parse::<f64>().ok();
-        assert!(rows[0][12..].iter().all(|c| c.is_empty()), "the first frame has no predecessor");
+        assert!(rows[0][12..16].iter().all(|c| c.is_empty()), "the first frame has no predecessor");
         for r in &rows[1..] {
             let (t, excess, change) = (num(r, 12).unwrap(), num(r, 13).unwrap(), num(r, 14).unwrap());
             assert!(t >= 0.0 && change >= 0.0 && excess <= t + 1e-3, "{r:?}");

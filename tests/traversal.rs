@@ -972,3 +972,51 @@ fn morph_bound_holds_in_every_state() {
     assert!(checked > 1000, "too few block states ({checked})");
     assert!(broken_when_cut.iter().all(|&n| n > 0), "the edge terms never bind on these inputs: {broken_when_cut:?}");
 }
+
+/// Occlusion culling's occluders stand on each block's lowest drawn height and its
+/// queries on the highest (`occlusion::drawn_range`): every drawn vertex, stitched,
+/// morphed and with its corners resolved, must lie in that range. The adversarial fields
+/// put stitched edges beside coarse neighbours and morphing blocks in view. The check
+/// can fail: the same range narrowed by a thousandth of its span (the mutation) leaves
+/// vertices outside it, so the range is not looser than the drawn vertices either.
+#[test]
+fn drawn_range_holds_every_drawn_vertex() {
+    use vkterrain::lod::occlusion::drawn_range;
+    let fields = [first_row_spikes(9, 40.0), edge_steps(6.0), flat_next_to_ridges(2, 40.0), rough_and_smooth(3)];
+    let (mut vertices, mut outside_narrowed, mut stitched, mut morphing) = (0usize, 0usize, 0usize, 0usize);
+    for (f, hf) in fields.iter().enumerate() {
+        let mm = MinMaxPyramid::build(hf);
+        for k in [5u32, 9, 17] {
+            let layout = BlockLayout::of(hf, k).unwrap();
+            for (i, cam) in adversarial_poses(hf, 128.0, 24, 300 + f as u64 * 7 + k as u64).iter().enumerate() {
+                let p = ErrorParams::new(cam, ErrorMode::Strict);
+                let errors = block_errors(&group_errors_with(hf, &mm, &p, WorldPart::Exact), layout.m);
+                let caches = BlockCaches::default();
+                let select = LodSelect::errors(&errors, cam.position, [0.5f32, 1.0, 4.0][i % 3], ErrorMode::Strict);
+                let t = traverse(hf, &mm, &caches, &layout, cam, select);
+                for b in &t.blocks {
+                    let [lo, hi] = drawn_range(hf, &mm, &caches, &layout, b);
+                    let inset = (hi - lo) * 1e-3;
+                    stitched += (b.coarser != [0; 4]) as usize;
+                    morphing += (b.morph != MORPH_ONE) as usize;
+                    for v in 0..k {
+                        for u in 0..k {
+                            let (_, _, raw) = block_vertex(hf, &layout, b, u, v);
+                            let y = raw * hf.height_scale;
+                            assert!(
+                                y >= lo && y <= hi,
+                                "{} k {k} pose {i}: vertex ({u}, {v}) of {b:?} at {y} outside its drawn range [{lo}, {hi}]",
+                                hf.source
+                            );
+                            outside_narrowed += (y < lo + inset || y > hi - inset) as usize;
+                            vertices += 1;
+                        }
+                    }
+                }
+            }
+        }
+    }
+    println!("drawn range: {vertices} vertices, {stitched} stitched and {morphing} morphing blocks, {outside_narrowed} outside the narrowed range");
+    assert!(stitched > 100 && morphing > 100, "the poses must stitch and morph ({stitched}, {morphing})");
+    assert!(outside_narrowed > 0, "mutation: the narrowed range still holds every vertex");
+}

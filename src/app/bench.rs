@@ -165,6 +165,9 @@ struct Row {
     queue_wait_ms: Option<f64>,
     /// Blocks drawn part way between two LODs.
     morphing: usize,
+    /// Selected blocks occlusion culling left undrawn (empty when it did not run or was
+    /// skipped).
+    occluded: Option<usize>,
     /// Colour RMSE against the previous frame (with --popping).
     temporal_rmse: Option<f64>,
     /// `temporal_rmse` minus the --lod full run's at the same frame (with --popping).
@@ -180,7 +183,7 @@ struct Row {
 
 const CSV_HEADER: &str = "time_s,frame_ms,traverse_ms,gpu_ms,triangles,draw_calls,blocks,error_generation,\
                           error_age_frames,error_update_ms,queue_wait_ms,morphing,temporal_rmse,popping,lod_change_rmse,\
-                          lod_change_over16";
+                          lod_change_over16,occluded";
 
 fn opt<T: std::fmt::Display>(v: Option<T>) -> String {
     v.map_or(String::new(), |v| v.to_string())
@@ -189,7 +192,7 @@ fn opt<T: std::fmt::Display>(v: Option<T>) -> String {
 impl Row {
     fn csv(&self) -> String {
         format!(
-            "{:.4},{:.3},{:.3},{},{},{},{},{},{},{},{},{},{},{},{},{}",
+            "{:.4},{:.3},{:.3},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
             self.time_s,
             self.frame_ms,
             self.traverse_ms,
@@ -205,7 +208,8 @@ impl Row {
             opt(self.temporal_rmse.map(|v| format!("{v:.4}"))),
             opt(self.popping.map(|v| format!("{v:.4}"))),
             opt(self.lod_change_rmse.map(|v| format!("{v:.4}"))),
-            opt(self.lod_change_over16.map(|v| format!("{v:.7}")))
+            opt(self.lod_change_over16.map(|v| format!("{v:.7}"))),
+            opt(self.occluded)
         )
     }
 }
@@ -499,6 +503,7 @@ impl Bench<'_> {
             if let Some(tr) = &frame.traversal {
                 row.traverse_ms = frame.traverse_ms;
                 row.morphing = tr.morphing;
+                row.occluded = tr.occlusion.filter(|o| o.skipped.is_none()).map(|o| o.hidden);
                 if let Some(g) = draw.feed.usable() {
                     row.error_generation = g.number;
                     row.error_update_ms = g.gpu_ms;
@@ -619,7 +624,15 @@ fn summarize(run: &Run) -> Value {
     let mut waits: Vec<f64> = run.rows.iter().filter_map(|r| r.queue_wait_ms).collect();
     waits.sort_by(|a, b| a.total_cmp(b));
     let p99_wait = (!waits.is_empty()).then(|| percentile(&waits, 0.99));
+    // Occlusion: the share of selected blocks left undrawn, over the frames it ran on.
+    let culled: Vec<(usize, usize)> = run.rows.iter().filter_map(|r| r.occluded.map(|o| (o, r.blocks))).collect();
+    let occluded_share = (!culled.is_empty()).then(|| {
+        let (hidden, drawn): (usize, usize) = culled.iter().fold((0, 0), |a, c| (a.0 + c.0, a.1 + c.1));
+        hidden as f64 / (hidden + drawn).max(1) as f64
+    });
     json!({
+        "occluded_block_share": occluded_share,
+        "occlusion_culled_frames": culled.len(),
         "frames": run.rows.len(),
         "avg_fps": run.rows.len() as f64 / total_s.max(1e-9),
         "median_frame_ms": percentile(&ms, 0.5),
@@ -892,7 +905,10 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
             if let (true, Some(full)) = (args.compare, full) {
                 let distance = bench.run(LodChoice::Distance, None, None, false)?;
                 let ceiling = bench.run(LodChoice::Full, None, Some(&main.blocks), false)?;
-                if !distance.interrupted && !ceiling.interrupted {
+                // The same ceiling again: how far two identical runs drift apart frame by
+                // frame on this machine, the floor under any stall figure.
+                let again = bench.run(LodChoice::Full, None, Some(&main.blocks), false)?;
+                if !distance.interrupted && !ceiling.interrupted && !again.interrupted {
                     let (sm, sf, sd, sc) =
                         (summarize(&main), summarize(&full), summarize(&distance), summarize(&ceiling));
                     let ratio =
@@ -909,6 +925,14 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
                     if let Some((median, p99)) = frame_time_excess(&ms(&main), &ms(&ceiling)) {
                         summary["compare"]["median_excess_over_ceiling_ms"] = json!(median);
                         summary["compare"]["p99_excess_over_ceiling_ms"] = json!(p99);
+                        let gap = frame_time_excess(&ms(&again), &ms(&ceiling)).map(|g| g.1);
+                        summary["compare"]["p99_ceiling_gap_ms"] = json!(gap);
+                        // The stall target (issue 26): a quarter of the ceiling's median
+                        // frame, or 1.5x the gap between two ceiling runs, the larger.
+                        let quarter = sc["median_frame_ms"].as_f64().map(|m| 0.25 * m);
+                        let target = quarter.zip(gap).map(|(q, g)| q.max(1.5 * g));
+                        summary["compare"]["stall_target_ms"] = json!(target);
+                        summary["compare"]["stall_target_met"] = json!(target.map(|t| p99 <= t));
                     }
                 }
             }

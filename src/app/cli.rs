@@ -156,6 +156,10 @@ pub struct CommonArgs {
     /// morph paid for inside the error bound.
     #[arg(long, value_enum, default_value_t = OnOff::On)]
     pub morph: OnOff,
+    /// Occlusion culling: blocks hidden behind nearer terrain are not drawn (provably
+    /// conservative; skipped, with the reason in the stats, where the proof does not hold).
+    #[arg(long, value_enum, default_value_t = OnOff::On)]
+    pub occlusion: OnOff,
     /// Sun for the precomputed shadows and ambient occlusion: compass azimuth and
     /// elevation in degrees (azimuth 0 is north, the top of the heightmap), or `off`.
     #[arg(long, value_name = "AZ,EL|off", default_value = "301,54", value_parser = parse_sun)]

@@ -173,10 +173,11 @@ impl Session {
 
 /// A device that cannot satisfy `--gpu` or `--queues` is a bad option (exit code 2).
 /// The draw thread as the options set it up (its error feed's mode and refresh policy,
-/// morphing), recording into `trace`.
+/// morphing, occlusion culling), recording into `trace`.
 pub fn draw_thread(common: &CommonArgs, trace: Trace) -> DrawThread {
     let policy = RefreshPolicy { moved_fraction: common.refresh_at, max_share: common.update_share };
     DrawThread::new(ErrorFeed::new(common.error_mode, policy), common.morph == OnOff::On, trace)
+        .with_occlusion(common.occlusion == OnOff::On)
 }
 
 pub fn option_error(e: crate::vk::VkError) -> anyhow::Error {
@@ -281,6 +282,7 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
         "triangles": stats.triangles,
         "draw_calls": stats.draw_calls,
         "blocks": trav.blocks.len(),
+        "occlusion": trav.occlusion,
         "error_generation": generation,
         "max_block_error_px": trav.max_block_error,
         "stitch_splits": trav.stitch_splits,

@@ -75,6 +75,8 @@ pub struct Readout {
     pub triangles: u64,
     pub draw_calls: u64,
     pub blocks: usize,
+    /// What occlusion culling did in the last frame (when on).
+    pub occlusion: Option<crate::lod::occlusion::OcclusionReport>,
     /// Frames since the camera was where the error data in use was computed.
     pub error_age: Option<u64>,
     /// GPU time of the newest error update, when the device has timestamps.
@@ -137,6 +139,8 @@ pub struct Controls {
     pub delta: f32,
     pub mode: ErrorMode,
     pub morph: bool,
+    /// Occlusion culling.
+    pub occlusion: bool,
     pub frozen: bool,
     pub wireframe: bool,
     pub colour_by_lod: bool,
@@ -175,6 +179,7 @@ pub const KEYS: &[(&str, &str)] = &[
     ("M", "strict / paper error mode"),
     ("Z / X", "less / more vertical exaggeration"),
     ("N", "geomorphing on / off"),
+    ("C", "occlusion culling on / off"),
     ("F", "wireframe"),
     ("L", "colour blocks by LOD"),
     ("Space", "freeze the block list"),
@@ -242,6 +247,16 @@ fn panel(ui: &mut egui::Ui, r: &Readout, history: &FrameHistory, now: f64, c: &m
         row("draw waits", format!("{:.1} slot, {:.1} queue ms", r.waits_ms.0, r.waits_ms.1));
         row("triangles", r.triangles.to_string());
         row("draw calls", format!("{} ({} blocks)", r.draw_calls, r.blocks));
+        row(
+            "occluded",
+            match r.occlusion {
+                None => "- (off)".into(),
+                Some(o) => match o.skipped {
+                    Some(why) => format!("- ({})", why.as_str()),
+                    None => format!("{} of {} blocks", o.hidden, o.tested),
+                },
+            },
+        );
         row("error age", r.error_age.map_or("-".into(), |a| format!("{a} frames")));
         row("error update", r.update_ms.map_or("- (no timestamps)".into(), |m| format!("{m:.1} ms GPU")));
         row("generations", r.generations.to_string());
@@ -273,6 +288,7 @@ fn panel(ui: &mut egui::Ui, r: &Readout, history: &FrameHistory, now: f64, c: &m
     });
     ui.horizontal(|ui| {
         ui.checkbox(&mut c.morph, "morph");
+        ui.checkbox(&mut c.occlusion, "occlusion culling");
         ui.checkbox(&mut c.frozen, "freeze blocks");
     });
     ui.horizontal(|ui| {
@@ -904,6 +920,7 @@ mod tests {
             delta: 1.0,
             mode: ErrorMode::Strict,
             morph: true,
+            occlusion: true,
             frozen: false,
             wireframe: false,
             colour_by_lod: false,
@@ -1106,6 +1123,8 @@ mod tests {
     fn the_panel_controls_change_the_state() {
         let (c, _) = run(true, Ok("morph"));
         assert_eq!(c, Controls { morph: false, ..controls() });
+        let (c, _) = run(true, Ok("occlusion culling"));
+        assert_eq!(c, Controls { occlusion: false, ..controls() });
         let (c, _) = run(true, Ok("LOD colours"));
         assert_eq!(c, Controls { colour_by_lod: true, ..controls() });
         let (c, _) = run(true, Ok("deferred shading"));

@@ -334,6 +334,8 @@ struct App {
     /// The frame submitted from each slot and not yet traced.
     slot_frames: [Option<u64>; FRAMES_IN_FLIGHT],
     last_blocks: usize,
+    /// What occlusion culling did in the last traversed frame.
+    last_occlusion: Option<crate::lod::occlusion::OcclusionReport>,
     /// The block list of the last frame (frozen with Space).
     blocks: Vec<DrawBlock>,
     screenshot_next: Option<PathBuf>,
@@ -467,6 +469,7 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
         last_waits: (0.0, 0.0),
         slot_frames: [None; FRAMES_IN_FLIGHT],
         last_blocks: 0,
+        last_occlusion: None,
         blocks: Vec::new(),
         screenshot_next: None,
         screenshots_asked: 0,
@@ -798,6 +801,7 @@ impl App {
             self.stats.error_generations = n;
         }
         self.stats.most_generations_in_flight = activity.most_in_flight();
+        self.last_occlusion = frame.traversal.as_ref().and_then(|t| t.occlusion);
         let (blocks, submitted) = frame.into_parts();
         let Some(Submitted { image_index, suboptimal, extent, screenshot, readback, render_done, recording }) =
             submitted
@@ -916,6 +920,7 @@ impl App {
             delta: self.delta,
             mode: self.mode,
             morph: self.draw.morph,
+            occlusion: self.draw.occlusion,
             frozen: self.frozen.is_some(),
             wireframe: self.shading.wireframe,
             colour_by_lod: self.shading.colour_by_lod,
@@ -936,6 +941,7 @@ impl App {
         self.delta = c.delta;
         self.mode = c.mode;
         self.draw.morph = c.morph;
+        self.draw.occlusion = c.occlusion;
         self.shading.wireframe = c.wireframe;
         self.shading.colour_by_lod = c.colour_by_lod;
         self.shading.pixels = if c.deferred { PixelPass::Deferred } else { PixelPass::Forward };
@@ -1034,6 +1040,7 @@ impl App {
             triangles: self.last_stats.triangles,
             draw_calls: self.last_stats.draw_calls,
             blocks: self.last_blocks,
+            occlusion: self.last_occlusion.filter(|_| self.draw.occlusion),
             error_age: self.draw.feed.age_frames(self.frame),
             update_ms: self.draw.feed.update_ms(),
             generations: self.stats.error_generations,
@@ -1148,6 +1155,7 @@ impl App {
                 self.mode = if self.mode == ErrorMode::Strict { ErrorMode::Paper } else { ErrorMode::Strict }
             }
             KeyCode::KeyN => self.draw.morph = !self.draw.morph,
+            KeyCode::KeyC => self.draw.occlusion = !self.draw.occlusion,
             KeyCode::KeyX => self.exaggeration = (self.exaggeration * 1.5).min(20.0),
             KeyCode::KeyZ => self.exaggeration = (self.exaggeration / 1.5).max(0.25),
             KeyCode::KeyF => {

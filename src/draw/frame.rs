@@ -10,6 +10,7 @@ use crate::errors::feed::{ErrorFeed, LastSelection};
 use crate::lod::block::{BlockLayout, DrawBlock, Traversal};
 use crate::lod::camera::Camera;
 use crate::lod::heightfield::Heightfield;
+use crate::lod::occlusion;
 use crate::lod::pyramid::MinMaxPyramid;
 use crate::lod::traversal::{traverse, BlockCaches, LodSelect};
 use crate::trace::{Trace, DRAW_TID};
@@ -82,6 +83,9 @@ pub struct DrawThread {
     pub feed: ErrorFeed,
     /// Geomorphing between LODs (`--morph`, the viewer's N key).
     pub morph: bool,
+    /// Occlusion culling (`--occlusion`, the viewer's O key): hidden blocks are not drawn.
+    pub occlusion: bool,
+    probe: std::cell::Cell<occlusion::Probe>,
     caches: BlockCaches,
     last: LastSelection,
     trace: Trace,
@@ -92,10 +96,18 @@ impl DrawThread {
         DrawThread {
             feed: feed.with_trace(trace.clone()),
             morph,
+            occlusion: false,
+            probe: Default::default(),
             caches: BlockCaches::default(),
             last: LastSelection::default(),
             trace,
         }
+    }
+
+    /// The same thread with occlusion culling on or off.
+    pub fn with_occlusion(mut self, on: bool) -> Self {
+        self.occlusion = on;
+        self
     }
 
     /// The selection rule for a `--lod` choice with the data in use (distance LOD until
@@ -112,7 +124,13 @@ impl DrawThread {
 
     /// Traverses with this thread's caches, outside a frame (the bench's reference runs).
     pub fn traverse(&self, terrain: LodTerrain, cam: &Camera, select: LodSelect) -> Traversal {
-        traverse(terrain.hf, terrain.mm, &self.caches, terrain.layout, cam, select)
+        let mut t = traverse(terrain.hf, terrain.mm, &self.caches, terrain.layout, cam, select);
+        if self.occlusion {
+            let mut probe = self.probe.get();
+            probe.cull(terrain.hf, terrain.mm, &self.caches, terrain.layout, cam, &mut t);
+            self.probe.set(probe);
+        }
+        t
     }
 
     /// One frame: the error feed (when there is an activity), the block selection (unless
@@ -139,7 +157,8 @@ impl DrawThread {
             Some(b) => (None, b.to_vec()),
             None => {
                 let tr = self.traverse(terrain, req.cam, self.select(req.lod, req.delta));
-                let args = json!({"blocks": tr.blocks.len(), "morphing": tr.morphing});
+                let hidden = tr.occlusion.map(|o| o.hidden);
+                let args = json!({"blocks": tr.blocks.len(), "morphing": tr.morphing, "occluded": hidden});
                 self.trace.complete(DRAW_TID, "traverse", t, Instant::now(), args);
                 self.last = LastSelection::of(&tr);
                 (Some(tr), Vec::new())

@@ -73,7 +73,10 @@ pub fn rendered_raw(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, x: i6
 pub fn audit(hf: &Heightfield, layout: &BlockLayout, traversal: &Traversal, cam: &Camera) -> AuditResult {
     let frustum = cam.frustum();
     let vp = cam.view_proj();
-    let map = block_index_map(layout, &traversal.blocks);
+    // The whole selection: an occluded block is still selected at its LOD, and the audit
+    // does not rely on culling being right (the culling tests check that separately).
+    let selection: Vec<DrawBlock> = traversal.selection().copied().collect();
+    let map = block_index_map(layout, &selection);
     let [cells, rows] = layout.cells().map(|c| c as i64);
     let m = layout.m;
     let mut r = AuditResult::default();
@@ -101,7 +104,7 @@ pub fn audit(hf: &Heightfield, layout: &BlockLayout, traversal: &Traversal, cam:
                 r.uncovered += 1;
                 continue;
             }
-            let err = rendered_error(hf, layout, &traversal.blocks[idx as usize], cam, &vp, (x, z, p));
+            let err = rendered_error(hf, layout, &selection[idx as usize], cam, &vp, (x, z, p));
             if err > r.max_error_px {
                 r.max_error_px = err;
                 r.worst = (x, z);

@@ -137,6 +137,46 @@ impl DrawBlock {
     }
 }
 
+/// Why a frame was not occlusion-culled.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Skipped {
+    /// `--voids hole`: the surface has openings a ray can pass through.
+    Holes,
+    /// The camera is not over the terrain's true extent.
+    CameraOutside,
+    /// The near plane touches or dips under the drawn surface.
+    NearPlaneLow,
+    /// A drawn block beside a frustum-culled one is `m` or more LODs coarser.
+    CoarseBesideCulled,
+    /// Not run this frame: the last run hid too little to pay for itself
+    /// (`occlusion::Probe`).
+    Paused,
+}
+
+impl Skipped {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Skipped::Holes => "holes",
+            Skipped::CameraOutside => "camera outside the terrain",
+            Skipped::NearPlaneLow => "near plane at the ground",
+            Skipped::CoarseBesideCulled => "coarse block beside a culled one",
+            Skipped::Paused => "paused: hid too little",
+        }
+    }
+}
+
+/// What occlusion culling did in one frame.
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize)]
+pub struct OcclusionReport {
+    /// Blocks of the selection tested.
+    pub tested: usize,
+    /// Blocks found hidden (moved to `Traversal::occluded`).
+    pub hidden: usize,
+    /// Set when the frame was not culled.
+    pub skipped: Option<Skipped>,
+}
+
 #[derive(Clone, Debug, Default)]
 pub struct Traversal {
     pub blocks: Vec<DrawBlock>,
@@ -160,6 +200,21 @@ pub struct Traversal {
     /// Per drawn block: the error the selection accepted for it and the one for which it
     /// split its parent (pixels; 0 where not error-driven, infinite for the root).
     pub selection_errors: Vec<[f32; 2]>,
+    /// Blocks of the selection that no pixel can see (`lod::occlusion`): not drawn, but
+    /// still selected at their LOD, so that their neighbours stitch to it and the audit
+    /// covers their samples. Empty unless occlusion culling ran.
+    pub occluded: Vec<DrawBlock>,
+    /// Blocks the frustum culled (what occlusion culling checks its argument against).
+    pub frustum_culled: Vec<DrawBlock>,
+    /// What occlusion culling did, when it ran.
+    pub occlusion: Option<OcclusionReport>,
+}
+
+impl Traversal {
+    /// Every selected block: the drawn ones, then the occluded ones.
+    pub fn selection(&self) -> impl Iterator<Item = &DrawBlock> + '_ {
+        self.blocks.iter().chain(&self.occluded)
+    }
 }
 
 /// World-space AABB of a block.

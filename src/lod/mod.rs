@@ -12,6 +12,7 @@ pub mod gie;
 pub mod heightfield;
 pub mod mesh;
 pub mod morph;
+pub mod occlusion;
 pub mod pyramid;
 pub mod stitch;
 pub mod traversal;

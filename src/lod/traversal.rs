@@ -152,6 +152,7 @@ fn traverse_once(
         }
         let (min, max) = block_aabb(hf, mm, layout, lod, bx, bz);
         if !frustum.intersects_aabb(min, max) {
+            out.frustum_culled.push(DrawBlock::new(lod, bx, bz));
             continue;
         }
         let mut stale_split = false;

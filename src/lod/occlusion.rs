@@ -1,0 +1,566 @@
+//! Occlusion culling that is provably conservative (SPEC section 10): of a frame's block
+//! selection, the blocks that no pixel can see because nearer terrain covers them are
+//! not drawn. They stay in the selection at their LOD (`Traversal::occluded`), so their
+//! neighbours stitch to them as before and the audit still covers their samples.
+//!
+//! Why a culled block has no visible point. Inside the terrain's true extent (a
+//! rectangle; the margin beyond it is never shown) the drawn surface is continuous and
+//! lies, over each block, between that block's lowest and highest drawn vertex
+//! ([`drawn_range`]). Take a ray from the camera, and a point `S` on it below the lowest
+//! drawn vertex of some block `R`, inside `R`'s footprint. If the ray is above the surface
+//! where it leaves the near plane, it must cross the surface between the near plane and
+//! `S`: everything the ray meets after `S` is hidden. So a block `B` is culled when every
+//! ray to every point of `B`'s box passes such an `S` first. Occluders are swept by
+//! distance from the camera: a block's lowest drawn height, seen over the whole bin of
+//! azimuth, gives an elevation below which every ray of that bin dips under it before
+//! leaving its footprint (`horizon`); `B` is tested only against occluders it lies wholly
+//! beyond. Elevations are compared with a margin of two pixels, so that rasterization's
+//! snapping cannot uncover a culled block.
+//!
+//! What the argument needs, checked every frame (culling is skipped, with the reason,
+//! when one fails): no holes (`--voids hole` opens the surface); the camera over the true
+//! extent, so that the segment to any occluder stays over it; the near plane above the
+//! drawn surface and above the lowest sample of every block the frustum culled near it. Then the first point
+//! along a ray that is under terrain (under the drawn surface, or under the lowest sample
+//! of a block the frustum culled) is a point of the drawn surface: the ray cannot enter a
+//! culled block's column below its lowest sample from a neighbour's, because a drawn edge
+//! beside a culled block interpolates vertices on that block's own edge, and it cannot
+//! dip under that sample inside the column without meeting the block's box, which is
+//! outside the frustum. That holds while no drawn block beside a culled one is `m` or more
+//! LODs coarser (its edge's vertices, or its parent's, would lie beyond the culled
+//! block's edge); such a frame is not culled either.
+
+use crate::lod::block::{block_aabb, block_vertex, BlockLayout, DrawBlock, Traversal, CORNER_UNRESOLVED};
+pub use crate::lod::block::{OcclusionReport, Skipped};
+use crate::lod::camera::Camera;
+use crate::lod::heightfield::Heightfield;
+use crate::lod::morph::BlockCaches;
+use crate::lod::pyramid::MinMaxPyramid;
+use std::f64::consts::TAU;
+
+/// Bins of azimuth around the camera over the full circle.
+pub const BINS: usize = 4096;
+
+/// When to run the sweep. It costs the draw thread about as much as a traversal, and
+/// where nearly every block shows a sample (a high camera over rolling terrain) it hides
+/// nothing; so after a run that hid under [`Probe::PAYS`] of the blocks it runs again only
+/// every [`Probe::EVERY`]-th frame, and every frame again once it pays.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Probe {
+    paused_for: u32,
+}
+
+impl Probe {
+    /// Share of the tested blocks a run must hide to run on the next frame.
+    pub const PAYS: f64 = 0.01;
+    /// How often a run that did not pay is tried again.
+    pub const EVERY: u32 = 8;
+
+    /// Culls `t` if this frame is due, and learns from the result.
+    pub fn cull(
+        &mut self,
+        hf: &Heightfield,
+        mm: &MinMaxPyramid,
+        caches: &BlockCaches,
+        layout: &BlockLayout,
+        cam: &Camera,
+        t: &mut Traversal,
+    ) -> OcclusionReport {
+        if self.paused_for > 0 {
+            self.paused_for -= 1;
+            let report = OcclusionReport { tested: t.blocks.len(), hidden: 0, skipped: Some(Skipped::Paused) };
+            t.occlusion = Some(report);
+            return report;
+        }
+        let report = cull(hf, mm, caches, layout, cam, t);
+        let paid = report.skipped.is_none() && report.hidden as f64 >= Self::PAYS * report.tested.max(1) as f64;
+        self.paused_for = if paid { 0 } else { Self::EVERY - 1 };
+        report
+    }
+}
+
+/// World height range of everything drawn for `b`: its samples' range, widened by its
+/// stitched strips, its edge regions in every morph state and its resolved corners (a
+/// stitched edge follows a coarser neighbour's vertices, which can lie outside the
+/// block's own range). Every drawn vertex of `b` lies in it, so the drawn surface over
+/// `b`'s footprint does too (a test checks it against the drawn mesh).
+pub fn drawn_range(
+    hf: &Heightfield,
+    mm: &MinMaxPyramid,
+    caches: &BlockCaches,
+    layout: &BlockLayout,
+    b: &DrawBlock,
+) -> [f32; 2] {
+    let (min, max) = block_aabb(hf, mm, layout, b.lod, b.bx, b.bz);
+    let (mut lo, mut hi) = (min.y, max.y);
+    let hs = hf.height_scale;
+    if b.coarser != [0; 4] {
+        let strips = caches.stitch.get(hf, layout, b);
+        lo = lo.min(strips.lo * hs);
+        hi = hi.max(strips.hi * hs);
+    }
+    // No edge fixed: the range over every morph state of every edge.
+    let regions = caches.stitch.regions_bound(hf, mm, layout, b, 0);
+    lo = lo.min(regions.lo * hs);
+    hi = hi.max(regions.hi * hs);
+    for c in b.corner_raw.iter().filter(|&&c| c != CORNER_UNRESOLVED) {
+        let h = f32::from_bits(*c) * hs;
+        lo = lo.min(h);
+        hi = hi.max(h);
+    }
+    [lo, hi]
+}
+
+/// A block's footprint in world x and z (f64: angles and distances are taken in f64).
+#[derive(Clone, Copy, Debug)]
+struct Rect {
+    x0: f64,
+    z0: f64,
+    x1: f64,
+    z1: f64,
+}
+
+impl Rect {
+    #[cfg(test)]
+    fn contains(&self, x: f64, z: f64) -> bool {
+        x >= self.x0 && x <= self.x1 && z >= self.z0 && z <= self.z1
+    }
+
+    /// Nearest and farthest horizontal distance from `(cx, cz)`.
+    fn distances(&self, cx: f64, cz: f64) -> (f64, f64) {
+        let near_x = (self.x0 - cx).max(cx - self.x1).max(0.0);
+        let near_z = (self.z0 - cz).max(cz - self.z1).max(0.0);
+        let far_x = (cx - self.x0).abs().max((self.x1 - cx).abs());
+        let far_z = (cz - self.z0).abs().max((self.z1 - cz).abs());
+        (near_x.hypot(near_z), far_x.hypot(far_z))
+    }
+
+    /// Azimuth interval `[a, b]` (radians, `a` in `[0, 2 pi)`, `b - a < pi`) covering the
+    /// rectangle from a point outside it.
+    fn azimuths(&self, cx: f64, cz: f64) -> (f64, f64) {
+        let centre = ((self.z0 + self.z1) * 0.5 - cz).atan2((self.x0 + self.x1) * 0.5 - cx);
+        let (mut lo, mut hi) = (0.0f64, 0.0f64);
+        for (x, z) in [(self.x0, self.z0), (self.x1, self.z0), (self.x1, self.z1), (self.x0, self.z1)] {
+            let mut d = (z - cz).atan2(x - cx) - centre;
+            d -= TAU * (d / TAU).round();
+            lo = lo.min(d);
+            hi = hi.max(d);
+        }
+        let a = (centre + lo).rem_euclid(TAU);
+        (a, a + (hi - lo))
+    }
+
+    /// Where a ray from `(cx, cz)` along the unit direction `(dx, dz)` leaves the
+    /// rectangle (slab method; the ray is assumed to cross it).
+    fn exit(&self, cx: f64, cz: f64, (dx, dz): (f64, f64)) -> f64 {
+        let slab = |d: f64, c: f64, lo: f64, hi: f64| {
+            if d > 0.0 {
+                (hi - c) / d
+            } else if d < 0.0 {
+                (lo - c) / d
+            } else {
+                f64::INFINITY
+            }
+        };
+        slab(dx, cx, self.x0, self.x1).min(slab(dz, cz, self.z0, self.z1))
+    }
+}
+
+/// Unit directions of the bins' edges: edge `k` at azimuth `k * TAU / BINS`.
+fn bin_edges() -> Vec<(f64, f64)> {
+    (0..=BINS).map(|k| (k as f64 * TAU / BINS as f64).sin_cos()).map(|(s, c)| (c, s)).collect()
+}
+
+/// The nearest exit over bin `k` (wholly inside the rectangle's interval), given the
+/// exits at its two edges: each slab's exit `K / |cos|` is least at an end of the bin or
+/// where its direction cosine peaks, at a quarter turn, and quarter turns are bin edges
+/// (`BINS` is a multiple of 4).
+fn nearest_exit(at_edge_k: f64, at_edge_k1: f64) -> f64 {
+    at_edge_k.min(at_edge_k1)
+}
+
+const _: () = assert!(BINS.is_multiple_of(4));
+
+/// The highest drawn height of `b` over `rect`: exact from the vertices of the interior
+/// quads under it (their triangles are the quads' own), or `whole` (the block's drawn
+/// maximum) where `rect` reaches the edge strips, whose stitched triangles fan wider.
+fn top_over(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, rect: &Rect, whole: f64) -> f64 {
+    let last = layout.k() as i64 - 1;
+    let stride = b.stride() as f64;
+    let (ox, oz) = b.origin(layout);
+    let quad = |w: f64, spacing: f32, o: u32| ((w / spacing as f64 - o as f64) / stride).floor() as i64;
+    let (u0, u1) = (quad(rect.x0, hf.spacing.x, ox), quad(rect.x1, hf.spacing.x, ox));
+    let (v0, v1) = (quad(rect.z0, hf.spacing.z, oz), quad(rect.z1, hf.spacing.z, oz));
+    if u0 < 1 || v0 < 1 || u1 > last - 2 || v1 > last - 2 {
+        return whole;
+    }
+    let mut top = f64::NEG_INFINITY;
+    for v in v0..=v1 + 1 {
+        for u in u0..=u1 + 1 {
+            let (_, _, raw) = block_vertex(hf, layout, b, u as u32, v as u32);
+            top = top.max((raw * hf.height_scale) as f64);
+        }
+    }
+    top
+}
+
+/// One drawn block as the sweep tests it.
+struct Query {
+    rect: Rect,
+    near: f64,
+    far: f64,
+    hi: f64,
+}
+
+/// A cell of a drawn block's footprint under its lowest drawn height.
+struct Occluder {
+    /// Clipped to the true extent (nothing beyond it is shown).
+    rect: Rect,
+    near: f64,
+    far: f64,
+    lo: f64,
+}
+
+/// The occluders of drawn block `b`: its footprint in 4 x 4 cells of the min/max pyramid
+/// (or cells one parent quad wide, for blocks of fewer quads), each under its lowest
+/// sample. Over an interior cell the drawn surface is the cell's own quads, morphed
+/// towards the parent's triangles, whose vertices are the cell's samples (the cells are
+/// aligned to the parent's grid); over a cell along an edge stitched to a coarser block
+/// the fan triangles reach further along the edge, so the cell takes the block's whole
+/// drawn minimum there.
+fn occluders<'a>(
+    hf: &'a Heightfield,
+    mm: &'a MinMaxPyramid,
+    layout: &BlockLayout,
+    b: &'a DrawBlock,
+    block_lo: f32,
+    extent: &Rect,
+    (cx, cz): (f64, f64),
+) -> impl Iterator<Item = Occluder> + 'a {
+    let level = (layout.m + b.lod).saturating_sub(2).max(b.lod + 1).min(layout.m + b.lod);
+    let per_side = 1u32 << (layout.m + b.lod - level);
+    let size = (1u64 << level) as f64;
+    let hs = hf.height_scale;
+    let extent = *extent;
+    (0..per_side * per_side).filter_map(move |g| {
+        let (gx, gz) = (g % per_side, g / per_side);
+        let (x, z) = (b.bx * per_side + gx, b.bz * per_side + gz);
+        let (x0, z0) = (x as f64 * size * hf.spacing.x as f64, z as f64 * size * hf.spacing.z as f64);
+        let rect = Rect {
+            x0,
+            z0,
+            x1: (x0 + size * hf.spacing.x as f64).min(extent.x1),
+            z1: (z0 + size * hf.spacing.z as f64).min(extent.z1),
+        };
+        if rect.x1 <= rect.x0 || rect.z1 <= rect.z0 {
+            return None;
+        }
+        let mut lo = mm.get(level, x as usize, z as usize)[0] * hs;
+        let on_edge = [gz == 0, gx == per_side - 1, gz == per_side - 1, gx == 0];
+        if (0..4).any(|e| on_edge[e] && b.coarser[e] > 0) {
+            lo = lo.min(block_lo);
+        }
+        let (near, far) = rect.distances(cx, cz);
+        Some(Occluder { rect, near, far, lo: lo as f64 })
+    })
+}
+
+/// Moves the blocks of `t` that no pixel can see into `t.occluded` (keeping their
+/// neighbours' stitching as it was), and says what it did.
+pub fn cull(
+    hf: &Heightfield,
+    mm: &MinMaxPyramid,
+    caches: &BlockCaches,
+    layout: &BlockLayout,
+    cam: &Camera,
+    t: &mut Traversal,
+) -> OcclusionReport {
+    let hidden = hidden_blocks(hf, mm, caches, layout, cam, t);
+    let mut report = OcclusionReport { tested: t.blocks.len(), hidden: 0, skipped: hidden.as_ref().err().copied() };
+    let Ok(hidden) = hidden else {
+        t.occlusion = Some(report);
+        return report;
+    };
+    report.hidden = hidden.iter().filter(|&&h| h).count();
+    t.occlusion = Some(report);
+    if report.hidden > 0 {
+        let blocks = std::mem::take(&mut t.blocks);
+        let errors = std::mem::take(&mut t.selection_errors);
+        for ((b, e), h) in blocks.into_iter().zip(errors).zip(&hidden) {
+            if *h {
+                t.occluded.push(b);
+            } else {
+                t.blocks.push(b);
+                t.selection_errors.push(e);
+            }
+        }
+    }
+    report
+}
+
+/// The rule the sweep applies: the sound one, or one broken on purpose so that the
+/// culling tests can show they catch it (mutation tests).
+#[doc(hidden)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Rule {
+    Sound,
+    /// Occluders at their block's highest drawn height instead of its lowest.
+    OccluderTop,
+    /// Every block tested against every occluder, nearer or not (no sweep order).
+    Unordered,
+}
+
+/// Per block of `t.blocks`, whether it is hidden; or why the frame cannot be culled.
+pub fn hidden_blocks(
+    hf: &Heightfield,
+    mm: &MinMaxPyramid,
+    caches: &BlockCaches,
+    layout: &BlockLayout,
+    cam: &Camera,
+    t: &Traversal,
+) -> Result<Vec<bool>, Skipped> {
+    hidden_blocks_with(hf, mm, caches, layout, cam, t, Rule::Sound)
+}
+
+#[doc(hidden)]
+pub fn hidden_blocks_with(
+    hf: &Heightfield,
+    mm: &MinMaxPyramid,
+    caches: &BlockCaches,
+    layout: &BlockLayout,
+    cam: &Camera,
+    t: &Traversal,
+    rule: Rule,
+) -> Result<Vec<bool>, Skipped> {
+    if hf.void_mask.is_some() {
+        return Err(Skipped::Holes);
+    }
+    let [cells, rows] = layout.cells().map(|c| c as i64);
+    let coarse_beside = |k: &DrawBlock| {
+        k.cells_across().into_iter().any(|(x, z)| {
+            let lod = if x < 0 || z < 0 || x >= cells || z >= rows { -1 } else { t.lod_map[(z * cells + x) as usize] };
+            lod >= 0 && lod as u32 >= k.lod + layout.m
+        })
+    };
+    if t.frustum_culled.iter().any(coarse_beside) {
+        return Err(Skipped::CoarseBesideCulled);
+    }
+    let (ex, ez) = hf.world_extent();
+    let extent = Rect { x0: 0.0, z0: 0.0, x1: ex as f64, z1: ez as f64 };
+    let c = cam.position.as_dvec3();
+    if !(c.x > extent.x0 && c.x < extent.x1 && c.z > extent.z0 && c.z < extent.z1) {
+        return Err(Skipped::CameraOutside);
+    }
+    let [sx, sz] = [hf.spacing.x as f64, hf.spacing.z as f64];
+    let mut occ = Vec::with_capacity(t.blocks.len() * 16);
+    let queries: Vec<Query> = t
+        .blocks
+        .iter()
+        .map(|b| {
+            let s = layout.block_samples(b.lod) as f64;
+            let (ox, oz) = (b.bx as f64 * s, b.bz as f64 * s);
+            let rect = Rect { x0: ox * sx, z0: oz * sz, x1: (ox + s) * sx, z1: (oz + s) * sz };
+            let (near, far) = rect.distances(c.x, c.z);
+            let [lo, hi] = drawn_range(hf, mm, caches, layout, b);
+            if rule == Rule::OccluderTop {
+                let r = Rect { x1: rect.x1.min(extent.x1), z1: rect.z1.min(extent.z1), ..rect };
+                if r.x1 > r.x0 && r.z1 > r.z0 {
+                    let (near, far) = r.distances(c.x, c.z);
+                    occ.push(Occluder { rect: r, near, far, lo: hi as f64 });
+                }
+            } else {
+                occ.extend(occluders(hf, mm, layout, b, lo, &extent, (c.x, c.z)));
+            }
+            Query { rect, near, far, hi: hi as f64 }
+        })
+        .collect();
+
+    // The near plane's corners, and how far from the camera they reach across the ground.
+    let (right, up) = cam.basis();
+    let (tv, th) = ((cam.fovy as f64 * 0.5).tan(), (cam.fovy as f64 * 0.5).tan() * cam.aspect() as f64);
+    let (f, right, up, near) = (cam.forward.as_dvec3(), right.as_dvec3(), up.as_dvec3(), cam.near as f64);
+    let corners = [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)]
+        .map(|(u, v): (f64, f64)| c + near * (f + right * (u * th) + up * (v * tv)));
+    let reach = corners.iter().map(|p| (p.x - c.x).hypot(p.z - c.z)).fold(0.0, f64::max);
+    let near_low = corners.iter().map(|p| p.y).fold(f64::INFINITY, f64::min);
+    let near_box = Rect { x0: c.x - reach, z0: c.z - reach, x1: c.x + reach, z1: c.z + reach };
+    let touches = |r: &Rect| r.x0 <= near_box.x1 && r.x1 >= near_box.x0 && r.z0 <= near_box.z1 && r.z1 >= near_box.z0;
+    let drawn_top = t
+        .blocks
+        .iter()
+        .zip(&queries)
+        .filter(|(_, i)| touches(&i.rect))
+        .map(|(b, i)| top_over(hf, layout, b, &near_box, i.hi))
+        .fold(f64::NEG_INFINITY, f64::max);
+    // A frustum-culled block's box is outside the frustum, so the near plane over it is
+    // above its highest sample or below its lowest: above its lowest rules out the latter.
+    let culled_low = t
+        .frustum_culled
+        .iter()
+        .map(|k| block_aabb(hf, mm, layout, k.lod, k.bx, k.bz))
+        .filter(|(min, max)| touches(&Rect { x0: min.x as f64, z0: min.z as f64, x1: max.x as f64, z1: max.z as f64 }))
+        .map(|(min, _)| min.y as f64)
+        .fold(f64::NEG_INFINITY, f64::max);
+    let under_near = drawn_top.max(culled_low);
+    if under_near >= near_low {
+        return Err(Skipped::NearPlaneLow);
+    }
+
+    // Two pixels of angle: a pixel subtends at most 1 / kappa radians.
+    let margin = 2.0 / cam.kappa() as f64;
+    let width = TAU / BINS as f64;
+    // Sweep outward: an occluder joins at its farthest distance, a block is tested at its
+    // nearest, so it meets only occluders it lies wholly beyond (occluders first on ties).
+    let mut events: Vec<(f64, bool, usize)> = Vec::with_capacity(queries.len() + occ.len());
+    for (i, o) in occ.iter().enumerate() {
+        if o.near > reach {
+            events.push((if rule == Rule::Unordered { 0.0 } else { o.far }, false, i));
+        }
+    }
+    for (i, q) in queries.iter().enumerate() {
+        if q.near > reach {
+            events.push((q.near, true, i));
+        }
+    }
+    events.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+    // Per bin, the tangent of the elevation below which every ray dips under an occluder.
+    let mut horizon = vec![f64::NEG_INFINITY; BINS];
+    let edges = bin_edges();
+    let edge = |k: i64| edges[k.rem_euclid(BINS as i64) as usize];
+    let mut hidden = vec![false; queries.len()];
+    for (_, query, i) in events {
+        if query {
+            let q = &queries[i];
+            let (a, b) = q.rect.azimuths(c.x, c.z);
+            // The highest elevation anywhere in the box, raised by the margin.
+            let top = if q.hi >= c.y { (q.hi - c.y) / q.near } else { (q.hi - c.y) / q.far };
+            let top = top.atan() + margin;
+            if top >= std::f64::consts::FRAC_PI_2 {
+                continue;
+            }
+            let top = top.tan();
+            let (first, last) = (((a - margin) / width).floor() as i64, ((b + margin) / width).floor() as i64);
+            hidden[i] = (first..=last).all(|k| top < horizon[k.rem_euclid(BINS as i64) as usize]);
+        } else {
+            let o = &occ[i];
+            let (a, b) = o.rect.azimuths(c.x, c.z);
+            let (first, last) = ((a / width).ceil() as i64, (b / width).floor() as i64);
+            if last <= first {
+                continue;
+            }
+            let mut prev = o.rect.exit(c.x, c.z, edge(first));
+            for k in first..last {
+                let next = o.rect.exit(c.x, c.z, edge(k + 1));
+                // Every ray of the bin is under `lo` somewhere before it leaves the cell
+                // when the tangent of its elevation is below this.
+                let e = if o.lo < c.y { (o.lo - c.y) / nearest_exit(prev, next) } else { (o.lo - c.y) / o.far };
+                prev = next;
+                let bin = &mut horizon[k.rem_euclid(BINS as i64) as usize];
+                *bin = bin.max(e);
+            }
+        }
+    }
+    Ok(hidden)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A small deterministic generator.
+    fn rng(state: &mut u64) -> f64 {
+        *state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        (*state >> 11) as f64 / (1u64 << 53) as f64
+    }
+
+    fn random_case(s: &mut u64) -> (Rect, f64, f64) {
+        let (x0, z0) = (rng(s) * 100.0 - 50.0, rng(s) * 100.0 - 50.0);
+        let r = Rect { x0, z0, x1: x0 + 0.5 + rng(s) * 40.0, z1: z0 + 0.5 + rng(s) * 40.0 };
+        loop {
+            let (cx, cz) = (rng(s) * 200.0 - 100.0, rng(s) * 200.0 - 100.0);
+            if !r.contains(cx, cz) {
+                return (r, cx, cz);
+            }
+        }
+    }
+
+    /// A run that does not pay (here: the camera is off the terrain, so nothing can be
+    /// proven hidden) pauses the sweep for `EVERY - 1` frames, then it runs again.
+    #[test]
+    fn an_unpaying_sweep_pauses_then_tries_again() {
+        use crate::lod::traversal::{traverse, LodSelect};
+        let samples: Vec<f32> = (0..129 * 129).map(|i| ((i % 129) as f32 * 0.2).sin() * 5.0).collect();
+        let hf =
+            Heightfield::embed("waves", 129, 129, &samples, crate::lod::heightfield::HeightFormat::Float32, 1.0, 1.0)
+                .unwrap();
+        let mm = MinMaxPyramid::build(&hf);
+        let layout = BlockLayout::of(&hf, 9).unwrap();
+        let caches = BlockCaches::default();
+        let (wx, wz) = hf.world_extent();
+        let cam = Camera::look_at(
+            glam::Vec3::new(wx * 0.5, wx * 0.2, wz * 1.2),
+            glam::Vec3::new(wx * 0.5, 0.0, wz * 0.5),
+            60.0,
+            320,
+            240,
+            crate::lod::view::near_plane(&hf),
+        );
+        let mut probe = Probe::default();
+        let mut seen = Vec::new();
+        for _ in 0..(2 * Probe::EVERY + 1) {
+            let mut t = traverse(&hf, &mm, &caches, &layout, &cam, LodSelect::Distance { factor: 2.0 });
+            seen.push(probe.cull(&hf, &mm, &caches, &layout, &cam, &mut t).skipped);
+            assert_eq!(t.occlusion.map(|o| o.skipped), Some(*seen.last().unwrap()));
+        }
+        let ran: Vec<usize> = (0..seen.len()).filter(|&i| seen[i] != Some(Skipped::Paused)).collect();
+        assert_eq!(ran, [0, Probe::EVERY as usize, 2 * Probe::EVERY as usize], "{seen:?}");
+        assert!(ran.iter().all(|&i| seen[i] == Some(Skipped::CameraOutside)));
+    }
+
+    /// The interval holds every point of the rectangle, and no wider than its corners.
+    #[test]
+    fn azimuths_cover_the_rectangle() {
+        let mut s = 7u64;
+        for _ in 0..2000 {
+            let (r, cx, cz) = random_case(&mut s);
+            let (a, b) = r.azimuths(cx, cz);
+            assert!((0.0..TAU).contains(&a) && b > a && b - a < std::f64::consts::PI);
+            for _ in 0..50 {
+                let (x, z) = (r.x0 + rng(&mut s) * (r.x1 - r.x0), r.z0 + rng(&mut s) * (r.z1 - r.z0));
+                let phi = (z - cz).atan2(x - cx).rem_euclid(TAU);
+                let inside = |p: f64| p >= a - 1e-12 && p <= b + 1e-12;
+                assert!(inside(phi) || inside(phi + TAU), "{r:?} from ({cx}, {cz}): {phi} outside [{a}, {b}]");
+            }
+        }
+    }
+
+    /// Over a bin inside the interval, no ray leaves the rectangle nearer than the
+    /// nearest exit taken from the bin's edges, and one leaves about there (sampled
+    /// densely; the bound is tight).
+    #[test]
+    fn nearest_exit_is_the_least_exit_over_the_bin() {
+        let mut s = 11u64;
+        let (edges, width) = (bin_edges(), TAU / BINS as f64);
+        let mut checked = 0;
+        while checked < 3000 {
+            let (r, cx, cz) = random_case(&mut s);
+            let (a, b) = r.azimuths(cx, cz);
+            let (first, last) = ((a / width).ceil() as i64, (b / width).floor() as i64);
+            if last <= first {
+                continue;
+            }
+            let k = first + ((last - first) as f64 * rng(&mut s)) as i64;
+            let e = |k: i64| edges[k.rem_euclid(BINS as i64) as usize];
+            let bound = nearest_exit(r.exit(cx, cz, e(k)), r.exit(cx, cz, e(k + 1)));
+            let mut least = f64::INFINITY;
+            for i in 0..=400 {
+                let phi = (k as f64 + i as f64 / 400.0) * width;
+                let d = r.exit(cx, cz, (phi.cos(), phi.sin()));
+                assert!(d >= bound * (1.0 - 1e-9), "{r:?} from ({cx}, {cz}) at {phi}: exit {d} < bound {bound}");
+                least = least.min(d);
+            }
+            assert!(least <= bound * (1.0 + 1e-6), "bound {bound} below the least sampled exit {least}");
+            checked += 1;
+        }
+    }
+}
