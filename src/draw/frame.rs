@@ -83,9 +83,10 @@ pub struct DrawThread {
     pub feed: ErrorFeed,
     /// Geomorphing between LODs (`--morph`, the viewer's N key).
     pub morph: bool,
-    /// Occlusion culling (`--occlusion`, the viewer's O key): hidden blocks are not drawn.
+    /// Occlusion culling (`--occlusion`, the viewer's C key): hidden blocks are not drawn.
     pub occlusion: bool,
-    probe: std::cell::Cell<occlusion::Probe>,
+    /// When the frames' sweep runs (it pauses where it does not pay).
+    probe: occlusion::Probe,
     caches: BlockCaches,
     last: LastSelection,
     trace: Trace,
@@ -124,13 +125,7 @@ impl DrawThread {
 
     /// Traverses with this thread's caches, outside a frame (the bench's reference runs).
     pub fn traverse(&self, terrain: LodTerrain, cam: &Camera, select: LodSelect) -> Traversal {
-        let mut t = traverse(terrain.hf, terrain.mm, &self.caches, terrain.layout, cam, select);
-        if self.occlusion {
-            let mut probe = self.probe.get();
-            probe.cull(terrain.hf, terrain.mm, &self.caches, terrain.layout, cam, &mut t);
-            self.probe.set(probe);
-        }
-        t
+        traverse(terrain.hf, terrain.mm, &self.caches, terrain.layout, cam, select)
     }
 
     /// One frame: the error feed (when there is an activity), the block selection (unless
@@ -156,7 +151,10 @@ impl DrawThread {
         let (traversal, given) = match req.blocks {
             Some(b) => (None, b.to_vec()),
             None => {
-                let tr = self.traverse(terrain, req.cam, self.select(req.lod, req.delta));
+                let mut tr = self.traverse(terrain, req.cam, self.select(req.lod, req.delta));
+                if self.occlusion {
+                    self.probe.cull(terrain.hf, terrain.mm, &self.caches, terrain.layout, req.cam, &mut tr);
+                }
                 let hidden = tr.occlusion.map(|o| o.hidden);
                 let args = json!({"blocks": tr.blocks.len(), "morphing": tr.morphing, "occluded": hidden});
                 self.trace.complete(DRAW_TID, "traverse", t, Instant::now(), args);
