@@ -6,6 +6,8 @@
 //! - [`lod`]: the pure LOD core (heightfield, pyramids, error reference, traversal,
 //!   stitching, morphing, the audit), plain Rust with no Vulkan;
 //! - [`input`]: where heightfields come from (file loaders, the built-in terrain);
+//! - [`prepare`]: `vkterrain prepare`, a terrain of any size into a tile archive, window
+//!   by window;
 //! - [`trace`]: the Chrome trace every thread writes to;
 //! - [`gpu`]: what both activities share on the GPU (the heightfield image, the layout
 //!   definitions, the compiled shaders);
@@ -21,5 +23,6 @@ pub mod errors;
 pub mod gpu;
 pub mod input;
 pub mod lod;
+pub mod prepare;
 pub mod trace;
 pub mod vk;

@@ -31,6 +31,8 @@ enum Command {
     Quality(vkterrain::app::quality::QualityArgs),
     /// Draw a trace (bench or view --trace) as a picture: one lane per thread and queue.
     Timeline(vkterrain::app::timeline::TimelineArgs),
+    /// Prepare a terrain of any size into a tile archive (PMTiles), window by window.
+    Prepare(vkterrain::app::prepare::PrepareArgs),
 }
 
 fn main() -> ExitCode {
@@ -66,6 +68,7 @@ fn main() -> ExitCode {
         Some(Command::Bench(a)) => vkterrain::app::bench::bench(a),
         Some(Command::Quality(a)) => vkterrain::app::quality::quality(a),
         Some(Command::Timeline(a)) => vkterrain::app::timeline::timeline(a),
+        Some(Command::Prepare(a)) => vkterrain::app::prepare::prepare(a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

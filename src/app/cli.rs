@@ -23,7 +23,7 @@ pub enum OnOff {
     Off,
 }
 
-fn parse_size(s: &str) -> Result<(u32, u32), String> {
+pub fn parse_size(s: &str) -> Result<(u32, u32), String> {
     let (w, h) = s.split_once(['x', 'X']).ok_or_else(|| format!("'{s}': expected WIDTHxHEIGHT, e.g. 1280x720"))?;
     let w: u32 = w.trim().parse().map_err(|_| format!("'{s}': width is not a whole number"))?;
     let h: u32 = h.trim().parse().map_err(|_| format!("'{s}': height is not a whole number"))?;
@@ -80,7 +80,7 @@ fn parse_fovy(s: &str) -> Result<f32, String> {
     Ok(v)
 }
 
-fn parse_spacing(s: &str) -> Result<Spacing, String> {
+pub fn parse_spacing(s: &str) -> Result<Spacing, String> {
     match s.split_once(',') {
         Some((x, z)) => Ok(Spacing { x: parse_positive(x.trim())?, z: parse_positive(z.trim())? }),
         None => parse_positive(s).map(Spacing::from),

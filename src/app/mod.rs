@@ -10,6 +10,7 @@ pub mod geo;
 pub mod hud;
 pub mod outputs;
 pub mod paths;
+pub mod prepare;
 pub mod quality;
 pub mod timeline;
 pub mod viewer;

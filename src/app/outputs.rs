@@ -165,3 +165,11 @@ impl TerrainFacts {
         }
     }
 }
+
+/// This process's peak resident memory (VmHWM) in MB, where /proc says it (Linux).
+pub fn peak_resident_mb() -> Option<f64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kb: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kb / 1024.0)
+}

@@ -49,6 +49,9 @@ pub fn load(path: &Path, opts: &LoadOptions) -> Result<Heightfield, HeightfieldE
         // The file's own header gives its size; a size given anyway is a mistake.
         return Err(HeightfieldError::invalid(&shown, "--raw-size is only for raw .r16 and .f32 files"));
     }
+    if ext == "pmtiles" || crate::input::archive::Archive::sniff(path) {
+        return load_archive(path, opts);
+    }
     let mut raster = match ext.as_str() {
         "r16" | "f32" => {
             let bytes = std::fs::read(path).map_err(|source| HeightfieldError::Io { path: shown.clone(), source })?;
@@ -103,6 +106,47 @@ pub fn load(path: &Path, opts: &LoadOptions) -> Result<Heightfield, HeightfieldE
     hf.void_samples = voids;
     hf.void_mask = mask;
     hf.georef = scale.georef;
+    Ok(hf)
+}
+
+/// A prepared archive ([`crate::input::archive`]) that fits in one image, read whole:
+/// its metadata gives the frame (options override it, and say so).
+fn load_archive(path: &Path, opts: &LoadOptions) -> Result<Heightfield, HeightfieldError> {
+    let shown = path.display().to_string();
+    let bad = |m: String| HeightfieldError::invalid(&shown, m);
+    if opts.raw_size.is_some() {
+        return Err(bad("--raw-size is only for raw .r16 and .f32 files, not archives".into()));
+    }
+    if opts.voids == VoidMode::Hole {
+        return Err(bad(
+            "--voids hole needs the void mask, which archives do not keep (voids were filled by prepare)".into()
+        ));
+    }
+    let archive = crate::input::archive::Archive::open(path)?;
+    let m = &archive.meta;
+    if let Some(max) = opts.max_grid_side {
+        let (n, roots) = grid_cover(m.width, m.height);
+        let [gw, gh] = roots.map(|r| r * (1 << n) + 1);
+        if gw.max(gh) > max {
+            return Err(bad(format!(
+                "{} x {} samples need a {gw} x {gh} grid, larger than the device's maxImageDimension2D ({max}); \
+                 streaming an archive's tiles is not built yet",
+                m.width, m.height
+            )));
+        }
+    }
+    let mut hf = archive.heightfield()?;
+    if let Some(s) = opts.spacing {
+        hf.georef.notes.push(format!(
+            "spacing {} x {} m from --spacing, not the archive's {} x {}",
+            s.x, s.z, hf.spacing.x, hf.spacing.z
+        ));
+        hf.spacing = s;
+    }
+    if let Some(h) = opts.height_scale {
+        hf.georef.notes.push(format!("height scale {h} from --height-scale, not the archive's {}", hf.height_scale));
+        hf.height_scale = h;
+    }
     Ok(hf)
 }
 

@@ -1,6 +1,7 @@
 //! Where heightfields come from: files (PNG, TIFF, raw, SRTM .hgt, ...) and the built-in
 //! procedural terrain; and the one check every input file passes before it is read.
 
+pub mod archive;
 pub mod georef;
 pub mod load;
 pub mod procedural;

@@ -27,7 +27,7 @@ fn value_noise(x: f32, z: f32, seed: u32) -> f32 {
 }
 
 /// Height in metres at grid coordinates `(x, z)` of a `side`-sample terrain.
-fn height(x: f32, z: f32, side: f32) -> f32 {
+pub fn height(x: f32, z: f32, side: f32) -> f32 {
     let (px, pz) = (x / side * 9.0, z / side * 9.0);
     // Domain warp bends the ridges into valleys that wander.
     let wx = px + 0.8 * value_noise(px * 0.5, pz * 0.5, 7);

@@ -11,7 +11,7 @@ use crate::lod::heightfield::Heightfield;
 /// `ri (s,s)` at local sample `(lx, lz)`, split along the a-i diagonal: triangle a-c-i
 /// where `lx >= lz`, a-i-g elsewhere.
 #[inline]
-fn quad_surface(ra: f32, rc: f32, rg: f32, ri: f32, inv_s: f32, lx: i64, lz: i64) -> f32 {
+pub fn quad_surface(ra: f32, rc: f32, rg: f32, ri: f32, inv_s: f32, lx: i64, lz: i64) -> f32 {
     let (fx, fz) = (lx as f32 * inv_s, lz as f32 * inv_s);
     if lx >= lz {
         ra + (rc - ra) * fx + (ri - rc) * fz
@@ -53,18 +53,38 @@ fn group_deviation(hf: &Heightfield, l: u32, a: usize, b: usize) -> f32 {
     if cx >= hf.width as i64 - 1 || cz >= hf.height as i64 - 1 {
         return 0.0;
     }
-    let ra = hf.raw_at(cx, cz);
-    let rc = hf.raw_at(cx + s, cz);
-    let rg = hf.raw_at(cx, cz + s);
-    let ri = hf.raw_at(cx + s, cz + s);
-    let inv_s = 1.0 / s as f32;
     let side = hf.grid()[0];
+    // Rows of the grid are contiguous: index them directly (the group lies inside).
+    square_deviation(
+        |x, z, count| &hf.raw[z as usize * side + x as usize..][..count],
+        cx,
+        cz,
+        s,
+        [hf.raw_at(cx, cz), hf.raw_at(cx + s, cz), hf.raw_at(cx, cz + s), hf.raw_at(cx + s, cz + s)],
+        (cx, cz),
+        s,
+    )
+}
+
+/// `max |H - L|` over the samples `x0..=x0+span`, `z0..=z0+span` (read a row at a time
+/// by `row(x, z, count)`), `L` the quad `[qx, qx + s] x [qz, qz + s]` with corner heights
+/// `[a, c, g, i]` split along its a-i diagonal: the one loop behind every `D_l`, the
+/// group's own samples (`span = s`) or part of them (a tile of `prepare` inside a coarser
+/// group).
+pub fn square_deviation<'a>(
+    row: impl Fn(i64, i64, usize) -> &'a [f32],
+    x0: i64,
+    z0: i64,
+    span: i64,
+    [ra, rc, rg, ri]: [f32; 4],
+    (qx, qz): (i64, i64),
+    s: i64,
+) -> f32 {
+    let inv_s = 1.0 / s as f32;
     let mut m = 0.0f32;
-    for lz in 0..=s {
-        // Rows of the grid are contiguous: index them directly (the group lies inside).
-        let row = &hf.raw[(cz + lz) as usize * side + cx as usize..][..=s as usize];
-        for (lx, &h) in row.iter().enumerate() {
-            let surface = quad_surface(ra, rc, rg, ri, inv_s, lx as i64, lz);
+    for z in z0..=z0 + span {
+        for (i, &h) in row(x0, z, span as usize + 1).iter().enumerate() {
+            let surface = quad_surface(ra, rc, rg, ri, inv_s, x0 + i as i64 - qx, z - qz);
             m = m.max((h - surface).abs());
         }
     }

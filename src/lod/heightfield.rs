@@ -113,7 +113,7 @@ impl From<[f32; 2]> for Spacing {
 /// What the input said about where it is (SPEC section 9), kept for messages, JSON
 /// outputs and the viewer's coordinates. Plain data: the reader fills it
 /// ([`crate::input::georef`]).
-#[derive(Clone, Debug, Default, PartialEq)]
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Georef {
     /// The CRS as "EPSG:4326" when it has an authority code, else its name; `None` when
     /// the file has no georeferencing.

@@ -1,0 +1,126 @@
+//! `vkterrain prepare`: the front-end of [`crate::prepare`] (inputs, progress bar,
+//! Ctrl-C, the report).
+
+use crate::app::cli::InputError;
+use crate::input::load::{self, LoadOptions, VoidMode};
+use crate::lod::heightfield::{Georef, Spacing};
+use crate::prepare::source::{InMemory, Synthetic};
+use crate::prepare::{Frame, PrepareError, Source};
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+
+#[derive(clap::Args, Debug)]
+pub struct PrepareArgs {
+    /// The terrain to prepare: any file the viewer opens (GeoTIFF, .hgt, PNG, raw, a GDAL
+    /// .vrt mosaic of many tiles). Not with --synthetic.
+    #[arg(required_unless_present = "synthetic", conflicts_with = "synthetic")]
+    pub input: Option<PathBuf>,
+    /// The archive to write (PMTiles v3). It appears only when complete.
+    #[arg(long, short)]
+    pub out: PathBuf,
+    /// Instead of a file: non-periodic fBm of SIDE x SIDE samples (30 m apart, 16-bit
+    /// heights of 0.1 m), made window by window (any size).
+    #[arg(long, value_name = "SIDE", value_parser = clap::value_parser!(u32).range(3..=1_048_577))]
+    pub synthetic: Option<u32>,
+    /// Metres between samples (x, z); default: the file's georeferencing.
+    #[arg(long, value_parser = crate::app::cli::parse_spacing)]
+    pub spacing: Option<Spacing>,
+    /// World units per raw height unit; default: the file's vertical units.
+    #[arg(long, value_parser = crate::app::commands::positive)]
+    pub height_scale: Option<f32>,
+    /// Size of a raw .r16/.f32 input, as WIDTHxHEIGHT.
+    #[arg(long, value_parser = crate::app::cli::parse_size)]
+    pub raw_size: Option<(u32, u32)>,
+}
+
+pub fn prepare(args: &PrepareArgs) -> anyhow::Result<()> {
+    if args.out.is_dir() {
+        return Err(InputError(format!(
+            "--out {}: is a directory; name the archive file to write",
+            args.out.display()
+        ))
+        .into());
+    }
+    let loaded;
+    let synthetic;
+    let (source, frame): (&dyn Source, Frame) = match (&args.input, args.synthetic) {
+        (_, Some(side)) => {
+            synthetic = Synthetic { side: side as usize };
+            let frame = Frame {
+                spacing: [
+                    args.spacing.map_or(Synthetic::SPACING, |s| s.x),
+                    args.spacing.map_or(Synthetic::SPACING, |s| s.z),
+                ],
+                height_scale: args.height_scale.unwrap_or(Synthetic::HEIGHT_SCALE),
+                georef: Georef::default(),
+                void_samples: 0,
+            };
+            (&synthetic, frame)
+        }
+        (Some(path), None) => {
+            let opts = LoadOptions {
+                spacing: args.spacing,
+                height_scale: args.height_scale,
+                raw_size: args.raw_size.map(|(w, h)| (w as usize, h as usize)),
+                max_grid_side: None,
+                voids: VoidMode::Fill,
+            };
+            loaded = load::load(path, &opts).map_err(|e| InputError(e.to_string()))?;
+            for line in crate::input::describe(&loaded) {
+                eprintln!("vkterrain: note: {line}");
+            }
+            let frame = Frame {
+                spacing: [loaded.spacing.x, loaded.spacing.z],
+                height_scale: loaded.height_scale,
+                georef: loaded.georef.clone(),
+                void_samples: loaded.void_samples,
+            };
+            (&InMemory(&loaded), frame)
+        }
+        (None, None) => unreachable!("clap requires an input or --synthetic"),
+    };
+    let (w, h) = source.size();
+    eprintln!("vkterrain: preparing {} ({w} x {h} samples) into {}", source.name(), args.out.display());
+    let stop = Arc::new(AtomicBool::new(false));
+    {
+        let stop = stop.clone();
+        let _ = ctrlc::set_handler(move || stop.store(true, Ordering::SeqCst));
+    }
+    let bar = indicatif::ProgressBar::new(0).with_style(
+        indicatif::ProgressStyle::with_template("{elapsed_precise} [{bar:40}] {pos}/{len} windows, ETA {eta}")
+            .expect("progress template")
+            .progress_chars("=> "),
+    );
+    let progress = |done: u64, total: u64| {
+        bar.set_length(total);
+        bar.set_position(done);
+    };
+    let result = crate::prepare::prepare(source, &frame, &args.out, &progress, &stop);
+    bar.finish_and_clear();
+    let report = match result {
+        Ok(r) => r,
+        Err(PrepareError::Source(m)) => return Err(InputError(m).into()),
+        Err(e) => return Err(e.into()),
+    };
+    let peak = crate::app::outputs::peak_resident_mb();
+    let json = serde_json::json!({
+        "archive": args.out.display().to_string(),
+        "report": report,
+        "peak_resident_mb": peak,
+    });
+    println!("{}", serde_json::to_string_pretty(&json)?);
+    eprintln!(
+        "vkterrain: wrote {}: {} tiles ({} distinct) in {} levels, {:.1} MB ({:.0}% of {:.1} MB uncompressed), {:.1} s, peak resident {}",
+        args.out.display(),
+        report.tiles,
+        report.distinct_tiles,
+        report.levels,
+        report.archive_bytes as f64 / 1e6,
+        100.0 * report.archive_bytes as f64 / report.raw_bytes.max(1) as f64,
+        report.raw_bytes as f64 / 1e6,
+        report.seconds,
+        peak.map_or("unknown".into(), |mb| format!("{mb:.0} MB")),
+    );
+    Ok(())
+}

@@ -1,0 +1,414 @@
+//! The terrain archive (SPEC section 8): a quadtree of tiles in one PMTiles v3 file
+//! ([`pmtiles`]), each tile a versioned, checksummed payload ([`tile`]). Written by
+//! `vkterrain prepare` ([`crate::prepare`]), read here: the metadata says what the
+//! terrain is (size, frame, georeferencing) and every tile read is checked.
+//!
+//! The quadtree: level-0 tiles hold every sample of `T x T` quads (`T + 1` vertices a
+//! side, borders shared), level `t` tiles every `2^t`-th sample of `T 2^t` samples; the
+//! top level `L` is one tile over a square of `T 2^L + 1` samples (PMTiles zoom
+//! `L - t`, x along columns, y along rows). Tiles wholly outside the true extent are not
+//! stored; samples outside it in a stored tile repeat the nearest edge sample, as
+//! [`Heightfield::embed`] does.
+
+pub mod pmtiles;
+pub mod tile;
+
+use crate::lod::heightfield::{Georef, HeightFormat, Heightfield, HeightfieldError, Spacing};
+use pmtiles::{Entry, Header};
+use std::collections::HashMap;
+use std::fs::File;
+use std::io::{Seek, SeekFrom, Write};
+use std::os::unix::fs::FileExt;
+use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+use tile::{Samples, Tile};
+
+/// Version of the archive layout (the metadata and the tile payloads); readers refuse
+/// others.
+pub const ARCHIVE_VERSION: u32 = 1;
+/// Quads a side of a tile at its own level: `(k - 1) 2^p` with the blocks' k = 33, p = 3
+/// (SPEC section 8), so no block of LOD >= the tile's level straddles two tiles.
+pub const TILE_QUADS: usize = 256;
+
+/// What the archive says about the terrain (the PMTiles JSON metadata).
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Meta {
+    /// Always "vkterrain terrain archive".
+    pub kind: String,
+    pub version: u32,
+    /// True extent in samples (columns, rows).
+    pub width: usize,
+    pub height: usize,
+    /// Quads a side of a tile ([`TILE_QUADS`]).
+    pub tile_quads: usize,
+    /// Top tile level `L`: one tile over `tile_quads * 2^L + 1` samples a side.
+    pub top_level: u8,
+    /// "unorm16" or "float32": how heights are stored (and go to the GPU).
+    pub samples: String,
+    pub spacing: [f32; 2],
+    pub height_scale: f32,
+    pub georef: Georef,
+    /// Void samples the input had (filled before tiling).
+    pub void_samples: usize,
+    /// Where the heights came from, as `prepare` named it.
+    pub source: String,
+    /// Tiles stored (the archive's PMTiles entries).
+    pub tiles: u64,
+}
+
+impl Meta {
+    pub fn sample_format(&self) -> Result<Samples, String> {
+        match self.samples.as_str() {
+            "unorm16" => Ok(Samples::Unorm16),
+            "float32" => Ok(Samples::Float32),
+            s => Err(format!("unknown sample format '{s}'")),
+        }
+    }
+
+    /// Tiles along each axis at `level` that touch the true extent.
+    pub fn tiles_at(&self, level: u8) -> [u32; 2] {
+        let span = self.tile_quads << level;
+        [(self.width - 1).div_ceil(span) as u32, (self.height - 1).div_ceil(span) as u32]
+    }
+
+    /// `n` of the square the quadtree covers (`2^n + 1` samples a side).
+    pub fn n(&self) -> u32 {
+        self.tile_quads.trailing_zeros() + u32::from(self.top_level)
+    }
+
+    /// The smallest top level for a `width x height` terrain.
+    pub fn top_level_for(width: usize, height: usize, tile_quads: usize) -> u8 {
+        let mut level = 0u8;
+        while (tile_quads << level) < width.max(height) - 1 {
+            level += 1;
+        }
+        level
+    }
+}
+
+/// Why an archive could not be read: always names the file, and the tile when one is
+/// at fault.
+pub fn bad(path: &Path, message: impl Into<String>) -> HeightfieldError {
+    HeightfieldError::invalid(&path.display().to_string(), message)
+}
+
+/// An open archive: header, metadata and root directory read and checked; tiles read
+/// on demand with positioned reads (any thread).
+pub struct Archive {
+    path: PathBuf,
+    file: File,
+    len: u64,
+    header: Header,
+    root: Vec<Entry>,
+    leaves: Mutex<HashMap<u64, std::sync::Arc<Vec<Entry>>>>,
+    pub meta: Meta,
+}
+
+impl Archive {
+    /// Is this file a PMTiles archive (by its first bytes)?
+    pub fn sniff(path: &Path) -> bool {
+        let mut magic = [0u8; 7];
+        File::open(path).and_then(|f| f.read_exact_at(&mut magic, 0)).is_ok() && &magic == b"PMTiles"
+    }
+
+    pub fn open(path: &Path) -> Result<Archive, HeightfieldError> {
+        let file =
+            File::open(path).map_err(|source| HeightfieldError::Io { path: path.display().to_string(), source })?;
+        let len =
+            file.metadata().map_err(|source| HeightfieldError::Io { path: path.display().to_string(), source })?.len();
+        let read = |offset: u64, length: u64, what: &str| -> Result<Vec<u8>, HeightfieldError> {
+            if offset.checked_add(length).is_none_or(|end| end > len) {
+                return Err(bad(
+                    path,
+                    format!(
+                        "{what} at bytes {offset}..{} lies past the end of the file ({len} bytes): truncated?",
+                        offset.saturating_add(length)
+                    ),
+                ));
+            }
+            let mut buf = vec![0u8; length as usize];
+            file.read_exact_at(&mut buf, offset).map_err(|e| bad(path, format!("reading the {what}: {e}")))?;
+            Ok(buf)
+        };
+        let head = read(0, (pmtiles::HEADER_LEN as u64).min(len), "header")?;
+        let header = Header::decode(&head).map_err(|e| bad(path, e))?;
+        if header.internal_compression != pmtiles::COMPRESSION_GZIP
+            || header.tile_compression != pmtiles::COMPRESSION_GZIP
+        {
+            return Err(bad(path, "a PMTiles archive this build did not write (directories and tiles must be gzip)"));
+        }
+        let root = read(header.root_offset, header.root_len, "root directory")?;
+        let root = pmtiles::decode_directory(&root).map_err(|e| bad(path, format!("root directory: {e}")))?;
+        let meta = read(header.metadata_offset, header.metadata_len, "metadata")?;
+        let meta = pmtiles::gunzip(&meta).map_err(|e| bad(path, format!("metadata does not decompress: {e}")))?;
+        let meta: Meta = serde_json::from_slice(&meta).map_err(|e| {
+            bad(path, format!("metadata is not a vkterrain archive's ({e}); was it written by `vkterrain prepare`?"))
+        })?;
+        if meta.kind != "vkterrain terrain archive" {
+            return Err(bad(path, format!("metadata kind '{}' is not a vkterrain terrain archive", meta.kind)));
+        }
+        if meta.version != ARCHIVE_VERSION {
+            return Err(bad(
+                path,
+                format!(
+                    "archive version {} (this build reads version {ARCHIVE_VERSION}: prepare it again)",
+                    meta.version
+                ),
+            ));
+        }
+        meta.sample_format().map_err(|e| bad(path, e))?;
+        if meta.tile_quads != TILE_QUADS || meta.width < 3 || meta.height < 3 || meta.top_level > 20 {
+            return Err(bad(
+                path,
+                format!(
+                    "metadata describes an impossible terrain ({} x {}, tiles of {})",
+                    meta.width, meta.height, meta.tile_quads
+                ),
+            ));
+        }
+        if Meta::top_level_for(meta.width, meta.height, meta.tile_quads) != meta.top_level {
+            return Err(bad(
+                path,
+                format!("top level {} does not fit a {} x {} terrain", meta.top_level, meta.width, meta.height),
+            ));
+        }
+        Ok(Archive { path: path.to_path_buf(), file, len, header, root, leaves: Mutex::new(HashMap::new()), meta })
+    }
+
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// Names tile `(level, tx, tz)` for messages: its PMTiles address and its samples.
+    pub fn tile_name(&self, level: u8, tx: u32, tz: u32) -> String {
+        let span = (self.meta.tile_quads as u64) << level;
+        format!(
+            "tile {}/{tx}/{tz} (level {level}, samples {}..={} x {}..={})",
+            self.meta.top_level - level,
+            tx as u64 * span,
+            (tx as u64 + 1) * span,
+            tz as u64 * span,
+            (tz as u64 + 1) * span
+        )
+    }
+
+    fn tile_error(&self, level: u8, tx: u32, tz: u32, message: impl std::fmt::Display) -> HeightfieldError {
+        bad(&self.path, format!("{}: {message}", self.tile_name(level, tx, tz)))
+    }
+
+    /// Reads and checks tile `(level, tx, tz)`; `Ok(None)` where the archive stores no
+    /// such tile (outside the true extent).
+    pub fn read_tile(&self, level: u8, tx: u32, tz: u32) -> Result<Option<Tile>, HeightfieldError> {
+        if level > self.meta.top_level {
+            return Ok(None);
+        }
+        let [nx, nz] = self.meta.tiles_at(level);
+        if tx >= nx || tz >= nz {
+            return Ok(None);
+        }
+        let id = pmtiles::tile_id(self.meta.top_level - level, tx, tz);
+        let err = |m: String| self.tile_error(level, tx, tz, m);
+        let mut entry = pmtiles::find(&self.root, id);
+        if let Some(leaf) = entry.filter(|e| e.run_length == 0) {
+            let dir = self.leaf(leaf).map_err(err)?;
+            entry = pmtiles::find(&dir, id).filter(|e| e.run_length > 0);
+        }
+        let Some(e) = entry else {
+            return Err(err("missing from the archive's directory".into()));
+        };
+        let start = self.header.data_offset.checked_add(e.offset);
+        let end = start.and_then(|s| s.checked_add(u64::from(e.length)));
+        if end.is_none_or(|end| end > self.len) {
+            return Err(err(format!(
+                "its data lies past the end of the file ({} bytes): the archive is truncated",
+                self.len
+            )));
+        }
+        let mut buf = vec![0u8; e.length as usize];
+        self.file.read_exact_at(&mut buf, start.expect("checked")).map_err(|e| err(format!("read failed: {e}")))?;
+        let payload =
+            pmtiles::gunzip(&buf).map_err(|e| err(format!("does not decompress ({e}): the archive is corrupt")))?;
+        let samples = self.meta.sample_format().expect("checked at open");
+        let side = self.meta.tile_quads + 3;
+        tile::decode(&payload, samples, level, tx, tz, side, self.deviations(level)).map(Some).map_err(err)
+    }
+
+    /// Values of `D` a tile of `level` holds: `T^2` of its own level (none at level 0),
+    /// and at the top every coarser level's as well.
+    pub fn deviations(&self, level: u8) -> usize {
+        let t = self.meta.tile_quads;
+        let own = if level == 0 { 0 } else { t * t };
+        if level < self.meta.top_level {
+            return own;
+        }
+        let n = self.meta.n();
+        own + (u32::from(level) + 1..=n).map(|l| ((t << level >> l).max(1)).pow(2)).sum::<usize>()
+    }
+
+    fn leaf(&self, pointer: Entry) -> Result<std::sync::Arc<Vec<Entry>>, String> {
+        if let Some(dir) = self.leaves.lock().expect("leaf cache").get(&pointer.offset) {
+            return Ok(dir.clone());
+        }
+        let start = self.header.leaf_offset.checked_add(pointer.offset);
+        let end = start.and_then(|s| s.checked_add(u64::from(pointer.length)));
+        if end.is_none_or(|end| end > self.len) {
+            return Err("its leaf directory lies past the end of the file: the archive is truncated".into());
+        }
+        let mut buf = vec![0u8; pointer.length as usize];
+        self.file
+            .read_exact_at(&mut buf, start.expect("checked"))
+            .map_err(|e| format!("reading its leaf directory: {e}"))?;
+        let dir = std::sync::Arc::new(pmtiles::decode_directory(&buf).map_err(|e| format!("its leaf directory: {e}"))?);
+        self.leaves.lock().expect("leaf cache").insert(pointer.offset, dir.clone());
+        Ok(dir)
+    }
+
+    /// The whole terrain at full resolution as one heightfield (level-0 tiles), for
+    /// terrains that fit in one GPU image; every tile is read and its checksum verified.
+    pub fn heightfield(&self) -> Result<Heightfield, HeightfieldError> {
+        let m = &self.meta;
+        let shown = self.path.display().to_string();
+        if m.width > crate::lod::heightfield::MAX_SIDE || m.height > crate::lod::heightfield::MAX_SIDE {
+            return Err(bad(
+                &self.path,
+                format!(
+                    "a {} x {} terrain does not fit in memory as one image (at most {} samples a side); \
+                     streaming its tiles is not built yet",
+                    m.width,
+                    m.height,
+                    crate::lod::heightfield::MAX_SIDE
+                ),
+            ));
+        }
+        let mut samples = vec![0.0f32; m.width * m.height];
+        let [nx, nz] = m.tiles_at(0);
+        let t = m.tile_quads;
+        for tz in 0..nz {
+            for tx in 0..nx {
+                let tile = self.read_tile(0, tx, tz)?.ok_or_else(|| self.tile_error(0, tx, tz, "missing"))?;
+                for j in 0..=t {
+                    let z = tz as usize * t + j;
+                    if z >= m.height {
+                        break;
+                    }
+                    let x0 = tx as usize * t;
+                    let count = (t + 1).min(m.width - x0);
+                    let row = &tile.heights[(j + 1) * tile.side + 1..][..count];
+                    samples[z * m.width + x0..][..count].copy_from_slice(row);
+                }
+            }
+        }
+        // The coarser tiles are not needed here, but a damaged one is better found now.
+        for level in 1..=m.top_level {
+            let [nx, nz] = m.tiles_at(level);
+            for (tx, tz) in (0..nz).flat_map(|z| (0..nx).map(move |x| (x, z))) {
+                self.read_tile(level, tx, tz)?.ok_or_else(|| self.tile_error(level, tx, tz, "missing"))?;
+            }
+        }
+        let format = match m.sample_format().expect("checked at open") {
+            Samples::Unorm16 => HeightFormat::Unorm16,
+            Samples::Float32 => HeightFormat::Float32,
+        };
+        let mut hf =
+            Heightfield::embed(&shown, m.width, m.height, &samples, format, Spacing::from(m.spacing), m.height_scale)?;
+        hf.georef = m.georef.clone();
+        hf.georef.notes.insert(0, format!("a prepared archive of {} tiles, from {}", m.tiles, m.source));
+        hf.void_samples = m.void_samples;
+        Ok(hf)
+    }
+}
+
+/// Writes an archive: tiles streamed into the data section as they are made (any
+/// order), directories and metadata at the end, the header last. The file appears under
+/// its name only when [`ArchiveWriter::finish`] succeeds; until then it is a hidden
+/// temporary beside it, removed on drop (an error or an interrupted run leaves nothing).
+pub struct ArchiveWriter {
+    out: PathBuf,
+    tmp: PathBuf,
+    file: Option<std::io::BufWriter<File>>,
+    entries: Vec<Entry>,
+    data_len: u64,
+}
+
+impl ArchiveWriter {
+    pub fn create(out: &Path) -> std::io::Result<ArchiveWriter> {
+        let name = out.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "archive".into());
+        let tmp = out.with_file_name(format!(".{name}.partial-{}", std::process::id()));
+        let mut file = std::io::BufWriter::with_capacity(1 << 20, File::create(&tmp)?);
+        // The header and root directory go in the first 16 KiB once the tiles are known.
+        file.write_all(&vec![0u8; pmtiles::ROOT_LIMIT])?;
+        Ok(ArchiveWriter { out: out.to_path_buf(), tmp, file: Some(file), entries: Vec::new(), data_len: 0 })
+    }
+
+    /// Appends tile `(level, tx, tz)` (its payload gzipped, [`tile::encode`]); `top` is
+    /// the archive's top level. Returns the compressed size.
+    pub fn add(&mut self, top: u8, level: u8, tx: u32, tz: u32, compressed: &[u8]) -> std::io::Result<usize> {
+        let file = self.file.as_mut().expect("not finished");
+        file.write_all(compressed)?;
+        self.entries.push(Entry {
+            tile_id: pmtiles::tile_id(top - level, tx, tz),
+            offset: self.data_len,
+            length: compressed.len() as u32,
+            run_length: 1,
+        });
+        self.data_len += compressed.len() as u64;
+        Ok(compressed.len())
+    }
+
+    /// Writes directories, metadata and header, syncs, and moves the file into place.
+    pub fn finish(mut self, meta: &mut Meta) -> std::io::Result<u64> {
+        self.entries.sort_by_key(|e| e.tile_id);
+        meta.tiles = self.entries.len() as u64;
+        let (root, leaves) = pmtiles::directories(&self.entries);
+        let json = pmtiles::gzip(&serde_json::to_vec(meta).expect("metadata serialises"), 6);
+        let data_offset = pmtiles::ROOT_LIMIT as u64;
+        // The metadata goes in the first 16 KiB with the root when it fits, so that a
+        // truncated archive still says what it is and which tile is cut off.
+        let root_end = (pmtiles::HEADER_LEN + root.len()) as u64;
+        let front = root_end + json.len() as u64 <= data_offset;
+        let metadata_offset = if front { root_end } else { data_offset + self.data_len };
+        let leaf_offset = if front { data_offset + self.data_len } else { metadata_offset + json.len() as u64 };
+        let header = Header {
+            root_offset: pmtiles::HEADER_LEN as u64,
+            root_len: root.len() as u64,
+            metadata_offset,
+            metadata_len: json.len() as u64,
+            leaf_offset,
+            leaf_len: leaves.len() as u64,
+            data_offset,
+            data_len: self.data_len,
+            addressed_tiles: self.entries.len() as u64,
+            tile_entries: self.entries.len() as u64,
+            tile_contents: self.entries.len() as u64,
+            clustered: false,
+            internal_compression: pmtiles::COMPRESSION_GZIP,
+            tile_compression: pmtiles::COMPRESSION_GZIP,
+            tile_type: 0,
+            min_zoom: 0,
+            max_zoom: meta.top_level,
+        };
+        let mut file = self.file.take().expect("not finished");
+        if !front {
+            file.write_all(&json)?;
+        }
+        file.write_all(&leaves)?;
+        let mut file = file.into_inner().map_err(|e| e.into_error())?;
+        file.seek(SeekFrom::Start(0))?;
+        file.write_all(&header.encode())?;
+        file.write_all(&root)?;
+        if front {
+            file.write_all(&json)?;
+        }
+        file.sync_all()?;
+        std::fs::rename(&self.tmp, &self.out)?;
+        Ok(data_offset + self.data_len + if front { 0 } else { json.len() as u64 } + leaves.len() as u64)
+    }
+}
+
+impl Drop for ArchiveWriter {
+    fn drop(&mut self) {
+        if self.file.take().is_some() || self.tmp.exists() {
+            let _ = std::fs::remove_file(&self.tmp);
+        }
+    }
+}

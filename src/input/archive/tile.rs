@@ -1,0 +1,184 @@
+//! One tile's payload (SPEC section 8): the LOD-`t` vertices of its square with a
+//! one-vertex border, and the camera-independent part of the bound for its own level,
+//! `D_t` of each of its LOD-`t` groups. Little-endian, versioned, with a CRC-32 of the
+//! body; the container gzips each payload.
+
+/// Payload layout version; readers refuse others.
+pub const TILE_VERSION: u16 = 1;
+const MAGIC: &[u8; 4] = b"VKTT";
+const HEAD: usize = 24;
+
+/// Heights as stored: the GPU formats of [`crate::lod::heightfield::HeightFormat`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Samples {
+    Unorm16 = 0,
+    Float32 = 1,
+}
+
+/// A decoded tile: `side x side` heights (raw units, row-major, the border included:
+/// vertex `(i, j)` of the tile's square is at `(i + 1, j + 1)`), and `D_t` of its
+/// `T x T` groups, row-major (empty at level 0, where `D_0 = 0`); the top tile then
+/// holds `D` of every coarser level too, `D_{t+1}` (`T/2` a side) and so on up to the
+/// one group of LOD `n`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Tile {
+    pub level: u8,
+    pub tx: u32,
+    pub tz: u32,
+    pub side: usize,
+    pub heights: Vec<f32>,
+    pub deviation: Vec<f32>,
+}
+
+impl Tile {
+    /// Vertices a side of the tile's square (no border).
+    pub fn vertices(&self) -> usize {
+        self.side - 2
+    }
+}
+
+pub fn encode(tile: &Tile, samples: Samples) -> Vec<u8> {
+    let n = tile.side * tile.side;
+    assert_eq!(tile.heights.len(), n, "tile heights");
+    let mut body = Vec::with_capacity(n * 4 + tile.deviation.len() * 4);
+    // Row-wise differences: neighbouring heights are close, so gzip finds small numbers.
+    for row in tile.heights.chunks(tile.side) {
+        let mut prev = 0u32;
+        for &h in row {
+            let v = match samples {
+                Samples::Unorm16 => h as u32,
+                Samples::Float32 => h.to_bits(),
+            };
+            let d = v.wrapping_sub(prev);
+            prev = v;
+            match samples {
+                Samples::Unorm16 => body.extend_from_slice(&(d as u16).to_le_bytes()),
+                Samples::Float32 => body.extend_from_slice(&d.to_le_bytes()),
+            }
+        }
+    }
+    for d in &tile.deviation {
+        body.extend_from_slice(&d.to_le_bytes());
+    }
+    let mut out = Vec::with_capacity(HEAD + body.len());
+    out.extend_from_slice(MAGIC);
+    out.extend_from_slice(&TILE_VERSION.to_le_bytes());
+    out.push(samples as u8);
+    out.push(tile.level);
+    out.extend_from_slice(&tile.tx.to_le_bytes());
+    out.extend_from_slice(&tile.tz.to_le_bytes());
+    out.extend_from_slice(&(tile.side as u32).to_le_bytes());
+    out.extend_from_slice(&crc32fast::hash(&body).to_le_bytes());
+    out.extend_from_slice(&body);
+    out
+}
+
+/// Decodes a payload that should be tile `(level, tx, tz)` with `side` vertices a side
+/// and `deviations` values of `D`; the error says what is wrong, the caller names the
+/// tile.
+pub fn decode(
+    payload: &[u8],
+    samples: Samples,
+    level: u8,
+    tx: u32,
+    tz: u32,
+    side: usize,
+    deviations: usize,
+) -> Result<Tile, String> {
+    if payload.len() < HEAD {
+        return Err(format!("payload of {} bytes is shorter than a tile header", payload.len()));
+    }
+    if &payload[..4] != MAGIC {
+        return Err("payload is not a vkterrain tile (bad magic)".into());
+    }
+    let u32_at = |i: usize| u32::from_le_bytes(payload[i..i + 4].try_into().expect("4 bytes"));
+    let version = u16::from_le_bytes([payload[4], payload[5]]);
+    if version != TILE_VERSION {
+        return Err(format!("tile layout version {version} (this build reads {TILE_VERSION})"));
+    }
+    let got = (payload[7], u32_at(8), u32_at(12));
+    if got != (level, tx, tz) {
+        return Err(format!(
+            "payload is tile level {} ({}, {}), not the one the directory points at",
+            got.0, got.1, got.2
+        ));
+    }
+    if payload[6] != samples as u8 || u32_at(16) as usize != side {
+        return Err(format!("sample format {} / side {} differ from the archive's", payload[6], u32_at(16)));
+    }
+    let body = &payload[HEAD..];
+    if crc32fast::hash(body) != u32_at(20) {
+        return Err("checksum mismatch (the tile's data is corrupt)".into());
+    }
+    let width = match samples {
+        Samples::Unorm16 => 2,
+        Samples::Float32 => 4,
+    };
+    let expected = side * side * width + deviations * 4;
+    if body.len() != expected {
+        return Err(format!("body of {} bytes, expected {expected}", body.len()));
+    }
+    let (hb, db) = body.split_at(side * side * width);
+    let mut heights = Vec::with_capacity(side * side);
+    for row in hb.chunks(side * width) {
+        let mut prev = 0u32;
+        for v in row.chunks(width) {
+            let d = match samples {
+                Samples::Unorm16 => u16::from_le_bytes([v[0], v[1]]) as u32,
+                Samples::Float32 => u32::from_le_bytes(v.try_into().expect("4 bytes")),
+            };
+            prev = match samples {
+                Samples::Unorm16 => (prev as u16).wrapping_add(d as u16) as u32,
+                Samples::Float32 => prev.wrapping_add(d),
+            };
+            heights.push(match samples {
+                Samples::Unorm16 => prev as f32,
+                Samples::Float32 => f32::from_bits(prev),
+            });
+        }
+    }
+    let deviation = db.chunks(4).map(|v| f32::from_le_bytes(v.try_into().expect("4 bytes"))).collect();
+    Ok(Tile { level, tx, tz, side, heights, deviation })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sample(level: u8, samples: Samples) -> Tile {
+        let side = 11;
+        let heights = (0..side * side)
+            .map(|i| match samples {
+                Samples::Unorm16 => ((i * 7919) % 65536) as f32,
+                Samples::Float32 => (i as f32 * 0.37).sin() * 1e4 - 3.25,
+            })
+            .collect();
+        let deviation = if level == 0 { vec![] } else { (0..64).map(|i| i as f32 * 0.125).collect() };
+        Tile { level, tx: 3, tz: 9, side, heights, deviation }
+    }
+
+    #[test]
+    fn tiles_round_trip_in_both_formats() {
+        for samples in [Samples::Unorm16, Samples::Float32] {
+            for level in [0u8, 2] {
+                let t = sample(level, samples);
+                let bytes = encode(&t, samples);
+                assert_eq!(decode(&bytes, samples, level, 3, 9, 11, if level == 0 { 0 } else { 64 }).unwrap(), t);
+            }
+        }
+    }
+
+    #[test]
+    fn every_corrupt_byte_and_every_mismatch_is_refused() {
+        let t = sample(1, Samples::Unorm16);
+        let bytes = encode(&t, Samples::Unorm16);
+        for i in 0..bytes.len() {
+            let mut bad = bytes.clone();
+            bad[i] ^= 0x10;
+            assert!(decode(&bad, Samples::Unorm16, 1, 3, 9, 11, 64).is_err(), "flipped byte {i} accepted");
+        }
+        assert!(decode(&bytes[..bytes.len() - 1], Samples::Unorm16, 1, 3, 9, 11, 64).is_err());
+        assert!(decode(&bytes, Samples::Unorm16, 1, 3, 8, 11, 64).unwrap_err().contains("not the one"));
+        assert!(decode(&bytes, Samples::Float32, 1, 3, 9, 11, 64).is_err());
+    }
+}

@@ -1,0 +1,348 @@
+//! The tile archive (issue 27, SPEC section 8): `prepare` writes, window by window, a
+//! PMTiles quadtree whose tiles hold exactly the heights they should and the exact
+//! camera-independent bound `D`; opening it gives back the terrain; every damaged byte,
+//! a truncated file and an interrupted run are caught.
+
+mod common;
+
+use common::TempDir;
+use std::path::Path;
+use std::process::Command;
+use std::sync::atomic::AtomicBool;
+use vkterrain::input::archive::{Archive, TILE_QUADS};
+use vkterrain::lod::heightfield::{HeightFormat, Heightfield};
+use vkterrain::prepare::source::{InMemory, Synthetic};
+use vkterrain::prepare::{prepare, Frame, PrepareError, Source};
+
+fn frame_of(hf: &Heightfield) -> Frame {
+    Frame {
+        spacing: [hf.spacing.x, hf.spacing.z],
+        height_scale: hf.height_scale,
+        georef: hf.georef.clone(),
+        void_samples: hf.void_samples,
+    }
+}
+
+fn prepare_field(hf: &Heightfield, out: &Path) {
+    let stop = AtomicBool::new(false);
+    prepare(&InMemory(hf), &frame_of(hf), out, &|_, _| {}, &stop).expect("prepare");
+}
+
+/// A rough float field: value noise, a ridge, a pit and one spike, so that every level's
+/// deviation is different and large somewhere.
+fn rough(w: usize, h: usize) -> Heightfield {
+    common::field(w, h, [3.0, 5.0], |x, z| {
+        let n = ((x * 7919 + z * 104_729) % 1013) as f32 * 0.05;
+        let ridge = 40.0 - ((x as f32 - 0.6 * z as f32).abs() * 0.3).min(40.0);
+        let spike = if (x, z) == (w * 5 / 7, h / 3) { 900.0 } else { 0.0 };
+        n + ridge + spike + ((x as f32 * 0.013).sin() * (z as f32 * 0.021).cos()) * 60.0
+    })
+}
+
+/// The clamped sample (as `Heightfield::embed` extends the edges).
+fn sample(hf: &Heightfield, x: i64, z: i64) -> f32 {
+    let gw = hf.grid()[0];
+    let (x, z) = (x.clamp(0, hf.width as i64 - 1) as usize, z.clamp(0, hf.height as i64 - 1) as usize);
+    hf.raw[z * gw + x]
+}
+
+/// Independent oracle for `D` of group `(gx, gz)` of level `l` over the archive's
+/// square: f64 barycentric interpolation over the quad's two triangles, samples limited
+/// to the stored tiles (`cover` samples a side), 0 for groups starting past the extent.
+fn oracle(hf: &Heightfield, cover: [i64; 2], l: u32, gx: i64, gz: i64) -> f64 {
+    let s = 1i64 << l;
+    let (cx, cz) = (gx * s, gz * s);
+    if cx >= hf.width as i64 - 1 || cz >= hf.height as i64 - 1 {
+        return 0.0;
+    }
+    let h = |x, z| sample(hf, x, z) as f64;
+    let (a, c, g, i) = (h(cx, cz), h(cx + s, cz), h(cx, cz + s), h(cx + s, cz + s));
+    let mut m = 0.0f64;
+    for z in cz..=(cz + s).min(cover[1]) {
+        for x in cx..=(cx + s).min(cover[0]) {
+            let (u, v) = ((x - cx) as f64 / s as f64, (z - cz) as f64 / s as f64);
+            // Triangle a-c-i where u >= v, else a-i-g.
+            let l = if u >= v { a + (c - a) * u + (i - c) * v } else { a + (g - a) * v + (i - g) * u };
+            m = m.max((h(x, z) - l).abs());
+        }
+    }
+    m
+}
+
+/// Every stored tile against the field: heights (border included) and every `D` it
+/// holds. Returns the mismatches, described.
+fn check_archive(
+    hf: &Heightfield,
+    archive: &Archive,
+    tamper: impl Fn(&mut vkterrain::input::archive::tile::Tile),
+) -> Vec<String> {
+    let m = &archive.meta;
+    let t = TILE_QUADS as i64;
+    let cover = m.tiles_at(0).map(|c| c as i64 * t);
+    let mut bad = Vec::new();
+    let mut deviations = 0usize;
+    for level in 0..=m.top_level {
+        let [nx, nz] = m.tiles_at(level);
+        for tz in 0..nz {
+            for tx in 0..nx {
+                let mut tile = archive.read_tile(level, tx, tz).unwrap().expect("stored tile");
+                tamper(&mut tile);
+                let step = 1i64 << level;
+                let (x0, z0) = (tx as i64 * t * step, tz as i64 * t * step);
+                for j in -1..=t + 1 {
+                    for i in -1..=t + 1 {
+                        let got = tile.heights[((j + 1) * (t + 3) + i + 1) as usize];
+                        let want = sample(hf, x0 + i * step, z0 + j * step);
+                        if got != want {
+                            bad.push(format!("level {level} tile ({tx},{tz}) vertex ({i},{j}): {got} vs {want}"));
+                        }
+                    }
+                }
+                // D of its own level, then (the top tile) every coarser level.
+                let mut at = 0;
+                let first = u32::from(level).max(1);
+                let last = if level == m.top_level { m.n() } else { first };
+                for l in first..=last {
+                    if level == 0 && level != m.top_level {
+                        break;
+                    }
+                    let side = ((TILE_QUADS << level) >> l).max(1) as i64;
+                    for b in 0..side {
+                        for a in 0..side {
+                            let (gx, gz) = (tx as i64 * side + a, tz as i64 * side + b);
+                            let want = oracle(hf, cover, l, gx, gz);
+                            let got = tile.deviation[at] as f64;
+                            at += 1;
+                            if (got - want).abs() > 1e-4 * want.max(1.0) {
+                                bad.push(format!(
+                                    "D level {l} group ({gx},{gz}) from tile {level}/{tx}/{tz}: {got} vs {want}"
+                                ));
+                            }
+                        }
+                    }
+                }
+                assert_eq!(
+                    at,
+                    tile.deviation.len(),
+                    "tile {level}/{tx}/{tz} holds {} values of D",
+                    tile.deviation.len()
+                );
+                deviations += at;
+            }
+        }
+    }
+    assert!(deviations > 0);
+    bad
+}
+
+#[test]
+fn tiles_hold_the_exact_heights_and_bound_and_a_wrong_value_is_caught() {
+    // 1100 x 700: 5 x 3 leaves, top level 3, groups of LOD 9-11 larger than a leaf
+    // (their D from the leaves' shares and the lattice of corners); 513 x 513 in 16 bits
+    // (top level 1); a 3 x 3 terrain (one tile holding every level).
+    let fields = [
+        rough(1100, 700),
+        common::field16(513, 513, 10.0, 0.1, |x, z| (((x * 31 + z * 17) % 65536) ^ ((x * z) % 4096)) as u16),
+        common::field(3, 3, 1.0, |x, z| (x * 3 + z) as f32 * if x == 1 && z == 1 { 9.0 } else { 1.0 }),
+    ];
+    for hf in &fields {
+        let dir = TempDir::new("archive-exact");
+        let out = dir.path().join("t.pmtiles");
+        prepare_field(hf, &out);
+        let archive = Archive::open(&out).unwrap();
+        assert_eq!((archive.meta.width, archive.meta.height), (hf.width, hf.height));
+        let bad = check_archive(hf, &archive, |_| {});
+        assert!(
+            bad.is_empty(),
+            "{} x {}: {} mismatches, first: {:?}",
+            hf.width,
+            hf.height,
+            bad.len(),
+            &bad[..bad.len().min(5)]
+        );
+        // The check can fail: one D lowered by a thousandth, one height changed.
+        let tampered = check_archive(hf, &archive, |tile| {
+            if let Some(d) = tile.deviation.iter_mut().find(|d| **d > 1.0) {
+                *d *= 0.999;
+            }
+        });
+        assert!(!tampered.is_empty(), "a lowered D went unnoticed");
+        let tampered = check_archive(hf, &archive, |tile| tile.heights[tile.side + 5] += 1.0);
+        assert!(!tampered.is_empty(), "a changed height went unnoticed");
+    }
+}
+
+#[test]
+fn an_archive_opens_as_the_terrain_it_was_made_from() {
+    for hf in [rough(1100, 700), common::field16(600, 257, [2.0, 3.0], 0.25, |x, z| (x * 100 + z) as u16)] {
+        let dir = TempDir::new("archive-open");
+        let out = dir.path().join("t.pmtiles");
+        prepare_field(&hf, &out);
+        let back = Archive::open(&out).unwrap().heightfield().unwrap();
+        assert_eq!((back.width, back.height, back.n, back.roots), (hf.width, hf.height, hf.n, hf.roots));
+        assert!(back.raw == hf.raw, "samples differ");
+        assert_eq!((back.spacing, back.height_scale, back.format), (hf.spacing, hf.height_scale, hf.format));
+    }
+}
+
+#[test]
+fn a_real_geotiff_keeps_its_georeferencing_through_the_archive() {
+    let path = common::data("srtm3/mt_fuji_90m.tif");
+    let hf = vkterrain::input::load::load(&path, &Default::default()).unwrap();
+    let dir = TempDir::new("archive-geo");
+    let out = dir.path().join("fuji.pmtiles");
+    prepare_field(&hf, &out);
+    let back = vkterrain::input::load::load(&out, &Default::default()).unwrap();
+    assert!(back.raw == hf.raw);
+    assert_eq!((back.spacing, back.height_scale, back.void_samples), (hf.spacing, hf.height_scale, hf.void_samples));
+    assert!(hf.void_samples > 0, "the Fuji tile has voids (the archive keeps their count)");
+    let (mut g, a) = (back.georef.clone(), &hf.georef);
+    assert!(g.notes[0].contains("prepared archive"), "{:?}", g.notes);
+    g.notes.remove(0);
+    assert_eq!(&g, a);
+}
+
+#[test]
+fn the_synthetic_source_is_a_source_like_any_other() {
+    // Made window by window, or first as a heightfield: the same archive tiles.
+    let side = 700;
+    let synthetic = Synthetic { side };
+    let samples: Vec<f32> = (0..side * side).map(|i| synthetic.raw(i % side, i / side)).collect();
+    let hf = Heightfield::embed(
+        "s",
+        side,
+        side,
+        &samples,
+        HeightFormat::Unorm16,
+        Synthetic::SPACING,
+        Synthetic::HEIGHT_SCALE,
+    )
+    .unwrap();
+    let dir = TempDir::new("archive-synthetic");
+    let (a, b) = (dir.path().join("a.pmtiles"), dir.path().join("b.pmtiles"));
+    let stop = AtomicBool::new(false);
+    let report = prepare(&synthetic, &frame_of(&hf), &a, &|_, _| {}, &stop).unwrap();
+    prepare_field(&hf, &b);
+    let (a, b) = (Archive::open(&a).unwrap(), Archive::open(&b).unwrap());
+    assert_eq!(report.tiles, 9 + 4 + 1);
+    assert_eq!(report.distinct_tiles, report.tiles, "non-periodic: every tile differs");
+    for level in 0..=a.meta.top_level {
+        let [nx, nz] = a.meta.tiles_at(level);
+        for (tx, tz) in (0..nz).flat_map(|z| (0..nx).map(move |x| (x, z))) {
+            assert_eq!(a.read_tile(level, tx, tz).unwrap(), b.read_tile(level, tx, tz).unwrap());
+        }
+    }
+}
+
+/// A source that fails after a number of reads (a disk error halfway).
+struct Failing<'a>(InMemory<'a>, std::sync::atomic::AtomicUsize);
+
+impl Source for Failing<'_> {
+    fn name(&self) -> String {
+        "failing".into()
+    }
+    fn size(&self) -> (usize, usize) {
+        self.0.size()
+    }
+    fn samples(&self) -> vkterrain::input::archive::tile::Samples {
+        self.0.samples()
+    }
+    fn read(&self, x0: i64, z0: i64, nx: usize, nz: usize, stride: usize, out: &mut Vec<f32>) -> Result<(), String> {
+        if self.1.fetch_add(1, std::sync::atomic::Ordering::SeqCst) == 6 {
+            return Err("failing: read error at window 6".into());
+        }
+        self.0.read(x0, z0, nx, nz, stride, out)
+    }
+}
+
+#[test]
+fn a_failed_or_interrupted_run_leaves_no_file() {
+    let hf = rough(1100, 700);
+    let dir = TempDir::new("archive-interrupt");
+    let out = dir.path().join("t.pmtiles");
+    let stop = AtomicBool::new(true);
+    let e = prepare(&InMemory(&hf), &frame_of(&hf), &out, &|_, _| {}, &stop).unwrap_err();
+    assert!(matches!(e, PrepareError::Interrupted), "{e}");
+    let failing = Failing(InMemory(&hf), Default::default());
+    let e = prepare(&failing, &frame_of(&hf), &out, &|_, _| {}, &AtomicBool::new(false)).unwrap_err();
+    assert!(e.to_string().contains("read error at window 6"), "{e}");
+    let left: Vec<_> = std::fs::read_dir(dir.path()).unwrap().collect();
+    assert!(left.is_empty(), "left behind: {left:?}");
+}
+
+fn cli(args: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_vkterrain")).args(args).env("RUST_LOG", "error").output().unwrap()
+}
+
+#[test]
+fn prepare_then_render_end_to_end_with_validation_and_identical_frames() {
+    let dir = TempDir::new("archive-cli");
+    let out = dir.path().join("rainier.pmtiles");
+    let input = common::data("srtm3/mt_rainier_90m.tif");
+    let o = cli(&["prepare", input.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let report: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(report["report"]["tiles"], 25 + 9 + 4 + 1);
+    let render = |heightmap: &Path, png: &str| {
+        let png = dir.path().join(png);
+        let o = cli(&[
+            "render",
+            "--heightmap",
+            heightmap.to_str().unwrap(),
+            "--validation",
+            "on",
+            "--size",
+            "320x240",
+            "--out",
+            png.to_str().unwrap(),
+        ]);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let json: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+        assert_eq!(json["validation_messages"], 0);
+        (std::fs::read(png).unwrap(), String::from_utf8_lossy(&o.stderr).into_owned())
+    };
+    let (direct, _) = render(&input, "direct.png");
+    let (archived, notes) = render(&out, "archived.png");
+    assert!(notes.contains("EPSG:4326") && notes.contains("prepared archive"), "{notes}");
+    assert!(direct == archived, "the archive renders a different frame");
+}
+
+#[test]
+fn a_damaged_archive_is_refused_naming_the_file_and_the_tile() {
+    let dir = TempDir::new("archive-damage");
+    let good = dir.path().join("good.pmtiles");
+    let o = cli(&["prepare", "--synthetic", "600", "--out", good.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let bytes = std::fs::read(&good).unwrap();
+    let open = |name: &str, data: &[u8]| {
+        let p = dir.path().join(name);
+        std::fs::write(&p, data).unwrap();
+        let o = cli(&[
+            "render",
+            "--heightmap",
+            p.to_str().unwrap(),
+            "--size",
+            "64x64",
+            "--out",
+            dir.path().join("x.png").to_str().unwrap(),
+        ]);
+        assert_eq!(o.status.code(), Some(2), "{name}: {}", String::from_utf8_lossy(&o.stderr));
+        let e = String::from_utf8_lossy(&o.stderr).into_owned();
+        assert!(e.contains(p.to_str().unwrap()), "{name}: the message names the file: {e}");
+        e
+    };
+    // A byte in the middle of the tile data, bytes in a few other tiles.
+    for at in [16_384 + 10, bytes.len() / 2, bytes.len() - 100] {
+        let mut bad = bytes.clone();
+        bad[at] ^= 0x5a;
+        let e = open("flipped.pmtiles", &bad);
+        assert!(e.contains("tile ") && (e.contains("corrupt") || e.contains("checksum")), "byte {at}: {e}");
+    }
+    let e = open("truncated.pmtiles", &bytes[..bytes.len() * 2 / 3]);
+    assert!(e.contains("tile ") && e.contains("truncated"), "{e}");
+    let e = open("header.pmtiles", &bytes[..60]);
+    assert!(e.contains("shorter than a PMTiles header") || e.contains("past the end"), "{e}");
+    let e = open("garbage.pmtiles", b"this is not an archive at all, just text of some length........................................................................................");
+    assert!(e.contains("not a PMTiles archive"), "{e}");
+    assert!(!dir.path().join("x.png").exists());
+}
