@@ -346,3 +346,64 @@ fn a_damaged_archive_is_refused_naming_the_file_and_the_tile() {
     assert!(e.contains("not a PMTiles archive"), "{e}");
     assert!(!dir.path().join("x.png").exists());
 }
+
+/// Every tile of two archives, and their metadata, equal.
+fn same_archives(a: &Path, b: &Path) {
+    let (a, b) = (Archive::open(a).unwrap(), Archive::open(b).unwrap());
+    assert_eq!(a.meta, b.meta);
+    for level in 0..=a.meta.top_level {
+        let [nx, nz] = a.meta.tiles_at(level);
+        for (tx, tz) in (0..nz).flat_map(|z| (0..nx).map(move |x| (x, z))) {
+            assert_eq!(
+                a.read_tile(level, tx, tz).unwrap(),
+                b.read_tile(level, tx, tz).unwrap(),
+                "tile {level}/{tx}/{tz}"
+            );
+        }
+    }
+}
+
+#[test]
+fn reading_window_by_window_makes_the_same_archive_as_reading_whole() {
+    let dir = TempDir::new("archive-windows");
+    let canyon = common::data("grand_canyon/gcanyon_height_4k2k.png");
+    // A south-up, west-running float GeoTIFF in UTM (mirrored on reading, both ways).
+    let mirrored = dir.path().join("mirrored.tif");
+    {
+        let driver = gdal::DriverManager::get_driver_by_name("GTiff").unwrap();
+        let (w, h) = (700usize, 530usize);
+        let mut ds = driver.create_with_band_type::<f32, _>(&mirrored, w, h, 1).unwrap();
+        ds.set_geo_transform(&[500_000.0, -25.0, 0.0, 5_200_000.0, 0.0, 25.0]).unwrap();
+        ds.set_spatial_ref(&gdal::spatial_ref::SpatialRef::from_epsg(32610).unwrap()).unwrap();
+        let samples: Vec<f32> =
+            (0..w * h).map(|i| ((i % w) as f32 * 0.05).sin() * 300.0 + (i / w) as f32 * 0.7).collect();
+        let mut buf = gdal::raster::Buffer::new((w, h), samples);
+        ds.rasterband(1).unwrap().write((0, 0), (w, h), &mut buf).unwrap();
+    }
+    for (input, extra) in [(&canyon, &["--spacing", "60", "--height-scale", "10"][..]), (&mirrored, &[][..])] {
+        let (whole, windows) = (dir.path().join("whole.pmtiles"), dir.path().join("windows.pmtiles"));
+        for (out, flag) in [(&whole, None), (&windows, Some("--windows"))] {
+            let mut args = vec!["prepare", input.to_str().unwrap(), "--out", out.to_str().unwrap()];
+            args.extend_from_slice(extra);
+            args.extend(flag);
+            let o = cli(&args);
+            assert!(o.status.success(), "{:?}: {}", args, String::from_utf8_lossy(&o.stderr));
+            let notes = String::from_utf8_lossy(&o.stderr);
+            assert_eq!(notes.contains("read window by window"), flag.is_some(), "{notes}");
+        }
+        same_archives(&whole, &windows);
+    }
+}
+
+#[test]
+fn voids_read_window_by_window_are_refused_naming_the_sample() {
+    let dir = TempDir::new("archive-voids");
+    let out = dir.path().join("fuji.pmtiles");
+    let fuji = common::data("srtm3/mt_fuji_90m.tif");
+    let o = cli(&["prepare", fuji.to_str().unwrap(), "--windows", "--out", out.to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(2), "{}", String::from_utf8_lossy(&o.stderr));
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(e.contains("mt_fuji_90m.tif") && e.contains("column") && e.contains("void"), "{e}");
+    let left: Vec<_> = std::fs::read_dir(dir.path()).unwrap().collect();
+    assert!(left.is_empty(), "left behind: {left:?}");
+}

@@ -2,9 +2,10 @@
 //! Ctrl-C, the report).
 
 use crate::app::cli::InputError;
+use crate::input::georef::{self, WindowReader};
 use crate::input::load::{self, LoadOptions, VoidMode};
 use crate::lod::heightfield::{Georef, Spacing};
-use crate::prepare::source::{InMemory, Synthetic};
+use crate::prepare::source::{InMemory, Synthetic, Windowed};
 use crate::prepare::{Frame, PrepareError, Source};
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -32,6 +33,38 @@ pub struct PrepareArgs {
     /// Size of a raw .r16/.f32 input, as WIDTHxHEIGHT.
     #[arg(long, value_parser = crate::app::cli::parse_size)]
     pub raw_size: Option<(u32, u32)>,
+    /// Read the input window by window even when it would fit in memory (inputs over
+    /// 8193^2 samples always are). Voids are then refused, not filled.
+    #[arg(long)]
+    pub windows: bool,
+}
+
+/// Inputs larger than this are read window by window (in memory they would take about
+/// 8 bytes a sample, twice: the file's samples and the embedded grid).
+pub const IN_MEMORY_SAMPLES: usize = 8193 * 8193;
+
+/// Is `path` read window by window? Rasters GDAL reads, when asked to or when large;
+/// raw files and archives are read whole.
+fn windowed(path: &std::path::Path, asked: bool) -> Result<bool, InputError> {
+    let ext = path.extension().map(|e| e.to_string_lossy().to_lowercase()).unwrap_or_default();
+    if matches!(ext.as_str(), "r16" | "f32" | "pmtiles") || crate::input::archive::Archive::sniff(path) {
+        if asked {
+            return Err(InputError(format!(
+                "{}: --windows reads GDAL rasters; raw files and archives are read whole",
+                path.display()
+            )));
+        }
+        return Ok(false);
+    }
+    crate::input::regular_file(path).map_err(InputError)?;
+    if asked {
+        return Ok(true);
+    }
+    Ok(match WindowReader::open(path) {
+        Ok(r) => r.raster.width * r.raster.height > IN_MEMORY_SAMPLES,
+        // The whole-file loader gives the full message.
+        Err(_) => false,
+    })
 }
 
 pub fn prepare(args: &PrepareArgs) -> anyhow::Result<()> {
@@ -44,6 +77,7 @@ pub fn prepare(args: &PrepareArgs) -> anyhow::Result<()> {
     }
     let loaded;
     let synthetic;
+    let windows;
     let (source, frame): (&dyn Source, Frame) = match (&args.input, args.synthetic) {
         (_, Some(side)) => {
             synthetic = Synthetic { side: side as usize };
@@ -57,6 +91,25 @@ pub fn prepare(args: &PrepareArgs) -> anyhow::Result<()> {
                 void_samples: 0,
             };
             (&synthetic, frame)
+        }
+        (Some(path), None) if windowed(path, args.windows)? => {
+            let reader = WindowReader::open(path).map_err(|e| InputError(e.to_string()))?;
+            let shown = path.display().to_string();
+            let scale = georef::decide(&shown, &reader.raster, args.spacing, args.height_scale, None)
+                .map_err(|e| InputError(e.to_string()))?;
+            let (w, h) = (reader.raster.width, reader.raster.height);
+            for line in crate::input::describe_frame(&shown, w, h, &scale.georef, scale.spacing, scale.height_scale) {
+                eprintln!("vkterrain: note: {line}");
+            }
+            eprintln!("vkterrain: note: {shown}: read window by window");
+            let frame = Frame {
+                spacing: [scale.spacing.x, scale.spacing.z],
+                height_scale: scale.height_scale,
+                georef: scale.georef,
+                void_samples: 0,
+            };
+            windows = Windowed(reader);
+            (&windows, frame)
         }
         (Some(path), None) => {
             let opts = LoadOptions {

@@ -148,25 +148,17 @@ fn crs_label(srs: &SpatialRef) -> String {
 
 /// Opens `path` with GDAL and reads its height band and what it says about itself.
 pub fn read(path: &Path) -> Result<Raster, HeightfieldError> {
-    init_gdal();
     let shown = path.display().to_string();
     let bad = |m: String| HeightfieldError::invalid(&shown, m);
     let why = |e: gdal::errors::GdalError| gdal_message(&shown, e);
-    let ds = Dataset::open(path).map_err(|e| {
-        bad(format!(
-            "not a raster I can read: {} (GeoTIFF, SRTM .hgt, PNG, JPEG and the other GDAL rasters are; raw .r16/.f32 need --raw-size)",
-            why(e)
-        ))
-    })?;
+    let ds = open(path)?;
     let (w, h) = ds.raster_size();
-    if w == 0 || h == 0 {
-        return Err(bad(format!("image is {w} x {h}: no samples")));
-    }
     if w > MAX_SIDE || h > MAX_SIDE {
-        return Err(bad(format!("{w} x {h} is larger than the supported {MAX_SIDE} samples a side")));
+        return Err(bad(format!(
+            "{w} x {h} is larger than the supported {MAX_SIDE} samples a side (`vkterrain prepare` makes an archive of it)"
+        )));
     }
     let bands = ds.raster_count();
-    let band = ds.rasterband(1).map_err(|e| bad(format!("cannot decode band 1: {}", why(e))))?;
     let read_band = |i: usize| -> Result<Vec<f32>, HeightfieldError> {
         let b = ds.rasterband(i).map_err(|e| bad(format!("cannot decode band {i}: {}", why(e))))?;
         let buf = b
@@ -194,6 +186,47 @@ pub fn read(path: &Path) -> Result<Raster, HeightfieldError> {
         }
         n => return Err(bad(format!("{n} bands: expected one band of heights (or equal R, G, B)"))),
     };
+    let (mut raster, srs) = header(path, &ds)?;
+    raster.samples = samples;
+    if let (Some(t), Some(s)) = (&raster.transform, &srs) {
+        if s.is_geographic() && t[2] == 0.0 && t[4] == 0.0 {
+            let frame = geographic_frame(t, w, h, s);
+            if frame.worst_stretch > MAX_STRETCH {
+                return reproject(&shown, &ds, raster, s, &frame);
+            }
+        }
+    }
+    orient_east_and_south(&mut raster);
+    Ok(raster)
+}
+
+fn open(path: &Path) -> Result<Dataset, HeightfieldError> {
+    init_gdal();
+    let shown = path.display().to_string();
+    let ds = Dataset::open(path).map_err(|e| {
+        HeightfieldError::invalid(
+            &shown,
+            format!(
+                "not a raster I can read: {} (GeoTIFF, SRTM .hgt, PNG, JPEG and the other GDAL rasters are; raw .r16/.f32 need --raw-size)",
+                gdal_message(&shown, e)
+            ),
+        )
+    })?;
+    let (w, h) = ds.raster_size();
+    if w == 0 || h == 0 {
+        return Err(HeightfieldError::invalid(&shown, format!("image is {w} x {h}: no samples")));
+    }
+    Ok(ds)
+}
+
+/// Everything the file says about its samples but the samples (left empty): type,
+/// nodata, scale and offset, units, transform, CRS; the georeferencing checked.
+fn header(path: &Path, ds: &Dataset) -> Result<(Raster, Option<SpatialRef>), HeightfieldError> {
+    let shown = path.display().to_string();
+    let bad = |m: String| HeightfieldError::invalid(&shown, m);
+    let why = |e: gdal::errors::GdalError| gdal_message(&shown, e);
+    let (w, h) = ds.raster_size();
+    let band = ds.rasterband(1).map_err(|e| bad(format!("cannot decode band 1: {}", why(e))))?;
     let (format, bits) = match band.band_type() {
         GdalDataType::UInt8 => (HeightFormat::Unorm16, 8),
         GdalDataType::UInt16 => (HeightFormat::Unorm16, 16),
@@ -248,7 +281,7 @@ pub fn read(path: &Path) -> Result<Raster, HeightfieldError> {
     let raster = Raster {
         width: w,
         height: h,
-        samples,
+        samples: Vec::new(),
         format,
         bits,
         nodata: band.no_data_value(),
@@ -264,7 +297,6 @@ pub fn read(path: &Path) -> Result<Raster, HeightfieldError> {
         reprojected_nodata: None,
         notes,
     };
-    let mut raster = raster;
     if let (Some(t), Some(s)) = (&raster.transform, &srs) {
         if s.is_geographic() {
             // Sample centres' latitudes: beyond a pole the georeferencing is wrong.
@@ -278,15 +310,134 @@ pub fn read(path: &Path) -> Result<Raster, HeightfieldError> {
                 )));
             }
         }
-        if s.is_geographic() && t[2] == 0.0 && t[4] == 0.0 {
-            let frame = geographic_frame(t, w, h, s);
-            if frame.worst_stretch > MAX_STRETCH {
-                return reproject(&shown, &ds, raster, s, &frame);
+    }
+    Ok((raster, srs))
+}
+
+/// A raster read window by window (`vkterrain prepare` on inputs of any size): the
+/// file's header as [`read`] takes it, samples on demand, mirrored east and south like
+/// [`orient_east_and_south`], the band offset applied. Voids are refused where found
+/// (filling them needs their surroundings: inputs that fit in memory are filled).
+pub struct WindowReader {
+    path: std::path::PathBuf,
+    /// Open datasets, one per thread reading at a time (a GDAL dataset is not `Sync`).
+    pool: std::sync::Mutex<Vec<Dataset>>,
+    /// The header; `samples` stays empty.
+    pub raster: Raster,
+    flip: [bool; 2],
+    raw_offset: f32,
+    nodata: Option<f64>,
+    /// RGB(A): heights only where R = G = B, checked in every window.
+    colour_bands: bool,
+}
+
+impl WindowReader {
+    pub fn open(path: &Path) -> Result<WindowReader, HeightfieldError> {
+        let shown = path.display().to_string();
+        let bad = |m: String| HeightfieldError::invalid(&shown, m);
+        let ds = open(path)?;
+        let bands = ds.raster_count();
+        if bands > 4 {
+            return Err(bad(format!("{bands} bands: expected one band of heights (or equal R, G, B)")));
+        }
+        let (mut raster, srs) = header(path, &ds)?;
+        if let (Some(t), Some(s)) = (&raster.transform, &srs) {
+            if s.is_geographic() && t[2] == 0.0 && t[4] == 0.0 {
+                let frame = geographic_frame(t, raster.width, raster.height, s);
+                if frame.worst_stretch > MAX_STRETCH {
+                    return Err(bad(format!(
+                        "one spacing per axis is off by {:.1} % over this geographic extent: it needs reprojecting, \
+                         which window-by-window reading does not do (gdalwarp -t_srs to a metric projection first)",
+                        100.0 * frame.worst_stretch
+                    )));
+                }
             }
         }
+        let t = raster.transform.unwrap_or([0.0, 1.0, 0.0, 0.0, 0.0, -1.0]);
+        let flip = [t[1] < 0.0, t[5] > 0.0];
+        orient_east_and_south(&mut raster);
+        let nodata =
+            raster.nodata.or((raster.format == HeightFormat::Float32 && raster.bits == 16).then_some(-32768.0));
+        let raw_offset = raster.offset.map_or(0.0, |o| (o / raster.scale.unwrap_or(1.0)) as f32);
+        if raster.offset.is_some() {
+            raster.format = HeightFormat::Float32;
+        }
+        // GDAL's block cache is the only memory here that grows with the file.
+        let _ = gdal::config::set_config_option("GDAL_CACHEMAX", "256");
+        Ok(WindowReader {
+            path: path.to_path_buf(),
+            pool: std::sync::Mutex::new(vec![ds]),
+            raster,
+            flip,
+            raw_offset,
+            nodata,
+            colour_bands: bands >= 3,
+        })
     }
-    orient_east_and_south(&mut raster);
-    Ok(raster)
+
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// Samples `x0..=x1`, `z0..=z1` (inside the extent, east and south oriented),
+    /// row-major.
+    pub fn read(&self, x0: usize, z0: usize, x1: usize, z1: usize) -> Result<Vec<f32>, String> {
+        let shown = self.path.display().to_string();
+        let (w, h) = (self.raster.width, self.raster.height);
+        let (nx, nz) = (x1 - x0 + 1, z1 - z0 + 1);
+        // The same box in the file's own orientation.
+        let fx = if self.flip[0] { w - 1 - x1 } else { x0 };
+        let fz = if self.flip[1] { h - 1 - z1 } else { z0 };
+        let ds = match self.pool.lock().expect("dataset pool").pop() {
+            Some(ds) => ds,
+            None => open(&self.path).map_err(|e| e.to_string())?,
+        };
+        let band = |i: usize| {
+            ds.rasterband(i)
+                .and_then(|b| b.read_as::<f32>((fx as isize, fz as isize), (nx, nz), (nx, nz), None))
+                .map(|b| b.into_shape_and_vec().1)
+        };
+        let read = band(1).and_then(|v| {
+            let others = if self.colour_bands { vec![band(2)?, band(3)?] } else { Vec::new() };
+            Ok((v, others))
+        });
+        self.pool.lock().expect("dataset pool").push(ds);
+        let (mut v, others) = read
+            .map_err(|e| format!("{shown}: reading samples {x0}..={x1} x {z0}..={z1}: {}", gdal_message(&shown, e)))?;
+        for other in &others {
+            if let Some(i) = (0..v.len()).find(|&i| v[i] != other[i]) {
+                return Err(format!(
+                    "{shown}: colour image (channels differ at file column {}, row {}): a height map must be grayscale or have equal R, G, B",
+                    fx + i % nx,
+                    fz + i / nx
+                ));
+            }
+        }
+        if self.flip[0] {
+            v.chunks_mut(nx).for_each(|r| r.reverse());
+        }
+        if self.flip[1] {
+            v = v.chunks(nx).rev().flatten().copied().collect();
+        }
+        for (i, s) in v.iter_mut().enumerate() {
+            let void = match self.nodata {
+                Some(nd) if nd.is_nan() => s.is_nan(),
+                Some(nd) => *s == nd as f32,
+                None => false,
+            };
+            if void || !s.is_finite() {
+                return Err(format!(
+                    "{shown}: sample at column {}, row {} is {}: voids (nodata) are filled only for inputs that fit in memory; \
+                     fill them first (gdal_fillnodata) or prepare a smaller input",
+                    x0 + i % nx,
+                    z0 + i / nx,
+                    if void { "a void (nodata)".to_string() } else { s.to_string() }
+                ));
+            }
+            *s += self.raw_offset;
+        }
+        Ok(v)
+    }
 }
 
 /// World x runs east and z south (SPEC section 1): a raster whose columns run west or

@@ -36,19 +36,7 @@ pub fn regular_file(path: &Path) -> Result<Metadata, String> {
 /// What was read at load, in lines for the terminal: size, CRS and origin, how spacing
 /// and heights were decided, voids.
 pub fn describe(hf: &Heightfield) -> Vec<String> {
-    let g = &hf.georef;
-    let mut lines = vec![match &g.crs {
-        Some(crs) => format!(
-            "{}: {} x {} samples, {crs}, first sample at {:.6}, {:.6}",
-            hf.source, hf.width, hf.height, g.origin[0], g.origin[1]
-        ),
-        None => format!("{}: {} x {} samples, no CRS", hf.source, hf.width, hf.height),
-    }];
-    lines.extend(g.notes.iter().map(|n| format!("{}: {n}", hf.source)));
-    lines.push(format!(
-        "{}: world frame {} x {} m a sample, {} m a height unit",
-        hf.source, hf.spacing.x, hf.spacing.z, hf.height_scale
-    ));
+    let mut lines = describe_frame(&hf.source, hf.width, hf.height, &hf.georef, hf.spacing, hf.height_scale);
     if hf.void_samples > 0 {
         let share = 100.0 * hf.void_samples as f64 / (hf.width * hf.height) as f64;
         lines.push(format!(
@@ -58,5 +46,29 @@ pub fn describe(hf: &Heightfield) -> Vec<String> {
             if hf.void_mask.is_some() { ", drawn as holes" } else { "" }
         ));
     }
+    lines
+}
+
+/// The lines of [`describe`] about the frame, for inputs not (yet) in memory.
+pub fn describe_frame(
+    source: &str,
+    width: usize,
+    height: usize,
+    g: &crate::lod::heightfield::Georef,
+    spacing: crate::lod::heightfield::Spacing,
+    height_scale: f32,
+) -> Vec<String> {
+    let mut lines = vec![match &g.crs {
+        Some(crs) => format!(
+            "{source}: {width} x {height} samples, {crs}, first sample at {:.6}, {:.6}",
+            g.origin[0], g.origin[1]
+        ),
+        None => format!("{source}: {width} x {height} samples, no CRS"),
+    }];
+    lines.extend(g.notes.iter().map(|n| format!("{source}: {n}")));
+    lines.push(format!(
+        "{source}: world frame {} x {} m a sample, {height_scale} m a height unit",
+        spacing.x, spacing.z
+    ));
     lines
 }

@@ -3,6 +3,7 @@
 //! [`Heightfield::embed`] does), so windows may reach past the edges.
 
 use crate::input::archive::tile::Samples;
+use crate::input::georef::WindowReader;
 use crate::lod::heightfield::{HeightFormat, Heightfield};
 
 pub trait Source: Sync {
@@ -87,6 +88,57 @@ impl Source for Synthetic {
         out.clear();
         for z in axis(z0, nz, stride, self.side) {
             out.extend(axis(x0, nx, stride, self.side).map(|x| self.raw(x, z)));
+        }
+        Ok(())
+    }
+}
+
+/// A file read window by window through GDAL ([`WindowReader`]): memory follows the
+/// windows, not the file.
+pub struct Windowed(pub WindowReader);
+
+impl Source for Windowed {
+    fn name(&self) -> String {
+        self.0.path().display().to_string()
+    }
+
+    fn size(&self) -> (usize, usize) {
+        (self.0.raster.width, self.0.raster.height)
+    }
+
+    fn samples(&self) -> Samples {
+        match self.0.raster.format {
+            HeightFormat::Unorm16 => Samples::Unorm16,
+            HeightFormat::Float32 => Samples::Float32,
+        }
+    }
+
+    fn read(&self, x0: i64, z0: i64, nx: usize, nz: usize, stride: usize, out: &mut Vec<f32>) -> Result<(), String> {
+        let (w, h) = self.size();
+        let xs: Vec<usize> = axis(x0, nx, stride, w).collect();
+        let zs: Vec<usize> = axis(z0, nz, stride, h).collect();
+        let (xa, xb) = (xs[0], xs[nx - 1]);
+        out.clear();
+        out.reserve(nx * nz);
+        if stride == 1 {
+            // One box, the clamped margin repeated from it.
+            let (za, zb) = (zs[0], zs[nz - 1]);
+            let boxed = self.0.read(xa, za, xb, zb)?;
+            let bw = xb - xa + 1;
+            for &z in &zs {
+                out.extend(xs.iter().map(|&x| boxed[(z - za) * bw + (x - xa)]));
+            }
+            return Ok(());
+        }
+        // Strided: each distinct row once, the span of its columns at full resolution.
+        let mut last: Option<(usize, Vec<f32>)> = None;
+        for &z in &zs {
+            if last.as_ref().is_none_or(|(lz, _)| *lz != z) {
+                let row = self.0.read(xa, z, xb, z)?;
+                last = Some((z, row));
+            }
+            let row = &last.as_ref().expect("just read").1;
+            out.extend(xs.iter().map(|&x| row[x - xa]));
         }
         Ok(())
     }
