@@ -33,6 +33,8 @@ enum Command {
     Timeline(vkterrain::app::timeline::TimelineArgs),
     /// Prepare a terrain of any size into a tile archive (PMTiles), window by window.
     Prepare(vkterrain::app::prepare::PrepareArgs),
+    /// Read every tile of an archive and check it (sizes, layout, checksums).
+    Check(vkterrain::app::prepare::CheckArgs),
 }
 
 fn main() -> ExitCode {
@@ -69,6 +71,7 @@ fn main() -> ExitCode {
         Some(Command::Quality(a)) => vkterrain::app::quality::quality(a),
         Some(Command::Timeline(a)) => vkterrain::app::timeline::timeline(a),
         Some(Command::Prepare(a)) => vkterrain::app::prepare::prepare(a),
+        Some(Command::Check(a)) => vkterrain::app::prepare::check(a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -331,12 +331,19 @@ fn a_damaged_archive_is_refused_naming_the_file_and_the_tile() {
         assert!(e.contains(p.to_str().unwrap()), "{name}: the message names the file: {e}");
         e
     };
-    // A byte in the middle of the tile data, bytes in a few other tiles.
+    let o = cli(&["check", good.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let checked: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(checked["tiles_checked"], 14);
+    // A byte in the middle of the tile data, bytes in a few other tiles: `render` and
+    // `check` both refuse them.
     for at in [16_384 + 10, bytes.len() / 2, bytes.len() - 100] {
         let mut bad = bytes.clone();
         bad[at] ^= 0x5a;
         let e = open("flipped.pmtiles", &bad);
         assert!(e.contains("tile ") && (e.contains("corrupt") || e.contains("checksum")), "byte {at}: {e}");
+        let o = cli(&["check", dir.path().join("flipped.pmtiles").to_str().unwrap()]);
+        assert_eq!(o.status.code(), Some(2), "check accepted byte {at} flipped");
     }
     let e = open("truncated.pmtiles", &bytes[..bytes.len() * 2 / 3]);
     assert!(e.contains("tile ") && e.contains("truncated"), "{e}");

@@ -145,15 +145,27 @@ pub fn prepare(args: &PrepareArgs) -> anyhow::Result<()> {
             .expect("progress template")
             .progress_chars("=> "),
     );
+    // Not on a terminal (a log, CI): a line at every tenth instead of the bar.
+    let terminal = std::io::IsTerminal::is_terminal(&std::io::stderr());
+    let started = std::time::Instant::now();
     let progress = |done: u64, total: u64| {
         bar.set_length(total);
         bar.set_position(done);
+        if !terminal && total >= 10 && done.is_multiple_of(total / 10) && done < total {
+            let elapsed = started.elapsed().as_secs_f64();
+            let eta = elapsed * (total - done) as f64 / done as f64;
+            eprintln!("vkterrain: prepare: {done} of {total} windows, {elapsed:.0} s, about {eta:.0} s to go");
+        }
     };
     let result = crate::prepare::prepare(source, &frame, &args.out, &progress, &stop);
     bar.finish_and_clear();
     let report = match result {
         Ok(r) => r,
         Err(PrepareError::Source(m)) => return Err(InputError(m).into()),
+        Err(PrepareError::Interrupted) => {
+            eprintln!("vkterrain: interrupted: no archive written");
+            std::process::exit(130);
+        }
         Err(e) => return Err(e.into()),
     };
     let peak = crate::app::outputs::peak_resident_mb();
@@ -175,5 +187,48 @@ pub fn prepare(args: &PrepareArgs) -> anyhow::Result<()> {
         report.seconds,
         peak.map_or("unknown".into(), |mb| format!("{mb:.0} MB")),
     );
+    Ok(())
+}
+
+#[derive(clap::Args, Debug)]
+pub struct CheckArgs {
+    /// The archive to check (written by `vkterrain prepare`).
+    pub archive: PathBuf,
+}
+
+/// `vkterrain check`: reads every tile of an archive (directories, sizes, layout,
+/// checksums) and prints what it holds and how fast it read, as JSON.
+pub fn check(args: &CheckArgs) -> anyhow::Result<()> {
+    let started = std::time::Instant::now();
+    let archive = crate::input::archive::Archive::open(&args.archive).map_err(|e| InputError(e.to_string()))?;
+    let m = &archive.meta;
+    let total: u64 = (0..=m.top_level).map(|l| m.tiles_at(l).iter().map(|&c| c as u64).product::<u64>()).sum();
+    let bar = indicatif::ProgressBar::new(total);
+    let mut tiles = 0u64;
+    for level in 0..=m.top_level {
+        let [nx, nz] = m.tiles_at(level);
+        for (tx, tz) in (0..nz).flat_map(|z| (0..nx).map(move |x| (x, z))) {
+            archive.read_tile(level, tx, tz).map_err(|e| InputError(e.to_string()))?;
+            tiles += 1;
+            bar.inc(1);
+        }
+    }
+    bar.finish_and_clear();
+    let seconds = started.elapsed().as_secs_f64();
+    let json = serde_json::json!({
+        "archive": args.archive.display().to_string(),
+        "width": m.width,
+        "height": m.height,
+        "levels": u32::from(m.top_level) + 1,
+        "tiles_checked": tiles,
+        "source": m.source,
+        "crs": m.georef.crs,
+        "spacing_m": m.spacing,
+        "height_scale_m": m.height_scale,
+        "seconds": seconds,
+        "ms_per_tile": 1e3 * seconds / tiles.max(1) as f64,
+    });
+    println!("{}", serde_json::to_string_pretty(&json)?);
+    eprintln!("vkterrain: {}: {tiles} tiles, every one intact ({seconds:.1} s)", args.archive.display());
     Ok(())
 }

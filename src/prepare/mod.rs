@@ -309,7 +309,7 @@ impl Run<'_> {
         let tile = Tile { level, tx, tz, side: TILE_QUADS + 3, heights, deviation };
         let payload = tile::encode(&tile, self.samples);
         self.raw_bytes.fetch_add(payload.len() as u64, Ordering::Relaxed);
-        let compressed = pmtiles::gzip(&payload, 6);
+        let compressed = pmtiles::zstd(&payload);
         let key = {
             use std::hash::{BuildHasher, Hasher};
             let mut h = foldhash::quality::FixedState::with_seed(27).build_hasher();

@@ -1,5 +1,5 @@
 //! The terrain archive (SPEC section 8): a quadtree of tiles in one PMTiles v3 file
-//! ([`pmtiles`]), each tile a versioned, checksummed payload ([`tile`]). Written by
+//! ([`pmtiles`]), each tile a versioned, checksummed payload ([`tile`]), zstd-compressed. Written by
 //! `vkterrain prepare` ([`crate::prepare`]), read here: the metadata says what the
 //! terrain is (size, frame, georeferencing) and every tile read is checked.
 //!
@@ -133,9 +133,12 @@ impl Archive {
         let head = read(0, (pmtiles::HEADER_LEN as u64).min(len), "header")?;
         let header = Header::decode(&head).map_err(|e| bad(path, e))?;
         if header.internal_compression != pmtiles::COMPRESSION_GZIP
-            || header.tile_compression != pmtiles::COMPRESSION_GZIP
+            || header.tile_compression != pmtiles::COMPRESSION_ZSTD
         {
-            return Err(bad(path, "a PMTiles archive this build did not write (directories and tiles must be gzip)"));
+            return Err(bad(
+                path,
+                "a PMTiles archive this build did not write (directories must be gzip and tiles zstd)",
+            ));
         }
         let root = read(header.root_offset, header.root_len, "root directory")?;
         let root = pmtiles::decode_directory(&root).map_err(|e| bad(path, format!("root directory: {e}")))?;
@@ -226,10 +229,11 @@ impl Archive {
         }
         let mut buf = vec![0u8; e.length as usize];
         self.file.read_exact_at(&mut buf, start.expect("checked")).map_err(|e| err(format!("read failed: {e}")))?;
-        let payload =
-            pmtiles::gunzip(&buf).map_err(|e| err(format!("does not decompress ({e}): the archive is corrupt")))?;
         let samples = self.meta.sample_format().expect("checked at open");
         let side = self.meta.tile_quads + 3;
+        let limit = tile::payload_len(samples, side, self.deviations(level));
+        let payload = pmtiles::unzstd(&buf, limit)
+            .map_err(|e| err(format!("does not decompress ({e}): the archive is corrupt")))?;
         tile::decode(&payload, samples, level, tx, tz, side, self.deviations(level)).map(Some).map_err(err)
     }
 
@@ -340,7 +344,7 @@ impl ArchiveWriter {
         Ok(ArchiveWriter { out: out.to_path_buf(), tmp, file: Some(file), entries: Vec::new(), data_len: 0 })
     }
 
-    /// Appends tile `(level, tx, tz)` (its payload gzipped, [`tile::encode`]); `top` is
+    /// Appends tile `(level, tx, tz)` (its payload compressed, [`pmtiles::zstd`]); `top` is
     /// the archive's top level. Returns the compressed size.
     pub fn add(&mut self, top: u8, level: u8, tx: u32, tz: u32, compressed: &[u8]) -> std::io::Result<usize> {
         let file = self.file.as_mut().expect("not finished");
@@ -382,7 +386,7 @@ impl ArchiveWriter {
             tile_contents: self.entries.len() as u64,
             clustered: false,
             internal_compression: pmtiles::COMPRESSION_GZIP,
-            tile_compression: pmtiles::COMPRESSION_GZIP,
+            tile_compression: pmtiles::COMPRESSION_ZSTD,
             tile_type: 0,
             min_zoom: 0,
             max_zoom: meta.top_level,

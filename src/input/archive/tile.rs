@@ -1,7 +1,7 @@
 //! One tile's payload (SPEC section 8): the LOD-`t` vertices of its square with a
 //! one-vertex border, and the camera-independent part of the bound for its own level,
 //! `D_t` of each of its LOD-`t` groups. Little-endian, versioned, with a CRC-32 of the
-//! body; the container gzips each payload.
+//! body; the container compresses each payload.
 
 /// Payload layout version; readers refuse others.
 pub const TILE_VERSION: u16 = 1;
@@ -34,6 +34,18 @@ impl Tile {
     /// Vertices a side of the tile's square (no border).
     pub fn vertices(&self) -> usize {
         self.side - 2
+    }
+}
+
+/// Bytes of a payload with `side^2` heights and `deviations` values of `D`.
+pub fn payload_len(samples: Samples, side: usize, deviations: usize) -> usize {
+    HEAD + side * side * sample_bytes(samples) + deviations * 4
+}
+
+fn sample_bytes(samples: Samples) -> usize {
+    match samples {
+        Samples::Unorm16 => 2,
+        Samples::Float32 => 4,
     }
 }
 
@@ -110,11 +122,8 @@ pub fn decode(
     if crc32fast::hash(body) != u32_at(20) {
         return Err("checksum mismatch (the tile's data is corrupt)".into());
     }
-    let width = match samples {
-        Samples::Unorm16 => 2,
-        Samples::Float32 => 4,
-    };
-    let expected = side * side * width + deviations * 4;
+    let width = sample_bytes(samples);
+    let expected = payload_len(samples, side, deviations) - HEAD;
     if body.len() != expected {
         return Err(format!("body of {} bytes, expected {expected}", body.len()));
     }
