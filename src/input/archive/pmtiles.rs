@@ -342,7 +342,7 @@ mod tests {
         for count in [1usize, 7, 100_000] {
             let entries: Vec<Entry> = (0..count as u64)
                 .map(|i| Entry {
-                    tile_id: i * 3 + (i % 5),
+                    tile_id: i * 5 + (i % 3),
                     // Mostly contiguous, some not (the decoder's "0 = follows" rule).
                     offset: i * 1000 + if i % 7 == 0 { 17 } else { 0 },
                     length: if i % 7 == 6 { 983 } else { 1000 },
