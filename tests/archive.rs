@@ -226,11 +226,8 @@ fn the_synthetic_source_is_a_source_like_any_other() {
     let (a, b) = (Archive::open(&a).unwrap(), Archive::open(&b).unwrap());
     assert_eq!(report.tiles, 9 + 4 + 1);
     assert_eq!(report.distinct_tiles, report.tiles, "non-periodic: every tile differs");
-    for level in 0..=a.meta.top_level {
-        let [nx, nz] = a.meta.tiles_at(level);
-        for (tx, tz) in (0..nz).flat_map(|z| (0..nx).map(move |x| (x, z))) {
-            assert_eq!(a.read_tile(level, tx, tz).unwrap(), b.read_tile(level, tx, tz).unwrap());
-        }
+    for (level, tx, tz) in a.meta.tiles() {
+        assert_eq!(a.read_tile(level, tx, tz).unwrap(), b.read_tile(level, tx, tz).unwrap());
     }
 }
 

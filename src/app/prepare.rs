@@ -202,16 +202,12 @@ pub fn check(args: &CheckArgs) -> anyhow::Result<()> {
     let started = std::time::Instant::now();
     let archive = crate::input::archive::Archive::open(&args.archive).map_err(|e| InputError(e.to_string()))?;
     let m = &archive.meta;
-    let total: u64 = (0..=m.top_level).map(|l| m.tiles_at(l).iter().map(|&c| c as u64).product::<u64>()).sum();
-    let bar = indicatif::ProgressBar::new(total);
+    let bar = indicatif::ProgressBar::new(m.tiles().count() as u64);
     let mut tiles = 0u64;
-    for level in 0..=m.top_level {
-        let [nx, nz] = m.tiles_at(level);
-        for (tx, tz) in (0..nz).flat_map(|z| (0..nx).map(move |x| (x, z))) {
-            archive.read_tile(level, tx, tz).map_err(|e| InputError(e.to_string()))?;
-            tiles += 1;
-            bar.inc(1);
-        }
+    for (level, tx, tz) in m.tiles() {
+        archive.read_tile(level, tx, tz).map_err(|e| InputError(e.to_string()))?;
+        tiles += 1;
+        bar.inc(1);
     }
     bar.finish_and_clear();
     let seconds = started.elapsed().as_secs_f64();

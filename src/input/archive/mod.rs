@@ -71,6 +71,14 @@ impl Meta {
         [(self.width - 1).div_ceil(span) as u32, (self.height - 1).div_ceil(span) as u32]
     }
 
+    /// Every stored tile, `(level, tx, tz)`, level by level, row by row.
+    pub fn tiles(&self) -> impl Iterator<Item = (u8, u32, u32)> + '_ {
+        (0..=self.top_level).flat_map(move |level| {
+            let [nx, nz] = self.tiles_at(level);
+            (0..nz).flat_map(move |tz| (0..nx).map(move |tx| (level, tx, tz)))
+        })
+    }
+
     /// `n` of the square the quadtree covers (`2^n + 1` samples a side).
     pub fn n(&self) -> u32 {
         self.tile_quads.trailing_zeros() + u32::from(self.top_level)
@@ -303,11 +311,8 @@ impl Archive {
             }
         }
         // The coarser tiles are not needed here, but a damaged one is better found now.
-        for level in 1..=m.top_level {
-            let [nx, nz] = m.tiles_at(level);
-            for (tx, tz) in (0..nz).flat_map(|z| (0..nx).map(move |x| (x, z))) {
-                self.read_tile(level, tx, tz)?.ok_or_else(|| self.tile_error(level, tx, tz, "missing"))?;
-            }
+        for (level, tx, tz) in m.tiles().filter(|&(level, _, _)| level > 0) {
+            self.read_tile(level, tx, tz)?.ok_or_else(|| self.tile_error(level, tx, tz, "missing"))?;
         }
         let format = match m.sample_format().expect("checked at open") {
             Samples::Unorm16 => HeightFormat::Unorm16,
