@@ -52,7 +52,15 @@ fn main() -> ExitCode {
         }
         Err(e) => {
             let text = e.render().to_string();
-            let first = text.lines().next().unwrap_or("invalid arguments").trim_start_matches("error: ");
+            let mut first =
+                text.lines().next().unwrap_or("invalid arguments").trim_start_matches("error: ").to_string();
+            // "the following required arguments were not provided:" lists the names on
+            // the indented lines below it: keep them on the one line.
+            if first.ends_with(':') {
+                let names: Vec<&str> =
+                    text.lines().skip(1).take_while(|l| l.starts_with("  ")).map(str::trim).collect();
+                first = format!("{first} {}", names.join(", "));
+            }
             // A value outside a fixed set: name the set on the same line.
             let possible = text.lines().find_map(|l| l.trim().strip_prefix("[possible values: "));
             match possible {
@@ -76,7 +84,7 @@ fn main() -> ExitCode {
     match result {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("vkterrain: {e:#}");
+            eprintln!("vkterrain: {}", error_chain(&e));
             if e.downcast_ref::<InputError>().is_some() {
                 ExitCode::from(2)
             } else {
@@ -84,4 +92,17 @@ fn main() -> ExitCode {
             }
         }
     }
+}
+
+/// The error and its causes on one line, each cause once: an error whose message already
+/// ends with its cause's text (`path: {source}`) does not repeat it.
+fn error_chain(e: &anyhow::Error) -> String {
+    let mut line = e.to_string();
+    for cause in e.chain().skip(1) {
+        let text = cause.to_string();
+        if !line.ends_with(&text) {
+            line = format!("{line}: {text}");
+        }
+    }
+    line
 }

@@ -384,7 +384,9 @@ fn reading_window_by_window_makes_the_same_archive_as_reading_whole() {
         let mut buf = gdal::raster::Buffer::new((w, h), samples);
         ds.rasterband(1).unwrap().write((0, 0), (w, h), &mut buf).unwrap();
     }
-    for (input, extra) in [(&canyon, &["--spacing", "60", "--height-scale", "10"][..]), (&mirrored, &[][..])] {
+    // The canyon carries no georeferencing: both reads must recognise it as the known
+    // data set (60 m, 10 m a unit), not fall back to a default.
+    for (input, extra) in [(&canyon, &[][..]), (&mirrored, &[][..])] {
         let (whole, windows) = (dir.path().join("whole.pmtiles"), dir.path().join("windows.pmtiles"));
         for (out, flag) in [(&whole, None), (&windows, Some("--windows"))] {
             let mut args = vec!["prepare", input.to_str().unwrap(), "--out", out.to_str().unwrap()];
@@ -396,7 +398,140 @@ fn reading_window_by_window_makes_the_same_archive_as_reading_whole() {
             assert_eq!(notes.contains("read window by window"), flag.is_some(), "{notes}");
         }
         same_archives(&whole, &windows);
+        if input == &canyon {
+            let m = Archive::open(&windows).unwrap().meta;
+            assert_eq!((m.spacing, m.height_scale), ([60.0, 60.0], 10.0), "the canyon's documented scale");
+        }
     }
+}
+
+/// Runs `vkterrain ARGS` and expects exit 2 within a minute with one error line holding
+/// every needle (a FIFO input must not block the run).
+fn refused(args: &[&str], needles: &[&str]) {
+    let mut child = Command::new(env!("CARGO_BIN_EXE_vkterrain"))
+        .args(args)
+        .env("RUST_LOG", "error")
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let started = std::time::Instant::now();
+    while child.try_wait().unwrap().is_none() {
+        if started.elapsed() > std::time::Duration::from_secs(60) {
+            let _ = child.kill();
+            let _ = child.wait();
+            panic!("{args:?}: still running after 60 s (a hang)");
+        }
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    let o = child.wait_with_output().unwrap();
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{args:?}: {e}");
+    let lines: Vec<&str> = e.lines().filter(|l| !l.starts_with("vkterrain: note:")).collect();
+    assert_eq!(lines.len(), 1, "{args:?}: one error line: {e}");
+    for n in needles {
+        assert!(lines[0].contains(n), "{args:?}: '{}' does not mention '{n}'", lines[0]);
+    }
+}
+
+/// What an adversarial review of `prepare` and `check` found: an `--out` that is the
+/// input (under any spelling) overwrote it; a FIFO hung both commands; a missing argument
+/// was not named; a missing output directory exited 1 with its cause printed twice;
+/// scales no renderer accepts made archives it refused.
+#[test]
+fn prepare_and_check_refuse_what_would_destroy_hang_or_mislead() {
+    let dir = TempDir::new("archive-refuse");
+    let d = dir.path();
+    let input = d.join("rainier.tif");
+    std::fs::copy(common::data("srtm3/mt_rainier_90m.tif"), &input).unwrap();
+    let original = std::fs::read(&input).unwrap();
+    std::fs::create_dir(d.join("o")).unwrap();
+    std::fs::hard_link(&input, d.join("o/linked.tif")).unwrap();
+    let i = input.to_str().unwrap();
+    let respelled = d.join("o/../rainier.tif");
+    let linked = d.join("o/linked.tif");
+    for out in [&input, &respelled, &linked] {
+        refused(&["prepare", i, "--out", out.to_str().unwrap()], &["--out", "is the input"]);
+    }
+    assert!(std::fs::read(&input).unwrap() == original, "the input was changed");
+    let archive = d.join("a.pmtiles");
+    let o = cli(&["prepare", "--synthetic", "65", "--out", archive.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let a = archive.to_str().unwrap();
+    refused(&["prepare", a, "--out", a], &["--out", "is the input"]);
+    assert!(Archive::open(&archive).is_ok(), "the archive survives");
+
+    let fifo = d.join("fifo.tif");
+    assert!(Command::new("mkfifo").arg(&fifo).status().unwrap().success());
+    let f = fifo.to_str().unwrap();
+    let out = d.join("x.pmtiles");
+    let x = out.to_str().unwrap();
+    refused(&["prepare", f, "--out", x], &[f, "not a regular file"]);
+    refused(&["prepare", f, "--windows", "--out", x], &[f, "not a regular file"]);
+    refused(&["check", f], &[f, "not a regular file"]);
+
+    refused(&["prepare", "--out", x], &["required", "<INPUT>"]);
+    refused(&["check"], &["required", "<ARCHIVE>"]);
+
+    let missing = d.join("no/such/dir/x.pmtiles");
+    refused(&["prepare", "--synthetic", "65", "--out", missing.to_str().unwrap()], &["no/such/dir/x.pmtiles"]);
+    let o = cli(&["prepare", "--synthetic", "65", "--out", missing.to_str().unwrap()]);
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(e.matches("os error").count() <= 1 && !e.contains("preparing"), "before the run, the cause once: {e}");
+
+    for (flag, value) in [("--height-scale", "1e30"), ("--spacing", "1e30")] {
+        refused(&["prepare", "--synthetic", "65", flag, value, "--out", x], &["within 1e12"]);
+    }
+    let left: Vec<_> = std::fs::read_dir(d).unwrap().flatten().map(|e| e.file_name()).collect();
+    assert_eq!(left.len(), 4, "nothing new beside the inputs: {left:?}");
+}
+
+/// Each tenth of the windows is reported once when stderr is not a terminal, the last
+/// one included, however many windows there are (it printed every window at 16 and
+/// nothing at 9 or fewer).
+#[test]
+fn progress_off_a_terminal_is_ten_lines_ending_at_the_total() {
+    let dir = TempDir::new("archive-progress");
+    for (side, windows) in [(65u32, 1u64), (769, 9), (1025, 16)] {
+        let out = dir.path().join(format!("p{side}.pmtiles"));
+        let o = cli(&["prepare", "--synthetic", &side.to_string(), "--out", out.to_str().unwrap()]);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let e = String::from_utf8_lossy(&o.stderr);
+        let lines: Vec<&str> = e.lines().filter(|l| l.contains("windows,")).collect();
+        assert_eq!(lines.len() as u64, windows.min(10), "{side}: {e}");
+        assert!(lines.last().unwrap().contains(&format!("{windows} of {windows} windows")), "{side}: {e}");
+    }
+}
+
+/// A run killed by SIGTERM cleans up like Ctrl-C (exit 130, no file); a partial file
+/// left by a run that could not clean up (SIGKILL) is removed by the next run.
+#[test]
+fn a_terminated_run_leaves_nothing_and_stale_partials_are_removed() {
+    let dir = TempDir::new("archive-term");
+    let out = dir.path().join("t.pmtiles");
+    let stale = dir.path().join(".t.pmtiles.partial-999999999");
+    std::fs::write(&stale, b"left by a killed run").unwrap();
+    let mut child = Command::new(env!("CARGO_BIN_EXE_vkterrain"))
+        .args(["prepare", "--synthetic", "4097", "--out", out.to_str().unwrap()])
+        .env("RUST_LOG", "error")
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let own = dir.path().join(format!(".t.pmtiles.partial-{}", child.id()));
+    // Wait (by polling the condition, not a fixed sleep) for the run's own partial file.
+    let started = std::time::Instant::now();
+    while !own.exists() {
+        assert!(child.try_wait().unwrap().is_none(), "the run ended before it was terminated");
+        assert!(started.elapsed().as_secs() < 120, "no partial file after 120 s");
+        std::thread::sleep(std::time::Duration::from_millis(5));
+    }
+    assert!(!stale.exists(), "the stale partial of a dead process is removed");
+    assert!(Command::new("kill").args(["-TERM", &child.id().to_string()]).status().unwrap().success());
+    let status = child.wait().unwrap();
+    assert_eq!(status.code(), Some(130), "terminated: {status:?}");
+    let left: Vec<_> = std::fs::read_dir(dir.path()).unwrap().flatten().map(|e| e.file_name()).collect();
+    assert!(left.is_empty(), "left behind: {left:?}");
 }
 
 #[test]

@@ -125,6 +125,27 @@ fn text_named_png() {
 fn forged_huge_png_header() {
     bad_file("forged_huge.png", &["100000 x 100000"]);
 }
+/// GDAL decodes a cut-off JPEG with only a warning (grey rows after the cut): a third of
+/// the Puget Sound 4k JPEG must be refused, the whole file still loads.
+#[test]
+fn truncated_jpeg() {
+    let s = Scratch::new();
+    let whole = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/puget_sound/ps_height_4k.jpg");
+    let bytes = std::fs::read(&whole).unwrap();
+    let cut = s.path("cut.jpg");
+    std::fs::write(&cut, &bytes[..bytes.len() / 3]).unwrap();
+    fails_cleanly(&["render", "--heightmap", cut.to_str().unwrap(), "--size", "64x48"], &["cut.jpg", "truncated"]);
+    let copy = s.path("whole.jpg");
+    std::fs::write(&copy, &bytes).unwrap();
+    let o = Command::new(env!("CARGO_BIN_EXE_vkterrain"))
+        .args(["render", "--heightmap", copy.to_str().unwrap(), "--size", "64x48", "--out"])
+        .arg(s.path("ok.png"))
+        .env("RUST_LOG", "error")
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "the whole JPEG: {}", String::from_utf8_lossy(&o.stderr));
+}
+
 #[test]
 fn truncated_tiff() {
     bad_file("truncated.tif", &["TIFF"]);

@@ -224,9 +224,7 @@ impl CommonArgs {
     }
 }
 
-/// The largest world coordinate accepted (terrain extent, heights, camera): positions
-/// are single precision on the CPU and the GPU, and squared distances must not overflow.
-pub const MAX_WORLD: f32 = 1e12;
+pub use crate::lod::heightfield::MAX_WORLD;
 
 /// The terrain's world extent and heights must fit [`MAX_WORLD`].
 pub fn check_scale(hf: &Heightfield) -> Result<(), InputError> {

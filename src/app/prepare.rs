@@ -67,6 +67,23 @@ fn windowed(path: &std::path::Path, asked: bool) -> Result<bool, InputError> {
     })
 }
 
+/// Refuses an `--out` that is the input itself (under any spelling: `./a/../a/x.tif`, a
+/// link, a hard link): the archive would replace the terrain it is made from.
+fn out_is_not_input(input: &std::path::Path, out: &std::path::Path) -> Result<(), InputError> {
+    use std::os::unix::fs::MetadataExt;
+    let (Ok(a), Ok(b)) = (std::fs::metadata(input), std::fs::metadata(out)) else {
+        return Ok(()); // --out does not exist yet: it cannot be the input
+    };
+    if a.dev() == b.dev() && a.ino() == b.ino() {
+        return Err(InputError(format!(
+            "--out {}: is the input {} itself; name a new file for the archive",
+            out.display(),
+            input.display()
+        )));
+    }
+    Ok(())
+}
+
 pub fn prepare(args: &PrepareArgs) -> anyhow::Result<()> {
     if args.out.is_dir() {
         return Err(InputError(format!(
@@ -75,6 +92,13 @@ pub fn prepare(args: &PrepareArgs) -> anyhow::Result<()> {
         ))
         .into());
     }
+    if let Some(input) = &args.input {
+        // Before anything opens it: a FIFO would block in open().
+        crate::input::regular_file(input).map_err(InputError)?;
+        out_is_not_input(input, &args.out)?;
+    }
+    // A missing directory or a pipe fails now, not after the run.
+    crate::app::outputs::check_outputs(&[("--out", Some(&args.out))], &[("the input", args.input.as_deref())])?;
     let loaded;
     let synthetic;
     let windows;
@@ -95,7 +119,10 @@ pub fn prepare(args: &PrepareArgs) -> anyhow::Result<()> {
         (Some(path), None) if windowed(path, args.windows)? => {
             let reader = WindowReader::open(path).map_err(|e| InputError(e.to_string()))?;
             let shown = path.display().to_string();
-            let scale = georef::decide(&shown, &reader.raster, args.spacing, args.height_scale, None)
+            // The same known-data-set lookup as the whole read: read window by window, a
+            // file keeps the scale its publisher documents.
+            let known = georef::known_for_file(&shown, path, &reader.raster).map_err(|e| InputError(e.to_string()))?;
+            let scale = georef::decide(&shown, &reader.raster, args.spacing, args.height_scale, known)
                 .map_err(|e| InputError(e.to_string()))?;
             let (w, h) = (reader.raster.width, reader.raster.height);
             for line in crate::input::describe_frame(&shown, w, h, &scale.georef, scale.spacing, scale.height_scale) {
@@ -134,10 +161,13 @@ pub fn prepare(args: &PrepareArgs) -> anyhow::Result<()> {
         (None, None) => unreachable!("clap requires an input or --synthetic"),
     };
     let (w, h) = source.size();
+    crate::prepare::check_frame(&source.name(), &frame, w, h).map_err(|e| InputError(e.to_string()))?;
     eprintln!("vkterrain: preparing {} ({w} x {h} samples) into {}", source.name(), args.out.display());
     let stop = Arc::new(AtomicBool::new(false));
     {
         let stop = stop.clone();
+        // With ctrlc's "termination" feature this also catches SIGTERM and SIGHUP (a
+        // `timeout`, a closed terminal): every run that can clean up does.
         let _ = ctrlc::set_handler(move || stop.store(true, Ordering::SeqCst));
     }
     let bar = indicatif::ProgressBar::new(0).with_style(
@@ -151,7 +181,8 @@ pub fn prepare(args: &PrepareArgs) -> anyhow::Result<()> {
     let progress = |done: u64, total: u64| {
         bar.set_length(total);
         bar.set_position(done);
-        if !terminal && total >= 10 && done.is_multiple_of(total / 10) && done < total {
+        // Each tenth once, 100% included, whatever the number of windows.
+        if !terminal && done > 0 && done * 10 / total > (done - 1) * 10 / total {
             let elapsed = started.elapsed().as_secs_f64();
             let eta = elapsed * (total - done) as f64 / done as f64;
             eprintln!("vkterrain: prepare: {done} of {total} windows, {elapsed:.0} s, about {eta:.0} s to go");
@@ -166,7 +197,9 @@ pub fn prepare(args: &PrepareArgs) -> anyhow::Result<()> {
             eprintln!("vkterrain: interrupted: no archive written");
             std::process::exit(130);
         }
-        Err(e) => return Err(e.into()),
+        // The output cannot be written (a missing directory, no space, no permission): a
+        // problem with what was asked, exit 2 like a bad input.
+        Err(e @ PrepareError::Write { .. }) => return Err(InputError(e.to_string()).into()),
     };
     let peak = crate::app::outputs::peak_resident_mb();
     let json = serde_json::json!({

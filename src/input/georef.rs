@@ -203,6 +203,10 @@ pub fn read(path: &Path) -> Result<Raster, HeightfieldError> {
 fn open(path: &Path) -> Result<Dataset, HeightfieldError> {
     init_gdal();
     let shown = path.display().to_string();
+    // GDAL reports an unreadable file as one no driver recognises: say what the OS says.
+    if let Err(source) = std::fs::File::open(path) {
+        return Err(HeightfieldError::Io { path: shown, source });
+    }
     let ds = Dataset::open(path).map_err(|e| {
         HeightfieldError::invalid(
             &shown,
@@ -216,7 +220,28 @@ fn open(path: &Path) -> Result<Dataset, HeightfieldError> {
     if w == 0 || h == 0 {
         return Err(HeightfieldError::invalid(&shown, format!("image is {w} x {h}: no samples")));
     }
+    // GDAL's JPEG driver decodes a cut-off file with a warning and grey rows after the
+    // cut; a complete JPEG ends with the end-of-image marker.
+    if ds.driver().short_name() == "JPEG" && !jpeg_complete(path) {
+        return Err(HeightfieldError::invalid(
+            &shown,
+            "the JPEG is truncated (it does not end with the end-of-image marker FF D9)",
+        ));
+    }
     Ok(ds)
+}
+
+/// Does the file end with a JPEG end-of-image marker (trailing padding allowed)?
+fn jpeg_complete(path: &Path) -> bool {
+    use std::io::{Read, Seek, SeekFrom};
+    let Ok(mut f) = std::fs::File::open(path) else { return false };
+    let Ok(len) = f.seek(SeekFrom::End(0)) else { return false };
+    let tail_len = len.min(4096);
+    let mut tail = vec![0u8; tail_len as usize];
+    if f.seek(SeekFrom::Start(len - tail_len)).is_err() || f.read_exact(&mut tail).is_err() {
+        return false;
+    }
+    tail.windows(2).any(|w| w == [0xFF, 0xD9])
 }
 
 /// Everything the file says about its samples but the samples (left empty): type,
@@ -885,6 +910,25 @@ pub const KNOWN: &[KnownDataset] = &[
         absolute: false,
     },
 ];
+
+/// The known data set the file at `path` is, if it carries no georeferencing of its own
+/// (only such files are looked up: their scale is documented beside them, not in them).
+/// Files larger than every known one are not read.
+pub fn known_for_file(
+    shown: &str,
+    path: &std::path::Path,
+    raster: &Raster,
+) -> Result<Option<&'static KnownDataset>, HeightfieldError> {
+    const LARGEST_KNOWN_BYTES: u64 = 64 << 20;
+    if raster.transform.is_some() || raster.crs_wkt.is_some() {
+        return Ok(None);
+    }
+    let io = |source| HeightfieldError::Io { path: shown.to_string(), source };
+    if std::fs::metadata(path).map_err(io)?.len() > LARGEST_KNOWN_BYTES {
+        return Ok(None);
+    }
+    Ok(known_dataset(&std::fs::read(path).map_err(io)?))
+}
 
 /// The known data set whose bytes are `bytes`, if any.
 pub fn known_dataset(bytes: &[u8]) -> Option<&'static KnownDataset> {

@@ -86,12 +86,7 @@ pub fn load(path: &Path, opts: &LoadOptions) -> Result<Heightfield, HeightfieldE
     }
     // Only files without georeferencing are looked up among the known data sets (their
     // scale is documented beside them, not in them).
-    let known = if raster.transform.is_none() && raster.crs_wkt.is_none() {
-        let bytes = std::fs::read(path).map_err(|source| HeightfieldError::Io { path: shown.clone(), source })?;
-        georef::known_dataset(&bytes)
-    } else {
-        None
-    };
+    let known = georef::known_for_file(&shown, path, &raster)?;
     let scale = georef::decide(&shown, &raster, opts.spacing, opts.height_scale, known)?;
     let (voids, mask) = fill_file_voids(&shown, &mut raster, opts.voids)?;
     let mut hf = Heightfield::embed(

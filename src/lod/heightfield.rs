@@ -7,6 +7,10 @@ use thiserror::Error;
 /// Largest grid side we accept from a file header before allocating (2^15 + 1).
 pub const MAX_SIDE: usize = 32769;
 
+/// The largest world coordinate accepted (terrain extent, heights, camera): positions
+/// are single precision on the GPU, and squared distances must not overflow.
+pub const MAX_WORLD: f32 = 1e12;
+
 /// Why a heightfield could not be loaded. Every message names the file.
 #[derive(Debug, Error)]
 pub enum HeightfieldError {

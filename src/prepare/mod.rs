@@ -85,6 +85,31 @@ struct Run<'a> {
     progress: &'a (dyn Fn(u64, u64) + Sync),
     leaves_total: u64,
     stop: &'a AtomicBool,
+    height_scale: f32,
+}
+
+/// The largest world coordinate an archive holds (extent and heights): what the
+/// renderer accepts, so that every archive written can be drawn.
+const MAX_WORLD: f64 = crate::lod::heightfield::MAX_WORLD as f64;
+
+/// Spacing, height scale and extent are finite, positive and within [`MAX_WORLD`].
+pub fn check_frame(name: &str, frame: &Frame, width: usize, height: usize) -> Result<(), PrepareError> {
+    let [sx, sz] = frame.spacing.map(f64::from);
+    let hs = f64::from(frame.height_scale);
+    let fine = |v: f64| v.is_finite() && v > 0.0;
+    if !(fine(sx) && fine(sz) && fine(hs)) {
+        return Err(PrepareError::Source(format!(
+            "{name}: spacing {sx:e} x {sz:e} and height scale {hs:e} must be finite and greater than 0"
+        )));
+    }
+    let extent = [sx * (width - 1) as f64, sz * (height - 1) as f64];
+    if extent.iter().any(|e| *e > MAX_WORLD) || hs > MAX_WORLD {
+        return Err(PrepareError::Source(format!(
+            "{name}: {width} x {height} samples at spacing {sx:e} x {sz:e} span {:e} x {:e} world units, height scale {hs:e}: both must stay within {:e}",
+            extent[0], extent[1], crate::lod::heightfield::MAX_WORLD
+        )));
+    }
+    Ok(())
 }
 
 /// Prepares `source` into an archive at `out` (see the module's documentation).
@@ -105,6 +130,7 @@ pub fn prepare(
             source.name()
         )));
     }
+    check_frame(&source.name(), frame, width, height)?;
     let top = Meta::top_level_for(width, height, TILE_QUADS);
     let n = TILE_QUADS.trailing_zeros() + u32::from(top);
     let corners = (1usize << top) + 1;
@@ -130,6 +156,7 @@ pub fn prepare(
         progress,
         leaves_total,
         stop,
+        height_scale: frame.height_scale,
     };
     run.build(top, 0, 0)?;
     let mut meta = Meta {
@@ -231,6 +258,19 @@ impl Run<'_> {
         let (x0, z0) = ((tx as usize * t) as i64, (tz as usize * t) as i64);
         let mut window = Vec::new();
         self.source.read(x0 - 1, z0 - 1, w, w, 1, &mut window).map_err(PrepareError::Source)?;
+        let world = |h: f32| f64::from(h) * f64::from(self.height_scale);
+        // NaN is out of range too.
+        if let Some(i) = window.iter().position(|h| world(*h).is_nan() || world(*h).abs() > MAX_WORLD) {
+            let (x, z) = (x0 - 1 + (i % w) as i64, z0 - 1 + (i / w) as i64);
+            return Err(PrepareError::Source(format!(
+                "{}: the sample at column {x}, row {z} is {} ({:e} world units with height scale {:e}): heights must stay within {:e}",
+                self.source.name(),
+                window[i],
+                world(window[i]),
+                self.height_scale,
+                crate::lod::heightfield::MAX_WORLD
+            )));
+        }
         // Row `z` (tile-local, -1..=T+1) of the window from column `x`.
         let row = |x: i64, z: i64, count: usize| &window[(z + 1) as usize * w + (x + 1) as usize..][..count];
         let mut deviation = Vec::with_capacity(self.n as usize);

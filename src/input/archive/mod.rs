@@ -116,10 +116,19 @@ impl Archive {
     /// Is this file a PMTiles archive (by its first bytes)?
     pub fn sniff(path: &Path) -> bool {
         let mut magic = [0u8; 7];
-        File::open(path).and_then(|f| f.read_exact_at(&mut magic, 0)).is_ok() && &magic == b"PMTiles"
+        // A FIFO or device would block in open(): only regular files are archives.
+        crate::input::regular_file(path).is_ok()
+            && File::open(path).and_then(|f| f.read_exact_at(&mut magic, 0)).is_ok()
+            && &magic == b"PMTiles"
     }
 
     pub fn open(path: &Path) -> Result<Archive, HeightfieldError> {
+        // A FIFO would block in open(); the message already names the path.
+        if let Err(m) = crate::input::regular_file(path) {
+            let shown = path.display().to_string();
+            let problem = m.strip_prefix(&format!("{shown}: ")).unwrap_or(&m).to_string();
+            return Err(HeightfieldError::invalid(&shown, problem));
+        }
         let file =
             File::open(path).map_err(|source| HeightfieldError::Io { path: path.display().to_string(), source })?;
         let len =
@@ -327,6 +336,27 @@ impl Archive {
     }
 }
 
+/// Removes `.NAME.partial-PID` files beside `out` whose process is gone (a run killed by
+/// SIGKILL or a crash cannot remove its own). A live PID's file is another run's: left.
+fn remove_stale_partials(out: &Path, name: &str) {
+    let dir = match out.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => Path::new("."),
+    };
+    let prefix = format!(".{name}.partial-");
+    let Ok(entries) = std::fs::read_dir(dir) else { return };
+    for entry in entries.flatten() {
+        let file_name = entry.file_name();
+        let Some(pid) = file_name.to_str().and_then(|n| n.strip_prefix(&prefix)).and_then(|p| p.parse::<u32>().ok())
+        else {
+            continue;
+        };
+        if pid != std::process::id() && !Path::new(&format!("/proc/{pid}")).exists() {
+            let _ = std::fs::remove_file(entry.path());
+        }
+    }
+}
+
 /// Writes an archive: tiles streamed into the data section as they are made (any
 /// order), directories and metadata at the end, the header last. The file appears under
 /// its name only when [`ArchiveWriter::finish`] succeeds; until then it is a hidden
@@ -342,6 +372,7 @@ pub struct ArchiveWriter {
 impl ArchiveWriter {
     pub fn create(out: &Path) -> std::io::Result<ArchiveWriter> {
         let name = out.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "archive".into());
+        remove_stale_partials(out, &name);
         let tmp = out.with_file_name(format!(".{name}.partial-{}", std::process::id()));
         let mut file = std::io::BufWriter::with_capacity(1 << 20, File::create(&tmp)?);
         // The header and root directory go in the first 16 KiB once the tiles are known.
