@@ -8,6 +8,8 @@
 //! - [`input`]: where heightfields come from (file loaders, the built-in terrain);
 //! - [`prepare`]: `vkterrain prepare`, a terrain of any size into a tile archive, window
 //!   by window;
+//! - [`stream`]: a terrain of any size streamed from its archive: the IO thread, the host
+//!   cache, the traversal over resident tiles (host side, no Vulkan);
 //! - [`trace`]: the Chrome trace every thread writes to;
 //! - [`gpu`]: what both activities share on the GPU (the heightfield image, the layout
 //!   definitions, the compiled shaders);
@@ -24,5 +26,6 @@ pub mod gpu;
 pub mod input;
 pub mod lod;
 pub mod prepare;
+pub mod stream;
 pub mod trace;
 pub mod vk;

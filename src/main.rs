@@ -35,6 +35,9 @@ enum Command {
     Prepare(vkterrain::app::prepare::PrepareArgs),
     /// Read every tile of an archive and check it (sizes, layout, checksums).
     Check(vkterrain::app::prepare::CheckArgs),
+    /// Fly low over an archive headless, streaming its tiles through a bounded cache, and
+    /// report what was read, held and drawn over the bound, as JSON.
+    Stream(vkterrain::app::stream::StreamArgs),
 }
 
 fn main() -> ExitCode {
@@ -80,6 +83,7 @@ fn main() -> ExitCode {
         Some(Command::Timeline(a)) => vkterrain::app::timeline::timeline(a),
         Some(Command::Prepare(a)) => vkterrain::app::prepare::prepare(a),
         Some(Command::Check(a)) => vkterrain::app::prepare::check(a),
+        Some(Command::Stream(a)) => vkterrain::app::stream::stream(a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

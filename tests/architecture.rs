@@ -294,7 +294,7 @@ fn vulkan_in_core(root: &Path) -> Vec<String> {
 }
 
 /// The layers of `src/lib.rs`, lowest first; a file may use its own layer and those below.
-const LAYERS: [&str; 9] = ["vk", "lod", "input", "prepare", "trace", "gpu", "errors", "draw", "app"];
+const LAYERS: [&str; 10] = ["vk", "lod", "input", "prepare", "stream", "trace", "gpu", "errors", "draw", "app"];
 
 /// Uses of a higher layer, and uses of the audit (a test oracle) from anything on the
 /// rendering path (`lod`, `gpu`, `errors`, `draw`).

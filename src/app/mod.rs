@@ -12,5 +12,6 @@ pub mod outputs;
 pub mod paths;
 pub mod prepare;
 pub mod quality;
+pub mod stream;
 pub mod timeline;
 pub mod viewer;

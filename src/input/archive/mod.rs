@@ -219,12 +219,18 @@ impl Archive {
     /// Reads and checks tile `(level, tx, tz)`; `Ok(None)` where the archive stores no
     /// such tile (outside the true extent).
     pub fn read_tile(&self, level: u8, tx: u32, tz: u32) -> Result<Option<Tile>, HeightfieldError> {
+        self.read_tile_counted(level, tx, tz).map(|(tile, _)| tile)
+    }
+
+    /// [`Archive::read_tile`] with the bytes read from the file for it (the compressed
+    /// payload; directories are read once and cached).
+    pub fn read_tile_counted(&self, level: u8, tx: u32, tz: u32) -> Result<(Option<Tile>, u64), HeightfieldError> {
         if level > self.meta.top_level {
-            return Ok(None);
+            return Ok((None, 0));
         }
         let [nx, nz] = self.meta.tiles_at(level);
         if tx >= nx || tz >= nz {
-            return Ok(None);
+            return Ok((None, 0));
         }
         let id = pmtiles::tile_id(self.meta.top_level - level, tx, tz);
         let err = |m: String| self.tile_error(level, tx, tz, m);
@@ -251,7 +257,8 @@ impl Archive {
         let limit = tile::payload_len(samples, side, self.deviations(level));
         let payload = pmtiles::unzstd(&buf, limit)
             .map_err(|e| err(format!("does not decompress ({e}): the archive is corrupt")))?;
-        tile::decode(&payload, samples, level, tx, tz, side, self.deviations(level)).map(Some).map_err(err)
+        let tile = tile::decode(&payload, samples, level, tx, tz, side, self.deviations(level)).map_err(err)?;
+        Ok((Some(tile), u64::from(e.length)))
     }
 
     /// Values of `D` a tile of `level` holds: `T^2` of its own level (none at level 0),

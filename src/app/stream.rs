@@ -1,0 +1,172 @@
+//! `vkterrain stream`: a headless low flight over a tile archive, the host side of
+//! streaming (IO thread, host cache, the traversal over resident tiles), frame by frame
+//! at a fixed rate, with what it read, held and drew as JSON. No GPU: the atlas is not
+//! built yet, so the frames are selections, not pictures.
+
+use crate::app::cli::InputError;
+use crate::input::archive::Archive;
+use crate::stream::streamer::{StreamStats, Streamer};
+use crate::stream::traverse::View;
+use crate::stream::Grid;
+use glam::DVec3;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+#[derive(clap::Args, Debug)]
+pub struct StreamArgs {
+    /// The archive to fly over (written by `vkterrain prepare`).
+    pub archive: PathBuf,
+    /// Host cache budget for decoded tiles, MB.
+    #[arg(long, default_value_t = 64, value_parser = clap::value_parser!(u32).range(1..=1_000_000))]
+    pub cache_mb: u32,
+    /// Frames to fly.
+    #[arg(long, default_value_t = 1800, value_parser = clap::value_parser!(u32).range(1..))]
+    pub frames: u32,
+    /// Frame rate the flight is paced at (the IO thread has 1/FPS s a frame).
+    #[arg(long, default_value_t = 30.0, value_parser = crate::app::commands::positive)]
+    pub fps: f32,
+    /// Height above the ground, world units.
+    #[arg(long, default_value_t = 200.0, value_parser = crate::app::commands::positive)]
+    pub altitude: f32,
+    /// Ground speed, world units a second (a low-flying jet: 300 m/s).
+    #[arg(long, default_value_t = 300.0, value_parser = crate::app::commands::positive)]
+    pub speed: f32,
+    /// Screen-space error threshold, pixels.
+    #[arg(long, default_value_t = 1.0, value_parser = crate::app::commands::positive)]
+    pub delta: f32,
+    /// Viewport, WIDTHxHEIGHT.
+    #[arg(long, default_value = "640x480", value_parser = crate::app::cli::parse_size)]
+    pub size: (u32, u32),
+    /// Drop the archive from the page cache first (posix_fadvise DONTNEED), so that the
+    /// flight reads from the disk.
+    #[arg(long)]
+    pub cold: bool,
+}
+
+/// Bytes this process has read from storage (`read_bytes` of /proc/self/io).
+fn disk_bytes_read() -> Option<u64> {
+    let io = std::fs::read_to_string("/proc/self/io").ok()?;
+    io.lines().find_map(|l| l.strip_prefix("read_bytes: ")).and_then(|v| v.trim().parse().ok())
+}
+
+/// Asks the kernel to drop the file's pages from the page cache.
+fn drop_from_page_cache(path: &std::path::Path) -> std::io::Result<()> {
+    use std::os::fd::AsRawFd;
+    let file = std::fs::File::open(path)?;
+    // SAFETY: the descriptor is open for the duration of the call; fadvise only advises.
+    let rc = unsafe { libc::posix_fadvise(file.as_raw_fd(), 0, 0, libc::POSIX_FADV_DONTNEED) };
+    if rc != 0 {
+        return Err(std::io::Error::from_raw_os_error(rc));
+    }
+    Ok(())
+}
+
+pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
+    let archive = Arc::new(Archive::open(&args.archive).map_err(|e| InputError(e.to_string()))?);
+    let grid = Grid::from_meta(&archive.meta);
+    if args.cold {
+        drop_from_page_cache(&args.archive)
+            .map_err(|e| InputError(format!("{}: dropping it from the page cache: {e}", args.archive.display())))?;
+    }
+    let (w, h) = args.size;
+    let extent = [(grid.width - 1) as f64 * grid.spacing[0], (grid.height - 1) as f64 * grid.spacing[1]];
+    // From near one corner along the diagonal, looking ahead and a little down.
+    let start = DVec3::new(0.05 * extent[0], 0.0, 0.05 * extent[1]);
+    let along = DVec3::new(0.9 * extent[0], 0.0, 0.9 * extent[1]);
+    let dir = along.normalize();
+    let fps = f64::from(args.fps);
+    let speed = f64::from(args.speed);
+    let read_before = disk_bytes_read();
+    eprintln!(
+        "vkterrain: streaming {} ({} x {} samples, {} tile levels): {} frames at {fps} fps, {speed:.0} units/s, {} above the ground, cache {} MB",
+        args.archive.display(),
+        grid.width,
+        grid.height,
+        grid.top + 1,
+        args.frames,
+        args.altitude,
+        args.cache_mb
+    );
+    let mut streamer = Streamer::new(archive.clone(), grid, args.cache_mb as usize * (1 << 20));
+    let pose = |streamer: &Streamer, f: u32| {
+        let at = start + dir * speed * f64::from(f) / fps;
+        let ground = |p: DVec3| streamer.ground(p.x, p.z).unwrap_or(0.0);
+        // Above the highest of the ground here and a little ahead (from the tiles held).
+        let lookahead = dir * 4.0 * f64::from(args.altitude);
+        let altitude = ground(at).max(ground(at + lookahead)) + f64::from(args.altitude);
+        let position = DVec3::new(at.x, altitude, at.z);
+        let target = position + dir * 1000.0 + DVec3::new(0.0, -1000.0 * 0.15, 0.0);
+        View::look_at(position, target, 45.0, w, h, 1.0)
+    };
+    // As a viewer would: the first view's tiles are read before the flight starts.
+    let warm = Instant::now();
+    for _ in 0..2 * (grid.top as usize + 4) {
+        let view = pose(&streamer, 0);
+        if streamer.frame(&view, None, args.delta, 1.0).within_bound() {
+            break;
+        }
+        streamer.settle();
+    }
+    let warm_up_s = warm.elapsed().as_secs_f64();
+    let warm_stats = streamer.stats.clone();
+    streamer.stats.worst_factor = 1.0; // the flight's own worst
+    let started = Instant::now();
+    let period = Duration::from_secs_f64(1.0 / fps);
+    let mut blocks = 0u64;
+    let mut selecting = Duration::ZERO;
+    let mut altitude = 0.0;
+    for f in 0..args.frames {
+        let view = pose(&streamer, f);
+        altitude = view.position.y;
+        let ahead = View { position: view.position + dir * speed * 0.5, ..view };
+        let t0 = Instant::now();
+        let sel = streamer.frame(&view, Some(&ahead), args.delta, 0.5);
+        selecting += t0.elapsed();
+        blocks += sel.blocks.len() as u64;
+        // Pacing the flight to its frame rate (not synchronisation: nothing waits on it).
+        let next = period * (f + 1);
+        if let Some(rest) = next.checked_sub(started.elapsed()) {
+            std::thread::sleep(rest);
+        }
+    }
+    let seconds = started.elapsed().as_secs_f64();
+    // The flight's own figures: the warm-up's frames and tiles are reported apart.
+    let mut flight = streamer.stats.clone();
+    flight.frames -= warm_stats.frames;
+    flight.frames_over_bound -= warm_stats.frames_over_bound;
+    let StreamStats { frames, frames_over_bound, .. } = flight;
+    let distinct_mb = flight.distinct_bytes as f64 / f64::from(1u32 << 20);
+    let json = serde_json::json!({
+        "archive": args.archive.display().to_string(),
+        "frames": frames,
+        "frames_over_bound": frames_over_bound,
+        "frames_over_bound_share": frames_over_bound as f64 / frames as f64,
+        "stats": flight,
+        "warm_up": { "seconds": warm_up_s, "frames": warm_stats.frames, "tiles_loaded": warm_stats.tiles_loaded },
+        "distance": speed * f64::from(args.frames) / fps,
+        "cache_mb": args.cache_mb,
+        "distinct_tiles_mb": distinct_mb,
+        "distinct_over_cache": distinct_mb / f64::from(args.cache_mb),
+        "disk_bytes_read": match (read_before, disk_bytes_read()) { (Some(a), Some(b)) => Some(b - a), _ => None },
+        "peak_resident_mb": crate::app::outputs::peak_resident_mb(),
+        "blocks_per_frame": blocks as f64 / frames as f64,
+        "select_ms_per_frame": 1e3 * selecting.as_secs_f64() / frames as f64,
+        "seconds": seconds,
+        "last_altitude": altitude,
+        "first_failure": streamer.first_failure,
+        "gpu": "none: the atlas and drawing from it are not built; frames are CPU selections",
+    });
+    println!("{}", serde_json::to_string_pretty(&json)?);
+    eprintln!(
+        "vkterrain: {frames} frames, {frames_over_bound} over the bound ({:.1}%, worst {:.2}x delta); {} tiles loaded, {} distinct ({distinct_mb:.0} MB decoded, {:.1}x the cache), {} evicted; {:.1} MB read",
+        100.0 * frames_over_bound as f64 / frames as f64,
+        flight.worst_factor,
+        flight.tiles_loaded,
+        flight.distinct_tiles,
+        distinct_mb / f64::from(args.cache_mb),
+        flight.tiles_evicted,
+        flight.bytes_read as f64 / 1e6,
+    );
+    Ok(())
+}

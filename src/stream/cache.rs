@@ -1,0 +1,302 @@
+//! The host cache of decoded tiles (SPEC section 8, "Residency" and "Budgets"): a fixed
+//! byte budget, residency closed under ancestors (a tile is held only with its parent),
+//! eviction of the least recently used tile that no held tile depends on and that the
+//! current frame did not use. Each tile's per-block summaries are computed once, when it
+//! arrives, so a frame's traversal reads three numbers a block.
+
+use super::{Grid, TileKey};
+use crate::input::archive::tile::Tile;
+use std::collections::HashMap;
+use std::sync::Arc;
+
+/// Quads a side of a block (`k - 1` for the blocks' k = 33): a tile of its own level
+/// holds `T / BLOCK_QUADS` blocks a side.
+pub const BLOCK_QUADS: usize = 32;
+
+/// What the bound needs of one block of LOD `j`, in raw height units: the range of its
+/// LOD-`j` vertices and `D_j`, the largest deviation of the full-resolution samples from
+/// its surface. Every sample under the block lies in `[lo - d, hi + d]`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct BlockSummary {
+    pub lo: f32,
+    pub hi: f32,
+    pub d: f32,
+}
+
+/// The LOD of the blocks the archive's roots are: one block over the top tile's square.
+pub fn root_lod(grid: &Grid) -> u32 {
+    (grid.tile_span(grid.top) / BLOCK_QUADS).trailing_zeros()
+}
+
+/// The tile a block of LOD `lod` at block coordinates `(bx, bz)` is drawn from: the tile
+/// of level `lod` that covers it, or the top tile for blocks coarser than the top level.
+pub fn serving_tile(grid: &Grid, lod: u32, bx: u32, bz: u32) -> TileKey {
+    let level = lod.min(u32::from(grid.top)) as u8;
+    let per_tile = (grid.tile_span(level) / (BLOCK_QUADS << lod)).max(1) as u32;
+    TileKey::new(level, bx / per_tile, bz / per_tile)
+}
+
+/// A decoded tile and its blocks' summaries, per LOD it serves (its own level; the top
+/// tile also every coarser LOD up to the root).
+#[derive(Debug)]
+pub struct TileData {
+    pub key: TileKey,
+    pub tile: Tile,
+    /// `blocks[j - level]`: row-major, `(8 >> (j - level))^2` for T = 256.
+    blocks: Vec<Vec<BlockSummary>>,
+    /// Bytes held (heights, deviations, summaries).
+    pub bytes: usize,
+}
+
+impl TileData {
+    pub fn new(grid: &Grid, tile: Tile) -> Result<Self, String> {
+        let key = TileKey::new(tile.level, tile.tx, tile.tz);
+        let t = grid.tile_quads;
+        if tile.side != t + 3 {
+            return Err(format!("tile {key:?} is {} samples a side, expected {}", tile.side, t + 3));
+        }
+        let level = u32::from(key.level);
+        let last = if key.level == grid.top { root_lod(grid) } else { level };
+        let vertex = |i: usize, j: usize| tile.heights[(j + 1) * tile.side + i + 1];
+        // Where D_j of this tile starts in `tile.deviation` and its side in groups.
+        let mut offset = 0usize;
+        let mut blocks = Vec::new();
+        for j in level..=last {
+            let groups = t >> (j - level);
+            let per_side = groups / BLOCK_QUADS;
+            let stride = 1usize << (j - level);
+            let has_d = j > 0;
+            if has_d && offset + groups * groups > tile.deviation.len() {
+                return Err(format!("tile {key:?} holds {} deviations, too few for LOD {j}", tile.deviation.len()));
+            }
+            let mut summaries = Vec::with_capacity(per_side * per_side);
+            for bz in 0..per_side {
+                for bx in 0..per_side {
+                    let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
+                    for v in 0..=BLOCK_QUADS {
+                        for u in 0..=BLOCK_QUADS {
+                            let h = vertex((bx * BLOCK_QUADS + u) * stride, (bz * BLOCK_QUADS + v) * stride);
+                            lo = lo.min(h);
+                            hi = hi.max(h);
+                        }
+                    }
+                    let mut d = 0.0f32;
+                    if has_d {
+                        for gz in bz * BLOCK_QUADS..(bz + 1) * BLOCK_QUADS {
+                            let row = &tile.deviation[offset + gz * groups + bx * BLOCK_QUADS..][..BLOCK_QUADS];
+                            d = row.iter().fold(d, |m, v| m.max(*v));
+                        }
+                    }
+                    summaries.push(BlockSummary { lo, hi, d });
+                }
+            }
+            if has_d {
+                offset += groups * groups;
+            }
+            blocks.push(summaries);
+        }
+        let bytes = tile.heights.len() * 4
+            + tile.deviation.len() * 4
+            + blocks.iter().map(|b| b.len() * std::mem::size_of::<BlockSummary>()).sum::<usize>()
+            + std::mem::size_of::<Self>();
+        Ok(TileData { key, tile, blocks, bytes })
+    }
+
+    /// The summary of block `(bx, bz)` (terrain block coordinates) of LOD `lod`, which
+    /// this tile serves.
+    pub fn block(&self, grid: &Grid, lod: u32, bx: u32, bz: u32) -> BlockSummary {
+        let j = (lod - u32::from(self.key.level)) as usize;
+        let per_side = (grid.tile_quads >> j) / BLOCK_QUADS;
+        let (lx, lz) = (bx as usize - self.key.tx as usize * per_side, bz as usize - self.key.tz as usize * per_side);
+        self.blocks[j][lz * per_side + lx]
+    }
+}
+
+/// About what a tile of `level` takes decoded ([`TileData::bytes`], the top tile's
+/// coarser deviations left out): to ask the IO thread only for what can be held.
+pub fn tile_bytes_estimate(grid: &Grid, level: u8) -> usize {
+    let t = grid.tile_quads;
+    let own_d = if level > 0 { t * t } else { 0 };
+    ((t + 3) * (t + 3) + own_d) * 4 + 4096
+}
+
+/// Why a tile was not taken into the cache.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Refused {
+    /// Its parent is not held (residency is ancestor-closed).
+    NoParent,
+    /// Every held tile is needed (used this frame, or a parent): nothing can go.
+    Full,
+}
+
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
+pub struct CacheStats {
+    pub inserted: u64,
+    pub evicted: u64,
+    pub refused_full: u64,
+    pub refused_orphan: u64,
+    pub peak_bytes: usize,
+}
+
+struct Held {
+    data: Arc<TileData>,
+    /// Last frame that drew from it (protected during that frame).
+    last_used: u64,
+    /// Last frame that wanted it soon (prefetch): evicted only for a tile a frame needs.
+    last_kept: u64,
+    /// Held children (a tile with children cannot go before them).
+    children: u8,
+}
+
+pub struct HostCache {
+    grid: Grid,
+    budget: usize,
+    bytes: usize,
+    frame: u64,
+    held: HashMap<TileKey, Held>,
+    pub stats: CacheStats,
+}
+
+impl HostCache {
+    pub fn new(grid: Grid, budget_bytes: usize) -> Self {
+        HostCache { grid, budget: budget_bytes, bytes: 0, frame: 0, held: HashMap::new(), stats: CacheStats::default() }
+    }
+
+    /// Starts a frame: tiles used from now on are protected until the next call.
+    pub fn begin_frame(&mut self) {
+        self.frame += 1;
+    }
+
+    pub fn contains(&self, key: TileKey) -> bool {
+        self.held.contains_key(&key)
+    }
+
+    /// The tile, without marking it used (the traversal reads; [`HostCache::mark_used`]
+    /// protects what it used).
+    pub fn peek(&self, key: TileKey) -> Option<&Arc<TileData>> {
+        self.held.get(&key).map(|h| &h.data)
+    }
+
+    /// Marks tiles as used by the current frame: not evicted before the next frame.
+    pub fn mark_used(&mut self, keys: impl IntoIterator<Item = TileKey>) {
+        for k in keys {
+            if let Some(h) = self.held.get_mut(&k) {
+                h.last_used = self.frame;
+            }
+        }
+    }
+
+    /// Marks tiles as wanted soon by the current frame (prefetched): evicted this frame
+    /// only to take in a tile a frame needs now.
+    pub fn mark_kept(&mut self, keys: impl IntoIterator<Item = TileKey>) {
+        for k in keys {
+            if let Some(h) = self.held.get_mut(&k) {
+                h.last_kept = self.frame;
+            }
+        }
+    }
+
+    pub fn len(&self) -> usize {
+        self.held.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.held.is_empty()
+    }
+
+    pub fn bytes(&self) -> usize {
+        self.bytes
+    }
+
+    /// The tiles [`HostCache::insert`] may evict now for a tile whose parent is
+    /// `parent`: leaves not used this frame, not the parent, and unless the tile is
+    /// `needed` now, not kept for prefetch this frame.
+    fn evictable(&self, needed: bool, parent: Option<TileKey>) -> impl Iterator<Item = (&TileKey, &Held)> {
+        let frame = self.frame;
+        self.held.iter().filter(move |(k, h)| {
+            h.children == 0 && h.last_used < frame && (needed || h.last_kept < frame) && Some(**k) != parent
+        })
+    }
+
+    /// At least the bytes [`HostCache::insert`] can make room for now (free, plus the
+    /// leaves it could evict this frame; evicting a leaf can make its parent one) for a
+    /// tile with that parent (`needed`: a frame needs it now, so prefetched tiles may go too).
+    pub fn room(&self, needed: bool, parent: Option<TileKey>) -> usize {
+        let evictable: usize = self.evictable(needed, parent).map(|(_, h)| h.data.bytes).sum();
+        self.budget.saturating_sub(self.bytes) + evictable
+    }
+
+    /// Takes a tile in, evicting least recently used leaves not used this frame (and not
+    /// its parent) until it fits: first those not kept for prefetch, then, for a tile a
+    /// frame `needed`, kept ones. A tile already held is left as it is.
+    pub fn insert(&mut self, data: Arc<TileData>, needed: bool) -> Result<(), Refused> {
+        let key = data.key;
+        if self.held.contains_key(&key) {
+            return Ok(());
+        }
+        let parent = key.parent(self.grid.top);
+        if let Some(p) = parent {
+            if !self.held.contains_key(&p) {
+                self.stats.refused_orphan += 1;
+                return Err(Refused::NoParent);
+            }
+        }
+        while self.bytes + data.bytes > self.budget {
+            let frame = self.frame;
+            let victim = self
+                .evictable(needed, parent)
+                .min_by_key(|(k, h)| (h.last_kept == frame, h.last_used, std::cmp::Reverse(k.level), **k))
+                .map(|(k, _)| *k);
+            let Some(victim) = victim else {
+                self.stats.refused_full += 1;
+                return Err(Refused::Full);
+            };
+            self.evict(victim);
+        }
+        if let Some(p) = parent {
+            self.held.get_mut(&p).expect("checked").children += 1;
+        }
+        self.bytes += data.bytes;
+        self.held.insert(key, Held { data, last_used: self.frame, last_kept: self.frame, children: 0 });
+        self.stats.inserted += 1;
+        self.stats.peak_bytes = self.stats.peak_bytes.max(self.bytes);
+        Ok(())
+    }
+
+    fn evict(&mut self, key: TileKey) {
+        let gone = self.held.remove(&key).expect("held");
+        debug_assert_eq!(gone.children, 0);
+        self.bytes -= gone.data.bytes;
+        if let Some(p) = key.parent(self.grid.top) {
+            self.held.get_mut(&p).expect("ancestor-closed").children -= 1;
+        }
+        self.stats.evicted += 1;
+    }
+
+    /// The cache's invariants, for tests: ancestor-closed, child counts and bytes exact,
+    /// within budget. Returns the first one broken.
+    pub fn check(&self) -> Result<(), String> {
+        let mut children: HashMap<TileKey, u8> = HashMap::new();
+        for k in self.held.keys() {
+            if let Some(p) = k.parent(self.grid.top) {
+                if !self.held.contains_key(&p) {
+                    return Err(format!("{k:?} is held without its parent {p:?}"));
+                }
+                *children.entry(p).or_default() += 1;
+            }
+        }
+        for (k, h) in &self.held {
+            if h.children != children.get(k).copied().unwrap_or(0) {
+                return Err(format!("{k:?} counts {} children, holds {:?}", h.children, children.get(k)));
+            }
+        }
+        let bytes: usize = self.held.values().map(|h| h.data.bytes).sum();
+        if bytes != self.bytes {
+            return Err(format!("bytes {} counted, {bytes} held", self.bytes));
+        }
+        if self.bytes > self.budget {
+            return Err(format!("{} bytes held over the budget of {}", self.bytes, self.budget));
+        }
+        Ok(())
+    }
+}

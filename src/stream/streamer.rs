@@ -1,0 +1,196 @@
+//! One frame of streaming, in the order that keeps the rules: take what the IO thread
+//! read (protecting the previous frame's tiles from eviction), select over what is held,
+//! protect what the selection used, ask for what it wants (most wanted first).
+
+use super::cache::{tile_bytes_estimate, HostCache, Refused};
+use super::io::{Io, Loaded, TileSource};
+use super::traverse::{select, Selection, View};
+use super::{Grid, TileKey};
+use std::collections::{HashMap, HashSet};
+use std::sync::Arc;
+
+/// Frames after which a tile that failed to read is asked for again (a file that comes
+/// back is used again; one that stays damaged is not read every frame).
+pub const RETRY_FRAMES: u64 = 64;
+/// Frames before a tile the full cache refused is asked for again.
+pub const FULL_BACKOFF_FRAMES: u64 = 8;
+
+/// What a streamed run did, for summary.json and the panel.
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize)]
+pub struct StreamStats {
+    pub frames: u64,
+    /// Frames where a block that should split was drawn as it was (its tile not held),
+    /// or the top tile was not held.
+    pub frames_over_bound: u64,
+    /// The largest error / delta of a block drawn over the bound (1 when none was).
+    pub worst_factor: f32,
+    pub tiles_loaded: u64,
+    /// Different tiles loaded, and what they take decoded (a flight over more than the
+    /// cache holds evicts and reloads).
+    pub distinct_tiles: u64,
+    pub distinct_bytes: u64,
+    pub tiles_evicted: u64,
+    pub tiles_failed: u64,
+    /// Compressed bytes read for the tiles loaded.
+    pub bytes_read: u64,
+    /// Tiles read but not taken: the cache was full of needed tiles, or the parent had
+    /// gone.
+    pub refused_full: u64,
+    pub refused_orphan: u64,
+    pub peak_cache_bytes: usize,
+}
+
+pub struct Streamer {
+    pub grid: Grid,
+    pub cache: HostCache,
+    io: Io,
+    pub stats: StreamStats,
+    /// Tiles not asked for again before the frame given: they failed to read, or the
+    /// cache had no room for them.
+    backoff: HashMap<TileKey, u64>,
+    seen: HashSet<TileKey>,
+    priority: HashMap<TileKey, f32>,
+    /// The first failure's message (a damaged or missing file), for the run's report.
+    pub first_failure: Option<String>,
+}
+
+impl Streamer {
+    pub fn new(source: Arc<dyn TileSource>, grid: Grid, cache_bytes: usize) -> Self {
+        Streamer {
+            grid,
+            cache: HostCache::new(grid, cache_bytes),
+            io: Io::spawn(source, grid),
+            stats: StreamStats { worst_factor: 1.0, ..Default::default() },
+            backoff: HashMap::new(),
+            seen: HashSet::new(),
+            priority: HashMap::new(),
+            first_failure: None,
+        }
+    }
+
+    fn take(&mut self, loaded: Vec<Loaded>) {
+        for l in loaded {
+            match l {
+                Loaded::Tile { data, bytes_read } => {
+                    self.stats.bytes_read += bytes_read;
+                    self.stats.tiles_loaded += 1;
+                    if self.seen.insert(data.key) {
+                        self.stats.distinct_tiles += 1;
+                        self.stats.distinct_bytes += data.bytes as u64;
+                    }
+                    let key = data.key;
+                    let needed = self.priority.get(&key).is_some_and(|p| *p > 1.0);
+                    match self.cache.insert(data, needed) {
+                        Ok(()) | Err(Refused::NoParent) => {}
+                        // The frame's tiles fill the budget: asking again at once would
+                        // read it again and again.
+                        Err(Refused::Full) => {
+                            self.backoff.insert(key, self.stats.frames + FULL_BACKOFF_FRAMES);
+                        }
+                    }
+                }
+                Loaded::Absent(_) => {}
+                Loaded::Failed(key, message) => {
+                    self.stats.tiles_failed += 1;
+                    self.backoff.insert(key, self.stats.frames + RETRY_FRAMES);
+                    if self.first_failure.is_none() {
+                        tracing::warn!("streaming: {message} (drawn coarser; retried in {RETRY_FRAMES} frames)");
+                        self.first_failure = Some(message);
+                    }
+                }
+            }
+        }
+        let c = self.cache.stats;
+        (self.stats.tiles_evicted, self.stats.refused_full, self.stats.refused_orphan, self.stats.peak_cache_bytes) =
+            (c.evicted, c.refused_full, c.refused_orphan, c.peak_bytes);
+    }
+
+    /// One frame at `view`; `ahead` (the camera where it will be soon) adds the tiles it
+    /// wants at a lower priority (they are not protected: the current frame's are).
+    pub fn frame(&mut self, view: &View, ahead: Option<&View>, delta: f32, prefetch: f32) -> Selection {
+        let arrived = self.io.arrived();
+        self.take(arrived);
+        self.cache.begin_frame();
+        self.stats.frames += 1;
+        let sel = select(&self.grid, &self.cache, view, delta, prefetch);
+        self.cache.mark_used(sel.used.iter().copied());
+        self.cache.mark_kept(sel.kept.iter().copied());
+        let mut wanted = sel.wanted.clone();
+        if let Some(a) = ahead {
+            let next = select(&self.grid, &self.cache, a, delta, prefetch);
+            self.cache.mark_kept(next.used.iter().chain(&next.kept).copied());
+            // Below every tile the current frame needs.
+            wanted.extend(next.wanted.iter().map(|&(k, p)| (k, p.min(1.0) * 0.5)));
+        }
+        self.request(wanted);
+        if !sel.within_bound() {
+            self.stats.frames_over_bound += 1;
+        }
+        if sel.over_bound > 0 {
+            self.stats.worst_factor = self.stats.worst_factor.max(sel.worst_factor);
+        }
+        sel
+    }
+
+    fn request(&mut self, mut wanted: Vec<(TileKey, f32)>) {
+        let frame = self.stats.frames;
+        self.backoff.retain(|_, retry| *retry > frame);
+        wanted.retain(|(k, _)| !self.cache.contains(*k) && !self.backoff.contains_key(k));
+        wanted.sort_by(|a, b| b.1.total_cmp(&a.1).then(a.0.cmp(&b.0)));
+        // Only what the cache could take: the rest would be read and refused.
+        let (mut room_needed, mut room_soon) = (self.cache.room(true, None), self.cache.room(false, None));
+        let mut once = HashSet::new();
+        wanted.retain(|w| once.insert(w.0)); // the first is the highest priority
+        wanted.retain(|&(k, p)| {
+            let size = tile_bytes_estimate(&self.grid, k.level);
+            let room = if p > 1.0 { &mut room_needed } else { &mut room_soon };
+            let fits = size <= *room;
+            if fits {
+                room_needed = room_needed.saturating_sub(size);
+                room_soon = room_soon.saturating_sub(size);
+            }
+            fits
+        });
+        let keys: Vec<TileKey> = wanted.iter().map(|w| w.0).collect();
+        // The highest priority each tile was asked for with (a tile a frame needs may
+        // evict prefetched ones when it arrives).
+        self.priority.clear();
+        for &(k, p) in wanted.iter().rev() {
+            self.priority.insert(k, p);
+        }
+        self.io.request(&keys);
+    }
+
+    /// The terrain's height (world units) under world `(x, z)` from the finest held tile
+    /// covering it (nearest vertex); `None` outside the terrain or before the top tile
+    /// arrives.
+    pub fn ground(&self, wx: f64, wz: f64) -> Option<f64> {
+        let [sx, sz] = self.grid.sample_of(wx, wz);
+        if !(sx >= 0.0 && sz >= 0.0 && sx <= (self.grid.width - 1) as f64 && sz <= (self.grid.height - 1) as f64) {
+            return None;
+        }
+        (0..=self.grid.top).find_map(|level| {
+            let span = self.grid.tile_span(level) as f64;
+            let key = TileKey::new(level, (sx / span) as u32, (sz / span) as u32);
+            let tile = &self.cache.peek(key)?.tile;
+            let step = f64::from(1u32 << level);
+            let (i, j) =
+                (((sx - f64::from(key.tx) * span) / step).round(), ((sz - f64::from(key.tz) * span) / step).round());
+            let h = tile.heights[(j as usize + 1) * tile.side + i as usize + 1];
+            Some(f64::from(h) * self.grid.height_scale)
+        })
+    }
+
+    /// Waits until the IO thread has read everything asked for and takes it (runs that
+    /// measure a settled frame, and tests).
+    pub fn settle(&mut self) {
+        loop {
+            let got = self.io.wait();
+            let idle = got.is_empty() && self.io.outstanding() == 0;
+            self.take(got);
+            if idle {
+                return;
+            }
+        }
+    }
+}

@@ -1,0 +1,440 @@
+//! Streaming from a tile archive (issue 27 items 3-5, SPEC section 8), host side: the
+//! tiles' block summaries against the full-resolution oracle, the bound and the audit on
+//! settled frames, honest counting when the cache is too small to hold what a frame
+//! needs, the cache's invariants under random use, a damaged archive degrading, and the
+//! same frames 1e7 and 1e8 units from the origin.
+
+mod common;
+
+use common::TempDir;
+use glam::DVec3;
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
+use vkterrain::input::archive::Archive;
+use vkterrain::lod::audit::{audit_block, check_tiling};
+use vkterrain::lod::block::{BlockLayout, DrawBlock};
+use vkterrain::lod::camera::Camera;
+use vkterrain::lod::deviation::exact_deviation;
+use vkterrain::lod::heightfield::Heightfield;
+use vkterrain::lod::pyramid::MinMaxPyramid;
+use vkterrain::prepare::source::InMemory;
+use vkterrain::prepare::{prepare, Frame};
+use vkterrain::stream::cache::{root_lod, serving_tile, HostCache, Refused, TileData, BLOCK_QUADS};
+use vkterrain::stream::io::TileSource;
+use vkterrain::stream::streamer::{Streamer, RETRY_FRAMES};
+use vkterrain::stream::traverse::{Selection, View};
+use vkterrain::stream::{Grid, TileKey};
+
+const DELTA: f32 = 1.0;
+
+/// A rough square field of `2^10 + 1` samples (so that the in-memory grid and the
+/// archive's quadtree coincide): value noise, a ridge, a cliff and one spike.
+fn rough() -> Heightfield {
+    let side = 1025;
+    common::field(side, side, [3.0, 5.0], |x, z| {
+        let n = ((x * 7919 + z * 104_729) % 1013) as f32 * 0.002;
+        let ridge = 40.0 - ((x as f32 - 0.6 * z as f32).abs() * 0.3).min(40.0);
+        let cliff = if x > 610 && z < 400 { 70.0 } else { 0.0 };
+        let spike = if (x, z) == (700, 333) { 900.0 } else { 0.0 };
+        n + ridge + cliff + spike + ((x as f32 * 0.013).sin() * (z as f32 * 0.021).cos()) * 60.0
+    })
+}
+
+fn archive_of(hf: &Heightfield, dir: &TempDir) -> Arc<Archive> {
+    let out = dir.path().join("t.pmtiles");
+    let frame = Frame {
+        spacing: [hf.spacing.x, hf.spacing.z],
+        height_scale: hf.height_scale,
+        georef: hf.georef.clone(),
+        void_samples: 0,
+    };
+    prepare(&InMemory(hf), &frame, &out, &|_, _| {}, &AtomicBool::new(false)).expect("prepare");
+    Arc::new(Archive::open(&out).expect("open"))
+}
+
+/// Low views toward the horizon, views down, views from outside the terrain looking in.
+/// Positions are multiples of 1/16, so that moved 1e8 away they stay exact in f64.
+fn poses() -> Vec<View> {
+    let q = |p: DVec3| (p * 16.0).round() / 16.0;
+    let mut v = Vec::new();
+    for i in 0..12 {
+        let a = i as f64 * std::f64::consts::TAU / 12.0;
+        let p = DVec3::new(1500.0 + 700.0 * a.cos(), 160.0 + 40.0 * (i % 3) as f64, 2500.0 + 1200.0 * a.sin());
+        let t = p + DVec3::new(-a.sin() * 1000.0, -60.0, a.cos() * 1000.0);
+        v.push(View::look_at(q(p), t, 45.0, 320, 240, 1.0));
+    }
+    v.push(View::look_at(DVec3::new(1536.0, 1500.0, 2560.0), DVec3::new(1540.0, 0.0, 2500.0), 60.0, 320, 240, 1.0));
+    v.push(View::look_at(DVec3::new(-400.0, 300.0, -300.0), DVec3::new(1500.0, 0.0, 2500.0), 45.0, 320, 240, 1.0));
+    v.push(View::look_at(
+        DVec3::new(2100.0, 180.0, 1666.0),
+        DVec3::new(2100.0, 900.0, 1666.0 + 1.0),
+        45.0,
+        320,
+        240,
+        1.0,
+    ));
+    v
+}
+
+/// The view as the in-memory code sees it (sample (0, 0) at the world's origin).
+fn camera(view: &View) -> Camera {
+    Camera {
+        position: view.position.as_vec3(),
+        forward: view.forward,
+        fovy: view.fovy,
+        width: view.width,
+        height: view.height,
+        near: view.near,
+    }
+}
+
+/// Frames at `view` until every tile the selection wants is held (or `limit` frames).
+fn settled(s: &mut Streamer, view: &View, limit: usize) -> Selection {
+    for _ in 0..limit {
+        let sel = s.frame(view, None, DELTA, 1.0);
+        if sel.within_bound() {
+            return sel;
+        }
+        s.settle();
+    }
+    panic!("not settled after {limit} frames");
+}
+
+#[test]
+fn tile_summaries_equal_the_full_resolution_oracle() {
+    let hf = rough();
+    let dir = TempDir::new("stream-summaries");
+    let archive = archive_of(&hf, &dir);
+    let grid = Grid::from_meta(&archive.meta);
+    assert_eq!((grid.top, root_lod(&grid)), (2, 5), "a 1025^2 terrain: three tile levels, root blocks of LOD 5");
+    let d = exact_deviation(&hf);
+    let mut checked = 0;
+    for (level, tx, tz) in archive.meta.tiles() {
+        let tile = archive.read_tile(level, tx, tz).unwrap().unwrap();
+        let data = TileData::new(&grid, tile).unwrap();
+        let last = if level == grid.top { root_lod(&grid) } else { u32::from(level) };
+        for lod in u32::from(level)..=last {
+            let per = ((grid.tile_quads << level) / (BLOCK_QUADS << lod)) as u32;
+            for (bx, bz) in (0..per).flat_map(|z| (0..per).map(move |x| (tx * per + x, tz * per + z))) {
+                assert_eq!(serving_tile(&grid, lod, bx, bz), TileKey::new(level, tx, tz));
+                let (size, stride) = ((BLOCK_QUADS << lod) as i64, 1i64 << lod);
+                let (ox, oz) = (i64::from(bx) * size, i64::from(bz) * size);
+                let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
+                for z in (oz..=oz + size).step_by(stride as usize) {
+                    for x in (ox..=ox + size).step_by(stride as usize) {
+                        lo = lo.min(hf.raw_at(x, z));
+                        hi = hi.max(hf.raw_at(x, z));
+                    }
+                }
+                let mut dmax = 0.0f32;
+                if lod > 0 {
+                    let level_d = &d[lod as usize - 1];
+                    let cells = hf.cells(lod)[0];
+                    for gz in bz as usize * BLOCK_QUADS..(bz as usize + 1) * BLOCK_QUADS {
+                        for gx in bx as usize * BLOCK_QUADS..(bx as usize + 1) * BLOCK_QUADS {
+                            dmax = dmax.max(level_d[gz * cells + gx]);
+                        }
+                    }
+                }
+                let s = data.block(&grid, lod, bx, bz);
+                assert_eq!((s.lo, s.hi, s.d), (lo, hi, dmax), "block {lod}/{bx}/{bz} of tile {level}/{tx}/{tz}");
+                checked += 1;
+            }
+        }
+    }
+    // 16 + 4 tiles of 64 blocks, the top tile's 64 + 16 + 4 + 1.
+    assert_eq!(checked, 16 * 64 + 4 * 64 + 64 + 16 + 4 + 1);
+}
+
+#[test]
+fn settled_frames_keep_the_bound_cover_the_view_and_pass_the_audit() {
+    let hf = rough();
+    let dir = TempDir::new("stream-settled");
+    let archive = archive_of(&hf, &dir);
+    let grid = Grid::from_meta(&archive.meta);
+    let layout = BlockLayout::of(&hf, 33).unwrap();
+    let mm = MinMaxPyramid::build(&hf);
+    let mut s = Streamer::new(archive, grid, 1 << 30);
+    let mut lods = std::collections::BTreeSet::new();
+    for (i, view) in poses().iter().enumerate() {
+        let sel = settled(&mut s, view, 12);
+        let cam = camera(view);
+        let blocks: Vec<DrawBlock> = sel.blocks.iter().map(|b| DrawBlock::new(b.lod, b.bx, b.bz)).collect();
+        check_tiling(&hf, &mm, &layout, &blocks, &cam).unwrap_or_else(|e| panic!("pose {i}: {e}"));
+        for (b, block) in sel.blocks.iter().zip(&blocks) {
+            assert!(!b.over && (b.lod == 0 || b.error_px <= DELTA), "pose {i}: {b:?}");
+            let audited = audit_block(&hf, &layout, block, &cam);
+            assert!(audited <= DELTA * 1.001, "pose {i}: block {b:?} audits at {audited} px");
+            lods.insert(b.lod);
+        }
+        s.cache.check().unwrap();
+    }
+    assert!(lods.len() >= 4, "the poses draw several LODs: {lods:?}");
+    assert_eq!(s.stats.tiles_failed, 0);
+}
+
+/// The block bound without the deviation (`d` taken as 0) must fail the audit somewhere
+/// on these poses: the audit above can fail.
+#[test]
+fn the_audit_catches_a_selection_that_ignores_the_deviation() {
+    let hf = rough();
+    let layout = BlockLayout::of(&hf, 33).unwrap();
+    let worst = poses()
+        .iter()
+        .map(|view| {
+            let cam = camera(view);
+            // What a traversal that never splits would draw: the root's children.
+            (0..4u32).map(|i| audit_block(&hf, &layout, &DrawBlock::new(4, i % 2, i / 2), &cam)).fold(0.0f32, f32::max)
+        })
+        .fold(0.0f32, f32::max);
+    assert!(worst > 10.0 * DELTA, "coarse blocks audit at {worst} px");
+}
+
+#[test]
+fn a_cache_too_small_for_the_path_counts_every_frame_over_the_bound_honestly() {
+    let hf = rough();
+    let dir = TempDir::new("stream-small");
+    let archive = archive_of(&hf, &dir);
+    let grid = Grid::from_meta(&archive.meta);
+    let layout = BlockLayout::of(&hf, 33).unwrap();
+    let one = TileData::new(&grid, archive.read_tile(0, 0, 0).unwrap().unwrap()).unwrap().bytes;
+    // The top tile, two of level 1 and three of level 0: less than most poses need.
+    let mut s = Streamer::new(archive.clone(), grid, 6 * one + one / 2);
+    let mut over_frames = 0;
+    for (i, view) in poses().iter().cycle().take(60).enumerate() {
+        let sel = s.frame(view, None, DELTA, 0.5);
+        s.settle();
+        s.cache.check().unwrap_or_else(|e| panic!("frame {i}: {e}"));
+        let cam = camera(view);
+        for b in &sel.blocks {
+            // Used this frame, so not evicted by what the settle took in.
+            assert!(s.cache.peek(b.tile).is_some(), "frame {i}: drawn from a tile not held");
+            if b.over {
+                assert!(b.error_px > DELTA && b.lod > 0, "frame {i}: {b:?}");
+            } else {
+                let audited = audit_block(&hf, &layout, &DrawBlock::new(b.lod, b.bx, b.bz), &cam);
+                assert!(audited <= DELTA * 1.001, "frame {i}: a block within the bound audits at {audited} px");
+            }
+        }
+        let over = sel.blocks.iter().filter(|b| b.over).count();
+        assert_eq!(over, sel.over_bound);
+        if !sel.within_bound() {
+            over_frames += 1;
+            if sel.complete {
+                let worst = sel.blocks.iter().filter(|b| b.over).map(|b| b.error_px / DELTA).fold(1.0f32, f32::max);
+                assert_eq!(sel.worst_factor, worst);
+            }
+        }
+    }
+    assert_eq!(s.stats.frames_over_bound, over_frames);
+    assert!(over_frames > 10, "the budget is too small for most poses: {over_frames} of 60 over");
+    assert!(s.stats.tiles_evicted > 0 && s.stats.peak_cache_bytes <= 6 * one + one / 2, "{:?}", s.stats);
+    assert!(s.stats.worst_factor > 1.0);
+}
+
+/// Random use of the cache against its rules: ancestor-closed, within budget, and no
+/// tile the current frame used is evicted.
+#[test]
+fn the_host_cache_keeps_its_rules_under_random_use() {
+    let hf = rough();
+    let dir = TempDir::new("stream-cache");
+    let archive = archive_of(&hf, &dir);
+    let grid = Grid::from_meta(&archive.meta);
+    let tiles: Vec<Arc<TileData>> = archive
+        .meta
+        .tiles()
+        .map(|(l, x, z)| Arc::new(TileData::new(&grid, archive.read_tile(l, x, z).unwrap().unwrap()).unwrap()))
+        .collect();
+    let (one, top_bytes) = (tiles[0].bytes, tiles.last().unwrap().bytes);
+    let mut rng = 0x9e37_79b9_7f4a_7c15u64;
+    let mut next = |n: usize| {
+        rng ^= rng << 13;
+        rng ^= rng >> 7;
+        rng ^= rng << 17;
+        (rng % n as u64) as usize
+    };
+    // The top tile and room for 2, 4, 8 and 40 level-0 tiles (a level-1 tile is almost
+    // two).
+    for budget_tiles in [2usize, 4, 8, 40] {
+        let mut cache = HostCache::new(grid, top_bytes + budget_tiles * one + 100);
+        let mut used_now = std::collections::HashSet::new();
+        let mut kept_now = std::collections::HashSet::new();
+        let (mut fulls, mut orphans) = (0, 0);
+        for step in 0..3000 {
+            match next(10) {
+                0 => {
+                    cache.begin_frame();
+                    used_now.clear();
+                    kept_now.clear();
+                }
+                1 | 2 => {
+                    let k = tiles[next(tiles.len())].key;
+                    if cache.contains(k) {
+                        cache.mark_used([k]);
+                        used_now.insert(k);
+                    }
+                }
+                3 => {
+                    let k = tiles[next(tiles.len())].key;
+                    if cache.contains(k) {
+                        cache.mark_kept([k]);
+                        kept_now.insert(k);
+                    }
+                }
+                _ => {
+                    let t = tiles[next(tiles.len())].clone();
+                    let key = t.key;
+                    let needed = next(2) == 0;
+                    let room = cache.room(needed, key.parent(grid.top));
+                    let fits = t.bytes <= room;
+                    let before: Vec<TileKey> = used_now.iter().copied().collect();
+                    let kept_before: Vec<TileKey> = kept_now.iter().copied().filter(|k| cache.contains(*k)).collect();
+                    let held_before = cache.contains(key);
+                    let parent_held = key.parent(grid.top).is_none_or(|p| cache.contains(p));
+                    let result = cache.insert(t, needed);
+                    if !held_before && parent_held {
+                        // What room() promises, insert() keeps (it may do better: a leaf
+                        // evicted can leave its parent a leaf).
+                        assert!(!fits || result.is_ok(), "step {step}: room {room}, needed {needed}: {result:?}");
+                    }
+                    if result.is_ok() && !needed {
+                        for k in kept_before {
+                            assert!(cache.contains(k), "step {step}: a prefetch evicted {k:?}, kept this frame");
+                        }
+                    }
+                    match result {
+                        Ok(()) => {}
+                        Err(Refused::Full) => fulls += 1,
+                        Err(Refused::NoParent) => {
+                            orphans += 1;
+                            assert!(!cache.contains(key.parent(grid.top).unwrap()));
+                        }
+                    }
+                    for k in before {
+                        assert!(cache.contains(k), "step {step}: {k:?} was used this frame and evicted");
+                    }
+                }
+            }
+            cache.check().unwrap_or_else(|e| panic!("budget {budget_tiles}, step {step}: {e}"));
+        }
+        assert!(orphans > 0, "the sequence tries orphans");
+        if budget_tiles <= 8 {
+            assert!(fulls > 0 && cache.stats.evicted > 0, "budget {budget_tiles}: {:?}", cache.stats);
+        }
+    }
+}
+
+/// A source whose chosen tiles fail (a damaged tile, a file gone): the frames degrade to
+/// coarser blocks, counted, the failure is reported once with the tile, and the tile is
+/// asked for again after RETRY_FRAMES.
+struct Flaky {
+    archive: Arc<Archive>,
+    bad: TileKey,
+    reads: std::sync::Mutex<Vec<TileKey>>,
+}
+
+impl TileSource for Flaky {
+    fn read(&self, key: TileKey) -> Result<Option<(vkterrain::input::archive::tile::Tile, u64)>, String> {
+        self.reads.lock().unwrap().push(key);
+        if key == self.bad {
+            return Err(format!("tile {}/{}/{}: read failed: the file is gone", key.level, key.tx, key.tz));
+        }
+        self.archive.read(key)
+    }
+}
+
+#[test]
+fn a_failing_tile_degrades_the_frame_and_is_retried() {
+    let hf = rough();
+    let dir = TempDir::new("stream-flaky");
+    let archive = archive_of(&hf, &dir);
+    let grid = Grid::from_meta(&archive.meta);
+    let view = poses()[0];
+    // The level-1 tile under the camera.
+    let [sx, sz] = grid.sample_of(view.position.x, view.position.z);
+    let bad = TileKey::new(1, (sx / 512.0) as u32, (sz / 512.0) as u32);
+    let flaky = Arc::new(Flaky { archive, bad, reads: Default::default() });
+    let mut s = Streamer::new(flaky.clone(), grid, 1 << 30);
+    for _ in 0..8 {
+        s.frame(&view, None, DELTA, 0.0);
+        s.settle();
+    }
+    let sel = s.frame(&view, None, DELTA, 0.0);
+    assert!(!sel.within_bound() && sel.over_bound > 0, "the missing tile leaves blocks over the bound");
+    assert!(sel.blocks.iter().all(|b| b.tile != bad));
+    assert!(s.first_failure.as_deref().unwrap().contains("tile 1/"), "{:?}", s.first_failure);
+    let reads_of = |k| flaky.reads.lock().unwrap().iter().filter(|r| **r == k).count();
+    assert_eq!(reads_of(bad), 1, "not read again every frame");
+    for _ in 0..RETRY_FRAMES + 2 {
+        s.frame(&view, None, DELTA, 0.0);
+        s.settle();
+    }
+    assert_eq!(reads_of(bad), 2, "asked for again after {RETRY_FRAMES} frames");
+    assert_eq!(s.stats.tiles_failed, 2);
+}
+
+/// The same terrain 1e7 and 1e8 world units from the origin, the camera moved with it:
+/// the same blocks at the same errors, bit for bit (positions are f64 until they are
+/// relative to the camera's sample). In f32, 1e8 is a multiple of 8: every position on
+/// this 3 x 5 grid would round.
+#[test]
+fn far_from_the_origin_the_frames_are_the_same() {
+    let hf = rough();
+    let dir = TempDir::new("stream-far");
+    let archive = archive_of(&hf, &dir);
+    let grid = Grid::from_meta(&archive.meta);
+    let mut near = Streamer::new(archive.clone(), grid, 1 << 30);
+    let reference: Vec<Selection> = poses().iter().map(|v| settled(&mut near, v, 12)).collect();
+    for offset in [1e7, 1e8, -1e8] {
+        let far_grid = grid.at([offset, 3.0 * offset]);
+        let mut far = Streamer::new(archive.clone(), far_grid, 1 << 30);
+        for (i, (view, want)) in poses().iter().zip(&reference).enumerate() {
+            let moved = View { position: view.position + DVec3::new(offset, 0.0, 3.0 * offset), ..*view };
+            let got = settled(&mut far, &moved, 12);
+            assert_eq!(got.blocks, want.blocks, "offset {offset}, pose {i}");
+        }
+        // What f32 world positions would have lost: some poses' x do not survive the
+        // round trip (at 1e7 the integer ones do; at 1e8 none).
+        let lost =
+            poses().iter().filter(|v| f64::from((v.position.x + offset) as f32) != v.position.x + offset).count();
+        assert!(lost > 0, "offset {offset}: f32 would keep every position exactly");
+    }
+}
+
+fn cli(args: &[&str]) -> std::process::Output {
+    std::process::Command::new(env!("CARGO_BIN_EXE_vkterrain")).args(args).env("RUST_LOG", "error").output().unwrap()
+}
+
+/// `vkterrain stream` end to end on a small prepared archive: a flight over more tiles
+/// than the cache holds evicts, stays within its budget and reports frames over the
+/// bound consistently; over a truncated copy it degrades (exit 0, the damaged tile
+/// named), it does not stop.
+#[test]
+fn the_stream_command_flies_within_its_budget_and_degrades_on_a_damaged_archive() {
+    let dir = TempDir::new("stream-cli");
+    let archive = dir.path().join("s.pmtiles");
+    let a = archive.to_str().unwrap();
+    let o = cli(&["prepare", "--synthetic", "2049", "--out", a]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let fly = |path: &str| {
+        let o =
+            cli(&["stream", path, "--cache-mb", "16", "--frames", "360", "--fps", "120", "--speed", "8000", "--cold"]);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        serde_json::from_slice::<serde_json::Value>(&o.stdout).unwrap()
+    };
+    let r = fly(a);
+    let stats = &r["stats"];
+    assert_eq!(r["frames"], 360);
+    assert_eq!(r["frames_over_bound"], stats["frames_over_bound"]);
+    assert!(stats["tiles_evicted"].as_u64().unwrap() > 0, "{r}");
+    assert!(stats["peak_cache_bytes"].as_u64().unwrap() <= 16 << 20, "{r}");
+    assert!(r["distinct_over_cache"].as_f64().unwrap() > 1.0, "the flight sees more than the cache holds: {r}");
+    assert!(r["first_failure"].is_null(), "{r}");
+    let bytes = std::fs::read(&archive).unwrap();
+    let cut = dir.path().join("cut.pmtiles");
+    std::fs::write(&cut, &bytes[..bytes.len() / 2]).unwrap();
+    let r = fly(cut.to_str().unwrap());
+    let failure = r["first_failure"].as_str().unwrap_or_else(|| panic!("no failure reported: {r}"));
+    assert!(failure.contains("cut.pmtiles") && failure.contains("tile ") && failure.contains("truncated"), "{failure}");
+    assert!(r["stats"]["tiles_failed"].as_u64().unwrap() > 0);
+}
