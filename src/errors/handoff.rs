@@ -8,6 +8,11 @@
 //! superseded by a finished one (the reader only ever takes the newest), and is not
 //! being copied right now. That lets two generations be in flight, `g - 1` and `g`, both
 //! slots written at once, while the reader draws with its copy of `g - 2`.
+//!
+//! [`AtlasLayers`] extends the same rules to the heightfield atlas of a streamed terrain
+//! (SPEC section 8): a tile is drawable once the generation that uploaded it finished, and
+//! its layer is reused only after every frame that drew from it completed. The atlas
+//! itself (the array image, the uploads) is not built yet; these are its rules.
 
 /// Slots (error targets and readback buffers) used in turn.
 pub const SLOTS: u64 = 2;
@@ -104,6 +109,103 @@ impl Handoff {
         self.reading = None;
         if copied {
             self.released = self.released.max(g);
+        }
+    }
+}
+
+/// The heightfield atlas's layers (SPEC section 8, "Residency"), the same hand-off for
+/// tiles: the errors activity uploads a tile into a layer as part of generation `g`; the
+/// draw thread draws from it only once `g` is finished (its errors were computed in the
+/// same generation); a layer is reused only after every frame that drew from it has
+/// completed on the GPU (the draw queue's timeline has passed the last such frame). Both
+/// sides read the other's counter and never wait on it.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct AtlasLayers<T> {
+    layers: Vec<Layer<T>>,
+}
+
+/// One layer's state.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Layer<T> {
+    Free,
+    /// Being written by generation `generation` (not drawable until it finishes).
+    Uploading {
+        tile: T,
+        generation: u64,
+    },
+    /// Holds `tile`; `last_frame` is the newest frame that drew from it (0: none).
+    Resident {
+        tile: T,
+        generation: u64,
+        last_frame: u64,
+    },
+}
+
+impl<T: Copy + PartialEq + std::fmt::Debug> AtlasLayers<T> {
+    pub fn new(layers: usize) -> Self {
+        AtlasLayers { layers: vec![Layer::Free; layers] }
+    }
+
+    pub fn layer(&self, i: usize) -> &Layer<T> {
+        &self.layers[i]
+    }
+
+    /// The layer `tile` is in, whatever its state.
+    pub fn find(&self, tile: T) -> Option<usize> {
+        self.layers.iter().position(|l| match l {
+            Layer::Free => false,
+            Layer::Uploading { tile: t, .. } | Layer::Resident { tile: t, .. } => *t == tile,
+        })
+    }
+
+    /// A layer for `tile` in generation `generation`: a free one, else the resident
+    /// layer drawn longest ago among those every frame that drew from has completed
+    /// (`completed_frame`, the draw timeline's value) and that `keep` does not protect.
+    /// `None` when there is none: the tile waits.
+    pub fn claim(&mut self, tile: T, generation: u64, completed_frame: u64, keep: impl Fn(T) -> bool) -> Option<usize> {
+        assert!(self.find(tile).is_none(), "{tile:?} is in the atlas already");
+        let free = self.layers.iter().position(|l| *l == Layer::Free);
+        let reusable = || {
+            self.layers
+                .iter()
+                .enumerate()
+                .filter_map(|(i, l)| match l {
+                    Layer::Resident { tile, last_frame, .. } if *last_frame <= completed_frame && !keep(*tile) => {
+                        Some((*last_frame, i))
+                    }
+                    _ => None,
+                })
+                .min()
+                .map(|(_, i)| i)
+        };
+        let i = free.or_else(reusable)?;
+        self.layers[i] = Layer::Uploading { tile, generation };
+        Some(i)
+    }
+
+    /// Generation `g` finished: what it uploaded is drawable.
+    pub fn finish(&mut self, g: u64) {
+        for l in &mut self.layers {
+            if let Layer::Uploading { tile, generation } = *l {
+                if generation <= g {
+                    *l = Layer::Resident { tile, generation, last_frame: 0 };
+                }
+            }
+        }
+    }
+
+    /// The layer the draw thread may draw `tile` from in frame `frame`, recording the
+    /// draw (the layer is then kept until that frame completes); `None` if it is not
+    /// resident yet.
+    pub fn draw(&mut self, tile: T, frame: u64) -> Option<usize> {
+        let i = self.find(tile)?;
+        match &mut self.layers[i] {
+            Layer::Resident { last_frame, .. } => {
+                assert!(frame >= *last_frame, "frames are numbered in order");
+                *last_frame = frame;
+                Some(i)
+            }
+            _ => None,
         }
     }
 }
@@ -247,5 +349,129 @@ mod tests {
         h.start();
         h.start();
         h.finish(2);
+    }
+
+    /// What each atlas layer's memory holds, and the GPU work on it.
+    #[derive(Clone, Copy, Debug, PartialEq)]
+    enum LayerMemory {
+        Empty,
+        Writing(u32),
+        Holds(u32),
+    }
+
+    /// Random interleavings of the errors thread (claim a layer and upload a tile in a
+    /// generation, the GPU finishing uploads and generations in order) and the draw
+    /// thread (frames that draw from resident tiles, completing in order, the timeline
+    /// read late): no upload starts on a layer a frame still in flight reads, no frame
+    /// reads a layer being written, and every read finds the tile it asked for.
+    fn explore_atlas(seed: u64, steps: usize) -> (u64, u64) {
+        let mut rng = seed;
+        let mut next = move |n: u64| {
+            rng ^= rng << 13;
+            rng ^= rng >> 7;
+            rng ^= rng << 17;
+            rng % n
+        };
+        const LAYERS: usize = 4;
+        const TILES: u32 = 9;
+        let mut atlas = AtlasLayers::<u32>::new(LAYERS);
+        let mut memory = [LayerMemory::Empty; LAYERS];
+        let (mut generation, mut finished) = (1u64, 0u64);
+        // Uploads submitted (layer, tile, generation) whose GPU write is not done.
+        let mut writes: Vec<(usize, u32, u64)> = Vec::new();
+        // Frames submitted and not completed: (frame, reads of (layer, tile)).
+        let mut frames: std::collections::VecDeque<(u64, Vec<(usize, u32)>)> = Default::default();
+        let (mut frame, mut completed, mut seen_completed) = (0u64, 0u64, 0u64);
+        let mut reuses = 0;
+        for _ in 0..steps {
+            match next(7) {
+                // The errors thread claims a layer for a tile not in the atlas.
+                0 => {
+                    let tile = next(u64::from(TILES)) as u32;
+                    if atlas.find(tile).is_some() {
+                        continue;
+                    }
+                    let was_free = atlas.layers.contains(&Layer::Free);
+                    if let Some(i) = atlas.claim(tile, generation, seen_completed, |_| false) {
+                        for (f, reads) in &frames {
+                            assert!(
+                                reads.iter().all(|(l, _)| *l != i),
+                                "frame {f}, in flight, reads layer {i}: the upload of {tile} overwrites it"
+                            );
+                        }
+                        reuses += u64::from(!was_free);
+                        memory[i] = LayerMemory::Writing(tile);
+                        writes.push((i, tile, generation));
+                    }
+                }
+                // The GPU finishes the oldest upload.
+                1 if !writes.is_empty() => {
+                    let (i, tile, _) = writes.remove(0);
+                    memory[i] = LayerMemory::Holds(tile);
+                }
+                // The generation is published once all its uploads are done.
+                2 if writes.iter().all(|w| w.2 > generation) => {
+                    finished = generation;
+                    atlas.finish(finished);
+                    generation += 1;
+                }
+                // The draw thread submits a frame drawing a few resident tiles.
+                3 | 4 => {
+                    frame += 1;
+                    let mut reads = Vec::new();
+                    for _ in 0..3 {
+                        let tile = next(u64::from(TILES)) as u32;
+                        if let Some(i) = atlas.draw(tile, frame) {
+                            assert_eq!(memory[i], LayerMemory::Holds(tile), "frame {frame} reads layer {i}");
+                            reads.push((i, tile));
+                        }
+                    }
+                    frames.push_back((frame, reads));
+                }
+                // The GPU completes the oldest frame: its reads found their tiles.
+                5 => {
+                    if let Some((f, reads)) = frames.pop_front() {
+                        for (i, tile) in reads {
+                            assert_eq!(memory[i], LayerMemory::Holds(tile), "frame {f}: layer {i} changed under it");
+                        }
+                        completed = f;
+                    }
+                }
+                // The errors thread reads the draw timeline (late, as it may be).
+                _ => seen_completed = completed,
+            }
+        }
+        (reuses, finished)
+    }
+
+    #[test]
+    fn no_interleaving_overwrites_an_atlas_layer_a_frame_reads() {
+        let mut reuses = 0;
+        for seed in 1..=300u64 {
+            let (r, finished) = explore_atlas(seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1, 3000);
+            assert!(finished > 50, "seed {seed}: only {finished} generations");
+            reuses += r;
+        }
+        assert!(reuses > 300, "layers were reused only {reuses} times: the model does not exercise reuse");
+    }
+
+    /// The rules, one by one: not drawable before its generation finishes; not reused
+    /// while a frame that drew from it is in flight; reused drawn-longest-ago first;
+    /// kept tiles are not taken.
+    #[test]
+    fn an_atlas_layer_waits_for_its_generation_and_its_last_frame() {
+        let mut a = AtlasLayers::<u32>::new(2);
+        assert_eq!(a.claim(10, 1, 0, |_| false), Some(0));
+        assert_eq!(a.claim(11, 1, 0, |_| false), Some(1));
+        assert_eq!(a.draw(10, 1), None, "generation 1 is not finished");
+        a.finish(1);
+        assert_eq!((a.draw(10, 1), a.draw(11, 2)), (Some(0), Some(1)));
+        assert_eq!(a.claim(12, 2, 0, |_| false), None, "frames 1 and 2 are in flight");
+        assert_eq!(a.claim(12, 2, 1, |_| false), Some(0), "frame 1 completed: tile 10's layer");
+        assert_eq!(a.claim(13, 2, 2, |t| t == 11), None, "11 is kept");
+        assert_eq!(a.claim(13, 2, 2, |_| false), Some(1));
+        assert_eq!(a.draw(12, 3), None, "generation 2 is not finished");
+        a.finish(2);
+        assert_eq!(a.draw(12, 3), Some(0));
     }
 }
