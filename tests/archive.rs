@@ -408,23 +408,7 @@ fn reading_window_by_window_makes_the_same_archive_as_reading_whole() {
 /// Runs `vkterrain ARGS` and expects exit 2 within a minute with one error line holding
 /// every needle (a FIFO input must not block the run).
 fn refused(args: &[&str], needles: &[&str]) {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_vkterrain"))
-        .args(args)
-        .env("RUST_LOG", "error")
-        .stdout(std::process::Stdio::null())
-        .stderr(std::process::Stdio::piped())
-        .spawn()
-        .unwrap();
-    let started = std::time::Instant::now();
-    while child.try_wait().unwrap().is_none() {
-        if started.elapsed() > std::time::Duration::from_secs(60) {
-            let _ = child.kill();
-            let _ = child.wait();
-            panic!("{args:?}: still running after 60 s (a hang)");
-        }
-        std::thread::sleep(std::time::Duration::from_millis(20));
-    }
-    let o = child.wait_with_output().unwrap();
+    let o = common::run_bounded(&args.iter().map(|a| a.to_string()).collect::<Vec<_>>(), 60);
     let e = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(2), "{args:?}: {e}");
     let lines: Vec<&str> = e.lines().filter(|l| !l.starts_with("vkterrain: note:")).collect();

@@ -1,6 +1,8 @@
 //! Bad inputs get a clean error: exit code 2, one line naming the file or option and the
 //! problem, no panic, and no output file left behind. The corpus is tests/bad_inputs/.
 
+mod common;
+
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
@@ -41,25 +43,7 @@ fn fails_cleanly(args: &[&str], needles: &[&str]) {
     if args.first() == Some(&"render") && !args.contains(&"--out") {
         full.extend(["--out".into(), out_png.display().to_string()]);
     }
-    let mut child = Command::new(env!("CARGO_BIN_EXE_vkterrain"))
-        .args(&full)
-        .env("RUST_LOG", "error")
-        .stdout(std::process::Stdio::piped())
-        .stderr(std::process::Stdio::piped())
-        .spawn()
-        .expect("run vkterrain");
-    // A bad input must end the run, never block it (a FIFO read would): past a minute the
-    // run is killed and the test fails.
-    let start = std::time::Instant::now();
-    while child.try_wait().unwrap().is_none() {
-        if start.elapsed() > std::time::Duration::from_secs(60) {
-            let _ = child.kill();
-            let _ = child.wait();
-            panic!("{full:?}: still running after 60 s (a hang)");
-        }
-        std::thread::sleep(std::time::Duration::from_millis(20));
-    }
-    let out = child.wait_with_output().unwrap();
+    let out = common::run_bounded(&full, 60);
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert_eq!(out.status.code(), Some(2), "{full:?}: exit {:?}, stderr: {stderr}", out.status.code());
     assert!(!stderr.contains("panicked"), "{full:?} panicked: {stderr}");

@@ -40,6 +40,22 @@ fn rough() -> Heightfield {
     })
 }
 
+/// The rough field, its archive in a temporary directory (removed with it) and its grid.
+struct Fixture {
+    hf: Heightfield,
+    archive: Arc<Archive>,
+    grid: Grid,
+    _dir: TempDir,
+}
+
+fn fixture(tag: &str) -> Fixture {
+    let hf = rough();
+    let dir = TempDir::new(tag);
+    let archive = archive_of(&hf, &dir);
+    let grid = Grid::from_meta(&archive.meta);
+    Fixture { hf, archive, grid, _dir: dir }
+}
+
 fn archive_of(hf: &Heightfield, dir: &TempDir) -> Arc<Archive> {
     let out = dir.path().join("t.pmtiles");
     let frame = Frame {
@@ -102,10 +118,7 @@ fn settled(s: &mut Streamer, view: &View, limit: usize) -> Selection {
 
 #[test]
 fn tile_summaries_equal_the_full_resolution_oracle() {
-    let hf = rough();
-    let dir = TempDir::new("stream-summaries");
-    let archive = archive_of(&hf, &dir);
-    let grid = Grid::from_meta(&archive.meta);
+    let Fixture { hf, archive, grid, _dir } = fixture("stream-summaries");
     assert_eq!((grid.top, root_lod(&grid)), (2, 5), "a 1025^2 terrain: three tile levels, root blocks of LOD 5");
     let d = exact_deviation(&hf);
     let mut checked = 0;
@@ -148,10 +161,7 @@ fn tile_summaries_equal_the_full_resolution_oracle() {
 
 #[test]
 fn settled_frames_keep_the_bound_cover_the_view_and_pass_the_audit() {
-    let hf = rough();
-    let dir = TempDir::new("stream-settled");
-    let archive = archive_of(&hf, &dir);
-    let grid = Grid::from_meta(&archive.meta);
+    let Fixture { hf, archive, grid, _dir } = fixture("stream-settled");
     let layout = BlockLayout::of(&hf, 33).unwrap();
     let mm = MinMaxPyramid::build(&hf);
     let mut s = Streamer::new(archive, grid, 1 << 30);
@@ -192,10 +202,7 @@ fn the_audit_catches_a_selection_that_ignores_the_deviation() {
 
 #[test]
 fn a_cache_too_small_for_the_path_counts_every_frame_over_the_bound_honestly() {
-    let hf = rough();
-    let dir = TempDir::new("stream-small");
-    let archive = archive_of(&hf, &dir);
-    let grid = Grid::from_meta(&archive.meta);
+    let Fixture { hf, archive, grid, _dir } = fixture("stream-small");
     let layout = BlockLayout::of(&hf, 33).unwrap();
     let one = TileData::new(&grid, archive.read_tile(0, 0, 0).unwrap().unwrap()).unwrap().bytes;
     // The top tile, two of level 1 and three of level 0: less than most poses need.
@@ -236,10 +243,7 @@ fn a_cache_too_small_for_the_path_counts_every_frame_over_the_bound_honestly() {
 /// tile the current frame used is evicted.
 #[test]
 fn the_host_cache_keeps_its_rules_under_random_use() {
-    let hf = rough();
-    let dir = TempDir::new("stream-cache");
-    let archive = archive_of(&hf, &dir);
-    let grid = Grid::from_meta(&archive.meta);
+    let Fixture { hf: _, archive, grid, _dir } = fixture("stream-cache");
     let tiles: Vec<Arc<TileData>> = archive
         .meta
         .tiles()
@@ -345,10 +349,7 @@ impl TileSource for Flaky {
 
 #[test]
 fn a_failing_tile_degrades_the_frame_and_is_retried() {
-    let hf = rough();
-    let dir = TempDir::new("stream-flaky");
-    let archive = archive_of(&hf, &dir);
-    let grid = Grid::from_meta(&archive.meta);
+    let Fixture { hf: _, archive, grid, _dir } = fixture("stream-flaky");
     let view = poses()[0];
     // The level-1 tile under the camera.
     let [sx, sz] = grid.sample_of(view.position.x, view.position.z);
@@ -379,10 +380,7 @@ fn a_failing_tile_degrades_the_frame_and_is_retried() {
 /// this 3 x 5 grid would round.
 #[test]
 fn far_from_the_origin_the_frames_are_the_same() {
-    let hf = rough();
-    let dir = TempDir::new("stream-far");
-    let archive = archive_of(&hf, &dir);
-    let grid = Grid::from_meta(&archive.meta);
+    let Fixture { hf: _, archive, grid, _dir } = fixture("stream-far");
     let mut near = Streamer::new(archive.clone(), grid, 1 << 30);
     let reference: Vec<Selection> = poses().iter().map(|v| settled(&mut near, v, 12)).collect();
     for offset in [1e7, 1e8, -1e8] {

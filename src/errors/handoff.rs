@@ -214,6 +214,17 @@ impl<T: Copy + PartialEq + std::fmt::Debug> AtlasLayers<T> {
 mod tests {
     use super::*;
 
+    /// A small deterministic generator of choices below `n` (xorshift64).
+    fn xorshift(seed: u64) -> impl FnMut(u64) -> u64 {
+        let mut rng = seed;
+        move |n| {
+            rng ^= rng << 13;
+            rng ^= rng >> 7;
+            rng ^= rng << 17;
+            rng % n
+        }
+    }
+
     /// A model of the two slots' memory: what each holds, and whether the GPU is
     /// writing it right now.
     #[derive(Clone, Copy, Debug, PartialEq)]
@@ -227,13 +238,7 @@ mod tests {
     /// (begin, copy, end), checked against the memory model: a copy never overlaps a
     /// write of its slot, and always finds the generation it was told to take.
     fn explore(seed: u64, steps: usize) -> (u64, u64) {
-        let mut rng = seed;
-        let mut next = move |n: u64| {
-            rng ^= rng << 13;
-            rng ^= rng >> 7;
-            rng ^= rng << 17;
-            rng % n
-        };
+        let mut next = xorshift(seed);
         let mut h = Handoff::default();
         let mut memory = [Memory::Empty; SLOTS as usize];
         // Generations the GPU has done but the writer has not published yet.
@@ -365,13 +370,7 @@ mod tests {
     /// read late): no upload starts on a layer a frame still in flight reads, no frame
     /// reads a layer being written, and every read finds the tile it asked for.
     fn explore_atlas(seed: u64, steps: usize) -> (u64, u64) {
-        let mut rng = seed;
-        let mut next = move |n: u64| {
-            rng ^= rng << 13;
-            rng ^= rng >> 7;
-            rng ^= rng << 17;
-            rng % n
-        };
+        let mut next = xorshift(seed);
         const LAYERS: usize = 4;
         const TILES: u32 = 9;
         let mut atlas = AtlasLayers::<u32>::new(LAYERS);

@@ -94,3 +94,27 @@ impl Drop for TempDir {
         let _ = std::fs::remove_dir_all(&self.0);
     }
 }
+
+/// Runs `vkterrain ARGS` (RUST_LOG=error, stdout and stderr captured) and fails the test
+/// if it is still running after `limit_s` seconds: a bad input must end a run, never
+/// block it (a FIFO read would).
+pub fn run_bounded(args: &[String], limit_s: u64) -> std::process::Output {
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_vkterrain"))
+        .args(args)
+        .env("RUST_LOG", "error")
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("run vkterrain");
+    let started = std::time::Instant::now();
+    // Polling the child's state (not a fixed sleep standing in for synchronisation).
+    while child.try_wait().unwrap().is_none() {
+        if started.elapsed() > std::time::Duration::from_secs(limit_s) {
+            let _ = child.kill();
+            let _ = child.wait();
+            panic!("{args:?}: still running after {limit_s} s (a hang)");
+        }
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    child.wait_with_output().unwrap()
+}
