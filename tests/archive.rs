@@ -530,3 +530,25 @@ fn voids_read_window_by_window_are_refused_naming_the_sample() {
     let left: Vec<_> = std::fs::read_dir(dir.path()).unwrap().collect();
     assert!(left.is_empty(), "left behind: {left:?}");
 }
+
+/// An archive as the input of `prepare` is read tile by tile, not whole: the same tiles
+/// come out, and the peak memory stays below what the whole terrain takes in memory
+/// (4097^2 samples as f32, twice: 134 MB).
+#[test]
+fn an_archive_reprepared_tile_by_tile_gives_the_same_tiles_in_bounded_memory() {
+    let dir = TempDir::new("archive-reprepare");
+    let (first, second) = (dir.path().join("a.pmtiles"), dir.path().join("b.pmtiles"));
+    let o = cli(&["prepare", "--synthetic", "4097", "--out", first.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let o = cli(&["prepare", first.to_str().unwrap(), "--out", second.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("read tile by tile"));
+    let report: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let peak = report["peak_resident_mb"].as_f64().unwrap();
+    assert!(peak < 120.0, "re-preparing 4097^2 peaked at {peak:.0} MB: read whole?");
+    let (a, b) = (Archive::open(&first).unwrap(), Archive::open(&second).unwrap());
+    assert_eq!(a.meta, vkterrain::input::archive::Meta { source: a.meta.source.clone(), ..b.meta.clone() });
+    for (level, tx, tz) in a.meta.tiles() {
+        assert_eq!(a.read_tile(level, tx, tz).unwrap(), b.read_tile(level, tx, tz).unwrap(), "tile {level}/{tx}/{tz}");
+    }
+}

@@ -5,7 +5,7 @@ use crate::app::cli::InputError;
 use crate::input::georef::{self, WindowReader};
 use crate::input::load::{self, LoadOptions, VoidMode};
 use crate::lod::heightfield::{Georef, Spacing};
-use crate::prepare::source::{InMemory, Synthetic, Windowed};
+use crate::prepare::source::{FromArchive, InMemory, Synthetic, Windowed};
 use crate::prepare::{Frame, PrepareError, Source};
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -44,13 +44,13 @@ pub struct PrepareArgs {
 pub const IN_MEMORY_SAMPLES: usize = 8193 * 8193;
 
 /// Is `path` read window by window? Rasters GDAL reads, when asked to or when large;
-/// raw files and archives are read whole.
+/// raw files are read whole (archives are read tile by tile, before this is asked).
 fn windowed(path: &std::path::Path, asked: bool) -> Result<bool, InputError> {
     let ext = path.extension().map(|e| e.to_string_lossy().to_lowercase()).unwrap_or_default();
-    if matches!(ext.as_str(), "r16" | "f32" | "pmtiles") || crate::input::archive::Archive::sniff(path) {
+    if matches!(ext.as_str(), "r16" | "f32" | "pmtiles") {
         if asked {
             return Err(InputError(format!(
-                "{}: --windows reads GDAL rasters; raw files and archives are read whole",
+                "{}: --windows reads GDAL rasters; raw files are read whole",
                 path.display()
             )));
         }
@@ -102,7 +102,28 @@ pub fn prepare(args: &PrepareArgs) -> anyhow::Result<()> {
     let loaded;
     let synthetic;
     let windows;
+    let archive;
+    let from_archive;
     let (source, frame): (&dyn Source, Frame) = match (&args.input, args.synthetic) {
+        (Some(path), None) if crate::input::archive::Archive::sniff(path) => {
+            archive = crate::input::archive::Archive::open(path).map_err(|e| InputError(e.to_string()))?;
+            let m = &archive.meta;
+            let frame = Frame {
+                spacing: args.spacing.map_or(m.spacing, |s| [s.x, s.z]),
+                height_scale: args.height_scale.unwrap_or(m.height_scale),
+                georef: m.georef.clone(),
+                void_samples: m.void_samples,
+            };
+            eprintln!(
+                "vkterrain: note: {}: a prepared archive of {} x {} samples ({}), read tile by tile",
+                path.display(),
+                m.width,
+                m.height,
+                m.source
+            );
+            from_archive = FromArchive::new(&archive);
+            (&from_archive, frame)
+        }
         (_, Some(side)) => {
             synthetic = Synthetic { side: side as usize };
             let frame = Frame {

@@ -143,3 +143,99 @@ impl Source for Windowed {
         Ok(())
     }
 }
+
+/// A prepared archive read tile by tile (re-preparing it, or an archive of any size as
+/// an input): memory follows the windows and a small cache of decoded tiles, not the
+/// terrain. A strided read takes its samples from the coarsest tiles that hold them.
+pub struct FromArchive<'a> {
+    pub archive: &'a crate::input::archive::Archive,
+    tiles: std::sync::Mutex<TileLru>,
+}
+
+/// Recently used decoded tiles (windows in Morton order share most of theirs).
+#[derive(Default)]
+struct TileLru {
+    tiles: std::collections::HashMap<(u8, u32, u32), (std::sync::Arc<crate::input::archive::tile::Tile>, u64)>,
+    clock: u64,
+}
+
+impl<'a> FromArchive<'a> {
+    /// Decoded tiles kept: a window and its neighbours at every level, a few times over.
+    pub const CACHED_TILES: usize = 64;
+
+    pub fn new(archive: &'a crate::input::archive::Archive) -> Self {
+        FromArchive { archive, tiles: Default::default() }
+    }
+
+    fn tile(&self, level: u8, tx: u32, tz: u32) -> Result<std::sync::Arc<crate::input::archive::tile::Tile>, String> {
+        let key = (level, tx, tz);
+        {
+            let mut lru = self.tiles.lock().expect("tile cache");
+            lru.clock += 1;
+            let now = lru.clock;
+            if let Some((tile, used)) = lru.tiles.get_mut(&key) {
+                *used = now;
+                return Ok(tile.clone());
+            }
+        }
+        // Read and decode outside the lock (the workers read in parallel).
+        let tile = self
+            .archive
+            .read_tile(level, tx, tz)
+            .map_err(|e| e.to_string())?
+            .ok_or_else(|| format!("{}: missing", self.archive.tile_name(level, tx, tz)))?;
+        let tile = std::sync::Arc::new(tile);
+        let mut lru = self.tiles.lock().expect("tile cache");
+        if lru.tiles.len() >= Self::CACHED_TILES {
+            if let Some(oldest) = lru.tiles.iter().min_by_key(|(_, (_, used))| *used).map(|(k, _)| *k) {
+                lru.tiles.remove(&oldest);
+            }
+        }
+        let now = lru.clock;
+        lru.tiles.insert(key, (tile.clone(), now));
+        Ok(tile)
+    }
+}
+
+impl Source for FromArchive<'_> {
+    fn name(&self) -> String {
+        self.archive.path().display().to_string()
+    }
+
+    fn size(&self) -> (usize, usize) {
+        (self.archive.meta.width, self.archive.meta.height)
+    }
+
+    fn samples(&self) -> Samples {
+        self.archive.meta.sample_format().expect("checked at open")
+    }
+
+    fn read(&self, x0: i64, z0: i64, nx: usize, nz: usize, stride: usize, out: &mut Vec<f32>) -> Result<(), String> {
+        let m = &self.archive.meta;
+        let (w, h) = (m.width, m.height);
+        // The coarsest level whose vertices are every `stride`-th sample.
+        let level = (stride.trailing_zeros() as u8).min(m.top_level);
+        out.clear();
+        out.reserve(nx * nz);
+        let mut current: Option<((u8, u32, u32), std::sync::Arc<crate::input::archive::tile::Tile>)> = None;
+        for z in axis(z0, nz, stride, h) {
+            for x in axis(x0, nx, stride, w) {
+                // Clamped edge samples may lie off the coarse lattice: those come from
+                // level 0.
+                let step = 1usize << level;
+                let l = if x % step == 0 && z % step == 0 { level } else { 0 };
+                let span = m.tile_quads << l;
+                let [ntx, ntz] = m.tiles_at(l);
+                let (tx, tz) = ((x / span).min(ntx as usize - 1), (z / span).min(ntz as usize - 1));
+                let key = (l, tx as u32, tz as u32);
+                if current.as_ref().is_none_or(|(k, _)| *k != key) {
+                    current = Some((key, self.tile(l, tx as u32, tz as u32)?));
+                }
+                let tile = &current.as_ref().expect("just set").1;
+                let (i, j) = ((x - tx * span) >> l, (z - tz * span) >> l);
+                out.push(tile.heights[(j + 1) * tile.side + i + 1]);
+            }
+        }
+        Ok(())
+    }
+}
