@@ -54,8 +54,11 @@ impl Source for InMemory<'_> {
 }
 
 /// Non-periodic fBm hashed from the sample coordinates (the built-in terrain's
-/// generator at any size), quantised to 16 bits of 0.1 m: a terrain of any size made
-/// window by window, every tile different.
+/// generator), quantised to 16 bits of 0.1 m: a terrain of any size made window by
+/// window, every tile different. Its features keep the built-in terrain's sizes (ranges
+/// tens of km across at 30 m, detail down to a few samples) however large the side, as
+/// a real elevation model's do: scaled with the side, a 65537^2 terrain would be smooth
+/// over 25 samples and light to stream.
 pub struct Synthetic {
     pub side: usize,
 }
@@ -64,9 +67,11 @@ impl Synthetic {
     /// Metres per raw unit and per sample.
     pub const HEIGHT_SCALE: f32 = 0.1;
     pub const SPACING: f32 = 30.0;
+    /// The side whose feature sizes every synthetic terrain has (the built-in terrain's).
+    pub const FEATURE_SIDE: f32 = 2049.0;
 
     pub fn raw(&self, x: usize, z: usize) -> f32 {
-        let h = crate::input::procedural::height(x as f32, z as f32, self.side as f32);
+        let h = crate::input::procedural::height(x as f32, z as f32, Self::FEATURE_SIDE);
         (h / Self::HEIGHT_SCALE).round().clamp(0.0, 65535.0)
     }
 }
