@@ -342,6 +342,13 @@ fn a_damaged_archive_is_refused_naming_the_file_and_the_tile() {
         let o = cli(&["check", dir.path().join("flipped.pmtiles").to_str().unwrap()]);
         assert_eq!(o.status.code(), Some(2), "check accepted byte {at} flipped");
     }
+    // Header fields the metadata contradicts: a tile count, the zooms.
+    for (at, what) in [(72, "addressed tiles"), (80, "addressed tiles"), (101, "zooms")] {
+        let mut bad = bytes.clone();
+        bad[at] ^= 0x01;
+        let e = open("header-field.pmtiles", &bad);
+        assert!(e.contains(what), "byte {at}: {e}");
+    }
     let e = open("truncated.pmtiles", &bytes[..bytes.len() * 2 / 3]);
     assert!(e.contains("tile ") && e.contains("truncated"), "{e}");
     let e = open("header.pmtiles", &bytes[..60]);

@@ -192,6 +192,30 @@ impl Archive {
                 format!("top level {} does not fit a {} x {} terrain", meta.top_level, meta.width, meta.height),
             ));
         }
+        // The header, the metadata and the quadtree agree on what is stored.
+        let stored = meta.tiles().count() as u64;
+        let counts = [header.addressed_tiles, header.tile_entries, header.tile_contents, meta.tiles];
+        if counts.iter().any(|c| *c != stored) {
+            return Err(bad(
+                path,
+                format!(
+                    "the header counts {} addressed tiles, {} entries and {} contents, the metadata {}, but a {} x {} terrain stores {stored}",
+                    counts[0], counts[1], counts[2], counts[3], meta.width, meta.height
+                ),
+            ));
+        }
+        if (header.min_zoom, header.max_zoom) != (0, meta.top_level) || header.tile_type != 0 {
+            return Err(bad(
+                path,
+                format!(
+                    "the header's zooms {}..={} (tile type {}) do not match the metadata's {} levels",
+                    header.min_zoom,
+                    header.max_zoom,
+                    header.tile_type,
+                    u32::from(meta.top_level) + 1
+                ),
+            ));
+        }
         Ok(Archive { path: path.to_path_buf(), file, len, header, root, leaves: Mutex::new(HashMap::new()), meta })
     }
 
