@@ -378,8 +378,12 @@ fn remove_stale_partials(out: &Path, name: &str) {
     let Ok(entries) = std::fs::read_dir(dir) else { return };
     for entry in entries.flatten() {
         let file_name = entry.file_name();
-        let Some(pid) = file_name.to_str().and_then(|n| n.strip_prefix(&prefix)).and_then(|p| p.parse::<u32>().ok())
-        else {
+        // `PID` or `PID-ordered` (the second file of the ordering pass).
+        let pid = file_name
+            .to_str()
+            .and_then(|n| n.strip_prefix(&prefix))
+            .and_then(|p| p.split('-').next().and_then(|d| d.parse::<u32>().ok()));
+        let Some(pid) = pid else {
             continue;
         };
         if pid != std::process::id() && !Path::new(&format!("/proc/{pid}")).exists() {
@@ -426,9 +430,51 @@ impl ArchiveWriter {
         Ok(compressed.len())
     }
 
-    /// Writes directories, metadata and header, syncs, and moves the file into place.
-    pub fn finish(mut self, meta: &mut Meta) -> std::io::Result<u64> {
+    /// Rewrites the data section in tile-id order (PMTiles "clustered"): the workers
+    /// append tiles as they finish, in an order that changes from run to run; ordered,
+    /// the same input makes the same bytes, and a reader over HTTP reads neighbours
+    /// together. One sequential copy, a tile at a time.
+    fn order_tiles(&mut self) -> std::io::Result<()> {
         self.entries.sort_by_key(|e| e.tile_id);
+        if self.entries.windows(2).all(|w| w[0].offset < w[1].offset) {
+            return Ok(());
+        }
+        // Flushed and closed (it was opened write-only), then read back.
+        drop(self.file.take().expect("not finished").into_inner().map_err(|e| e.into_error())?);
+        let old = File::open(&self.tmp)?;
+        let ordered = PathBuf::from(format!("{}-ordered", self.tmp.display()));
+        // Removed on every path out of here but success (then it becomes `self.tmp`).
+        struct Guard(Option<PathBuf>);
+        impl Drop for Guard {
+            fn drop(&mut self) {
+                if let Some(p) = self.0.take() {
+                    let _ = std::fs::remove_file(p);
+                }
+            }
+        }
+        let mut guard = Guard(Some(ordered.clone()));
+        let mut out = std::io::BufWriter::with_capacity(1 << 20, File::create(&ordered)?);
+        out.write_all(&vec![0u8; pmtiles::ROOT_LIMIT])?;
+        let mut buf = Vec::new();
+        let mut offset = 0u64;
+        for e in &mut self.entries {
+            buf.resize(e.length as usize, 0);
+            old.read_exact_at(&mut buf, pmtiles::ROOT_LIMIT as u64 + e.offset)?;
+            out.write_all(&buf)?;
+            e.offset = offset;
+            offset += u64::from(e.length);
+        }
+        drop(old);
+        std::fs::remove_file(&self.tmp)?;
+        self.tmp = guard.0.take().expect("set above");
+        self.file = Some(out);
+        Ok(())
+    }
+
+    /// Orders the tiles, writes directories, metadata and header, syncs, and moves the
+    /// file into place.
+    pub fn finish(mut self, meta: &mut Meta) -> std::io::Result<u64> {
+        self.order_tiles()?;
         meta.tiles = self.entries.len() as u64;
         let (root, leaves) = pmtiles::directories(&self.entries);
         let json = pmtiles::gzip(&serde_json::to_vec(meta).expect("metadata serialises"), 6);
@@ -451,7 +497,7 @@ impl ArchiveWriter {
             addressed_tiles: self.entries.len() as u64,
             tile_entries: self.entries.len() as u64,
             tile_contents: self.entries.len() as u64,
-            clustered: false,
+            clustered: true,
             internal_compression: pmtiles::COMPRESSION_GZIP,
             tile_compression: pmtiles::COMPRESSION_ZSTD,
             tile_type: 0,
