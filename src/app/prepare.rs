@@ -94,7 +94,9 @@ pub fn prepare(args: &PrepareArgs) -> anyhow::Result<()> {
     }
     if let Some(input) = &args.input {
         // Before anything opens it: a FIFO would block in open().
-        crate::input::regular_file(input).map_err(InputError)?;
+        if !crate::input::archive::bytes::is_url(input) {
+            crate::input::regular_file(input).map_err(InputError)?;
+        }
         out_is_not_input(input, &args.out)?;
     }
     // A missing directory or a pipe fails now, not after the run.

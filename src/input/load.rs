@@ -37,6 +37,9 @@ pub enum VoidMode {
 /// recorded in the heightfield's `georef.notes`, which the front-ends print.
 pub fn load(path: &Path, opts: &LoadOptions) -> Result<Heightfield, HeightfieldError> {
     let shown = path.display().to_string();
+    if crate::input::archive::bytes::is_url(path) {
+        return load_archive(path, opts);
+    }
     let meta = std::fs::metadata(path).map_err(|source| HeightfieldError::Io { path: shown.clone(), source })?;
     if let Some(problem) = crate::input::not_a_file(&meta) {
         return Err(HeightfieldError::invalid(&shown, problem));

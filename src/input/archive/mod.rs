@@ -10,6 +10,7 @@
 //! stored; samples outside it in a stored tile repeat the nearest edge sample, as
 //! [`Heightfield::embed`] does.
 
+pub mod bytes;
 pub mod pmtiles;
 pub mod tile;
 
@@ -104,7 +105,7 @@ pub fn bad(path: &Path, message: impl Into<String>) -> HeightfieldError {
 /// on demand with positioned reads (any thread).
 pub struct Archive {
     path: PathBuf,
-    file: File,
+    file: bytes::Bytes,
     len: u64,
     header: Header,
     root: Vec<Entry>,
@@ -115,6 +116,9 @@ pub struct Archive {
 impl Archive {
     /// Is this file a PMTiles archive (by its first bytes)?
     pub fn sniff(path: &Path) -> bool {
+        if bytes::is_url(path) {
+            return true; // only archives are read from URLs
+        }
         let mut magic = [0u8; 7];
         // A FIFO or device would block in open(): only regular files are archives.
         crate::input::regular_file(path).is_ok()
@@ -124,15 +128,14 @@ impl Archive {
 
     pub fn open(path: &Path) -> Result<Archive, HeightfieldError> {
         // A FIFO would block in open(); the message already names the path.
-        if let Err(m) = crate::input::regular_file(path) {
-            let shown = path.display().to_string();
-            let problem = m.strip_prefix(&format!("{shown}: ")).unwrap_or(&m).to_string();
-            return Err(HeightfieldError::invalid(&shown, problem));
+        if !bytes::is_url(path) {
+            if let Err(m) = crate::input::regular_file(path) {
+                let shown = path.display().to_string();
+                let problem = m.strip_prefix(&format!("{shown}: ")).unwrap_or(&m).to_string();
+                return Err(HeightfieldError::invalid(&shown, problem));
+            }
         }
-        let file =
-            File::open(path).map_err(|source| HeightfieldError::Io { path: path.display().to_string(), source })?;
-        let len =
-            file.metadata().map_err(|source| HeightfieldError::Io { path: path.display().to_string(), source })?.len();
+        let (file, len) = bytes::Bytes::open(path).map_err(|e| bad(path, e))?;
         let read = |offset: u64, length: u64, what: &str| -> Result<Vec<u8>, HeightfieldError> {
             if offset.checked_add(length).is_none_or(|end| end > len) {
                 return Err(bad(
@@ -144,7 +147,7 @@ impl Archive {
                 ));
             }
             let mut buf = vec![0u8; length as usize];
-            file.read_exact_at(&mut buf, offset).map_err(|e| bad(path, format!("reading the {what}: {e}")))?;
+            file.read_at(&mut buf, offset).map_err(|e| bad(path, format!("reading the {what}: {e}")))?;
             Ok(buf)
         };
         let head = read(0, (pmtiles::HEADER_LEN as u64).min(len), "header")?;
@@ -275,7 +278,7 @@ impl Archive {
             )));
         }
         let mut buf = vec![0u8; e.length as usize];
-        self.file.read_exact_at(&mut buf, start.expect("checked")).map_err(|e| err(format!("read failed: {e}")))?;
+        self.file.read_at(&mut buf, start.expect("checked")).map_err(|e| err(format!("read failed: {e}")))?;
         let samples = self.meta.sample_format().expect("checked at open");
         let side = self.meta.tile_quads + 3;
         let limit = tile::payload_len(samples, side, self.deviations(level));
@@ -307,9 +310,7 @@ impl Archive {
             return Err("its leaf directory lies past the end of the file: the archive is truncated".into());
         }
         let mut buf = vec![0u8; pointer.length as usize];
-        self.file
-            .read_exact_at(&mut buf, start.expect("checked"))
-            .map_err(|e| format!("reading its leaf directory: {e}"))?;
+        self.file.read_at(&mut buf, start.expect("checked")).map_err(|e| format!("reading its leaf directory: {e}"))?;
         let dir = std::sync::Arc::new(pmtiles::decode_directory(&buf).map_err(|e| format!("its leaf directory: {e}"))?);
         self.leaves.lock().expect("leaf cache").insert(pointer.offset, dir.clone());
         Ok(dir)

@@ -1,0 +1,175 @@
+//! Archives over HTTP range requests (issue 27 item 2's plus), against a server on the
+//! loopback address: `check`, `render` and `stream` read an archive from a URL as from
+//! a file (the same frame, the same tiles); a missing archive, a server that ignores
+//! ranges and a server that starts failing mid-flight give clear errors or degrade.
+
+mod common;
+
+use common::TempDir;
+use std::io::{BufRead, BufReader, Write};
+use std::net::TcpListener;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::Arc;
+
+/// How the test server behaves.
+#[derive(Clone, Copy, PartialEq)]
+enum Mode {
+    /// Byte ranges, as a web server or an object store serves them.
+    Ranges,
+    /// The whole file with 200, ranges ignored.
+    NoRanges,
+    /// Ranges for the first `n` requests, then 500.
+    FailAfter(usize),
+}
+
+/// A one-thread-per-connection HTTP/1.1 server over `root` on 127.0.0.1 (any free
+/// port), answering each request then closing the connection. Returns its base URL and
+/// the count of requests served.
+fn serve(root: PathBuf, mode: Mode) -> (String, Arc<AtomicUsize>) {
+    let listener = TcpListener::bind("127.0.0.1:0").unwrap();
+    let url = format!("http://{}", listener.local_addr().unwrap());
+    let served = Arc::new(AtomicUsize::new(0));
+    let count = served.clone();
+    std::thread::spawn(move || {
+        for stream in listener.incoming().flatten() {
+            let (root, count) = (root.clone(), count.clone());
+            std::thread::spawn(move || {
+                let mut reader = BufReader::new(stream.try_clone().unwrap());
+                let mut request = String::new();
+                let _ = reader.read_line(&mut request);
+                let mut range = None;
+                loop {
+                    let mut line = String::new();
+                    if reader.read_line(&mut line).unwrap_or(0) == 0 || line == "\r\n" {
+                        break;
+                    }
+                    if let Some(r) = line.to_ascii_lowercase().strip_prefix("range: bytes=") {
+                        let (a, b) = r.trim().split_once('-').unwrap();
+                        range = Some((a.parse::<u64>().unwrap(), b.parse::<u64>().unwrap()));
+                    }
+                }
+                let n = count.fetch_add(1, Ordering::SeqCst);
+                let path = request.split_whitespace().nth(1).unwrap_or("/").trim_start_matches('/').to_string();
+                let mut out = stream;
+                let Ok(body) = std::fs::read(root.join(&path)) else {
+                    let _ = write!(out, "HTTP/1.1 404 Not Found\r\nContent-Length: 0\r\nConnection: close\r\n\r\n");
+                    return;
+                };
+                match (mode, range) {
+                    (Mode::FailAfter(limit), _) if n >= limit => {
+                        let _ = write!(
+                            out,
+                            "HTTP/1.1 500 Internal Server Error\r\nContent-Length: 0\r\nConnection: close\r\n\r\n"
+                        );
+                    }
+                    (Mode::NoRanges, _) | (_, None) => {
+                        let _ = write!(
+                            out,
+                            "HTTP/1.1 200 OK\r\nContent-Length: {}\r\nConnection: close\r\n\r\n",
+                            body.len()
+                        );
+                        let _ = out.write_all(&body);
+                    }
+                    (_, Some((a, b))) => {
+                        let b = b.min(body.len() as u64 - 1);
+                        let part = &body[a as usize..=b as usize];
+                        let _ = write!(
+                            out,
+                            "HTTP/1.1 206 Partial Content\r\nContent-Range: bytes {a}-{b}/{}\r\nContent-Length: {}\r\nConnection: close\r\n\r\n",
+                            body.len(),
+                            part.len()
+                        );
+                        let _ = out.write_all(part);
+                    }
+                }
+            });
+        }
+    });
+    (url, served)
+}
+
+fn cli(args: &[&str]) -> std::process::Output {
+    common::run_bounded(&args.iter().map(|a| a.to_string()).collect::<Vec<_>>(), 120)
+}
+
+fn prepared(dir: &TempDir) -> PathBuf {
+    let archive = dir.path().join("a.pmtiles");
+    let o = cli(&["prepare", "--synthetic", "1025", "--out", archive.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    archive
+}
+
+#[test]
+fn an_archive_over_http_reads_as_from_the_file() {
+    let dir = TempDir::new("http-read");
+    let archive = prepared(&dir);
+    let (base, served) = serve(dir.path().to_path_buf(), Mode::Ranges);
+    let url = format!("{base}/a.pmtiles");
+    let json = |o: std::process::Output| -> serde_json::Value {
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        serde_json::from_slice(&o.stdout).unwrap()
+    };
+    let local = json(cli(&["check", archive.to_str().unwrap()]));
+    let remote = json(cli(&["check", &url]));
+    assert_eq!(remote["tiles_checked"], local["tiles_checked"]);
+    assert_eq!(remote["width"], 1025);
+    // One range per tile and a few for the header, directories and the length.
+    let tiles = local["tiles_checked"].as_u64().unwrap() as usize;
+    assert!(served.load(Ordering::SeqCst) >= tiles, "{} requests for {tiles} tiles", served.load(Ordering::SeqCst));
+
+    let frame = |heightmap: &str, png: &str| {
+        let png = dir.path().join(png);
+        let o = cli(&[
+            "render",
+            "--heightmap",
+            heightmap,
+            "--validation",
+            "on",
+            "--size",
+            "160x120",
+            "--out",
+            png.to_str().unwrap(),
+        ]);
+        let j = json(o);
+        assert_eq!(j["validation_messages"], 0);
+        std::fs::read(png).unwrap()
+    };
+    assert!(frame(archive.to_str().unwrap(), "local.png") == frame(&url, "remote.png"), "a different frame over HTTP");
+
+    let flight = json(cli(&["stream", &url, "--cache-mb", "16", "--frames", "60", "--fps", "120"]));
+    assert!(flight["first_failure"].is_null(), "{flight}");
+    assert!(flight["stats"]["tiles_loaded"].as_u64().unwrap() > 0, "{flight}");
+}
+
+#[test]
+fn http_failures_are_clear_or_degrade() {
+    let dir = TempDir::new("http-fail");
+    prepared(&dir);
+    let refused = |args: &[&str], needles: &[&str]| {
+        let o = cli(args);
+        let e = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{args:?}: {e}");
+        for n in needles {
+            assert!(e.contains(n), "{args:?}: '{e}' does not mention '{n}'");
+        }
+    };
+    let (base, _) = serve(dir.path().to_path_buf(), Mode::Ranges);
+    let missing = format!("{base}/missing.pmtiles");
+    refused(&["check", &missing], &[&missing, "404"]);
+    let (plain, _) = serve(dir.path().to_path_buf(), Mode::NoRanges);
+    let url = format!("{plain}/a.pmtiles");
+    refused(&["check", &url], &[&url, "byte ranges"]);
+    let o = cli(&["check", "http://127.0.0.1:9/a.pmtiles"]);
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{e}");
+    assert_eq!(e.matches("127.0.0.1:9").count(), 1, "the URL once: {e}");
+    // A server that fails after the archive opened: the flight goes on coarser.
+    let (flaky, _) = serve(dir.path().to_path_buf(), Mode::FailAfter(12));
+    let url = format!("{flaky}/a.pmtiles");
+    let o = cli(&["stream", &url, "--cache-mb", "16", "--frames", "40", "--fps", "120"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let failure = r["first_failure"].as_str().unwrap_or_else(|| panic!("no failure: {r}"));
+    assert!(failure.contains(&url) && failure.contains("tile ") && failure.contains("500"), "{failure}");
+}
