@@ -582,3 +582,80 @@ fn the_same_input_makes_the_same_bytes() {
     let left: Vec<_> = std::fs::read_dir(dir.path()).unwrap().flatten().map(|e| e.file_name()).collect();
     assert_eq!(left.len(), 3, "{left:?}");
 }
+
+/// Many tiles in, one terrain out: the Rainier SRTM tile cut into four GeoTIFFs (each
+/// with its own geotransform), given as files or as their directory, prepares into the
+/// same tiles as the whole; a tile in another CRS is refused naming it, not skipped.
+#[test]
+fn a_mosaic_of_tiles_prepares_like_the_whole() {
+    let dir = TempDir::new("archive-mosaic");
+    let whole = common::data("srtm3/mt_rainier_90m.tif");
+    let ds = gdal::Dataset::open(&whole).unwrap();
+    let (w, h) = ds.raster_size();
+    let t = ds.geo_transform().unwrap();
+    let srs = ds.spatial_ref().unwrap();
+    let band = ds.rasterband(1).unwrap();
+    let pieces = dir.path().join("pieces");
+    std::fs::create_dir(&pieces).unwrap();
+    let driver = gdal::DriverManager::get_driver_by_name("GTiff").unwrap();
+    let (cx, cz) = (w / 2 + 7, h / 3);
+    let mut names = Vec::new();
+    for (i, (x0, z0, x1, z1)) in
+        [(0, 0, cx, cz), (cx, 0, w, cz), (0, cz, cx, h), (cx, cz, w, h)].into_iter().enumerate()
+    {
+        let name = pieces.join(format!("piece{i}.tif"));
+        let buf =
+            band.read_as::<f32>((x0 as isize, z0 as isize), (x1 - x0, z1 - z0), (x1 - x0, z1 - z0), None).unwrap();
+        let mut out = driver.create_with_band_type::<f32, _>(&name, x1 - x0, z1 - z0, 1).unwrap();
+        out.set_geo_transform(&[t[0] + x0 as f64 * t[1], t[1], 0.0, t[3] + z0 as f64 * t[5], 0.0, t[5]]).unwrap();
+        out.set_spatial_ref(&srs).unwrap();
+        let mut buf = buf;
+        let mut piece = out.rasterband(1).unwrap();
+        piece.set_no_data_value(band.no_data_value()).unwrap();
+        piece.write((0, 0), (x1 - x0, z1 - z0), &mut buf).unwrap();
+        names.push(name.to_str().unwrap().to_string());
+    }
+    let reference = dir.path().join("whole.pmtiles");
+    let o = cli(&["prepare", whole.to_str().unwrap(), "--out", reference.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let from_files = dir.path().join("files.pmtiles");
+    let mut args = vec!["prepare"];
+    args.extend(names.iter().map(String::as_str));
+    args.extend(["--out", from_files.to_str().unwrap()]);
+    let o = cli(&args);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("a mosaic of 4 files"));
+    let from_dir = dir.path().join("dir.pmtiles");
+    let o = cli(&["prepare", pieces.to_str().unwrap(), "--out", from_dir.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let a = Archive::open(&reference).unwrap();
+    for other in [&from_files, &from_dir] {
+        let b = Archive::open(other).unwrap();
+        assert_eq!(a.meta, vkterrain::input::archive::Meta { source: a.meta.source.clone(), ..b.meta.clone() });
+        for (level, tx, tz) in a.meta.tiles() {
+            assert_eq!(
+                a.read_tile(level, tx, tz).unwrap(),
+                b.read_tile(level, tx, tz).unwrap(),
+                "{other:?}: tile {level}/{tx}/{tz}"
+            );
+        }
+    }
+    // A tile in another CRS.
+    let utm = pieces.join("piece9.tif");
+    {
+        let mut out = driver.create_with_band_type::<f32, _>(&utm, 10, 10, 1).unwrap();
+        out.set_geo_transform(&[500_000.0, 90.0, 0.0, 5_200_000.0, 0.0, -90.0]).unwrap();
+        out.set_spatial_ref(&gdal::spatial_ref::SpatialRef::from_epsg(32610).unwrap()).unwrap();
+    }
+    let bad = dir.path().join("bad.pmtiles");
+    refused(&["prepare", pieces.to_str().unwrap(), "--out", bad.to_str().unwrap()], &["piece9.tif", "CRS"]);
+    let empty = dir.path().join("empty");
+    std::fs::create_dir(&empty).unwrap();
+    refused(&["prepare", empty.to_str().unwrap(), "--out", bad.to_str().unwrap()], &["no elevation tiles"]);
+    let leftovers = std::fs::read_dir(std::env::temp_dir())
+        .unwrap()
+        .flatten()
+        .filter(|e| e.file_name().to_string_lossy().starts_with("vkterrain-mosaic-"))
+        .count();
+    assert_eq!(leftovers, 0, "a mosaic directory was left in the temporary directory");
+}

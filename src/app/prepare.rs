@@ -14,9 +14,10 @@ use std::sync::Arc;
 #[derive(clap::Args, Debug)]
 pub struct PrepareArgs {
     /// The terrain to prepare: any file the viewer opens (GeoTIFF, .hgt, PNG, raw, a GDAL
-    /// .vrt mosaic of many tiles). Not with --synthetic.
-    #[arg(required_unless_present = "synthetic", conflicts_with = "synthetic")]
-    pub input: Option<PathBuf>,
+    /// .vrt, an archive or its URL); or many files or directories of tiles (SRTM .hgt,
+    /// GeoTIFF tiles), mosaicked by their georeferencing. Not with --synthetic.
+    #[arg(required_unless_present = "synthetic", conflicts_with = "synthetic", num_args = 1..)]
+    pub input: Vec<PathBuf>,
     /// The archive to write (PMTiles v3). It appears only when complete.
     #[arg(long, short)]
     pub out: PathBuf,
@@ -84,6 +85,46 @@ fn out_is_not_input(input: &std::path::Path, out: &std::path::Path) -> Result<()
     Ok(())
 }
 
+/// The files `inputs` name: files as given, directories as the elevation tiles in them
+/// (sorted, so that a mosaic is the same every run).
+fn expand_inputs(inputs: &[PathBuf]) -> Result<Vec<PathBuf>, InputError> {
+    let mut files = Vec::new();
+    for input in inputs {
+        if !input.is_dir() {
+            files.push(input.clone());
+            continue;
+        }
+        let entries = std::fs::read_dir(input).map_err(|e| InputError(format!("{}: {e}", input.display())))?;
+        let mut tiles: Vec<PathBuf> = entries
+            .flatten()
+            .map(|e| e.path())
+            .filter(|p| {
+                let ext = p.extension().map(|e| e.to_string_lossy().to_lowercase()).unwrap_or_default();
+                p.is_file() && georef::TILE_EXTENSIONS.contains(&ext.as_str())
+            })
+            .collect();
+        if tiles.is_empty() {
+            return Err(InputError(format!(
+                "{}: a directory with no elevation tiles in it (.{})",
+                input.display(),
+                georef::TILE_EXTENSIONS.join(", .")
+            )));
+        }
+        tiles.sort();
+        files.extend(tiles);
+    }
+    Ok(files)
+}
+
+/// A private directory for the mosaic's VRT, removed with it.
+struct MosaicDir(PathBuf);
+
+impl Drop for MosaicDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
 pub fn prepare(args: &PrepareArgs) -> anyhow::Result<()> {
     if args.out.is_dir() {
         return Err(InputError(format!(
@@ -92,7 +133,8 @@ pub fn prepare(args: &PrepareArgs) -> anyhow::Result<()> {
         ))
         .into());
     }
-    if let Some(input) = &args.input {
+    let files = expand_inputs(&args.input)?;
+    for input in &files {
         // Before anything opens it: a FIFO would block in open().
         if !crate::input::archive::bytes::is_url(input) {
             crate::input::regular_file(input).map_err(InputError)?;
@@ -100,13 +142,35 @@ pub fn prepare(args: &PrepareArgs) -> anyhow::Result<()> {
         out_is_not_input(input, &args.out)?;
     }
     // A missing directory or a pipe fails now, not after the run.
-    crate::app::outputs::check_outputs(&[("--out", Some(&args.out))], &[("the input", args.input.as_deref())])?;
+    let inputs: Vec<(&str, Option<&std::path::Path>)> =
+        files.iter().map(|f| ("the input", Some(f.as_path()))).collect();
+    crate::app::outputs::check_outputs(&[("--out", Some(&args.out))], &inputs)?;
+    // Many files: one GDAL VRT over them, then read like any raster.
+    let mut mosaic_dir: Option<MosaicDir> = None;
+    let input: Option<PathBuf> = match files.as_slice() {
+        [] => None,
+        [one] if args.input.len() == 1 && !args.input[0].is_dir() => Some(one.clone()),
+        many => {
+            let dir = std::env::temp_dir().join(format!("vkterrain-mosaic-{}", std::process::id()));
+            std::fs::create_dir_all(&dir).map_err(|e| InputError(format!("{}: {e}", dir.display())))?;
+            mosaic_dir = Some(MosaicDir(dir.clone()));
+            let vrt = dir.join("mosaic.vrt");
+            georef::mosaic(many, &vrt).map_err(|e| InputError(e.to_string()))?;
+            eprintln!(
+                "vkterrain: note: a mosaic of {} files ({} .. {}), placed by their georeferencing",
+                many.len(),
+                many[0].display(),
+                many[many.len() - 1].display()
+            );
+            Some(vrt)
+        }
+    };
     let loaded;
     let synthetic;
     let windows;
     let archive;
     let from_archive;
-    let (source, frame): (&dyn Source, Frame) = match (&args.input, args.synthetic) {
+    let (source, frame): (&dyn Source, Frame) = match (&input, args.synthetic) {
         (Some(path), None) if crate::input::archive::Archive::sniff(path) => {
             archive = crate::input::archive::Archive::open(path).map_err(|e| InputError(e.to_string()))?;
             let m = &archive.meta;
@@ -218,6 +282,7 @@ pub fn prepare(args: &PrepareArgs) -> anyhow::Result<()> {
         Err(PrepareError::Source(m)) => return Err(InputError(m).into()),
         Err(PrepareError::Interrupted) => {
             eprintln!("vkterrain: interrupted: no archive written");
+            drop(mosaic_dir.take()); // exit() runs no destructors
             std::process::exit(130);
         }
         // The output cannot be written (a missing directory, no space, no permission): a

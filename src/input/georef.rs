@@ -356,6 +356,56 @@ pub struct WindowReader {
     colour_bands: bool,
 }
 
+/// Extensions a directory given to `prepare` is searched for (elevation tiles GDAL reads).
+pub const TILE_EXTENSIONS: &[&str] = &["hgt", "tif", "tiff", "dem", "img", "bil", "asc", "vrt"];
+
+/// Many rasters as one, mosaicked by their georeferencing: a GDAL VRT written to `vrt`
+/// (as `gdalbuildvrt` would). Every input must open, carry georeferencing and share the
+/// first one's CRS and band count (GDAL would skip such a file with a warning: here it
+/// is an error naming it, never a silent hole).
+pub fn mosaic(inputs: &[std::path::PathBuf], vrt: &Path) -> Result<(), HeightfieldError> {
+    init_gdal();
+    let mut datasets = Vec::with_capacity(inputs.len());
+    let mut first: Option<(String, SpatialRef, usize)> = None;
+    for path in inputs {
+        let shown = path.display().to_string();
+        let bad = |m: String| HeightfieldError::invalid(&shown, m);
+        let ds = open(path)?;
+        if ds.geo_transform().is_err() {
+            return Err(bad("has no georeferencing: a mosaic places its tiles by it".into()));
+        }
+        let srs = ds.spatial_ref().map_err(|_| bad("has no CRS: a mosaic places its tiles by it".into()))?;
+        let bands = ds.raster_count();
+        match &first {
+            None => first = Some((shown.clone(), srs, bands)),
+            Some((name, crs, n)) => {
+                if !srs_same(crs, &srs) {
+                    return Err(bad(format!(
+                        "its CRS ({}) differs from {name}'s ({}): reproject the tiles to one CRS first",
+                        crs_label(&srs),
+                        crs_label(crs)
+                    )));
+                }
+                if bands != *n {
+                    return Err(bad(format!("{bands} bands, {name} has {n}")));
+                }
+            }
+        }
+        datasets.push(ds);
+    }
+    let shown = vrt.display().to_string();
+    gdal::programs::raster::build_vrt(Some(vrt), &datasets, None)
+        .map_err(|e| HeightfieldError::invalid(&shown, format!("building the mosaic: {}", gdal_message(&shown, e))))?;
+    Ok(())
+}
+
+fn srs_same(a: &SpatialRef, b: &SpatialRef) -> bool {
+    match (a.to_wkt(), b.to_wkt()) {
+        (Ok(x), Ok(y)) => x == y,
+        _ => false,
+    }
+}
+
 impl WindowReader {
     pub fn open(path: &Path) -> Result<WindowReader, HeightfieldError> {
         let shown = path.display().to_string();
