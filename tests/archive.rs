@@ -649,6 +649,15 @@ fn a_mosaic_of_tiles_prepares_like_the_whole() {
     }
     let bad = dir.path().join("bad.pmtiles");
     refused(&["prepare", pieces.to_str().unwrap(), "--out", bad.to_str().unwrap()], &["piece9.tif", "CRS"]);
+    std::fs::remove_file(&utm).unwrap();
+    // A tile at another resolution (GDAL would resample all of them to the average).
+    let coarse = pieces.join("piece8.tif");
+    {
+        let mut out = driver.create_with_band_type::<f32, _>(&coarse, 10, 10, 1).unwrap();
+        out.set_geo_transform(&[t[0], 2.0 * t[1], 0.0, t[3], 0.0, 2.0 * t[5]]).unwrap();
+        out.set_spatial_ref(&srs).unwrap();
+    }
+    refused(&["prepare", pieces.to_str().unwrap(), "--out", bad.to_str().unwrap()], &["piece8.tif", "resolution"]);
     let empty = dir.path().join("empty");
     std::fs::create_dir(&empty).unwrap();
     refused(&["prepare", empty.to_str().unwrap(), "--out", bad.to_str().unwrap()], &["no elevation tiles"]);

@@ -361,24 +361,25 @@ pub const TILE_EXTENSIONS: &[&str] = &["hgt", "tif", "tiff", "dem", "img", "bil"
 
 /// Many rasters as one, mosaicked by their georeferencing: a GDAL VRT written to `vrt`
 /// (as `gdalbuildvrt` would). Every input must open, carry georeferencing and share the
-/// first one's CRS and band count (GDAL would skip such a file with a warning: here it
-/// is an error naming it, never a silent hole).
+/// first one's CRS, band count and resolution (GDAL would skip such a file with a
+/// warning, or resample every tile: here it is an error naming it, never a silent hole
+/// or a changed sample).
 pub fn mosaic(inputs: &[std::path::PathBuf], vrt: &Path) -> Result<(), HeightfieldError> {
     init_gdal();
     let mut datasets = Vec::with_capacity(inputs.len());
-    let mut first: Option<(String, SpatialRef, usize)> = None;
+    let mut first: Option<(String, SpatialRef, usize, [f64; 2])> = None;
     for path in inputs {
         let shown = path.display().to_string();
         let bad = |m: String| HeightfieldError::invalid(&shown, m);
         let ds = open(path)?;
-        if ds.geo_transform().is_err() {
+        let Ok(t) = ds.geo_transform() else {
             return Err(bad("has no georeferencing: a mosaic places its tiles by it".into()));
-        }
+        };
         let srs = ds.spatial_ref().map_err(|_| bad("has no CRS: a mosaic places its tiles by it".into()))?;
         let bands = ds.raster_count();
         match &first {
-            None => first = Some((shown.clone(), srs, bands)),
-            Some((name, crs, n)) => {
+            None => first = Some((shown.clone(), srs, bands, [t[1], t[5]])),
+            Some((name, crs, n, step)) => {
                 if !srs_same(crs, &srs) {
                     return Err(bad(format!(
                         "its CRS ({}) differs from {name}'s ({}): reproject the tiles to one CRS first",
@@ -388,6 +389,14 @@ pub fn mosaic(inputs: &[std::path::PathBuf], vrt: &Path) -> Result<(), Heightfie
                 }
                 if bands != *n {
                     return Err(bad(format!("{bands} bands, {name} has {n}")));
+                }
+                // GDAL would resample every tile to an average resolution.
+                let same = |a: f64, b: f64| (a - b).abs() <= 1e-9 * a.abs().max(b.abs());
+                if !(same(t[1], step[0]) && same(t[5], step[1])) {
+                    return Err(bad(format!(
+                        "its samples are {} x {} apart, {name}'s {} x {}: a mosaic needs one resolution (resample the tiles first)",
+                        t[1], t[5], step[0], step[1]
+                    )));
                 }
             }
         }
