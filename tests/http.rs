@@ -137,7 +137,7 @@ fn an_archive_over_http_reads_as_from_the_file() {
     };
     assert!(frame(archive.to_str().unwrap(), "local.png") == frame(&url, "remote.png"), "a different frame over HTTP");
 
-    let flight = json(cli(&["stream", &url, "--cache-mb", "16", "--frames", "60", "--fps", "120"]));
+    let flight = json(cli(&["stream", &url, "--cache-mb", "16", "--frames", "60", "--fps", "120", "--cold"]));
     assert!(flight["first_failure"].is_null(), "{flight}");
     assert!(flight["stats"]["tiles_loaded"].as_u64().unwrap() > 0, "{flight}");
 }

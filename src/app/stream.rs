@@ -65,7 +65,9 @@ fn drop_from_page_cache(path: &std::path::Path) -> std::io::Result<()> {
 pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
     let archive = Arc::new(Archive::open(&args.archive).map_err(|e| InputError(e.to_string()))?);
     let grid = Grid::from_meta(&archive.meta);
-    if args.cold {
+    if args.cold && crate::input::archive::bytes::is_url(&args.archive) {
+        eprintln!("vkterrain: note: --cold: {} is a URL, with no local page cache to drop", args.archive.display());
+    } else if args.cold {
         drop_from_page_cache(&args.archive)
             .map_err(|e| InputError(format!("{}: dropping it from the page cache: {e}", args.archive.display())))?;
     }
