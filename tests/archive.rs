@@ -628,6 +628,8 @@ fn a_mosaic_of_tiles_prepares_like_the_whole() {
     let from_dir = dir.path().join("dir.pmtiles");
     let o = cli(&["prepare", pieces.to_str().unwrap(), "--out", from_dir.to_str().unwrap()]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    // Named by its files, not by its temporary VRT: the same bytes however it was given.
+    assert!(std::fs::read(&from_files).unwrap() == std::fs::read(&from_dir).unwrap(), "mosaics differ");
     let a = Archive::open(&reference).unwrap();
     for other in [&from_files, &from_dir] {
         let b = Archive::open(other).unwrap();
@@ -658,6 +660,24 @@ fn a_mosaic_of_tiles_prepares_like_the_whole() {
         out.set_spatial_ref(&srs).unwrap();
     }
     refused(&["prepare", pieces.to_str().unwrap(), "--out", bad.to_str().unwrap()], &["piece8.tif", "resolution"]);
+    // Off the grid by a third of a sample (GDAL would shift it).
+    std::fs::remove_file(&coarse).unwrap();
+    let shifted = pieces.join("piece7.tif");
+    {
+        let mut out = driver.create_with_band_type::<f32, _>(&shifted, 10, 10, 1).unwrap();
+        out.set_geo_transform(&[t[0] + t[1] / 3.0, t[1], 0.0, t[3], 0.0, t[5]]).unwrap();
+        out.set_spatial_ref(&srs).unwrap();
+    }
+    refused(&["prepare", pieces.to_str().unwrap(), "--out", bad.to_str().unwrap()], &["piece7.tif", "grid"]);
+    // Another data type: GDAL's mosaic would leave the tile out with only a warning.
+    std::fs::remove_file(&shifted).unwrap();
+    let int16 = pieces.join("piece6.tif");
+    {
+        let mut out = driver.create_with_band_type::<i16, _>(&int16, 10, 10, 1).unwrap();
+        out.set_geo_transform(&[t[0] + 2000.0 * t[1], t[1], 0.0, t[3], 0.0, t[5]]).unwrap();
+        out.set_spatial_ref(&srs).unwrap();
+    }
+    refused(&["prepare", pieces.to_str().unwrap(), "--out", bad.to_str().unwrap()], &["piece6.tif", "left it out"]);
     let empty = dir.path().join("empty");
     std::fs::create_dir(&empty).unwrap();
     refused(&["prepare", empty.to_str().unwrap(), "--out", bad.to_str().unwrap()], &["no elevation tiles"]);

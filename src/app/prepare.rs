@@ -116,6 +116,42 @@ fn expand_inputs(inputs: &[PathBuf]) -> Result<Vec<PathBuf>, InputError> {
     Ok(files)
 }
 
+/// Removes mosaic directories of runs that are gone (a SIGKILL cannot clean up).
+fn remove_stale_mosaics() {
+    let Ok(entries) = std::fs::read_dir(std::env::temp_dir()) else { return };
+    for entry in entries.flatten() {
+        let name = entry.file_name();
+        let Some(pid) = name.to_str().and_then(|n| n.strip_prefix(MOSAIC_PREFIX)).and_then(|p| p.parse::<u32>().ok())
+        else {
+            continue;
+        };
+        if pid != std::process::id() && !std::path::Path::new(&format!("/proc/{pid}")).exists() {
+            let _ = std::fs::remove_dir_all(entry.path());
+        }
+    }
+}
+
+const MOSAIC_PREFIX: &str = "vkterrain-mosaic-";
+
+/// A source under another name (a mosaic is named by its files, not by its temporary
+/// VRT, so that the archive's metadata is the same every run).
+struct Named<'a>(&'a dyn Source, String);
+
+impl Source for Named<'_> {
+    fn name(&self) -> String {
+        self.1.clone()
+    }
+    fn size(&self) -> (usize, usize) {
+        self.0.size()
+    }
+    fn samples(&self) -> crate::input::archive::tile::Samples {
+        self.0.samples()
+    }
+    fn read(&self, x0: i64, z0: i64, nx: usize, nz: usize, stride: usize, out: &mut Vec<f32>) -> Result<(), String> {
+        self.0.read(x0, z0, nx, nz, stride, out)
+    }
+}
+
 /// A private directory for the mosaic's VRT, removed with it.
 struct MosaicDir(PathBuf);
 
@@ -133,6 +169,15 @@ pub fn prepare(args: &PrepareArgs) -> anyhow::Result<()> {
         ))
         .into());
     }
+    // First of all: with ctrlc's "termination" feature this also catches SIGTERM and
+    // SIGHUP (a `timeout`, a closed terminal), so every run that can clean up does (a
+    // signal while a mosaic is read whole takes effect when the read ends).
+    let stop = Arc::new(AtomicBool::new(false));
+    {
+        let stop = stop.clone();
+        let _ = ctrlc::set_handler(move || stop.store(true, Ordering::SeqCst));
+    }
+    remove_stale_mosaics();
     let files = expand_inputs(&args.input)?;
     for input in &files {
         // Before anything opens it: a FIFO would block in open().
@@ -147,21 +192,24 @@ pub fn prepare(args: &PrepareArgs) -> anyhow::Result<()> {
     crate::app::outputs::check_outputs(&[("--out", Some(&args.out))], &inputs)?;
     // Many files: one GDAL VRT over them, then read like any raster.
     let mut mosaic_dir: Option<MosaicDir> = None;
+    let mut mosaic_name: Option<String> = None;
     let input: Option<PathBuf> = match files.as_slice() {
         [] => None,
         [one] if args.input.len() == 1 && !args.input[0].is_dir() => Some(one.clone()),
         many => {
-            let dir = std::env::temp_dir().join(format!("vkterrain-mosaic-{}", std::process::id()));
+            let dir = std::env::temp_dir().join(format!("{MOSAIC_PREFIX}{}", std::process::id()));
             std::fs::create_dir_all(&dir).map_err(|e| InputError(format!("{}: {e}", dir.display())))?;
             mosaic_dir = Some(MosaicDir(dir.clone()));
             let vrt = dir.join("mosaic.vrt");
             georef::mosaic(many, &vrt).map_err(|e| InputError(e.to_string()))?;
-            eprintln!(
-                "vkterrain: note: a mosaic of {} files ({} .. {}), placed by their georeferencing",
+            let name = format!(
+                "a mosaic of {} files ({} .. {})",
                 many.len(),
                 many[0].display(),
                 many[many.len() - 1].display()
             );
+            eprintln!("vkterrain: note: {name}, placed by their georeferencing");
+            mosaic_name = Some(name);
             Some(vrt)
         }
     };
@@ -247,16 +295,22 @@ pub fn prepare(args: &PrepareArgs) -> anyhow::Result<()> {
         }
         (None, None) => unreachable!("clap requires an input or --synthetic"),
     };
+    let named;
+    let source: &dyn Source = match mosaic_name {
+        Some(name) => {
+            named = Named(source, name);
+            &named
+        }
+        None => source,
+    };
+    if stop.load(Ordering::SeqCst) {
+        drop(mosaic_dir.take());
+        eprintln!("vkterrain: interrupted: no archive written");
+        std::process::exit(130);
+    }
     let (w, h) = source.size();
     crate::prepare::check_frame(&source.name(), &frame, w, h).map_err(|e| InputError(e.to_string()))?;
     eprintln!("vkterrain: preparing {} ({w} x {h} samples) into {}", source.name(), args.out.display());
-    let stop = Arc::new(AtomicBool::new(false));
-    {
-        let stop = stop.clone();
-        // With ctrlc's "termination" feature this also catches SIGTERM and SIGHUP (a
-        // `timeout`, a closed terminal): every run that can clean up does.
-        let _ = ctrlc::set_handler(move || stop.store(true, Ordering::SeqCst));
-    }
     let bar = indicatif::ProgressBar::new(0).with_style(
         indicatif::ProgressStyle::with_template("{elapsed_precise} [{bar:40}] {pos}/{len} windows, ETA {eta}")
             .expect("progress template")

@@ -24,7 +24,7 @@ pub struct StreamArgs {
     #[arg(long, default_value_t = 1800, value_parser = clap::value_parser!(u32).range(1..))]
     pub frames: u32,
     /// Frame rate the flight is paced at (the IO thread has 1/FPS s a frame).
-    #[arg(long, default_value_t = 30.0, value_parser = crate::app::commands::positive)]
+    #[arg(long, default_value_t = 30.0, value_parser = parse_fps)]
     pub fps: f32,
     /// Height above the ground, world units.
     #[arg(long, default_value_t = 200.0, value_parser = crate::app::commands::positive)]
@@ -42,6 +42,15 @@ pub struct StreamArgs {
     /// flight reads from the disk.
     #[arg(long)]
     pub cold: bool,
+}
+
+/// A frame rate the flight can be paced at: 0.1 to 10,000 frames a second.
+fn parse_fps(s: &str) -> Result<f32, String> {
+    let v = crate::app::commands::positive(s)?;
+    if !(0.1..=10_000.0).contains(&v) {
+        return Err(format!("'{s}': from 0.1 to 10000 frames a second"));
+    }
+    Ok(v)
 }
 
 /// Bytes this process has read from storage (`read_bytes` of /proc/self/io).

@@ -367,10 +367,17 @@ pub const TILE_EXTENSIONS: &[&str] = &["hgt", "tif", "tiff", "dem", "img", "bil"
 pub fn mosaic(inputs: &[std::path::PathBuf], vrt: &Path) -> Result<(), HeightfieldError> {
     init_gdal();
     let mut datasets = Vec::with_capacity(inputs.len());
-    let mut first: Option<(String, SpatialRef, usize, [f64; 2])> = None;
+    // The first tile's name, CRS, band count, sample step and origin.
+    type First = (String, SpatialRef, usize, [f64; 2], [f64; 2]);
+    let mut first: Option<First> = None;
+    let mut absolute = Vec::with_capacity(inputs.len());
     for path in inputs {
         let shown = path.display().to_string();
         let bad = |m: String| HeightfieldError::invalid(&shown, m);
+        // Absolute, so that the VRT names it as given and can be checked below.
+        let path =
+            &std::fs::canonicalize(path).map_err(|source| HeightfieldError::Io { path: shown.clone(), source })?;
+        absolute.push((shown.clone(), path.clone()));
         let ds = open(path)?;
         let Ok(t) = ds.geo_transform() else {
             return Err(bad("has no georeferencing: a mosaic places its tiles by it".into()));
@@ -378,8 +385,8 @@ pub fn mosaic(inputs: &[std::path::PathBuf], vrt: &Path) -> Result<(), Heightfie
         let srs = ds.spatial_ref().map_err(|_| bad("has no CRS: a mosaic places its tiles by it".into()))?;
         let bands = ds.raster_count();
         match &first {
-            None => first = Some((shown.clone(), srs, bands, [t[1], t[5]])),
-            Some((name, crs, n, step)) => {
+            None => first = Some((shown.clone(), srs, bands, [t[1], t[5]], [t[0], t[3]])),
+            Some((name, crs, n, step, origin)) => {
                 if !srs_same(crs, &srs) {
                     return Err(bad(format!(
                         "its CRS ({}) differs from {name}'s ({}): reproject the tiles to one CRS first",
@@ -398,13 +405,37 @@ pub fn mosaic(inputs: &[std::path::PathBuf], vrt: &Path) -> Result<(), Heightfie
                         t[1], t[5], step[0], step[1]
                     )));
                 }
+                // On the first tile's grid: else GDAL shifts it by a fraction of a sample.
+                let offset = [(t[0] - origin[0]) / step[0], (t[3] - origin[1]) / step[1]];
+                if offset.iter().any(|o| (o - o.round()).abs() > 1e-6) {
+                    return Err(bad(format!(
+                        "its samples lie {:.4} x {:.4} samples off {name}'s grid: a mosaic needs one grid (resample the tiles first)",
+                        offset[0] - offset[0].round(),
+                        offset[1] - offset[1].round()
+                    )));
+                }
             }
         }
         datasets.push(ds);
     }
     let shown = vrt.display().to_string();
-    gdal::programs::raster::build_vrt(Some(vrt), &datasets, None)
+    let built = gdal::programs::raster::build_vrt(Some(vrt), &datasets, None)
         .map_err(|e| HeightfieldError::invalid(&shown, format!("building the mosaic: {}", gdal_message(&shown, e))))?;
+    drop(built); // writes the VRT
+                 // GDAL leaves out, with only a warning, a tile it finds unlike the first (data type,
+                 // nodata, colour interpretation): every tile must be among the VRT's sources.
+    let text = std::fs::read_to_string(vrt).map_err(|source| HeightfieldError::Io { path: shown.clone(), source })?;
+    let first_name = absolute.first().map(|a| a.0.clone()).unwrap_or_default();
+    for (name, path) in &absolute {
+        if !text.contains(&format!(">{}<", path.display())) {
+            return Err(HeightfieldError::invalid(
+                name,
+                format!(
+                    "GDAL left it out of the mosaic: unlike {first_name} in data type, nodata or colour interpretation (convert the tiles to one format first)"
+                ),
+            ));
+        }
+    }
     Ok(())
 }
 

@@ -9,7 +9,7 @@ use std::path::Path;
 
 /// Is this "path" a URL (`http://` or `https://`)?
 pub fn is_url(path: &Path) -> bool {
-    let s = path.to_string_lossy();
+    let s = path.to_string_lossy().to_ascii_lowercase();
     s.starts_with("http://") || s.starts_with("https://")
 }
 
@@ -47,15 +47,18 @@ impl Bytes {
 }
 
 impl Http {
-    /// Timeouts for one request: a server that stops answering fails the read (the
-    /// streamer then draws coarser and retries), it does not hang a thread.
+    /// Timeouts for one request: a server that stops answering, or trickles, fails the
+    /// read (the streamer then draws coarser and retries), it does not hang a thread.
+    /// The overall limit covers connecting, a stalled pooled connection and the body.
     const CONNECT_S: u64 = 10;
     const READ_S: u64 = 30;
+    const REQUEST_S: u64 = 60;
 
     fn open(url: &str) -> Result<Http, String> {
         let agent = ureq::AgentBuilder::new()
             .timeout_connect(std::time::Duration::from_secs(Self::CONNECT_S))
             .timeout_read(std::time::Duration::from_secs(Self::READ_S))
+            .timeout(std::time::Duration::from_secs(Self::REQUEST_S))
             .build();
         // The length from a one-byte range: "Content-Range: bytes 0-0/LEN" (HEAD does
         // not always carry Content-Length).
