@@ -79,10 +79,14 @@ impl Http {
     fn get(agent: &ureq::Agent, url: &str, first: u64, last: u64) -> Result<ureq::Response, String> {
         let response = agent.get(url).set("Range", &format!("bytes={first}-{last}")).call().map_err(|e| match e {
             ureq::Error::Status(code, r) => format!("HTTP {code} {}", r.status_text()),
-            // ureq names the URL first; the caller does already.
+            // ureq names the URL first (the caller does already) and repeats its error
+            // kind ("Network Error: Network Error: ..."): each part once.
             other => {
                 let text = other.to_string();
-                text.strip_prefix(&format!("{url}: ")).unwrap_or(&text).to_string()
+                let text = text.strip_prefix(&format!("{url}: ")).unwrap_or(&text);
+                let mut parts: Vec<&str> = text.split(": ").collect();
+                parts.dedup();
+                parts.join(": ")
             }
         })?;
         if response.status() != 206 {
