@@ -118,16 +118,8 @@ fn expand_inputs(inputs: &[PathBuf]) -> Result<Vec<PathBuf>, InputError> {
 
 /// Removes mosaic directories of runs that are gone (a SIGKILL cannot clean up).
 fn remove_stale_mosaics() {
-    let Ok(entries) = std::fs::read_dir(std::env::temp_dir()) else { return };
-    for entry in entries.flatten() {
-        let name = entry.file_name();
-        let Some(pid) = name.to_str().and_then(|n| n.strip_prefix(MOSAIC_PREFIX)).and_then(|p| p.parse::<u32>().ok())
-        else {
-            continue;
-        };
-        if pid != std::process::id() && !std::path::Path::new(&format!("/proc/{pid}")).exists() {
-            let _ = std::fs::remove_dir_all(entry.path());
-        }
+    for stale in crate::input::left_by_dead_runs(&std::env::temp_dir(), MOSAIC_PREFIX) {
+        let _ = std::fs::remove_dir_all(stale);
     }
 }
 

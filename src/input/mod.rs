@@ -23,6 +23,24 @@ pub fn not_a_file(meta: &Metadata) -> Option<&'static str> {
     }
 }
 
+/// The entries of `dir` named `PREFIX<pid>` or `PREFIX<pid>-...` whose process is gone:
+/// what a run killed by SIGKILL or a crash left behind (a live PID's are another run's).
+pub fn left_by_dead_runs(dir: &Path, prefix: &str) -> Vec<std::path::PathBuf> {
+    let Ok(entries) = std::fs::read_dir(dir) else { return Vec::new() };
+    entries
+        .flatten()
+        .filter(|entry| {
+            let name = entry.file_name();
+            let pid = name
+                .to_str()
+                .and_then(|n| n.strip_prefix(prefix))
+                .and_then(|p| p.split('-').next().and_then(|d| d.parse::<u32>().ok()));
+            pid.is_some_and(|pid| pid != std::process::id() && !Path::new(&format!("/proc/{pid}")).exists())
+        })
+        .map(|entry| entry.path())
+        .collect()
+}
+
 /// Checks that `path` (through symbolic links) is a regular file before anything reads
 /// it; the error names the path.
 pub fn regular_file(path: &Path) -> Result<Metadata, String> {

@@ -375,21 +375,9 @@ fn remove_stale_partials(out: &Path, name: &str) {
         Some(d) if !d.as_os_str().is_empty() => d,
         _ => Path::new("."),
     };
-    let prefix = format!(".{name}.partial-");
-    let Ok(entries) = std::fs::read_dir(dir) else { return };
-    for entry in entries.flatten() {
-        let file_name = entry.file_name();
-        // `PID` or `PID-ordered` (the second file of the ordering pass).
-        let pid = file_name
-            .to_str()
-            .and_then(|n| n.strip_prefix(&prefix))
-            .and_then(|p| p.split('-').next().and_then(|d| d.parse::<u32>().ok()));
-        let Some(pid) = pid else {
-            continue;
-        };
-        if pid != std::process::id() && !Path::new(&format!("/proc/{pid}")).exists() {
-            let _ = std::fs::remove_file(entry.path());
-        }
+    // `PID` or `PID-ordered` (the second file of the ordering pass).
+    for stale in crate::input::left_by_dead_runs(dir, &format!(".{name}.partial-")) {
+        let _ = std::fs::remove_file(stale);
     }
 }
 
