@@ -496,7 +496,7 @@ fn progress_off_a_terminal_is_ten_lines_ending_at_the_total() {
     }
 }
 
-/// A run killed by SIGTERM cleans up like Ctrl-C (exit 130, no file); a partial file
+/// A run killed by SIGTERM cleans up like Ctrl-C (exit 143 = 128 + SIGTERM, no file); a partial file
 /// left by a run that could not clean up (SIGKILL) is removed by the next run.
 #[test]
 fn a_terminated_run_leaves_nothing_and_stale_partials_are_removed() {
@@ -522,7 +522,7 @@ fn a_terminated_run_leaves_nothing_and_stale_partials_are_removed() {
     assert!(!stale.exists(), "the stale partial of a dead process is removed");
     assert!(Command::new("kill").args(["-TERM", &child.id().to_string()]).status().unwrap().success());
     let status = child.wait().unwrap();
-    assert_eq!(status.code(), Some(130), "terminated: {status:?}");
+    assert_eq!(status.code(), Some(143), "terminated: {status:?}");
     let left: Vec<_> = std::fs::read_dir(dir.path()).unwrap().flatten().map(|e| e.file_name()).collect();
     assert!(left.is_empty(), "left behind: {left:?}");
 }
@@ -584,7 +584,8 @@ fn the_same_input_makes_the_same_bytes() {
 }
 
 /// Many tiles in, one terrain out: the Rainier SRTM tile cut into four GeoTIFFs (each
-/// with its own geotransform), given as files or as their directory, prepares into the
+/// with its own geotransform, two of them in a subdirectory), given as files or as their
+/// directory, prepares into the
 /// same tiles as the whole; a tile in another CRS is refused naming it, not skipped.
 #[test]
 fn a_mosaic_of_tiles_prepares_like_the_whole() {
@@ -596,14 +597,15 @@ fn a_mosaic_of_tiles_prepares_like_the_whole() {
     let srs = ds.spatial_ref().unwrap();
     let band = ds.rasterband(1).unwrap();
     let pieces = dir.path().join("pieces");
-    std::fs::create_dir(&pieces).unwrap();
+    std::fs::create_dir_all(pieces.join("south")).unwrap();
     let driver = gdal::DriverManager::get_driver_by_name("GTiff").unwrap();
     let (cx, cz) = (w / 2 + 7, h / 3);
     let mut names = Vec::new();
     for (i, (x0, z0, x1, z1)) in
         [(0, 0, cx, cz), (cx, 0, w, cz), (0, cz, cx, h), (cx, cz, w, h)].into_iter().enumerate()
     {
-        let name = pieces.join(format!("piece{i}.tif"));
+        let name =
+            if i < 2 { pieces.join(format!("piece{i}.tif")) } else { pieces.join(format!("south/piece{i}.tif")) };
         let buf =
             band.read_as::<f32>((x0 as isize, z0 as isize), (x1 - x0, z1 - z0), (x1 - x0, z1 - z0), None).unwrap();
         let mut out = driver.create_with_band_type::<f32, _>(&name, x1 - x0, z1 - z0, 1).unwrap();

@@ -21,6 +21,10 @@ enum Mode {
     NoRanges,
     /// Ranges for the first `n` requests, then 500.
     FailAfter(usize),
+    /// Ranges, marked gzip-encoded (a misconfigured proxy).
+    Encoded,
+    /// Ranges, with a total length far past the file's end.
+    HugeTotal,
 }
 
 /// A one-thread-per-connection HTTP/1.1 server over `root` on 127.0.0.1 (any free
@@ -71,13 +75,20 @@ fn serve(root: PathBuf, mode: Mode) -> (String, Arc<AtomicUsize>) {
                         );
                         let _ = out.write_all(&body);
                     }
+                    (_, Some((a, _))) if a >= body.len() as u64 => {
+                        let _ = write!(
+                            out,
+                            "HTTP/1.1 416 Range Not Satisfiable\r\nContent-Length: 0\r\nConnection: close\r\n\r\n"
+                        );
+                    }
                     (_, Some((a, b))) => {
                         let b = b.min(body.len() as u64 - 1);
                         let part = &body[a as usize..=b as usize];
+                        let total = if mode == Mode::HugeTotal { 1u64 << 50 } else { body.len() as u64 };
+                        let coding = if mode == Mode::Encoded { "Content-Encoding: gzip\r\n" } else { "" };
                         let _ = write!(
                             out,
-                            "HTTP/1.1 206 Partial Content\r\nContent-Range: bytes {a}-{b}/{}\r\nContent-Length: {}\r\nConnection: close\r\n\r\n",
-                            body.len(),
+                            "HTTP/1.1 206 Partial Content\r\nContent-Range: bytes {a}-{b}/{total}\r\n{coding}Content-Length: {}\r\nConnection: close\r\n\r\n",
                             part.len()
                         );
                         let _ = out.write_all(part);
@@ -164,6 +175,20 @@ fn http_failures_are_clear_or_degrade() {
     let e = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(2), "{e}");
     assert_eq!(e.matches("127.0.0.1:9").count(), 1, "the URL once: {e}");
+    // Credentials in a URL are never printed.
+    let secret = missing.replacen("http://", "http://user:s3cret@", 1);
+    let o = cli(&["check", &secret]);
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{e}");
+    assert!(!e.contains("s3cret") && e.contains("http://***@127.0.0.1"), "{e}");
+    // A compressed body is not the range's bytes; a length past the file's end is caught
+    // at open, not at the first tile beyond the real end.
+    let (encoded, _) = serve(dir.path().to_path_buf(), Mode::Encoded);
+    let url = format!("{encoded}/a.pmtiles");
+    refused(&["check", &url], &[&url, "encoded (gzip)"]);
+    let (huge, _) = serve(dir.path().to_path_buf(), Mode::HugeTotal);
+    let url = format!("{huge}/a.pmtiles");
+    refused(&["check", &url], &[&url, &format!("length as {} bytes", 1u64 << 50), "416"]);
     // A server that fails after the archive opened: the flight goes on coarser.
     let (flaky, _) = serve(dir.path().to_path_buf(), Mode::FailAfter(12));
     let url = format!("{flaky}/a.pmtiles");

@@ -768,13 +768,10 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     if args.frames == 0 {
         return Err(InputError("--frames must be at least 1".into()).into());
     }
-    let stop = Arc::new(AtomicBool::new(false));
-    {
-        let stop = stop.clone();
-        // Ctrl-C stops the run cleanly; what was measured so far is written. Installed
-        // first, so that a Ctrl-C during set-up still ends with a summary.
-        let _ = ctrlc::set_handler(move || stop.store(true, Ordering::SeqCst));
-    }
+    // Ctrl-C (or SIGTERM) stops the run cleanly; what was measured so far is written.
+    // Installed first, so that a Ctrl-C during set-up still ends with a summary.
+    let signals = super::signals::Stop::install();
+    let stop = signals.flag().clone();
     if args.out.exists() && !args.out.is_dir() {
         return Err(InputError(format!("--out {}: exists and is not a directory", args.out.display())).into());
     }

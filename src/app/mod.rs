@@ -12,6 +12,7 @@ pub mod outputs;
 pub mod paths;
 pub mod prepare;
 pub mod quality;
+pub mod signals;
 pub mod stream;
 pub mod timeline;
 pub mod viewer;

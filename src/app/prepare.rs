@@ -7,9 +7,7 @@ use crate::input::load::{self, LoadOptions, VoidMode};
 use crate::lod::heightfield::{Georef, Spacing};
 use crate::prepare::source::{FromArchive, InMemory, Synthetic, Windowed};
 use crate::prepare::{Frame, PrepareError, Source};
-use std::path::PathBuf;
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::Arc;
+use std::path::{Path, PathBuf};
 
 #[derive(clap::Args, Debug)]
 pub struct PrepareArgs {
@@ -94,18 +92,11 @@ fn expand_inputs(inputs: &[PathBuf]) -> Result<Vec<PathBuf>, InputError> {
             files.push(input.clone());
             continue;
         }
-        let entries = std::fs::read_dir(input).map_err(|e| InputError(format!("{}: {e}", input.display())))?;
-        let mut tiles: Vec<PathBuf> = entries
-            .flatten()
-            .map(|e| e.path())
-            .filter(|p| {
-                let ext = p.extension().map(|e| e.to_string_lossy().to_lowercase()).unwrap_or_default();
-                p.is_file() && georef::TILE_EXTENSIONS.contains(&ext.as_str())
-            })
-            .collect();
+        let mut tiles = Vec::new();
+        tiles_under(input, 0, &mut tiles)?;
         if tiles.is_empty() {
             return Err(InputError(format!(
-                "{}: a directory with no elevation tiles in it (.{})",
+                "{}: a directory with no elevation tiles in it or below it (.{})",
                 input.display(),
                 georef::TILE_EXTENSIONS.join(", .")
             )));
@@ -114,6 +105,29 @@ fn expand_inputs(inputs: &[PathBuf]) -> Result<Vec<PathBuf>, InputError> {
         files.extend(tiles);
     }
     Ok(files)
+}
+
+/// The elevation tiles in `dir` and its subdirectories (SRTM and Copernicus downloads
+/// come as one folder per tile or per degree band). Symbolic links to directories are
+/// not followed (a loop would never end); the depth is limited for the same reason.
+fn tiles_under(dir: &Path, depth: usize, tiles: &mut Vec<PathBuf>) -> Result<(), InputError> {
+    const MAX_DEPTH: usize = 8;
+    let entries = std::fs::read_dir(dir).map_err(|e| InputError(format!("{}: {e}", dir.display())))?;
+    for entry in entries.flatten() {
+        let path = entry.path();
+        let is_link = entry.file_type().is_ok_and(|t| t.is_symlink());
+        if path.is_dir() {
+            if !is_link && depth < MAX_DEPTH {
+                tiles_under(&path, depth + 1, tiles)?;
+            }
+            continue;
+        }
+        let ext = path.extension().map(|e| e.to_string_lossy().to_lowercase()).unwrap_or_default();
+        if path.is_file() && georef::TILE_EXTENSIONS.contains(&ext.as_str()) {
+            tiles.push(path);
+        }
+    }
+    Ok(())
 }
 
 /// Removes mosaic directories of runs that are gone (a SIGKILL cannot clean up).
@@ -161,14 +175,9 @@ pub fn prepare(args: &PrepareArgs) -> anyhow::Result<()> {
         ))
         .into());
     }
-    // First of all: with ctrlc's "termination" feature this also catches SIGTERM and
-    // SIGHUP (a `timeout`, a closed terminal), so every run that can clean up does (a
+    // First of all (SIGINT, SIGTERM, SIGHUP), so every run that can clean up does (a
     // signal while a mosaic is read whole takes effect when the read ends).
-    let stop = Arc::new(AtomicBool::new(false));
-    {
-        let stop = stop.clone();
-        let _ = ctrlc::set_handler(move || stop.store(true, Ordering::SeqCst));
-    }
+    let stop = super::signals::Stop::install();
     remove_stale_mosaics();
     let files = expand_inputs(&args.input)?;
     for input in &files {
@@ -295,10 +304,10 @@ pub fn prepare(args: &PrepareArgs) -> anyhow::Result<()> {
         }
         None => source,
     };
-    if stop.load(Ordering::SeqCst) {
+    if stop.requested() {
         drop(mosaic_dir.take());
         eprintln!("vkterrain: interrupted: no archive written");
-        std::process::exit(130);
+        std::process::exit(stop.exit_code());
     }
     let (w, h) = source.size();
     crate::prepare::check_frame(&source.name(), &frame, w, h).map_err(|e| InputError(e.to_string()))?;
@@ -321,7 +330,7 @@ pub fn prepare(args: &PrepareArgs) -> anyhow::Result<()> {
             eprintln!("vkterrain: prepare: {done} of {total} windows, {elapsed:.0} s, about {eta:.0} s to go");
         }
     };
-    let result = crate::prepare::prepare(source, &frame, &args.out, &progress, &stop);
+    let result = crate::prepare::prepare(source, &frame, &args.out, &progress, stop.flag());
     bar.finish_and_clear();
     let report = match result {
         Ok(r) => r,
@@ -329,7 +338,7 @@ pub fn prepare(args: &PrepareArgs) -> anyhow::Result<()> {
         Err(PrepareError::Interrupted) => {
             eprintln!("vkterrain: interrupted: no archive written");
             drop(mosaic_dir.take()); // exit() runs no destructors
-            std::process::exit(130);
+            std::process::exit(stop.exit_code());
         }
         // The output cannot be written (a missing directory, no space, no permission): a
         // problem with what was asked, exit 2 like a bad input.
@@ -379,7 +388,7 @@ pub fn check(args: &CheckArgs) -> anyhow::Result<()> {
     bar.finish_and_clear();
     let seconds = started.elapsed().as_secs_f64();
     let json = serde_json::json!({
-        "archive": args.archive.display().to_string(),
+        "archive": crate::input::archive::bytes::shown(&args.archive),
         "width": m.width,
         "height": m.height,
         "levels": u32::from(m.top_level) + 1,
@@ -392,6 +401,9 @@ pub fn check(args: &CheckArgs) -> anyhow::Result<()> {
         "ms_per_tile": 1e3 * seconds / tiles.max(1) as f64,
     });
     println!("{}", serde_json::to_string_pretty(&json)?);
-    eprintln!("vkterrain: {}: {tiles} tiles, every one intact ({seconds:.1} s)", args.archive.display());
+    eprintln!(
+        "vkterrain: {}: {tiles} tiles, every one intact ({seconds:.1} s)",
+        crate::input::archive::bytes::shown(&args.archive)
+    );
     Ok(())
 }

@@ -365,12 +365,8 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
         Some(p) => Trace::to_file(p).map_err(|e| InputError(format!("--trace {}: {e}", p.display())))?,
         None => Trace::off(),
     };
-    let interrupted = Arc::new(std::sync::atomic::AtomicBool::new(false));
-    {
-        let flag = interrupted.clone();
-        // Ctrl-C ends the session cleanly: the trace stays valid JSON.
-        let _ = ctrlc::set_handler(move || flag.store(true, std::sync::atomic::Ordering::SeqCst));
-    }
+    // Ctrl-C (or SIGTERM) ends the session cleanly: the trace stays valid JSON.
+    let interrupted = super::signals::Stop::install().flag().clone();
     let mut resizes = Vec::new();
     for r in &args.resize_at {
         let parsed = r.split_once(':').and_then(|(f, s)| {

@@ -36,7 +36,7 @@ pub enum VoidMode {
 /// says about itself (georeferencing, units, nodata) is read first ([`georef`]) and
 /// recorded in the heightfield's `georef.notes`, which the front-ends print.
 pub fn load(path: &Path, opts: &LoadOptions) -> Result<Heightfield, HeightfieldError> {
-    let shown = path.display().to_string();
+    let shown = crate::input::archive::bytes::shown(path);
     if crate::input::archive::bytes::is_url(path) {
         return load_archive(path, opts);
     }
@@ -110,7 +110,7 @@ pub fn load(path: &Path, opts: &LoadOptions) -> Result<Heightfield, HeightfieldE
 /// A prepared archive ([`crate::input::archive`]) that fits in one image, read whole:
 /// its metadata gives the frame (options override it, and say so).
 fn load_archive(path: &Path, opts: &LoadOptions) -> Result<Heightfield, HeightfieldError> {
-    let shown = path.display().to_string();
+    let shown = crate::input::archive::bytes::shown(path);
     let bad = |m: String| HeightfieldError::invalid(&shown, m);
     if opts.raw_size.is_some() {
         return Err(bad("--raw-size is only for raw .r16 and .f32 files, not archives".into()));

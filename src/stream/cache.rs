@@ -36,12 +36,50 @@ pub fn serving_tile(grid: &Grid, lod: u32, bx: u32, bz: u32) -> TileKey {
     TileKey::new(level, bx / per_tile, bz / per_tile)
 }
 
+/// A tile's heights as held: 16-bit when every one is an integer in 0..=65535 (a 16-bit
+/// source, the common case), which halves a tile of level 0; exact either way.
+#[derive(Debug)]
+pub enum Heights {
+    Unorm16(Vec<u16>),
+    Float32(Vec<f32>),
+}
+
+impl Heights {
+    fn compact(heights: Vec<f32>) -> Heights {
+        let fits = heights.iter().all(|&h| h.fract() == 0.0 && (0.0..=65535.0).contains(&h));
+        if fits {
+            Heights::Unorm16(heights.iter().map(|&h| h as u16).collect())
+        } else {
+            Heights::Float32(heights)
+        }
+    }
+
+    pub fn get(&self, i: usize) -> f32 {
+        match self {
+            Heights::Unorm16(v) => f32::from(v[i]),
+            Heights::Float32(v) => v[i],
+        }
+    }
+
+    pub fn bytes(&self) -> usize {
+        match self {
+            Heights::Unorm16(v) => v.len() * 2,
+            Heights::Float32(v) => v.len() * 4,
+        }
+    }
+}
+
 /// A decoded tile and its blocks' summaries, per LOD it serves (its own level; the top
 /// tile also every coarser LOD up to the root).
 #[derive(Debug)]
 pub struct TileData {
     pub key: TileKey,
-    pub tile: Tile,
+    /// Samples a side, the one-sample border included (vertex `(i, j)` of the tile's
+    /// square is sample `(i + 1, j + 1)`).
+    pub side: usize,
+    pub heights: Heights,
+    /// `D` of the tile's groups, as [`Tile::deviation`].
+    pub deviation: Vec<f32>,
     /// `blocks[j - level]`: row-major, `(8 >> (j - level))^2` for T = 256.
     blocks: Vec<Vec<BlockSummary>>,
     /// Bytes held (heights, deviations, summaries).
@@ -95,11 +133,17 @@ impl TileData {
             }
             blocks.push(summaries);
         }
-        let bytes = tile.heights.len() * 4
-            + tile.deviation.len() * 4
+        let (side, heights, deviation) = (tile.side, Heights::compact(tile.heights), tile.deviation);
+        let bytes = heights.bytes()
+            + deviation.len() * 4
             + blocks.iter().map(|b| b.len() * std::mem::size_of::<BlockSummary>()).sum::<usize>()
             + std::mem::size_of::<Self>();
-        Ok(TileData { key, tile, blocks, bytes })
+        Ok(TileData { key, side, heights, deviation, blocks, bytes })
+    }
+
+    /// Raw height of vertex `(i, j)` of the tile's square (its own level's spacing).
+    pub fn vertex(&self, i: usize, j: usize) -> f32 {
+        self.heights.get((j + 1) * self.side + i + 1)
     }
 
     /// The summary of block `(bx, bz)` (terrain block coordinates) of LOD `lod`, which
@@ -117,7 +161,7 @@ impl TileData {
 pub fn tile_bytes_estimate(grid: &Grid, level: u8) -> usize {
     let t = grid.tile_quads;
     let own_d = if level > 0 { t * t } else { 0 };
-    ((t + 3) * (t + 3) + own_d) * 4 + 4096
+    (t + 3) * (t + 3) * grid.height_bytes + own_d * 4 + 4096
 }
 
 /// Why a tile was not taken into the cache.

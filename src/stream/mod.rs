@@ -56,6 +56,8 @@ pub struct Grid {
     pub height_scale: f64,
     /// World position of sample (0, 0) in x and z.
     pub origin: [f64; 2],
+    /// Bytes a height takes decoded: 2 (16-bit archives) or 4 (float).
+    pub height_bytes: usize,
 }
 
 impl Grid {
@@ -68,6 +70,7 @@ impl Grid {
             spacing: [f64::from(m.spacing[0]), f64::from(m.spacing[1])],
             height_scale: f64::from(m.height_scale),
             origin: [0.0, 0.0],
+            height_bytes: if m.samples == "float32" { 4 } else { 2 },
         }
     }
 

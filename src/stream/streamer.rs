@@ -172,11 +172,11 @@ impl Streamer {
         (0..=self.grid.top).find_map(|level| {
             let span = self.grid.tile_span(level) as f64;
             let key = TileKey::new(level, (sx / span) as u32, (sz / span) as u32);
-            let tile = &self.cache.peek(key)?.tile;
+            let tile = self.cache.peek(key)?;
             let step = f64::from(1u32 << level);
             let (i, j) =
                 (((sx - f64::from(key.tx) * span) / step).round(), ((sz - f64::from(key.tz) * span) / step).round());
-            let h = tile.heights[(j as usize + 1) * tile.side + i as usize + 1];
+            let h = tile.vertex(i as usize, j as usize);
             Some(f64::from(h) * self.grid.height_scale)
         })
     }

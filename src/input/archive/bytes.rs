@@ -13,6 +13,21 @@ pub fn is_url(path: &Path) -> bool {
     s.starts_with("http://") || s.starts_with("https://")
 }
 
+/// How a path or URL is shown in messages: a URL's credentials (`user:password@`) are
+/// replaced by `***@`, so that a log or a bug report does not leak them.
+pub fn shown(path: &Path) -> String {
+    let text = path.to_string_lossy();
+    if !is_url(path) {
+        return path.display().to_string();
+    }
+    let Some(scheme_end) = text.find("://").map(|i| i + 3) else { return text.into_owned() };
+    let authority_end = text[scheme_end..].find(['/', '?', '#']).map_or(text.len(), |i| scheme_end + i);
+    match text[scheme_end..authority_end].rfind('@') {
+        Some(at) => format!("{}***{}", &text[..scheme_end], &text[scheme_end + at..]),
+        None => text.into_owned(),
+    }
+}
+
 pub enum Bytes {
     File(File),
     Http(Http),
@@ -63,27 +78,34 @@ impl Http {
         // The length from a one-byte range: "Content-Range: bytes 0-0/LEN" (HEAD does
         // not always carry Content-Length).
         let response = Self::get(&agent, url, 0, 0)?;
-        let len = response
-            .header("Content-Range")
-            .and_then(|r| r.rsplit('/').next())
-            .and_then(|l| l.trim().parse::<u64>().ok())
-            .ok_or_else(|| {
-                format!(
+        let len = match content_range(&response) {
+            Some((0, 0, Some(len))) if len > 0 => len,
+            _ => {
+                return Err(format!(
                     "the server answered {} without a Content-Range length: it does not serve byte ranges",
                     response.status()
-                )
-            })?;
-        Ok(Http { agent, url: url.to_string(), len })
+                ))
+            }
+        };
+        let http = Http { agent, url: url.to_string(), len };
+        // The last byte too: a length the server states but cannot serve (a proxy's
+        // guess, a file cut short) fails here, not at the first tile past the real end.
+        let mut last = [0u8];
+        http.read_at(&mut last, len - 1)
+            .map_err(|e| format!("reading its last byte (the server gives the length as {len} bytes): {e}"))?;
+        Ok(http)
     }
 
     fn get(agent: &ureq::Agent, url: &str, first: u64, last: u64) -> Result<ureq::Response, String> {
-        let response = agent.get(url).set("Range", &format!("bytes={first}-{last}")).call().map_err(|e| match e {
+        // Identity: a compressed body would not be the bytes of the range.
+        let request = agent.get(url).set("Range", &format!("bytes={first}-{last}")).set("Accept-Encoding", "identity");
+        let response = request.call().map_err(|e| match e {
             ureq::Error::Status(code, r) => format!("HTTP {code} {}", r.status_text()),
             // ureq names the URL first (the caller does already) and repeats its error
             // kind ("Network Error: Network Error: ..."): each part once.
             other => {
                 let text = other.to_string();
-                let text = text.strip_prefix(&format!("{url}: ")).unwrap_or(&text);
+                let text = text.strip_prefix(&format!("{url}: ")).unwrap_or(&text).replace(url, &shown(Path::new(url)));
                 let mut parts: Vec<&str> = text.split(": ").collect();
                 parts.dedup();
                 parts.join(": ")
@@ -105,8 +127,62 @@ impl Http {
         }
         let last = offset + buf.len() as u64 - 1;
         let response = Self::get(&self.agent, &self.url, offset, last)?;
+        match content_range(&response) {
+            Some((a, b, total)) if a == offset && b == last && total.is_none_or(|t| t == self.len) => {}
+            Some((_, _, Some(total))) if total != self.len => {
+                return Err(format!(
+                    "bytes {offset}..={last}: the archive changed on the server ({total} bytes, {} when opened)",
+                    self.len
+                ))
+            }
+            _ => {
+                return Err(format!(
+                    "bytes {offset}..={last}: the server sent another range ({})",
+                    response.header("Content-Range").unwrap_or("no Content-Range")
+                ))
+            }
+        }
+        if let Some(coding) = response.header("Content-Encoding").filter(|c| !c.trim().eq_ignore_ascii_case("identity"))
+        {
+            return Err(format!(
+                "bytes {offset}..={last}: the server sent them encoded ({coding}) although asked for identity"
+            ));
+        }
         let mut reader = response.into_reader();
         std::io::Read::read_exact(&mut reader, buf)
             .map_err(|e| format!("bytes {offset}..={last}: {e} (the server sent fewer bytes than asked)"))
+    }
+}
+
+/// `Content-Range: bytes FIRST-LAST/TOTAL` (TOTAL may be `*`, unknown).
+fn content_range(response: &ureq::Response) -> Option<(u64, u64, Option<u64>)> {
+    let value = response.header("Content-Range")?.trim();
+    let (range, total) = value.strip_prefix("bytes ")?.split_once('/')?;
+    let (first, last) = range.split_once('-')?;
+    let total = match total.trim() {
+        "*" => None,
+        t => Some(t.parse().ok()?),
+    };
+    Some((first.trim().parse().ok()?, last.trim().parse().ok()?, total))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::shown;
+    use std::path::Path;
+
+    #[test]
+    fn credentials_are_hidden_and_nothing_else_changes() {
+        for (given, expected) in [
+            ("https://user:pw@host.example/t.pmtiles", "https://***@host.example/t.pmtiles"),
+            ("HTTP://pw@127.0.0.1:8080/a?b=c", "HTTP://***@127.0.0.1:8080/a?b=c"),
+            ("https://a:b@c@host/x", "https://***@host/x"),
+            ("https://host/user@x.pmtiles", "https://host/user@x.pmtiles"),
+            ("https://host?mail=a@b", "https://host?mail=a@b"),
+            ("http://host", "http://host"),
+            ("/data/me@work/t.pmtiles", "/data/me@work/t.pmtiles"),
+        ] {
+            assert_eq!(shown(Path::new(given)), expected, "{given}");
+        }
     }
 }

@@ -98,7 +98,7 @@ impl Meta {
 /// Why an archive could not be read: always names the file, and the tile when one is
 /// at fault.
 pub fn bad(path: &Path, message: impl Into<String>) -> HeightfieldError {
-    HeightfieldError::invalid(&path.display().to_string(), message)
+    HeightfieldError::invalid(&bytes::shown(path), message)
 }
 
 /// An open archive: header, metadata and root directory read and checked; tiles read
@@ -320,7 +320,7 @@ impl Archive {
     /// terrains that fit in one GPU image; every tile is read and its checksum verified.
     pub fn heightfield(&self) -> Result<Heightfield, HeightfieldError> {
         let m = &self.meta;
-        let shown = self.path.display().to_string();
+        let shown = bytes::shown(&self.path);
         if m.width > crate::lod::heightfield::MAX_SIDE || m.height > crate::lod::heightfield::MAX_SIDE {
             return Err(bad(
                 &self.path,
