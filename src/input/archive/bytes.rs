@@ -168,7 +168,7 @@ fn content_range(response: &ureq::Response) -> Option<(u64, u64, Option<u64>)> {
 
 #[cfg(test)]
 mod tests {
-    use super::shown;
+    use crate::input::archive::bytes::shown;
     use std::path::Path;
 
     #[test]
