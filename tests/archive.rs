@@ -496,35 +496,39 @@ fn progress_off_a_terminal_is_ten_lines_ending_at_the_total() {
     }
 }
 
-/// A run killed by SIGTERM cleans up like Ctrl-C (exit 143 = 128 + SIGTERM, no file); a partial file
-/// left by a run that could not clean up (SIGKILL) is removed by the next run.
+/// A run stopped by SIGINT, SIGTERM or SIGHUP cleans up (no file) and exits 128 + the
+/// signal (130, 143, 129), as a shell expects; a partial file left by a run that could
+/// not clean up (SIGKILL) is removed by the next run.
 #[test]
 fn a_terminated_run_leaves_nothing_and_stale_partials_are_removed() {
-    let dir = TempDir::new("archive-term");
-    let out = dir.path().join("t.pmtiles");
-    let stale = dir.path().join(".t.pmtiles.partial-999999999");
-    std::fs::write(&stale, b"left by a killed run").unwrap();
-    let mut child = Command::new(env!("CARGO_BIN_EXE_vkterrain"))
-        .args(["prepare", "--synthetic", "4097", "--out", out.to_str().unwrap()])
-        .env("RUST_LOG", "error")
-        .stdout(std::process::Stdio::null())
-        .stderr(std::process::Stdio::null())
-        .spawn()
-        .unwrap();
-    let own = dir.path().join(format!(".t.pmtiles.partial-{}", child.id()));
-    // Wait (by polling the condition, not a fixed sleep) for the run's own partial file.
-    let started = std::time::Instant::now();
-    while !own.exists() {
-        assert!(child.try_wait().unwrap().is_none(), "the run ended before it was terminated");
-        assert!(started.elapsed().as_secs() < 120, "no partial file after 120 s");
-        std::thread::sleep(std::time::Duration::from_millis(5));
+    for (signal, code) in [("TERM", 143), ("HUP", 129), ("INT", 130)] {
+        let dir = TempDir::new("archive-term");
+        let out = dir.path().join("t.pmtiles");
+        let stale = dir.path().join(".t.pmtiles.partial-999999999");
+        std::fs::write(&stale, b"left by a killed run").unwrap();
+        let mut child = Command::new(env!("CARGO_BIN_EXE_vkterrain"))
+            .args(["prepare", "--synthetic", "4097", "--out", out.to_str().unwrap()])
+            .env("RUST_LOG", "error")
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null())
+            .spawn()
+            .unwrap();
+        let own = dir.path().join(format!(".t.pmtiles.partial-{}", child.id()));
+        // Wait (by polling the condition, not a fixed sleep) for the run's own partial file.
+        let started = std::time::Instant::now();
+        while !own.exists() {
+            assert!(child.try_wait().unwrap().is_none(), "SIG{signal}: the run ended before it was stopped");
+            assert!(started.elapsed().as_secs() < 120, "SIG{signal}: no partial file after 120 s");
+            std::thread::sleep(std::time::Duration::from_millis(5));
+        }
+        assert!(!stale.exists(), "the stale partial of a dead process is removed");
+        let kill = Command::new("kill").args([&format!("-{signal}"), &child.id().to_string()]).status().unwrap();
+        assert!(kill.success());
+        let status = child.wait().unwrap();
+        assert_eq!(status.code(), Some(code), "SIG{signal}: {status:?}");
+        let left: Vec<_> = std::fs::read_dir(dir.path()).unwrap().flatten().map(|e| e.file_name()).collect();
+        assert!(left.is_empty(), "SIG{signal}: left behind: {left:?}");
     }
-    assert!(!stale.exists(), "the stale partial of a dead process is removed");
-    assert!(Command::new("kill").args(["-TERM", &child.id().to_string()]).status().unwrap().success());
-    let status = child.wait().unwrap();
-    assert_eq!(status.code(), Some(143), "terminated: {status:?}");
-    let left: Vec<_> = std::fs::read_dir(dir.path()).unwrap().flatten().map(|e| e.file_name()).collect();
-    assert!(left.is_empty(), "left behind: {left:?}");
 }
 
 #[test]
