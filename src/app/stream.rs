@@ -74,18 +74,12 @@ fn drop_from_page_cache(path: &std::path::Path) -> std::io::Result<()> {
 pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
     let archive = Arc::new(Archive::open(&args.archive).map_err(|e| InputError(e.to_string()))?);
     let grid = Grid::from_meta(&archive.meta);
+    let shown = crate::input::archive::bytes::shown(&args.archive);
     if args.cold && crate::input::archive::bytes::is_url(&args.archive) {
-        eprintln!(
-            "vkterrain: note: --cold: {} is a URL, with no local page cache to drop",
-            crate::input::archive::bytes::shown(&args.archive)
-        );
+        eprintln!("vkterrain: note: --cold: {shown} is a URL, with no local page cache to drop");
     } else if args.cold {
-        drop_from_page_cache(&args.archive).map_err(|e| {
-            InputError(format!(
-                "{}: dropping it from the page cache: {e}",
-                crate::input::archive::bytes::shown(&args.archive)
-            ))
-        })?;
+        drop_from_page_cache(&args.archive)
+            .map_err(|e| InputError(format!("{shown}: dropping it from the page cache: {e}")))?;
     }
     let (w, h) = args.size;
     let extent = [(grid.width - 1) as f64 * grid.spacing[0], (grid.height - 1) as f64 * grid.spacing[1]];
@@ -98,7 +92,7 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
     let read_before = disk_bytes_read();
     eprintln!(
         "vkterrain: streaming {} ({} x {} samples, {} tile levels): {} frames at {fps} fps, {speed:.0} units/s, {} above the ground, cache {} MB",
-        crate::input::archive::bytes::shown(&args.archive),
+        shown,
         grid.width,
         grid.height,
         grid.top + 1,
@@ -156,7 +150,7 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
     let StreamStats { frames, frames_over_bound, .. } = flight;
     let distinct_mb = flight.distinct_bytes as f64 / f64::from(1u32 << 20);
     let json = serde_json::json!({
-        "archive": crate::input::archive::bytes::shown(&args.archive),
+        "archive": &shown,
         "frames": frames,
         "frames_over_bound": frames_over_bound,
         "frames_over_bound_share": frames_over_bound as f64 / frames as f64,
