@@ -12,18 +12,20 @@ use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 use vkterrain::input::archive::Archive;
 use vkterrain::lod::audit::{audit_block, check_tiling};
-use vkterrain::lod::block::{BlockLayout, DrawBlock};
+use vkterrain::lod::block::{block_vertex, BlockLayout, DrawBlock};
 use vkterrain::lod::camera::Camera;
 use vkterrain::lod::deviation::exact_deviation;
 use vkterrain::lod::heightfield::Heightfield;
+use vkterrain::lod::heightfield::RawSamples;
 use vkterrain::lod::pyramid::MinMaxPyramid;
+use vkterrain::lod::traversal::stitch_selection;
 use vkterrain::prepare::source::InMemory;
 use vkterrain::prepare::{prepare, Frame};
 use vkterrain::stream::cache::{root_lod, serving_tile, Heights, HostCache, Refused, TileData, BLOCK_QUADS};
 use vkterrain::stream::io::TileSource;
 use vkterrain::stream::streamer::{Streamer, RETRY_FRAMES};
 use vkterrain::stream::traverse::{Selection, View};
-use vkterrain::stream::{Grid, TileKey};
+use vkterrain::stream::{draw, Grid, TileKey};
 
 const DELTA: f32 = 1.0;
 
@@ -194,6 +196,76 @@ fn settled_frames_keep_the_bound_cover_the_view_and_pass_the_audit() {
     }
     assert!(lods.len() >= 4, "the poses draw several LODs: {lods:?}");
     assert_eq!(s.stats.tiles_failed, 0);
+}
+
+/// A streamed frame's blocks, stitched from the held tiles alone, are the blocks the
+/// in-memory code stitches from the whole heightfield (same neighbours, same resolved
+/// corners), read the same samples, and are watertight: the GPU draws them with the same
+/// placement as in memory.
+#[test]
+fn streamed_blocks_stitch_from_held_tiles_as_in_memory() {
+    let Fixture { hf, archive, grid, _dir } = fixture("stream-stitch");
+    let layout = BlockLayout::of(&hf, 33).unwrap();
+    assert_eq!(draw::layout(&grid), layout, "the archive's block layout is the heightfield's");
+    let mut s = Streamer::new(archive, grid, 1 << 30);
+    let (mut stitched_edges, mut compared) = (0usize, 0usize);
+    for (i, view) in poses().iter().enumerate() {
+        let sel = settled(&mut s, view, 12);
+        let streamed = draw::stitched_blocks(&grid, &s.cache, &sel);
+        let mut memory: Vec<DrawBlock> = sel.blocks.iter().map(|b| DrawBlock::new(b.lod, b.bx, b.bz)).collect();
+        let map = stitch_selection(&hf, &layout, &mut memory);
+        assert_eq!(streamed.len(), memory.len(), "pose {i}");
+        for (a, b) in streamed.iter().zip(&memory) {
+            assert_eq!(a.block, *b, "pose {i}");
+            stitched_edges += b.coarser.iter().filter(|&&c| c > 0).count();
+        }
+        let resident = draw::Resident { grid: &grid, cache: &s.cache };
+        let blocks: Vec<DrawBlock> = streamed.iter().map(|b| b.block).collect();
+        compared +=
+            common::assert_watertight(&resident, [hf.width, hf.height], &layout, &blocks, &map, &format!("pose {i}"));
+        // Every vertex of every block, read from the held tiles, is the heightfield's.
+        for b in &streamed {
+            for v in 0..33 {
+                for u in 0..33 {
+                    let (x, z, h) = block_vertex(&resident, &layout, &b.block, u, v);
+                    let (_, _, m) = block_vertex(&hf, &layout, &b.block, u, v);
+                    assert_eq!(h.to_bits(), m.to_bits(), "pose {i}: {:?} vertex ({u}, {v}) at ({x}, {z})", b.block);
+                }
+            }
+        }
+    }
+    assert!(stitched_edges > 100, "the poses stitch blocks to coarser neighbours: {stitched_edges}");
+    assert!(compared > 10_000, "edge samples compared: {compared}");
+}
+
+/// A sample no held tile has reads as NaN (so a block drawn from a missing tile cannot
+/// pass as stitched), and held samples are the heightfield's.
+#[test]
+fn resident_samples_are_the_held_tiles_and_nothing_else() {
+    let Fixture { hf, archive, grid, _dir } = fixture("stream-resident");
+    let mut s = Streamer::new(archive, grid, 1 << 30);
+    let view = poses()[0];
+    let sel = settled(&mut s, &view, 12);
+    let resident = draw::Resident { grid: &grid, cache: &s.cache };
+    let level0: Vec<TileKey> = sel.used.iter().copied().filter(|k| k.level == 0).collect();
+    assert!(!level0.is_empty());
+    let span = grid.tile_span(0) as i64;
+    for k in &level0 {
+        for (x, z) in [(0, 0), (1, 7), (span, span), (span - 1, 3)] {
+            let (x, z) = (k.tx as i64 * span + x, k.tz as i64 * span + z);
+            if x < hf.width as i64 && z < hf.height as i64 {
+                assert_eq!(resident.raw_at(x, z).to_bits(), hf.raw_at(x, z).to_bits(), "({x}, {z})");
+            }
+        }
+    }
+    // An odd sample outside every held level-0 tile.
+    let missing = (0..grid.tiles_at(0)[0])
+        .flat_map(|tx| (0..grid.tiles_at(0)[1]).map(move |tz| TileKey::new(0, tx, tz)))
+        .find(|k| !s.cache.contains(*k))
+        .expect("some level-0 tile is not held at one pose");
+    let (x, z) = (missing.tx as i64 * span + 1, missing.tz as i64 * span + 3);
+    assert!(resident.raw_at(x, z).is_nan(), "({x}, {z}) is in no held tile");
+    assert!(resident.raw_at(-1, 0).is_nan());
 }
 
 /// The block bound without the deviation (`d` taken as 0) must fail the audit somewhere

@@ -230,7 +230,14 @@ fn strict_mode_holds_delta_on_rectangular_grids() {
         let mut compared = 0;
         for (i, cam) in adversarial_poses(f, edge, 30, 43).iter().enumerate() {
             let t = frame(f, &mm, &layout, cam, cam, ErrorMode::Strict, 1.0);
-            compared += assert_watertight(f, &layout, &t, &format!("{} pose {i}", f.source));
+            compared += common::assert_watertight(
+                f,
+                [f.width, f.height],
+                &layout,
+                &t.blocks,
+                &t.lod_map,
+                &format!("{} pose {i}", f.source),
+            );
         }
         assert!(compared > 1000, "only {compared} edge samples compared");
     }
@@ -248,59 +255,6 @@ fn audit_catches_one_spacing_for_both_axes() {
     assert!(one > 1.5, "one spacing for both axes: worst audited / delta only {one}");
     let right = worst_ratio(&cliffs, 9, &poses, Variant::Renderer, true);
     println!("anisotropic cliffs, worst audited / delta: one spacing {one:.2}, per axis {right:.3}");
-}
-
-/// Every drawn edge vertex lies on the neighbour's surface: for LOD differences up to m
-/// it coincides with one of the neighbour's vertices (same sample, same height).
-/// Every sample on the boundary between two drawn blocks has the same rendered height in
-/// both (stitched and morphed): no crack. Returns the samples compared.
-fn assert_watertight(hf: &Heightfield, layout: &BlockLayout, t: &Traversal, what: &str) -> usize {
-    let [cells, rows] = layout.cells().map(|c| c as i64);
-    let cell = 1i64 << layout.m;
-    let at = |cx: i64, cz: i64| -> Option<usize> {
-        if cx < 0 || cz < 0 || cx >= cells || cz >= rows {
-            return None;
-        }
-        let l = t.lod_map[(cz * cells + cx) as usize];
-        if l < 0 {
-            return None;
-        }
-        let l = l as u32;
-        t.blocks.iter().position(|b| b.lod == l && b.bx as i64 == cx >> l && b.bz as i64 == cz >> l)
-    };
-    let mut compared = 0;
-    for (i, b) in t.blocks.iter().enumerate() {
-        let (ox, oz) = b.origin(layout);
-        let side = layout.block_samples(b.lod) as i64;
-        let (ox, oz) = (ox as i64, oz as i64);
-        // Samples along the north and west edges, shared with the block across.
-        for d in 0..=side {
-            for (x, z, across) in [
-                (ox + d, oz, (ox + d - (d == side) as i64, oz - 1)),
-                (ox, oz + d, (ox - 1, oz + d - (d == side) as i64)),
-            ] {
-                if x >= hf.width as i64 || z >= hf.height as i64 {
-                    continue;
-                }
-                let Some(j) = at(across.0.div_euclid(cell), across.1.div_euclid(cell)) else { continue };
-                if j == i {
-                    continue;
-                }
-                let mine = vkterrain::lod::audit::rendered_raw(hf, layout, b, x, z);
-                let theirs = vkterrain::lod::audit::rendered_raw(hf, layout, &t.blocks[j], x, z);
-                let (Some(a), Some(c)) = (mine, theirs) else {
-                    panic!("{what}: sample ({x}, {z}) on the edge of {b:?} and {:?} not covered", t.blocks[j])
-                };
-                assert!(
-                    (a - c).abs() <= 1e-5 * (1.0 + a.abs().max(c.abs())),
-                    "{what}: crack at ({x}, {z}): {a} in {b:?}, {c} in {:?}",
-                    t.blocks[j]
-                );
-                compared += 1;
-            }
-        }
-    }
-    compared
 }
 
 #[test]
@@ -356,7 +310,14 @@ fn stitching_matches_coarser_neighbours() {
                     }
                 }
             }
-            assert_watertight(&hf, &layout, &t, &format!("k {k} pose {i}"));
+            common::assert_watertight(
+                &hf,
+                [hf.width, hf.height],
+                &layout,
+                &t.blocks,
+                &t.lod_map,
+                &format!("k {k} pose {i}"),
+            );
         }
     }
     // A lone spike just past the centre: the flat half next to it stays at a coarse LOD
@@ -384,7 +345,7 @@ fn stitching_matches_coarser_neighbours() {
         }
     }
     check_tiling(&lone, &lone_mm, &layout, &t.blocks, &cam).unwrap();
-    assert_watertight(&lone, &layout, &t, "lone spike");
+    common::assert_watertight(&lone, [lone.width, lone.height], &layout, &t.blocks, &t.lod_map, "lone spike");
     let a = audit(&lone, &layout, &t, &cam);
     assert!(a.max_error_px <= 1.01, "lone spike: {}", a.max_error_px);
     // Differences of 1, 2 and more levels all occurred.

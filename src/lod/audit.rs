@@ -4,7 +4,7 @@
 use crate::lod::block::{block_vertex, cell_visible, BlockLayout, DrawBlock, Traversal};
 use crate::lod::camera::Camera;
 use crate::lod::geometry::interpolate;
-use crate::lod::heightfield::Heightfield;
+use crate::lod::heightfield::{Heightfield, RawSamples};
 use crate::lod::pyramid::MinMaxPyramid;
 use glam::Vec3;
 
@@ -35,7 +35,13 @@ fn block_index_map(layout: &BlockLayout, blocks: &[DrawBlock]) -> Vec<u32> {
 }
 
 /// Raw height of the rendered (stitched) block surface at integer sample `(x, z)`.
-pub fn rendered_raw(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, x: i64, z: i64) -> Option<f32> {
+pub fn rendered_raw<S: RawSamples + ?Sized>(
+    hf: &S,
+    layout: &BlockLayout,
+    b: &DrawBlock,
+    x: i64,
+    z: i64,
+) -> Option<f32> {
     let k = layout.k() as i64;
     let stride = b.stride() as i64;
     let (ox, oz) = b.origin(layout);

@@ -3,7 +3,7 @@
 //! vertex shader's placement of a block's vertices in plain Rust.
 
 use crate::lod::camera::Frustum;
-use crate::lod::heightfield::Heightfield;
+use crate::lod::heightfield::{Heightfield, RawSamples};
 use crate::lod::pyramid::MinMaxPyramid;
 use glam::Vec3;
 
@@ -110,7 +110,7 @@ impl DrawBlock {
         }
     }
     /// Raw height of corner `c` at sample `(x, z)`.
-    pub fn corner(&self, c: usize, hf: &Heightfield, x: i64, z: i64) -> f32 {
+    pub fn corner<S: RawSamples + ?Sized>(&self, c: usize, hf: &S, x: i64, z: i64) -> f32 {
         match self.corner_raw[c] {
             CORNER_UNRESOLVED => hf.raw_at(x, z),
             bits => f32::from_bits(bits),
@@ -250,7 +250,13 @@ pub fn lod_map(layout: &BlockLayout, blocks: &[DrawBlock]) -> Vec<i8> {
 /// The vertex shader's placement of block vertex `(u, v)`, in plain Rust: the sample it
 /// lands on and its raw height, stitched and morphed (SPEC section 5). Must match
 /// `glsl/block_vertex.glsl` bit for bit.
-pub fn block_vertex(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, u: u32, v: u32) -> (i64, i64, f32) {
+pub fn block_vertex<S: RawSamples + ?Sized>(
+    hf: &S,
+    layout: &BlockLayout,
+    b: &DrawBlock,
+    u: u32,
+    v: u32,
+) -> (i64, i64, f32) {
     let last = layout.k() - 1;
     let stride = b.stride() as i64;
     let (ox, oz) = b.origin(layout);
@@ -305,7 +311,7 @@ pub fn block_vertex(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, u: u3
 /// are given ([`crate::lod::morph`]), between the mean of the two vertices around it along
 /// the edge and their own sample. The neighbour's origin is a multiple of twice its
 /// stride, so a vertex's parity is that of its coordinate over the stride.
-fn coarse_vertex_raw(hf: &Heightfield, b: &DrawBlock, side: usize, sx: i64, sz: i64) -> f32 {
+fn coarse_vertex_raw<S: RawSamples + ?Sized>(hf: &S, b: &DrawBlock, side: usize, sx: i64, sz: i64) -> f32 {
     let raw = hf.raw_at(sx, sz);
     let best = b.coarser[side] as i64;
     let along_x = side.is_multiple_of(2);
@@ -332,7 +338,7 @@ pub fn morph_raw(p: f32, raw: f32, f: f32) -> f32 {
 /// Height of the block's own vertex `(u, v)` at sample `(sx, sz)`: a vertex at an odd
 /// position lies on an edge or the a-i diagonal of its parent's quad, where the parent
 /// surface is the mean of the two samples around it.
-fn own_vertex_raw(hf: &Heightfield, b: &DrawBlock, last: u32, u: u32, v: u32, sx: i64, sz: i64) -> f32 {
+fn own_vertex_raw<S: RawSamples + ?Sized>(hf: &S, b: &DrawBlock, last: u32, u: u32, v: u32, sx: i64, sz: i64) -> f32 {
     let raw = hf.raw_at(sx, sz);
     let (odd_u, odd_v) = (u % 2 == 1, v % 2 == 1);
     let q = match (v, u) {

@@ -476,3 +476,18 @@ mod tests {
         assert_eq!(hf.surface_height(1.0, 1.0), 1.0);
     }
 }
+
+/// Raw samples at integer sample coordinates: the whole heightfield in memory, or the
+/// tiles a streamed frame holds (`stream::draw::Resident`). The block placement, corner
+/// resolution and the audit's rendered surface read samples only through this, so the
+/// CPU mirror of the vertex shader is one copy for both.
+pub trait RawSamples {
+    fn raw_at(&self, x: i64, z: i64) -> f32;
+}
+
+impl RawSamples for Heightfield {
+    #[inline]
+    fn raw_at(&self, x: i64, z: i64) -> f32 {
+        Heightfield::raw_at(self, x, z)
+    }
+}

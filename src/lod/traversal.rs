@@ -4,7 +4,7 @@
 use crate::lod::block::{block_aabb, lod_map, BlockLayout, DrawBlock, Traversal, EDGE_CORNERS};
 use crate::lod::camera::{angular_factor, distance_to_aabb, world_to_pixels, Camera};
 use crate::lod::gie::{BlockErrors, ErrorMode};
-use crate::lod::heightfield::Heightfield;
+use crate::lod::heightfield::{Heightfield, RawSamples};
 use crate::lod::morph;
 use crate::lod::pyramid::MinMaxPyramid;
 use foldhash::HashSet;
@@ -205,10 +205,18 @@ fn traverse_once(
     out.blocks = order.iter().map(|o| o.1).collect();
     out.selection_errors = order.iter().map(|o| o.2).collect();
     out.nearest = order.first().map(|o| o.0);
-    out.lod_map = lod_map(layout, &out.blocks);
-    assign_neighbours(layout, &mut out.blocks, &out.lod_map);
-    resolve_corners(hf, layout, &mut out.blocks, &out.lod_map);
+    out.lod_map = stitch_selection(hf, layout, &mut out.blocks);
     out
+}
+
+/// Gives a selection's blocks their coarser neighbours' strides and resolved corners
+/// (what the vertex shader stitches with), and returns its LOD map. One copy for the
+/// in-memory traversal and streamed frames.
+pub fn stitch_selection<S: RawSamples + ?Sized>(hf: &S, layout: &BlockLayout, blocks: &mut [DrawBlock]) -> Vec<i8> {
+    let map = lod_map(layout, blocks);
+    assign_neighbours(layout, blocks, &map);
+    resolve_corners(hf, layout, blocks, &map);
+    map
 }
 
 /// Error data computed at `old` used at `now` (SPEC section 5): the error scales like
@@ -247,7 +255,7 @@ fn assign_neighbours(layout: &BlockLayout, blocks: &mut [DrawBlock], map: &[i8])
 /// Sets every block's corner heights. A corner strictly inside a coarser neighbour's edge
 /// lies on that edge's line between its vertices; those are raw samples, or that
 /// neighbour's own corners, resolved before (coarsest first).
-pub fn resolve_corners(hf: &Heightfield, layout: &BlockLayout, blocks: &mut [DrawBlock], map: &[i8]) {
+pub fn resolve_corners<S: RawSamples + ?Sized>(hf: &S, layout: &BlockLayout, blocks: &mut [DrawBlock], map: &[i8]) {
     let cells = layout.cells()[0] as i64;
     let index: foldhash::HashMap<(u32, u32, u32), usize> =
         blocks.iter().enumerate().map(|(i, b)| ((b.lod, b.bx, b.bz), i)).collect();

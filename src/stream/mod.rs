@@ -10,10 +10,11 @@
 //!   to the camera's sample, with the bound kept honest: a block that should split but
 //!   whose finer tile is not resident is drawn as it is, requested and counted.
 //!
-//! The GPU atlas (tiles uploaded by the errors activity into one array image) is not
-//! built yet: the frames here are selections, audited on the CPU.
+//! - [`draw`]: a selection's blocks stitched as the vertex shader draws them, read from
+//!   the held tiles.
 
 pub mod cache;
+pub mod draw;
 pub mod io;
 pub mod streamer;
 pub mod traverse;

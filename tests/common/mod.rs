@@ -118,3 +118,64 @@ pub fn run_bounded(args: &[String], limit_s: u64) -> std::process::Output {
     }
     child.wait_with_output().unwrap()
 }
+
+/// Every drawn edge vertex lies on the neighbour's surface: for LOD differences up to m
+/// it coincides with one of the neighbour's vertices (same sample, same height).
+/// Every sample on the boundary between two drawn blocks has the same rendered height in
+/// both (stitched and morphed): no crack. Returns the samples compared.
+#[allow(dead_code)]
+pub fn assert_watertight<S: vkterrain::lod::heightfield::RawSamples>(
+    hf: &S,
+    extent: [usize; 2],
+    layout: &vkterrain::lod::block::BlockLayout,
+    blocks: &[vkterrain::lod::block::DrawBlock],
+    lod_map: &[i8],
+    what: &str,
+) -> usize {
+    let [cells, rows] = layout.cells().map(|c| c as i64);
+    let cell = 1i64 << layout.m;
+    let at = |cx: i64, cz: i64| -> Option<usize> {
+        if cx < 0 || cz < 0 || cx >= cells || cz >= rows {
+            return None;
+        }
+        let l = lod_map[(cz * cells + cx) as usize];
+        if l < 0 {
+            return None;
+        }
+        let l = l as u32;
+        blocks.iter().position(|b| b.lod == l && b.bx as i64 == cx >> l && b.bz as i64 == cz >> l)
+    };
+    let mut compared = 0;
+    for (i, b) in blocks.iter().enumerate() {
+        let (ox, oz) = b.origin(layout);
+        let side = layout.block_samples(b.lod) as i64;
+        let (ox, oz) = (ox as i64, oz as i64);
+        // Samples along the north and west edges, shared with the block across.
+        for d in 0..=side {
+            for (x, z, across) in [
+                (ox + d, oz, (ox + d - (d == side) as i64, oz - 1)),
+                (ox, oz + d, (ox - 1, oz + d - (d == side) as i64)),
+            ] {
+                if x >= extent[0] as i64 || z >= extent[1] as i64 {
+                    continue;
+                }
+                let Some(j) = at(across.0.div_euclid(cell), across.1.div_euclid(cell)) else { continue };
+                if j == i {
+                    continue;
+                }
+                let mine = vkterrain::lod::audit::rendered_raw(hf, layout, b, x, z);
+                let theirs = vkterrain::lod::audit::rendered_raw(hf, layout, &blocks[j], x, z);
+                let (Some(a), Some(c)) = (mine, theirs) else {
+                    panic!("{what}: sample ({x}, {z}) on the edge of {b:?} and {:?} not covered", blocks[j])
+                };
+                assert!(
+                    (a - c).abs() <= 1e-5 * (1.0 + a.abs().max(c.abs())),
+                    "{what}: crack at ({x}, {z}): {a} in {b:?}, {c} in {:?}",
+                    blocks[j]
+                );
+                compared += 1;
+            }
+        }
+    }
+    compared
+}
