@@ -1,13 +1,25 @@
-// Block vertex placement. World position of vertex `local` of the block in `block_pc`
+// Block vertex placement. World position (relative to `frame.anchor`) of vertex `local` of the block in `block_pc`
 // (SPEC section 5): corners at their resolved heights, edge vertices next to a coarser
 // block on that block's (morphed) edge, odd vertices morphed towards the parent's surface
 // (src/morph.rs). Shared by terrain.vert, terrain_depth.vert and capture.vert (which
 // tests it against quadtree::block_vertex, bit for bit). Needs `heights`, `frame` and
 // `block_pc` declared by the includer.
 
+#ifdef HEIGHTS_ATLAS
+// Streamed frames: `heights` is the atlas (sampler2DArray); the block's tile holds every
+// 2^level-th sample from its origin, behind a one-sample border. Clamped into the layer:
+// only the morph's neighbours of an edge vertex can fall outside the tile, and streamed
+// blocks do not morph (their factor 1 ignores them).
+float raw_at(ivec2 s) {
+    ivec3 t = ivec3(((s - block_pc.tile.xy) >> block_pc.tile.z) + 1, block_pc.tile.w);
+    t.xy = clamp(t.xy, ivec2(0), ivec2(frame.anchor.z - 1));
+    return decode_raw(texelFetch(heights, t, 0).r, frame.flags.x);
+}
+#else
 float raw_at(ivec2 s) {
     return decode_raw(texelFetch(heights, s, 0).r, frame.flags.x);
 }
+#endif
 
 // `raw` moved towards the parent surface's height `p`; factor 1 is `raw` itself.
 // `precise`: no fused multiply-add, so the CPU mirror gets the same bits.
@@ -99,5 +111,9 @@ vec3 place_block_vertex(ivec2 local) {
     float raw = raw_at(s);
     precise float p = (raw_at(s - d) + raw_at(s + d)) * 0.5;
     float h = given ? given_raw : (d == ivec2(0) ? raw : morph_raw(p, raw, f));
-    return vec3(float(s.x) * frame.spacing.x, h * frame.terrain.y, float(s.y) * frame.spacing.y);
+    // Integer sample coordinates relative to the anchor before any float (SPEC 8): a
+    // shared vertex gets the same bits in every block, whatever the distance to the
+    // terrain's origin. In memory the anchor is 0 and this is `s * spacing`.
+    ivec2 r = s - frame.anchor.xy;
+    return vec3(float(r.x) * frame.spacing.x, h * frame.terrain.y, float(r.y) * frame.spacing.y);
 }

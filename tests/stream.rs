@@ -8,7 +8,6 @@ mod common;
 
 use common::TempDir;
 use glam::DVec3;
-use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 use vkterrain::input::archive::Archive;
 use vkterrain::lod::audit::{audit_block, check_tiling};
@@ -19,8 +18,6 @@ use vkterrain::lod::heightfield::Heightfield;
 use vkterrain::lod::heightfield::RawSamples;
 use vkterrain::lod::pyramid::MinMaxPyramid;
 use vkterrain::lod::traversal::stitch_selection;
-use vkterrain::prepare::source::InMemory;
-use vkterrain::prepare::{prepare, Frame};
 use vkterrain::stream::cache::{root_lod, serving_tile, Heights, HostCache, Refused, TileData, BLOCK_QUADS};
 use vkterrain::stream::io::TileSource;
 use vkterrain::stream::streamer::{Streamer, RETRY_FRAMES};
@@ -28,19 +25,6 @@ use vkterrain::stream::traverse::{Selection, View};
 use vkterrain::stream::{draw, Grid, TileKey};
 
 const DELTA: f32 = 1.0;
-
-/// A rough square field of `2^10 + 1` samples (so that the in-memory grid and the
-/// archive's quadtree coincide): value noise, a ridge, a cliff and one spike.
-fn rough() -> Heightfield {
-    let side = 1025;
-    common::field(side, side, [3.0, 5.0], |x, z| {
-        let n = ((x * 7919 + z * 104_729) % 1013) as f32 * 0.002;
-        let ridge = 40.0 - ((x as f32 - 0.6 * z as f32).abs() * 0.3).min(40.0);
-        let cliff = if x > 610 && z < 400 { 70.0 } else { 0.0 };
-        let spike = if (x, z) == (700, 333) { 900.0 } else { 0.0 };
-        n + ridge + cliff + spike + ((x as f32 * 0.013).sin() * (z as f32 * 0.021).cos()) * 60.0
-    })
-}
 
 /// The rough field, its archive in a temporary directory (removed with it) and its grid.
 struct Fixture {
@@ -51,23 +35,11 @@ struct Fixture {
 }
 
 fn fixture(tag: &str) -> Fixture {
-    let hf = rough();
+    let hf = common::rough();
     let dir = TempDir::new(tag);
-    let archive = archive_of(&hf, &dir);
+    let archive = common::archive_of(&hf, &dir);
     let grid = Grid::from_meta(&archive.meta);
     Fixture { hf, archive, grid, _dir: dir }
-}
-
-fn archive_of(hf: &Heightfield, dir: &TempDir) -> Arc<Archive> {
-    let out = dir.path().join("t.pmtiles");
-    let frame = Frame {
-        spacing: [hf.spacing.x, hf.spacing.z],
-        height_scale: hf.height_scale,
-        georef: hf.georef.clone(),
-        void_samples: 0,
-    };
-    prepare(&InMemory(hf), &frame, &out, &|_, _| {}, &AtomicBool::new(false)).expect("prepare");
-    Arc::new(Archive::open(&out).expect("open"))
 }
 
 /// Low views toward the horizon, views down, views from outside the terrain looking in.
@@ -272,7 +244,7 @@ fn resident_samples_are_the_held_tiles_and_nothing_else() {
 /// on these poses: the audit above can fail.
 #[test]
 fn the_audit_catches_a_selection_that_ignores_the_deviation() {
-    let hf = rough();
+    let hf = common::rough();
     let layout = BlockLayout::of(&hf, 33).unwrap();
     let worst = poses()
         .iter()

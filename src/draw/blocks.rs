@@ -524,6 +524,7 @@ impl BlocksRenderer {
             flags: [(hf.format == crate::lod::heightfield::HeightFormat::Unorm16) as i32, 0, 0, 0],
             sky_zenith: [SKY_ZENITH[0], SKY_ZENITH[1], SKY_ZENITH[2], sky],
             sky_horizon: [horizon[0], horizon[1], horizon[2], 1.0],
+            anchor: [0; 4],
         }
     }
 
@@ -993,6 +994,7 @@ fn block_push(layout: &BlockLayout, b: &DrawBlock) -> BlockPush {
             debug_assert_ne!(bits, crate::lod::block::CORNER_UNRESOLVED, "blocks to draw come from the traversal");
             f32::from_bits(bits)
         }),
+        tile: [0; 4],
     }
 }
 
@@ -1002,7 +1004,7 @@ fn block_push(layout: &BlockLayout, b: &DrawBlock) -> BlockPush {
 /// # Safety
 /// `cmd` must be a command buffer of `d` in the recording state, and both images must
 /// stay alive until its submission completes.
-unsafe fn attachment_barriers(
+pub(crate) unsafe fn attachment_barriers(
     d: &ash::Device,
     cmd: vk::CommandBuffer,
     color: vk::Image,

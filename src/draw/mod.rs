@@ -6,3 +6,4 @@ pub mod blocks;
 pub mod frame;
 pub mod lighting;
 pub mod lighting_gpu;
+pub mod streamed;

@@ -111,6 +111,9 @@ gpu_block! {
         morph: [f32; 4] => "vec4",
         /// Raw height of each corner: NW, NE, SE, SW (`quadtree::resolve_corners`).
         corner_raw: [f32; 4] => "vec4",
+        /// Streamed frames (`HEIGHTS_ATLAS`): the tile the block is drawn from: its
+        /// origin x, z (samples), its level (vertex stride 2^level) and its atlas layer.
+        tile: [i32; 4] => "ivec4",
     }
 }
 
@@ -141,6 +144,10 @@ gpu_block! {
         sky_zenith: [f32; 4] => "vec4",
         /// Sky: horizon colour (rgb) which is also the fog colour.
         sky_horizon: [f32; 4] => "vec4",
+        /// x, y: the integer sample (x, z) that positions are relative to (SPEC 8, "Precision":
+        /// 0 in memory; the camera's nearest sample for streamed frames, whose
+        /// `view_proj` is relative to it), z: samples a side of an atlas layer, w: unused.
+        anchor: [i32; 4] => "ivec4",
     }
 }
 

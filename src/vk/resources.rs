@@ -93,7 +93,9 @@ pub struct Image {
     pub format: vk::Format,
     pub extent: vk::Extent2D,
     pub mip_levels: u32,
-    /// A view of every mip level.
+    /// Array layers (1 but for the heightfield atlas).
+    pub layers: u32,
+    /// A view of every mip level (and every layer: a 2D array view when there are layers).
     pub view: vk::ImageView,
 }
 
@@ -109,6 +111,38 @@ impl Image {
         usage: vk::ImageUsageFlags,
         shared: bool,
     ) -> VkResult<Self> {
+        Self::with_layers(device, name, extent, format, mip_levels, 1, usage, shared, false)
+    }
+
+    /// A 2D image of `layers` array layers, viewed as a 2D array (one mip).
+    pub fn array(
+        device: &Arc<Device>,
+        name: &str,
+        extent: vk::Extent2D,
+        format: vk::Format,
+        layers: u32,
+        usage: vk::ImageUsageFlags,
+        shared: bool,
+    ) -> VkResult<Self> {
+        let max = device.properties.limits.max_image_array_layers;
+        if layers == 0 || layers > max {
+            return Err(VkError::Setup(format!("{name}: {layers} layers, the device allows 1 to {max}")));
+        }
+        Self::with_layers(device, name, extent, format, 1, layers, usage, shared, true)
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn with_layers(
+        device: &Arc<Device>,
+        name: &str,
+        extent: vk::Extent2D,
+        format: vk::Format,
+        mip_levels: u32,
+        layers: u32,
+        usage: vk::ImageUsageFlags,
+        shared: bool,
+        array: bool,
+    ) -> VkResult<Self> {
         let max = device.max_image_dimension_2d();
         if extent.width > max || extent.height > max {
             return Err(VkError::Setup(format!(
@@ -122,7 +156,7 @@ impl Image {
             .format(format)
             .extent(vk::Extent3D { width: extent.width, height: extent.height, depth: 1 })
             .mip_levels(mip_levels)
-            .array_layers(1)
+            .array_layers(layers)
             .samples(vk::SampleCountFlags::TYPE_1)
             .tiling(vk::ImageTiling::OPTIMAL)
             .usage(usage)
@@ -154,15 +188,24 @@ impl Image {
         unsafe { device.raw.bind_image_memory(handle, allocation.memory(), allocation.offset()) }
             .vk("vkBindImageMemory")?;
         let aspect = aspect_of(format);
-        let view = create_view(device, handle, format, aspect, 0, mip_levels)?;
-        Ok(Image { device: device.clone(), handle, allocation: Some(allocation), format, extent, mip_levels, view })
+        let view = create_view(device, handle, format, aspect, 0, mip_levels, if array { layers } else { 0 })?;
+        Ok(Image {
+            device: device.clone(),
+            handle,
+            allocation: Some(allocation),
+            format,
+            extent,
+            mip_levels,
+            layers,
+            view,
+        })
     }
 
     /// A view of `count` mips starting at `base`.
     pub fn mip_view(&self, base: u32, count: u32) -> VkResult<ImageView> {
         Ok(ImageView {
             device: self.device.clone(),
-            handle: create_view(&self.device, self.handle, self.format, aspect_of(self.format), base, count)?,
+            handle: create_view(&self.device, self.handle, self.format, aspect_of(self.format), base, count, 0)?,
         })
     }
 
@@ -172,7 +215,7 @@ impl Image {
             base_mip_level: base_mip,
             level_count: count,
             base_array_layer: 0,
-            layer_count: 1,
+            layer_count: self.layers,
         }
     }
 }
@@ -184,6 +227,8 @@ fn aspect_of(format: vk::Format) -> vk::ImageAspectFlags {
     }
 }
 
+/// A view of mips `base..base + count`; `layers` 0 is a 2D view, N a 2D-array view of N
+/// layers.
 fn create_view(
     device: &Device,
     image: vk::Image,
@@ -191,18 +236,20 @@ fn create_view(
     aspect: vk::ImageAspectFlags,
     base: u32,
     count: u32,
+    layers: u32,
 ) -> VkResult<vk::ImageView> {
-    let info = vk::ImageViewCreateInfo::default()
-        .image(image)
-        .view_type(vk::ImageViewType::TYPE_2D)
-        .format(format)
-        .subresource_range(vk::ImageSubresourceRange {
+    // Layered images are arrays even with one layer (the shader's sampler2DArray).
+    let view_type = if layers > 0 { vk::ImageViewType::TYPE_2D_ARRAY } else { vk::ImageViewType::TYPE_2D };
+    let layers = layers.max(1);
+    let info = vk::ImageViewCreateInfo::default().image(image).view_type(view_type).format(format).subresource_range(
+        vk::ImageSubresourceRange {
             aspect_mask: aspect,
             base_mip_level: base,
             level_count: count,
             base_array_layer: 0,
-            layer_count: 1,
-        });
+            layer_count: layers,
+        },
+    );
     // SAFETY: `image` is live and the range lies within it.
     unsafe { device.raw.create_image_view(&info, None) }.vk("vkCreateImageView")
 }

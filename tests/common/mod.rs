@@ -179,3 +179,38 @@ pub fn assert_watertight<S: vkterrain::lod::heightfield::RawSamples>(
     }
     compared
 }
+
+/// A rough square field of `2^10 + 1` samples (so that the in-memory grid and the
+/// archive's quadtree coincide): value noise, a ridge, a cliff and one spike.
+#[allow(dead_code)]
+pub fn rough() -> Heightfield {
+    let side = 1025;
+    field(side, side, [3.0, 5.0], |x, z| {
+        let n = ((x * 7919 + z * 104_729) % 1013) as f32 * 0.002;
+        let ridge = 40.0 - ((x as f32 - 0.6 * z as f32).abs() * 0.3).min(40.0);
+        let cliff = if x > 610 && z < 400 { 70.0 } else { 0.0 };
+        let spike = if (x, z) == (700, 333) { 900.0 } else { 0.0 };
+        n + ridge + cliff + spike + ((x as f32 * 0.013).sin() * (z as f32 * 0.021).cos()) * 60.0
+    })
+}
+
+/// `hf` prepared into an archive in `dir`.
+#[allow(dead_code)]
+pub fn archive_of(hf: &Heightfield, dir: &TempDir) -> Arc<vkterrain::input::archive::Archive> {
+    let out = dir.path().join("t.pmtiles");
+    let frame = vkterrain::prepare::Frame {
+        spacing: [hf.spacing.x, hf.spacing.z],
+        height_scale: hf.height_scale,
+        georef: hf.georef.clone(),
+        void_samples: 0,
+    };
+    vkterrain::prepare::prepare(
+        &vkterrain::prepare::source::InMemory(hf),
+        &frame,
+        &out,
+        &|_, _| {},
+        &std::sync::atomic::AtomicBool::new(false),
+    )
+    .expect("prepare");
+    Arc::new(vkterrain::input::archive::Archive::open(&out).expect("open"))
+}

@@ -1,0 +1,25 @@
+#version 450
+// Streamed frames (SPEC 8): terrain.vert's placement with heights from the atlas layer
+// of the block's tile, positions relative to the anchor sample (the camera's nearest).
+#extension GL_GOOGLE_include_directive : require
+#define USE_BlockPush
+#define USE_FrameUniforms
+#define HEIGHTS_ATLAS
+#include "layout.glsl"
+#include "common.glsl"
+
+layout(set = 0, binding = TERRAIN_BINDING_HEIGHTS) uniform sampler2DArray heights;
+#include "block_vertex.glsl"
+
+layout(location = 0) in uvec2 in_local;
+layout(location = 0) out vec3 v_relative;
+layout(location = 1) out vec2 v_sample;
+
+void main() {
+    vec3 p = place_block_vertex(ivec2(in_local));
+    v_relative = p;
+    // Samples from the terrain's origin, for the true-extent test (exact enough: it
+    // only decides the last half sample at the far edges).
+    v_sample = p.xz / frame.spacing.xy + vec2(frame.anchor.xy);
+    gl_Position = frame.view_proj * vec4(p, 1.0);
+}

@@ -1,0 +1,406 @@
+//! Streamed frames on the GPU (SPEC section 8): the blocks of a [`Selection`] drawn from
+//! the heightfield atlas, each block's heights fetched from its tile's layer, every
+//! position relative to the camera's nearest sample (`glsl/stream.vert`).
+//!
+//! Shading is plain (normals from the surface's own derivatives, colour by height, fog):
+//! streamed tiles bring no gradient or lighting maps yet. Frames are offscreen; the
+//! viewer does not draw archives larger than one image yet.
+//!
+//! [`Selection`]: crate::stream::traverse::Selection
+
+use super::blocks::{attachment_barriers, BlockMesh, Target, COLOR_FORMAT, COLOR_RANGE, DEPTH_FORMAT, SKY_HORIZON};
+use crate::gpu::atlas::HeightAtlas;
+use crate::gpu::layout::{self, BlockPush, FrameUniforms};
+use crate::gpu::shaders;
+use crate::lod::block::{morph_value, BlockLayout, CORNER_UNRESOLVED};
+use crate::lod::camera::Camera;
+use crate::stream::draw::StreamedBlock;
+use crate::stream::Grid;
+use crate::vk::{
+    begin_one_time, host_read_barrier, image_barrier, vk, Buffer, CommandPool, DepthMode, DescriptorPool,
+    DescriptorSetLayout, Device, Fence, GraphicsPipeline, GraphicsPipelineDesc, PipelineLayout, Sampler, VkError,
+    VkResult, VkResultExt,
+};
+use std::sync::Arc;
+
+/// What a streamed frame drew.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct StreamedStats {
+    pub blocks: usize,
+    /// Blocks left out because their tile had no atlas layer (counted over the bound by
+    /// the caller; 0 when the atlas holds the frame's tiles).
+    pub missing: usize,
+}
+
+pub struct StreamedRenderer {
+    device: Arc<Device>,
+    layout: BlockLayout,
+    frame: u64,
+    cmd: vk::CommandBuffer,
+    fence: Fence,
+    commands: CommandPool,
+    pipeline: GraphicsPipeline,
+    pipeline_layout: PipelineLayout,
+    /// The capture hook's pipeline, layout, set and set layout.
+    capture: Option<(GraphicsPipeline, PipelineLayout, vk::DescriptorSet, DescriptorSetLayout)>,
+    pool: DescriptorPool,
+    set: vk::DescriptorSet,
+    _set_layout: DescriptorSetLayout,
+    uniforms: Buffer,
+    sampler: Sampler,
+    mesh: BlockMesh,
+    pub target: Target,
+}
+
+impl StreamedRenderer {
+    pub fn new(device: &Arc<Device>, layout: BlockLayout, width: u32, height: u32) -> VkResult<Self> {
+        let vertex = vk::ShaderStageFlags::VERTEX;
+        let both = vertex | vk::ShaderStageFlags::FRAGMENT;
+        let set_layout = DescriptorSetLayout::new(
+            device,
+            &[
+                (layout::TERRAIN_BINDING_HEIGHTS, vk::DescriptorType::COMBINED_IMAGE_SAMPLER, vertex),
+                (layout::TERRAIN_BINDING_FRAME, vk::DescriptorType::UNIFORM_BUFFER, both),
+            ],
+        )?;
+        let push = std::mem::size_of::<BlockPush>() as u32;
+        let pipeline_layout = PipelineLayout::new(device, &set_layout, push, vertex)?;
+        let desc = |vert, frag, layout| GraphicsPipelineDesc {
+            vert,
+            frag,
+            rasterizer_discard: frag.is_none(),
+            vertex_attribute: Some((2, vk::Format::R8G8_UINT)),
+            color_format: frag.map(|_| COLOR_FORMAT),
+            depth_format: frag.map(|_| DEPTH_FORMAT),
+            depth: if frag.is_some() { DepthMode::TestWrite } else { DepthMode::Off },
+            polygon_mode: vk::PolygonMode::FILL,
+            cull_back: false,
+            layout,
+            specialization: &[],
+        };
+        let pipeline =
+            GraphicsPipeline::new(device, &desc(shaders::STREAM_VERT, Some(shaders::STREAM_FRAG), &pipeline_layout))?;
+        // The capture hook writes from the vertex stage: only where the device allows it.
+        let capture = if device.features.vertex_stores {
+            let l = DescriptorSetLayout::new(
+                device,
+                &[
+                    (layout::TERRAIN_BINDING_HEIGHTS, vk::DescriptorType::COMBINED_IMAGE_SAMPLER, vertex),
+                    (layout::TERRAIN_BINDING_FRAME, vk::DescriptorType::UNIFORM_BUFFER, vertex),
+                    (layout::CAPTURE_BINDING_POSITIONS, vk::DescriptorType::STORAGE_BUFFER, vertex),
+                ],
+            )?;
+            let pl = PipelineLayout::new(device, &l, push, vertex)?;
+            let p = GraphicsPipeline::new(device, &desc(shaders::STREAM_CAPTURE_VERT, None, &pl))?;
+            Some((p, pl, l))
+        } else {
+            None
+        };
+        let pool = DescriptorPool::new(
+            device,
+            2,
+            &[
+                (vk::DescriptorType::COMBINED_IMAGE_SAMPLER, 2),
+                (vk::DescriptorType::UNIFORM_BUFFER, 2),
+                (vk::DescriptorType::STORAGE_BUFFER, 1),
+            ],
+        )?;
+        let set = pool.allocate(&set_layout)?;
+        let capture = match capture {
+            Some((p, pl, l)) => Some((p, pl, pool.allocate(&l)?, l)),
+            None => None,
+        };
+        let uniforms = Buffer::new(
+            device,
+            "streamed frame uniforms",
+            std::mem::size_of::<FrameUniforms>() as u64,
+            vk::BufferUsageFlags::UNIFORM_BUFFER,
+            gpu_allocator::MemoryLocation::CpuToGpu,
+        )?;
+        let commands = CommandPool::new(device, device.draw_queue.family)?;
+        let cmd = commands.allocate()?;
+        Ok(StreamedRenderer {
+            device: device.clone(),
+            layout,
+            frame: 0,
+            cmd,
+            fence: Fence::new(device, true)?,
+            commands,
+            pipeline,
+            pipeline_layout,
+            capture,
+            pool,
+            set,
+            _set_layout: set_layout,
+            uniforms,
+            sampler: Sampler::new(device, vk::Filter::NEAREST, vk::SamplerAddressMode::CLAMP_TO_EDGE)?,
+            mesh: BlockMesh::new(device, layout.k())?,
+            target: Target::new(device, width, height)?,
+        })
+    }
+
+    /// The frame uniforms of a camera relative to the anchor sample; `range`: the
+    /// terrain's world heights (the colour ramp).
+    fn uniforms(&self, atlas: &HeightAtlas, view: &FrameView) -> VkResult<FrameUniforms> {
+        let a =
+            |v: i64| i32::try_from(v).map_err(|_| VkError::Setup(format!("anchor sample {v} beyond the i32 range")));
+        let (grid, cam) = (view.grid, &view.cam);
+        let light = glam::Vec3::new(-0.4, 0.8, -0.45).normalize();
+        let vp = cam.view_proj();
+        Ok(FrameUniforms {
+            view_proj: vp.to_cols_array_2d(),
+            inv_view_proj: vp.as_dmat4().inverse().as_mat4().to_cols_array_2d(),
+            camera_fog: [cam.position.x, cam.position.y, cam.position.z, 0.0],
+            terrain: [0.0, grid.height_scale as f32, view.range[0], view.range[1]],
+            spacing: [grid.spacing[0] as f32, grid.spacing[1] as f32, 0.0, 0.0],
+            light: [light.x, light.y, light.z, 0.25],
+            texturing: [0.0; 4],
+            extent: [grid.width as i32, grid.height as i32, 0, self.layout.k() as i32],
+            flags: [atlas.unorm16 as i32, 0, 0, 0],
+            sky_zenith: [0.0; 4],
+            sky_horizon: [SKY_HORIZON[0], SKY_HORIZON[1], SKY_HORIZON[2], 1.0],
+            anchor: [a(view.anchor[0])?, a(view.anchor[1])?, atlas.side as i32, 0],
+        })
+    }
+
+    /// Push constants of each block that has an atlas layer, recording that frame
+    /// `self.frame` draws from it; the count of blocks without one.
+    fn pushes(&self, atlas: &mut HeightAtlas, blocks: &[StreamedBlock]) -> (Vec<BlockPush>, usize) {
+        let mut out = Vec::with_capacity(blocks.len());
+        let mut missing = 0;
+        for sb in blocks {
+            let Some(layer) = atlas.draw_layer(sb.tile, self.frame) else {
+                missing += 1;
+                continue;
+            };
+            let b = &sb.block;
+            let (ox, oz) = b.origin(&self.layout);
+            let c = b.coarser;
+            let tile_span = |level: u8| (atlas.side as i64 - 3) << level;
+            let t = sb.tile;
+            out.push(BlockPush {
+                block: [ox as i32, oz as i32, b.stride() as i32, b.lod as i32],
+                coarser_neighbour_stride: [c[0] as i32, c[1] as i32, c[2] as i32, c[3] as i32],
+                morph_edges: b.edge_morph.map(morph_value),
+                morph: [morph_value(b.morph), 0.0, 0.0, 0.0],
+                corner_raw: b.corner_raw.map(|bits| {
+                    debug_assert_ne!(bits, CORNER_UNRESOLVED, "streamed blocks are stitched");
+                    f32::from_bits(bits)
+                }),
+                tile: [
+                    (i64::from(t.tx) * tile_span(t.level)) as i32,
+                    (i64::from(t.tz) * tile_span(t.level)) as i32,
+                    i32::from(t.level),
+                    layer as i32,
+                ],
+            });
+        }
+        (out, missing)
+    }
+
+    /// Writes the frame's uniforms and the atlas into the set (after the last frame).
+    fn bind(&mut self, atlas: &HeightAtlas, view: &FrameView, set: vk::DescriptorSet) -> VkResult<()> {
+        self.fence.wait(u64::MAX)?;
+        let u = self.uniforms(atlas, view)?;
+        self.uniforms.mapped_mut()?[..std::mem::size_of::<FrameUniforms>()].copy_from_slice(bytemuck::bytes_of(&u));
+        self.pool.write(
+            set,
+            &[(layout::TERRAIN_BINDING_HEIGHTS, atlas.image.view, self.sampler.handle)],
+            &[(layout::TERRAIN_BINDING_FRAME, self.uniforms.handle, std::mem::size_of::<FrameUniforms>() as u64)],
+        );
+        Ok(())
+    }
+
+    /// Submits the recorded command buffer and waits for it.
+    fn submit_and_wait(&mut self) -> VkResult<()> {
+        // SAFETY: `cmd` is recording on this thread.
+        unsafe { self.device.raw.end_command_buffer(self.cmd) }.vk("vkEndCommandBuffer")?;
+        self.fence.reset()?;
+        let cmds = [vk::CommandBufferSubmitInfo::default().command_buffer(self.cmd)];
+        self.device.draw_queue.submit(
+            &self.device,
+            &[vk::SubmitInfo2::default().command_buffer_infos(&cmds)],
+            self.fence.handle,
+        )?;
+        self.fence.wait(u64::MAX)
+    }
+
+    /// The frame number the next frame will have: layers drawn by frames before it have
+    /// completed (frames are waited for), so the atlas may reuse them.
+    pub fn completed_frame(&self) -> u64 {
+        self.frame
+    }
+
+    /// Draws `blocks` from `atlas` as seen by `view`, waits, and returns the RGBA8 (sRGB)
+    /// pixels.
+    pub fn render(
+        &mut self,
+        atlas: &mut HeightAtlas,
+        view: &FrameView,
+        blocks: &[StreamedBlock],
+    ) -> VkResult<(Vec<u8>, StreamedStats)> {
+        let set = self.set;
+        self.bind(atlas, view, set)?;
+        self.frame += 1;
+        let (pushes, missing) = self.pushes(atlas, blocks);
+        let d = self.device.raw.clone();
+        let (cmd, target) = (self.cmd, &self.target);
+        let extent = vk::Extent2D { width: target.width, height: target.height };
+        let area = vk::Rect2D { offset: vk::Offset2D::default(), extent };
+        let clear = [SKY_HORIZON[0], SKY_HORIZON[1], SKY_HORIZON[2], 1.0];
+        let color_att = [vk::RenderingAttachmentInfo::default()
+            .image_view(target.color.view)
+            .image_layout(vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL)
+            .load_op(vk::AttachmentLoadOp::CLEAR)
+            .store_op(vk::AttachmentStoreOp::STORE)
+            .clear_value(vk::ClearValue { color: vk::ClearColorValue { float32: clear } })];
+        let depth_att = vk::RenderingAttachmentInfo::default()
+            .image_view(target.depth.view)
+            .image_layout(vk::ImageLayout::DEPTH_ATTACHMENT_OPTIMAL)
+            .load_op(vk::AttachmentLoadOp::CLEAR)
+            .store_op(vk::AttachmentStoreOp::DONT_CARE)
+            .clear_value(vk::ClearValue { depth_stencil: vk::ClearDepthStencilValue { depth: 0.0, stencil: 0 } });
+        let rendering = vk::RenderingInfo::default()
+            .render_area(area)
+            .layer_count(1)
+            .color_attachments(&color_att)
+            .depth_attachment(&depth_att);
+        let viewport = vk::Viewport {
+            x: 0.0,
+            y: 0.0,
+            width: extent.width as f32,
+            height: extent.height as f32,
+            min_depth: 0.0,
+            max_depth: 1.0,
+        };
+        let rendered = (
+            vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT,
+            vk::AccessFlags2::COLOR_ATTACHMENT_WRITE,
+            vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL,
+        );
+        // SAFETY: the fence was waited in `bind`, so `cmd` is free; every object bound
+        // lives in `self` or `atlas` and outlives the wait in `submit_and_wait`.
+        unsafe {
+            begin_one_time(&d, cmd)?;
+            attachment_barriers(
+                &d,
+                cmd,
+                target.color.handle,
+                (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_READ),
+                &target.depth,
+            );
+            d.cmd_begin_rendering(cmd, &rendering);
+            d.cmd_set_viewport(cmd, 0, &[viewport]);
+            d.cmd_set_scissor(cmd, 0, &[area]);
+            d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, self.pipeline.handle);
+            d.cmd_bind_descriptor_sets(
+                cmd,
+                vk::PipelineBindPoint::GRAPHICS,
+                self.pipeline_layout.handle,
+                0,
+                &[set],
+                &[],
+            );
+            d.cmd_bind_vertex_buffers(cmd, 0, &[self.mesh.vertices.handle], &[0]);
+            d.cmd_bind_index_buffer(cmd, self.mesh.indices.handle, 0, self.mesh.index_type);
+            for p in &pushes {
+                d.cmd_push_constants(
+                    cmd,
+                    self.pipeline_layout.handle,
+                    vk::ShaderStageFlags::VERTEX,
+                    0,
+                    bytemuck::bytes_of(p),
+                );
+                d.cmd_draw_indexed(cmd, self.mesh.index_count, 1, 0, 0, 0);
+            }
+            d.cmd_end_rendering(cmd);
+            image_barrier(&d, cmd, target.color.handle, COLOR_RANGE, rendered, crate::vk::COPY_SOURCE);
+            crate::vk::copy_image_to_host(&d, cmd, target.color.handle, extent, target.readback.handle);
+        }
+        self.submit_and_wait()?;
+        Ok((self.target.pixels()?, StreamedStats { blocks: pushes.len(), missing }))
+    }
+
+    /// Test hook: the position (relative to the anchor) the vertex shader gives every
+    /// vertex of `blocks` (`k * k` a block, row-major), from glsl/stream_capture.vert.
+    pub fn capture(
+        &mut self,
+        atlas: &mut HeightAtlas,
+        view: &FrameView,
+        blocks: &[StreamedBlock],
+    ) -> VkResult<Vec<[f32; 4]>> {
+        let Some((pipeline, pipeline_layout, set, _)) = &self.capture else {
+            return Err(VkError::Setup("vertex capture needs vertexPipelineStoresAndAtomics".into()));
+        };
+        let set = *set;
+        let k = self.layout.k() as usize;
+        let positions = Buffer::new(
+            &self.device,
+            "captured streamed vertices",
+            (blocks.len().max(1) * k * k * 16) as u64,
+            vk::BufferUsageFlags::STORAGE_BUFFER,
+            gpu_allocator::MemoryLocation::GpuToCpu,
+        )?;
+        let (pipeline, pipeline_layout) = (pipeline.handle, pipeline_layout.handle);
+        self.bind(atlas, view, set)?;
+        let storage = [vk::DescriptorBufferInfo { buffer: positions.handle, offset: 0, range: vk::WHOLE_SIZE }];
+        let write = vk::WriteDescriptorSet::default()
+            .dst_set(set)
+            .dst_binding(layout::CAPTURE_BINDING_POSITIONS)
+            .descriptor_type(vk::DescriptorType::STORAGE_BUFFER)
+            .buffer_info(&storage);
+        self.frame += 1;
+        let (pushes, missing) = self.pushes(atlas, blocks);
+        if missing > 0 {
+            return Err(VkError::Setup(format!("{missing} blocks have no atlas layer")));
+        }
+        let d = self.device.raw.clone();
+        let cmd = self.cmd;
+        let area = vk::Rect2D { offset: vk::Offset2D::default(), extent: vk::Extent2D { width: 1, height: 1 } };
+        // SAFETY: the set is new; the fence was waited in `bind`; every object outlives
+        // the wait in `submit_and_wait`.
+        unsafe {
+            d.update_descriptor_sets(&[write], &[]);
+            begin_one_time(&d, cmd)?;
+            d.cmd_begin_rendering(cmd, &vk::RenderingInfo::default().render_area(area).layer_count(1));
+            d.cmd_set_viewport(
+                cmd,
+                0,
+                &[vk::Viewport { x: 0.0, y: 0.0, width: 1.0, height: 1.0, min_depth: 0.0, max_depth: 1.0 }],
+            );
+            d.cmd_set_scissor(cmd, 0, &[area]);
+            d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, pipeline);
+            d.cmd_bind_descriptor_sets(cmd, vk::PipelineBindPoint::GRAPHICS, pipeline_layout, 0, &[set], &[]);
+            d.cmd_bind_vertex_buffers(cmd, 0, &[self.mesh.vertices.handle], &[0]);
+            d.cmd_bind_index_buffer(cmd, self.mesh.indices.handle, 0, self.mesh.index_type);
+            for (i, p) in pushes.iter().enumerate() {
+                d.cmd_push_constants(cmd, pipeline_layout, vk::ShaderStageFlags::VERTEX, 0, bytemuck::bytes_of(p));
+                d.cmd_draw_indexed(cmd, self.mesh.index_count, 1, 0, 0, i as u32);
+            }
+            d.cmd_end_rendering(cmd);
+            let written = (vk::PipelineStageFlags2::VERTEX_SHADER, vk::AccessFlags2::SHADER_STORAGE_WRITE);
+            host_read_barrier(&d, cmd, positions.handle, written);
+        }
+        self.submit_and_wait()?;
+        let floats: Vec<f32> = bytemuck::pod_collect_to_vec(&positions.mapped()?[..blocks.len() * k * k * 16]);
+        Ok(floats.chunks(4).map(|c| [c[0], c[1], c[2], c[3]]).collect())
+    }
+}
+
+/// What a streamed frame is seen from: the grid, the anchor sample and the camera
+/// relative to it ([`crate::stream::traverse::View::relative`]), and the terrain's world
+/// height range for the colour ramp.
+pub struct FrameView<'a> {
+    pub grid: &'a Grid,
+    pub anchor: [i64; 2],
+    pub cam: Camera,
+    pub range: [f32; 2],
+}
+
+impl Drop for StreamedRenderer {
+    fn drop(&mut self) {
+        // The last frame before the pool, pipelines and buffers go.
+        let _ = self.fence.wait(u64::MAX);
+        self.commands.free(self.cmd);
+    }
+}

@@ -1,0 +1,180 @@
+//! Streamed frames on the GPU (SPEC section 8), under validation: the atlas holds each
+//! tile's heights exactly, the vertex shader places every streamed vertex where the
+//! plain-Rust placement does (bit for bit, relative to the anchor sample), a layer is
+//! reused only once the frames that drew from it completed, and a frame draws terrain.
+
+mod common;
+
+use common::TempDir;
+use glam::DVec3;
+use std::sync::Arc;
+use vkterrain::draw::streamed::{FrameView, StreamedRenderer};
+use vkterrain::gpu::atlas::HeightAtlas;
+use vkterrain::lod::block::block_vertex;
+use vkterrain::lod::heightfield::Heightfield;
+use vkterrain::stream::cache::TileData;
+use vkterrain::stream::draw::{self, Resident, StreamedBlock};
+use vkterrain::stream::streamer::Streamer;
+use vkterrain::stream::traverse::{Selection, View};
+use vkterrain::stream::Grid;
+
+fn settled(s: &mut Streamer, view: &View) -> Selection {
+    for _ in 0..16 {
+        let sel = s.frame(view, None, 1.0, 1.0);
+        if sel.within_bound() {
+            return sel;
+        }
+        s.settle();
+    }
+    panic!("not settled");
+}
+
+fn views() -> Vec<View> {
+    vec![
+        View::look_at(DVec3::new(1500.0, 170.0, 2500.0), DVec3::new(2600.0, 60.0, 3800.0), 45.0, 320, 240, 1.0),
+        View::look_at(DVec3::new(-400.0, 300.0, -300.0), DVec3::new(1500.0, 0.0, 2500.0), 45.0, 320, 240, 1.0),
+        View::look_at(DVec3::new(2100.0, 900.0, 1666.0), DVec3::new(2150.0, 0.0, 1700.0), 60.0, 320, 240, 1.0),
+    ]
+}
+
+/// The tiles `sel` draws from, as the cache holds them.
+fn tiles(s: &Streamer, sel: &Selection) -> Vec<Arc<TileData>> {
+    sel.used.iter().map(|k| s.cache.peek(*k).expect("used tiles are held").clone()).collect()
+}
+
+/// Where the shader must put every vertex: the CPU placement from the held tiles, in
+/// f32 the way the shader computes it (integer sample minus anchor, then times spacing).
+fn expected(grid: &Grid, s: &Streamer, anchor: [i64; 2], blocks: &[StreamedBlock]) -> Vec<[f32; 3]> {
+    let layout = draw::layout(grid);
+    let resident = Resident { grid, cache: &s.cache };
+    let k = layout.k();
+    let mut out = Vec::new();
+    for b in blocks {
+        for v in 0..k {
+            for u in 0..k {
+                let (x, z, raw) = block_vertex(&resident, &layout, &b.block, u, v);
+                assert!(!raw.is_nan(), "{:?} vertex ({u}, {v}) has a held sample", b.block);
+                out.push([
+                    (x - anchor[0]) as f32 * grid.spacing[0] as f32,
+                    raw * grid.height_scale as f32,
+                    (z - anchor[1]) as f32 * grid.spacing[1] as f32,
+                ]);
+            }
+        }
+    }
+    out
+}
+
+/// The rough field in whole units (a 16-bit archive, an R16_UNORM atlas), scaled back.
+fn rough16() -> Heightfield {
+    let f = common::rough();
+    common::field16(f.width, f.height, [3.0, 5.0], 0.25, |x, z| (f.raw_at(x as i64, z as i64) * 4.0 + 100.0) as u16)
+}
+
+#[test]
+fn streamed_vertices_from_the_atlas_are_the_cpu_placement_and_a_frame_draws_terrain() {
+    for (hf, unorm16) in [(common::rough(), false), (rough16(), true)] {
+        streamed_frames_match(&hf, unorm16);
+    }
+}
+
+fn streamed_frames_match(hf: &Heightfield, unorm16: bool) {
+    let dir = TempDir::new("gpu-stream");
+    let archive = common::archive_of(hf, &dir);
+    let grid = Grid::from_meta(&archive.meta);
+    let device = common::gpu();
+    {
+        let mut s = Streamer::new(archive, grid, 1 << 30);
+        let mut atlas = HeightAtlas::new(&device, &grid, 64 << 20).unwrap();
+        assert_eq!(atlas.unorm16, unorm16, "the atlas format follows the archive's samples");
+        let mut renderer = StreamedRenderer::new(&device, draw::layout(&grid), 320, 240).unwrap();
+        let (mut compared, mut mutated) = (0usize, 0usize);
+        for (i, view) in views().iter().enumerate() {
+            let sel = settled(&mut s, view);
+            let blocks = draw::stitched_blocks(&grid, &s.cache, &sel);
+            let held = tiles(&s, &sel);
+            let refs: Vec<&Arc<TileData>> = held.iter().collect();
+            let used = sel.used.clone();
+            let up = atlas.upload(&refs, renderer.completed_frame(), |k| used.contains(&k)).unwrap();
+            assert_eq!(up.waiting, 0, "pose {i}: every tile found a layer");
+            let (anchor, cam) = view.relative(&grid);
+            let fv = FrameView { grid: &grid, anchor, cam, range: [0.0, 1000.0] };
+            let want = expected(&grid, &s, anchor, &blocks);
+            let got = renderer.capture(&mut atlas, &fv, &blocks).unwrap();
+            assert_eq!(got.len(), want.len(), "pose {i}");
+            for (j, (g, w)) in got.iter().zip(&want).enumerate() {
+                assert_eq!([g[0], g[1], g[2]], *w, "pose {i}: block {:?} vertex {}", blocks[j / 1089].block, j % 1089);
+            }
+            compared += got.len();
+
+            // A block drawn from another tile's layer is caught: the check can fail.
+            // (Another tile covering the block holds the same samples: pick one that does not.)
+            let layout = draw::layout(&grid);
+            let covers = |t: vkterrain::stream::TileKey, b: &vkterrain::lod::block::DrawBlock| {
+                let span = grid.tile_span(t.level) as u32;
+                let (ox, oz) = b.origin(&layout);
+                (ox / span, oz / span) == (t.tx, t.tz)
+            };
+            if let Some(j) = (1..blocks.len()).find(|&j| !covers(blocks[j].tile, &blocks[0].block)) {
+                let mut wrong = blocks.clone();
+                wrong[0].tile = blocks[j].tile;
+                let bad = renderer.capture(&mut atlas, &fv, &wrong).unwrap();
+                let differs = (0..1089).any(|v| [bad[v][0], bad[v][1], bad[v][2]] != want[v]);
+                assert!(
+                    differs,
+                    "pose {i}: the wrong tile's heights went unnoticed: {:?} from {:?}",
+                    blocks[0], blocks[j].tile
+                );
+                mutated += 1;
+            }
+
+            let (pixels, stats) = renderer.render(&mut atlas, &fv, &blocks).unwrap();
+            assert_eq!((stats.blocks, stats.missing), (blocks.len(), 0));
+            let sky = pixels.chunks(4).filter(|p| p[..3] == pixels[..3]).count();
+            let terrain = pixels.len() / 4 - sky;
+            assert!(terrain > pixels.len() / 4 / 5, "pose {i}: {terrain} terrain pixels of {}", pixels.len() / 4);
+        }
+        assert!(compared > 100_000, "vertices compared: {compared}");
+        assert!(mutated >= 2, "the wrong-tile check ran at {mutated} poses");
+    }
+    common::finish(device);
+}
+
+#[test]
+fn an_atlas_layer_is_reused_only_after_the_frames_that_drew_it() {
+    let dir = TempDir::new("gpu-stream-reuse");
+    let hf = common::rough();
+    let archive = common::archive_of(&hf, &dir);
+    let grid = Grid::from_meta(&archive.meta);
+    let device = common::gpu();
+    {
+        let mut s = Streamer::new(archive, grid, 1 << 30);
+        let view = views()[0];
+        let sel = settled(&mut s, &view);
+        let held = tiles(&s, &sel);
+        assert!(held.len() >= 4);
+        let side = (grid.tile_quads + 3) as u64;
+        // Room for two tiles (the rough field is float: 4 bytes a sample).
+        let mut atlas = HeightAtlas::new(&device, &grid, 2 * side * side * 4).unwrap();
+        assert_eq!(atlas.layer_count(), 2);
+        let first: Vec<&Arc<TileData>> = held[..2].iter().collect();
+        assert_eq!(atlas.upload(&first, 0, |_| false).unwrap().tiles, 2);
+        // Frame 1 draws both.
+        for t in &first {
+            assert!(atlas.draw_layer(t.key, 1).is_some());
+        }
+        let next: Vec<&Arc<TileData>> = held[2..4].iter().collect();
+        // Frame 1 has not completed: nothing may be overwritten.
+        let up = atlas.upload(&next, 0, |_| false).unwrap();
+        assert_eq!((up.tiles, up.waiting), (0, 2));
+        assert!(first.iter().all(|t| atlas.holds(t.key)));
+        // Once it has, both layers take the new tiles.
+        let up = atlas.upload(&next, 1, |_| false).unwrap();
+        assert_eq!((up.tiles, up.waiting), (2, 0));
+        assert!(next.iter().all(|t| atlas.holds(t.key)) && !first.iter().any(|t| atlas.holds(t.key)));
+        // A budget below one tile is refused with the figure.
+        let err = HeightAtlas::new(&device, &grid, 1000).err().expect("no layer fits").to_string();
+        assert!(err.contains("--gpu-mb") && err.contains("bytes a tile"), "{err}");
+    }
+    common::finish(device);
+}
