@@ -5,7 +5,7 @@
 
 mod common;
 
-use common::TempDir;
+use common::{cli, TempDir};
 use std::path::Path;
 use std::process::Command;
 use std::sync::atomic::AtomicBool;
@@ -265,10 +265,6 @@ fn a_failed_or_interrupted_run_leaves_no_file() {
     assert!(e.to_string().contains("read error at window 6"), "{e}");
     let left: Vec<_> = std::fs::read_dir(dir.path()).unwrap().collect();
     assert!(left.is_empty(), "left behind: {left:?}");
-}
-
-fn cli(args: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_vkterrain")).args(args).env("RUST_LOG", "error").output().unwrap()
 }
 
 #[test]

@@ -5,7 +5,7 @@
 
 mod common;
 
-use common::TempDir;
+use common::{cli, TempDir};
 use std::io::{BufRead, BufReader, Write};
 use std::net::TcpListener;
 use std::path::PathBuf;
@@ -98,10 +98,6 @@ fn serve(root: PathBuf, mode: Mode) -> (String, Arc<AtomicUsize>) {
         }
     });
     (url, served)
-}
-
-fn cli(args: &[&str]) -> std::process::Output {
-    common::run_bounded(&args.iter().map(|a| a.to_string()).collect::<Vec<_>>(), 120)
 }
 
 fn prepared(dir: &TempDir) -> PathBuf {

@@ -6,7 +6,7 @@
 
 mod common;
 
-use common::TempDir;
+use common::{cli, TempDir};
 use glam::DVec3;
 use std::sync::Arc;
 use vkterrain::input::archive::Archive;
@@ -454,10 +454,6 @@ fn far_from_the_origin_the_frames_are_the_same() {
             poses().iter().filter(|v| f64::from((v.position.x + offset) as f32) != v.position.x + offset).count();
         assert!(lost > 0, "offset {offset}: f32 would keep every position exactly");
     }
-}
-
-fn cli(args: &[&str]) -> std::process::Output {
-    std::process::Command::new(env!("CARGO_BIN_EXE_vkterrain")).args(args).env("RUST_LOG", "error").output().unwrap()
 }
 
 /// `vkterrain stream` end to end on a small prepared archive: a flight over more tiles

@@ -18,7 +18,7 @@ bash tools/cargo.sh clippy --all-targets -- -D warnings
 echo "== cargo test (lavapipe, validation + synchronization validation)" >&2
 # Window tests need an X server; everything else is headless.
 set +e
-xvfb-run -a -s "-screen 0 1280x1024x24" cargo test "$@" 2>&1 | tee "$log"
+xvfb-run -a -s "-screen 0 1280x1024x24" cargo test --no-fail-fast "$@" 2>&1 | tee "$log"
 status=${PIPESTATUS[0]}
 set -e
 # One closing line over every test binary.

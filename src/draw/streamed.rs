@@ -9,7 +9,7 @@
 //! [`Selection`]: crate::stream::traverse::Selection
 
 use super::blocks::{attachment_barriers, BlockMesh, Target, COLOR_FORMAT, COLOR_RANGE, DEPTH_FORMAT, SKY_HORIZON};
-use crate::gpu::atlas::HeightAtlas;
+use crate::errors::atlas::HeightAtlas;
 use crate::gpu::layout::{self, BlockPush, FrameUniforms};
 use crate::gpu::shaders;
 use crate::lod::block::{morph_value, BlockLayout, CORNER_UNRESOLVED};

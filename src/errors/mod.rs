@@ -1,8 +1,10 @@
 //! The errors activity: its own CPU thread and queue rasterize the screen-space error
 //! pyramid ([`activity`], its GPU work in [`passes`]), hand each finished generation over by the rules of
-//! [`handoff`], and the draw thread reads them through the [`feed`].
+//! [`handoff`], and the draw thread reads them through the [`feed`]. Streamed frames'
+//! tiles go into the heightfield [`atlas`] under the same rules.
 
 pub mod activity;
+pub mod atlas;
 pub mod feed;
 pub mod handoff;
 pub mod passes;

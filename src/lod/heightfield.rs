@@ -372,6 +372,21 @@ impl Heightfield {
     }
 }
 
+/// Raw samples at integer sample coordinates: the whole heightfield in memory, or the
+/// tiles a streamed frame holds (`stream::draw::Resident`). The block placement, corner
+/// resolution and the audit's rendered surface read samples only through this, so the
+/// CPU mirror of the vertex shader is one copy for both.
+pub trait RawSamples {
+    fn raw_at(&self, x: i64, z: i64) -> f32;
+}
+
+impl RawSamples for Heightfield {
+    #[inline]
+    fn raw_at(&self, x: i64, z: i64) -> f32 {
+        Heightfield::raw_at(self, x, z)
+    }
+}
+
 /// A crafted float field of `w x h` samples at spacing 1, for the core's unit tests.
 #[cfg(test)]
 pub(crate) fn test_field(w: usize, h: usize, f: impl Fn(usize, usize) -> f32) -> Heightfield {
@@ -474,20 +489,5 @@ mod tests {
         // On the b-h (anti-)diagonal the answer would differ: check a point off the diagonal.
         assert_eq!(hf.surface_height(0.75, 0.25), 0.25);
         assert_eq!(hf.surface_height(1.0, 1.0), 1.0);
-    }
-}
-
-/// Raw samples at integer sample coordinates: the whole heightfield in memory, or the
-/// tiles a streamed frame holds (`stream::draw::Resident`). The block placement, corner
-/// resolution and the audit's rendered surface read samples only through this, so the
-/// CPU mirror of the vertex shader is one copy for both.
-pub trait RawSamples {
-    fn raw_at(&self, x: i64, z: i64) -> f32;
-}
-
-impl RawSamples for Heightfield {
-    #[inline]
-    fn raw_at(&self, x: i64, z: i64) -> f32 {
-        Heightfield::raw_at(self, x, z)
     }
 }

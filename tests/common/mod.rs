@@ -119,6 +119,12 @@ pub fn run_bounded(args: &[String], limit_s: u64) -> std::process::Output {
     child.wait_with_output().unwrap()
 }
 
+/// `vkterrain ARGS` as a test runs it: [`run_bounded`] with room for a slow machine.
+#[allow(dead_code)]
+pub fn cli(args: &[&str]) -> std::process::Output {
+    run_bounded(&args.iter().map(|a| a.to_string()).collect::<Vec<_>>(), 600)
+}
+
 /// Every drawn edge vertex lies on the neighbour's surface: for LOD differences up to m
 /// it coincides with one of the neighbour's vertices (same sample, same height).
 /// Every sample on the boundary between two drawn blocks has the same rendered height in
