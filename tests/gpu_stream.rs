@@ -5,11 +5,11 @@
 
 mod common;
 
-use common::TempDir;
+use common::{cli, TempDir};
 use glam::DVec3;
 use std::sync::Arc;
 use vkterrain::draw::streamed::{FrameView, StreamedRenderer};
-use vkterrain::gpu::atlas::HeightAtlas;
+use vkterrain::errors::atlas::HeightAtlas;
 use vkterrain::lod::block::block_vertex;
 use vkterrain::lod::heightfield::Heightfield;
 use vkterrain::stream::cache::TileData;
@@ -177,4 +177,46 @@ fn an_atlas_layer_is_reused_only_after_the_frames_that_drew_it() {
         assert!(err.contains("--gpu-mb") && err.contains("bytes a tile"), "{err}");
     }
     common::finish(device);
+}
+
+/// `vkterrain stream --gpu-mb` end to end under validation: every frame of the flight is
+/// drawn from the atlas, no block misses its layer, the last frame shows terrain, and no
+/// validation message is reported. An atlas too small for a frame's tiles is counted
+/// (`frames_missing_blocks`), not hidden.
+#[test]
+fn the_stream_command_draws_every_frame_from_the_atlas_under_validation() {
+    let dir = TempDir::new("gpu-stream-cli");
+    let archive = dir.path().join("s.pmtiles");
+    let a = archive.to_str().unwrap();
+    let o = cli(&["prepare", "--synthetic", "1025", "--out", a]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let png = dir.path().join("last.png");
+    let fly = |gpu_mb: &str, out: Option<&str>| {
+        let mut args =
+            vec!["stream", a, "--frames", "24", "--fps", "240", "--speed", "4000", "--size", "256x192", "--validate"];
+        args.extend(["--gpu-mb", gpu_mb]);
+        if let Some(out) = out {
+            args.extend(["--out", out]);
+        }
+        let o = cli(&args);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        serde_json::from_slice::<serde_json::Value>(&o.stdout).unwrap()
+    };
+    let r = fly("32", Some(png.to_str().unwrap()));
+    let gpu = &r["gpu"];
+    assert_eq!(gpu["frames_drawn"], 24, "{r}");
+    assert_eq!(gpu["frames_missing_blocks"], 0, "{r}");
+    assert_eq!(gpu["validation"], true, "{r}");
+    assert_eq!(gpu["validation_messages"], 0, "{r}");
+    assert!(gpu["tiles_uploaded"].as_u64().unwrap() > 0, "{r}");
+    let img = image::open(&png).unwrap().to_rgba8();
+    assert_eq!(img.dimensions(), (256, 192));
+    let sky = *img.get_pixel(0, 0);
+    let terrain = img.pixels().filter(|p| **p != sky).count();
+    assert!(terrain > 256 * 192 / 5, "{terrain} terrain pixels");
+    // Room for seven 16-bit tiles (259^2 samples with their border): fewer than a frame uses.
+    let r = fly("1", None);
+    assert_eq!(r["gpu"]["atlas_layers"], 7, "{r}");
+    assert!(r["gpu"]["frames_missing_blocks"].as_u64().unwrap() > 0, "{r}");
+    assert_eq!(r["gpu"]["validation_messages"], 0, "{r}");
 }

@@ -1,12 +1,12 @@
-//! `vkterrain stream`: a headless low flight over a tile archive, the host side of
-//! streaming (IO thread, host cache, the traversal over resident tiles), frame by frame
-//! at a fixed rate, with what it read, held and drew as JSON. No GPU: the atlas is not
-//! built yet, so the frames are selections, not pictures.
+//! `vkterrain stream`: a headless low flight over a tile archive (IO thread, host cache,
+//! the traversal over resident tiles), frame by frame at a fixed rate, with what it read,
+//! held and drew as JSON. With `--gpu-mb` every frame is also drawn on the GPU from the
+//! heightfield atlas ([`crate::draw::streamed`]); without it, frames are selections.
 
 use crate::app::cli::InputError;
 use crate::input::archive::Archive;
 use crate::stream::streamer::{StreamStats, Streamer};
-use crate::stream::traverse::View;
+use crate::stream::traverse::{Selection, View};
 use crate::stream::Grid;
 use glam::DVec3;
 use std::path::PathBuf;
@@ -42,6 +42,101 @@ pub struct StreamArgs {
     /// flight reads from the disk.
     #[arg(long)]
     pub cold: bool,
+    /// Draw every frame on the GPU, from a heightfield atlas of this many MB (one layer a
+    /// tile, at most 2048 layers). Without it the flight is the host side only.
+    #[arg(long, value_name = "MB", value_parser = clap::value_parser!(u32).range(1..=1_000_000))]
+    pub gpu_mb: Option<u32>,
+    /// With --gpu-mb: write the last frame drawn here.
+    #[arg(long, value_name = "FILE.png", requires = "gpu_mb")]
+    pub out: Option<PathBuf>,
+    /// With --gpu-mb: run under the Vulkan validation layers (with synchronization
+    /// validation) and report their messages.
+    #[arg(long, requires = "gpu_mb")]
+    pub validate: bool,
+}
+
+/// The GPU side of a flight: device, atlas and renderer, and what they did.
+struct GpuFlight {
+    atlas: crate::errors::atlas::HeightAtlas,
+    renderer: crate::draw::streamed::StreamedRenderer,
+    device: Arc<crate::vk::Device>,
+    range: [f32; 2],
+    frames: u64,
+    tiles_uploaded: u64,
+    bytes_uploaded: u64,
+    /// Frames where some block's tile found no atlas layer (those blocks not drawn).
+    frames_missing_blocks: u64,
+    drawing: Duration,
+    last: Vec<u8>,
+    validate: bool,
+}
+
+impl GpuFlight {
+    fn new(args: &StreamArgs, grid: &Grid, mb: u32, range: [f32; 2]) -> anyhow::Result<Self> {
+        use crate::vk::{Device, DeviceOptions, Instance, InstanceOptions, QueueRequest};
+        let instance = Instance::new(&InstanceOptions { validation: args.validate, extensions: Vec::new() })?;
+        let device = Device::new(instance, &DeviceOptions { gpu: None, queues: QueueRequest::Auto, swapchain: false })
+            .map_err(crate::app::commands::option_error)?;
+        let atlas = crate::errors::atlas::HeightAtlas::new(&device, grid, u64::from(mb) << 20)
+            .map_err(|e| InputError(e.to_string()))?;
+        eprintln!(
+            "vkterrain: device {}; atlas of {} layers ({} x {} {})",
+            device.name,
+            atlas.layer_count(),
+            atlas.side,
+            atlas.side,
+            if atlas.unorm16 { "16-bit" } else { "float" }
+        );
+        let (w, h) = args.size;
+        let renderer = crate::draw::streamed::StreamedRenderer::new(&device, crate::stream::draw::layout(grid), w, h)?;
+        Ok(GpuFlight {
+            atlas,
+            renderer,
+            device,
+            range,
+            frames: 0,
+            tiles_uploaded: 0,
+            bytes_uploaded: 0,
+            frames_missing_blocks: 0,
+            drawing: Duration::ZERO,
+            last: Vec::new(),
+            validate: args.validate,
+        })
+    }
+
+    /// Uploads the frame's tiles the atlas lacks and draws the frame.
+    fn draw(&mut self, streamer: &Streamer, grid: &Grid, view: &View, sel: &Selection) -> anyhow::Result<()> {
+        let t0 = Instant::now();
+        let blocks = crate::stream::draw::stitched_blocks(grid, &streamer.cache, sel);
+        let tiles: Vec<&Arc<crate::stream::cache::TileData>> =
+            sel.used.iter().filter_map(|k| streamer.cache.peek(*k)).collect();
+        let used = &sel.used;
+        let up = self.atlas.upload(&tiles, self.renderer.completed_frame(), |k| used.binary_search(&k).is_ok())?;
+        self.tiles_uploaded += up.tiles as u64;
+        self.bytes_uploaded += up.bytes;
+        let (anchor, cam) = view.relative(grid);
+        let fv = crate::draw::streamed::FrameView { grid, anchor, cam, range: self.range };
+        let (pixels, stats) = self.renderer.render(&mut self.atlas, &fv, &blocks)?;
+        self.frames_missing_blocks += (stats.missing > 0) as u64;
+        self.frames += 1;
+        self.last = pixels;
+        self.drawing += t0.elapsed();
+        Ok(())
+    }
+
+    fn report(&self) -> serde_json::Value {
+        serde_json::json!({
+            "device": self.device.name,
+            "atlas_layers": self.atlas.layer_count(),
+            "frames_drawn": self.frames,
+            "tiles_uploaded": self.tiles_uploaded,
+            "uploaded_mb": self.bytes_uploaded as f64 / f64::from(1u32 << 20),
+            "frames_missing_blocks": self.frames_missing_blocks,
+            "draw_ms_per_frame": 1e3 * self.drawing.as_secs_f64() / self.frames.max(1) as f64,
+            "validation": self.validate,
+            "validation_messages": self.validate.then(|| self.device.instance.validation_messages()),
+        })
+    }
 }
 
 /// A frame rate the flight can be paced at: 0.1 to 10,000 frames a second.
@@ -72,6 +167,12 @@ fn drop_from_page_cache(path: &std::path::Path) -> std::io::Result<()> {
 }
 
 pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
+    if let Some(out) = &args.out {
+        if out.extension().and_then(|e| e.to_str()).map(|e| e.to_lowercase()) != Some("png".into()) {
+            return Err(InputError(format!("--out {}: the output must be a .png file", out.display())).into());
+        }
+        crate::app::outputs::check_outputs(&[("--out", Some(out))], &[("archive", Some(&args.archive))])?;
+    }
     let archive = Arc::new(Archive::open(&args.archive).map_err(|e| InputError(e.to_string()))?);
     let grid = Grid::from_meta(&archive.meta);
     let shown = crate::input::archive::bytes::shown(&args.archive);
@@ -121,6 +222,19 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
         streamer.settle();
     }
     let warm_up_s = warm.elapsed().as_secs_f64();
+    let mut gpu = match args.gpu_mb {
+        Some(mb) => {
+            // The colour ramp spans the root block's heights (the top tile is held now).
+            let root = crate::stream::cache::root_lod(&grid);
+            let top = streamer.cache.peek(crate::stream::cache::serving_tile(&grid, root, 0, 0));
+            let range = top.map_or([0.0, 1.0], |t| {
+                let b = t.block(&grid, root, 0, 0);
+                [b.lo, b.hi].map(|h| (f64::from(h) * grid.height_scale) as f32)
+            });
+            Some(GpuFlight::new(args, &grid, mb, range)?)
+        }
+        None => None,
+    };
     let warm_stats = streamer.stats.clone();
     streamer.stats.worst_factor = 1.0; // the flight's own worst
     let started = Instant::now();
@@ -136,6 +250,9 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
         let sel = streamer.frame(&view, Some(&ahead), args.delta, 0.5);
         selecting += t0.elapsed();
         blocks += sel.blocks.len() as u64;
+        if let Some(g) = gpu.as_mut() {
+            g.draw(&streamer, &grid, &view, &sel)?;
+        }
         // Pacing the flight to its frame rate (not synchronisation: nothing waits on it).
         let next = period * (f + 1);
         if let Some(rest) = next.checked_sub(started.elapsed()) {
@@ -167,8 +284,13 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
         "seconds": seconds,
         "last_altitude": altitude,
         "first_failure": streamer.first_failure,
-        "gpu": "none: the atlas and drawing from it are not built; frames are CPU selections",
+        "gpu": gpu.as_ref().map(GpuFlight::report),
     });
+    if let (Some(g), Some(out)) = (gpu.as_ref(), args.out.as_ref()) {
+        let (w, h) = args.size;
+        crate::app::outputs::save_png(out, w, h, &g.last)?;
+        eprintln!("vkterrain: last frame written to {}", out.display());
+    }
     println!("{}", serde_json::to_string_pretty(&json)?);
     eprintln!(
         "vkterrain: {frames} frames, {frames_over_bound} over the bound ({:.1}%, worst {:.2}x delta); {} tiles loaded, {} distinct ({distinct_mb:.0} MB decoded, {:.1}x the cache), {} evicted; {:.1} MB read",
