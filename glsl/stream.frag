@@ -1,10 +1,12 @@
 #version 450
 // Streamed frames: lit by the light direction with normals from the surface's own
 // derivatives (flat per triangle; streamed tiles bring no gradient map yet), coloured by
-// height over the terrain's range, fogged towards the horizon colour.
+// the in-memory shading's ramp over the terrain's height range with its procedural
+// detail, fogged towards the horizon colour.
 #define USE_FrameUniforms
 #extension GL_GOOGLE_include_directive : require
 #include "layout.glsl"
+#include "ramp.glsl"
 
 layout(location = 0) in vec3 v_relative;
 layout(location = 1) in vec2 v_sample;
@@ -16,9 +18,8 @@ void main() {
     if (n.y < 0.0) n = -n;
     float range = max(frame.terrain.w - frame.terrain.z, 1e-6);
     float t = clamp((v_relative.y - frame.terrain.z) / range, 0.0, 1.0);
-    vec3 low = vec3(0.30, 0.45, 0.25), high = vec3(0.85, 0.82, 0.78);
-    vec3 albedo = mix(low, high, t);
-    float lit = max(dot(n, frame.light.xyz), 0.0) + frame.light.w;
+    vec3 albedo = ramp(t, 1.0 - n.y) * procedural_detail(v_sample);
+    float lit = frame.light.w + (1.0 - frame.light.w) * max(dot(n, frame.light.xyz), 0.0);
     vec3 c = albedo * lit;
     float d = length(v_relative - frame.camera_fog.xyz);
     float fog = 1.0 - exp(-frame.camera_fog.w * d);

@@ -220,3 +220,54 @@ fn the_stream_command_draws_every_frame_from_the_atlas_under_validation() {
     assert!(r["gpu"]["frames_missing_blocks"].as_u64().unwrap() > 0, "{r}");
     assert_eq!(r["gpu"]["validation_messages"], 0, "{r}");
 }
+
+/// `render --stream` draws an archive through the streaming path under validation: the
+/// frame waits for its tiles and is within the bound, every block finds its layer, the
+/// picture shows terrain. A cache too small for the view is reported over the bound, not
+/// hidden; options the streamed path cannot honour are refused by name (exit 2).
+#[test]
+fn render_draws_an_archive_streamed_within_the_bound() {
+    let dir = TempDir::new("gpu-stream-render");
+    let archive = dir.path().join("s.pmtiles");
+    let a = archive.to_str().unwrap();
+    let o = cli(&["prepare", "--synthetic", "1025", "--out", a]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let png = dir.path().join("r.png");
+    let p = png.to_str().unwrap();
+    let render = |extra: &[&str]| {
+        let mut args = vec!["render", "--heightmap", a, "--stream", "--validation", "on", "--size", "320x240"];
+        args.extend(["--camera", "1500,900,16000", "--look-at", "15000,300,15000", "--out", p]);
+        args.extend(extra);
+        cli(&args)
+    };
+    let o = render(&[]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!((r["streamed"].as_bool(), r["within_bound"].as_bool()), (Some(true), Some(true)), "{r}");
+    assert_eq!(r["gpu"]["frames_missing_blocks"], 0, "{r}");
+    assert_eq!(r["gpu"]["validation_messages"], 0, "{r}");
+    assert!(r["blocks"].as_u64().unwrap() > 10, "{r}");
+    let img = image::open(&png).unwrap().to_rgba8();
+    let sky = *img.get_pixel(0, 0);
+    let terrain = img.pixels().filter(|px| **px != sky).count();
+    assert!(terrain > 320 * 240 / 3, "{terrain} terrain pixels");
+
+    // One MB holds the top tiles and little more: the frame is drawn, over the bound.
+    let o = render(&["--cache-mb", "1"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(r["within_bound"], false, "{r}");
+    assert!(r["blocks_over_bound"].as_u64().unwrap() > 0 && r["worst_factor"].as_f64().unwrap() > 1.0, "{r}");
+    assert!(String::from_utf8_lossy(&o.stderr).contains("over the bound"));
+
+    for (extra, named) in
+        [(vec!["--audit"], "--audit"), (vec!["--lod", "full"], "--lod full"), (vec!["--fog", "0.1"], "--fog")]
+    {
+        let o = render(&extra);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{extra:?}: {err}");
+        assert!(err.contains(named) && err.contains("s.pmtiles") && err.contains("streamed"), "{err}");
+    }
+    let o = cli(&["render", "--stream", "--out", p]);
+    assert_eq!(o.status.code(), Some(2), "--stream without an archive: {}", String::from_utf8_lossy(&o.stderr));
+}

@@ -2,8 +2,9 @@
 //! 360-degree turn), writing per-frame figures, a summary, a plot like the paper's
 //! Figure 8, and a Chrome trace of both activities.
 
+use crate::app::cli::positive;
 use crate::app::cli::{CommonArgs, InputError, TextureArgs};
-use crate::app::commands::{draw_thread, positive, Session};
+use crate::app::commands::{draw_thread, Session};
 use crate::app::outputs::{plot_font, write_atomic};
 use crate::app::paths::{path_camera, CameraPath};
 use crate::draw::blocks::{BlocksRenderer, DrawStats, Shading, Target};

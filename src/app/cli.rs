@@ -48,12 +48,28 @@ fn parse_vec3(s: &str) -> Result<Vec3, String> {
     Ok(Vec3::from_array(v))
 }
 
-fn parse_positive(s: &str) -> Result<f32, String> {
+/// Parses a finite number greater than 0.
+pub fn positive(s: &str) -> Result<f32, String> {
     let v: f32 = s.parse().map_err(|_| format!("'{s}' is not a number"))?;
     if !(v.is_finite() && v > 0.0) {
         return Err(format!("'{s}': must be a finite number greater than 0"));
     }
     Ok(v)
+}
+
+pub fn non_negative(s: &str) -> Result<f32, String> {
+    let v: f32 = s.parse().map_err(|_| format!("'{s}' is not a number"))?;
+    if !(v.is_finite() && v >= 0.0) {
+        return Err(format!("'{s}': must be a finite number, 0 or more"));
+    }
+    Ok(v)
+}
+
+pub fn at_least_one(s: &str) -> Result<u64, String> {
+    match s.parse::<u64>() {
+        Ok(n) if n >= 1 => Ok(n),
+        _ => Err(format!("'{s}': must be a whole number, 1 or more")),
+    }
 }
 
 fn parse_fraction(s: &str) -> Result<f32, String> {
@@ -73,7 +89,7 @@ fn parse_share(s: &str) -> Result<f32, String> {
 }
 
 fn parse_fovy(s: &str) -> Result<f32, String> {
-    let v = parse_positive(s)?;
+    let v = positive(s)?;
     if v >= 179.0 {
         return Err(format!("'{s}': the field of view must be below 179 degrees"));
     }
@@ -82,8 +98,8 @@ fn parse_fovy(s: &str) -> Result<f32, String> {
 
 pub fn parse_spacing(s: &str) -> Result<Spacing, String> {
     match s.split_once(',') {
-        Some((x, z)) => Ok(Spacing { x: parse_positive(x.trim())?, z: parse_positive(z.trim())? }),
-        None => parse_positive(s).map(Spacing::from),
+        Some((x, z)) => Ok(Spacing { x: positive(x.trim())?, z: positive(z.trim())? }),
+        None => positive(s).map(Spacing::from),
     }
 }
 
@@ -106,7 +122,7 @@ pub struct CommonArgs {
     #[arg(long, value_enum, default_value_t = VoidMode::Fill)]
     pub voids: VoidMode,
     /// Metres per height unit. Default: what the file says (printed at load).
-    #[arg(long, value_name = "M", value_parser = parse_positive)]
+    #[arg(long, value_name = "M", value_parser = positive)]
     pub height_scale: Option<f32>,
     /// Viewport size in pixels.
     #[arg(long, value_name = "WxH", value_parser = parse_size)]
@@ -208,7 +224,17 @@ impl CommonArgs {
 
     pub fn camera(&self, hf: &Heightfield, default_size: (u32, u32)) -> Result<Camera, InputError> {
         let (w, h) = self.size.unwrap_or(default_size);
-        let (pos, target) = default_view(hf, self.fovy, w, h);
+        let (position, look_at) = self.view_points(|| default_view(hf, self.fovy, w, h))?;
+        Ok(Camera::look_at(position, look_at, self.fovy, w, h, near_plane(hf)))
+    }
+
+    /// `--camera` and `--look-at`, each from `default` (camera, target) when not given,
+    /// checked: distinct, and within [`MAX_WORLD`].
+    pub fn view_points(&self, default: impl FnOnce() -> (Vec3, Vec3)) -> Result<(Vec3, Vec3), InputError> {
+        let (pos, target) = match (self.camera, self.look_at) {
+            (Some(c), Some(l)) => (c, l),
+            _ => default(),
+        };
         let position = self.camera.unwrap_or(pos);
         let look_at = self.look_at.unwrap_or(target);
         if (look_at - position).length() < 1e-6 {
@@ -220,7 +246,25 @@ impl CommonArgs {
                  (single-precision positions)"
             )));
         }
-        Ok(Camera::look_at(position, look_at, self.fovy, w, h, near_plane(hf)))
+        Ok((position, look_at))
+    }
+}
+
+/// An error if the validation layers said anything: a run under validation fails on any
+/// message.
+pub fn check_messages(messages: &crate::vk::MessageCounter) -> anyhow::Result<()> {
+    let n = messages.count();
+    if n > 0 {
+        anyhow::bail!("{n} validation message(s); first: {}", messages.messages().first().cloned().unwrap_or_default());
+    }
+    Ok(())
+}
+
+/// A device that cannot satisfy `--gpu` or `--queues` is a bad option (exit code 2).
+pub fn option_error(e: crate::vk::VkError) -> anyhow::Error {
+    match e {
+        crate::vk::VkError::Option(m) => InputError(m).into(),
+        e => e.into(),
     }
 }
 
@@ -250,7 +294,7 @@ pub struct TextureArgs {
     #[arg(long, value_name = "FILE")]
     pub detail: Option<PathBuf>,
     /// Detail tiling factor DTF: detail coordinates are DTF times the base coordinates.
-    #[arg(long, value_name = "DTF", default_value = "64", value_parser = parse_positive)]
+    #[arg(long, value_name = "DTF", default_value = "64", value_parser = positive)]
     pub detail_tiling: f32,
     /// Weight alpha of the base colour in eq. 11 (1 ignores the detail texture).
     #[arg(long, value_name = "ALPHA", default_value = "0.7")]

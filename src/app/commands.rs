@@ -1,13 +1,14 @@
 //! The subcommands: `render` (one headless frame) and `errors` (one error generation).
 
 use crate::app::cli::OnOff;
-use crate::app::cli::{CommonArgs, InputError, TextureArgs};
+use crate::app::cli::{check_messages, option_error, positive, CommonArgs, InputError, TextureArgs};
 use crate::app::outputs::{check_outputs, save_png, write_atomic};
 use crate::draw::blocks::{BlocksRenderer, NormalSource, PixelPass, Shading, Target};
 use crate::draw::frame::{DrawThread, FrameRequest, LodChoice, LodTerrain};
 use crate::errors::activity::ErrorsActivity;
 use crate::errors::feed::{ErrorFeed, RefreshPolicy};
 use crate::gpu::terrain::TerrainGpu;
+use crate::input::archive::Archive;
 use crate::lod::audit;
 use crate::lod::block::BlockLayout;
 use crate::lod::gie::ErrorParams;
@@ -60,6 +61,43 @@ pub struct RenderArgs {
     /// (default), or as the blocks are drawn (the earlier shading, for comparison).
     #[arg(long, value_enum, default_value_t = PixelPass::Deferred)]
     pub pixels: PixelPass,
+    /// Draw an archive streamed (its tiles through a host cache and a GPU atlas, in
+    /// bounded memory) even when it fits in one image. Archives larger than one image are
+    /// always drawn so.
+    #[arg(long)]
+    pub stream: bool,
+    /// Streamed archives: host cache budget for decoded tiles, MB.
+    #[arg(long, value_name = "MB", default_value_t = 256, value_parser = clap::value_parser!(u32).range(1..=1_000_000))]
+    pub cache_mb: u32,
+    /// Streamed archives: GPU atlas budget, MB (one layer a tile, at most 2048 layers).
+    #[arg(long, value_name = "MB", default_value_t = 256, value_parser = clap::value_parser!(u32).range(1..=1_000_000))]
+    pub gpu_mb: u32,
+}
+
+impl RenderArgs {
+    /// The options a streamed frame cannot honour yet, given a value other than their
+    /// default (drawing anyway would ignore them silently).
+    fn not_streamed(&self) -> Vec<&'static str> {
+        let c = &self.common;
+        [
+            ("--texture", self.textures.texture.is_some()),
+            ("--detail", self.textures.detail.is_some()),
+            ("--export-mesh", self.export_mesh.is_some()),
+            ("--audit (a streamed frame is audited offline against the full data: SPEC 8)", self.audit),
+            ("--lod full|distance", self.lod != LodChoice::Error),
+            ("--error-mode paper", c.error_mode != crate::lod::gie::ErrorMode::Strict),
+            ("--colour-by-lod", self.colour_by_lod),
+            ("--background", self.background.is_some()),
+            ("--pixels forward", self.pixels != PixelPass::Deferred),
+            ("--shading heights", self.shading != NormalSource::GradientMap),
+            ("--fog", self.fog != 0.0),
+            ("--raw-size", c.raw_size.is_some()),
+            ("--block (an archive fixes k = 33)", c.block != 33),
+        ]
+        .into_iter()
+        .filter_map(|(name, set)| set.then_some(name))
+        .collect()
+    }
 }
 
 #[derive(Args, Debug)]
@@ -72,30 +110,6 @@ pub struct ErrorsArgs {
     /// Write the block-error pyramid as little-endian f32 (see README for the layout).
     #[arg(long, value_name = "FILE")]
     pub dump: Option<PathBuf>,
-}
-
-/// Parses a finite number greater than 0.
-pub fn positive(s: &str) -> Result<f32, String> {
-    let v: f32 = s.parse().map_err(|_| format!("'{s}' is not a number"))?;
-    if !(v.is_finite() && v > 0.0) {
-        return Err(format!("'{s}': must be a finite number greater than 0"));
-    }
-    Ok(v)
-}
-
-pub fn non_negative(s: &str) -> Result<f32, String> {
-    let v: f32 = s.parse().map_err(|_| format!("'{s}' is not a number"))?;
-    if !(v.is_finite() && v >= 0.0) {
-        return Err(format!("'{s}': must be a finite number, 0 or more"));
-    }
-    Ok(v)
-}
-
-pub fn at_least_one(s: &str) -> Result<u64, String> {
-    match s.parse::<u64>() {
-        Ok(n) if n >= 1 => Ok(n),
-        _ => Err(format!("'{s}': must be a whole number, 1 or more")),
-    }
 }
 
 /// Everything a command needs on the GPU.
@@ -118,17 +132,15 @@ impl Session {
     /// Opens the device, loads the heightfield and `textures` (none for `errors`), and
     /// uploads them.
     pub fn open(common: &CommonArgs, textures: Option<&TextureArgs>) -> anyhow::Result<Self> {
-        // Options first, so that a bad value fails before any file is read.
-        BlockLayout::check(common.block).map_err(InputError)?;
-        // The device first: its image size limit bounds what the loader allocates.
-        let instance = Instance::new(&InstanceOptions { validation: common.validation(), extensions: Vec::new() })?;
-        let device =
-            Device::new(instance, &DeviceOptions { gpu: common.gpu.clone(), queues: common.queues, swapchain: false })
-                .map_err(option_error)?;
-        eprintln!("vkterrain: device {}, queue mode {}", device.name, device.queue_mode.as_str());
-        for note in device.notes() {
-            eprintln!("vkterrain: note: {note}");
-        }
+        Session::with_device(open_device(common)?, common, textures)
+    }
+
+    /// [`Session::open`] on a device already open.
+    pub fn with_device(
+        device: Arc<Device>,
+        common: &CommonArgs,
+        textures: Option<&TextureArgs>,
+    ) -> anyhow::Result<Self> {
         let hf = common.load_heightfield(Some(device.max_image_dimension_2d() as usize))?;
         Session::check_size(&device, &hf)?;
         let layout = BlockLayout::of(&hf, common.block).map_err(InputError)?;
@@ -171,20 +183,27 @@ impl Session {
     }
 }
 
-/// A device that cannot satisfy `--gpu` or `--queues` is a bad option (exit code 2).
+/// The headless device the options ask for, its queue mode and notes printed. The block
+/// option is checked first, so that a bad value fails before anything starts.
+pub fn open_device(common: &CommonArgs) -> anyhow::Result<Arc<Device>> {
+    BlockLayout::check(common.block).map_err(InputError)?;
+    let instance = Instance::new(&InstanceOptions { validation: common.validation(), extensions: Vec::new() })?;
+    let device =
+        Device::new(instance, &DeviceOptions { gpu: common.gpu.clone(), queues: common.queues, swapchain: false })
+            .map_err(option_error)?;
+    eprintln!("vkterrain: device {}, queue mode {}", device.name, device.queue_mode.as_str());
+    for note in device.notes() {
+        eprintln!("vkterrain: note: {note}");
+    }
+    Ok(device)
+}
+
 /// The draw thread as the options set it up (its error feed's mode and refresh policy,
 /// morphing, occlusion culling), recording into `trace`.
 pub fn draw_thread(common: &CommonArgs, trace: Trace) -> DrawThread {
     let policy = RefreshPolicy { moved_fraction: common.refresh_at, max_share: common.update_share };
     DrawThread::new(ErrorFeed::new(common.error_mode, policy), common.morph == OnOff::On, trace)
         .with_occlusion(common.occlusion == OnOff::On)
-}
-
-pub fn option_error(e: crate::vk::VkError) -> anyhow::Error {
-    match e {
-        crate::vk::VkError::Option(m) => InputError(m).into(),
-        e => e.into(),
-    }
 }
 
 fn parse_background(s: &str) -> Result<[f32; 3], InputError> {
@@ -225,7 +244,11 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
         shading.background = parse_background(bg)?;
     }
     let shading = args.textures.shade(shading);
-    let s = Session::open(&args.common, Some(&args.textures))?;
+    let device = open_device(&args.common)?;
+    if let Some(archive) = streamed_archive(args, &device)? {
+        return render_streamed(args, device, archive);
+    }
+    let s = Session::with_device(device, &args.common, Some(&args.textures))?;
     let cam = args.common.camera(&s.hf, (1280, 720))?;
     s.check_viewport((cam.width, cam.height))?;
     let mut renderer = BlocksRenderer::new(
@@ -321,6 +344,74 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
     finish(s)
 }
 
+/// The archive `--heightmap` names when `render` draws it streamed: with `--stream`, or
+/// when its grid is larger than one image on `device`.
+fn streamed_archive(args: &RenderArgs, device: &Device) -> anyhow::Result<Option<Arc<Archive>>> {
+    let Some(path) = args.common.heightmap.as_deref().filter(|p| Archive::is_archive(p)) else {
+        if args.stream {
+            return Err(InputError("--stream draws a tile archive: give one with --heightmap".into()).into());
+        }
+        return Ok(None);
+    };
+    if args.common.voids == crate::input::load::VoidMode::Hole {
+        return Ok(None); // refused by the loader, naming the archive
+    }
+    let archive = Archive::open(path).map_err(|e| InputError(e.to_string()))?;
+    if !args.stream && archive.grid_side() <= device.max_image_dimension_2d() as usize {
+        return Ok(None);
+    }
+    Ok(Some(Arc::new(archive)))
+}
+
+/// `render` over an archive drawn streamed ([`crate::app::stream::render_archive`]).
+fn render_streamed(args: &RenderArgs, device: Arc<Device>, archive: Arc<Archive>) -> anyhow::Result<()> {
+    let shown = crate::input::archive::bytes::shown(archive.path());
+    let refused = args.not_streamed();
+    if !refused.is_empty() {
+        return Err(InputError(format!(
+            "{shown} is drawn streamed (tiles through a bounded cache), which does not take {} yet",
+            refused.join(", ")
+        ))
+        .into());
+    }
+    let m = &archive.meta;
+    eprintln!(
+        "vkterrain: {shown}: {} x {} samples, {} tile levels, drawn streamed (cache {} MB, atlas {} MB); plain \
+         shading: no textures, shadows, morphing or occlusion culling yet",
+        m.width,
+        m.height,
+        m.top_level + 1,
+        args.cache_mb,
+        args.gpu_mb
+    );
+    let queue_mode = device.queue_mode.as_str();
+    let messages = device.instance.messages.clone();
+    let r = crate::app::stream::render_archive(crate::app::stream::ArchiveFrame {
+        archive: archive.clone(),
+        device,
+        common: &args.common,
+        delta: args.delta,
+        cache_mb: args.cache_mb,
+        gpu_mb: args.gpu_mb,
+    })?;
+    save_png(&args.out, r.width, r.height, &r.pixels)?;
+    let mut out = r.report;
+    out["queue_mode"] = json!(queue_mode);
+    out["error_mode"] = json!(args.common.error_mode.as_str());
+    crate::app::outputs::TerrainFacts::of_archive(&archive.meta).merge_into(&mut out);
+    println!("{out}");
+    // Every Vulkan object is gone now: messages from their destruction count too.
+    check_messages(&messages)?;
+    if !out["within_bound"].as_bool().unwrap_or(false) {
+        eprintln!(
+            "vkterrain: WARNING: the frame is over the bound ({} blocks, worst {:.2}x delta): --cache-mb {} cannot hold \
+             the tiles this view needs",
+            out["blocks_over_bound"], out["worst_factor"], args.cache_mb
+        );
+    }
+    Ok(())
+}
+
 /// Bytes of the shared block mesh (vertex + index buffer).
 pub fn renderer_geometry_bytes(k: u32) -> u64 {
     let (v, i) = crate::lod::block::block_mesh_data(k);
@@ -333,11 +424,7 @@ pub fn renderer_geometry_bytes(k: u32) -> u64 {
 fn finish(s: Session) -> anyhow::Result<()> {
     let messages = s.device.instance.messages.clone();
     drop(s);
-    let n = messages.count();
-    if n > 0 {
-        anyhow::bail!("{n} validation message(s); first: {}", messages.messages().first().cloned().unwrap_or_default());
-    }
-    Ok(())
+    check_messages(&messages)
 }
 
 pub fn errors(args: &ErrorsArgs) -> anyhow::Result<()> {

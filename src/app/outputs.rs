@@ -156,6 +156,20 @@ impl TerrainFacts {
         }
     }
 
+    /// The facts an archive's metadata records (voids were filled by `prepare`).
+    pub fn of_archive(m: &crate::input::archive::Meta) -> Self {
+        let g = &m.georef;
+        TerrainFacts {
+            crs: g.crs.clone(),
+            spacing_m: m.spacing,
+            height_scale_m: m.height_scale,
+            origin: (g.step != [0.0; 2]).then_some(g.origin),
+            samples: [m.width, m.height],
+            void_samples: m.void_samples,
+            voids: crate::input::load::VoidMode::Fill,
+        }
+    }
+
     /// Adds these fields to a JSON object.
     pub fn merge_into(&self, out: &mut serde_json::Value) {
         if let (Some(o), serde_json::Value::Object(me)) =

@@ -27,7 +27,7 @@ pub struct PrepareArgs {
     #[arg(long, value_parser = crate::app::cli::parse_spacing)]
     pub spacing: Option<Spacing>,
     /// World units per raw height unit; default: the file's vertical units.
-    #[arg(long, value_parser = crate::app::commands::positive)]
+    #[arg(long, value_parser = crate::app::cli::positive)]
     pub height_scale: Option<f32>,
     /// Size of a raw .r16/.f32 input, as WIDTHxHEIGHT.
     #[arg(long, value_parser = crate::app::cli::parse_size)]

@@ -3,11 +3,15 @@
 //! held and drew as JSON. With `--gpu-mb` every frame is also drawn on the GPU from the
 //! heightfield atlas ([`crate::draw::streamed`]); without it, frames are selections.
 
-use crate::app::cli::InputError;
+use crate::app::cli::{CommonArgs, InputError};
+use crate::draw::streamed::{FrameView, StreamedRenderer};
+use crate::errors::atlas::HeightAtlas;
 use crate::input::archive::Archive;
+use crate::lod::view::{near_plane_for, view_of_box};
 use crate::stream::streamer::{StreamStats, Streamer};
 use crate::stream::traverse::{Selection, View};
 use crate::stream::Grid;
+use crate::vk::Device;
 use glam::DVec3;
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -27,13 +31,13 @@ pub struct StreamArgs {
     #[arg(long, default_value_t = 30.0, value_parser = parse_fps)]
     pub fps: f32,
     /// Height above the ground, world units.
-    #[arg(long, default_value_t = 200.0, value_parser = crate::app::commands::positive)]
+    #[arg(long, default_value_t = 200.0, value_parser = crate::app::cli::positive)]
     pub altitude: f32,
     /// Ground speed, world units a second (a low-flying jet: 300 m/s).
-    #[arg(long, default_value_t = 300.0, value_parser = crate::app::commands::positive)]
+    #[arg(long, default_value_t = 300.0, value_parser = crate::app::cli::positive)]
     pub speed: f32,
     /// Screen-space error threshold, pixels.
-    #[arg(long, default_value_t = 1.0, value_parser = crate::app::commands::positive)]
+    #[arg(long, default_value_t = 1.0, value_parser = crate::app::cli::positive)]
     pub delta: f32,
     /// Viewport, WIDTHxHEIGHT.
     #[arg(long, default_value = "640x480", value_parser = crate::app::cli::parse_size)]
@@ -55,30 +59,29 @@ pub struct StreamArgs {
     pub validate: bool,
 }
 
-/// The GPU side of a flight: device, atlas and renderer, and what they did.
-struct GpuFlight {
-    atlas: crate::errors::atlas::HeightAtlas,
-    renderer: crate::draw::streamed::StreamedRenderer,
-    device: Arc<crate::vk::Device>,
+/// The GPU side of streamed frames: device, atlas and renderer, and what they did.
+struct GpuFrames {
+    atlas: HeightAtlas,
+    renderer: StreamedRenderer,
+    device: Arc<Device>,
     range: [f32; 2],
     frames: u64,
     tiles_uploaded: u64,
     bytes_uploaded: u64,
     /// Frames where some block's tile found no atlas layer (those blocks not drawn).
     frames_missing_blocks: u64,
+    /// Blocks and triangles of the last frame drawn.
+    blocks: usize,
+    triangles: u64,
     drawing: Duration,
     last: Vec<u8>,
-    validate: bool,
 }
 
-impl GpuFlight {
-    fn new(args: &StreamArgs, grid: &Grid, mb: u32, range: [f32; 2]) -> anyhow::Result<Self> {
-        use crate::vk::{Device, DeviceOptions, Instance, InstanceOptions, QueueRequest};
-        let instance = Instance::new(&InstanceOptions { validation: args.validate, extensions: Vec::new() })?;
-        let device = Device::new(instance, &DeviceOptions { gpu: None, queues: QueueRequest::Auto, swapchain: false })
-            .map_err(crate::app::commands::option_error)?;
-        let atlas = crate::errors::atlas::HeightAtlas::new(&device, grid, u64::from(mb) << 20)
-            .map_err(|e| InputError(e.to_string()))?;
+impl GpuFrames {
+    /// An atlas of `mb` MB on `device` and a `size` target; `range`: the world heights
+    /// the colour ramp spans.
+    fn new(device: Arc<Device>, grid: &Grid, mb: u32, range: [f32; 2], size: (u32, u32)) -> anyhow::Result<Self> {
+        let atlas = HeightAtlas::new(&device, grid, u64::from(mb) << 20).map_err(|e| InputError(e.to_string()))?;
         eprintln!(
             "vkterrain: device {}; atlas of {} layers ({} x {} {})",
             device.name,
@@ -87,9 +90,8 @@ impl GpuFlight {
             atlas.side,
             if atlas.unorm16 { "16-bit" } else { "float" }
         );
-        let (w, h) = args.size;
-        let renderer = crate::draw::streamed::StreamedRenderer::new(&device, crate::stream::draw::layout(grid), w, h)?;
-        Ok(GpuFlight {
+        let renderer = StreamedRenderer::new(&device, crate::stream::draw::layout(grid), size.0, size.1)?;
+        Ok(GpuFrames {
             atlas,
             renderer,
             device,
@@ -98,9 +100,10 @@ impl GpuFlight {
             tiles_uploaded: 0,
             bytes_uploaded: 0,
             frames_missing_blocks: 0,
+            blocks: 0,
+            triangles: 0,
             drawing: Duration::ZERO,
             last: Vec::new(),
-            validate: args.validate,
         })
     }
 
@@ -115,16 +118,19 @@ impl GpuFlight {
         self.tiles_uploaded += up.tiles as u64;
         self.bytes_uploaded += up.bytes;
         let (anchor, cam) = view.relative(grid);
-        let fv = crate::draw::streamed::FrameView { grid, anchor, cam, range: self.range };
+        let fv = FrameView { grid, anchor, cam, range: self.range };
         let (pixels, stats) = self.renderer.render(&mut self.atlas, &fv, &blocks)?;
         self.frames_missing_blocks += (stats.missing > 0) as u64;
         self.frames += 1;
+        self.blocks = stats.blocks;
+        self.triangles = stats.blocks as u64 * crate::stream::draw::layout(grid).triangles_per_block();
         self.last = pixels;
         self.drawing += t0.elapsed();
         Ok(())
     }
 
     fn report(&self) -> serde_json::Value {
+        let validation = self.device.instance.validation;
         serde_json::json!({
             "device": self.device.name,
             "atlas_layers": self.atlas.layer_count(),
@@ -133,15 +139,124 @@ impl GpuFlight {
             "uploaded_mb": self.bytes_uploaded as f64 / f64::from(1u32 << 20),
             "frames_missing_blocks": self.frames_missing_blocks,
             "draw_ms_per_frame": 1e3 * self.drawing.as_secs_f64() / self.frames.max(1) as f64,
-            "validation": self.validate,
-            "validation_messages": self.validate.then(|| self.device.instance.validation_messages()),
+            "validation": validation,
+            "validation_messages": validation.then(|| self.device.instance.validation_messages()),
         })
     }
 }
 
+/// The world heights the root blocks span (the colour ramp), from the top tiles, which
+/// a settled frame holds; `None` before they arrive.
+fn height_range(streamer: &Streamer, grid: &Grid) -> Option<[f32; 2]> {
+    let root = crate::stream::cache::root_lod(grid);
+    let [nx, nz] = grid.tiles_at(grid.top);
+    let mut range: Option<[f32; 2]> = None;
+    for tz in 0..nz {
+        for tx in 0..nx {
+            let top = streamer.cache.peek(crate::stream::cache::serving_tile(grid, root, tx, tz))?;
+            let b = top.block(grid, root, tx, tz);
+            let [lo, hi] = [b.lo, b.hi].map(|h| (f64::from(h) * grid.height_scale) as f32);
+            range = Some(range.map_or([lo, hi], |[a, c]| [a.min(lo), c.max(hi)]));
+        }
+    }
+    range
+}
+
+/// Frames at the view `at` gives (it may depend on the tiles held: a camera kept above
+/// the ground) until the selection is within the bound, the IO thread settled after
+/// each: the frame a viewer shows once the tiles of its first view are read. At most
+/// enough rounds for one level a round (plus a few), so that a cache too small for the
+/// view ends with the frame over the bound, counted, not in a loop.
+fn settle(streamer: &mut Streamer, at: impl Fn(&Streamer) -> View, delta: f32) -> (View, Selection) {
+    let rounds = 2 * (streamer.grid.top as usize + 4);
+    let mut view = at(streamer);
+    let mut sel = streamer.frame(&view, None, delta, 1.0);
+    for _ in 1..rounds {
+        if sel.within_bound() {
+            break;
+        }
+        streamer.settle();
+        view = at(streamer);
+        sel = streamer.frame(&view, None, delta, 1.0);
+    }
+    (view, sel)
+}
+
+/// One frame of an archive drawn streamed (`render` over an archive larger than one
+/// image, or with `--stream`): what to draw and with what budgets.
+pub struct ArchiveFrame<'a> {
+    pub archive: Arc<Archive>,
+    pub device: Arc<Device>,
+    pub common: &'a CommonArgs,
+    pub delta: f32,
+    pub cache_mb: u32,
+    pub gpu_mb: u32,
+}
+
+/// What [`render_archive`] drew: the pixels and the JSON facts.
+pub struct ArchiveRender {
+    pub width: u32,
+    pub height: u32,
+    pub pixels: Vec<u8>,
+    pub report: serde_json::Value,
+}
+
+/// Draws one frame of an archive through the streaming path: the tiles the view needs
+/// read into a host cache of `cache_mb`, uploaded into an atlas of `gpu_mb`, the blocks
+/// drawn from it (plain shading). The frame waits for its tiles, as a viewer's first frame
+/// does; where the cache cannot hold them it is drawn over the bound and says so.
+pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
+    let grid = Grid::from_meta(&f.archive.meta);
+    let (w, h) = f.common.size.unwrap_or((1280, 720));
+    let mut streamer = Streamer::new(f.archive.clone(), grid, f.cache_mb as usize * (1 << 20));
+    let near = near_plane_for(grid.spacing[0].min(grid.spacing[1]) as f32);
+    let extent = [(grid.width - 1) as f64 * grid.spacing[0], (grid.height - 1) as f64 * grid.spacing[1]];
+    // The top tiles first: the default view frames the terrain's height range.
+    let overview = View::look_at(
+        DVec3::new(extent[0] / 2.0, 1e7, extent[1] / 2.0),
+        DVec3::new(extent[0] / 2.0, 0.0, extent[1] / 2.0 + 1.0),
+        f.common.fovy,
+        w,
+        h,
+        near,
+    );
+    settle(&mut streamer, |_| overview, 1e30);
+    let range = height_range(&streamer, &grid).unwrap_or([0.0, 1.0]);
+    let (position, look_at) =
+        f.common.view_points(|| view_of_box(extent.map(|e| e as f32), range, f.common.fovy, w, h, near))?;
+    let view = View::look_at(position.as_dvec3(), look_at.as_dvec3(), f.common.fovy, w, h, near);
+    let warm = Instant::now();
+    streamer.stats = StreamStats { worst_factor: 1.0, ..Default::default() };
+    let (_, sel) = settle(&mut streamer, |_| view, f.delta);
+    let settle_ms = warm.elapsed().as_secs_f64() * 1e3;
+    let mut gpu = GpuFrames::new(f.device, &grid, f.gpu_mb, range, (w, h))?;
+    gpu.draw(&streamer, &grid, &view, &sel)?;
+    let report = serde_json::json!({
+        "width": w,
+        "height": h,
+        "streamed": true,
+        "delta": f.delta,
+        "blocks": gpu.blocks,
+        "triangles": gpu.triangles,
+        "within_bound": sel.within_bound(),
+        "blocks_over_bound": sel.over_bound,
+        "worst_factor": sel.worst_factor,
+        "frames_to_settle": streamer.stats.frames,
+        "settle_ms": settle_ms,
+        "cache_mb": f.cache_mb,
+        "stats": streamer.stats,
+        "first_failure": streamer.first_failure,
+        "gpu": gpu.report(),
+        "camera": [position.x, position.y, position.z],
+        "look_at": [look_at.x, look_at.y, look_at.z],
+        "peak_resident_mb": crate::app::outputs::peak_resident_mb(),
+    });
+    Ok(ArchiveRender { width: w, height: h, pixels: std::mem::take(&mut gpu.last), report })
+}
+
 /// A frame rate the flight can be paced at: 0.1 to 10,000 frames a second.
 fn parse_fps(s: &str) -> Result<f32, String> {
-    let v = crate::app::commands::positive(s)?;
+    let v = crate::app::cli::positive(s)?;
     if !(0.1..=10_000.0).contains(&v) {
         return Err(format!("'{s}': from 0.1 to 10000 frames a second"));
     }
@@ -214,24 +329,17 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
     };
     // As a viewer would: the first view's tiles are read before the flight starts.
     let warm = Instant::now();
-    for _ in 0..2 * (grid.top as usize + 4) {
-        let view = pose(&streamer, 0);
-        if streamer.frame(&view, None, args.delta, 1.0).within_bound() {
-            break;
-        }
-        streamer.settle();
-    }
+    settle(&mut streamer, |s| pose(s, 0), args.delta);
     let warm_up_s = warm.elapsed().as_secs_f64();
     let mut gpu = match args.gpu_mb {
         Some(mb) => {
-            // The colour ramp spans the root block's heights (the top tile is held now).
-            let root = crate::stream::cache::root_lod(&grid);
-            let top = streamer.cache.peek(crate::stream::cache::serving_tile(&grid, root, 0, 0));
-            let range = top.map_or([0.0, 1.0], |t| {
-                let b = t.block(&grid, root, 0, 0);
-                [b.lo, b.hi].map(|h| (f64::from(h) * grid.height_scale) as f32)
-            });
-            Some(GpuFlight::new(args, &grid, mb, range)?)
+            use crate::vk::{DeviceOptions, Instance, InstanceOptions, QueueRequest};
+            let instance = Instance::new(&InstanceOptions { validation: args.validate, extensions: Vec::new() })?;
+            let device =
+                Device::new(instance, &DeviceOptions { gpu: None, queues: QueueRequest::Auto, swapchain: false })
+                    .map_err(crate::app::cli::option_error)?;
+            let range = height_range(&streamer, &grid).unwrap_or([0.0, 1.0]);
+            Some(GpuFrames::new(device, &grid, mb, range, args.size)?)
         }
         None => None,
     };
@@ -284,7 +392,7 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
         "seconds": seconds,
         "last_altitude": altitude,
         "first_failure": streamer.first_failure,
-        "gpu": gpu.as_ref().map(GpuFlight::report),
+        "gpu": gpu.as_ref().map(GpuFrames::report),
     });
     if let (Some(g), Some(out)) = (gpu.as_ref(), args.out.as_ref()) {
         let (w, h) = args.size;
@@ -292,6 +400,12 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
         eprintln!("vkterrain: last frame written to {}", out.display());
     }
     println!("{}", serde_json::to_string_pretty(&json)?);
+    if let Some(g) = gpu {
+        // Every Vulkan object goes first: messages from their destruction count too.
+        let messages = g.device.instance.messages.clone();
+        drop(g);
+        crate::app::cli::check_messages(&messages)?;
+    }
     eprintln!(
         "vkterrain: {frames} frames, {frames_over_bound} over the bound ({:.1}%, worst {:.2}x delta); {} tiles loaded, {} distinct ({distinct_mb:.0} MB decoded, {:.1}x the cache), {} evicted; {:.1} MB read",
         100.0 * frames_over_bound as f64 / frames as f64,

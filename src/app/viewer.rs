@@ -53,17 +53,17 @@ pub struct ViewArgs {
     #[command(flatten)]
     pub common: CommonArgs,
     /// Screen-space error threshold in pixels (keys [ and ] halve and double it).
-    #[arg(long, value_name = "PX", default_value = "1", value_parser = crate::app::commands::positive, allow_negative_numbers = true)]
+    #[arg(long, value_name = "PX", default_value = "1", value_parser = crate::app::cli::positive, allow_negative_numbers = true)]
     pub delta: f32,
     #[command(flatten)]
     pub textures: TextureArgs,
     /// Exponential fog density per world unit (default: a haze at the terrain's scale).
-    #[arg(long, value_name = "DENSITY", value_parser = crate::app::commands::non_negative, allow_negative_numbers = true)]
+    #[arg(long, value_name = "DENSITY", value_parser = crate::app::cli::non_negative, allow_negative_numbers = true)]
     pub fog: Option<f32>,
     #[arg(long, value_enum, default_value_t = PresentMode::Fifo)]
     pub present_mode: PresentMode,
     /// Exit after N frames.
-    #[arg(long, value_name = "N", value_parser = crate::app::commands::at_least_one, allow_negative_numbers = true)]
+    #[arg(long, value_name = "N", value_parser = crate::app::cli::at_least_one, allow_negative_numbers = true)]
     pub frames: Option<u64>,
     /// Fly north from the south edge, three quarters of the way across, over the run
     /// (with --frames) or every 60 seconds.
@@ -86,7 +86,7 @@ pub struct ViewArgs {
     pub go_to: Option<[f64; 2]>,
     /// Vertical exaggeration: heights drawn this many times their scale (the panel's
     /// slider changes it live).
-    #[arg(long, value_name = "X", default_value = "1", value_parser = crate::app::commands::positive, allow_negative_numbers = true)]
+    #[arg(long, value_name = "X", default_value = "1", value_parser = crate::app::cli::positive, allow_negative_numbers = true)]
     pub exaggeration: f32,
     /// Start in walk mode (follow the ground).
     #[arg(long)]
@@ -550,7 +550,7 @@ impl App {
             instance,
             &DeviceOptions { gpu: self.args.common.gpu.clone(), queues: self.args.common.queues, swapchain: true },
         )
-        .map_err(crate::app::commands::option_error)?;
+        .map_err(crate::app::cli::option_error)?;
         println!("vkterrain: device {}, queue mode {}", device.name, device.queue_mode.as_str());
         for note in device.notes() {
             println!("vkterrain: note: {note}");

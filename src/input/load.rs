@@ -123,12 +123,11 @@ fn load_archive(path: &Path, opts: &LoadOptions) -> Result<Heightfield, Heightfi
     let archive = crate::input::archive::Archive::open(path)?;
     let m = &archive.meta;
     if let Some(max) = opts.max_grid_side {
-        let (n, roots) = grid_cover(m.width, m.height);
-        let [gw, gh] = roots.map(|r| r * (1 << n) + 1);
-        if gw.max(gh) > max {
+        let side = archive.grid_side();
+        if side > max {
             return Err(bad(format!(
-                "{} x {} samples need a {gw} x {gh} grid, larger than the device's maxImageDimension2D ({max}); \
-                 streaming an archive's tiles is not built yet",
+                "{} x {} samples need a grid {side} samples a side, larger than the device's maxImageDimension2D \
+                 ({max}); `render` and `stream` draw it streamed, this command does not yet",
                 m.width, m.height
             )));
         }

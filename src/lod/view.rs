@@ -13,16 +13,36 @@ use glam::Vec3;
 /// distances to it, so the blocks right around such a camera are drawn at full
 /// resolution, as they must be.
 pub fn near_plane(hf: &Heightfield) -> f32 {
-    (hf.spacing.min() * 1e-5).min(0.01)
+    near_plane_for(hf.spacing.min())
+}
+
+/// [`near_plane`] for the smaller of a terrain's two sample spacings.
+pub fn near_plane_for(spacing: f32) -> f32 {
+    (spacing * 1e-5).min(0.01)
 }
 
 /// Above the south edge looking at the terrain's centre, backed away along that
 /// direction until the whole terrain (its bounding box) fits in the frame.
 pub fn default_view(hf: &Heightfield, fovy_deg: f32, width: u32, height: u32) -> (Vec3, Vec3) {
     let (wx, wz) = hf.world_extent();
-    let l = wx.max(wz);
     let (lo, hi) = hf.raw.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), &v| (a.min(v), b.max(v)));
-    let (bottom, top) = (lo * hf.height_scale, hi * hf.height_scale);
+    let heights = [lo * hf.height_scale, hi * hf.height_scale];
+    view_of_box([wx, wz], heights, fovy_deg, width, height, near_plane(hf))
+}
+
+/// [`default_view`] of a terrain known by its world extent `[wx, wz]` (from the origin)
+/// and its world height range: a streamed archive, whose samples are not all in memory.
+pub fn view_of_box(
+    extent: [f32; 2],
+    heights: [f32; 2],
+    fovy_deg: f32,
+    width: u32,
+    height: u32,
+    near: f32,
+) -> (Vec3, Vec3) {
+    let [wx, wz] = extent;
+    let l = wx.max(wz);
+    let [bottom, top] = heights;
     let target = Vec3::new(wx * 0.5, bottom, wz * 0.5);
     // About 35 degrees down, from the south.
     let dir = Vec3::new(0.0, 0.7, 1.0).normalize();
@@ -38,7 +58,7 @@ pub fn default_view(hf: &Heightfield, fovy_deg: f32, width: u32, height: u32) ->
     let mut dist = 0.3 * l + (top - bottom);
     for _ in 0..200 {
         let pos = target + dir * dist;
-        let cam = Camera::look_at(pos, target, fovy_deg, width, height, near_plane(hf));
+        let cam = Camera::look_at(pos, target, fovy_deg, width, height, near);
         let vp = cam.view_proj();
         let fits = corners.iter().all(|&c| {
             cam.project(&vp, c).is_some_and(|(x, y)| {

@@ -126,6 +126,19 @@ impl Archive {
             && &magic == b"PMTiles"
     }
 
+    /// Is `path` an archive: a URL, a `.pmtiles` name, or a file that starts like one?
+    pub fn is_archive(path: &Path) -> bool {
+        let pmtiles = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("pmtiles"));
+        bytes::is_url(path) || pmtiles || Archive::sniff(path)
+    }
+
+    /// The side of the grid of square roots (SPEC section 1) the archive needs in one
+    /// image, read whole: more than the device's image side, and only streaming draws it.
+    pub fn grid_side(&self) -> usize {
+        let (n, roots) = crate::lod::heightfield::grid_cover(self.meta.width, self.meta.height);
+        roots.map(|r| r * (1 << n) + 1).into_iter().max().unwrap_or(0)
+    }
+
     pub fn open(path: &Path) -> Result<Archive, HeightfieldError> {
         // A FIFO would block in open(); the message already names the path.
         if !bytes::is_url(path) {
