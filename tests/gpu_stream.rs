@@ -98,7 +98,7 @@ fn streamed_frames_match(hf: &Heightfield, unorm16: bool) {
             let up = atlas.upload(&refs, renderer.completed_frame(), |k| used.contains(&k)).unwrap();
             assert_eq!(up.waiting, 0, "pose {i}: every tile found a layer");
             let (anchor, cam) = view.relative(&grid);
-            let fv = FrameView { grid: &grid, anchor, cam, range: [0.0, 1000.0] };
+            let fv = FrameView { grid: &grid, anchor, cam, range: [0.0, 1000.0], fog: 0.0 };
             let want = expected(&grid, &s, anchor, &blocks);
             let got = renderer.capture(&mut atlas, &fv, &blocks).unwrap();
             assert_eq!(got.len(), want.len(), "pose {i}");
@@ -260,9 +260,11 @@ fn render_draws_an_archive_streamed_within_the_bound() {
     assert!(r["blocks_over_bound"].as_u64().unwrap() > 0 && r["worst_factor"].as_f64().unwrap() > 1.0, "{r}");
     assert!(String::from_utf8_lossy(&o.stderr).contains("over the bound"));
 
-    for (extra, named) in
-        [(vec!["--audit"], "--audit"), (vec!["--lod", "full"], "--lod full"), (vec!["--fog", "0.1"], "--fog")]
-    {
+    for (extra, named) in [
+        (vec!["--audit"], "--audit"),
+        (vec!["--lod", "full"], "--lod full"),
+        (vec!["--colour-by-lod"], "--colour-by-lod"),
+    ] {
         let o = render(&extra);
         let err = String::from_utf8_lossy(&o.stderr);
         assert_eq!(o.status.code(), Some(2), "{extra:?}: {err}");

@@ -440,3 +440,59 @@ xdotool key Escape
         assert!((glat - 46.8529).abs() < 1e-4 && (glon + 121.7604).abs() < 1e-4, "{g}");
     });
 }
+
+/// The viewer over an archive drawn streamed (`--stream`; archives larger than one image
+/// always are), driven by xdotool: `]` doubles delta, a drag turns the view, holding W
+/// flies forward over tiles read while it moves, P writes a screenshot of terrain, Escape
+/// quits; zero validation messages. Options it cannot honour are refused by name.
+#[test]
+fn the_viewer_flies_over_an_archive_drawn_streamed() {
+    let dir = std::env::temp_dir().join(format!("vkterrain-viewer-archive-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let archive = dir.join("s.pmtiles");
+    let prepared = Command::new(env!("CARGO_BIN_EXE_vkterrain"))
+        .args(["prepare", "--synthetic", "1025", "--out", archive.to_str().unwrap()])
+        .env("RUST_LOG", "error")
+        .output()
+        .unwrap();
+    let refused =
+        viewer(&["--heightmap", archive.to_str().unwrap(), "--stream", "--texture", "x.png", "--frames", "1"]);
+    let view = format!("--heightmap '{}' --stream --size 480x360 --validation on --cache-mb 64", archive.display());
+    let steps = r#"xdotool key bracketright
+wait_frames 2
+drag 240 180 6
+xdotool keydown w
+wait_frames 12
+xdotool keyup w
+wait_frames 2
+xdotool key p
+wait_file vkterrain-1.png
+xdotool key Escape
+"#;
+    let mut checked = false;
+    xdotool_session("stream", &view, steps, "", |tmp, ok, stdout, stderr| {
+        assert!(ok, "streamed viewer under xdotool failed: {stderr}\n{stdout}");
+        let json: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
+        assert_eq!(json["streamed"], true, "{json}");
+        assert_eq!(json["validation_messages"], 0, "{stderr}");
+        assert_eq!(json["final_delta"], 2.0, "{json}");
+        assert!(json["mouse_turn"].as_f64().unwrap() > 0.1, "the drag turned the view: {json}");
+        let (start, end) = (&json["start_position"], &json["final_position"]);
+        let moved: f64 = (0..3).map(|i| (end[i].as_f64().unwrap() - start[i].as_f64().unwrap()).powi(2)).sum();
+        assert!(moved.sqrt() > 100.0, "W flew forward: {start} -> {end}");
+        assert!(json["frames"].as_u64().unwrap() >= 16, "{json}");
+        assert_eq!(json["gpu"]["frames_missing_blocks"], 0, "{json}");
+        let img = image::open(tmp.join("vkterrain-1.png")).unwrap().to_rgb8();
+        assert_eq!(img.dimensions(), (480, 360));
+        let sky = *img.get_pixel(0, 0);
+        let terrain = img.pixels().filter(|p| **p != sky).count();
+        assert!(terrain > 480 * 360 / 5, "{terrain} terrain pixels");
+        checked = true;
+    });
+    let _ = std::fs::remove_dir_all(&dir);
+    assert!(prepared.status.success(), "{}", String::from_utf8_lossy(&prepared.stderr));
+    assert!(checked);
+    let err = String::from_utf8_lossy(&refused.stderr);
+    assert_eq!(refused.status.code(), Some(2), "{err}");
+    assert!(err.contains("--texture") && err.contains("streamed"), "{err}");
+}

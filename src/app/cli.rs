@@ -250,6 +250,22 @@ impl CommonArgs {
     }
 }
 
+/// How an archive is drawn streamed (`render`, `view`): forced, and the budgets.
+#[derive(Args, Debug, Clone, Copy)]
+pub struct StreamedOptions {
+    /// Draw an archive streamed (its tiles through a host cache and a GPU atlas, in
+    /// bounded memory) even when it fits in one image. Archives larger than one image are
+    /// always drawn so.
+    #[arg(long)]
+    pub stream: bool,
+    /// Streamed archives: host cache budget for decoded tiles, MB.
+    #[arg(long, value_name = "MB", default_value_t = 256, value_parser = clap::value_parser!(u32).range(1..=1_000_000))]
+    pub cache_mb: u32,
+    /// Streamed archives: GPU atlas budget, MB (one layer a tile, at most 2048 layers).
+    #[arg(long, value_name = "MB", default_value_t = 256, value_parser = clap::value_parser!(u32).range(1..=1_000_000))]
+    pub gpu_mb: u32,
+}
+
 /// An error if the validation layers said anything: a run under validation fails on any
 /// message.
 pub fn check_messages(messages: &crate::vk::MessageCounter) -> anyhow::Result<()> {

@@ -1,7 +1,7 @@
 //! The subcommands: `render` (one headless frame) and `errors` (one error generation).
 
 use crate::app::cli::OnOff;
-use crate::app::cli::{check_messages, option_error, positive, CommonArgs, InputError, TextureArgs};
+use crate::app::cli::{check_messages, option_error, positive, CommonArgs, InputError, StreamedOptions, TextureArgs};
 use crate::app::outputs::{check_outputs, save_png, write_atomic};
 use crate::draw::blocks::{BlocksRenderer, NormalSource, PixelPass, Shading, Target};
 use crate::draw::frame::{DrawThread, FrameRequest, LodChoice, LodTerrain};
@@ -61,17 +61,8 @@ pub struct RenderArgs {
     /// (default), or as the blocks are drawn (the earlier shading, for comparison).
     #[arg(long, value_enum, default_value_t = PixelPass::Deferred)]
     pub pixels: PixelPass,
-    /// Draw an archive streamed (its tiles through a host cache and a GPU atlas, in
-    /// bounded memory) even when it fits in one image. Archives larger than one image are
-    /// always drawn so.
-    #[arg(long)]
-    pub stream: bool,
-    /// Streamed archives: host cache budget for decoded tiles, MB.
-    #[arg(long, value_name = "MB", default_value_t = 256, value_parser = clap::value_parser!(u32).range(1..=1_000_000))]
-    pub cache_mb: u32,
-    /// Streamed archives: GPU atlas budget, MB (one layer a tile, at most 2048 layers).
-    #[arg(long, value_name = "MB", default_value_t = 256, value_parser = clap::value_parser!(u32).range(1..=1_000_000))]
-    pub gpu_mb: u32,
+    #[command(flatten)]
+    pub streamed: StreamedOptions,
 }
 
 impl RenderArgs {
@@ -90,7 +81,6 @@ impl RenderArgs {
             ("--background", self.background.is_some()),
             ("--pixels forward", self.pixels != PixelPass::Deferred),
             ("--shading heights", self.shading != NormalSource::GradientMap),
-            ("--fog", self.fog != 0.0),
             ("--raw-size", c.raw_size.is_some()),
             ("--block (an archive fixes k = 33)", c.block != 33),
         ]
@@ -245,7 +235,8 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
     }
     let shading = args.textures.shade(shading);
     let device = open_device(&args.common)?;
-    if let Some(archive) = streamed_archive(args, &device)? {
+    let max_side = || device.max_image_dimension_2d() as usize;
+    if let Some(archive) = crate::app::stream::streamed_archive(&args.common, args.streamed.stream, max_side)? {
         return render_streamed(args, device, archive);
     }
     let s = Session::with_device(device, &args.common, Some(&args.textures))?;
@@ -344,25 +335,6 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
     finish(s)
 }
 
-/// The archive `--heightmap` names when `render` draws it streamed: with `--stream`, or
-/// when its grid is larger than one image on `device`.
-fn streamed_archive(args: &RenderArgs, device: &Device) -> anyhow::Result<Option<Arc<Archive>>> {
-    let Some(path) = args.common.heightmap.as_deref().filter(|p| Archive::is_archive(p)) else {
-        if args.stream {
-            return Err(InputError("--stream draws a tile archive: give one with --heightmap".into()).into());
-        }
-        return Ok(None);
-    };
-    if args.common.voids == crate::input::load::VoidMode::Hole {
-        return Ok(None); // refused by the loader, naming the archive
-    }
-    let archive = Archive::open(path).map_err(|e| InputError(e.to_string()))?;
-    if !args.stream && archive.grid_side() <= device.max_image_dimension_2d() as usize {
-        return Ok(None);
-    }
-    Ok(Some(Arc::new(archive)))
-}
-
 /// `render` over an archive drawn streamed ([`crate::app::stream::render_archive`]).
 fn render_streamed(args: &RenderArgs, device: Arc<Device>, archive: Arc<Archive>) -> anyhow::Result<()> {
     let shown = crate::input::archive::bytes::shown(archive.path());
@@ -381,8 +353,8 @@ fn render_streamed(args: &RenderArgs, device: Arc<Device>, archive: Arc<Archive>
         m.width,
         m.height,
         m.top_level + 1,
-        args.cache_mb,
-        args.gpu_mb
+        args.streamed.cache_mb,
+        args.streamed.gpu_mb
     );
     let queue_mode = device.queue_mode.as_str();
     let messages = device.instance.messages.clone();
@@ -391,8 +363,9 @@ fn render_streamed(args: &RenderArgs, device: Arc<Device>, archive: Arc<Archive>
         device,
         common: &args.common,
         delta: args.delta,
-        cache_mb: args.cache_mb,
-        gpu_mb: args.gpu_mb,
+        fog: args.fog,
+        cache_mb: args.streamed.cache_mb,
+        gpu_mb: args.streamed.gpu_mb,
     })?;
     save_png(&args.out, r.width, r.height, &r.pixels)?;
     let mut out = r.report;
@@ -406,7 +379,7 @@ fn render_streamed(args: &RenderArgs, device: Arc<Device>, archive: Arc<Archive>
         eprintln!(
             "vkterrain: WARNING: the frame is over the bound ({} blocks, worst {:.2}x delta): --cache-mb {} cannot hold \
              the tiles this view needs",
-            out["blocks_over_bound"], out["worst_factor"], args.cache_mb
+            out["blocks_over_bound"], out["worst_factor"], args.streamed.cache_mb
         );
     }
     Ok(())

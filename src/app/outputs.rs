@@ -187,3 +187,12 @@ pub fn peak_resident_mb() -> Option<f64> {
     let kb: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
     Some(kb / 1024.0)
 }
+
+/// The next `vkterrain-N.png` in the working directory that does not exist (the viewers'
+/// P key).
+pub fn next_free_screenshot() -> std::path::PathBuf {
+    (1..)
+        .map(|n| std::path::PathBuf::from(format!("vkterrain-{n}.png")))
+        .find(|p| std::fs::symlink_metadata(p).is_err())
+        .expect("a free name")
+}

@@ -4,7 +4,7 @@
 //! heightfield atlas ([`crate::draw::streamed`]); without it, frames are selections.
 
 use crate::app::cli::{CommonArgs, InputError};
-use crate::draw::streamed::{FrameView, StreamedRenderer};
+use crate::draw::streamed::{FrameView, StreamedRenderer, WindowImage};
 use crate::errors::atlas::HeightAtlas;
 use crate::input::archive::Archive;
 use crate::lod::view::{near_plane_for, view_of_box};
@@ -60,35 +60,38 @@ pub struct StreamArgs {
 }
 
 /// The GPU side of streamed frames: device, atlas and renderer, and what they did.
-struct GpuFrames {
+pub(crate) struct GpuFrames {
     atlas: HeightAtlas,
     renderer: StreamedRenderer,
-    device: Arc<Device>,
+    pub device: Arc<Device>,
     range: [f32; 2],
+    /// Exponential fog density per world unit.
+    pub fog: f32,
     frames: u64,
     tiles_uploaded: u64,
     bytes_uploaded: u64,
     /// Frames where some block's tile found no atlas layer (those blocks not drawn).
     frames_missing_blocks: u64,
     /// Blocks and triangles of the last frame drawn.
-    blocks: usize,
-    triangles: u64,
+    pub blocks: usize,
+    pub triangles: u64,
     drawing: Duration,
-    last: Vec<u8>,
+    /// The last frame drawn offscreen (RGBA8, sRGB).
+    pub last: Vec<u8>,
 }
 
 impl GpuFrames {
     /// An atlas of `mb` MB on `device` and a `size` target; `range`: the world heights
     /// the colour ramp spans.
-    fn new(device: Arc<Device>, grid: &Grid, mb: u32, range: [f32; 2], size: (u32, u32)) -> anyhow::Result<Self> {
+    pub fn new(device: Arc<Device>, grid: &Grid, mb: u32, range: [f32; 2], size: (u32, u32)) -> anyhow::Result<Self> {
         let atlas = HeightAtlas::new(&device, grid, u64::from(mb) << 20).map_err(|e| InputError(e.to_string()))?;
         eprintln!(
-            "vkterrain: device {}; atlas of {} layers ({} x {} {})",
-            device.name,
+            "vkterrain: atlas of {} layers ({} x {} {}) on {}",
             atlas.layer_count(),
             atlas.side,
             atlas.side,
-            if atlas.unorm16 { "16-bit" } else { "float" }
+            if atlas.unorm16 { "16-bit" } else { "float" },
+            device.name,
         );
         let renderer = StreamedRenderer::new(&device, crate::stream::draw::layout(grid), size.0, size.1)?;
         Ok(GpuFrames {
@@ -96,6 +99,7 @@ impl GpuFrames {
             renderer,
             device,
             range,
+            fog: 0.0,
             frames: 0,
             tiles_uploaded: 0,
             bytes_uploaded: 0,
@@ -107,8 +111,16 @@ impl GpuFrames {
         })
     }
 
-    /// Uploads the frame's tiles the atlas lacks and draws the frame.
-    fn draw(&mut self, streamer: &Streamer, grid: &Grid, view: &View, sel: &Selection) -> anyhow::Result<()> {
+    /// Uploads the frame's tiles the atlas lacks and draws the frame: offscreen (kept in
+    /// `last`), or into a window's swapchain image.
+    pub fn draw(
+        &mut self,
+        streamer: &Streamer,
+        grid: &Grid,
+        view: &View,
+        sel: &Selection,
+        window: Option<&WindowImage>,
+    ) -> anyhow::Result<()> {
         let t0 = Instant::now();
         let blocks = crate::stream::draw::stitched_blocks(grid, &streamer.cache, sel);
         let tiles: Vec<&Arc<crate::stream::cache::TileData>> =
@@ -118,18 +130,30 @@ impl GpuFrames {
         self.tiles_uploaded += up.tiles as u64;
         self.bytes_uploaded += up.bytes;
         let (anchor, cam) = view.relative(grid);
-        let fv = FrameView { grid, anchor, cam, range: self.range };
-        let (pixels, stats) = self.renderer.render(&mut self.atlas, &fv, &blocks)?;
+        let fv = FrameView { grid, anchor, cam, range: self.range, fog: self.fog };
+        let stats = match window {
+            Some(w) => self.renderer.render_to_window(&mut self.atlas, &fv, &blocks, w)?,
+            None => {
+                let (pixels, stats) = self.renderer.render(&mut self.atlas, &fv, &blocks)?;
+                self.last = pixels;
+                stats
+            }
+        };
         self.frames_missing_blocks += (stats.missing > 0) as u64;
         self.frames += 1;
         self.blocks = stats.blocks;
         self.triangles = stats.blocks as u64 * crate::stream::draw::layout(grid).triangles_per_block();
-        self.last = pixels;
         self.drawing += t0.elapsed();
         Ok(())
     }
 
-    fn report(&self) -> serde_json::Value {
+    /// Offscreen frames at `width x height` from now on (a window's screenshot).
+    pub fn resize(&mut self, width: u32, height: u32) -> anyhow::Result<()> {
+        self.renderer.resize(width, height)?;
+        Ok(())
+    }
+
+    pub fn report(&self) -> serde_json::Value {
         let validation = self.device.instance.validation;
         serde_json::json!({
             "device": self.device.name,
@@ -147,7 +171,7 @@ impl GpuFrames {
 
 /// The world heights the root blocks span (the colour ramp), from the top tiles, which
 /// a settled frame holds; `None` before they arrive.
-fn height_range(streamer: &Streamer, grid: &Grid) -> Option<[f32; 2]> {
+pub(crate) fn height_range(streamer: &Streamer, grid: &Grid) -> Option<[f32; 2]> {
     let root = crate::stream::cache::root_lod(grid);
     let [nx, nz] = grid.tiles_at(grid.top);
     let mut range: Option<[f32; 2]> = None;
@@ -162,12 +186,31 @@ fn height_range(streamer: &Streamer, grid: &Grid) -> Option<[f32; 2]> {
     range
 }
 
+/// Reads the top tiles (a view of the whole terrain from high above, nothing split) and
+/// returns the world heights they span ([`height_range`]; `[0, 1]` when they cannot be
+/// read).
+pub(crate) fn top_tiles(streamer: &mut Streamer) -> [f32; 2] {
+    let grid = streamer.grid;
+    let [wx, wz] = grid.world_extent();
+    let high = 2.0 * wx.max(wz) + 1.0;
+    let overview = View::look_at(
+        DVec3::new(wx / 2.0, high, wz / 2.0),
+        DVec3::new(wx / 2.0, 0.0, wz / 2.0 + 1.0),
+        60.0,
+        64,
+        64,
+        1.0,
+    );
+    settle(streamer, |_| overview, f32::MAX);
+    height_range(streamer, &grid).unwrap_or([0.0, 1.0])
+}
+
 /// Frames at the view `at` gives (it may depend on the tiles held: a camera kept above
 /// the ground) until the selection is within the bound, the IO thread settled after
 /// each: the frame a viewer shows once the tiles of its first view are read. At most
 /// enough rounds for one level a round (plus a few), so that a cache too small for the
 /// view ends with the frame over the bound, counted, not in a loop.
-fn settle(streamer: &mut Streamer, at: impl Fn(&Streamer) -> View, delta: f32) -> (View, Selection) {
+pub(crate) fn settle(streamer: &mut Streamer, at: impl Fn(&Streamer) -> View, delta: f32) -> (View, Selection) {
     let rounds = 2 * (streamer.grid.top as usize + 4);
     let mut view = at(streamer);
     let mut sel = streamer.frame(&view, None, delta, 1.0);
@@ -182,6 +225,29 @@ fn settle(streamer: &mut Streamer, at: impl Fn(&Streamer) -> View, delta: f32) -
     (view, sel)
 }
 
+/// The archive `common.heightmap` names when a command draws it streamed: with
+/// `--stream`, or when its grid is larger than one image (`max_side()`, the device's).
+pub fn streamed_archive(
+    common: &CommonArgs,
+    stream: bool,
+    max_side: impl FnOnce() -> usize,
+) -> anyhow::Result<Option<Arc<Archive>>> {
+    let Some(path) = common.heightmap.as_deref().filter(|p| Archive::is_archive(p)) else {
+        if stream {
+            return Err(InputError("--stream draws a tile archive: give one with --heightmap".into()).into());
+        }
+        return Ok(None);
+    };
+    if common.voids == crate::input::load::VoidMode::Hole {
+        return Ok(None); // refused by the loader, naming the archive
+    }
+    let archive = Archive::open(path).map_err(|e| InputError(e.to_string()))?;
+    if !stream && archive.grid_side() <= max_side() {
+        return Ok(None);
+    }
+    Ok(Some(Arc::new(archive)))
+}
+
 /// One frame of an archive drawn streamed (`render` over an archive larger than one
 /// image, or with `--stream`): what to draw and with what budgets.
 pub struct ArchiveFrame<'a> {
@@ -189,6 +255,7 @@ pub struct ArchiveFrame<'a> {
     pub device: Arc<Device>,
     pub common: &'a CommonArgs,
     pub delta: f32,
+    pub fog: f32,
     pub cache_mb: u32,
     pub gpu_mb: u32,
 }
@@ -210,18 +277,9 @@ pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
     let (w, h) = f.common.size.unwrap_or((1280, 720));
     let mut streamer = Streamer::new(f.archive.clone(), grid, f.cache_mb as usize * (1 << 20));
     let near = near_plane_for(grid.spacing[0].min(grid.spacing[1]) as f32);
-    let extent = [(grid.width - 1) as f64 * grid.spacing[0], (grid.height - 1) as f64 * grid.spacing[1]];
+    let extent = grid.world_extent();
     // The top tiles first: the default view frames the terrain's height range.
-    let overview = View::look_at(
-        DVec3::new(extent[0] / 2.0, 1e7, extent[1] / 2.0),
-        DVec3::new(extent[0] / 2.0, 0.0, extent[1] / 2.0 + 1.0),
-        f.common.fovy,
-        w,
-        h,
-        near,
-    );
-    settle(&mut streamer, |_| overview, 1e30);
-    let range = height_range(&streamer, &grid).unwrap_or([0.0, 1.0]);
+    let range = top_tiles(&mut streamer);
     let (position, look_at) =
         f.common.view_points(|| view_of_box(extent.map(|e| e as f32), range, f.common.fovy, w, h, near))?;
     let view = View::look_at(position.as_dvec3(), look_at.as_dvec3(), f.common.fovy, w, h, near);
@@ -230,7 +288,8 @@ pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
     let (_, sel) = settle(&mut streamer, |_| view, f.delta);
     let settle_ms = warm.elapsed().as_secs_f64() * 1e3;
     let mut gpu = GpuFrames::new(f.device, &grid, f.gpu_mb, range, (w, h))?;
-    gpu.draw(&streamer, &grid, &view, &sel)?;
+    gpu.fog = f.fog;
+    gpu.draw(&streamer, &grid, &view, &sel, None)?;
     let report = serde_json::json!({
         "width": w,
         "height": h,
@@ -298,7 +357,7 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
             .map_err(|e| InputError(format!("{shown}: dropping it from the page cache: {e}")))?;
     }
     let (w, h) = args.size;
-    let extent = [(grid.width - 1) as f64 * grid.spacing[0], (grid.height - 1) as f64 * grid.spacing[1]];
+    let extent = grid.world_extent();
     // From near one corner along the diagonal, looking ahead and a little down.
     let start = DVec3::new(0.05 * extent[0], 0.0, 0.05 * extent[1]);
     let along = DVec3::new(0.9 * extent[0], 0.0, 0.9 * extent[1]);
@@ -359,7 +418,7 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
         selecting += t0.elapsed();
         blocks += sel.blocks.len() as u64;
         if let Some(g) = gpu.as_mut() {
-            g.draw(&streamer, &grid, &view, &sel)?;
+            g.draw(&streamer, &grid, &view, &sel, None)?;
         }
         // Pacing the flight to its frame rate (not synchronisation: nothing waits on it).
         let next = period * (f + 1);

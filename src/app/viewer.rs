@@ -4,6 +4,7 @@
 
 use crate::app::cli::{CommonArgs, InputError, TextureArgs, Textures};
 use crate::app::commands::Session;
+use crate::app::controls::Controller;
 use crate::app::hud::{Controls, Hud, Ranges, Readout};
 use crate::app::outputs::save_png;
 use crate::draw::blocks::{BlocksRenderer, DrawStats, FrameDest, FrameSync, PixelPass, Shading, DEPTH_FORMAT};
@@ -32,7 +33,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 use winit::application::ApplicationHandler;
 use winit::dpi::PhysicalSize;
-use winit::event::{ElementState, MouseButton, MouseScrollDelta, WindowEvent};
+use winit::event::{ElementState, MouseButton, WindowEvent};
 use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop};
 use winit::keyboard::{KeyCode, PhysicalKey};
 use winit::window::{Window, WindowId};
@@ -57,6 +58,8 @@ pub struct ViewArgs {
     pub delta: f32,
     #[command(flatten)]
     pub textures: TextureArgs,
+    #[command(flatten)]
+    pub streamed: crate::app::cli::StreamedOptions,
     /// Exponential fog density per world unit (default: a haze at the terrain's scale).
     #[arg(long, value_name = "DENSITY", value_parser = crate::app::cli::non_negative, allow_negative_numbers = true)]
     pub fog: Option<f32>,
@@ -129,79 +132,6 @@ fn ground_hit(hf: &Heightfield, from: Vec3, dir: Vec3) -> Vec3 {
     }
     let p = from + dir * 0.25 * l;
     Vec3::new(p.x, ground(p), p.z)
-}
-
-/// Camera state driven by input or a flyover path.
-struct Controller {
-    position: Vec3,
-    yaw: f32,
-    pitch: f32,
-    speed: f32,
-    walk: bool,
-    held: HashSet<KeyCode>,
-    looking: bool,
-    /// Orbit mode (O): the point looked at and the distance to it; dragging turns the
-    /// camera around it, W/S move in and out.
-    orbit: Option<(Vec3, f32)>,
-}
-
-impl Controller {
-    fn forward(&self) -> Vec3 {
-        Vec3::new(self.yaw.cos() * self.pitch.cos(), self.pitch.sin(), self.yaw.sin() * self.pitch.cos())
-    }
-
-    fn update(&mut self, hf: &Heightfield, dt: f32) {
-        if let Some((pivot, radius)) = &mut self.orbit {
-            let k = |c| self.held.contains(&c);
-            let zoom = k(KeyCode::KeyS) as i32 - k(KeyCode::KeyW) as i32;
-            *radius = (*radius * (1.0 + 1.5 * dt * zoom as f32)).max(hf.spacing.min());
-            let (pivot, radius) = (*pivot, *radius);
-            self.position = pivot - self.forward() * radius;
-            self.clamp_to_ground(hf);
-            return;
-        }
-        let fwd = self.forward();
-        let flat = Vec3::new(fwd.x, 0.0, fwd.z).normalize_or_zero();
-        let right = flat.cross(Vec3::Y);
-        let mut v = Vec3::ZERO;
-        let k = |c| self.held.contains(&c);
-        if k(KeyCode::KeyW) {
-            v += if self.walk { flat } else { fwd };
-        }
-        if k(KeyCode::KeyS) {
-            v -= if self.walk { flat } else { fwd };
-        }
-        if k(KeyCode::KeyD) {
-            v += right;
-        }
-        if k(KeyCode::KeyA) {
-            v -= right;
-        }
-        if k(KeyCode::KeyE) {
-            v += Vec3::Y;
-        }
-        if k(KeyCode::KeyQ) {
-            v -= Vec3::Y;
-        }
-        let boost = if k(KeyCode::ShiftLeft) || k(KeyCode::ShiftRight) { 5.0 } else { 1.0 };
-        self.position += v.normalize_or_zero() * self.speed * boost * dt;
-        self.clamp_to_ground(hf);
-    }
-
-    /// Never below the terrain (seed 002); in walk mode, on the terrain at eye height
-    /// (walking off an edge, or switching to walk outside, lands on its border).
-    fn clamp_to_ground(&mut self, hf: &Heightfield) {
-        let (wx, wz) = hf.world_extent();
-        let ground = hf.surface_height(self.position.x.clamp(0.0, wx), self.position.z.clamp(0.0, wz));
-        let eye = (2.0f32).max(near_plane(hf) * 4.0);
-        if self.walk {
-            self.position.x = self.position.x.clamp(0.0, wx);
-            self.position.z = self.position.z.clamp(0.0, wz);
-            self.position.y = ground + eye;
-        } else {
-            self.position.y = self.position.y.max(ground + eye);
-        }
-    }
 }
 
 /// Everything that lives while the window is open, in drop order.
@@ -345,6 +275,78 @@ struct App {
     stats: RunStats,
 }
 
+impl PresentMode {
+    pub fn vk(self) -> vk::PresentModeKHR {
+        match self {
+            PresentMode::Fifo => vk::PresentModeKHR::FIFO,
+            PresentMode::Mailbox => vk::PresentModeKHR::MAILBOX,
+            PresentMode::Immediate => vk::PresentModeKHR::IMMEDIATE,
+        }
+    }
+}
+
+impl ViewArgs {
+    /// The options the streamed viewer cannot honour yet, given a value other than their
+    /// default (drawing anyway would ignore them silently).
+    fn not_streamed(&self) -> Vec<&'static str> {
+        [
+            ("--texture", self.textures.texture.is_some()),
+            ("--detail", self.textures.detail.is_some()),
+            ("--trace", self.trace.is_some()),
+            ("--record-path", self.record_path.is_some()),
+            ("--go-to", self.go_to.is_some()),
+            ("--exaggeration", self.exaggeration != 1.0),
+            ("--flyover", self.flyover),
+            ("--resize-at", !self.resize_at.is_empty()),
+            ("--error-mode paper", self.common.error_mode != ErrorMode::Strict),
+            ("--raw-size", self.common.raw_size.is_some()),
+            ("--block (an archive fixes k = 33)", self.common.block != 33),
+        ]
+        .into_iter()
+        .filter_map(|(name, set)| set.then_some(name))
+        .collect()
+    }
+}
+
+/// The viewer over an archive drawn streamed ([`crate::app::stream_view`]), when it is
+/// one: `--stream`, or larger than one image on the device.
+fn view_archive(args: &ViewArgs) -> anyhow::Result<bool> {
+    let max_side = || {
+        let instance = Instance::new(&InstanceOptions { validation: false, extensions: Vec::new() }).ok()?;
+        let options = DeviceOptions { gpu: args.common.gpu.clone(), queues: args.common.queues, swapchain: false };
+        Device::new(instance, &options).ok().map(|d| d.max_image_dimension_2d() as usize)
+    };
+    // Without a device the in-memory path says why, as before.
+    let Some(archive) =
+        crate::app::stream::streamed_archive(&args.common, args.streamed.stream, || max_side().unwrap_or(usize::MAX))?
+    else {
+        return Ok(false);
+    };
+    let refused = args.not_streamed();
+    if !refused.is_empty() {
+        return Err(InputError(format!(
+            "{} is drawn streamed (tiles through a bounded cache), which does not take {} yet",
+            crate::input::archive::bytes::shown(archive.path()),
+            refused.join(", ")
+        ))
+        .into());
+    }
+    let options = crate::app::stream_view::StreamViewOptions {
+        common: args.common.clone(),
+        delta: args.delta,
+        fog: args.fog,
+        present: args.present_mode.vk(),
+        frames: args.frames,
+        screenshot: args.screenshot.clone(),
+        frame_counter: args.frame_counter.clone(),
+        walk: args.walk,
+        cache_mb: args.streamed.cache_mb,
+        gpu_mb: args.streamed.gpu_mb,
+    };
+    crate::app::stream_view::view_streamed(&options, archive)?;
+    Ok(true)
+}
+
 pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
     // Output paths are checked before the run, not when it ends: distinct files that
     // are not inputs.
@@ -357,6 +359,9 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
         ],
         &[("--heightmap", args.common.heightmap.as_deref()), args.textures.inputs()[0], args.textures.inputs()[1]],
     )?;
+    if view_archive(args)? {
+        return Ok(());
+    }
     let mut hf = args.common.load_heightfield(None)?;
     let true_height_scale = hf.height_scale;
     hf.height_scale *= args.exaggeration;
@@ -568,11 +573,7 @@ impl App {
         }
         let terrain = Arc::new(TerrainGpu::new(&device, &self.hf, &self.mm, self.base.as_ref(), self.detail.as_ref())?);
         let size = window.inner_size();
-        let present = match self.args.present_mode {
-            PresentMode::Fifo => vk::PresentModeKHR::FIFO,
-            PresentMode::Mailbox => vk::PresentModeKHR::MAILBOX,
-            PresentMode::Immediate => vk::PresentModeKHR::IMMEDIATE,
-        };
+        let present = self.args.present_mode.vk();
         let swapchain = Swapchain::new(&device, &surface, (size.width, size.height), present, None)?;
         let depth = depth_image(&device, swapchain.extent)?;
         let renderer = BlocksRenderer::new(
@@ -626,11 +627,7 @@ impl App {
             return Ok(());
         }
         gpu.device.wait_idle()?;
-        let present = match self.args.present_mode {
-            PresentMode::Fifo => vk::PresentModeKHR::FIFO,
-            PresentMode::Mailbox => vk::PresentModeKHR::MAILBOX,
-            PresentMode::Immediate => vk::PresentModeKHR::IMMEDIATE,
-        };
+        let present = self.args.present_mode.vk();
         let new = Swapchain::new(&gpu.device, &gpu.surface, (size.width, size.height), present, Some(&gpu.swapchain))?;
         gpu.swapchain = new;
         gpu.depth = depth_image(&gpu.device, gpu.swapchain.extent)?;
@@ -655,10 +652,10 @@ impl App {
             self.ctl.position = Vec3::new(wx * 0.5, top + 0.05 * wx.max(wz), wz * (1.0 - 0.75 * t));
             self.ctl.yaw = -std::f32::consts::FRAC_PI_2;
             self.ctl.pitch = -0.35;
-            self.ctl.clamp_to_ground(&self.hf);
+            self.ctl.clamp_to_ground(&*self.hf);
         } else {
             let before = self.ctl.position;
-            self.ctl.update(&self.hf, dt);
+            self.ctl.update(&*self.hf, dt);
             let moved = self.ctl.position - before;
             self.ground_speed = if dt > 0.0 { Vec3::new(moved.x, 0.0, moved.z).length() / dt } else { 0.0 };
             if let Some((pivot, radius)) = self.ctl.orbit {
@@ -735,7 +732,7 @@ impl App {
             let screenshot = screenshot_next.take().or_else(|| {
                 (*screenshots_asked > 0).then(|| {
                     *screenshots_asked -= 1;
-                    next_free_screenshot()
+                    crate::app::outputs::next_free_screenshot()
                 })
             });
             let readback = match (&screenshot, gpu.swapchain.can_copy) {
@@ -1174,7 +1171,7 @@ impl App {
             KeyCode::Space => self.frozen = if self.frozen.is_some() { None } else { Some(self.blocks.clone()) },
             KeyCode::KeyG => {
                 self.ctl.walk = !self.ctl.walk;
-                self.ctl.clamp_to_ground(&self.hf);
+                self.ctl.clamp_to_ground(&*self.hf);
             }
             KeyCode::Home => self.go_home(),
             KeyCode::KeyO => {
@@ -1220,14 +1217,7 @@ struct Submitted {
 
 fn default_fog(hf: &Heightfield) -> f32 {
     let (wx, wz) = hf.world_extent();
-    0.2 / wx.max(wz)
-}
-
-fn next_free_screenshot() -> PathBuf {
-    (1..)
-        .map(|n| PathBuf::from(format!("vkterrain-{n}.png")))
-        .find(|p| std::fs::symlink_metadata(p).is_err())
-        .expect("a free name")
+    crate::lod::view::default_fog(wx.max(wz))
 }
 
 fn depth_image(device: &Arc<Device>, extent: vk::Extent2D) -> anyhow::Result<Image> {
@@ -1287,24 +1277,16 @@ impl ApplicationHandler for App {
                 // Drag to look: the cursor's motion inside the window turns the camera.
                 let at = (position.x as f32, position.y as f32);
                 if let (true, Some(last)) = (self.ctl.looking, self.cursor) {
-                    let (dx, dy) = (at.0 - last.0, at.1 - last.1);
-                    self.ctl.yaw += dx * 0.003;
-                    self.ctl.pitch = (self.ctl.pitch - dy * 0.003).clamp(-1.55, 1.55);
-                    self.stats.mouse_turn += (dx * 0.003).abs();
+                    let turned = self.ctl.drag(at.0 - last.0, at.1 - last.1);
+                    self.stats.mouse_turn += turned;
                     if self.ctl.orbit.is_some() {
-                        self.stats.orbit_turn += (dx * 0.003).abs();
+                        self.stats.orbit_turn += turned;
                     }
                 }
                 self.cursor = Some(at);
             }
             WindowEvent::CursorLeft { .. } => self.cursor = None,
-            WindowEvent::MouseWheel { delta, .. } => {
-                let steps = match delta {
-                    MouseScrollDelta::LineDelta(_, y) => y,
-                    MouseScrollDelta::PixelDelta(p) => (p.y / 40.0) as f32,
-                };
-                self.ctl.speed *= 1.25f32.powf(steps);
-            }
+            WindowEvent::MouseWheel { delta, .. } => self.ctl.wheel(delta),
             WindowEvent::RedrawRequested => {
                 if let Some((_, w, h)) = self.resizes.iter().find(|r| r.0 == self.frame).copied() {
                     if let Some(win) = &self.window {

@@ -2,9 +2,9 @@
 //! the heightfield atlas, each block's heights fetched from its tile's layer, every
 //! position relative to the camera's nearest sample (`glsl/stream.vert`).
 //!
-//! Shading is plain (normals from the surface's own derivatives, colour by height, fog):
-//! streamed tiles bring no gradient or lighting maps yet. Frames are offscreen; the
-//! viewer does not draw archives larger than one image yet.
+//! Shading is plain (normals from the surface's own derivatives, the ramp by height,
+//! fog): streamed tiles bring no gradient or lighting maps yet. Frames go offscreen (read
+//! back) or into a window's swapchain image.
 //!
 //! [`Selection`]: crate::stream::traverse::Selection
 
@@ -18,8 +18,8 @@ use crate::stream::draw::StreamedBlock;
 use crate::stream::Grid;
 use crate::vk::{
     begin_one_time, host_read_barrier, image_barrier, vk, Buffer, CommandPool, DepthMode, DescriptorPool,
-    DescriptorSetLayout, Device, Fence, GraphicsPipeline, GraphicsPipelineDesc, PipelineLayout, Sampler, VkError,
-    VkResult, VkResultExt,
+    DescriptorSetLayout, Device, Fence, GraphicsPipeline, GraphicsPipelineDesc, Image, PipelineLayout, Sampler,
+    VkError, VkResult, VkResultExt,
 };
 use std::sync::Arc;
 
@@ -39,7 +39,9 @@ pub struct StreamedRenderer {
     cmd: vk::CommandBuffer,
     fence: Fence,
     commands: CommandPool,
-    pipeline: GraphicsPipeline,
+    /// The terrain pipeline for each colour format drawn to (the offscreen target's, a
+    /// window's swapchain's).
+    pipelines: Vec<(vk::Format, GraphicsPipeline)>,
     pipeline_layout: PipelineLayout,
     /// The capture hook's pipeline, layout, set and set layout.
     capture: Option<(GraphicsPipeline, PipelineLayout, vk::DescriptorSet, DescriptorSetLayout)>,
@@ -50,6 +52,39 @@ pub struct StreamedRenderer {
     sampler: Sampler,
     mesh: BlockMesh,
     pub target: Target,
+    /// Depth for frames drawn to a window, at its size.
+    window_depth: Option<Image>,
+}
+
+/// A swapchain image to draw a frame into: acquired (`acquired` signalled when it may be
+/// written), presented once `done` is signalled; left in PRESENT_SRC_KHR.
+pub struct WindowImage {
+    pub image: vk::Image,
+    pub view: vk::ImageView,
+    pub format: vk::Format,
+    pub extent: vk::Extent2D,
+    pub acquired: vk::Semaphore,
+    pub done: vk::Semaphore,
+}
+
+/// The terrain pipeline of streamed frames for colour attachments of `format`.
+fn terrain_pipeline(device: &Arc<Device>, layout: &PipelineLayout, format: vk::Format) -> VkResult<GraphicsPipeline> {
+    GraphicsPipeline::new(
+        device,
+        &GraphicsPipelineDesc {
+            vert: shaders::STREAM_VERT,
+            frag: Some(shaders::STREAM_FRAG),
+            rasterizer_discard: false,
+            vertex_attribute: Some((2, vk::Format::R8G8_UINT)),
+            color_format: Some(format),
+            depth_format: Some(DEPTH_FORMAT),
+            depth: DepthMode::TestWrite,
+            polygon_mode: vk::PolygonMode::FILL,
+            cull_back: false,
+            layout,
+            specialization: &[],
+        },
+    )
 }
 
 impl StreamedRenderer {
@@ -65,21 +100,7 @@ impl StreamedRenderer {
         )?;
         let push = std::mem::size_of::<BlockPush>() as u32;
         let pipeline_layout = PipelineLayout::new(device, &set_layout, push, vertex)?;
-        let desc = |vert, frag, layout| GraphicsPipelineDesc {
-            vert,
-            frag,
-            rasterizer_discard: frag.is_none(),
-            vertex_attribute: Some((2, vk::Format::R8G8_UINT)),
-            color_format: frag.map(|_| COLOR_FORMAT),
-            depth_format: frag.map(|_| DEPTH_FORMAT),
-            depth: if frag.is_some() { DepthMode::TestWrite } else { DepthMode::Off },
-            polygon_mode: vk::PolygonMode::FILL,
-            cull_back: false,
-            layout,
-            specialization: &[],
-        };
-        let pipeline =
-            GraphicsPipeline::new(device, &desc(shaders::STREAM_VERT, Some(shaders::STREAM_FRAG), &pipeline_layout))?;
+        let pipeline = terrain_pipeline(device, &pipeline_layout, COLOR_FORMAT)?;
         // The capture hook writes from the vertex stage: only where the device allows it.
         let capture = if device.features.vertex_stores {
             let l = DescriptorSetLayout::new(
@@ -91,7 +112,22 @@ impl StreamedRenderer {
                 ],
             )?;
             let pl = PipelineLayout::new(device, &l, push, vertex)?;
-            let p = GraphicsPipeline::new(device, &desc(shaders::STREAM_CAPTURE_VERT, None, &pl))?;
+            let p = GraphicsPipeline::new(
+                device,
+                &GraphicsPipelineDesc {
+                    vert: shaders::STREAM_CAPTURE_VERT,
+                    frag: None,
+                    rasterizer_discard: true,
+                    vertex_attribute: Some((2, vk::Format::R8G8_UINT)),
+                    color_format: None,
+                    depth_format: None,
+                    depth: DepthMode::Off,
+                    polygon_mode: vk::PolygonMode::FILL,
+                    cull_back: false,
+                    layout: &pl,
+                    specialization: &[],
+                },
+            )?;
             Some((p, pl, l))
         } else {
             None
@@ -126,7 +162,7 @@ impl StreamedRenderer {
             cmd,
             fence: Fence::new(device, true)?,
             commands,
-            pipeline,
+            pipelines: vec![(COLOR_FORMAT, pipeline)],
             pipeline_layout,
             capture,
             pool,
@@ -136,6 +172,7 @@ impl StreamedRenderer {
             sampler: Sampler::new(device, vk::Filter::NEAREST, vk::SamplerAddressMode::CLAMP_TO_EDGE)?,
             mesh: BlockMesh::new(device, layout.k())?,
             target: Target::new(device, width, height)?,
+            window_depth: None,
         })
     }
 
@@ -150,7 +187,7 @@ impl StreamedRenderer {
         Ok(FrameUniforms {
             view_proj: vp.to_cols_array_2d(),
             inv_view_proj: vp.as_dmat4().inverse().as_mat4().to_cols_array_2d(),
-            camera_fog: [cam.position.x, cam.position.y, cam.position.z, 0.0],
+            camera_fog: [cam.position.x, cam.position.y, cam.position.z, view.fog],
             terrain: [0.0, grid.height_scale as f32, view.range[0], view.range[1]],
             spacing: [grid.spacing[0] as f32, grid.spacing[1] as f32, 0.0, 0.0],
             light: [light.x, light.y, light.z, 0.25],
@@ -211,18 +248,53 @@ impl StreamedRenderer {
         Ok(())
     }
 
-    /// Submits the recorded command buffer and waits for it.
-    fn submit_and_wait(&mut self) -> VkResult<()> {
+    /// Submits the recorded command buffer and waits for it; `window`: the acquire
+    /// semaphore waited before colour output, the present semaphore signalled.
+    fn submit_and_wait(&mut self, window: Option<(vk::Semaphore, vk::Semaphore)>) -> VkResult<()> {
         // SAFETY: `cmd` is recording on this thread.
         unsafe { self.device.raw.end_command_buffer(self.cmd) }.vk("vkEndCommandBuffer")?;
         self.fence.reset()?;
         let cmds = [vk::CommandBufferSubmitInfo::default().command_buffer(self.cmd)];
-        self.device.draw_queue.submit(
-            &self.device,
-            &[vk::SubmitInfo2::default().command_buffer_infos(&cmds)],
-            self.fence.handle,
-        )?;
+        let waits: Vec<_> = window
+            .iter()
+            .map(|w| {
+                vk::SemaphoreSubmitInfo::default()
+                    .semaphore(w.0)
+                    .stage_mask(vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT)
+            })
+            .collect();
+        let signals: Vec<_> = window
+            .iter()
+            .map(|w| {
+                vk::SemaphoreSubmitInfo::default().semaphore(w.1).stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)
+            })
+            .collect();
+        let submit = vk::SubmitInfo2::default()
+            .command_buffer_infos(&cmds)
+            .wait_semaphore_infos(&waits)
+            .signal_semaphore_infos(&signals);
+        self.device.draw_queue.submit(&self.device, &[submit], self.fence.handle)?;
         self.fence.wait(u64::MAX)
+    }
+
+    /// The terrain pipeline for colour attachments of `format`, made the first time.
+    fn pipeline(&mut self, format: vk::Format) -> VkResult<vk::Pipeline> {
+        if let Some((_, p)) = self.pipelines.iter().find(|(f, _)| *f == format) {
+            return Ok(p.handle);
+        }
+        let p = terrain_pipeline(&self.device, &self.pipeline_layout, format)?;
+        let handle = p.handle;
+        self.pipelines.push((format, p));
+        Ok(handle)
+    }
+
+    /// Offscreen frames at `width x height` from now on.
+    pub fn resize(&mut self, width: u32, height: u32) -> VkResult<()> {
+        if (self.target.width, self.target.height) != (width, height) {
+            self.fence.wait(u64::MAX)?; // the old target's last frame
+            self.target = Target::new(&self.device, width, height)?;
+        }
+        Ok(())
     }
 
     /// The frame number the next frame will have: layers drawn by frames before it have
@@ -239,23 +311,60 @@ impl StreamedRenderer {
         view: &FrameView,
         blocks: &[StreamedBlock],
     ) -> VkResult<(Vec<u8>, StreamedStats)> {
+        let stats = self.draw(atlas, view, blocks, None)?;
+        Ok((self.target.pixels()?, stats))
+    }
+
+    /// Draws `blocks` into a window's swapchain image (the view's size must be the
+    /// image's) and waits; the caller presents it.
+    pub fn render_to_window(
+        &mut self,
+        atlas: &mut HeightAtlas,
+        view: &FrameView,
+        blocks: &[StreamedBlock],
+        window: &WindowImage,
+    ) -> VkResult<StreamedStats> {
+        let e = window.extent;
+        if self.window_depth.as_ref().is_none_or(|d| d.extent != e) {
+            self.window_depth = None; // the last frame was waited for
+            self.window_depth = Some(super::blocks::depth_target(&self.device, "window depth", e)?);
+        }
+        self.draw(atlas, view, blocks, Some(window))
+    }
+
+    fn draw(
+        &mut self,
+        atlas: &mut HeightAtlas,
+        view: &FrameView,
+        blocks: &[StreamedBlock],
+        window: Option<&WindowImage>,
+    ) -> VkResult<StreamedStats> {
         let set = self.set;
         self.bind(atlas, view, set)?;
         self.frame += 1;
         let (pushes, missing) = self.pushes(atlas, blocks);
+        let format = window.map_or(COLOR_FORMAT, |w| w.format);
+        let pipeline = self.pipeline(format)?;
         let d = self.device.raw.clone();
-        let (cmd, target) = (self.cmd, &self.target);
-        let extent = vk::Extent2D { width: target.width, height: target.height };
+        let cmd = self.cmd;
+        let (color, color_view, depth, extent) = match window {
+            Some(w) => (w.image, w.view, self.window_depth.as_ref().expect("made for the window"), w.extent),
+            None => {
+                let t = &self.target;
+                let e = vk::Extent2D { width: t.width, height: t.height };
+                (t.color.handle, t.color.view, &t.depth, e)
+            }
+        };
         let area = vk::Rect2D { offset: vk::Offset2D::default(), extent };
         let clear = [SKY_HORIZON[0], SKY_HORIZON[1], SKY_HORIZON[2], 1.0];
         let color_att = [vk::RenderingAttachmentInfo::default()
-            .image_view(target.color.view)
+            .image_view(color_view)
             .image_layout(vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL)
             .load_op(vk::AttachmentLoadOp::CLEAR)
             .store_op(vk::AttachmentStoreOp::STORE)
             .clear_value(vk::ClearValue { color: vk::ClearColorValue { float32: clear } })];
         let depth_att = vk::RenderingAttachmentInfo::default()
-            .image_view(target.depth.view)
+            .image_view(depth.view)
             .image_layout(vk::ImageLayout::DEPTH_ATTACHMENT_OPTIMAL)
             .load_op(vk::AttachmentLoadOp::CLEAR)
             .store_op(vk::AttachmentStoreOp::DONT_CARE)
@@ -278,21 +387,23 @@ impl StreamedRenderer {
             vk::AccessFlags2::COLOR_ATTACHMENT_WRITE,
             vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL,
         );
+        // The image's last use: the readback copy of the previous frame, or the
+        // presentation engine's read (ordered by the acquire semaphore, waited at colour
+        // output).
+        let last_use = match window {
+            Some(_) => (vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT, vk::AccessFlags2::NONE),
+            None => (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_READ),
+        };
         // SAFETY: the fence was waited in `bind`, so `cmd` is free; every object bound
-        // lives in `self` or `atlas` and outlives the wait in `submit_and_wait`.
+        // lives in `self`, `atlas` or the caller's swapchain and outlives the wait in
+        // `submit_and_wait`.
         unsafe {
             begin_one_time(&d, cmd)?;
-            attachment_barriers(
-                &d,
-                cmd,
-                target.color.handle,
-                (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_READ),
-                &target.depth,
-            );
+            attachment_barriers(&d, cmd, color, last_use, depth);
             d.cmd_begin_rendering(cmd, &rendering);
             d.cmd_set_viewport(cmd, 0, &[viewport]);
             d.cmd_set_scissor(cmd, 0, &[area]);
-            d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, self.pipeline.handle);
+            d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, pipeline);
             d.cmd_bind_descriptor_sets(
                 cmd,
                 vk::PipelineBindPoint::GRAPHICS,
@@ -314,11 +425,20 @@ impl StreamedRenderer {
                 d.cmd_draw_indexed(cmd, self.mesh.index_count, 1, 0, 0, 0);
             }
             d.cmd_end_rendering(cmd);
-            image_barrier(&d, cmd, target.color.handle, COLOR_RANGE, rendered, crate::vk::COPY_SOURCE);
-            crate::vk::copy_image_to_host(&d, cmd, target.color.handle, extent, target.readback.handle);
+            match window {
+                Some(_) => {
+                    let present =
+                        (vk::PipelineStageFlags2::NONE, vk::AccessFlags2::NONE, vk::ImageLayout::PRESENT_SRC_KHR);
+                    image_barrier(&d, cmd, color, COLOR_RANGE, rendered, present);
+                }
+                None => {
+                    image_barrier(&d, cmd, color, COLOR_RANGE, rendered, crate::vk::COPY_SOURCE);
+                    crate::vk::copy_image_to_host(&d, cmd, color, extent, self.target.readback.handle);
+                }
+            }
         }
-        self.submit_and_wait()?;
-        Ok((self.target.pixels()?, StreamedStats { blocks: pushes.len(), missing }))
+        self.submit_and_wait(window.map(|w| (w.acquired, w.done)))?;
+        Ok(StreamedStats { blocks: pushes.len(), missing })
     }
 
     /// Test hook: the position (relative to the anchor) the vertex shader gives every
@@ -381,7 +501,7 @@ impl StreamedRenderer {
             let written = (vk::PipelineStageFlags2::VERTEX_SHADER, vk::AccessFlags2::SHADER_STORAGE_WRITE);
             host_read_barrier(&d, cmd, positions.handle, written);
         }
-        self.submit_and_wait()?;
+        self.submit_and_wait(None)?;
         let floats: Vec<f32> = bytemuck::pod_collect_to_vec(&positions.mapped()?[..blocks.len() * k * k * 16]);
         Ok(floats.chunks(4).map(|c| [c[0], c[1], c[2], c[3]]).collect())
     }
@@ -395,6 +515,8 @@ pub struct FrameView<'a> {
     pub anchor: [i64; 2],
     pub cam: Camera,
     pub range: [f32; 2],
+    /// Exponential fog density per world unit.
+    pub fog: f32,
 }
 
 impl Drop for StreamedRenderer {

@@ -73,3 +73,9 @@ pub fn view_of_box(
     }
     (target + dir * dist, target)
 }
+
+/// The viewers' default haze (exponential fog density) for a terrain `size` world units
+/// across.
+pub fn default_fog(size: f32) -> f32 {
+    0.2 / size
+}

@@ -75,6 +75,11 @@ impl Grid {
         }
     }
 
+    /// World size of the true extent along x and z (from sample 0 to the last).
+    pub fn world_extent(&self) -> [f64; 2] {
+        [(self.width - 1) as f64 * self.spacing[0], (self.height - 1) as f64 * self.spacing[1]]
+    }
+
     /// The same grid with sample (0, 0) at world `(x, z)`.
     pub fn at(self, origin: [f64; 2]) -> Self {
         Grid { origin, ..self }

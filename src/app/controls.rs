@@ -1,0 +1,120 @@
+//! The camera controls both viewers share: WASD/QE flight, walking on the ground, orbit,
+//! drag to look and the wheel's speed, over any terrain that can say how high its ground
+//! is ([`Ground`]: a heightfield in memory, or the tiles a streamed viewer holds).
+
+use crate::lod::heightfield::Heightfield;
+use crate::lod::view::near_plane_for;
+use glam::Vec3;
+use std::collections::HashSet;
+use winit::event::MouseScrollDelta;
+use winit::keyboard::KeyCode;
+
+/// What the controls need of a terrain: its world extent from the origin, the ground's
+/// height (world units) at a world `(x, z)` inside it, and its smaller sample spacing.
+pub trait Ground {
+    fn extent(&self) -> (f32, f32);
+    fn height(&self, x: f32, z: f32) -> f32;
+    fn spacing(&self) -> f32;
+}
+
+impl Ground for Heightfield {
+    fn extent(&self) -> (f32, f32) {
+        self.world_extent()
+    }
+    fn height(&self, x: f32, z: f32) -> f32 {
+        self.surface_height(x, z)
+    }
+    fn spacing(&self) -> f32 {
+        self.spacing.min()
+    }
+}
+
+/// Camera state driven by input or a flyover path.
+pub struct Controller {
+    pub position: Vec3,
+    pub yaw: f32,
+    pub pitch: f32,
+    pub speed: f32,
+    pub walk: bool,
+    pub held: HashSet<KeyCode>,
+    pub looking: bool,
+    /// Orbit mode (O): the point looked at and the distance to it; dragging turns the
+    /// camera around it, W/S move in and out.
+    pub orbit: Option<(Vec3, f32)>,
+}
+
+impl Controller {
+    pub fn forward(&self) -> Vec3 {
+        Vec3::new(self.yaw.cos() * self.pitch.cos(), self.pitch.sin(), self.yaw.sin() * self.pitch.cos())
+    }
+
+    pub fn update(&mut self, ground: &dyn Ground, dt: f32) {
+        if let Some((pivot, radius)) = &mut self.orbit {
+            let k = |c| self.held.contains(&c);
+            let zoom = k(KeyCode::KeyS) as i32 - k(KeyCode::KeyW) as i32;
+            *radius = (*radius * (1.0 + 1.5 * dt * zoom as f32)).max(ground.spacing());
+            let (pivot, radius) = (*pivot, *radius);
+            self.position = pivot - self.forward() * radius;
+            self.clamp_to_ground(ground);
+            return;
+        }
+        let fwd = self.forward();
+        let flat = Vec3::new(fwd.x, 0.0, fwd.z).normalize_or_zero();
+        let right = flat.cross(Vec3::Y);
+        let mut v = Vec3::ZERO;
+        let k = |c| self.held.contains(&c);
+        if k(KeyCode::KeyW) {
+            v += if self.walk { flat } else { fwd };
+        }
+        if k(KeyCode::KeyS) {
+            v -= if self.walk { flat } else { fwd };
+        }
+        if k(KeyCode::KeyD) {
+            v += right;
+        }
+        if k(KeyCode::KeyA) {
+            v -= right;
+        }
+        if k(KeyCode::KeyE) {
+            v += Vec3::Y;
+        }
+        if k(KeyCode::KeyQ) {
+            v -= Vec3::Y;
+        }
+        let boost = if k(KeyCode::ShiftLeft) || k(KeyCode::ShiftRight) { 5.0 } else { 1.0 };
+        self.position += v.normalize_or_zero() * self.speed * boost * dt;
+        self.clamp_to_ground(ground);
+    }
+
+    /// Never below the terrain (seed 002); in walk mode, on the terrain at eye height
+    /// (walking off an edge, or switching to walk outside, lands on its border).
+    pub fn clamp_to_ground(&mut self, terrain: &dyn Ground) {
+        let (wx, wz) = terrain.extent();
+        let ground = terrain.height(self.position.x.clamp(0.0, wx), self.position.z.clamp(0.0, wz));
+        let eye = (2.0f32).max(near_plane_for(terrain.spacing()) * 4.0);
+        if self.walk {
+            self.position.x = self.position.x.clamp(0.0, wx);
+            self.position.z = self.position.z.clamp(0.0, wz);
+            self.position.y = ground + eye;
+        } else {
+            self.position.y = self.position.y.max(ground + eye);
+        }
+    }
+
+    /// Drag to look: the cursor moved by `(dx, dy)` pixels turns the camera. Returns the
+    /// yaw turned (radians).
+    pub fn drag(&mut self, dx: f32, dy: f32) -> f32 {
+        self.yaw += dx * 0.003;
+        self.pitch = (self.pitch - dy * 0.003).clamp(-1.55, 1.55);
+        (dx * 0.003).abs()
+    }
+
+    /// The wheel changes the speed by a quarter a notch.
+    pub fn wheel(&mut self, delta: MouseScrollDelta) {
+        let steps = match delta {
+            MouseScrollDelta::LineDelta(_, y) => y,
+            MouseScrollDelta::PixelDelta(p) => (p.y / 40.0) as f32,
+        };
+        self.speed *= 1.25f32.powf(steps);
+    }
+}

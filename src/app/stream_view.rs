@@ -1,0 +1,516 @@
+//! The viewer over an archive drawn streamed (SPEC section 8): a terrain of any size in a
+//! window. The IO thread reads the tiles the view needs into the host cache while the
+//! camera moves; each frame selects over what is held (blocks that should split but whose
+//! tile has not arrived are drawn as they are and the frame is counted over the bound),
+//! uploads the new tiles into the atlas and draws from it into the swapchain image.
+//!
+//! It has the in-memory viewer's camera controls ([`Controller`]); shading is plain (the
+//! ramp, no textures, shadows, morphing or panel yet), and the window title carries the
+//! figures: frame rate, blocks, frames over the bound, tiles held.
+
+use crate::app::cli::{check_messages, option_error, CommonArgs, InputError};
+use crate::app::controls::{Controller, Ground};
+use crate::app::outputs::save_png;
+use crate::app::stream::{top_tiles, GpuFrames};
+use crate::draw::streamed::WindowImage;
+use crate::input::archive::Archive;
+use crate::lod::view::near_plane_for;
+use crate::stream::streamer::Streamer;
+use crate::stream::traverse::View;
+use crate::stream::Grid;
+use crate::vk::{
+    vk, BinarySemaphore, Device, DeviceOptions, Instance, InstanceOptions, Surface, Swapchain, VkResultExt,
+};
+use glam::Vec3;
+use raw_window_handle::{HasDisplayHandle, HasWindowHandle};
+use std::collections::HashSet;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+use winit::application::ApplicationHandler;
+use winit::dpi::PhysicalSize;
+use winit::event::{ElementState, MouseButton, WindowEvent};
+use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop};
+use winit::keyboard::{KeyCode, PhysicalKey};
+use winit::window::{Window, WindowId};
+
+/// The ground under the camera, from the tiles held (nearest vertex of the finest);
+/// 0 where none is held yet.
+struct HeldGround<'a>(&'a Streamer);
+
+impl Ground for HeldGround<'_> {
+    fn extent(&self) -> (f32, f32) {
+        let [wx, wz] = self.0.grid.world_extent();
+        (wx as f32, wz as f32)
+    }
+    fn height(&self, x: f32, z: f32) -> f32 {
+        self.0.ground(f64::from(x), f64::from(z)).unwrap_or(0.0) as f32
+    }
+    fn spacing(&self) -> f32 {
+        self.0.grid.spacing[0].min(self.0.grid.spacing[1]) as f32
+    }
+}
+
+/// What the streamed viewer is asked to do (the viewer's options it takes).
+#[derive(Clone, Debug)]
+pub struct StreamViewOptions {
+    pub common: CommonArgs,
+    pub delta: f32,
+    pub fog: Option<f32>,
+    pub present: vk::PresentModeKHR,
+    pub frames: Option<u64>,
+    pub screenshot: Option<std::path::PathBuf>,
+    pub frame_counter: Option<std::path::PathBuf>,
+    pub walk: bool,
+    pub cache_mb: u32,
+    pub gpu_mb: u32,
+}
+
+/// Everything that lives while the window is open, in drop order.
+struct WindowGpu {
+    acquired: BinarySemaphore,
+    swapchain: Swapchain,
+    frames: GpuFrames,
+    surface: Surface,
+}
+
+/// What the run did, printed as JSON at exit.
+#[derive(Default, serde::Serialize)]
+struct Run {
+    streamed: bool,
+    frames: u64,
+    seconds: f64,
+    avg_fps: f64,
+    /// Frames drawn with a block over the bound (its tile not held yet).
+    frames_over_bound: u64,
+    worst_factor: f32,
+    last_blocks: usize,
+    last_triangles: u64,
+    final_position: [f32; 3],
+    final_yaw: f32,
+    final_pitch: f32,
+    final_delta: f32,
+    start_position: [f32; 3],
+    mouse_turn: f32,
+    screenshot: Option<String>,
+    stream: Option<crate::stream::streamer::StreamStats>,
+    gpu: Option<serde_json::Value>,
+    device: String,
+    queue_mode: String,
+    validation_messages: u64,
+}
+
+struct App {
+    args: StreamViewOptions,
+    archive: Arc<Archive>,
+    streamer: Streamer,
+    grid: Grid,
+    range: [f32; 2],
+    near: f32,
+    fog: f32,
+    ctl: Controller,
+    home: (Vec3, f32, f32),
+    delta: f32,
+    window: Option<Arc<Window>>,
+    gpu: Option<WindowGpu>,
+    error: Option<anyhow::Error>,
+    cursor: Option<(f32, f32)>,
+    swapchain_dirty: bool,
+    minimized: bool,
+    last_frame: Instant,
+    started: Instant,
+    title_at: Instant,
+    fps_frames: u64,
+    screenshot_next: Option<std::path::PathBuf>,
+    screenshots_asked: u64,
+    interrupted: Arc<std::sync::atomic::AtomicBool>,
+    run: Run,
+}
+
+/// The viewer's start (and Home) view over a terrain known by its extent and heights: as
+/// the in-memory viewer's, over its south part above its highest point, looking north.
+fn start_view(grid: &Grid, [lo, hi]: [f32; 2]) -> (Vec3, Vec3) {
+    let [wx, wz] = grid.world_extent().map(|e| e as f32);
+    let l = wx.max(wz);
+    (Vec3::new(wx * 0.5, hi + 0.08 * l, wz * 0.92), Vec3::new(wx * 0.5, lo, wz * 0.35))
+}
+
+/// `vkterrain view` over an archive drawn streamed.
+pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow::Result<()> {
+    let shown = crate::input::archive::bytes::shown(archive.path());
+    let grid = Grid::from_meta(&archive.meta);
+    let m = &archive.meta;
+    println!(
+        "vkterrain: {shown}: {} x {} samples, {} tile levels, drawn streamed (cache {} MB, atlas {} MB); plain \
+         shading: no textures, shadows, morphing, occlusion culling or panel yet",
+        m.width,
+        m.height,
+        m.top_level + 1,
+        args.cache_mb,
+        args.gpu_mb
+    );
+    let mut streamer = Streamer::new(archive.clone(), grid, args.cache_mb as usize * (1 << 20));
+    let range = top_tiles(&mut streamer);
+    let near = near_plane_for(grid.spacing[0].min(grid.spacing[1]) as f32);
+    let (position, target) = args.common.view_points(|| start_view(&grid, range)).map_err(anyhow::Error::from)?;
+    let f = (target - position).normalize();
+    // As `render` does: the first view's tiles are read before its first frame.
+    let (w, h) = args.common.size.unwrap_or((1280, 720));
+    let first = View::look_at(position.as_dvec3(), target.as_dvec3(), args.common.fovy, w, h, near);
+    crate::app::stream::settle(&mut streamer, |_| first, args.delta);
+    streamer.stats = crate::stream::streamer::StreamStats { worst_factor: 1.0, ..Default::default() };
+    let [wx, wz] = grid.world_extent();
+    let l = wx.max(wz) as f32;
+    let interrupted = super::signals::Stop::install().flag().clone();
+    let event_loop = EventLoop::new().map_err(|e| {
+        anyhow::anyhow!("cannot open a window ({e}); is DISPLAY set? Use `vkterrain render` for headless output")
+    })?;
+    event_loop.set_control_flow(ControlFlow::Poll);
+    println!("keys: W/S A/D Q/E move, drag to look, Shift faster, wheel speed, G walk, Home start, [ ] delta, P screenshot, Esc quit");
+    let home = (position, f.z.atan2(f.x), f.y.clamp(-1.0, 1.0).asin());
+    let now = Instant::now();
+    let mut app = App {
+        args: args.clone(),
+        archive,
+        streamer,
+        grid,
+        range,
+        near,
+        fog: args.fog.unwrap_or(crate::lod::view::default_fog(l)),
+        ctl: Controller {
+            position,
+            yaw: home.1,
+            pitch: home.2,
+            speed: l / 60.0,
+            walk: args.walk,
+            held: HashSet::new(),
+            looking: false,
+            orbit: None,
+        },
+        home,
+        delta: args.delta,
+        window: None,
+        gpu: None,
+        error: None,
+        cursor: None,
+        swapchain_dirty: false,
+        minimized: false,
+        last_frame: now,
+        started: now,
+        title_at: now,
+        fps_frames: 0,
+        screenshot_next: None,
+        screenshots_asked: 0,
+        interrupted,
+        run: Run { streamed: true, worst_factor: 1.0, start_position: position.to_array(), ..Default::default() },
+    };
+    event_loop.run_app(&mut app)?;
+    if let Some(e) = app.error.take() {
+        return Err(e);
+    }
+    let secs = app.started.elapsed().as_secs_f64();
+    let mut run = std::mem::take(&mut app.run);
+    run.seconds = secs;
+    run.avg_fps = run.frames as f64 / secs.max(1e-9);
+    run.final_position = app.ctl.position.to_array();
+    (run.final_yaw, run.final_pitch, run.final_delta) = (app.ctl.yaw, app.ctl.pitch, app.delta);
+    run.stream = Some(app.streamer.stats.clone());
+    let messages = app.gpu.as_ref().map(|g| g.frames.device.instance.messages.clone());
+    if let Some(g) = &app.gpu {
+        run.gpu = Some(g.frames.report());
+        run.validation_messages = g.frames.device.instance.validation_messages();
+    }
+    // Everything Vulkan goes before the messages are counted for the exit status.
+    drop(app);
+    println!("{}", serde_json::to_string(&run)?);
+    if let Some(m) = messages {
+        check_messages(&m)?;
+    }
+    Ok(())
+}
+
+impl App {
+    fn fail(&mut self, event_loop: &ActiveEventLoop, e: anyhow::Error) {
+        if self.error.is_none() {
+            self.error = Some(e);
+        }
+        event_loop.exit();
+    }
+
+    fn open(&mut self, event_loop: &ActiveEventLoop) -> anyhow::Result<()> {
+        let (w, h) = self.args.common.size.unwrap_or((1280, 720));
+        let attrs = Window::default_attributes()
+            .with_title(format!("vkterrain: {} (streamed)", crate::input::archive::bytes::shown(self.archive.path())))
+            .with_inner_size(PhysicalSize::new(w, h));
+        let window = Arc::new(event_loop.create_window(attrs)?);
+        let display = window.display_handle()?.as_raw();
+        let exts: Vec<&'static std::ffi::CStr> = ash_window::enumerate_required_extensions(display)
+            .vk("enumerate surface extensions")?
+            .iter()
+            // SAFETY: ash-window returns pointers to static NUL-terminated extension names.
+            .map(|&p| unsafe { std::ffi::CStr::from_ptr(p) })
+            .collect();
+        let instance = Instance::new(&InstanceOptions { validation: self.args.common.validation(), extensions: exts })?;
+        // SAFETY: the window outlives the surface: `WindowGpu` (holding the surface) is
+        // dropped before `App::window`.
+        let surface = unsafe { Surface::new(&instance, display, window.window_handle()?.as_raw())? };
+        let device = Device::new(
+            instance,
+            &DeviceOptions { gpu: self.args.common.gpu.clone(), queues: self.args.common.queues, swapchain: true },
+        )
+        .map_err(option_error)?;
+        println!("vkterrain: device {}, queue mode {}", device.name, device.queue_mode.as_str());
+        let max = device.max_image_dimension_2d();
+        if w > max || h > max {
+            return Err(
+                InputError(format!("--size {w}x{h}: larger than the device's maxImageDimension2D ({max})")).into()
+            );
+        }
+        let size = window.inner_size();
+        let swapchain = Swapchain::new(&device, &surface, (size.width, size.height), self.args.present, None)?;
+        self.run.device = device.name.clone();
+        self.run.queue_mode = device.queue_mode.as_str().into();
+        let acquired = BinarySemaphore::new(&device)?;
+        let mut frames = GpuFrames::new(device, &self.grid, self.args.gpu_mb, self.range, (w, h))?;
+        frames.fog = self.fog;
+        self.gpu = Some(WindowGpu { acquired, swapchain, frames, surface });
+        self.window = Some(window);
+        Ok(())
+    }
+
+    fn recreate_swapchain(&mut self) -> anyhow::Result<()> {
+        let (Some(gpu), Some(window)) = (self.gpu.as_mut(), self.window.as_ref()) else { return Ok(()) };
+        let size = window.inner_size();
+        if size.width == 0 || size.height == 0 {
+            return Ok(());
+        }
+        gpu.frames.device.wait_idle()?;
+        let mode = self.args.present;
+        let new =
+            Swapchain::new(&gpu.frames.device, &gpu.surface, (size.width, size.height), mode, Some(&gpu.swapchain))?;
+        gpu.swapchain = new;
+        self.swapchain_dirty = false;
+        Ok(())
+    }
+
+    /// The view the camera gives at `extent` (the swapchain's size).
+    fn view(&self, width: u32, height: u32) -> View {
+        let p = self.ctl.position.as_dvec3();
+        View::look_at(p, p + self.ctl.forward().as_dvec3(), self.args.common.fovy, width, height, self.near)
+    }
+
+    fn draw(&mut self) -> anyhow::Result<()> {
+        if self.swapchain_dirty {
+            self.recreate_swapchain()?;
+        }
+        let now = Instant::now();
+        let dt = (now - self.last_frame).as_secs_f32().min(0.25);
+        self.last_frame = now;
+        let before = self.ctl.position;
+        self.ctl.update(&HeldGround(&self.streamer), dt);
+        let velocity = (self.ctl.position - before) / dt.max(1e-6);
+        let Some(gpu) = self.gpu.as_ref() else { return Ok(()) };
+        let extent = gpu.swapchain.extent;
+        let view = self.view(extent.width, extent.height);
+        // Where the camera will be in half a second: its tiles are asked for next.
+        let ahead = View { position: view.position + velocity.as_dvec3() * 0.5, ..view };
+        let sel = self.streamer.frame(&view, Some(&ahead), self.delta, 0.5);
+        if !sel.within_bound() {
+            self.run.frames_over_bound += 1;
+            self.run.worst_factor = self.run.worst_factor.max(sel.worst_factor);
+        }
+        let gpu = self.gpu.as_mut().expect("checked above");
+        // SAFETY: the swapchain and semaphore are live; the last frame was waited for, so
+        // the acquire semaphore is unsignalled and free.
+        let acquire = unsafe {
+            gpu.swapchain.loader.acquire_next_image(
+                gpu.swapchain.handle,
+                u64::MAX,
+                gpu.acquired.handle,
+                vk::Fence::null(),
+            )
+        };
+        let (index, suboptimal) = match acquire {
+            Ok(r) => r,
+            Err(vk::Result::ERROR_OUT_OF_DATE_KHR) => {
+                self.swapchain_dirty = true;
+                return Ok(());
+            }
+            Err(e) => return Err(e).vk("vkAcquireNextImageKHR").map_err(Into::into),
+        };
+        let i = index as usize;
+        let target = WindowImage {
+            image: gpu.swapchain.images[i],
+            view: gpu.swapchain.views[i],
+            format: gpu.swapchain.format,
+            extent,
+            acquired: gpu.acquired.handle,
+            done: gpu.swapchain.render_done[i],
+        };
+        gpu.frames.draw(&self.streamer, &self.grid, &view, &sel, Some(&target))?;
+        let swapchains = [gpu.swapchain.handle];
+        let indices = [index];
+        let wait = [target.done];
+        let present =
+            vk::PresentInfoKHR::default().wait_semaphores(&wait).swapchains(&swapchains).image_indices(&indices);
+        let presented = {
+            let _lock = gpu.frames.device.draw_queue.lock();
+            // SAFETY: the queue is locked; the image was acquired and rendered.
+            unsafe { gpu.swapchain.loader.queue_present(gpu.frames.device.draw_queue.handle, &present) }
+        };
+        match presented {
+            Ok(sub) => self.swapchain_dirty |= sub || suboptimal,
+            Err(vk::Result::ERROR_OUT_OF_DATE_KHR) => self.swapchain_dirty = true,
+            Err(e) => return Err(e).vk("vkQueuePresentKHR").map_err(Into::into),
+        }
+        if let Some(path) = self.screenshot_next.take() {
+            // The same frame again, offscreen at the window's size, read back.
+            let (w, h) = (extent.width, extent.height);
+            gpu.frames.resize(w, h)?;
+            gpu.frames.draw(&self.streamer, &self.grid, &view, &sel, None)?;
+            save_png(&path, w, h, &gpu.frames.last)?;
+            println!("vkterrain: screenshot {}", path.display());
+            self.run.screenshot = Some(path.display().to_string());
+        }
+        self.run.frames += 1;
+        self.run.last_blocks = gpu.frames.blocks;
+        self.run.last_triangles = gpu.frames.triangles;
+        self.fps_frames += 1;
+        if let Some(path) = &self.args.frame_counter {
+            let frames = self.run.frames.to_string();
+            crate::app::outputs::write_atomic(path, |tmp| {
+                std::fs::write(tmp, &frames).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))
+            })?;
+        }
+        self.update_title();
+        Ok(())
+    }
+
+    fn update_title(&mut self) {
+        let elapsed = self.title_at.elapsed();
+        if elapsed < Duration::from_millis(250) {
+            return;
+        }
+        let fps = self.fps_frames as f64 / elapsed.as_secs_f64();
+        self.title_at = Instant::now();
+        self.fps_frames = 0;
+        let p = self.ctl.position;
+        let ground = HeldGround(&self.streamer).height(p.x, p.z);
+        let s = &self.streamer.stats;
+        let title = format!(
+            "vkterrain (streamed) | {fps:.1} fps | {} blocks {} tris | delta {} | {} of {} frames over the bound | {} tiles held, {:.0} MB | {:.0} above ground{}",
+            self.run.last_blocks,
+            self.run.last_triangles,
+            self.delta,
+            self.run.frames_over_bound,
+            self.run.frames,
+            self.streamer.cache.len(),
+            s.peak_cache_bytes as f64 / f64::from(1u32 << 20),
+            p.y - ground,
+            if self.ctl.walk { " | walk" } else { "" },
+        );
+        if let Some(w) = &self.window {
+            w.set_title(&title);
+        }
+    }
+
+    fn key(&mut self, code: KeyCode, event_loop: &ActiveEventLoop) {
+        match code {
+            KeyCode::Escape => event_loop.exit(),
+            KeyCode::BracketLeft => self.delta = (self.delta * 0.5).max(0.125),
+            KeyCode::BracketRight => self.delta = (self.delta * 2.0).min(64.0),
+            KeyCode::Home => {
+                (self.ctl.position, self.ctl.yaw, self.ctl.pitch) = self.home;
+                self.ctl.walk = false;
+            }
+            KeyCode::KeyG => {
+                self.ctl.walk = !self.ctl.walk;
+                self.ctl.clamp_to_ground(&HeldGround(&self.streamer));
+            }
+            KeyCode::KeyP => {
+                self.screenshots_asked += 1;
+                self.screenshot_next = Some(crate::app::outputs::next_free_screenshot());
+            }
+            _ => {}
+        }
+    }
+}
+
+impl ApplicationHandler for App {
+    fn resumed(&mut self, event_loop: &ActiveEventLoop) {
+        if self.gpu.is_none() {
+            if let Err(e) = self.open(event_loop) {
+                self.fail(event_loop, e);
+            }
+        }
+    }
+
+    fn window_event(&mut self, event_loop: &ActiveEventLoop, _id: WindowId, event: WindowEvent) {
+        match event {
+            WindowEvent::CloseRequested => event_loop.exit(),
+            WindowEvent::Resized(size) => {
+                self.minimized = size.width == 0 || size.height == 0;
+                self.swapchain_dirty = true;
+            }
+            WindowEvent::KeyboardInput { event, .. } => {
+                if let PhysicalKey::Code(code) = event.physical_key {
+                    if event.state == ElementState::Pressed {
+                        if !event.repeat {
+                            self.key(code, event_loop);
+                        }
+                        self.ctl.held.insert(code);
+                    } else {
+                        self.ctl.held.remove(&code);
+                    }
+                }
+            }
+            WindowEvent::MouseInput { state, button: MouseButton::Left | MouseButton::Right, .. } => {
+                self.ctl.looking = state == ElementState::Pressed;
+            }
+            WindowEvent::CursorMoved { position, .. } => {
+                let at = (position.x as f32, position.y as f32);
+                if let (true, Some(last)) = (self.ctl.looking, self.cursor) {
+                    self.run.mouse_turn += self.ctl.drag(at.0 - last.0, at.1 - last.1);
+                }
+                self.cursor = Some(at);
+            }
+            WindowEvent::CursorLeft { .. } => self.cursor = None,
+            WindowEvent::MouseWheel { delta, .. } => self.ctl.wheel(delta),
+            WindowEvent::RedrawRequested => {
+                if self.args.frames.is_some_and(|n| self.run.frames + 1 >= n) {
+                    if let Some(p) = self.args.screenshot.clone() {
+                        self.screenshot_next = Some(p);
+                    }
+                }
+                if let Err(e) = self.draw() {
+                    self.fail(event_loop, e);
+                    return;
+                }
+                if self.args.frames.is_some_and(|n| self.run.frames >= n) {
+                    event_loop.exit();
+                }
+            }
+            _ => {}
+        }
+    }
+
+    fn about_to_wait(&mut self, event_loop: &ActiveEventLoop) {
+        if self.interrupted.load(std::sync::atomic::Ordering::SeqCst) {
+            event_loop.exit();
+            return;
+        }
+        event_loop.set_control_flow(if self.minimized { ControlFlow::Wait } else { ControlFlow::Poll });
+        if let (Some(w), false) = (&self.window, self.minimized) {
+            w.request_redraw();
+        }
+    }
+}
+
+impl Drop for App {
+    fn drop(&mut self) {
+        // Nothing may be destroyed while the GPU still uses it.
+        if let Some(g) = &self.gpu {
+            let _ = g.frames.device.wait_idle();
+        }
+        self.gpu = None;
+    }
+}
