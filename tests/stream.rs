@@ -21,7 +21,7 @@ use vkterrain::lod::traversal::stitch_selection;
 use vkterrain::stream::cache::{root_lod, serving_tile, Heights, HostCache, Refused, TileData, BLOCK_QUADS};
 use vkterrain::stream::io::TileSource;
 use vkterrain::stream::streamer::{Streamer, RETRY_FRAMES};
-use vkterrain::stream::traverse::{Selection, View};
+use vkterrain::stream::traverse::{select, Selection, View};
 use vkterrain::stream::{draw, Grid, TileKey};
 
 const DELTA: f32 = 1.0;
@@ -158,7 +158,8 @@ fn settled_frames_keep_the_bound_cover_the_view_and_pass_the_audit() {
         let cam = camera(view);
         let blocks: Vec<DrawBlock> = sel.blocks.iter().map(|b| DrawBlock::new(b.lod, b.bx, b.bz)).collect();
         check_tiling(&hf, &mm, &layout, &blocks, &cam).unwrap_or_else(|e| panic!("pose {i}: {e}"));
-        for (b, block) in sel.blocks.iter().zip(&blocks) {
+        assert_eq!(sel.stitched.len(), sel.blocks.len(), "pose {i}: the selection is stitched as drawn");
+        for (b, block) in sel.blocks.iter().zip(&sel.stitched) {
             assert!(!b.over && (b.lod == 0 || b.error_px <= DELTA), "pose {i}: {b:?}");
             let audited = audit_block(&hf, &layout, block, &cam);
             assert!(audited <= DELTA * 1.001, "pose {i}: block {b:?} audits at {audited} px");
@@ -270,13 +271,14 @@ fn a_cache_too_small_for_the_path_counts_every_frame_over_the_bound_honestly() {
         s.settle();
         s.cache.check().unwrap_or_else(|e| panic!("frame {i}: {e}"));
         let cam = camera(view);
-        for b in &sel.blocks {
+        for (b, drawn) in sel.blocks.iter().zip(&sel.stitched) {
             // Used this frame, so not evicted by what the settle took in.
             assert!(s.cache.peek(b.tile).is_some(), "frame {i}: drawn from a tile not held");
             if b.over {
-                assert!(b.error_px > DELTA && b.lod > 0, "frame {i}: {b:?}");
+                // Its own error or its stitched strip's, or a T-junction.
+                assert!(b.error_px > DELTA || b.t_junction, "frame {i}: {b:?}");
             } else {
-                let audited = audit_block(&hf, &layout, &DrawBlock::new(b.lod, b.bx, b.bz), &cam);
+                let audited = audit_block(&hf, &layout, drawn, &cam);
                 assert!(audited <= DELTA * 1.001, "frame {i}: a block within the bound audits at {audited} px");
             }
         }
@@ -488,4 +490,68 @@ fn the_stream_command_flies_within_its_budget_and_degrades_on_a_damaged_archive(
     let failure = r["first_failure"].as_str().unwrap_or_else(|| panic!("no failure reported: {r}"));
     assert!(failure.contains("cut.pmtiles") && failure.contains("tile ") && failure.contains("truncated"), "{failure}");
     assert!(r["stats"]["tiles_failed"].as_u64().unwrap() > 0);
+}
+
+/// A field made to break stitching (SPEC section 5): the LOD-2 mesh of random vertices
+/// (so `D_2 = 0` and LOD-2 blocks have no error of their own) beside flat ground, whose
+/// coarse blocks meet them. The fan triangles of a stitched strip cut across the LOD-2
+/// quads, departing from the true surface by up to the vertices' spread while every block
+/// error is 0. Settled streamed frames, as drawn (stitched), audit within delta; the same
+/// frames selected without the stitching rule audit far over it (the check can fail).
+#[test]
+fn stitched_strips_stay_within_the_bound_on_a_field_made_to_break_them() {
+    for amplitude in [5.0f32, 0.5] {
+        let node = move |i: usize, j: usize| {
+            if i * 4 <= 256 || j * 4 <= 128 {
+                return 0.0;
+            }
+            let mut n = (i as u64).wrapping_mul(0x9E3779B97F4A7C15) ^ (j as u64).wrapping_mul(0xC2B2AE3D27D4EB4F);
+            n ^= n >> 29;
+            n = n.wrapping_mul(0xBF58476D1CE4E5B9);
+            n ^= n >> 32;
+            (n % 1000) as f32 / 1000.0 * amplitude
+        };
+        let hf = common::field(513, 513, 1.0, move |x, z| {
+            let (i, j) = (x / 4, z / 4);
+            let (fx, fz) = ((x % 4) as f32 / 4.0, (z % 4) as f32 / 4.0);
+            let (a, c, g, ii) = (node(i, j), node(i + 1, j), node(i, j + 1), node(i + 1, j + 1));
+            // The a-i split: above the diagonal the triangle a-c-i, below it a-i-g.
+            if fx >= fz {
+                a + (c - a) * fx + (ii - c) * fz
+            } else {
+                a + (ii - g) * fx + (g - a) * fz
+            }
+        });
+        let dir = TempDir::new("stream-strips");
+        let archive = common::archive_of(&hf, &dir);
+        let grid = Grid::from_meta(&archive.meta);
+        let layout = BlockLayout::of(&hf, 33).unwrap();
+        let mut s = Streamer::new(archive, grid, 1 << 30);
+        let (mut drawn_worst, mut unruled_worst, mut splits) = (0.0f32, 0.0f32, 0);
+        for i in 0..40 {
+            let a = i as f64 * 0.37;
+            let h = [2.0, 10.0, 40.0, 150.0][i % 4];
+            let p = DVec3::new(256.0 + 20.0 * a.cos(), h + f64::from(amplitude), 300.0 + 150.0 * a.sin());
+            let t = DVec3::new(256.0 + 30.0 * (a * 1.7).sin(), 0.0, 300.0 + 100.0 * (a * 2.3).cos());
+            let view = View::look_at(p, t, [30.0, 60.0, 90.0][i % 3], 640, 480, 0.01);
+            let sel = settled(&mut s, &view, 12);
+            let cam = camera(&view);
+            splits += sel.stitch_splits;
+            for (b, drawn) in sel.blocks.iter().zip(&sel.stitched) {
+                let audited = audit_block(&hf, &layout, drawn, &cam);
+                assert!(audited <= DELTA * 1.001, "amplitude {amplitude} pose {i}: {b:?} audits at {audited} px");
+                drawn_worst = drawn_worst.max(audited);
+            }
+            let unruled = select(&grid, &s.cache, &view, DELTA, 1.0, None);
+            for b in draw::stitched_blocks(&grid, &s.cache, &unruled) {
+                unruled_worst = unruled_worst.max(audit_block(&hf, &layout, &b.block, &cam));
+            }
+        }
+        println!("amplitude {amplitude}: stitched frames audit at {drawn_worst} px, {unruled_worst} px without the rule; {splits} stitch splits");
+        assert!(
+            unruled_worst > 5.0 * DELTA,
+            "amplitude {amplitude}: the field does not break stitching: {unruled_worst}"
+        );
+        assert!(splits > 0);
+    }
 }

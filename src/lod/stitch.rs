@@ -10,7 +10,7 @@
 
 use crate::lod::block::{block_vertex, BlockLayout, DrawBlock};
 use crate::lod::block_cache::BoundedCache;
-use crate::lod::heightfield::Heightfield;
+use crate::lod::heightfield::{Heightfield, RawSamples};
 use crate::lod::pyramid::MinMaxPyramid;
 use std::ops::RangeInclusive;
 
@@ -369,12 +369,206 @@ fn inside_row(pos: [(i64, i64); 3], z: i64) -> RangeInclusive<i64> {
     lo..=hi
 }
 
+/// How far the drawn (stitched) surface of `b` departs from the block's own LOD-`j`
+/// surface `L_j` (every vertex its own sample, split along the a-i diagonal) over each
+/// edge's first row of quads, in raw units, and the raw height range of that row's drawn
+/// vertices. For the streamed traversal, which holds no full-resolution samples: with
+/// `D_j` the block's deviation, `|H - S| <= |H - L_j| + |L_j - S| <= D_j + edge[e]`.
+///
+/// Exact over the whole row, not only at samples: both surfaces are linear on each piece
+/// of the overlay of their two triangulations, so the largest difference is at a vertex of
+/// the intersection of a drawn triangle with a triangle of `L_j`.
+pub fn strip_departure<S: RawSamples + ?Sized>(hf: &S, layout: &BlockLayout, b: &DrawBlock) -> StripDeviation {
+    let last = layout.k() - 2;
+    let own = DrawBlock::new(b.lod, b.bx, b.bz);
+    let mut out = StripDeviation { lo: f32::INFINITY, hi: f32::NEG_INFINITY, ..Default::default() };
+    for (e, edge) in out.edge.iter_mut().enumerate() {
+        let mut drawn = Vec::with_capacity(2 * last as usize + 2);
+        let mut flat = Vec::with_capacity(2 * last as usize + 2);
+        let mut changed = false;
+        for t in 0..=last {
+            let (u, v) = strip_quad(e, t, last);
+            let quad = |blk: &DrawBlock| {
+                let p = |du: u32, dv: u32| block_vertex(hf, layout, blk, u + du, v + dv);
+                let (a, c, i, g) = (p(0, 0), p(1, 0), p(1, 1), p(0, 1));
+                [[a, c, i], [a, i, g]]
+            };
+            let (d, f) = (quad(b), quad(&own));
+            changed |= d != f;
+            for tri in &d {
+                for p in tri {
+                    out.lo = out.lo.min(p.2);
+                    out.hi = out.hi.max(p.2);
+                }
+            }
+            drawn.extend(d);
+            flat.extend(f);
+        }
+        if changed {
+            *edge = overlay_max_difference(&drawn, &flat);
+        }
+    }
+    if out.lo > out.hi {
+        (out.lo, out.hi) = (0.0, 0.0);
+    }
+    out
+}
+
+/// `max |S(p) - T(p)|` over the region both triangle sets cover, `S` and `T` piecewise
+/// linear over their triangles (degenerate ones cover nothing).
+fn overlay_max_difference(s: &[[(i64, i64, f32); 3]], t: &[[(i64, i64, f32); 3]]) -> f32 {
+    let bounds = |tri: &[(i64, i64, f32); 3]| {
+        let xs = tri.map(|p| p.0);
+        let zs = tri.map(|p| p.1);
+        (*xs.iter().min().unwrap(), *xs.iter().max().unwrap(), *zs.iter().min().unwrap(), *zs.iter().max().unwrap())
+    };
+    let mut worst = 0.0f64;
+    for a in s {
+        let (ax0, ax1, az0, az1) = bounds(a);
+        let Some(pa) = Plane::of(a) else { continue };
+        for b in t {
+            let (bx0, bx1, bz0, bz1) = bounds(b);
+            if bx1 < ax0 || bx0 > ax1 || bz1 < az0 || bz0 > az1 {
+                continue;
+            }
+            let Some(pb) = Plane::of(b) else { continue };
+            for (x, z) in clip(a, b) {
+                worst = worst.max((pa.at(x, z) - pb.at(x, z)).abs());
+            }
+        }
+    }
+    worst as f32
+}
+
+/// The height over a non-degenerate triangle as a linear function of `(x, z)`.
+struct Plane {
+    h0: f64,
+    dx: f64,
+    dz: f64,
+    x0: f64,
+    z0: f64,
+}
+
+impl Plane {
+    fn of(t: &[(i64, i64, f32); 3]) -> Option<Plane> {
+        let [p0, p1, p2] = t.map(|p| (p.0 as f64, p.1 as f64, p.2 as f64));
+        let (ux, uz, uh) = (p1.0 - p0.0, p1.1 - p0.1, p1.2 - p0.2);
+        let (vx, vz, vh) = (p2.0 - p0.0, p2.1 - p0.1, p2.2 - p0.2);
+        let det = ux * vz - vx * uz;
+        if det == 0.0 {
+            return None;
+        }
+        Some(Plane { h0: p0.2, dx: (uh * vz - vh * uz) / det, dz: (ux * vh - vx * uh) / det, x0: p0.0, z0: p0.1 })
+    }
+    fn at(&self, x: f64, z: f64) -> f64 {
+        self.h0 + self.dx * (x - self.x0) + self.dz * (z - self.z0)
+    }
+}
+
+/// The polygon where triangles `a` and `b` overlap (Sutherland-Hodgman: `a` clipped by
+/// each edge of `b`), as its vertices; empty when they do not overlap.
+fn clip(a: &[(i64, i64, f32); 3], b: &[(i64, i64, f32); 3]) -> Vec<(f64, f64)> {
+    let pts = |t: &[(i64, i64, f32); 3]| t.map(|p| (p.0 as f64, p.1 as f64));
+    let mut poly: Vec<(f64, f64)> = pts(a).to_vec();
+    let c = pts(b);
+    let area = (c[1].0 - c[0].0) * (c[2].1 - c[0].1) - (c[2].0 - c[0].0) * (c[1].1 - c[0].1);
+    let sign = area.signum();
+    for k in 0..3 {
+        let (p, q) = (c[k], c[(k + 1) % 3]);
+        // Inside: on the same side of p->q as the triangle's interior (edges included).
+        let side = |r: (f64, f64)| sign * ((q.0 - p.0) * (r.1 - p.1) - (q.1 - p.1) * (r.0 - p.0));
+        let mut next = Vec::with_capacity(poly.len() + 1);
+        for i in 0..poly.len() {
+            let (r, s) = (poly[i], poly[(i + 1) % poly.len()]);
+            let (sr, ss) = (side(r), side(s));
+            if sr >= 0.0 {
+                next.push(r);
+            }
+            if (sr >= 0.0) != (ss >= 0.0) {
+                let w = sr / (sr - ss);
+                next.push((r.0 + (s.0 - r.0) * w, r.1 + (s.1 - r.1) * w));
+            }
+        }
+        poly = next;
+        if poly.is_empty() {
+            break;
+        }
+    }
+    poly
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
 
     fn field(side: usize, f: impl Fn(usize, usize) -> f32) -> Heightfield {
         crate::lod::heightfield::test_field(side, side, f)
+    }
+
+    /// The height of block `b`'s drawn surface at sample `(x, z)`: the first of its
+    /// triangles (collapsed ones cover nothing) that holds the sample.
+    fn surface_at(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock, x: i64, z: i64) -> f32 {
+        let last = layout.k() - 1;
+        (0..last)
+            .flat_map(|v| (0..last).map(move |u| (u, v)))
+            .find_map(|(u, v)| {
+                let p = |du, dv| block_vertex(hf, layout, b, u + du, v + dv);
+                let (a, c, i, g) = (p(0, 0), p(1, 0), p(1, 1), p(0, 1));
+                [[a, c, i], [a, i, g]].iter().find_map(|t| crate::lod::geometry::interpolate(t, x, z))
+            })
+            .expect("the block covers its samples")
+    }
+
+    /// The drawn strip departs from the block's own surface by at most `strip_departure`
+    /// at every sample of the strip (it is the maximum over the whole row), on a rough
+    /// field, at LODs 0 to 3, for coarser neighbours 1 to 3 levels up on each edge; it is
+    /// 0 where nothing is stitched and at most the row's vertex range. A measure that
+    /// ignored the overlay's crossing points (only the triangles' own corners) misses
+    /// the samples' maximum here: the check can fail.
+    #[test]
+    fn strip_departure_bounds_every_sample_of_the_strip() {
+        let hf = field(257, |x, z| (((x * 7919 + z * 104729) % 101) as f32) * 0.37 + ((x + 2 * z) % 5) as f32);
+        let layout = BlockLayout::of(&hf, 9).unwrap();
+        let (mut checked, mut nonzero) = (0, 0);
+        for lod in 0..=3u32 {
+            let own = DrawBlock::new(lod, 2, 2);
+            assert_eq!(strip_departure(&hf, &layout, &own).edge, [0.0; 4]);
+            for up in 1..=3u32 {
+                for e in 0..4 {
+                    let mut b = own;
+                    b.coarser[e] = 1 << (lod + up);
+                    let dep = strip_departure(&hf, &layout, &b);
+                    let (ox, oz) = b.origin(&layout);
+                    let size = layout.block_samples(lod) as i64;
+                    let (mut worst, mut range) = (0.0f32, (f32::INFINITY, f32::NEG_INFINITY));
+                    for z in oz as i64..=oz as i64 + size {
+                        for x in ox as i64..=ox as i64 + size {
+                            let (lx, lz) = (x - ox as i64, z - oz as i64);
+                            let w = [lz, size - lx, size - lz, lx][e];
+                            if w > 1 << lod {
+                                continue; // outside the edge's first row
+                            }
+                            range = (range.0.min(hf.raw_at(x, z)), range.1.max(hf.raw_at(x, z)));
+                            let drawn = surface_at(&hf, &layout, &b, x, z);
+                            let flat = surface_at(&hf, &layout, &own, x, z);
+                            worst = worst.max((drawn - flat).abs());
+                            checked += 1;
+                        }
+                    }
+                    assert!(
+                        worst <= dep.edge[e] * (1.0 + 1e-5) + 1e-4,
+                        "lod {lod} up {up} edge {e}: {worst} > {dep:?}"
+                    );
+                    assert!(dep.edge[e] <= range.1 - range.0 + 1e-4, "lod {lod} up {up} edge {e}: {dep:?}");
+                    nonzero += (dep.edge[e] > 0.0) as usize;
+                    for other in (0..4).filter(|&o| o != e && dep.edge[o] > 0.0) {
+                        // Only the corner quads of the neighbouring rows can change.
+                        assert!(dep.edge[other] <= dep.edge[e] + 1e-4, "lod {lod} edge {e} other {other}: {dep:?}");
+                    }
+                }
+            }
+        }
+        assert!(checked > 1000 && nonzero >= 40, "{checked} samples, {nonzero} stitched edges measured");
     }
 
     fn cache_free(hf: &Heightfield, layout: &BlockLayout, b: &DrawBlock) -> StripDeviation {

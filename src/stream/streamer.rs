@@ -4,7 +4,7 @@
 
 use super::cache::{tile_bytes_estimate, HostCache, Refused};
 use super::io::{Io, Loaded, TileSource};
-use super::traverse::{select, Selection, View};
+use super::traverse::{select, Selection, StripCache, View};
 use super::{Grid, TileKey};
 use std::collections::{HashMap, HashSet};
 use std::sync::Arc;
@@ -52,6 +52,8 @@ pub struct Streamer {
     priority: HashMap<TileKey, f32>,
     /// The first failure's message (a damaged or missing file), for the run's report.
     pub first_failure: Option<String>,
+    /// What stitching costs each block configuration drawn (archive data: kept).
+    strips: StripCache,
 }
 
 impl Streamer {
@@ -65,6 +67,7 @@ impl Streamer {
             seen: HashSet::new(),
             priority: HashMap::new(),
             first_failure: None,
+            strips: StripCache::default(),
         }
     }
 
@@ -112,12 +115,12 @@ impl Streamer {
         self.take(arrived);
         self.cache.begin_frame();
         self.stats.frames += 1;
-        let sel = select(&self.grid, &self.cache, view, delta, prefetch);
+        let sel = select(&self.grid, &self.cache, view, delta, prefetch, Some(&self.strips));
         self.cache.mark_used(sel.used.iter().copied());
         self.cache.mark_kept(sel.kept.iter().copied());
         let mut wanted = sel.wanted.clone();
         if let Some(a) = ahead {
-            let next = select(&self.grid, &self.cache, a, delta, prefetch);
+            let next = select(&self.grid, &self.cache, a, delta, prefetch, None);
             self.cache.mark_kept(next.used.iter().chain(&next.kept).copied());
             // Below every tile the current frame needs.
             wanted.extend(next.wanted.iter().map(|&(k, p)| (k, p.min(1.0) * 0.5)));

@@ -10,10 +10,15 @@
 //! within the bound but above `prefetch * delta` want their finer tile too, at a lower
 //! priority, so that it is there before it is needed.
 
-use super::cache::{root_lod, serving_tile, HostCache, BLOCK_QUADS};
+use super::cache::{layout, root_lod, serving_tile, HostCache, Resident, BLOCK_QUADS};
 use super::{Grid, TileKey};
+use crate::lod::block::{DrawBlock, CORNER_UNRESOLVED};
+use crate::lod::block_cache::BoundedCache;
 use crate::lod::camera::{world_to_pixels, Camera};
+use crate::lod::stitch::{strip_departure, StripDeviation};
+use crate::lod::traversal::stitch_selection;
 use glam::{DVec3, Vec3};
+use std::collections::HashSet;
 
 /// A camera in the world (f64 position).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -63,8 +68,16 @@ pub struct Selected {
     pub tile: TileKey,
     /// Its error bound, pixels.
     pub error_px: f32,
-    /// It should split but its finer tile is not held.
+    /// It should split but its finer tile is not held, or its stitched strip is over
+    /// delta and the coarser neighbour cannot split.
     pub over: bool,
+    /// Over because a neighbour more than `m` LODs coarser could not split (a
+    /// T-junction: pinholes may show along that edge).
+    pub t_junction: bool,
+    /// Its exact deviation `D` and its vertices' range (raw units), from its tile.
+    pub d: f32,
+    pub lo: f32,
+    pub hi: f32,
 }
 
 /// One frame's selection.
@@ -84,6 +97,12 @@ pub struct Selection {
     pub culled: usize,
     /// The top tile was held (else nothing is drawn and the frame is over the bound).
     pub complete: bool,
+    /// The blocks as drawn: stitched to their neighbours (empty for a selection made
+    /// without the stitching rule, the prefetch's look ahead).
+    pub stitched: Vec<DrawBlock>,
+    /// Blocks split because a finer neighbour's stitched strip exceeded delta, or would
+    /// have met it in a T-junction.
+    pub stitch_splits: usize,
 }
 
 impl Selection {
@@ -103,8 +122,97 @@ fn block_box(grid: &Grid, anchor: [i64; 2], lod: u32, bx: u32, bz: u32, lo: f32,
     (Vec3::new(x(x0), y(lo), z(z0)), Vec3::new(x(x0 + size), y(hi), z(z0 + size)))
 }
 
-/// Selects the blocks of a frame from the tiles `cache` holds.
-pub fn select(grid: &Grid, cache: &HostCache, view: &View, delta: f32, prefetch: f32) -> Selection {
+/// What stitching has been measured to cost, per block configuration (camera-free).
+pub type StripCache = BoundedCache<DrawBlock, StripDeviation>;
+
+/// Selects the blocks of a frame from the tiles `cache` holds. With `strips`, the
+/// selection is the one drawn (SPEC section 5, cracks): blocks are stitched to their
+/// neighbours, and a block whose stitched strip along a coarser neighbour would exceed
+/// delta, or meet it more than `m` LODs apart (a T-junction), makes that neighbour split;
+/// repeated until neither happens. The strip's bound is `D + strip_departure` (the
+/// block's deviation from the true surface plus the strip's exact departure from the
+/// block's own surface, [`strip_departure`]), projected from the block's box. A neighbour
+/// whose finer tile is not held stays, and the block is counted over the bound.
+pub fn select(
+    grid: &Grid,
+    cache: &HostCache,
+    view: &View,
+    delta: f32,
+    prefetch: f32,
+    strips: Option<&StripCache>,
+) -> Selection {
+    let mut forced = HashSet::new();
+    let Some(strips) = strips else { return select_once(grid, cache, view, delta, prefetch, &forced) };
+    let layout = layout(grid);
+    let resident = Resident { grid, cache };
+    let (anchor, cam) = view.relative(grid);
+    let [cells, rows] = layout.cells().map(|c| c as i64);
+    loop {
+        let mut out = select_once(grid, cache, view, delta, prefetch, &forced);
+        if !out.complete {
+            return out;
+        }
+        let mut blocks: Vec<DrawBlock> = out.blocks.iter().map(|b| DrawBlock::new(b.lod, b.bx, b.bz)).collect();
+        let map = stitch_selection(&resident, &layout, &mut blocks);
+        let before = forced.len();
+        // Blocks over the bound if nothing more splits: their strip's error in pixels
+        // (`None`: a T-junction).
+        let mut overs = Vec::new();
+        for (i, b) in blocks.iter().enumerate() {
+            if b.coarser == [0; 4] && b.corner_raw == [CORNER_UNRESOLVED; 4] {
+                continue;
+            }
+            let sel = &out.blocks[i];
+            let dep = strips.get_or_compute(*b, || strip_departure(&resident, &layout, b));
+            let (lo, hi) = ((sel.lo - sel.d).min(dep.lo), (sel.hi + sel.d).max(dep.hi));
+            let (min, max) = block_box(grid, anchor, b.lod, b.bx, b.bz, lo, hi);
+            let to_px = (grid.height_scale as f32) * world_to_pixels(&cam, min, max, delta);
+            for (e, (nx, nz)) in b.cells_across().into_iter().enumerate() {
+                let px = (sel.d + dep.edge[e]) * to_px;
+                let over = dep.edge[e] > 0.0 && px > delta;
+                let t_junction = b.coarser[e] > b.stride() << layout.m;
+                if !(over || t_junction) {
+                    continue;
+                }
+                overs.push((i, over.then_some(px)));
+                if b.coarser[e] > 0 && nx >= 0 && nz >= 0 && nx < cells && nz < rows {
+                    let lod = map[(nz * cells + nx) as usize];
+                    if lod > 0 {
+                        forced.insert((lod as u32, (nx >> lod) as u32, (nz >> lod) as u32));
+                    }
+                }
+            }
+        }
+        if forced.len() == before {
+            for (i, px) in overs {
+                let b = &mut out.blocks[i];
+                if !b.over {
+                    b.over = true;
+                    out.over_bound += 1;
+                }
+                match px {
+                    Some(px) => b.error_px = b.error_px.max(px),
+                    None => b.t_junction = true,
+                }
+                out.worst_factor = out.worst_factor.max(b.error_px / delta);
+            }
+            out.stitch_splits = forced.len();
+            out.stitched = blocks;
+            return out;
+        }
+    }
+}
+
+/// One pass of the traversal; the blocks in `forced` split whatever their error (when
+/// their finer tile is held; else they stay, and want it).
+fn select_once(
+    grid: &Grid,
+    cache: &HostCache,
+    view: &View,
+    delta: f32,
+    prefetch: f32,
+    forced: &HashSet<(u32, u32, u32)>,
+) -> Selection {
     let mut out = Selection { worst_factor: 1.0, ..Default::default() };
     let root = root_lod(grid);
     let top = serving_tile(grid, root, 0, 0);
@@ -115,7 +223,7 @@ pub fn select(grid: &Grid, cache: &HostCache, view: &View, delta: f32, prefetch:
     out.complete = true;
     let (anchor, cam) = view.relative(grid);
     let frustum = cam.frustum();
-    let (mut used, mut kept) = (std::collections::HashSet::new(), std::collections::HashSet::new());
+    let (mut used, mut kept) = (HashSet::new(), HashSet::new());
     let mut stack = vec![(root, 0u32, 0u32)];
     while let Some((lod, bx, bz)) = stack.pop() {
         let size = BLOCK_QUADS << lod;
@@ -134,25 +242,39 @@ pub fn select(grid: &Grid, cache: &HostCache, view: &View, delta: f32, prefetch:
         let error_px = (f64::from(s.d) * grid.height_scale) as f32 * world_to_pixels(&cam, min, max, delta);
         let finer = (lod > 0).then(|| serving_tile(grid, lod - 1, 2 * bx, 2 * bz));
         let finer_held = finer.is_some_and(|k| cache.contains(k));
-        if error_px > delta && finer_held {
+        let stitching = forced.contains(&(lod, bx, bz));
+        if (error_px > delta || stitching) && finer_held {
             for (cx, cz) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
                 stack.push((lod - 1, 2 * bx + cx, 2 * bz + cz));
             }
             continue;
         }
         let over = error_px > delta && lod > 0;
-        if let Some(k) = finer.filter(|k| error_px > prefetch * delta && grid.stores(*k)) {
+        // A neighbour's stitching needs the finer tile as much as the block's own error.
+        let want = if stitching { (error_px / delta).max(2.0) } else { error_px / delta };
+        if let Some(k) = finer.filter(|k| want > prefetch && grid.stores(*k)) {
             if finer_held {
                 kept.insert(k);
             } else {
-                out.wanted.push((k, error_px / delta));
+                out.wanted.push((k, want));
             }
         }
         if over {
             out.over_bound += 1;
             out.worst_factor = out.worst_factor.max(error_px / delta);
         }
-        out.blocks.push(Selected { lod, bx, bz, tile: key, error_px, over });
+        out.blocks.push(Selected {
+            lod,
+            bx,
+            bz,
+            tile: key,
+            error_px,
+            over,
+            t_junction: false,
+            d: s.d,
+            lo: s.lo,
+            hi: s.hi,
+        });
     }
     out.used = used.into_iter().collect();
     out.used.sort();
