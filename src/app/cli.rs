@@ -258,12 +258,28 @@ pub struct StreamedOptions {
     /// always drawn so.
     #[arg(long)]
     pub stream: bool,
-    /// Streamed archives: host cache budget for decoded tiles, MB.
-    #[arg(long, value_name = "MB", default_value_t = 256, value_parser = clap::value_parser!(u32).range(1..=1_000_000))]
-    pub cache_mb: u32,
-    /// Streamed archives: GPU atlas budget, MB (one layer a tile, at most 2048 layers).
-    #[arg(long, value_name = "MB", default_value_t = 256, value_parser = clap::value_parser!(u32).range(1..=1_000_000))]
-    pub gpu_mb: u32,
+    /// Streamed archives: host cache budget for decoded tiles, MB [default: 256].
+    #[arg(long = "cache-mb", value_name = "MB", value_parser = clap::value_parser!(u32).range(1..=1_000_000))]
+    pub cache_mb_given: Option<u32>,
+    /// Streamed archives: GPU atlas budget, MB (one layer a tile, at most 2048 layers)
+    /// [default: 256].
+    #[arg(long = "gpu-mb", value_name = "MB", value_parser = clap::value_parser!(u32).range(1..=1_000_000))]
+    pub gpu_mb_given: Option<u32>,
+}
+
+impl StreamedOptions {
+    pub fn cache_mb(&self) -> u32 {
+        self.cache_mb_given.unwrap_or(256)
+    }
+    pub fn gpu_mb(&self) -> u32 {
+        self.gpu_mb_given.unwrap_or(256)
+    }
+    /// When the terrain is drawn in memory: budgets given for nothing are said to be.
+    pub fn note_unused(&self) {
+        if self.cache_mb_given.is_some() || self.gpu_mb_given.is_some() {
+            eprintln!("vkterrain: note: --cache-mb and --gpu-mb are for archives drawn streamed; this terrain is drawn in memory");
+        }
+    }
 }
 
 /// An error if the validation layers said anything: a run under validation fails on any

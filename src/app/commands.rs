@@ -239,6 +239,7 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
     if let Some(archive) = crate::app::stream::streamed_archive(&args.common, args.streamed.stream, max_side)? {
         return render_streamed(args, device, archive);
     }
+    args.streamed.note_unused();
     let s = Session::with_device(device, &args.common, Some(&args.textures))?;
     let cam = args.common.camera(&s.hf, (1280, 720))?;
     s.check_viewport((cam.width, cam.height))?;
@@ -353,8 +354,8 @@ fn render_streamed(args: &RenderArgs, device: Arc<Device>, archive: Arc<Archive>
         m.width,
         m.height,
         m.top_level + 1,
-        args.streamed.cache_mb,
-        args.streamed.gpu_mb
+        args.streamed.cache_mb(),
+        args.streamed.gpu_mb()
     );
     let queue_mode = device.queue_mode.as_str();
     let messages = device.instance.messages.clone();
@@ -364,22 +365,36 @@ fn render_streamed(args: &RenderArgs, device: Arc<Device>, archive: Arc<Archive>
         common: &args.common,
         delta: args.delta,
         fog: args.fog,
-        cache_mb: args.streamed.cache_mb,
-        gpu_mb: args.streamed.gpu_mb,
+        cache_mb: args.streamed.cache_mb(),
+        gpu_mb: args.streamed.gpu_mb(),
     })?;
     save_png(&args.out, r.width, r.height, &r.pixels)?;
     let mut out = r.report;
     out["queue_mode"] = json!(queue_mode);
     out["error_mode"] = json!(args.common.error_mode.as_str());
     crate::app::outputs::TerrainFacts::of_archive(&archive.meta).merge_into(&mut out);
+    if let Some(s) = args.common.spacing {
+        out["spacing_m"] = json!([s.x, s.z]);
+    }
+    if let Some(h) = args.common.height_scale {
+        out["height_scale_m"] = json!(h);
+    }
     println!("{out}");
     // Every Vulkan object is gone now: messages from their destruction count too.
     check_messages(&messages)?;
     if !out["within_bound"].as_bool().unwrap_or(false) {
+        let why = if let Some(failure) = out["first_failure"].as_str() {
+            format!("tiles could not be read (first: {failure}); drawn coarser")
+        } else {
+            format!(
+                "the budgets (--cache-mb {}, --gpu-mb {}) cannot hold the tiles this view needs",
+                args.streamed.cache_mb(),
+                args.streamed.gpu_mb()
+            )
+        };
         eprintln!(
-            "vkterrain: WARNING: the frame is over the bound ({} blocks, worst {:.2}x delta): --cache-mb {} cannot hold \
-             the tiles this view needs",
-            out["blocks_over_bound"], out["worst_factor"], args.streamed.cache_mb
+            "vkterrain: WARNING: the frame is over the bound ({} blocks, worst {:.2}x delta): {why}",
+            out["blocks_over_bound"], out["worst_factor"]
         );
     }
     Ok(())

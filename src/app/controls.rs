@@ -44,6 +44,21 @@ pub struct Controller {
 }
 
 impl Controller {
+    /// At `position` looking along `forward` (unit), moving at `speed` world units a
+    /// second, walking or flying.
+    pub fn new(position: Vec3, forward: Vec3, speed: f32, walk: bool) -> Self {
+        Controller {
+            position,
+            yaw: forward.z.atan2(forward.x),
+            pitch: forward.y.clamp(-1.0, 1.0).asin(),
+            speed,
+            walk,
+            held: HashSet::new(),
+            looking: false,
+            orbit: None,
+        }
+    }
+
     pub fn forward(&self) -> Vec3 {
         Vec3::new(self.yaw.cos() * self.pitch.cos(), self.pitch.sin(), self.yaw.sin() * self.pitch.cos())
     }

@@ -71,7 +71,7 @@ pub(crate) struct GpuFrames {
     tiles_uploaded: u64,
     bytes_uploaded: u64,
     /// Frames where some block's tile found no atlas layer (those blocks not drawn).
-    frames_missing_blocks: u64,
+    pub frames_missing_blocks: u64,
     /// Blocks and triangles of the last frame drawn.
     pub blocks: usize,
     pub triangles: u64,
@@ -147,6 +147,11 @@ impl GpuFrames {
         Ok(())
     }
 
+    /// The atlas's layers.
+    pub fn layers(&self) -> usize {
+        self.atlas.layer_count() as usize
+    }
+
     /// Offscreen frames at `width x height` from now on (a window's screenshot).
     pub fn resize(&mut self, width: u32, height: u32) -> anyhow::Result<()> {
         self.renderer.resize(width, height)?;
@@ -187,9 +192,9 @@ pub(crate) fn height_range(streamer: &Streamer, grid: &Grid) -> Option<[f32; 2]>
 }
 
 /// Reads the top tiles (a view of the whole terrain from high above, nothing split) and
-/// returns the world heights they span ([`height_range`]; `[0, 1]` when they cannot be
-/// read).
-pub(crate) fn top_tiles(streamer: &mut Streamer) -> [f32; 2] {
+/// returns the world heights they span ([`height_range`]). Without them nothing can be
+/// drawn: an error naming what failed (exit 2).
+pub(crate) fn top_tiles(streamer: &mut Streamer) -> anyhow::Result<[f32; 2]> {
     let grid = streamer.grid;
     let [wx, wz] = grid.world_extent();
     let high = 2.0 * wx.max(wz) + 1.0;
@@ -202,7 +207,51 @@ pub(crate) fn top_tiles(streamer: &mut Streamer) -> [f32; 2] {
         1.0,
     );
     settle(streamer, |_| overview, f32::MAX);
-    height_range(streamer, &grid).unwrap_or([0.0, 1.0])
+    height_range(streamer, &grid).ok_or_else(|| {
+        let why = streamer.first_failure.clone().unwrap_or_else(|| "the cache cannot hold them".into());
+        InputError(format!("the archive's top tiles could not be read: {why}")).into()
+    })
+}
+
+/// The grid of an archive as the options frame it: `--spacing` and `--height-scale`
+/// override the archive's own, and say so (as the loader does for files).
+pub(crate) fn streamed_grid(archive: &Archive, common: &CommonArgs) -> Grid {
+    let mut grid = Grid::from_meta(&archive.meta);
+    if let Some(s) = common.spacing {
+        eprintln!(
+            "vkterrain: note: spacing {} x {} m from --spacing, not the archive's {} x {}",
+            s.x, s.z, grid.spacing[0], grid.spacing[1]
+        );
+        grid.spacing = [f64::from(s.x), f64::from(s.z)];
+    }
+    if let Some(h) = common.height_scale {
+        eprintln!("vkterrain: note: height scale {h} from --height-scale, not the archive's {}", grid.height_scale);
+        grid.height_scale = f64::from(h);
+    }
+    grid
+}
+
+/// A streamer for `archive` whose host cache of `cache_mb` never holds more tiles than an
+/// atlas of `gpu_mb` has layers (`device_limit`: the device's array layers), so that
+/// every tile a frame draws from has a layer.
+pub(crate) fn atlas_bound_streamer(
+    archive: Arc<Archive>,
+    grid: Grid,
+    cache_mb: u32,
+    gpu_mb: u32,
+    device_limit: u32,
+) -> anyhow::Result<Streamer> {
+    let layers = HeightAtlas::layers_for(&grid, u64::from(gpu_mb) << 20, device_limit);
+    if layers == 0 {
+        return Err(InputError(format!(
+            "--gpu-mb {gpu_mb}: holds no atlas layer ({} bytes a tile)",
+            HeightAtlas::layer_bytes(&grid)
+        ))
+        .into());
+    }
+    let mut streamer = Streamer::new(archive, grid, cache_mb as usize * (1 << 20));
+    streamer.limit_tiles(layers as usize);
+    Ok(streamer)
 }
 
 /// Frames at the view `at` gives (it may depend on the tiles held: a camera kept above
@@ -273,13 +322,18 @@ pub struct ArchiveRender {
 /// drawn from it (plain shading). The frame waits for its tiles, as a viewer's first frame
 /// does; where the cache cannot hold them it is drawn over the bound and says so.
 pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
-    let grid = Grid::from_meta(&f.archive.meta);
+    let grid = streamed_grid(&f.archive, f.common);
     let (w, h) = f.common.size.unwrap_or((1280, 720));
-    let mut streamer = Streamer::new(f.archive.clone(), grid, f.cache_mb as usize * (1 << 20));
+    let max = f.device.max_image_dimension_2d();
+    if w > max || h > max {
+        return Err(InputError(format!("--size {w}x{h}: larger than the device's maxImageDimension2D ({max})")).into());
+    }
+    let layers = f.device.properties.limits.max_image_array_layers;
+    let mut streamer = atlas_bound_streamer(f.archive.clone(), grid, f.cache_mb, f.gpu_mb, layers)?;
     let near = near_plane_for(grid.spacing[0].min(grid.spacing[1]) as f32);
     let extent = grid.world_extent();
     // The top tiles first: the default view frames the terrain's height range.
-    let range = top_tiles(&mut streamer);
+    let range = top_tiles(&mut streamer)?;
     let (position, look_at) =
         f.common.view_points(|| view_of_box(extent.map(|e| e as f32), range, f.common.fovy, w, h, near))?;
     let view = View::look_at(position.as_dvec3(), look_at.as_dvec3(), f.common.fovy, w, h, near);
@@ -287,9 +341,10 @@ pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
     streamer.stats = StreamStats { worst_factor: 1.0, ..Default::default() };
     let (_, sel) = settle(&mut streamer, |_| view, f.delta);
     let settle_ms = warm.elapsed().as_secs_f64() * 1e3;
-    let mut gpu = GpuFrames::new(f.device, &grid, f.gpu_mb, range, (w, h))?;
+    let mut gpu = GpuFrames::new(f.device.clone(), &grid, f.gpu_mb, range, (w, h))?;
     gpu.fog = f.fog;
     gpu.draw(&streamer, &grid, &view, &sel, None)?;
+    let missing = gpu.frames_missing_blocks > 0;
     let report = serde_json::json!({
         "width": w,
         "height": h,
@@ -297,15 +352,21 @@ pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
         "delta": f.delta,
         "blocks": gpu.blocks,
         "triangles": gpu.triangles,
-        "within_bound": sel.within_bound(),
+        "draw_calls": gpu.blocks,
+        "within_bound": sel.within_bound() && !missing,
         "blocks_over_bound": sel.over_bound,
         "worst_factor": sel.worst_factor,
+        "stitch_splits": sel.stitch_splits,
+        "blocks_missing_a_layer": missing,
         "frames_to_settle": streamer.stats.frames,
         "settle_ms": settle_ms,
         "cache_mb": f.cache_mb,
-        "stats": streamer.stats,
+        // Over the frames it took to read the view's tiles, the last one drawn.
+        "settling": streamer.stats,
         "first_failure": streamer.first_failure,
         "gpu": gpu.report(),
+        "device": f.device.name,
+        "validation_messages": f.device.instance.validation_messages(),
         "camera": [position.x, position.y, position.z],
         "look_at": [look_at.x, look_at.y, look_at.z],
         "peak_resident_mb": crate::app::outputs::peak_resident_mb(),
@@ -375,7 +436,22 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
         args.altitude,
         args.cache_mb
     );
-    let mut streamer = Streamer::new(archive.clone(), grid, args.cache_mb as usize * (1 << 20));
+    let device = match args.gpu_mb {
+        Some(_) => {
+            use crate::vk::{DeviceOptions, Instance, InstanceOptions, QueueRequest};
+            let instance = Instance::new(&InstanceOptions { validation: args.validate, extensions: Vec::new() })?;
+            let options = DeviceOptions { gpu: None, queues: QueueRequest::Auto, swapchain: false };
+            Some(Device::new(instance, &options).map_err(crate::app::cli::option_error)?)
+        }
+        None => None,
+    };
+    let mut streamer = match (args.gpu_mb, &device) {
+        (Some(mb), Some(d)) => {
+            let layers = d.properties.limits.max_image_array_layers;
+            atlas_bound_streamer(archive.clone(), grid, args.cache_mb, mb, layers)?
+        }
+        _ => Streamer::new(archive.clone(), grid, args.cache_mb as usize * (1 << 20)),
+    };
     let pose = |streamer: &Streamer, f: u32| {
         let at = start + dir * speed * f64::from(f) / fps;
         let ground = |p: DVec3| streamer.ground(p.x, p.z).unwrap_or(0.0);
@@ -390,17 +466,12 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
     let warm = Instant::now();
     settle(&mut streamer, |s| pose(s, 0), args.delta);
     let warm_up_s = warm.elapsed().as_secs_f64();
-    let mut gpu = match args.gpu_mb {
-        Some(mb) => {
-            use crate::vk::{DeviceOptions, Instance, InstanceOptions, QueueRequest};
-            let instance = Instance::new(&InstanceOptions { validation: args.validate, extensions: Vec::new() })?;
-            let device =
-                Device::new(instance, &DeviceOptions { gpu: None, queues: QueueRequest::Auto, swapchain: false })
-                    .map_err(crate::app::cli::option_error)?;
+    let mut gpu = match (args.gpu_mb, device) {
+        (Some(mb), Some(device)) => {
             let range = height_range(&streamer, &grid).unwrap_or([0.0, 1.0]);
             Some(GpuFrames::new(device, &grid, mb, range, args.size)?)
         }
-        None => None,
+        _ => None,
     };
     let warm_stats = streamer.stats.clone();
     streamer.stats.worst_factor = 1.0; // the flight's own worst

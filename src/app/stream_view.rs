@@ -23,7 +23,6 @@ use crate::vk::{
 };
 use glam::Vec3;
 use raw_window_handle::{HasDisplayHandle, HasWindowHandle};
-use std::collections::HashSet;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 use winit::application::ApplicationHandler;
@@ -96,7 +95,8 @@ struct Run {
     gpu: Option<serde_json::Value>,
     device: String,
     queue_mode: String,
-    validation_messages: u64,
+    validation_messages: Option<u64>,
+    first_failure: Option<String>,
 }
 
 struct App {
@@ -137,7 +137,7 @@ fn start_view(grid: &Grid, [lo, hi]: [f32; 2]) -> (Vec3, Vec3) {
 /// `vkterrain view` over an archive drawn streamed.
 pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow::Result<()> {
     let shown = crate::input::archive::bytes::shown(archive.path());
-    let grid = Grid::from_meta(&archive.meta);
+    let grid = crate::app::stream::streamed_grid(&archive, &args.common);
     let m = &archive.meta;
     println!(
         "vkterrain: {shown}: {} x {} samples, {} tile levels, drawn streamed (cache {} MB, atlas {} MB); plain \
@@ -148,16 +148,27 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
         args.cache_mb,
         args.gpu_mb
     );
-    let mut streamer = Streamer::new(archive.clone(), grid, args.cache_mb as usize * (1 << 20));
-    let range = top_tiles(&mut streamer);
+    // The device's own limit is known once the window is open; the atlas is cut to it.
+    let layers = crate::errors::atlas::MAX_LAYERS;
+    let mut streamer =
+        crate::app::stream::atlas_bound_streamer(archive.clone(), grid, args.cache_mb, args.gpu_mb, layers)?;
+    let range = top_tiles(&mut streamer)?;
     let near = near_plane_for(grid.spacing[0].min(grid.spacing[1]) as f32);
     let (position, target) = args.common.view_points(|| start_view(&grid, range)).map_err(anyhow::Error::from)?;
     let f = (target - position).normalize();
-    // As `render` does: the first view's tiles are read before its first frame.
+    // As `render` does: the first view's tiles are read before its first frame (in walk
+    // mode, once the camera stands on the ground they bring).
     let (w, h) = args.common.size.unwrap_or((1280, 720));
-    let first = View::look_at(position.as_dvec3(), target.as_dvec3(), args.common.fovy, w, h, near);
-    crate::app::stream::settle(&mut streamer, |_| first, args.delta);
-    streamer.stats = crate::stream::streamer::StreamStats { worst_factor: 1.0, ..Default::default() };
+    let mut position = position;
+    for _ in 0..1 + usize::from(args.walk) {
+        let first = View::look_at(position.as_dvec3(), (position + f).as_dvec3(), args.common.fovy, w, h, near);
+        crate::app::stream::settle(&mut streamer, |_| first, args.delta);
+        if args.walk {
+            let mut ctl = Controller::new(position, f, 0.0, true);
+            ctl.clamp_to_ground(&HeldGround(&streamer));
+            position = ctl.position;
+        }
+    }
     let [wx, wz] = grid.world_extent();
     let l = wx.max(wz) as f32;
     let interrupted = super::signals::Stop::install().flag().clone();
@@ -166,7 +177,8 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
     })?;
     event_loop.set_control_flow(ControlFlow::Poll);
     println!("keys: W/S A/D Q/E move, drag to look, Shift faster, wheel speed, G walk, Home start, [ ] delta, P screenshot, Esc quit");
-    let home = (position, f.z.atan2(f.x), f.y.clamp(-1.0, 1.0).asin());
+    let ctl = Controller::new(position, f, l / 60.0, args.walk);
+    let home = (ctl.position, ctl.yaw, ctl.pitch);
     let now = Instant::now();
     let mut app = App {
         args: args.clone(),
@@ -176,16 +188,7 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
         range,
         near,
         fog: args.fog.unwrap_or(crate::lod::view::default_fog(l)),
-        ctl: Controller {
-            position,
-            yaw: home.1,
-            pitch: home.2,
-            speed: l / 60.0,
-            walk: args.walk,
-            held: HashSet::new(),
-            looking: false,
-            orbit: None,
-        },
+        ctl,
         home,
         delta: args.delta,
         window: None,
@@ -214,10 +217,12 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
     run.final_position = app.ctl.position.to_array();
     (run.final_yaw, run.final_pitch, run.final_delta) = (app.ctl.yaw, app.ctl.pitch, app.delta);
     run.stream = Some(app.streamer.stats.clone());
+    run.first_failure = app.streamer.first_failure.clone();
     let messages = app.gpu.as_ref().map(|g| g.frames.device.instance.messages.clone());
     if let Some(g) = &app.gpu {
         run.gpu = Some(g.frames.report());
-        run.validation_messages = g.frames.device.instance.validation_messages();
+        let instance = &g.frames.device.instance;
+        run.validation_messages = instance.validation.then(|| instance.validation_messages());
     }
     // Everything Vulkan goes before the messages are counted for the exit status.
     drop(app);
@@ -272,6 +277,7 @@ impl App {
         let acquired = BinarySemaphore::new(&device)?;
         let mut frames = GpuFrames::new(device, &self.grid, self.args.gpu_mb, self.range, (w, h))?;
         frames.fog = self.fog;
+        self.streamer.limit_tiles(frames.layers());
         self.gpu = Some(WindowGpu { acquired, swapchain, frames, surface });
         self.window = Some(window);
         Ok(())

@@ -27,7 +27,6 @@ use clap::{Args, ValueEnum};
 use glam::Vec3;
 use raw_window_handle::{HasDisplayHandle, HasWindowHandle};
 use serde_json::json;
-use std::collections::HashSet;
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -320,6 +319,7 @@ fn view_archive(args: &ViewArgs) -> anyhow::Result<bool> {
     let Some(archive) =
         crate::app::stream::streamed_archive(&args.common, args.streamed.stream, || max_side().unwrap_or(usize::MAX))?
     else {
+        args.streamed.note_unused();
         return Ok(false);
     };
     let refused = args.not_streamed();
@@ -340,8 +340,8 @@ fn view_archive(args: &ViewArgs) -> anyhow::Result<bool> {
         screenshot: args.screenshot.clone(),
         frame_counter: args.frame_counter.clone(),
         walk: args.walk,
-        cache_mb: args.streamed.cache_mb,
-        gpu_mb: args.streamed.gpu_mb,
+        cache_mb: args.streamed.cache_mb(),
+        gpu_mb: args.streamed.gpu_mb(),
     };
     crate::app::stream_view::view_streamed(&options, archive)?;
     Ok(true)
@@ -421,6 +421,7 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
     }
     let now = Instant::now();
     let geo = crate::app::geo::Geo::new(&hf.georef, hf.spacing);
+    let ctl = Controller::new(cam.position, f, l / 60.0, args.walk);
     let mut app = App {
         args: args.clone(),
         hf: Arc::new(hf),
@@ -431,22 +432,13 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
         window: None,
         gpu: None,
         error: None,
-        home: (cam.position, f.z.atan2(f.x), f.y.clamp(-1.0, 1.0).asin()),
+        home: (ctl.position, ctl.yaw, ctl.pitch),
         geo,
         exaggeration: args.exaggeration,
         true_height_scale,
         ground_speed: 0.0,
         cursor: None,
-        ctl: Controller {
-            position: cam.position,
-            yaw: f.z.atan2(f.x),
-            pitch: f.y.clamp(-1.0, 1.0).asin(),
-            speed: l / 60.0,
-            walk: args.walk,
-            held: HashSet::new(),
-            looking: false,
-            orbit: None,
-        },
+        ctl,
         shading: args.textures.shade(Shading { fog_density: fog, ..Shading::default() }),
         delta: args.delta,
         mode: args.common.error_mode,

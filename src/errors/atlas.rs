@@ -41,14 +41,25 @@ pub struct Uploaded {
 }
 
 impl HeightAtlas {
+    /// Bytes of one layer: a tile with its one-sample border.
+    pub fn layer_bytes(grid: &Grid) -> u64 {
+        let side = (grid.tile_quads + 3) as u64;
+        side * side * grid.height_bytes as u64
+    }
+
+    /// The layers an atlas of `budget_bytes` has on a device allowing `device_limit`
+    /// array layers (at most [`MAX_LAYERS`]).
+    pub fn layers_for(grid: &Grid, budget_bytes: u64, device_limit: u32) -> u32 {
+        (budget_bytes / Self::layer_bytes(grid)).min(u64::from(device_limit.min(MAX_LAYERS))) as u32
+    }
+
     /// An atlas for `grid`'s tiles within `budget_bytes` of device memory: as many layers
     /// as fit, at most the device's `maxImageArrayLayers` and [`MAX_LAYERS`].
     pub fn new(device: &Arc<Device>, grid: &Grid, budget_bytes: u64) -> VkResult<Self> {
         let side = (grid.tile_quads + 3) as u32;
         let unorm16 = grid.height_bytes == 2;
-        let layer_bytes = u64::from(side) * u64::from(side) * if unorm16 { 2 } else { 4 };
-        let limit = device.properties.limits.max_image_array_layers.min(MAX_LAYERS);
-        let layers = (budget_bytes / layer_bytes).min(u64::from(limit)) as u32;
+        let layer_bytes = Self::layer_bytes(grid);
+        let layers = Self::layers_for(grid, budget_bytes, device.properties.limits.max_image_array_layers);
         if layers == 0 {
             return Err(VkError::Setup(format!(
                 "--gpu-mb: {budget_bytes} bytes hold no atlas layer ({layer_bytes} bytes a tile)"

@@ -197,6 +197,9 @@ struct Held {
 pub struct HostCache {
     grid: Grid,
     budget: usize,
+    /// Bytes a tile is charged at least ([`HostCache::limit_tiles`]): so that the cache
+    /// never holds more tiles than the GPU atlas has layers.
+    floor: usize,
     bytes: usize,
     frame: u64,
     held: HashMap<TileKey, Held>,
@@ -205,7 +208,45 @@ pub struct HostCache {
 
 impl HostCache {
     pub fn new(grid: Grid, budget_bytes: usize) -> Self {
-        HostCache { grid, budget: budget_bytes, bytes: 0, frame: 0, held: HashMap::new(), stats: CacheStats::default() }
+        HostCache {
+            grid,
+            budget: budget_bytes,
+            floor: 0,
+            bytes: 0,
+            frame: 0,
+            held: HashMap::new(),
+            stats: CacheStats::default(),
+        }
+    }
+
+    /// Holds at most `tiles` tiles from now on (each charged at least `budget / tiles`
+    /// bytes): a frame draws only from held tiles, so every tile it draws from finds a
+    /// layer in an atlas of that many layers. Leaves not used this frame are evicted
+    /// until the charged bytes fit again.
+    pub fn limit_tiles(&mut self, tiles: usize) {
+        self.floor = self.budget.div_ceil(tiles.max(1));
+        self.bytes = self.held.values().map(|h| self.charge(&h.data)).sum();
+        while self.bytes > self.budget {
+            let frame = self.frame;
+            let victim = self
+                .evictable(true, None)
+                .min_by_key(|(k, h)| (h.last_kept == frame, h.last_used, std::cmp::Reverse(k.level), **k))
+                .map(|(k, _)| *k);
+            match victim {
+                Some(v) => self.evict(v),
+                None => break,
+            }
+        }
+    }
+
+    /// The bytes a tile is charged: its decoded size, at least the floor.
+    pub fn charge(&self, data: &TileData) -> usize {
+        data.bytes.max(self.floor)
+    }
+
+    /// The least a tile is charged ([`HostCache::limit_tiles`]).
+    pub fn floor(&self) -> usize {
+        self.floor
     }
 
     /// Starts a frame: tiles used from now on are protected until the next call.
@@ -268,7 +309,7 @@ impl HostCache {
     /// leaves it could evict this frame; evicting a leaf can make its parent one) for a
     /// tile with that parent (`needed`: a frame needs it now, so prefetched tiles may go too).
     pub fn room(&self, needed: bool, parent: Option<TileKey>) -> usize {
-        let evictable: usize = self.evictable(needed, parent).map(|(_, h)| h.data.bytes).sum();
+        let evictable: usize = self.evictable(needed, parent).map(|(_, h)| self.charge(&h.data)).sum();
         self.budget.saturating_sub(self.bytes) + evictable
     }
 
@@ -287,7 +328,7 @@ impl HostCache {
                 return Err(Refused::NoParent);
             }
         }
-        while self.bytes + data.bytes > self.budget {
+        while self.bytes + self.charge(&data) > self.budget {
             let frame = self.frame;
             let victim = self
                 .evictable(needed, parent)
@@ -302,7 +343,7 @@ impl HostCache {
         if let Some(p) = parent {
             self.held.get_mut(&p).expect("checked").children += 1;
         }
-        self.bytes += data.bytes;
+        self.bytes += self.charge(&data);
         self.held.insert(key, Held { data, last_used: self.frame, last_kept: self.frame, children: 0 });
         self.stats.inserted += 1;
         self.stats.peak_bytes = self.stats.peak_bytes.max(self.bytes);
@@ -312,7 +353,7 @@ impl HostCache {
     fn evict(&mut self, key: TileKey) {
         let gone = self.held.remove(&key).expect("held");
         debug_assert_eq!(gone.children, 0);
-        self.bytes -= gone.data.bytes;
+        self.bytes -= self.charge(&gone.data);
         if let Some(p) = key.parent(self.grid.top) {
             self.held.get_mut(&p).expect("ancestor-closed").children -= 1;
         }
@@ -336,7 +377,7 @@ impl HostCache {
                 return Err(format!("{k:?} counts {} children, holds {:?}", h.children, children.get(k)));
             }
         }
-        let bytes: usize = self.held.values().map(|h| h.data.bytes).sum();
+        let bytes: usize = self.held.values().map(|h| self.charge(&h.data)).sum();
         if bytes != self.bytes {
             return Err(format!("bytes {} counted, {bytes} held", self.bytes));
         }

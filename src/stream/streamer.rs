@@ -145,7 +145,7 @@ impl Streamer {
         let mut once = HashSet::new();
         wanted.retain(|w| once.insert(w.0)); // the first is the highest priority
         wanted.retain(|&(k, p)| {
-            let size = tile_bytes_estimate(&self.grid, k.level);
+            let size = tile_bytes_estimate(&self.grid, k.level).max(self.cache.floor());
             let room = if p > 1.0 { &mut room_needed } else { &mut room_soon };
             let fits = size <= *room;
             if fits {
@@ -162,6 +162,11 @@ impl Streamer {
             self.priority.insert(k, p);
         }
         self.io.request(&keys);
+    }
+
+    /// Holds at most `tiles` tiles (the GPU atlas's layers): [`HostCache::limit_tiles`].
+    pub fn limit_tiles(&mut self, tiles: usize) {
+        self.cache.limit_tiles(tiles);
     }
 
     /// The terrain's height (world units) under world `(x, z)` from the finest held tile
