@@ -468,6 +468,9 @@ fn prepare_and_check_refuse_what_would_destroy_hang_or_mislead() {
     let e = String::from_utf8_lossy(&o.stderr);
     assert!(e.matches("os error").count() <= 1 && !e.contains("preparing"), "before the run, the cause once: {e}");
 
+    // A name that says another format is refused (the archive would pass for a PNG).
+    let png = d.join("x.png");
+    refused(&["prepare", "--synthetic", "65", "--out", png.to_str().unwrap()], &["x.png", ".pmtiles"]);
     for (flag, value) in [("--height-scale", "1e30"), ("--spacing", "1e30")] {
         refused(&["prepare", "--synthetic", "65", flag, value, "--out", x], &["within 1e12"]);
     }

@@ -187,6 +187,13 @@ pub fn prepare(args: &PrepareArgs) -> anyhow::Result<()> {
         }
         out_is_not_input(input, &args.out)?;
     }
+    // Every command that opens archives knows them by their contents, but a name that
+    // says another format (`x.png`) would mislead every other program.
+    if !args.out.extension().is_some_and(|e| e.eq_ignore_ascii_case("pmtiles")) {
+        return Err(
+            InputError(format!("--out {}: an archive is written as a .pmtiles file", args.out.display())).into()
+        );
+    }
     // A missing directory or a pipe fails now, not after the run.
     let inputs: Vec<(&str, Option<&std::path::Path>)> =
         files.iter().map(|f| ("the input", Some(f.as_path()))).collect();
