@@ -294,6 +294,26 @@ fn render_draws_an_archive_streamed_within_the_bound() {
         (serde_json::json!([10.0, 10.0]), serde_json::json!(2.0))
     );
     assert!(String::from_utf8_lossy(&o.stderr).contains("from --spacing"));
+    // A terrain file is prepared on the fly (into a temporary archive, removed) and drawn
+    // streamed: the same frame as its archive prepared beforehand, byte for byte.
+    let ps = common::data("puget_sound/ps_height_1k.png");
+    let pre = dir.path().join("ps.pmtiles");
+    let o = cli(&["prepare", ps.to_str().unwrap(), "--out", pre.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let ps_view = ["--stream", "--size", "160x120", "--camera", "20000,9000,150000", "--look-at", "80000,0,80000"];
+    let frame = |heightmap: &std::path::Path, out: &std::path::Path| {
+        let mut args = vec!["render", "--heightmap", heightmap.to_str().unwrap(), "--out", out.to_str().unwrap()];
+        args.extend(ps_view);
+        let o = cli(&args);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+        assert_eq!(r["within_bound"], true, "{r}");
+        std::fs::read(out).unwrap()
+    };
+    let stale_before = on_the_fly_dirs();
+    let on_the_fly = frame(&ps, &dir.path().join("fly.png"));
+    assert_eq!(on_the_fly, frame(&pre, &dir.path().join("pre.png")), "the same frame from either");
+    assert_eq!(on_the_fly_dirs(), stale_before, "the temporary archive is removed");
     // A viewport larger than an image, and an archive whose top tiles are cut off: exit
     // 2, one line naming the problem.
     let o = render(&["--size", "20000x100"]);
@@ -304,4 +324,16 @@ fn render_draws_an_archive_streamed_within_the_bound() {
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(2), "{err}");
     assert!(err.contains("top tiles") && err.contains("cut.pmtiles"), "{err}");
+}
+
+/// The temporary directories of terrains prepared on the fly, in the temporary directory.
+fn on_the_fly_dirs() -> Vec<std::path::PathBuf> {
+    let mut dirs: Vec<_> = std::fs::read_dir(std::env::temp_dir())
+        .unwrap()
+        .flatten()
+        .map(|e| e.path())
+        .filter(|p| p.file_name().is_some_and(|n| n.to_string_lossy().starts_with("vkterrain-streamed-")))
+        .collect();
+    dirs.sort();
+    dirs
 }

@@ -168,6 +168,50 @@ impl Drop for MosaicDir {
 }
 
 pub fn prepare(args: &PrepareArgs) -> anyhow::Result<()> {
+    let json = prepare_archive(args)?;
+    println!("{}", serde_json::to_string_pretty(&json)?);
+    Ok(())
+}
+
+const ON_THE_FLY_PREFIX: &str = "vkterrain-streamed-";
+
+/// The samples of a raster GDAL reads (its header only); `None` for what it does not
+/// read (raw files).
+pub(crate) fn raster_size(path: &Path) -> Option<(usize, usize)> {
+    WindowReader::open(path).ok().map(|r| (r.raster.width, r.raster.height))
+}
+
+/// A terrain file prepared on the fly into an archive, to be drawn streamed: written into
+/// a private temporary directory and opened, then the directory is removed (the open
+/// handle keeps the file readable until the archive is dropped), so nothing is left
+/// behind; a directory a killed run left is removed by the next.
+pub(crate) fn prepare_on_the_fly(
+    path: &Path,
+    raw_size: Option<(u32, u32)>,
+) -> anyhow::Result<crate::input::archive::Archive> {
+    for stale in crate::input::left_by_dead_runs(&std::env::temp_dir(), ON_THE_FLY_PREFIX) {
+        let _ = std::fs::remove_dir_all(stale);
+    }
+    let dir = std::env::temp_dir().join(format!("{ON_THE_FLY_PREFIX}{}", std::process::id()));
+    std::fs::create_dir_all(&dir).map_err(|e| InputError(format!("{}: {e}", dir.display())))?;
+    eprintln!("vkterrain: note: {}: prepared into a temporary archive, to be drawn streamed", path.display());
+    let args = PrepareArgs {
+        input: vec![path.to_path_buf()],
+        out: dir.join("terrain.pmtiles"),
+        synthetic: None,
+        spacing: None,
+        height_scale: None,
+        raw_size,
+        windows: false,
+    };
+    let opened = prepare_archive(&args)
+        .and_then(|_| crate::input::archive::Archive::open(&args.out).map_err(|e| InputError(e.to_string()).into()));
+    let _ = std::fs::remove_dir_all(&dir);
+    opened
+}
+
+/// [`prepare`] without printing its report: the report.
+fn prepare_archive(args: &PrepareArgs) -> anyhow::Result<serde_json::Value> {
     if args.out.is_dir() {
         return Err(InputError(format!(
             "--out {}: is a directory; name the archive file to write",
@@ -357,7 +401,6 @@ pub fn prepare(args: &PrepareArgs) -> anyhow::Result<()> {
         "report": report,
         "peak_resident_mb": peak,
     });
-    println!("{}", serde_json::to_string_pretty(&json)?);
     eprintln!(
         "vkterrain: wrote {}: {} tiles ({} distinct) in {} levels, {:.1} MB ({:.0}% of {:.1} MB uncompressed), {:.1} s, peak resident {}",
         args.out.display(),
@@ -370,7 +413,7 @@ pub fn prepare(args: &PrepareArgs) -> anyhow::Result<()> {
         report.seconds,
         peak.map_or("unknown".into(), |mb| format!("{mb:.0} MB")),
     );
-    Ok(())
+    Ok(json)
 }
 
 #[derive(clap::Args, Debug)]

@@ -281,17 +281,40 @@ pub fn streamed_archive(
     stream: bool,
     max_side: impl FnOnce() -> usize,
 ) -> anyhow::Result<Option<Arc<Archive>>> {
-    let Some(path) = common.heightmap.as_deref().filter(|p| Archive::is_archive(p)) else {
+    let Some(path) = common.heightmap.as_deref() else {
         if stream {
-            return Err(InputError("--stream draws a tile archive: give one with --heightmap".into()).into());
+            return Err(InputError("--stream draws a terrain file or archive: give one with --heightmap".into()).into());
         }
         return Ok(None);
     };
+    if !Archive::is_archive(path) {
+        // A file larger than one image (or any, with --stream) is prepared into an
+        // archive on the fly: one path for every size.
+        let too_big = || {
+            crate::app::prepare::raster_size(path).is_some_and(|(w, h)| {
+                let (n, roots) = crate::lod::heightfield::grid_cover(w, h);
+                let side = roots.into_iter().max().unwrap_or(1) * (1 << n) + 1;
+                // Every Vulkan device takes 4096 (the spec's minimum): no device is asked.
+                side > 4096 && side > max_side()
+            })
+        };
+        if !(stream || too_big()) {
+            return Ok(None);
+        }
+        if common.voids == crate::input::load::VoidMode::Hole {
+            return Err(InputError(format!(
+                "{}: --voids hole: a terrain drawn streamed has its voids filled (prepare keeps no void mask)",
+                path.display()
+            ))
+            .into());
+        }
+        return Ok(Some(Arc::new(crate::app::prepare::prepare_on_the_fly(path, common.raw_size)?)));
+    }
     if common.voids == crate::input::load::VoidMode::Hole {
         return Ok(None); // refused by the loader, naming the archive
     }
     let archive = Archive::open(path).map_err(|e| InputError(e.to_string()))?;
-    if !stream && archive.grid_side() <= max_side() {
+    if !stream && (archive.grid_side() <= 4096 || archive.grid_side() <= max_side()) {
         return Ok(None);
     }
     Ok(Some(Arc::new(archive)))
