@@ -338,7 +338,7 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
 
 /// `render` over an archive drawn streamed ([`crate::app::stream::render_archive`]).
 fn render_streamed(args: &RenderArgs, device: Arc<Device>, archive: Arc<Archive>) -> anyhow::Result<()> {
-    let shown = crate::input::archive::bytes::shown(archive.path());
+    let shown = crate::app::stream::terrain_name(&args.common);
     let refused = args.not_streamed();
     if !refused.is_empty() {
         return Err(InputError(format!(

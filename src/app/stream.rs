@@ -274,6 +274,12 @@ pub(crate) fn settle(streamer: &mut Streamer, at: impl Fn(&Streamer) -> View, de
     (view, sel)
 }
 
+/// How the terrain drawn streamed is named to the user: the file or URL they gave (an
+/// archive prepared on the fly lives in a temporary file, removed).
+pub fn terrain_name(common: &CommonArgs) -> String {
+    common.heightmap.as_deref().map_or_else(|| "the built-in terrain".into(), crate::input::archive::bytes::shown)
+}
+
 /// The archive `common.heightmap` names when a command draws it streamed: with
 /// `--stream`, or when its grid is larger than one image (`max_side()`, the device's).
 pub fn streamed_archive(

@@ -101,7 +101,6 @@ struct Run {
 
 struct App {
     args: StreamViewOptions,
-    archive: Arc<Archive>,
     streamer: Streamer,
     grid: Grid,
     range: [f32; 2],
@@ -136,7 +135,7 @@ fn start_view(grid: &Grid, [lo, hi]: [f32; 2]) -> (Vec3, Vec3) {
 
 /// `vkterrain view` over an archive drawn streamed.
 pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow::Result<()> {
-    let shown = crate::input::archive::bytes::shown(archive.path());
+    let shown = crate::app::stream::terrain_name(&args.common);
     let grid = crate::app::stream::streamed_grid(&archive, &args.common);
     let m = &archive.meta;
     println!(
@@ -182,7 +181,6 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
     let now = Instant::now();
     let mut app = App {
         args: args.clone(),
-        archive,
         streamer,
         grid,
         range,
@@ -244,7 +242,7 @@ impl App {
     fn open(&mut self, event_loop: &ActiveEventLoop) -> anyhow::Result<()> {
         let (w, h) = self.args.common.size.unwrap_or((1280, 720));
         let attrs = Window::default_attributes()
-            .with_title(format!("vkterrain: {} (streamed)", crate::input::archive::bytes::shown(self.archive.path())))
+            .with_title(format!("vkterrain: {} (streamed)", crate::app::stream::terrain_name(&self.args.common)))
             .with_inner_size(PhysicalSize::new(w, h));
         let window = Arc::new(event_loop.create_window(attrs)?);
         let display = window.display_handle()?.as_raw();

@@ -326,7 +326,7 @@ fn view_archive(args: &ViewArgs) -> anyhow::Result<bool> {
     if !refused.is_empty() {
         return Err(InputError(format!(
             "{} is drawn streamed (tiles through a bounded cache), which does not take {} yet",
-            crate::input::archive::bytes::shown(archive.path()),
+            crate::app::stream::terrain_name(&args.common),
             refused.join(", ")
         ))
         .into());
