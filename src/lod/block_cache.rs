@@ -19,11 +19,13 @@ pub const CACHE_ENTRIES: usize = 1 << 13;
 struct Generations<K, V> {
     current: foldhash::HashMap<K, V>,
     previous: foldhash::HashMap<K, V>,
+    /// Entries a generation holds.
+    generation: usize,
 }
 
 impl<K: Eq + Hash, V> Generations<K, V> {
     fn insert(&mut self, key: K, v: V) {
-        if self.current.len() >= CACHE_ENTRIES / 2 {
+        if self.current.len() >= self.generation {
             self.previous = std::mem::take(&mut self.current);
         }
         self.current.insert(key, v);
@@ -36,7 +38,16 @@ pub struct BoundedCache<K, V> {
 
 impl<K, V> Default for BoundedCache<K, V> {
     fn default() -> Self {
-        let maps = Generations { current: Default::default(), previous: Default::default() };
+        Self::with_entries(CACHE_ENTRIES)
+    }
+}
+
+impl<K, V> BoundedCache<K, V> {
+    /// A cache of at most `entries` (both generations): for frames that draw more blocks
+    /// than [`CACHE_ENTRIES`] allows for (streamed frames to the horizon draw about 4,000).
+    pub fn with_entries(entries: usize) -> Self {
+        let maps =
+            Generations { current: Default::default(), previous: Default::default(), generation: entries.max(2) / 2 };
         BoundedCache { maps: Mutex::new(maps) }
     }
 }
@@ -44,7 +55,8 @@ impl<K, V> Default for BoundedCache<K, V> {
 impl<K: Clone, V: Clone> Clone for BoundedCache<K, V> {
     fn clone(&self) -> Self {
         let maps = self.lock();
-        let maps = Generations { current: maps.current.clone(), previous: maps.previous.clone() };
+        let maps =
+            Generations { current: maps.current.clone(), previous: maps.previous.clone(), generation: maps.generation };
         BoundedCache { maps: Mutex::new(maps) }
     }
 }

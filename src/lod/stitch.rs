@@ -8,7 +8,7 @@
 //! configuration and cached, for both ends of the morph (see `morph.rs`). The traversal
 //! projects it like any world-space deviation.
 
-use crate::lod::block::{block_vertex, BlockLayout, DrawBlock};
+use crate::lod::block::{block_vertex, BlockLayout, DrawBlock, EDGE_CORNERS};
 use crate::lod::block_cache::BoundedCache;
 use crate::lod::heightfield::{Heightfield, RawSamples};
 use crate::lod::pyramid::MinMaxPyramid;
@@ -382,7 +382,13 @@ pub fn strip_departure<S: RawSamples + ?Sized>(hf: &S, layout: &BlockLayout, b: 
     let last = layout.k() - 2;
     let own = DrawBlock::new(b.lod, b.bx, b.bz);
     let mut out = StripDeviation { lo: f32::INFINITY, hi: f32::NEG_INFINITY, ..Default::default() };
+    let moved = corners_moved(hf, layout, b);
     for (e, edge) in out.edge.iter_mut().enumerate() {
+        // A row differs from the block's own only along a coarser neighbour or where one
+        // of its corners was moved onto a coarser edge.
+        if b.coarser[e] == 0 && !EDGE_CORNERS[e].iter().any(|&c| moved[c]) {
+            continue;
+        }
         let mut drawn = Vec::with_capacity(2 * last as usize + 2);
         let mut flat = Vec::with_capacity(2 * last as usize + 2);
         let mut changed = false;
@@ -412,6 +418,20 @@ pub fn strip_departure<S: RawSamples + ?Sized>(hf: &S, layout: &BlockLayout, b: 
         (out.lo, out.hi) = (0.0, 0.0);
     }
     out
+}
+
+/// Which corners of `b` are drawn at another height than their own sample (resolved onto
+/// a coarser neighbour's edge).
+fn corners_moved<S: RawSamples + ?Sized>(hf: &S, layout: &BlockLayout, b: &DrawBlock) -> [bool; 4] {
+    let last = layout.k() - 1;
+    let (ox, oz) = b.origin(layout);
+    let s = b.stride() as i64;
+    let corners = [(0, 0), (last, 0), (last, last), (0, last)];
+    std::array::from_fn(|c| {
+        let (u, v) = corners[c];
+        let (x, z) = (ox as i64 + u as i64 * s, oz as i64 + v as i64 * s);
+        b.corner(c, hf, x, z).to_bits() != hf.raw_at(x, z).to_bits()
+    })
 }
 
 /// `max |S(p) - T(p)|` over the region both triangle sets cover, `S` and `T` piecewise

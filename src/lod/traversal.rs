@@ -214,9 +214,80 @@ fn traverse_once(
 /// in-memory traversal and streamed frames.
 pub fn stitch_selection<S: RawSamples + ?Sized>(hf: &S, layout: &BlockLayout, blocks: &mut [DrawBlock]) -> Vec<i8> {
     let map = lod_map(layout, blocks);
-    assign_neighbours(layout, blocks, &map);
-    resolve_corners(hf, layout, blocks, &map);
+    let [cells, rows] = layout.cells().map(|c| c as i64);
+    stitch_blocks(hf, layout, blocks, &DenseLods { map: &map, cells, rows });
     map
+}
+
+/// The LOD of the selected block over finest-grid cell `(x, z)`, or -1 (outside, or no
+/// block): a dense map over the terrain (in memory), or a lookup in the selection
+/// (streamed terrains, whose dense map could take gigabytes: SPEC section 8).
+pub trait LodAt {
+    /// `near`: a LOD the answer is likely close to (the asking block's): where to look
+    /// first.
+    fn lod_at(&self, x: i64, z: i64, near: u32) -> i8;
+}
+
+/// The dense map of [`lod_map`].
+pub struct DenseLods<'a> {
+    pub map: &'a [i8],
+    pub cells: i64,
+    pub rows: i64,
+}
+
+impl LodAt for DenseLods<'_> {
+    fn lod_at(&self, x: i64, z: i64, _near: u32) -> i8 {
+        if x < 0 || z < 0 || x >= self.cells || z >= self.rows {
+            -1
+        } else {
+            self.map[(z * self.cells + x) as usize]
+        }
+    }
+}
+
+/// The selection's blocks by position, looked up level by level outward from `near`.
+pub struct SparseLods {
+    blocks: foldhash::HashSet<(u32, u32, u32)>,
+    top: u32,
+    cells: i64,
+    rows: i64,
+}
+
+impl SparseLods {
+    pub fn new(layout: &BlockLayout, blocks: &[DrawBlock]) -> Self {
+        let [cells, rows] = layout.cells().map(|c| c as i64);
+        SparseLods { blocks: blocks.iter().map(|b| (b.lod, b.bx, b.bz)).collect(), top: layout.root_lod(), cells, rows }
+    }
+}
+
+impl LodAt for SparseLods {
+    fn lod_at(&self, x: i64, z: i64, near: u32) -> i8 {
+        if x < 0 || z < 0 || x >= self.cells || z >= self.rows {
+            return -1;
+        }
+        let held = |l: u32| self.blocks.contains(&(l, (x >> l) as u32, (z >> l) as u32));
+        let near = near.min(self.top);
+        for d in 0..=self.top {
+            if held(near + d) && near + d <= self.top {
+                return (near + d) as i8;
+            }
+            if d <= near && d > 0 && held(near - d) {
+                return (near - d) as i8;
+            }
+        }
+        -1
+    }
+}
+
+/// Gives `blocks` their coarser neighbours' strides and resolved corners from `lods`.
+pub fn stitch_blocks<S: RawSamples + ?Sized, L: LodAt>(
+    hf: &S,
+    layout: &BlockLayout,
+    blocks: &mut [DrawBlock],
+    lods: &L,
+) {
+    assign_neighbours(blocks, lods);
+    resolve_corners(hf, layout, blocks, lods);
 }
 
 /// Error data computed at `old` used at `now` (SPEC section 5): the error scales like
@@ -233,18 +304,11 @@ pub fn stale_corrected(err: f32, old: Vec3, now: Vec3, min: Vec3, max: Vec3) -> 
         err * d / (d - moved)
     }
 }
-fn assign_neighbours(layout: &BlockLayout, blocks: &mut [DrawBlock], map: &[i8]) {
-    let [cells, rows] = layout.cells().map(|c| c as i64);
-    let at = |x: i64, z: i64| -> i8 {
-        if x < 0 || z < 0 || x >= cells || z >= rows {
-            -1
-        } else {
-            map[(z * cells + x) as usize]
-        }
-    };
+fn assign_neighbours<L: LodAt>(blocks: &mut [DrawBlock], lods: &L) {
     for b in blocks.iter_mut() {
         let span = 1i64 << b.lod;
         let (cx, cz) = (b.bx as i64 * span, b.bz as i64 * span);
+        let at = |x: i64, z: i64| lods.lod_at(x, z, b.lod);
         let across = [at(cx, cz - 1), at(cx + span, cz), at(cx, cz + span), at(cx - 1, cz)];
         for (i, l) in across.iter().enumerate() {
             b.coarser[i] = if *l > b.lod as i8 { 1u32 << *l } else { 0 };
@@ -255,8 +319,12 @@ fn assign_neighbours(layout: &BlockLayout, blocks: &mut [DrawBlock], map: &[i8])
 /// Sets every block's corner heights. A corner strictly inside a coarser neighbour's edge
 /// lies on that edge's line between its vertices; those are raw samples, or that
 /// neighbour's own corners, resolved before (coarsest first).
-pub fn resolve_corners<S: RawSamples + ?Sized>(hf: &S, layout: &BlockLayout, blocks: &mut [DrawBlock], map: &[i8]) {
-    let cells = layout.cells()[0] as i64;
+pub fn resolve_corners<S: RawSamples + ?Sized, L: LodAt>(
+    hf: &S,
+    layout: &BlockLayout,
+    blocks: &mut [DrawBlock],
+    lods: &L,
+) {
     let index: foldhash::HashMap<(u32, u32, u32), usize> =
         blocks.iter().enumerate().map(|(i, b)| ((b.lod, b.bx, b.bz), i)).collect();
     let mut order: Vec<usize> = (0..blocks.len()).collect();
@@ -276,7 +344,7 @@ pub fn resolve_corners<S: RawSamples + ?Sized>(hf: &S, layout: &BlockLayout, blo
                     continue;
                 }
                 let (nx, nz) = across[s];
-                let l = map[(nz * cells + nx) as usize] as u32;
+                let l = lods.lod_at(nx, nz, b.lod) as u32;
                 let Some(&x) = index.get(&(l, (nx >> l) as u32, (nz >> l) as u32)) else { continue };
                 let xb = blocks[x];
                 let size = layout.block_samples(l) as i64;

@@ -8,7 +8,7 @@ use super::{Grid, TileKey};
 use crate::input::archive::tile::Tile;
 use crate::lod::block::BlockLayout;
 use crate::lod::heightfield::RawSamples;
-use std::collections::HashMap;
+use foldhash::{HashMap, HashMapExt};
 use std::sync::Arc;
 
 /// Quads a side of a block (`k - 1` for the blocks' k = 33): a tile of its own level

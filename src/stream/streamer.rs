@@ -6,7 +6,7 @@ use super::cache::{tile_bytes_estimate, HostCache, Refused};
 use super::io::{Io, Loaded, TileSource};
 use super::traverse::{select, Selection, StripCache, View};
 use super::{Grid, TileKey};
-use std::collections::{HashMap, HashSet};
+use foldhash::{HashMap, HashMapExt, HashSet, HashSetExt};
 use std::sync::Arc;
 
 /// Frames after which a tile that failed to read is asked for again (a file that comes
@@ -67,7 +67,9 @@ impl Streamer {
             seen: HashSet::new(),
             priority: HashMap::new(),
             first_failure: None,
-            strips: StripCache::default(),
+            // Four times the blocks of a frame to the horizon (about 4,000): the blocks a
+            // flight keeps drawing are never measured again.
+            strips: StripCache::with_entries(1 << 15),
         }
     }
 

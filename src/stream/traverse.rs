@@ -12,13 +12,13 @@
 
 use super::cache::{layout, root_lod, serving_tile, HostCache, Resident, BLOCK_QUADS};
 use super::{Grid, TileKey};
-use crate::lod::block::{DrawBlock, CORNER_UNRESOLVED};
+use crate::lod::block::DrawBlock;
 use crate::lod::block_cache::BoundedCache;
 use crate::lod::camera::{world_to_pixels, Camera};
 use crate::lod::stitch::{strip_departure, StripDeviation};
-use crate::lod::traversal::stitch_selection;
+use crate::lod::traversal::{stitch_blocks, LodAt, SparseLods};
+use foldhash::{HashSet, HashSetExt};
 use glam::{DVec3, Vec3};
-use std::collections::HashSet;
 
 /// A camera in the world (f64 position).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -141,144 +141,194 @@ pub fn select(
     prefetch: f32,
     strips: Option<&StripCache>,
 ) -> Selection {
-    let mut forced = HashSet::new();
-    let Some(strips) = strips else { return select_once(grid, cache, view, delta, prefetch, &forced) };
-    let layout = layout(grid);
-    let resident = Resident { grid, cache };
-    let (anchor, cam) = view.relative(grid);
-    let [cells, rows] = layout.cells().map(|c| c as i64);
-    loop {
-        let mut out = select_once(grid, cache, view, delta, prefetch, &forced);
-        if !out.complete {
-            return out;
-        }
-        let mut blocks: Vec<DrawBlock> = out.blocks.iter().map(|b| DrawBlock::new(b.lod, b.bx, b.bz)).collect();
-        let map = stitch_selection(&resident, &layout, &mut blocks);
-        let before = forced.len();
-        // Blocks over the bound if nothing more splits: their strip's error in pixels
-        // (`None`: a T-junction).
-        let mut overs = Vec::new();
-        for (i, b) in blocks.iter().enumerate() {
-            if b.coarser == [0; 4] && b.corner_raw == [CORNER_UNRESOLVED; 4] {
-                continue;
-            }
-            let sel = &out.blocks[i];
-            let dep = strips.get_or_compute(*b, || strip_departure(&resident, &layout, b));
-            let (lo, hi) = ((sel.lo - sel.d).min(dep.lo), (sel.hi + sel.d).max(dep.hi));
-            let (min, max) = block_box(grid, anchor, b.lod, b.bx, b.bz, lo, hi);
-            let to_px = (grid.height_scale as f32) * world_to_pixels(&cam, min, max, delta);
-            for (e, (nx, nz)) in b.cells_across().into_iter().enumerate() {
-                let px = (sel.d + dep.edge[e]) * to_px;
-                let over = dep.edge[e] > 0.0 && px > delta;
-                let t_junction = b.coarser[e] > b.stride() << layout.m;
-                if !(over || t_junction) {
-                    continue;
-                }
-                overs.push((i, over.then_some(px)));
-                if b.coarser[e] > 0 && nx >= 0 && nz >= 0 && nx < cells && nz < rows {
-                    let lod = map[(nz * cells + nx) as usize];
-                    if lod > 0 {
-                        forced.insert((lod as u32, (nx >> lod) as u32, (nz >> lod) as u32));
-                    }
-                }
-            }
-        }
-        if forced.len() == before {
-            for (i, px) in overs {
-                let b = &mut out.blocks[i];
-                if !b.over {
-                    b.over = true;
-                    out.over_bound += 1;
-                }
-                match px {
-                    Some(px) => b.error_px = b.error_px.max(px),
-                    None => b.t_junction = true,
-                }
-                out.worst_factor = out.worst_factor.max(b.error_px / delta);
-            }
-            out.stitch_splits = forced.len();
-            out.stitched = blocks;
-            return out;
-        }
-    }
-}
-
-/// One pass of the traversal; the blocks in `forced` split whatever their error (when
-/// their finer tile is held; else they stay, and want it).
-fn select_once(
-    grid: &Grid,
-    cache: &HostCache,
-    view: &View,
-    delta: f32,
-    prefetch: f32,
-    forced: &HashSet<(u32, u32, u32)>,
-) -> Selection {
-    let mut out = Selection { worst_factor: 1.0, ..Default::default() };
     let root = root_lod(grid);
     let top = serving_tile(grid, root, 0, 0);
     if !cache.contains(top) {
+        let mut out = Selection { worst_factor: 1.0, ..Default::default() };
         out.wanted.push((top, f32::INFINITY));
         return out;
     }
-    out.complete = true;
-    let (anchor, cam) = view.relative(grid);
-    let frustum = cam.frustum();
-    let (mut used, mut kept) = (HashSet::new(), HashSet::new());
-    let mut stack = vec![(root, 0u32, 0u32)];
-    while let Some((lod, bx, bz)) = stack.pop() {
-        let size = BLOCK_QUADS << lod;
-        if bx as usize * size >= grid.width - 1 || bz as usize * size >= grid.height - 1 {
-            continue; // wholly outside the true extent
-        }
-        let key = serving_tile(grid, lod, bx, bz);
-        let tile = cache.peek(key).expect("a block is visited only when its tile is held");
-        used.insert(key);
-        let s = tile.block(grid, lod, bx, bz);
-        let (min, max) = block_box(grid, anchor, lod, bx, bz, s.lo - s.d, s.hi + s.d);
-        if !frustum.intersects_aabb(min, max) {
-            out.culled += 1;
-            continue;
-        }
-        let error_px = (f64::from(s.d) * grid.height_scale) as f32 * world_to_pixels(&cam, min, max, delta);
-        let finer = (lod > 0).then(|| serving_tile(grid, lod - 1, 2 * bx, 2 * bz));
-        let finer_held = finer.is_some_and(|k| cache.contains(k));
-        let stitching = forced.contains(&(lod, bx, bz));
-        if (error_px > delta || stitching) && finer_held {
-            for (cx, cz) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
-                stack.push((lod - 1, 2 * bx + cx, 2 * bz + cz));
-            }
-            continue;
-        }
-        let over = error_px > delta && lod > 0;
-        // A neighbour's stitching needs the finer tile as much as the block's own error.
-        let want = if stitching { (error_px / delta).max(2.0) } else { error_px / delta };
-        if let Some(k) = finer.filter(|k| want > prefetch && grid.stores(*k)) {
-            if finer_held {
-                kept.insert(k);
-            } else {
-                out.wanted.push((k, want));
-            }
-        }
-        if over {
-            out.over_bound += 1;
-            out.worst_factor = out.worst_factor.max(error_px / delta);
-        }
-        out.blocks.push(Selected {
-            lod,
-            bx,
-            bz,
-            tile: key,
-            error_px,
-            over,
-            t_junction: false,
-            d: s.d,
-            lo: s.lo,
-            hi: s.hi,
-        });
+    let mut t = Traverser::new(grid, cache, view, delta, prefetch);
+    t.visit(vec![(root, 0, 0)]);
+    if let Some(strips) = strips {
+        t.stitch(strips);
     }
-    out.used = used.into_iter().collect();
-    out.used.sort();
-    out.kept = kept.into_iter().collect();
-    out.kept.sort();
-    out
+    t.finish()
+}
+
+/// One frame's traversal, split again where stitching asks ([`Traverser::stitch`]).
+struct Traverser<'a> {
+    grid: &'a Grid,
+    cache: &'a HostCache,
+    delta: f32,
+    prefetch: f32,
+    anchor: [i64; 2],
+    cam: Camera,
+    frustum: crate::lod::camera::Frustum,
+    /// Blocks that split whatever their error, for a finer neighbour's stitching.
+    forced: HashSet<(u32, u32, u32)>,
+    used: HashSet<TileKey>,
+    kept: HashSet<TileKey>,
+    out: Selection,
+}
+
+impl<'a> Traverser<'a> {
+    fn new(grid: &'a Grid, cache: &'a HostCache, view: &View, delta: f32, prefetch: f32) -> Self {
+        let (anchor, cam) = view.relative(grid);
+        Traverser {
+            grid,
+            cache,
+            delta,
+            prefetch,
+            anchor,
+            frustum: cam.frustum(),
+            cam,
+            forced: HashSet::new(),
+            used: HashSet::new(),
+            kept: HashSet::new(),
+            out: Selection { worst_factor: 1.0, complete: true, ..Default::default() },
+        }
+    }
+
+    /// Visits the blocks on `stack` and their descendants: a block splits while its error
+    /// exceeds delta (or it is forced) and its finer tile is held; else it is drawn.
+    fn visit(&mut self, mut stack: Vec<(u32, u32, u32)>) {
+        let (grid, cache, delta) = (self.grid, self.cache, self.delta);
+        while let Some((lod, bx, bz)) = stack.pop() {
+            let size = BLOCK_QUADS << lod;
+            if bx as usize * size >= grid.width - 1 || bz as usize * size >= grid.height - 1 {
+                continue; // wholly outside the true extent
+            }
+            let key = serving_tile(grid, lod, bx, bz);
+            let tile = cache.peek(key).expect("a block is visited only when its tile is held");
+            self.used.insert(key);
+            let s = tile.block(grid, lod, bx, bz);
+            let (min, max) = block_box(grid, self.anchor, lod, bx, bz, s.lo - s.d, s.hi + s.d);
+            if !self.frustum.intersects_aabb(min, max) {
+                self.out.culled += 1;
+                continue;
+            }
+            let error_px = (f64::from(s.d) * grid.height_scale) as f32 * world_to_pixels(&self.cam, min, max, delta);
+            let finer = (lod > 0).then(|| serving_tile(grid, lod - 1, 2 * bx, 2 * bz));
+            let finer_held = finer.is_some_and(|k| cache.contains(k));
+            let stitching = self.forced.contains(&(lod, bx, bz));
+            if (error_px > delta || stitching) && finer_held {
+                for (cx, cz) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
+                    stack.push((lod - 1, 2 * bx + cx, 2 * bz + cz));
+                }
+                continue;
+            }
+            let over = error_px > delta && lod > 0;
+            // A neighbour's stitching needs the finer tile as much as the block's own error.
+            let want = if stitching { (error_px / delta).max(2.0) } else { error_px / delta };
+            if let Some(k) = finer.filter(|k| want > self.prefetch && grid.stores(*k)) {
+                if finer_held {
+                    self.kept.insert(k);
+                } else {
+                    self.out.wanted.push((k, want));
+                }
+            }
+            self.out.blocks.push(Selected {
+                lod,
+                bx,
+                bz,
+                tile: key,
+                error_px,
+                over,
+                t_junction: false,
+                d: s.d,
+                lo: s.lo,
+                hi: s.hi,
+            });
+        }
+    }
+
+    /// Stitches the selection as drawn and splits the coarser neighbours of blocks whose
+    /// stitched strip exceeds delta or meets them in a T-junction, in place (their
+    /// descendants visited like any block), until none is left; what cannot split leaves
+    /// its finer neighbour over the bound.
+    fn stitch(&mut self, strips: &StripCache) {
+        let (grid, delta) = (self.grid, self.delta);
+        let layout = layout(grid);
+        let resident = Resident { grid, cache: self.cache };
+        loop {
+            let mut blocks: Vec<DrawBlock> =
+                self.out.blocks.iter().map(|b| DrawBlock::new(b.lod, b.bx, b.bz)).collect();
+            let lods = SparseLods::new(&layout, &blocks);
+            stitch_blocks(&resident, &layout, &mut blocks, &lods);
+            let mut split = HashSet::new();
+            // Blocks over the bound if nothing more splits: their strip's error in pixels
+            // (`None`: a T-junction).
+            let mut overs = Vec::new();
+            for (i, b) in blocks.iter().enumerate() {
+                if b.coarser == [0; 4] {
+                    // Drawn as its own surface: corners move only onto a coarser side
+                    // neighbour's edge (`resolve_corners`).
+                    continue;
+                }
+                let sel = &self.out.blocks[i];
+                let dep = strips.get_or_compute(*b, || strip_departure(&resident, &layout, b));
+                let (lo, hi) = ((sel.lo - sel.d).min(dep.lo), (sel.hi + sel.d).max(dep.hi));
+                let (min, max) = block_box(grid, self.anchor, b.lod, b.bx, b.bz, lo, hi);
+                let to_px = (grid.height_scale as f32) * world_to_pixels(&self.cam, min, max, delta);
+                for (e, (nx, nz)) in b.cells_across().into_iter().enumerate() {
+                    let px = (sel.d + dep.edge[e]) * to_px;
+                    let over = dep.edge[e] > 0.0 && px > delta;
+                    let t_junction = b.coarser[e] > b.stride() << layout.m;
+                    if !(over || t_junction) {
+                        continue;
+                    }
+                    overs.push((i, over.then_some(px)));
+                    let lod = lods.lod_at(nx, nz, b.lod);
+                    if b.coarser[e] > 0 && lod > 0 {
+                        let n = (lod as u32, (nx >> lod) as u32, (nz >> lod) as u32);
+                        if self.forced.insert(n) {
+                            split.insert(n);
+                        }
+                    }
+                }
+            }
+            // The newly forced blocks are drawn now: visit them again (they split where
+            // their finer tile is held), leaving every other block as it is.
+            let again: Vec<(u32, u32, u32)> =
+                self.out.blocks.iter().map(|b| (b.lod, b.bx, b.bz)).filter(|k| split.contains(k)).collect();
+            let splits = again
+                .iter()
+                .any(|&(lod, bx, bz)| lod > 0 && self.cache.contains(serving_tile(grid, lod - 1, 2 * bx, 2 * bz)));
+            if !splits {
+                // Their finer tiles are wanted, as much as a block's own error would want them.
+                for &(lod, bx, bz) in &again {
+                    let finer = serving_tile(grid, lod.saturating_sub(1), 2 * bx, 2 * bz);
+                    if lod > 0 && grid.stores(finer) {
+                        self.out.wanted.push((finer, 2.0));
+                    }
+                }
+                for (i, px) in overs {
+                    let b = &mut self.out.blocks[i];
+                    b.over = true;
+                    match px {
+                        Some(px) => b.error_px = b.error_px.max(px),
+                        None => b.t_junction = true,
+                    }
+                }
+                self.out.stitch_splits = self.forced.len();
+                self.out.stitched = blocks;
+                return;
+            }
+            self.out.blocks.retain(|b| !split.contains(&(b.lod, b.bx, b.bz)));
+            self.visit(again);
+        }
+    }
+
+    /// The selection, with its counts (over the bound, the worst factor) and tiles.
+    fn finish(mut self) -> Selection {
+        let out = &mut self.out;
+        out.over_bound = out.blocks.iter().filter(|b| b.over).count();
+        out.worst_factor = out.blocks.iter().filter(|b| b.over).map(|b| b.error_px / self.delta).fold(1.0, f32::max);
+        out.used = self.used.into_iter().collect();
+        out.used.sort();
+        out.kept = self.kept.into_iter().collect();
+        out.kept.sort();
+        self.out
+    }
 }
