@@ -337,3 +337,39 @@ fn on_the_fly_dirs() -> Vec<std::path::PathBuf> {
     dirs.sort();
     dirs
 }
+
+/// `bench --stream` runs a path over an archive drawn streamed, under validation: every
+/// frame drawn from the atlas and written to frames.csv, the summary with the frame
+/// times, triangles, frames over the bound and 0 validation messages; what a streamed run
+/// cannot do (`--compare`) is refused by name.
+#[test]
+fn bench_runs_a_path_over_an_archive_drawn_streamed() {
+    let dir = TempDir::new("gpu-stream-bench");
+    let archive = dir.path().join("s.pmtiles");
+    let a = archive.to_str().unwrap();
+    let o = cli(&["prepare", "--synthetic", "1025", "--out", a]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let out = dir.path().join("b");
+    let o = out.to_str().unwrap();
+    let run = |extra: &[&str]| {
+        let mut args = vec!["bench", "--heightmap", a, "--stream", "--frames", "12", "--size", "160x120"];
+        args.extend(["--validation", "on", "--out", o]);
+        args.extend(extra);
+        cli(&args)
+    };
+    let r = run(&[]);
+    assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+    let summary: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap()).unwrap();
+    assert_eq!((summary["streamed"].as_bool(), summary["frames"].as_u64()), (Some(true), Some(12)), "{summary}");
+    assert_eq!(summary["validation_messages"], 0, "{summary}");
+    assert_eq!(summary["gpu"]["frames_drawn"], 12, "{summary}");
+    assert_eq!(summary["gpu"]["frames_missing_blocks"], 0, "{summary}");
+    assert!(summary["avg_fps"].as_f64().unwrap() > 0.0 && summary["mean_triangles"].as_f64().unwrap() > 1000.0);
+    assert_eq!(summary["frames_over_bound"], summary["stream"]["frames_over_bound"]);
+    let csv = std::fs::read_to_string(out.join("frames.csv")).unwrap();
+    assert_eq!(csv.lines().count(), 13, "{csv}");
+    let r = run(&["--compare"]);
+    let err = String::from_utf8_lossy(&r.stderr);
+    assert_eq!(r.status.code(), Some(2), "{err}");
+    assert!(err.contains("--compare") && err.contains("streamed"), "{err}");
+}

@@ -73,6 +73,8 @@ pub struct BenchArgs {
     /// Fail the run when a thread makes no progress for this many seconds.
     #[arg(long, value_name = "SECS", default_value = "10", value_parser = positive)]
     pub watchdog: f32,
+    #[command(flatten)]
+    pub streamed: crate::app::cli::StreamedOptions,
     /// Fault injection for tests: `errors-device-lost:G` (the errors thread loses the
     /// device at generation G), `draw-out-of-memory:F` (the draw thread runs out of
     /// device memory at frame F) or `interrupt-full:F` (Ctrl-C at frame F of the
@@ -785,7 +787,13 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
         Some(f) => Some(parse_fault(f, frames, args.compare || args.popping)?),
         None => None,
     };
-    let s = Session::open(&args.common, Some(&args.textures))?;
+    let device = crate::app::commands::open_device(&args.common)?;
+    let max_side = || device.max_image_dimension_2d() as usize;
+    if let Some(archive) = crate::app::stream::streamed_archive(&args.common, args.streamed.stream, max_side)? {
+        return bench_streamed(args, device, archive, poses, frames, &signals);
+    }
+    args.streamed.note_unused();
+    let s = Session::with_device(device, &args.common, Some(&args.textures))?;
     std::fs::create_dir_all(&args.out).map_err(|e| anyhow::anyhow!("{}: {e}", args.out.display()))?;
     let size = args.common.size.unwrap_or((640, 480));
     s.check_viewport(size)?;
@@ -1081,4 +1089,165 @@ mod tests {
         assert!((p - 80.0).abs() < 1e-9, "{p}");
         assert_eq!(frame_time_excess(&[], &ceiling), None);
     }
+}
+
+impl BenchArgs {
+    /// The options a streamed run cannot honour yet, given a value other than their
+    /// default.
+    fn not_streamed(&self) -> Vec<&'static str> {
+        let c = &self.common;
+        [
+            ("--texture", self.textures.texture.is_some()),
+            ("--detail", self.textures.detail.is_some()),
+            ("--lod full|distance", self.lod != LodChoice::Error),
+            ("--compare", self.compare),
+            ("--popping", self.popping),
+            ("--shading heights", self.shading != crate::draw::blocks::NormalSource::GradientMap),
+            ("--pixels forward", self.pixels != crate::draw::blocks::PixelPass::Deferred),
+            ("--inject-fault", self.inject_fault.is_some()),
+            ("--error-mode paper", c.error_mode != crate::lod::gie::ErrorMode::Strict),
+            ("--raw-size", c.raw_size.is_some()),
+            ("--block (an archive fixes k = 33)", c.block != 33),
+        ]
+        .into_iter()
+        .filter_map(|(name, set)| set.then_some(name))
+        .collect()
+    }
+}
+
+/// `bench` over a terrain drawn streamed (SPEC section 8): the path's frames as a viewer
+/// draws them, tiles read by the IO thread while the camera moves (a frame does not wait
+/// for its tiles; those whose tiles had not arrived are counted over the bound), each
+/// drawn from the atlas and read back. Writes frames.csv and summary.json.
+fn bench_streamed(
+    args: &BenchArgs,
+    device: Arc<crate::vk::Device>,
+    archive: Arc<crate::input::archive::Archive>,
+    poses: Option<Vec<(Vec3, Vec3)>>,
+    frames: u64,
+    signals: &super::signals::Stop,
+) -> anyhow::Result<()> {
+    use crate::app::stream::{atlas_bound_streamer, streamed_grid, terrain_name, top_tiles, GpuFrames};
+    use crate::stream::traverse::View;
+    let refused = args.not_streamed();
+    if !refused.is_empty() {
+        return Err(InputError(format!(
+            "{} is drawn streamed (tiles through a bounded cache), which does not take {} yet",
+            terrain_name(&args.common),
+            refused.join(", ")
+        ))
+        .into());
+    }
+    let size = args.common.size.unwrap_or((640, 480));
+    let max = device.max_image_dimension_2d();
+    if size.0 > max || size.1 > max {
+        return Err(InputError(format!(
+            "--size {}x{}: larger than the device's maxImageDimension2D ({max})",
+            size.0, size.1
+        ))
+        .into());
+    }
+    std::fs::create_dir_all(&args.out).map_err(|e| anyhow::anyhow!("{}: {e}", args.out.display()))?;
+    let grid = streamed_grid(&archive, &args.common);
+    let (cache_mb, gpu_mb) = (args.streamed.cache_mb(), args.streamed.gpu_mb());
+    let layers = device.properties.limits.max_image_array_layers;
+    let mut streamer = atlas_bound_streamer(archive, grid, cache_mb, gpu_mb, layers)?;
+    let range = top_tiles(&mut streamer)?;
+    let [wx, wz] = grid.world_extent().map(|e| e as f32);
+    let near = crate::lod::view::near_plane_for(grid.spacing[0].min(grid.spacing[1]) as f32);
+    let ground = streamer.ground(f64::from(wx) * 0.5, f64::from(wz) * 0.5).unwrap_or(0.0) as f32;
+    let terrain = crate::app::paths::PathTerrain { extent: (wx, wz), heights: range, centre_ground: ground, near };
+    let fovy = args.common.fovy;
+    let camera = |i: u64| -> (Vec3, Vec3, f64) {
+        match &poses {
+            Some(p) => (p[i as usize].0, p[i as usize].1, i as f64 / 30.0),
+            None => {
+                let path = match args.path {
+                    PathArg::Builtin(p) => p,
+                    PathArg::File(_) => CameraPath::PaperFlyover,
+                };
+                let (c, t) = crate::app::paths::path_camera_over(&terrain, path, i, frames, fovy, size);
+                (c.position, c.position + c.forward, t)
+            }
+        }
+    };
+    let view = |i: u64| {
+        let (p, l, _) = camera(i);
+        View::look_at(p.as_dvec3(), l.as_dvec3(), fovy, size.0, size.1, near)
+    };
+    let messages = device.instance.messages.clone();
+    let mut gpu = GpuFrames::new(device.clone(), &grid, gpu_mb, range, size)?;
+    // As a viewer would: the first view's tiles are read before the run.
+    crate::app::stream::settle(&mut streamer, |_| view(0), args.delta);
+    streamer.stats = crate::stream::streamer::StreamStats { worst_factor: 1.0, ..Default::default() };
+    let mut progress = Progress::new("streamed", frames);
+    let mut csv =
+        String::from("time_s,frame_ms,select_ms,draw_ms,blocks,triangles,over_bound,worst_factor,tiles_held\n");
+    let (mut frame_ms, mut triangles) = (Vec::new(), 0u64);
+    let started = Instant::now();
+    for i in 0..frames {
+        if signals.requested() {
+            break;
+        }
+        let t0 = Instant::now();
+        let v = view(i);
+        // The camera half a second ahead along the path: its tiles are asked for next.
+        let ahead = view((i + 15).min(frames - 1));
+        let sel = streamer.frame(&v, Some(&ahead), args.delta, 0.5);
+        let select_ms = t0.elapsed().as_secs_f64() * 1e3;
+        let t1 = Instant::now();
+        gpu.draw(&streamer, &grid, &v, &sel, None)?;
+        let draw_ms = t1.elapsed().as_secs_f64() * 1e3;
+        let ms = t0.elapsed().as_secs_f64() * 1e3;
+        frame_ms.push(ms);
+        triangles += gpu.triangles;
+        csv += &format!(
+            "{:.4},{ms:.3},{select_ms:.3},{draw_ms:.3},{},{},{},{:.4},{}\n",
+            camera(i).2,
+            gpu.blocks,
+            gpu.triangles,
+            sel.over_bound,
+            sel.worst_factor,
+            streamer.cache.len()
+        );
+        progress.tick(i + 1);
+    }
+    let seconds = started.elapsed().as_secs_f64();
+    let drawn = frame_ms.len() as u64;
+    let (sorted, mean) = sorted_with_mean(frame_ms.iter().copied());
+    let stats = streamer.stats.clone();
+    let summary = json!({
+        "streamed": true,
+        "terrain": terrain_name(&args.common),
+        "frames": drawn,
+        "seconds": seconds,
+        "avg_fps": drawn as f64 / seconds.max(1e-9),
+        "median_frame_ms": median(&sorted),
+        "mean_frame_ms": mean,
+        "p99_frame_ms": (!sorted.is_empty()).then(|| percentile(&sorted, 0.99)),
+        "mean_triangles": triangles as f64 / drawn.max(1) as f64,
+        "frames_over_bound": stats.frames_over_bound,
+        "worst_factor": stats.worst_factor,
+        "delta": args.delta,
+        "size": [size.0, size.1],
+        "cache_mb": cache_mb,
+        "stream": stats,
+        "gpu": gpu.report(),
+        "device": device.name,
+        "queue_mode": device.queue_mode.as_str(),
+        "validation_messages": device.instance.validation.then(|| device.instance.validation_messages()),
+        "peak_resident_mb": crate::app::outputs::peak_resident_mb(),
+        "interrupted": signals.requested(),
+    });
+    drop(gpu);
+    drop(device);
+    write_atomic(&args.out.join("frames.csv"), |tmp| Ok(std::fs::write(tmp, &csv)?))?;
+    let text = serde_json::to_string_pretty(&summary)?;
+    write_atomic(&args.out.join("summary.json"), |tmp| Ok(std::fs::write(tmp, &text)?))?;
+    println!("{text}");
+    crate::app::cli::check_messages(&messages)?;
+    if signals.requested() {
+        std::process::exit(signals.exit_code());
+    }
+    Ok(())
 }

@@ -17,6 +17,28 @@ pub enum CameraPath {
     Rotate360,
 }
 
+/// What a camera path needs of a terrain: its world extent from the origin, the world
+/// heights it spans, the ground under its centre, and the near plane for its spacing.
+#[derive(Clone, Copy, Debug)]
+pub struct PathTerrain {
+    pub extent: (f32, f32),
+    pub heights: [f32; 2],
+    pub centre_ground: f32,
+    pub near: f32,
+}
+
+impl PathTerrain {
+    pub fn of(hf: &Heightfield, mm: &MinMaxPyramid) -> Self {
+        let (wx, wz) = hf.world_extent();
+        PathTerrain {
+            extent: (wx, wz),
+            heights: mm.range().map(|r| r * hf.height_scale),
+            centre_ground: hf.surface_height(wx * 0.5, wz * 0.5),
+            near: near_plane(hf),
+        }
+    }
+}
+
 /// Camera and simulated time of frame `i` of `n`.
 pub fn path_camera(
     hf: &Heightfield,
@@ -27,10 +49,22 @@ pub fn path_camera(
     fovy: f32,
     size: (u32, u32),
 ) -> (Camera, f64) {
-    let (wx, wz) = hf.world_extent();
+    path_camera_over(&PathTerrain::of(hf, mm), path, i, n, fovy, size)
+}
+
+/// [`path_camera`] over a terrain known by its [`PathTerrain`] (a streamed archive).
+pub fn path_camera_over(
+    terrain: &PathTerrain,
+    path: CameraPath,
+    i: u64,
+    n: u64,
+    fovy: f32,
+    size: (u32, u32),
+) -> (Camera, f64) {
+    let (wx, wz) = terrain.extent;
     let l = wx.max(wz);
-    let [lo, hi] = mm.range();
-    let (bottom, top) = (lo * hf.height_scale, hi * hf.height_scale);
+    let [bottom, top] = terrain.heights;
+    let near = terrain.near;
     let f = if n > 1 { i as f64 / (n - 1) as f64 } else { 0.0 };
     match path {
         CameraPath::PaperFlyover => {
@@ -42,16 +76,15 @@ pub fn path_camera(
             let below = ((alt - bottom) / wz).atan();
             let pitch = below + fovy.to_radians() * 0.45;
             let dir = Vec3::new(0.0, -pitch.sin(), -pitch.cos());
-            (Camera::look_at(pos, pos + dir, fovy, size.0, size.1, near_plane(hf)), t)
+            (Camera::look_at(pos, pos + dir, fovy, size.0, size.1, near), t)
         }
         CameraPath::Rotate360 => {
-            let ground = hf.surface_height(wx * 0.5, wz * 0.5);
-            let pos = Vec3::new(wx * 0.5, ground.max(top * 0.5) + 0.03 * l, wz * 0.5);
+            let pos = Vec3::new(wx * 0.5, terrain.centre_ground.max(top * 0.5) + 0.03 * l, wz * 0.5);
             let yaw = f as f32 * std::f32::consts::TAU;
             let pitch = 20f32.to_radians();
             let dir = Vec3::new(yaw.cos() * pitch.cos(), -pitch.sin(), yaw.sin() * pitch.cos());
             // 10 degrees per simulated second.
-            (Camera::look_at(pos, pos + dir, fovy, size.0, size.1, near_plane(hf)), f * 36.0)
+            (Camera::look_at(pos, pos + dir, fovy, size.0, size.1, near), f * 36.0)
         }
     }
 }
