@@ -1056,41 +1056,6 @@ fn value_name(v: impl clap::ValueEnum) -> String {
     v.to_possible_value().map(|p| p.get_name().to_string()).unwrap_or_default()
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    /// Keyed pixels are left out; the RMSE is over the rest, and only a channel more
-    /// than 16 levels off counts as a visible jump (16 itself does not).
-    #[test]
-    fn keyed_difference_counts_visible_jumps_only() {
-        let key = KEY_COLOUR.map(|c| (c * 255.0) as u8);
-        let px = |r: u8, g: u8, b: u8| [r, g, b, 255];
-        let a: Vec<u8> = [px(10, 10, 10), px(10, 10, 10), px(10, 10, 10), px(key[0], key[1], key[2])].concat();
-        let b: Vec<u8> = [px(10, 10, 10), px(26, 10, 10), px(10, 10, 27), px(200, 0, 0)].concat();
-        let (rmse, over) = keyed_difference(&a, &b);
-        assert!((rmse - ((16.0f64 * 16.0 + 17.0 * 17.0) / 9.0).sqrt()).abs() < 1e-9, "{rmse}");
-        assert!((over - 1.0 / 3.0).abs() < 1e-12, "{over}");
-    }
-
-    /// A path whose second half is twice as heavy slows both runs alike: the excess stays
-    /// as it was. Stalled frames (2 in 100) show in the p99, not the median.
-    #[test]
-    fn frame_time_excess_sees_stalls_not_the_path() {
-        let ceiling: Vec<f64> = (0..100).map(|i| if i < 50 { 10.0 } else { 20.0 }).collect();
-        let same: Vec<f64> = ceiling.iter().map(|c| c + 2.0).collect();
-        let (m, p) = frame_time_excess(&same, &ceiling).unwrap();
-        assert!((m - 2.0).abs() < 1e-9 && (p - 2.0).abs() < 1e-9, "{m} {p}");
-        let mut stalled = same.clone();
-        stalled[70] = 100.0;
-        stalled[80] = 100.0;
-        let (m, p) = frame_time_excess(&stalled, &ceiling).unwrap();
-        assert!((m - 2.0).abs() < 1e-9, "{m}");
-        assert!((p - 80.0).abs() < 1e-9, "{p}");
-        assert_eq!(frame_time_excess(&[], &ceiling), None);
-    }
-}
-
 impl BenchArgs {
     /// The options a streamed run cannot honour yet, given a value other than their
     /// default.
@@ -1250,4 +1215,39 @@ fn bench_streamed(
         std::process::exit(signals.exit_code());
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Keyed pixels are left out; the RMSE is over the rest, and only a channel more
+    /// than 16 levels off counts as a visible jump (16 itself does not).
+    #[test]
+    fn keyed_difference_counts_visible_jumps_only() {
+        let key = KEY_COLOUR.map(|c| (c * 255.0) as u8);
+        let px = |r: u8, g: u8, b: u8| [r, g, b, 255];
+        let a: Vec<u8> = [px(10, 10, 10), px(10, 10, 10), px(10, 10, 10), px(key[0], key[1], key[2])].concat();
+        let b: Vec<u8> = [px(10, 10, 10), px(26, 10, 10), px(10, 10, 27), px(200, 0, 0)].concat();
+        let (rmse, over) = keyed_difference(&a, &b);
+        assert!((rmse - ((16.0f64 * 16.0 + 17.0 * 17.0) / 9.0).sqrt()).abs() < 1e-9, "{rmse}");
+        assert!((over - 1.0 / 3.0).abs() < 1e-12, "{over}");
+    }
+
+    /// A path whose second half is twice as heavy slows both runs alike: the excess stays
+    /// as it was. Stalled frames (2 in 100) show in the p99, not the median.
+    #[test]
+    fn frame_time_excess_sees_stalls_not_the_path() {
+        let ceiling: Vec<f64> = (0..100).map(|i| if i < 50 { 10.0 } else { 20.0 }).collect();
+        let same: Vec<f64> = ceiling.iter().map(|c| c + 2.0).collect();
+        let (m, p) = frame_time_excess(&same, &ceiling).unwrap();
+        assert!((m - 2.0).abs() < 1e-9 && (p - 2.0).abs() < 1e-9, "{m} {p}");
+        let mut stalled = same.clone();
+        stalled[70] = 100.0;
+        stalled[80] = 100.0;
+        let (m, p) = frame_time_excess(&stalled, &ceiling).unwrap();
+        assert!((m - 2.0).abs() < 1e-9, "{m}");
+        assert!((p - 80.0).abs() < 1e-9, "{p}");
+        assert_eq!(frame_time_excess(&[], &ceiling), None);
+    }
 }
