@@ -6,8 +6,8 @@ use crate::lod::heightfield::Heightfield;
 use crate::lod::view::near_plane_for;
 use glam::Vec3;
 use std::collections::HashSet;
-use winit::event::MouseScrollDelta;
-use winit::keyboard::KeyCode;
+use winit::event::{ElementState, MouseButton, MouseScrollDelta, WindowEvent};
+use winit::keyboard::{KeyCode, PhysicalKey};
 
 /// What the controls need of a terrain: its world extent from the origin, the ground's
 /// height (world units) at a world `(x, z)` inside it, and its smaller sample spacing.
@@ -131,5 +131,72 @@ impl Controller {
             MouseScrollDelta::PixelDelta(p) => (p.y / 40.0) as f32,
         };
         self.speed *= 1.25f32.powf(steps);
+    }
+}
+
+/// What a window event did to the controls ([`Controller::on_event`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Input {
+    /// A key was pressed (not a repeat): the viewer's own keys act on it.
+    Pressed(KeyCode),
+    /// Dragging turned the camera by this much yaw (radians).
+    Turned(f32),
+    /// The controls took the event (keys held, buttons, wheel, the cursor).
+    Taken,
+    /// Not an event of the controls.
+    Other,
+}
+
+impl Controller {
+    /// The events both viewers treat alike: keys held (W/S, A/D, Q/E, Shift), drag to look
+    /// with either mouse button, the wheel's speed. `cursor`: the cursor's last position
+    /// in the window, kept here.
+    pub fn on_event(&mut self, event: &WindowEvent, cursor: &mut Option<(f32, f32)>) -> Input {
+        match event {
+            WindowEvent::KeyboardInput { event, .. } => {
+                let PhysicalKey::Code(code) = event.physical_key else { return Input::Taken };
+                if event.state == ElementState::Pressed {
+                    self.held.insert(code);
+                    if !event.repeat {
+                        return Input::Pressed(code);
+                    }
+                } else {
+                    self.held.remove(&code);
+                }
+                Input::Taken
+            }
+            WindowEvent::MouseInput { state, button: MouseButton::Left | MouseButton::Right, .. } => {
+                self.looking = *state == ElementState::Pressed;
+                Input::Taken
+            }
+            WindowEvent::CursorMoved { position, .. } => {
+                // Drag to look: the cursor's motion inside the window turns the camera.
+                let at = (position.x as f32, position.y as f32);
+                let last = cursor.replace(at);
+                match (self.looking, last) {
+                    (true, Some(last)) => Input::Turned(self.drag(at.0 - last.0, at.1 - last.1)),
+                    _ => Input::Taken,
+                }
+            }
+            WindowEvent::CursorLeft { .. } => {
+                *cursor = None;
+                Input::Taken
+            }
+            WindowEvent::MouseWheel { delta, .. } => {
+                self.wheel(*delta);
+                Input::Taken
+            }
+            _ => Input::Other,
+        }
+    }
+}
+
+/// Delta after a key: `]`, `=` or keypad `+` double it, `[`, `-` or keypad `-` halve it
+/// (at least 1/16 pixel); `None` for other keys.
+pub fn delta_key(code: KeyCode, delta: f32) -> Option<f32> {
+    match code {
+        KeyCode::BracketRight | KeyCode::Equal | KeyCode::NumpadAdd => Some(delta * 2.0),
+        KeyCode::BracketLeft | KeyCode::Minus | KeyCode::NumpadSubtract => Some((delta * 0.5).max(0.0625)),
+        _ => None,
     }
 }

@@ -9,7 +9,7 @@
 //! figures: frame rate, blocks, frames over the bound, tiles held.
 
 use crate::app::cli::{check_messages, option_error, CommonArgs, InputError};
-use crate::app::controls::{Controller, Ground};
+use crate::app::controls::{delta_key, Controller, Ground, Input};
 use crate::app::outputs::save_png;
 use crate::app::stream::{top_tiles, GpuFrames};
 use crate::draw::streamed::WindowImage;
@@ -27,9 +27,9 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 use winit::application::ApplicationHandler;
 use winit::dpi::PhysicalSize;
-use winit::event::{ElementState, MouseButton, WindowEvent};
+use winit::event::WindowEvent;
 use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop};
-use winit::keyboard::{KeyCode, PhysicalKey};
+use winit::keyboard::KeyCode;
 use winit::window::{Window, WindowId};
 
 /// The ground under the camera, from the tiles held (nearest vertex of the finest);
@@ -420,8 +420,9 @@ impl App {
     fn key(&mut self, code: KeyCode, event_loop: &ActiveEventLoop) {
         match code {
             KeyCode::Escape => event_loop.exit(),
-            KeyCode::BracketLeft => self.delta = (self.delta * 0.5).max(0.125),
-            KeyCode::BracketRight => self.delta = (self.delta * 2.0).min(64.0),
+            code if delta_key(code, self.delta).is_some() => {
+                self.delta = delta_key(code, self.delta).unwrap_or(self.delta)
+            }
             KeyCode::Home => {
                 (self.ctl.position, self.ctl.yaw, self.ctl.pitch) = self.home;
                 self.ctl.walk = false;
@@ -449,36 +450,21 @@ impl ApplicationHandler for App {
     }
 
     fn window_event(&mut self, event_loop: &ActiveEventLoop, _id: WindowId, event: WindowEvent) {
+        match self.ctl.on_event(&event, &mut self.cursor) {
+            Input::Pressed(code) => return self.key(code, event_loop),
+            Input::Turned(turned) => {
+                self.run.mouse_turn += turned;
+                return;
+            }
+            Input::Taken => return,
+            Input::Other => {}
+        }
         match event {
             WindowEvent::CloseRequested => event_loop.exit(),
             WindowEvent::Resized(size) => {
                 self.minimized = size.width == 0 || size.height == 0;
                 self.swapchain_dirty = true;
             }
-            WindowEvent::KeyboardInput { event, .. } => {
-                if let PhysicalKey::Code(code) = event.physical_key {
-                    if event.state == ElementState::Pressed {
-                        if !event.repeat {
-                            self.key(code, event_loop);
-                        }
-                        self.ctl.held.insert(code);
-                    } else {
-                        self.ctl.held.remove(&code);
-                    }
-                }
-            }
-            WindowEvent::MouseInput { state, button: MouseButton::Left | MouseButton::Right, .. } => {
-                self.ctl.looking = state == ElementState::Pressed;
-            }
-            WindowEvent::CursorMoved { position, .. } => {
-                let at = (position.x as f32, position.y as f32);
-                if let (true, Some(last)) = (self.ctl.looking, self.cursor) {
-                    self.run.mouse_turn += self.ctl.drag(at.0 - last.0, at.1 - last.1);
-                }
-                self.cursor = Some(at);
-            }
-            WindowEvent::CursorLeft { .. } => self.cursor = None,
-            WindowEvent::MouseWheel { delta, .. } => self.ctl.wheel(delta),
             WindowEvent::RedrawRequested => {
                 if self.args.frames.is_some_and(|n| self.run.frames + 1 >= n) {
                     if let Some(p) = self.args.screenshot.clone() {

@@ -4,7 +4,7 @@
 
 use crate::app::cli::{CommonArgs, InputError, TextureArgs, Textures};
 use crate::app::commands::Session;
-use crate::app::controls::Controller;
+use crate::app::controls::{delta_key, Controller, Input};
 use crate::app::hud::{Controls, Hud, Ranges, Readout};
 use crate::app::outputs::save_png;
 use crate::draw::blocks::{BlocksRenderer, DrawStats, FrameDest, FrameSync, PixelPass, Shading, DEPTH_FORMAT};
@@ -32,9 +32,9 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 use winit::application::ApplicationHandler;
 use winit::dpi::PhysicalSize;
-use winit::event::{ElementState, MouseButton, WindowEvent};
+use winit::event::{ElementState, WindowEvent};
 use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop};
-use winit::keyboard::{KeyCode, PhysicalKey};
+use winit::keyboard::KeyCode;
 use winit::window::{Window, WindowId};
 
 use crate::draw::frame::FRAMES_IN_FLIGHT;
@@ -1132,9 +1132,8 @@ impl App {
     fn key(&mut self, code: KeyCode, event_loop: &ActiveEventLoop) {
         match code {
             KeyCode::Escape => event_loop.exit(),
-            KeyCode::BracketRight | KeyCode::Equal | KeyCode::NumpadAdd => self.delta *= 2.0,
-            KeyCode::BracketLeft | KeyCode::Minus | KeyCode::NumpadSubtract => {
-                self.delta = (self.delta * 0.5).max(0.0625)
+            code if delta_key(code, self.delta).is_some() => {
+                self.delta = delta_key(code, self.delta).unwrap_or(self.delta)
             }
             KeyCode::KeyM => {
                 self.mode = if self.mode == ErrorMode::Strict { ErrorMode::Paper } else { ErrorMode::Strict }
@@ -1243,6 +1242,18 @@ impl ApplicationHandler for App {
             }
             return;
         }
+        match self.ctl.on_event(&event, &mut self.cursor) {
+            Input::Pressed(code) => return self.key(code, event_loop),
+            Input::Turned(turned) => {
+                self.stats.mouse_turn += turned;
+                if self.ctl.orbit.is_some() {
+                    self.stats.orbit_turn += turned;
+                }
+                return;
+            }
+            Input::Taken => return,
+            Input::Other => {}
+        }
         match event {
             WindowEvent::CloseRequested => event_loop.exit(),
             WindowEvent::Occluded(hidden) => self.occluded = hidden,
@@ -1250,35 +1261,6 @@ impl ApplicationHandler for App {
                 self.minimized = size.width == 0 || size.height == 0;
                 self.swapchain_dirty = true;
             }
-            WindowEvent::KeyboardInput { event, .. } => {
-                if let PhysicalKey::Code(code) = event.physical_key {
-                    if event.state == ElementState::Pressed {
-                        if !event.repeat {
-                            self.key(code, event_loop);
-                        }
-                        self.ctl.held.insert(code);
-                    } else {
-                        self.ctl.held.remove(&code);
-                    }
-                }
-            }
-            WindowEvent::MouseInput { state, button: MouseButton::Left | MouseButton::Right, .. } => {
-                self.ctl.looking = state == ElementState::Pressed;
-            }
-            WindowEvent::CursorMoved { position, .. } => {
-                // Drag to look: the cursor's motion inside the window turns the camera.
-                let at = (position.x as f32, position.y as f32);
-                if let (true, Some(last)) = (self.ctl.looking, self.cursor) {
-                    let turned = self.ctl.drag(at.0 - last.0, at.1 - last.1);
-                    self.stats.mouse_turn += turned;
-                    if self.ctl.orbit.is_some() {
-                        self.stats.orbit_turn += turned;
-                    }
-                }
-                self.cursor = Some(at);
-            }
-            WindowEvent::CursorLeft { .. } => self.cursor = None,
-            WindowEvent::MouseWheel { delta, .. } => self.ctl.wheel(delta),
             WindowEvent::RedrawRequested => {
                 if let Some((_, w, h)) = self.resizes.iter().find(|r| r.0 == self.frame).copied() {
                     if let Some(win) = &self.window {

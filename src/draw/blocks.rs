@@ -896,19 +896,7 @@ impl BlocksRenderer {
             PipelineLayout::new(&device, &set_layout, std::mem::size_of::<BlockPush>() as u32, vertex)?;
         let pipeline = GraphicsPipeline::new(
             &device,
-            &GraphicsPipelineDesc {
-                vert: shaders::CAPTURE_VERT,
-                frag: None,
-                rasterizer_discard: true,
-                vertex_attribute: Some((2, vk::Format::R8G8_UINT)),
-                color_format: None,
-                depth_format: None,
-                depth: DepthMode::Off,
-                polygon_mode: vk::PolygonMode::FILL,
-                cull_back: false,
-                layout: &pipeline_layout,
-                specialization: &[],
-            },
+            &GraphicsPipelineDesc::vertex_capture(shaders::CAPTURE_VERT, &pipeline_layout),
         )?;
         let pool = DescriptorPool::new(
             &device,

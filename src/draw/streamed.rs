@@ -114,19 +114,7 @@ impl StreamedRenderer {
             let pl = PipelineLayout::new(device, &l, push, vertex)?;
             let p = GraphicsPipeline::new(
                 device,
-                &GraphicsPipelineDesc {
-                    vert: shaders::STREAM_CAPTURE_VERT,
-                    frag: None,
-                    rasterizer_discard: true,
-                    vertex_attribute: Some((2, vk::Format::R8G8_UINT)),
-                    color_format: None,
-                    depth_format: None,
-                    depth: DepthMode::Off,
-                    polygon_mode: vk::PolygonMode::FILL,
-                    cull_back: false,
-                    layout: &pl,
-                    specialization: &[],
-                },
+                &GraphicsPipelineDesc::vertex_capture(shaders::STREAM_CAPTURE_VERT, &pl),
             )?;
             Some((p, pl, l))
         } else {

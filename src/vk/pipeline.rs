@@ -193,6 +193,24 @@ impl<'a> GraphicsPipelineDesc<'a> {
             specialization: &[],
         }
     }
+
+    /// A vertex-stage-only pass over the block mesh (two `u8` coordinates a vertex) with
+    /// rasterization off: tests' capture hooks, which write positions from `vert`.
+    pub fn vertex_capture(vert: &'a [u8], layout: &'a PipelineLayout) -> Self {
+        GraphicsPipelineDesc {
+            vert,
+            frag: None,
+            rasterizer_discard: true,
+            vertex_attribute: Some((2, vk::Format::R8G8_UINT)),
+            color_format: None,
+            depth_format: None,
+            depth: DepthMode::Off,
+            polygon_mode: vk::PolygonMode::FILL,
+            cull_back: false,
+            layout,
+            specialization: &[],
+        }
+    }
 }
 
 /// Depth use of a pipeline (reversed Z: nearer is greater, cleared to 0).
