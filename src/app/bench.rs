@@ -1083,7 +1083,7 @@ impl BenchArgs {
 /// `bench` over a terrain drawn streamed (SPEC section 8): the path's frames as a viewer
 /// draws them, tiles read by the IO thread while the camera moves (a frame does not wait
 /// for its tiles; those whose tiles had not arrived are counted over the bound), each
-/// drawn from the atlas and read back. Writes frames.csv and summary.json.
+/// drawn from the atlas (not read back). Writes frames.csv and summary.json.
 fn bench_streamed(
     args: &BenchArgs,
     device: Arc<crate::vk::Device>,
@@ -1142,6 +1142,8 @@ fn bench_streamed(
     };
     let messages = device.instance.messages.clone();
     let mut gpu = GpuFrames::new(device.clone(), &grid, gpu_mb, range, size)?;
+    // As the in-memory bench: frames are drawn, not read back.
+    gpu.read_back = false;
     // As a viewer would: the first view's tiles are read before the run.
     crate::app::stream::settle(&mut streamer, |_| view(0), args.delta);
     streamer.stats = crate::stream::streamer::StreamStats { worst_factor: 1.0, ..Default::default() };

@@ -76,8 +76,10 @@ pub(crate) struct GpuFrames {
     pub blocks: usize,
     pub triangles: u64,
     drawing: Duration,
-    /// The last frame drawn offscreen (RGBA8, sRGB).
+    /// The last frame drawn offscreen (RGBA8, sRGB), when `read_back`.
     pub last: Vec<u8>,
+    /// Offscreen frames are read back into `last` (a benchmark's are not).
+    pub read_back: bool,
 }
 
 impl GpuFrames {
@@ -108,6 +110,7 @@ impl GpuFrames {
             triangles: 0,
             drawing: Duration::ZERO,
             last: Vec::new(),
+            read_back: true,
         })
     }
 
@@ -133,6 +136,7 @@ impl GpuFrames {
         let fv = FrameView { grid, anchor, cam, range: self.range, fog: self.fog };
         let stats = match window {
             Some(w) => self.renderer.render_to_window(&mut self.atlas, &fv, &blocks, w)?,
+            None if !self.read_back => self.renderer.render_unread(&mut self.atlas, &fv, &blocks)?,
             None => {
                 let (pixels, stats) = self.renderer.render(&mut self.atlas, &fv, &blocks)?;
                 self.last = pixels;

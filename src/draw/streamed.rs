@@ -67,6 +67,16 @@ pub struct WindowImage {
     pub done: vk::Semaphore,
 }
 
+/// Where a frame goes.
+#[derive(Clone, Copy)]
+enum Dest<'a> {
+    /// The offscreen target, read back.
+    ReadBack,
+    /// The offscreen target, not read.
+    Offscreen,
+    Window(&'a WindowImage),
+}
+
 /// The terrain pipeline of streamed frames for colour attachments of `format`.
 fn terrain_pipeline(device: &Arc<Device>, layout: &PipelineLayout, format: vk::Format) -> VkResult<GraphicsPipeline> {
     GraphicsPipeline::new(
@@ -299,8 +309,18 @@ impl StreamedRenderer {
         view: &FrameView,
         blocks: &[StreamedBlock],
     ) -> VkResult<(Vec<u8>, StreamedStats)> {
-        let stats = self.draw(atlas, view, blocks, None)?;
+        let stats = self.draw(atlas, view, blocks, Dest::ReadBack)?;
         Ok((self.target.pixels()?, stats))
+    }
+
+    /// Draws `blocks` offscreen and waits, reading nothing back (a benchmark's frames).
+    pub fn render_unread(
+        &mut self,
+        atlas: &mut HeightAtlas,
+        view: &FrameView,
+        blocks: &[StreamedBlock],
+    ) -> VkResult<StreamedStats> {
+        self.draw(atlas, view, blocks, Dest::Offscreen)
     }
 
     /// Draws `blocks` into a window's swapchain image (the view's size must be the
@@ -317,7 +337,7 @@ impl StreamedRenderer {
             self.window_depth = None; // the last frame was waited for
             self.window_depth = Some(super::blocks::depth_target(&self.device, "window depth", e)?);
         }
-        self.draw(atlas, view, blocks, Some(window))
+        self.draw(atlas, view, blocks, Dest::Window(window))
     }
 
     fn draw(
@@ -325,8 +345,12 @@ impl StreamedRenderer {
         atlas: &mut HeightAtlas,
         view: &FrameView,
         blocks: &[StreamedBlock],
-        window: Option<&WindowImage>,
+        dest: Dest,
     ) -> VkResult<StreamedStats> {
+        let window = match dest {
+            Dest::Window(w) => Some(w),
+            _ => None,
+        };
         let set = self.set;
         self.bind(atlas, view, set)?;
         self.frame += 1;
@@ -375,12 +399,15 @@ impl StreamedRenderer {
             vk::AccessFlags2::COLOR_ATTACHMENT_WRITE,
             vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL,
         );
-        // The image's last use: the readback copy of the previous frame, or the
+        // The image's last use: the previous frame's drawing and readback copy, or the
         // presentation engine's read (ordered by the acquire semaphore, waited at colour
         // output).
         let last_use = match window {
             Some(_) => (vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT, vk::AccessFlags2::NONE),
-            None => (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_READ),
+            None => (
+                vk::PipelineStageFlags2::COPY | vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT,
+                vk::AccessFlags2::TRANSFER_READ | vk::AccessFlags2::COLOR_ATTACHMENT_WRITE,
+            ),
         };
         // SAFETY: the fence was waited in `bind`, so `cmd` is free; every object bound
         // lives in `self`, `atlas` or the caller's swapchain and outlives the wait in
@@ -413,16 +440,17 @@ impl StreamedRenderer {
                 d.cmd_draw_indexed(cmd, self.mesh.index_count, 1, 0, 0, 0);
             }
             d.cmd_end_rendering(cmd);
-            match window {
-                Some(_) => {
+            match dest {
+                Dest::Window(_) => {
                     let present =
                         (vk::PipelineStageFlags2::NONE, vk::AccessFlags2::NONE, vk::ImageLayout::PRESENT_SRC_KHR);
                     image_barrier(&d, cmd, color, COLOR_RANGE, rendered, present);
                 }
-                None => {
+                Dest::ReadBack => {
                     image_barrier(&d, cmd, color, COLOR_RANGE, rendered, crate::vk::COPY_SOURCE);
                     crate::vk::copy_image_to_host(&d, cmd, color, extent, self.target.readback.handle);
                 }
+                Dest::Offscreen => {}
             }
         }
         self.submit_and_wait(window.map(|w| (w.acquired, w.done)))?;
