@@ -297,6 +297,11 @@ pub fn streamed_archive(
         }
         return Ok(None);
     };
+    // Before anything opens it (sniffing the archive, reading a raster's header): a FIFO
+    // would block in open().
+    if !crate::input::archive::bytes::is_url(path) {
+        crate::input::regular_file(path).map_err(InputError)?;
+    }
     if !Archive::is_archive(path) {
         // A file larger than one image (or any, with --stream) is prepared into an
         // archive on the fly: one path for every size.

@@ -518,7 +518,10 @@ impl WindowReader {
         });
         self.pool.lock().expect("dataset pool").push(ds);
         let (mut v, others) = read
-            .map_err(|e| format!("{shown}: reading samples {x0}..={x1} x {z0}..={z1}: {}", gdal_message(&shown, e)))?;
+            .map_err(|e| {
+            // The raster's size said: a forged header fails here, not when it was opened.
+            format!("{shown} ({w} x {h} samples): reading samples {x0}..={x1} x {z0}..={z1}: {}", gdal_message(&shown, e))
+        })?;
         for other in &others {
             if let Some(i) = (0..v.len()).find(|&i| v[i] != other[i]) {
                 return Err(format!(
