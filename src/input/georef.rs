@@ -517,10 +517,12 @@ impl WindowReader {
             Ok((v, others))
         });
         self.pool.lock().expect("dataset pool").push(ds);
-        let (mut v, others) = read
-            .map_err(|e| {
+        let (mut v, others) = read.map_err(|e| {
             // The raster's size said: a forged header fails here, not when it was opened.
-            format!("{shown} ({w} x {h} samples): reading samples {x0}..={x1} x {z0}..={z1}: {}", gdal_message(&shown, e))
+            format!(
+                "{shown} ({w} x {h} samples): reading samples {x0}..={x1} x {z0}..={z1}: {}",
+                gdal_message(&shown, e)
+            )
         })?;
         for other in &others {
             if let Some(i) = (0..v.len()).find(|&i| v[i] != other[i]) {
