@@ -14,7 +14,7 @@ use vkterrain::lod::block::block_vertex;
 use vkterrain::lod::heightfield::Heightfield;
 use vkterrain::stream::cache::TileData;
 use vkterrain::stream::draw::{self, Resident, StreamedBlock};
-use vkterrain::stream::streamer::Streamer;
+use vkterrain::stream::streamer::{Streamer, TileGate};
 use vkterrain::stream::traverse::{Selection, View};
 use vkterrain::stream::Grid;
 
@@ -85,22 +85,20 @@ fn streamed_frames_match(hf: &Heightfield, unorm16: bool) {
     let device = common::gpu();
     {
         let mut s = Streamer::new(archive, grid, 1 << 30);
-        let mut atlas = HeightAtlas::new(&device, &grid, 64 << 20).unwrap();
-        assert_eq!(atlas.unorm16, unorm16, "the atlas format follows the archive's samples");
+        let atlas = HeightAtlas::new(&device, &grid, 64 << 20).unwrap();
+        assert_eq!(atlas.unorm16(), unorm16, "the atlas format follows the archive's samples");
+        // Tiles read reach the cache through the atlas's thread: every held tile is drawable.
+        s.attach(Box::new(atlas.feed()), HeightAtlas::cache_tiles(atlas.layer_count()));
         let mut renderer = StreamedRenderer::new(&device, draw::layout(&grid), 320, 240).unwrap();
         let (mut compared, mut mutated) = (0usize, 0usize);
         for (i, view) in views().iter().enumerate() {
             let sel = settled(&mut s, view);
             let blocks = draw::stitched_blocks(&grid, &s.cache, &sel);
-            let held = tiles(&s, &sel);
-            let refs: Vec<&Arc<TileData>> = held.iter().collect();
-            let used = sel.used.clone();
-            let up = atlas.upload(&refs, renderer.completed_frame(), |k| used.contains(&k)).unwrap();
-            assert_eq!(up.waiting, 0, "pose {i}: every tile found a layer");
+            assert!(sel.used.iter().all(|k| atlas.holds(*k)), "pose {i}: a used tile is not drawable");
             let (anchor, cam) = view.relative(&grid);
             let fv = FrameView { grid: &grid, anchor, cam, range: [0.0, 1000.0], fog: 0.0 };
             let want = expected(&grid, &s, anchor, &blocks);
-            let got = renderer.capture(&mut atlas, &fv, &blocks).unwrap();
+            let got = renderer.capture(&atlas, &fv, &blocks).unwrap();
             assert_eq!(got.len(), want.len(), "pose {i}");
             for (j, (g, w)) in got.iter().zip(&want).enumerate() {
                 assert_eq!([g[0], g[1], g[2]], *w, "pose {i}: block {:?} vertex {}", blocks[j / 1089].block, j % 1089);
@@ -118,7 +116,7 @@ fn streamed_frames_match(hf: &Heightfield, unorm16: bool) {
             if let Some(j) = (1..blocks.len()).find(|&j| !covers(blocks[j].tile, &blocks[0].block)) {
                 let mut wrong = blocks.clone();
                 wrong[0].tile = blocks[j].tile;
-                let bad = renderer.capture(&mut atlas, &fv, &wrong).unwrap();
+                let bad = renderer.capture(&atlas, &fv, &wrong).unwrap();
                 let differs = (0..1089).any(|v| [bad[v][0], bad[v][1], bad[v][2]] != want[v]);
                 assert!(
                     differs,
@@ -128,7 +126,7 @@ fn streamed_frames_match(hf: &Heightfield, unorm16: bool) {
                 mutated += 1;
             }
 
-            let (pixels, stats) = renderer.render(&mut atlas, &fv, &blocks).unwrap();
+            let (pixels, stats) = renderer.render(&atlas, &fv, &blocks).unwrap();
             assert_eq!((stats.blocks, stats.missing), (blocks.len(), 0));
             let sky = pixels.chunks(4).filter(|p| p[..3] == pixels[..3]).count();
             let terrain = pixels.len() / 4 - sky;
@@ -140,6 +138,10 @@ fn streamed_frames_match(hf: &Heightfield, unorm16: bool) {
     common::finish(device);
 }
 
+/// The atlas's thread rewrites a layer only when the host cache has let its tile go and
+/// every frame that drew from it has completed (the draw queue's timeline): two layers,
+/// two tiles drawn by frame 1, two more tiles sent. Refused while the cache holds the
+/// tiles, refused while frame 1 is not complete, taken once it is.
 #[test]
 fn an_atlas_layer_is_reused_only_after_the_frames_that_drew_it() {
     let dir = TempDir::new("gpu-stream-reuse");
@@ -155,23 +157,39 @@ fn an_atlas_layer_is_reused_only_after_the_frames_that_drew_it() {
         assert!(held.len() >= 4);
         let side = (grid.tile_quads + 3) as u64;
         // Room for two tiles (the rough field is float: 4 bytes a sample).
-        let mut atlas = HeightAtlas::new(&device, &grid, 2 * side * side * 4).unwrap();
+        let atlas = HeightAtlas::new(&device, &grid, 2 * side * side * 4).unwrap();
         assert_eq!(atlas.layer_count(), 2);
-        let first: Vec<&Arc<TileData>> = held[..2].iter().collect();
-        assert_eq!(atlas.upload(&first, 0, |_| false).unwrap().tiles, 2);
-        // Frame 1 draws both.
-        for t in &first {
-            assert!(atlas.draw_layer(t.key, 1).is_some());
-        }
-        let next: Vec<&Arc<TileData>> = held[2..4].iter().collect();
-        // Frame 1 has not completed: nothing may be overwritten.
-        let up = atlas.upload(&next, 0, |_| false).unwrap();
-        assert_eq!((up.tiles, up.waiting), (0, 2));
+        let feed = atlas.feed();
+        let pass = |tiles: &[Arc<TileData>]| {
+            feed.send(tiles.iter().map(|t| (t.clone(), 0)).collect());
+            feed.wait();
+            let (back, refused) = feed.take();
+            (back.len(), refused.len())
+        };
+        let (first, next) = (&held[..2], &held[2..4]);
+        assert_eq!(pass(first), (2, 0));
+        // Frame 1 draws both (recorded; its submission comes later).
+        let (layers, generation) = atlas.draw_layers(first.iter().map(|t| t.key), 1);
+        assert!(layers.iter().all(Option::is_some) && generation == 1, "{layers:?} {generation}");
+        // Frame 1 has not completed, and the cache still holds both: nothing is rewritten.
+        assert_eq!(pass(next), (0, 2));
+        feed.release(first.iter().map(|t| t.key).collect());
+        assert_eq!(pass(next), (0, 2), "let go, but frame 1 has not completed");
         assert!(first.iter().all(|t| atlas.holds(t.key)));
-        // Once it has, both layers take the new tiles.
-        let up = atlas.upload(&next, 1, |_| false).unwrap();
-        assert_eq!((up.tiles, up.waiting), (2, 0));
+        // Frame 1 completes (an empty frame signals it on the draw queue's timeline).
+        let mut renderer = StreamedRenderer::new(&device, draw::layout(&grid), 64, 48).unwrap();
+        let (anchor, cam) = view.relative(&grid);
+        let fv = FrameView { grid: &grid, anchor, cam, range: [0.0, 1000.0], fog: 0.0 };
+        renderer.render_unread(&atlas, &fv, &[]).unwrap();
+        assert_eq!(pass(next), (2, 0));
         assert!(next.iter().all(|t| atlas.holds(t.key)) && !first.iter().any(|t| atlas.holds(t.key)));
+        assert_eq!(atlas.uploaded().tiles, 4);
+        assert_eq!(atlas.uploaded().dropped, 4);
+        assert!(atlas.failure().is_none());
+        // A tile sent again while its layer still holds it comes back without a copy.
+        feed.release(next[..1].iter().map(|t| t.key).collect());
+        assert_eq!(pass(&next[..1]), (1, 0));
+        assert_eq!(atlas.uploaded().tiles, 4);
         // A budget below one tile is refused with the figure.
         let err = HeightAtlas::new(&device, &grid, 1000).err().expect("no layer fits").to_string();
         assert!(err.contains("--gpu-mb") && err.contains("bytes a tile"), "{err}");

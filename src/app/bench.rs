@@ -1141,7 +1141,7 @@ fn bench_streamed(
         View::look_at(p.as_dvec3(), l.as_dvec3(), fovy, size.0, size.1, near)
     };
     let messages = device.instance.messages.clone();
-    let mut gpu = GpuFrames::new(device.clone(), &grid, gpu_mb, range, size)?;
+    let mut gpu = GpuFrames::new(device.clone(), &mut streamer, gpu_mb, range, size)?;
     // As the in-memory bench: frames are drawn, not read back.
     gpu.read_back = false;
     // As a viewer would: the first view's tiles are read before the run.

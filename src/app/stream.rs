@@ -61,15 +61,14 @@ pub struct StreamArgs {
 
 /// The GPU side of streamed frames: device, atlas and renderer, and what they did.
 pub(crate) struct GpuFrames {
-    atlas: HeightAtlas,
+    /// Before the atlas: its frames are waited for before the atlas's thread stops.
     renderer: StreamedRenderer,
+    atlas: HeightAtlas,
     pub device: Arc<Device>,
     range: [f32; 2],
     /// Exponential fog density per world unit.
     pub fog: f32,
     frames: u64,
-    tiles_uploaded: u64,
-    bytes_uploaded: u64,
     /// Frames where some block's tile found no atlas layer (those blocks not drawn).
     pub frames_missing_blocks: u64,
     /// Blocks and triangles of the last frame drawn.
@@ -83,18 +82,28 @@ pub(crate) struct GpuFrames {
 }
 
 impl GpuFrames {
-    /// An atlas of `mb` MB on `device` and a `size` target; `range`: the world heights
-    /// the colour ramp spans.
-    pub fn new(device: Arc<Device>, grid: &Grid, mb: u32, range: [f32; 2], size: (u32, u32)) -> anyhow::Result<Self> {
+    /// An atlas of `mb` MB on `device`, attached to `streamer` (tiles it reads are
+    /// uploaded by the atlas's thread before the traversal may use them), and a `size`
+    /// target; `range`: the world heights the colour ramp spans.
+    pub fn new(
+        device: Arc<Device>,
+        streamer: &mut Streamer,
+        mb: u32,
+        range: [f32; 2],
+        size: (u32, u32),
+    ) -> anyhow::Result<Self> {
+        let grid = &streamer.grid.clone();
         let atlas = HeightAtlas::new(&device, grid, u64::from(mb) << 20).map_err(|e| InputError(e.to_string()))?;
         eprintln!(
-            "vkterrain: atlas of {} layers ({} x {} {}) on {}",
+            "vkterrain: atlas of {} layers ({} x {} {}) on {}, uploaded by its own thread on the {} queue",
             atlas.layer_count(),
-            atlas.side,
-            atlas.side,
-            if atlas.unorm16 { "16-bit" } else { "float" },
+            atlas.side(),
+            atlas.side(),
+            if atlas.unorm16() { "16-bit" } else { "float" },
             device.name,
+            if device.queue_mode == crate::vk::QueueMode::Shared { "shared" } else { "errors" },
         );
+        streamer.attach(Box::new(atlas.feed()), HeightAtlas::cache_tiles(atlas.layer_count()));
         let renderer = StreamedRenderer::new(&device, crate::stream::draw::layout(grid), size.0, size.1)?;
         Ok(GpuFrames {
             atlas,
@@ -103,8 +112,6 @@ impl GpuFrames {
             range,
             fog: 0.0,
             frames: 0,
-            tiles_uploaded: 0,
-            bytes_uploaded: 0,
             frames_missing_blocks: 0,
             blocks: 0,
             triangles: 0,
@@ -114,8 +121,9 @@ impl GpuFrames {
         })
     }
 
-    /// Uploads the frame's tiles the atlas lacks and draws the frame: offscreen (kept in
-    /// `last`), or into a window's swapchain image.
+    /// Draws the frame (every tile the selection used is in the atlas: the cache takes
+    /// only tiles the atlas's thread has uploaded): offscreen (kept in `last`), or into a
+    /// window's swapchain image.
     pub fn draw(
         &mut self,
         streamer: &Streamer,
@@ -126,19 +134,16 @@ impl GpuFrames {
     ) -> anyhow::Result<()> {
         let t0 = Instant::now();
         let blocks = crate::stream::draw::stitched_blocks(grid, &streamer.cache, sel);
-        let tiles: Vec<&Arc<crate::stream::cache::TileData>> =
-            sel.used.iter().filter_map(|k| streamer.cache.peek(*k)).collect();
-        let used = &sel.used;
-        let up = self.atlas.upload(&tiles, self.renderer.completed_frame(), |k| used.binary_search(&k).is_ok())?;
-        self.tiles_uploaded += up.tiles as u64;
-        self.bytes_uploaded += up.bytes;
+        if let Some(failure) = self.atlas.failure() {
+            anyhow::bail!(failure);
+        }
         let (anchor, cam) = view.relative(grid);
         let fv = FrameView { grid, anchor, cam, range: self.range, fog: self.fog };
         let stats = match window {
-            Some(w) => self.renderer.render_to_window(&mut self.atlas, &fv, &blocks, w)?,
-            None if !self.read_back => self.renderer.render_unread(&mut self.atlas, &fv, &blocks)?,
+            Some(w) => self.renderer.render_to_window(&self.atlas, &fv, &blocks, w)?,
+            None if !self.read_back => self.renderer.render_unread(&self.atlas, &fv, &blocks)?,
             None => {
-                let (pixels, stats) = self.renderer.render(&mut self.atlas, &fv, &blocks)?;
+                let (pixels, stats) = self.renderer.render(&self.atlas, &fv, &blocks)?;
                 self.last = pixels;
                 stats
             }
@@ -151,11 +156,6 @@ impl GpuFrames {
         Ok(())
     }
 
-    /// The atlas's layers.
-    pub fn layers(&self) -> usize {
-        self.atlas.layer_count() as usize
-    }
-
     /// Offscreen frames at `width x height` from now on (a window's screenshot).
     pub fn resize(&mut self, width: u32, height: u32) -> anyhow::Result<()> {
         self.renderer.resize(width, height)?;
@@ -164,12 +164,15 @@ impl GpuFrames {
 
     pub fn report(&self) -> serde_json::Value {
         let validation = self.device.instance.validation;
+        let up = self.atlas.uploaded();
         serde_json::json!({
             "device": self.device.name,
             "atlas_layers": self.atlas.layer_count(),
             "frames_drawn": self.frames,
-            "tiles_uploaded": self.tiles_uploaded,
-            "uploaded_mb": self.bytes_uploaded as f64 / f64::from(1u32 << 20),
+            "tiles_uploaded": up.tiles,
+            "uploaded_mb": up.bytes as f64 / f64::from(1u32 << 20),
+            "upload_generations": up.generations,
+            "tiles_without_a_layer": up.dropped,
             "frames_missing_blocks": self.frames_missing_blocks,
             "draw_ms_per_frame": 1e3 * self.drawing.as_secs_f64() / self.frames.max(1) as f64,
             "validation": validation,
@@ -254,7 +257,7 @@ pub(crate) fn atlas_bound_streamer(
         .into());
     }
     let mut streamer = Streamer::new(archive, grid, cache_mb as usize * (1 << 20));
-    streamer.limit_tiles(layers as usize);
+    streamer.limit_tiles(HeightAtlas::cache_tiles(layers));
     Ok(streamer)
 }
 
@@ -379,7 +382,7 @@ pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
     streamer.stats = StreamStats { worst_factor: 1.0, ..Default::default() };
     let (_, sel) = settle(&mut streamer, |_| view, f.delta);
     let settle_ms = warm.elapsed().as_secs_f64() * 1e3;
-    let mut gpu = GpuFrames::new(f.device.clone(), &grid, f.gpu_mb, range, (w, h))?;
+    let mut gpu = GpuFrames::new(f.device.clone(), &mut streamer, f.gpu_mb, range, (w, h))?;
     gpu.fog = f.fog;
     gpu.draw(&streamer, &grid, &view, &sel, None)?;
     let missing = gpu.frames_missing_blocks > 0;
@@ -507,7 +510,7 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
     let mut gpu = match (args.gpu_mb, device) {
         (Some(mb), Some(device)) => {
             let range = height_range(&streamer, &grid).unwrap_or([0.0, 1.0]);
-            Some(GpuFrames::new(device, &grid, mb, range, args.size)?)
+            Some(GpuFrames::new(device, &mut streamer, mb, range, args.size)?)
         }
         _ => None,
     };

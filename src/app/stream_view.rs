@@ -273,9 +273,8 @@ impl App {
         self.run.device = device.name.clone();
         self.run.queue_mode = device.queue_mode.as_str().into();
         let acquired = BinarySemaphore::new(&device)?;
-        let mut frames = GpuFrames::new(device, &self.grid, self.args.gpu_mb, self.range, (w, h))?;
+        let mut frames = GpuFrames::new(device, &mut self.streamer, self.args.gpu_mb, self.range, (w, h))?;
         frames.fog = self.fog;
-        self.streamer.limit_tiles(frames.layers());
         self.gpu = Some(WindowGpu { acquired, swapchain, frames, surface });
         self.window = Some(window);
         Ok(())

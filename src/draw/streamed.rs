@@ -191,27 +191,31 @@ impl StreamedRenderer {
             light: [light.x, light.y, light.z, 0.25],
             texturing: [0.0; 4],
             extent: [grid.width as i32, grid.height as i32, 0, self.layout.k() as i32],
-            flags: [atlas.unorm16 as i32, 0, 0, 0],
+            flags: [atlas.unorm16() as i32, 0, 0, 0],
             sky_zenith: [0.0; 4],
             sky_horizon: [SKY_HORIZON[0], SKY_HORIZON[1], SKY_HORIZON[2], 1.0],
-            anchor: [a(view.anchor[0])?, a(view.anchor[1])?, atlas.side as i32, 0],
+            anchor: [a(view.anchor[0])?, a(view.anchor[1])?, atlas.side() as i32, 0],
         })
     }
 
     /// Push constants of each block that has an atlas layer, recording that frame
-    /// `self.frame` draws from it; the count of blocks without one.
-    fn pushes(&self, atlas: &mut HeightAtlas, blocks: &[StreamedBlock]) -> (Vec<BlockPush>, usize) {
+    /// `self.frame` draws from it; the count of blocks without one; the generation the
+    /// frame waits for (`Self::submit_and_wait`).
+    fn pushes(&self, atlas: &HeightAtlas, blocks: &[StreamedBlock]) -> (Vec<BlockPush>, usize, u64) {
         let mut out = Vec::with_capacity(blocks.len());
         let mut missing = 0;
-        for sb in blocks {
-            let Some(layer) = atlas.draw_layer(sb.tile, self.frame) else {
+        let side = atlas.side();
+        let (layers, generation) = atlas.draw_layers(blocks.iter().map(|b| b.tile), self.frame);
+        assert_eq!(layers.len(), blocks.len(), "a layer (or none) for each block");
+        for (sb, layer) in blocks.iter().zip(layers) {
+            let Some(layer) = layer else {
                 missing += 1;
                 continue;
             };
             let b = &sb.block;
             let (ox, oz) = b.origin(&self.layout);
             let c = b.coarser;
-            let tile_span = |level: u8| (atlas.side as i64 - 3) << level;
+            let tile_span = |level: u8| (side as i64 - 3) << level;
             let t = sb.tile;
             out.push(BlockPush {
                 block: [ox as i32, oz as i32, b.stride() as i32, b.lod as i32],
@@ -230,7 +234,7 @@ impl StreamedRenderer {
                 ],
             });
         }
-        (out, missing)
+        (out, missing, generation)
     }
 
     /// Writes the frame's uniforms and the atlas into the set (after the last frame).
@@ -240,20 +244,29 @@ impl StreamedRenderer {
         self.uniforms.mapped_mut()?[..std::mem::size_of::<FrameUniforms>()].copy_from_slice(bytemuck::bytes_of(&u));
         self.pool.write(
             set,
-            &[(layout::TERRAIN_BINDING_HEIGHTS, atlas.image.view, self.sampler.handle)],
+            &[(layout::TERRAIN_BINDING_HEIGHTS, atlas.image().view, self.sampler.handle)],
             &[(layout::TERRAIN_BINDING_FRAME, self.uniforms.handle, std::mem::size_of::<FrameUniforms>() as u64)],
         );
         Ok(())
     }
 
     /// Submits the recorded command buffer and waits for it; `window`: the acquire
-    /// semaphore waited before colour output, the present semaphore signalled.
-    fn submit_and_wait(&mut self, window: Option<(vk::Semaphore, vk::Semaphore)>) -> VkResult<()> {
+    /// semaphore waited before colour output, the present semaphore signalled. The frame
+    /// waits for the atlas generation `generation` at the vertex shader (finished already:
+    /// the wait costs nothing and makes the upload's writes visible across queues) and
+    /// signals its number on the atlas's frame timeline (layers it drew may be rewritten
+    /// once that value is reached).
+    fn submit_and_wait(
+        &mut self,
+        atlas: &HeightAtlas,
+        generation: u64,
+        window: Option<(vk::Semaphore, vk::Semaphore)>,
+    ) -> VkResult<()> {
         // SAFETY: `cmd` is recording on this thread.
         unsafe { self.device.raw.end_command_buffer(self.cmd) }.vk("vkEndCommandBuffer")?;
         self.fence.reset()?;
         let cmds = [vk::CommandBufferSubmitInfo::default().command_buffer(self.cmd)];
-        let waits: Vec<_> = window
+        let mut waits: Vec<_> = window
             .iter()
             .map(|w| {
                 vk::SemaphoreSubmitInfo::default()
@@ -261,12 +274,26 @@ impl StreamedRenderer {
                     .stage_mask(vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT)
             })
             .collect();
-        let signals: Vec<_> = window
+        if generation > 0 {
+            waits.push(
+                vk::SemaphoreSubmitInfo::default()
+                    .semaphore(atlas.generations())
+                    .value(generation)
+                    .stage_mask(vk::PipelineStageFlags2::VERTEX_SHADER),
+            );
+        }
+        let mut signals: Vec<_> = window
             .iter()
             .map(|w| {
                 vk::SemaphoreSubmitInfo::default().semaphore(w.1).stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)
             })
             .collect();
+        signals.push(
+            vk::SemaphoreSubmitInfo::default()
+                .semaphore(atlas.frames())
+                .value(self.frame)
+                .stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS),
+        );
         let submit = vk::SubmitInfo2::default()
             .command_buffer_infos(&cmds)
             .wait_semaphore_infos(&waits)
@@ -295,17 +322,11 @@ impl StreamedRenderer {
         Ok(())
     }
 
-    /// The frame number the next frame will have: layers drawn by frames before it have
-    /// completed (frames are waited for), so the atlas may reuse them.
-    pub fn completed_frame(&self) -> u64 {
-        self.frame
-    }
-
     /// Draws `blocks` from `atlas` as seen by `view`, waits, and returns the RGBA8 (sRGB)
     /// pixels.
     pub fn render(
         &mut self,
-        atlas: &mut HeightAtlas,
+        atlas: &HeightAtlas,
         view: &FrameView,
         blocks: &[StreamedBlock],
     ) -> VkResult<(Vec<u8>, StreamedStats)> {
@@ -316,7 +337,7 @@ impl StreamedRenderer {
     /// Draws `blocks` offscreen and waits, reading nothing back (a benchmark's frames).
     pub fn render_unread(
         &mut self,
-        atlas: &mut HeightAtlas,
+        atlas: &HeightAtlas,
         view: &FrameView,
         blocks: &[StreamedBlock],
     ) -> VkResult<StreamedStats> {
@@ -327,7 +348,7 @@ impl StreamedRenderer {
     /// image's) and waits; the caller presents it.
     pub fn render_to_window(
         &mut self,
-        atlas: &mut HeightAtlas,
+        atlas: &HeightAtlas,
         view: &FrameView,
         blocks: &[StreamedBlock],
         window: &WindowImage,
@@ -342,7 +363,7 @@ impl StreamedRenderer {
 
     fn draw(
         &mut self,
-        atlas: &mut HeightAtlas,
+        atlas: &HeightAtlas,
         view: &FrameView,
         blocks: &[StreamedBlock],
         dest: Dest,
@@ -354,7 +375,7 @@ impl StreamedRenderer {
         let set = self.set;
         self.bind(atlas, view, set)?;
         self.frame += 1;
-        let (pushes, missing) = self.pushes(atlas, blocks);
+        let (pushes, missing, generation) = self.pushes(atlas, blocks);
         let format = window.map_or(COLOR_FORMAT, |w| w.format);
         let pipeline = self.pipeline(format)?;
         let d = self.device.raw.clone();
@@ -453,7 +474,7 @@ impl StreamedRenderer {
                 Dest::Offscreen => {}
             }
         }
-        self.submit_and_wait(window.map(|w| (w.acquired, w.done)))?;
+        self.submit_and_wait(atlas, generation, window.map(|w| (w.acquired, w.done)))?;
         Ok(StreamedStats { blocks: pushes.len(), missing })
     }
 
@@ -461,7 +482,7 @@ impl StreamedRenderer {
     /// vertex of `blocks` (`k * k` a block, row-major), from glsl/stream_capture.vert.
     pub fn capture(
         &mut self,
-        atlas: &mut HeightAtlas,
+        atlas: &HeightAtlas,
         view: &FrameView,
         blocks: &[StreamedBlock],
     ) -> VkResult<Vec<[f32; 4]>> {
@@ -486,7 +507,7 @@ impl StreamedRenderer {
             .descriptor_type(vk::DescriptorType::STORAGE_BUFFER)
             .buffer_info(&storage);
         self.frame += 1;
-        let (pushes, missing) = self.pushes(atlas, blocks);
+        let (pushes, missing, generation) = self.pushes(atlas, blocks);
         if missing > 0 {
             return Err(VkError::Setup(format!("{missing} blocks have no atlas layer")));
         }
@@ -517,7 +538,7 @@ impl StreamedRenderer {
             let written = (vk::PipelineStageFlags2::VERTEX_SHADER, vk::AccessFlags2::SHADER_STORAGE_WRITE);
             host_read_barrier(&d, cmd, positions.handle, written);
         }
-        self.submit_and_wait(None)?;
+        self.submit_and_wait(atlas, generation, None)?;
         let floats: Vec<f32> = bytemuck::pod_collect_to_vec(&positions.mapped()?[..blocks.len() * k * k * 16]);
         Ok(floats.chunks(4).map(|c| [c[0], c[1], c[2], c[3]]).collect())
     }

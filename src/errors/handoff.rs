@@ -12,7 +12,7 @@
 //! [`AtlasLayers`] extends the same rules to the heightfield atlas of a streamed terrain
 //! (SPEC section 8): a tile is drawable once the generation that uploaded it finished, and
 //! its layer is reused only after every frame that drew from it completed. The atlas
-//! itself (the array image, the uploads) is not built yet; these are its rules.
+//! and its thread ([`crate::errors::atlas`]) keep these rules under one lock.
 
 /// Slots (error targets and readback buffers) used in turn.
 pub const SLOTS: u64 = 2;

@@ -203,6 +203,8 @@ pub struct HostCache {
     bytes: usize,
     frame: u64,
     held: HashMap<TileKey, Held>,
+    /// Tiles evicted since [`HostCache::drain_evicted`] was last called.
+    evicted: Vec<TileKey>,
     pub stats: CacheStats,
 }
 
@@ -215,6 +217,7 @@ impl HostCache {
             bytes: 0,
             frame: 0,
             held: HashMap::new(),
+            evicted: Vec::new(),
             stats: CacheStats::default(),
         }
     }
@@ -358,6 +361,19 @@ impl HostCache {
             self.held.get_mut(&p).expect("ancestor-closed").children -= 1;
         }
         self.stats.evicted += 1;
+        self.evicted.push(key);
+    }
+
+    /// The tiles evicted since the last call (their atlas layers may be reused).
+    pub fn drain_evicted(&mut self) -> Vec<TileKey> {
+        std::mem::take(&mut self.evicted)
+    }
+
+    /// Every tile held, coarsest first (each after its parent).
+    pub fn tiles(&self) -> Vec<Arc<TileData>> {
+        let mut t: Vec<Arc<TileData>> = self.held.values().map(|h| h.data.clone()).collect();
+        t.sort_by_key(|d| (std::cmp::Reverse(d.key.level), d.key));
+        t
     }
 
     /// The cache's invariants, for tests: ancestor-closed, child counts and bytes exact,

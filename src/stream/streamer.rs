@@ -2,7 +2,7 @@
 //! read (protecting the previous frame's tiles from eviction), select over what is held,
 //! protect what the selection used, ask for what it wants (most wanted first).
 
-use super::cache::{tile_bytes_estimate, HostCache, Refused};
+use super::cache::{tile_bytes_estimate, HostCache, Refused, TileData};
 use super::io::{Io, Loaded, TileSource};
 use super::traverse::{select, Selection, StripCache, View};
 use super::{Grid, TileKey};
@@ -40,6 +40,22 @@ pub struct StreamStats {
     pub peak_cache_bytes: usize,
 }
 
+/// Where tiles read wait before the host cache takes them (SPEC section 8, "Residency"):
+/// with a GPU, the errors activity uploads them into the atlas and hands them back once
+/// their generation has finished, so that every tile the traversal can select is
+/// drawable ([`crate::errors::atlas::AtlasFeed`]).
+pub trait TileGate: Send {
+    /// Tiles read, with the bytes read for each, in the order read.
+    fn send(&self, tiles: Vec<(Arc<TileData>, u64)>);
+    /// Tiles now drawable, in the order sent; and tiles that found no room (asked for
+    /// again later).
+    fn take(&self) -> (Vec<(Arc<TileData>, u64)>, Vec<TileKey>);
+    /// Tiles the host cache no longer holds: their room may be reused.
+    fn release(&self, keys: Vec<TileKey>);
+    /// Waits until every tile sent is drawable or refused (or the gate has failed).
+    fn wait(&self);
+}
+
 pub struct Streamer {
     pub grid: Grid,
     pub cache: HostCache,
@@ -54,6 +70,10 @@ pub struct Streamer {
     pub first_failure: Option<String>,
     /// What stitching costs each block configuration drawn (archive data: kept).
     strips: StripCache,
+    /// The GPU atlas's way in, once attached.
+    gate: Option<Box<dyn TileGate>>,
+    /// Tiles sent through the gate and not back yet (not asked for again).
+    gated: HashSet<TileKey>,
 }
 
 impl Streamer {
@@ -70,10 +90,59 @@ impl Streamer {
             // Four times the blocks of a frame to the horizon (about 4,000): the blocks a
             // flight keeps drawing are never measured again.
             strips: StripCache::with_entries(1 << 15),
+            gate: None,
+            gated: HashSet::new(),
         }
     }
 
+    /// From now on tiles read go through `gate` (the GPU atlas) before the cache takes
+    /// them, and the cache holds at most `tiles` tiles. What it holds already is sent
+    /// through first, and waited for.
+    pub fn attach(&mut self, gate: Box<dyn TileGate>, tiles: usize) {
+        self.cache.limit_tiles(tiles);
+        self.cache.drain_evicted(); // never in this gate
+        gate.send(self.cache.tiles().into_iter().map(|t| (t, 0)).collect());
+        gate.wait();
+        let (_, refused) = gate.take();
+        if !refused.is_empty() {
+            tracing::warn!("streaming: {} held tiles found no atlas layer", refused.len());
+        }
+        self.gate = Some(gate);
+    }
+
+    /// Tiles read pass through the gate, if any: sent, then what came back (waiting for
+    /// all of it when `wait`). Tiles refused are asked for again later.
+    fn through_gate(&mut self, loaded: Vec<Loaded>, wait: bool) -> Vec<Loaded> {
+        let Some(gate) = &self.gate else { return loaded };
+        let mut out = Vec::new();
+        let mut tiles = Vec::new();
+        for l in loaded {
+            match l {
+                Loaded::Tile { data, bytes_read } => {
+                    self.gated.insert(data.key);
+                    tiles.push((data, bytes_read));
+                }
+                other => out.push(other),
+            }
+        }
+        gate.send(tiles);
+        if wait {
+            gate.wait();
+        }
+        let (back, refused) = gate.take();
+        for k in refused {
+            self.gated.remove(&k);
+            self.backoff.insert(k, self.stats.frames + FULL_BACKOFF_FRAMES);
+        }
+        for (data, bytes_read) in back {
+            self.gated.remove(&data.key);
+            out.push(Loaded::Tile { data, bytes_read });
+        }
+        out
+    }
+
     fn take(&mut self, loaded: Vec<Loaded>) {
+        let mut refused = Vec::new();
         for l in loaded {
             match l {
                 Loaded::Tile { data, bytes_read } => {
@@ -86,11 +155,13 @@ impl Streamer {
                     let key = data.key;
                     let needed = self.priority.get(&key).is_some_and(|p| *p > 1.0);
                     match self.cache.insert(data, needed) {
-                        Ok(()) | Err(Refused::NoParent) => {}
+                        Ok(()) => {}
+                        Err(Refused::NoParent) => refused.push(key),
                         // The frame's tiles fill the budget: asking again at once would
                         // read it again and again.
                         Err(Refused::Full) => {
                             self.backoff.insert(key, self.stats.frames + FULL_BACKOFF_FRAMES);
+                            refused.push(key);
                         }
                     }
                 }
@@ -105,6 +176,11 @@ impl Streamer {
                 }
             }
         }
+        // What the cache let go (or never took) frees its atlas layer.
+        refused.extend(self.cache.drain_evicted());
+        if let Some(gate) = &self.gate {
+            gate.release(refused);
+        }
         let c = self.cache.stats;
         (self.stats.tiles_evicted, self.stats.refused_full, self.stats.refused_orphan, self.stats.peak_cache_bytes) =
             (c.evicted, c.refused_full, c.refused_orphan, c.peak_bytes);
@@ -114,6 +190,7 @@ impl Streamer {
     /// wants at a lower priority (they are not protected: the current frame's are).
     pub fn frame(&mut self, view: &View, ahead: Option<&View>, delta: f32, prefetch: f32) -> Selection {
         let arrived = self.io.arrived();
+        let arrived = self.through_gate(arrived, false);
         self.take(arrived);
         self.cache.begin_frame();
         self.stats.frames += 1;
@@ -140,7 +217,7 @@ impl Streamer {
     fn request(&mut self, mut wanted: Vec<(TileKey, f32)>) {
         let frame = self.stats.frames;
         self.backoff.retain(|_, retry| *retry > frame);
-        wanted.retain(|(k, _)| !self.cache.contains(*k) && !self.backoff.contains_key(k));
+        wanted.retain(|(k, _)| !self.cache.contains(*k) && !self.gated.contains(k) && !self.backoff.contains_key(k));
         wanted.sort_by(|a, b| b.1.total_cmp(&a.1).then(a.0.cmp(&b.0)));
         // Only what the cache could take: the rest would be read and refused.
         let (mut room_needed, mut room_soon) = (self.cache.room(true, None), self.cache.room(false, None));
@@ -191,12 +268,13 @@ impl Streamer {
         })
     }
 
-    /// Waits until the IO thread has read everything asked for and takes it (runs that
-    /// measure a settled frame, and tests).
+    /// Waits until the IO thread has read everything asked for (and the gate has passed
+    /// it) and takes it (runs that measure a settled frame, and tests).
     pub fn settle(&mut self) {
         loop {
             let got = self.io.wait();
             let idle = got.is_empty() && self.io.outstanding() == 0;
+            let got = self.through_gate(got, true);
             self.take(got);
             if idle {
                 return;
