@@ -190,6 +190,15 @@ fn an_atlas_layer_is_reused_only_after_the_frames_that_drew_it() {
         feed.release(next[..1].iter().map(|t| t.key).collect());
         assert_eq!(pass(&next[..1]), (1, 0));
         assert_eq!(atlas.uploaded().tiles, 4);
+        // A tile let go, its layer reused, then read again into another layer is held
+        // by the cache from then on: its new layer is not rewritten for a later tile.
+        let (a, b, c, d) = (&next[0], &next[1], &first[0], &first[1]);
+        feed.release(vec![a.key]);
+        assert_eq!(pass(std::slice::from_ref(c)), (1, 0), "a's layer takes c");
+        feed.release(vec![b.key]);
+        assert_eq!(pass(std::slice::from_ref(a)), (1, 0), "a comes back into b's layer");
+        assert_eq!(pass(std::slice::from_ref(d)), (0, 1), "a and c are held: d finds no layer");
+        assert!(atlas.holds(a.key) && atlas.holds(c.key) && !atlas.holds(d.key));
         // A budget below one tile is refused with the figure.
         let err = HeightAtlas::new(&device, &grid, 1000).err().expect("no layer fits").to_string();
         assert!(err.contains("--gpu-mb") && err.contains("bytes a tile"), "{err}");

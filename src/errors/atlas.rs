@@ -336,6 +336,8 @@ fn uploads(device: &Arc<Device>, shared: &Shared) -> VkResult<()> {
                     released.remove(&key);
                     back.push((tile, bytes));
                 } else if let Some(layer) = layers.claim(key, g, completed, |t| !released.contains(&t)) {
+                    // Let go once, read again into another layer: held from now on.
+                    released.remove(&key);
                     placed.push((tile.clone(), layer));
                     back.push((tile, bytes));
                 } else {
