@@ -339,7 +339,7 @@ impl Archive {
                 &self.path,
                 format!(
                     "a {} x {} terrain does not fit in memory as one image (at most {} samples a side); \
-                     streaming its tiles is not built yet",
+                     `view`, `render`, `bench --stream` and `stream` draw it streamed",
                     m.width,
                     m.height,
                     crate::lod::heightfield::MAX_SIDE
