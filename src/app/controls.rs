@@ -200,3 +200,50 @@ pub fn delta_key(code: KeyCode, delta: f32) -> Option<f32> {
         _ => None,
     }
 }
+
+/// A window titled `title` at `--size` (1280 x 720 by default), and the instance
+/// (validation as asked), surface and device that draw into it: the device, its queue
+/// mode and its notes printed; each of `sizes` (an option and the size it asks for)
+/// checked against the device's maxImageDimension2D (exit 2). One copy for both viewers.
+pub(crate) fn open_window(
+    event_loop: &winit::event_loop::ActiveEventLoop,
+    common: &crate::app::cli::CommonArgs,
+    title: String,
+    sizes: &[(String, u32, u32)],
+) -> anyhow::Result<(std::sync::Arc<winit::window::Window>, crate::vk::Surface, std::sync::Arc<crate::vk::Device>)> {
+    use crate::vk::{Device, DeviceOptions, Instance, InstanceOptions, Surface, VkResultExt};
+    use raw_window_handle::{HasDisplayHandle, HasWindowHandle};
+    let (w, h) = common.size.unwrap_or((1280, 720));
+    let attrs = winit::window::Window::default_attributes()
+        .with_title(title)
+        .with_inner_size(winit::dpi::PhysicalSize::new(w, h));
+    let window = std::sync::Arc::new(event_loop.create_window(attrs)?);
+    let display = window.display_handle()?.as_raw();
+    let exts: Vec<&'static std::ffi::CStr> = ash_window::enumerate_required_extensions(display)
+        .vk("enumerate surface extensions")?
+        .iter()
+        // SAFETY: ash-window returns pointers to static NUL-terminated extension names.
+        .map(|&p| unsafe { std::ffi::CStr::from_ptr(p) })
+        .collect();
+    let instance = Instance::new(&InstanceOptions { validation: common.validation(), extensions: exts })?;
+    // SAFETY: the window outlives the surface: each viewer drops its GPU state (holding
+    // the surface) before its window.
+    let surface = unsafe { Surface::new(&instance, display, window.window_handle()?.as_raw())? };
+    let device =
+        Device::new(instance, &DeviceOptions { gpu: common.gpu.clone(), queues: common.queues, swapchain: true })
+            .map_err(crate::app::cli::option_error)?;
+    println!("vkterrain: device {}, queue mode {}", device.name, device.queue_mode.as_str());
+    for note in device.notes() {
+        println!("vkterrain: note: {note}");
+    }
+    let max = device.max_image_dimension_2d();
+    for (opt, w, h) in sizes {
+        if *w > max || *h > max {
+            return Err(crate::app::cli::InputError(format!(
+                "{opt} {w}x{h}: larger than the device's maxImageDimension2D ({max})"
+            ))
+            .into());
+        }
+    }
+    Ok((window, surface, device))
+}

@@ -8,7 +8,7 @@
 //! ramp, no textures, shadows, morphing or panel yet), and the window title carries the
 //! figures: frame rate, blocks, frames over the bound, tiles held.
 
-use crate::app::cli::{check_messages, option_error, CommonArgs, InputError};
+use crate::app::cli::{check_messages, CommonArgs};
 use crate::app::controls::{delta_key, Controller, Ground, Input};
 use crate::app::outputs::save_png;
 use crate::app::stream::{top_tiles, GpuFrames};
@@ -18,15 +18,11 @@ use crate::lod::view::near_plane_for;
 use crate::stream::streamer::Streamer;
 use crate::stream::traverse::View;
 use crate::stream::Grid;
-use crate::vk::{
-    vk, BinarySemaphore, Device, DeviceOptions, Instance, InstanceOptions, Surface, Swapchain, VkResultExt,
-};
+use crate::vk::{vk, BinarySemaphore, Surface, Swapchain, VkResultExt};
 use glam::Vec3;
-use raw_window_handle::{HasDisplayHandle, HasWindowHandle};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 use winit::application::ApplicationHandler;
-use winit::dpi::PhysicalSize;
 use winit::event::WindowEvent;
 use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop};
 use winit::keyboard::KeyCode;
@@ -241,33 +237,10 @@ impl App {
 
     fn open(&mut self, event_loop: &ActiveEventLoop) -> anyhow::Result<()> {
         let (w, h) = self.args.common.size.unwrap_or((1280, 720));
-        let attrs = Window::default_attributes()
-            .with_title(format!("vkterrain: {} (streamed)", crate::app::stream::terrain_name(&self.args.common)))
-            .with_inner_size(PhysicalSize::new(w, h));
-        let window = Arc::new(event_loop.create_window(attrs)?);
-        let display = window.display_handle()?.as_raw();
-        let exts: Vec<&'static std::ffi::CStr> = ash_window::enumerate_required_extensions(display)
-            .vk("enumerate surface extensions")?
-            .iter()
-            // SAFETY: ash-window returns pointers to static NUL-terminated extension names.
-            .map(|&p| unsafe { std::ffi::CStr::from_ptr(p) })
-            .collect();
-        let instance = Instance::new(&InstanceOptions { validation: self.args.common.validation(), extensions: exts })?;
-        // SAFETY: the window outlives the surface: `WindowGpu` (holding the surface) is
-        // dropped before `App::window`.
-        let surface = unsafe { Surface::new(&instance, display, window.window_handle()?.as_raw())? };
-        let device = Device::new(
-            instance,
-            &DeviceOptions { gpu: self.args.common.gpu.clone(), queues: self.args.common.queues, swapchain: true },
-        )
-        .map_err(option_error)?;
-        println!("vkterrain: device {}, queue mode {}", device.name, device.queue_mode.as_str());
-        let max = device.max_image_dimension_2d();
-        if w > max || h > max {
-            return Err(
-                InputError(format!("--size {w}x{h}: larger than the device's maxImageDimension2D ({max})")).into()
-            );
-        }
+        let title = format!("vkterrain: {} (streamed)", crate::app::stream::terrain_name(&self.args.common));
+        let sizes = [("--size".to_string(), w, h)];
+        let (window, surface, device) =
+            crate::app::controls::open_window(event_loop, &self.args.common, title, &sizes)?;
         let size = window.inner_size();
         let swapchain = Swapchain::new(&device, &surface, (size.width, size.height), self.args.present, None)?;
         self.run.device = device.name.clone();

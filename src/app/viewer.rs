@@ -25,7 +25,6 @@ use crate::vk::{
 };
 use clap::{Args, ValueEnum};
 use glam::Vec3;
-use raw_window_handle::{HasDisplayHandle, HasWindowHandle};
 use serde_json::json;
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -527,42 +526,13 @@ impl App {
     }
 
     fn open(&mut self, event_loop: &ActiveEventLoop) -> anyhow::Result<()> {
-        let (w, h) = self.args.common.size.unwrap_or((1280, 720));
-        let attrs = Window::default_attributes()
-            .with_title(format!("vkterrain: {}", self.hf.source))
-            .with_inner_size(PhysicalSize::new(w, h));
-        let window = Arc::new(event_loop.create_window(attrs)?);
-        let display = window.display_handle()?.as_raw();
-        let exts: Vec<&'static std::ffi::CStr> = ash_window::enumerate_required_extensions(display)
-            .vk("enumerate surface extensions")?
-            .iter()
-            // SAFETY: ash-window returns pointers to static NUL-terminated extension names.
-            .map(|&p| unsafe { std::ffi::CStr::from_ptr(p) })
-            .collect();
-        let instance = Instance::new(&InstanceOptions { validation: self.args.common.validation(), extensions: exts })?;
-        // SAFETY: the window outlives the surface: `Gpu` (holding the surface) is dropped
-        // before `App::window`.
-        let surface = unsafe { Surface::new(&instance, display, window.window_handle()?.as_raw())? };
-        let device = Device::new(
-            instance,
-            &DeviceOptions { gpu: self.args.common.gpu.clone(), queues: self.args.common.queues, swapchain: true },
-        )
-        .map_err(crate::app::cli::option_error)?;
-        println!("vkterrain: device {}, queue mode {}", device.name, device.queue_mode.as_str());
-        for note in device.notes() {
-            println!("vkterrain: note: {note}");
-        }
-        Session::check_size(&device, &self.hf)?;
-        let max = device.max_image_dimension_2d();
         let requested = self.args.common.size.iter().map(|&(w, h)| ("--size".to_string(), w, h));
         let resizes = self.resizes.iter().map(|&(f, w, h)| (format!("--resize-at {f}"), w, h));
-        for (opt, w, h) in requested.chain(resizes) {
-            if w > max || h > max {
-                return Err(
-                    InputError(format!("{opt} {w}x{h}: larger than the device's maxImageDimension2D ({max})")).into()
-                );
-            }
-        }
+        let sizes: Vec<(String, u32, u32)> = requested.chain(resizes).collect();
+        let title = format!("vkterrain: {}", self.hf.source);
+        let (window, surface, device) =
+            crate::app::controls::open_window(event_loop, &self.args.common, title, &sizes)?;
+        Session::check_size(&device, &self.hf)?;
         let terrain = Arc::new(TerrainGpu::new(&device, &self.hf, &self.mm, self.base.as_ref(), self.detail.as_ref())?);
         let size = window.inner_size();
         let present = self.args.present_mode.vk();

@@ -932,31 +932,19 @@ impl BlocksRenderer {
         self.wait_frame(0)?;
         let d = device.raw.clone();
         let cmd = self.offscreen[0].cmd;
-        let area = vk::Rect2D { offset: vk::Offset2D::default(), extent: vk::Extent2D { width: 1, height: 1 } };
+        let pushes: Vec<BlockPush> = blocks.iter().map(|b| block_push(&self.layout, b)).collect();
         // SAFETY: the set is new and unused; `cmd` is this renderer's, its last submission
         // completed (fence waited after every use); every object outlives the wait below.
         unsafe {
             d.update_descriptor_sets(&[write], &[]);
-            begin_one_time(&d, cmd)?;
-            d.cmd_begin_rendering(cmd, &vk::RenderingInfo::default().render_area(area).layer_count(1));
-            d.cmd_set_viewport(
+            record_capture(
+                &d,
                 cmd,
-                0,
-                &[vk::Viewport { x: 0.0, y: 0.0, width: 1.0, height: 1.0, min_depth: 0.0, max_depth: 1.0 }],
-            );
-            d.cmd_set_scissor(cmd, 0, &[area]);
-            d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, pipeline.handle);
-            d.cmd_bind_descriptor_sets(cmd, vk::PipelineBindPoint::GRAPHICS, pipeline_layout.handle, 0, &[set], &[]);
-            d.cmd_bind_vertex_buffers(cmd, 0, &[self.mesh.vertices.handle], &[0]);
-            d.cmd_bind_index_buffer(cmd, self.mesh.indices.handle, 0, self.mesh.index_type);
-            for (i, b) in blocks.iter().enumerate() {
-                let push = block_push(&self.layout, b);
-                d.cmd_push_constants(cmd, pipeline_layout.handle, vertex, 0, bytemuck::bytes_of(&push));
-                d.cmd_draw_indexed(cmd, self.mesh.index_count, 1, 0, 0, i as u32);
-            }
-            d.cmd_end_rendering(cmd);
-            let written = (vk::PipelineStageFlags2::VERTEX_SHADER, vk::AccessFlags2::SHADER_STORAGE_WRITE);
-            host_read_barrier(&d, cmd, positions.handle, written);
+                (pipeline.handle, pipeline_layout.handle, set),
+                &self.mesh,
+                &pushes,
+                positions.handle,
+            )?;
             d.end_command_buffer(cmd).vk("vkEndCommandBuffer")?;
         }
         let fence = &self.offscreen[0].fence;
@@ -967,6 +955,44 @@ impl BlocksRenderer {
         let floats: Vec<f32> = bytemuck::pod_collect_to_vec(&positions.mapped()?[..blocks.len() * k * k * 16]);
         Ok(floats.chunks(4).map(|c| [c[0], c[1], c[2], c[3]]).collect())
     }
+}
+
+/// Records the capture hook's draws (one a block, its index as the first instance, which
+/// tells the shader where to write) into a 1 x 1 render area, then the barrier that makes
+/// the captured positions readable on the host. One copy for both renderers.
+///
+/// # Safety
+/// `cmd` is free for recording on this thread, the set is written, and every handle
+/// outlives the caller's wait for the submission.
+pub(super) unsafe fn record_capture(
+    d: &ash::Device,
+    cmd: vk::CommandBuffer,
+    (pipeline, pipeline_layout, set): (vk::Pipeline, vk::PipelineLayout, vk::DescriptorSet),
+    mesh: &BlockMesh,
+    pushes: &[BlockPush],
+    positions: vk::Buffer,
+) -> VkResult<()> {
+    let area = vk::Rect2D { offset: vk::Offset2D::default(), extent: vk::Extent2D { width: 1, height: 1 } };
+    begin_one_time(d, cmd)?;
+    d.cmd_begin_rendering(cmd, &vk::RenderingInfo::default().render_area(area).layer_count(1));
+    d.cmd_set_viewport(
+        cmd,
+        0,
+        &[vk::Viewport { x: 0.0, y: 0.0, width: 1.0, height: 1.0, min_depth: 0.0, max_depth: 1.0 }],
+    );
+    d.cmd_set_scissor(cmd, 0, &[area]);
+    d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, pipeline);
+    d.cmd_bind_descriptor_sets(cmd, vk::PipelineBindPoint::GRAPHICS, pipeline_layout, 0, &[set], &[]);
+    d.cmd_bind_vertex_buffers(cmd, 0, &[mesh.vertices.handle], &[0]);
+    d.cmd_bind_index_buffer(cmd, mesh.indices.handle, 0, mesh.index_type);
+    for (i, p) in pushes.iter().enumerate() {
+        d.cmd_push_constants(cmd, pipeline_layout, vk::ShaderStageFlags::VERTEX, 0, bytemuck::bytes_of(p));
+        d.cmd_draw_indexed(cmd, mesh.index_count, 1, 0, 0, i as u32);
+    }
+    d.cmd_end_rendering(cmd);
+    let written = (vk::PipelineStageFlags2::VERTEX_SHADER, vk::AccessFlags2::SHADER_STORAGE_WRITE);
+    host_read_barrier(d, cmd, positions, written);
+    Ok(())
 }
 
 /// Push constants of one block draw.

@@ -17,9 +17,8 @@ use crate::lod::camera::Camera;
 use crate::stream::draw::StreamedBlock;
 use crate::stream::Grid;
 use crate::vk::{
-    begin_one_time, host_read_barrier, image_barrier, vk, Buffer, CommandPool, DepthMode, DescriptorPool,
-    DescriptorSetLayout, Device, Fence, GraphicsPipeline, GraphicsPipelineDesc, Image, PipelineLayout, Sampler,
-    VkError, VkResult, VkResultExt,
+    begin_one_time, image_barrier, vk, Buffer, CommandPool, DepthMode, DescriptorPool, DescriptorSetLayout, Device,
+    Fence, GraphicsPipeline, GraphicsPipelineDesc, Image, PipelineLayout, Sampler, VkError, VkResult, VkResultExt,
 };
 use std::sync::Arc;
 
@@ -513,30 +512,18 @@ impl StreamedRenderer {
         }
         let d = self.device.raw.clone();
         let cmd = self.cmd;
-        let area = vk::Rect2D { offset: vk::Offset2D::default(), extent: vk::Extent2D { width: 1, height: 1 } };
         // SAFETY: the set is new; the fence was waited in `bind`; every object outlives
         // the wait in `submit_and_wait`.
         unsafe {
             d.update_descriptor_sets(&[write], &[]);
-            begin_one_time(&d, cmd)?;
-            d.cmd_begin_rendering(cmd, &vk::RenderingInfo::default().render_area(area).layer_count(1));
-            d.cmd_set_viewport(
+            super::blocks::record_capture(
+                &d,
                 cmd,
-                0,
-                &[vk::Viewport { x: 0.0, y: 0.0, width: 1.0, height: 1.0, min_depth: 0.0, max_depth: 1.0 }],
-            );
-            d.cmd_set_scissor(cmd, 0, &[area]);
-            d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, pipeline);
-            d.cmd_bind_descriptor_sets(cmd, vk::PipelineBindPoint::GRAPHICS, pipeline_layout, 0, &[set], &[]);
-            d.cmd_bind_vertex_buffers(cmd, 0, &[self.mesh.vertices.handle], &[0]);
-            d.cmd_bind_index_buffer(cmd, self.mesh.indices.handle, 0, self.mesh.index_type);
-            for (i, p) in pushes.iter().enumerate() {
-                d.cmd_push_constants(cmd, pipeline_layout, vk::ShaderStageFlags::VERTEX, 0, bytemuck::bytes_of(p));
-                d.cmd_draw_indexed(cmd, self.mesh.index_count, 1, 0, 0, i as u32);
-            }
-            d.cmd_end_rendering(cmd);
-            let written = (vk::PipelineStageFlags2::VERTEX_SHADER, vk::AccessFlags2::SHADER_STORAGE_WRITE);
-            host_read_barrier(&d, cmd, positions.handle, written);
+                (pipeline, pipeline_layout, set),
+                &self.mesh,
+                &pushes,
+                positions.handle,
+            )?;
         }
         self.submit_and_wait(atlas, generation, None)?;
         let floats: Vec<f32> = bytemuck::pod_collect_to_vec(&positions.mapped()?[..blocks.len() * k * k * 16]);
