@@ -120,6 +120,17 @@ fn short_bench_writes_every_file_with_documented_fields() {
     assert!(s["error_updates"].as_u64().unwrap() >= 2);
     for run in ["error", "full", "distance", "ceiling"] {
         assert_eq!(s["compare"][run]["frames"], 24, "{run}");
+        // Each run begins with one untimed frame, waited for, not among its 24.
+        assert!(s["compare"][run]["warmup_ms"].as_f64().is_some_and(|w| w > 0.0), "{run}: {s}");
+    }
+    // The ceiling's frames beside the error run's, the same columns and as many rows,
+    // drawing the same triangles frame by frame.
+    let ceiling = std::fs::read_to_string(out.join("ceiling.csv")).unwrap();
+    assert_eq!(ceiling.lines().next(), csv.lines().next());
+    let ceiling: Vec<Vec<&str>> = ceiling.lines().skip(1).map(|l| l.split(',').collect()).collect();
+    assert_eq!(ceiling.len(), rows.len());
+    for (c, r) in ceiling.iter().zip(&rows) {
+        assert_eq!(c[4], r[4], "the ceiling replays the error run's blocks");
     }
     // LOD selection never draws more than full resolution.
     assert!(s["compare"]["triangles_full_over_error"].as_f64().unwrap() >= 1.0);

@@ -290,6 +290,8 @@ struct Run {
     generations: Vec<u64>,
     update_gpu_ms: Vec<f64>,
     interrupted: bool,
+    /// The untimed warm-up frame's time, waited for (ms).
+    warmup_ms: Option<f64>,
     /// (frame, resident MiB) every 250 frames: a leak grows without bound, a cache levels off.
     rss: Vec<(u64, f64)>,
 }
@@ -429,6 +431,7 @@ impl Bench<'_> {
             generations: Vec::new(),
             update_gpu_ms: Vec::new(),
             interrupted: false,
+            warmup_ms: None,
             rss: Vec::new(),
         };
         let mut draw = draw_thread(&self.args.common, self.trace.clone());
@@ -453,7 +456,14 @@ impl Bench<'_> {
             row.triangles = stats.triangles;
             row.draw_calls = stats.draw_calls;
         };
-        for i in 0..self.frames {
+        // Step 0 is an untimed warm-up at the path's first pose, waited for before the
+        // clock starts, so that no run pays for what only the first frame of a process or
+        // a run does (llvmpipe compiles its shaders on first use, the errors activity's
+        // first generation, the traversal's caches): frame 0 then follows it as frame 1
+        // follows frame 0. Its time is `warmup_ms`.
+        for step in 0..=self.frames {
+            let warm_up = step == 0;
+            let i = step.saturating_sub(1);
             if label == "full" && self.interrupt_full_at == Some(i) {
                 self.stop.store(true, Ordering::SeqCst);
             }
@@ -486,7 +496,7 @@ impl Bench<'_> {
                             fill(&mut rows[r], &stats, r);
                             finish_temporal(renderer, &targets[slot], s, diff, slot, r, rows, &shading)?;
                         }
-                        if lod == LodChoice::Error && replay.is_none() {
+                        if lod == LodChoice::Error && replay.is_none() && !warm_up {
                             diff.frames.insert(rows.len(), (cam, blocks.to_vec()));
                         }
                     }
@@ -514,6 +524,12 @@ impl Bench<'_> {
                 }
             }
             let (blocks, _) = frame.into_parts();
+            if warm_up {
+                self.renderer.wait_frame(slot)?;
+                run.warmup_ms = Some(frame_start.elapsed().as_secs_f64() * 1e3);
+                self.trace.complete(DRAW_TID, "warm-up (untimed)", frame_start, Instant::now(), json!({}));
+                continue;
+            }
             if let (Some(stats), Some(r)) = (done, pending[slot].take()) {
                 fill(&mut run.rows[r], &stats, r);
             }
@@ -636,6 +652,7 @@ fn summarize(run: &Run) -> Value {
     json!({
         "occluded_block_share": occluded_share,
         "occlusion_culled_frames": culled.len(),
+        "warmup_ms": run.warmup_ms,
         "frames": run.rows.len(),
         "avg_fps": run.rows.len() as f64 / total_s.max(1e-9),
         "median_frame_ms": percentile(&ms, 0.5),
@@ -900,6 +917,11 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
             // Comparisons only from runs that went the whole path: a run stopped part way
             // (Ctrl-C, the watchdog) would make every ratio meaningless.
             let mut full = None;
+            // The comparison runs start once the errors activity has finished what the
+            // main run asked of it, so that its last passes do not land in their frames.
+            if args.compare || args.popping {
+                activity.wait_settled(Duration::from_secs_f32(args.watchdog))?;
+            }
             if (args.compare || args.popping) && !main.interrupted {
                 full = Some(bench.run(LodChoice::Full, None, None, false)?).filter(|r| !r.interrupted);
             }
@@ -914,6 +936,8 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
                 // The same ceiling again: how far two identical runs drift apart frame by
                 // frame on this machine, the floor under any stall figure.
                 let again = bench.run(LodChoice::Full, None, Some(&main.blocks), false)?;
+                // Frame by frame beside frames.csv: where the excess over the ceiling lies.
+                write_csv(&args.out.join("ceiling.csv"), &ceiling.rows)?;
                 if !distance.interrupted && !ceiling.interrupted && !again.interrupted {
                     let (sm, sf, sd, sc) =
                         (summarize(&main), summarize(&full), summarize(&distance), summarize(&ceiling));

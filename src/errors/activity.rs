@@ -5,7 +5,7 @@
 //! whose value is the generation number hands each finished one to the draw thread.
 
 use crate::errors::handoff::{Handoff, Read};
-use crate::errors::passes::{readback_bytes, ErrorsGpu};
+use crate::errors::passes::{readback_bytes, ErrorsGpu, CHUNKS};
 use crate::gpu::terrain::TerrainGpu;
 use crate::lod::block::BlockLayout;
 use crate::lod::gie::{fragments_per_update, BlockErrors, ErrorParams};
@@ -316,9 +316,12 @@ impl ErrorsActivity {
     }
 
     /// Whether the thread has work (a request with new parameters, or a generation in
-    /// flight), and generations finished: a watchdog's view of its progress.
+    /// flight), and its submissions completed: a watchdog's view of its progress. Counted
+    /// per submission, not per generation: on a shared queue each of a generation's
+    /// parts waits behind the frames queued before it, which with `--lod full` on a large
+    /// terrain take seconds each. (A lost device reads as no progress.)
     pub fn progress(&self) -> (bool, u64) {
-        let done = self.shared.handoff.lock().unwrap().protocol.finished();
+        let done = self.shared.submissions.value().unwrap_or(u64::MAX);
         (!self.shared.idle.load(Ordering::SeqCst), done)
     }
 
@@ -328,6 +331,23 @@ impl ErrorsActivity {
     pub fn settled(&self) -> bool {
         let events = self.shared.seen();
         self.shared.idle.load(Ordering::SeqCst) && self.shared.idle_seen.load(Ordering::SeqCst) >= events
+    }
+
+    /// Waits until [`Self::settled`]: every request made so far answered and nothing in
+    /// flight. Fails if the thread failed, or after `timeout` without settling.
+    pub fn wait_settled(&self, timeout: Duration) -> VkResult<()> {
+        let start = Instant::now();
+        while !self.settled() {
+            self.check_failure()?;
+            if start.elapsed() > timeout {
+                return Err(VkError::Setup(format!("errors activity still busy after {:.0} s", timeout.as_secs_f64())));
+            }
+            // Woken when a generation is published; the timeout catches the thread going
+            // idle after that, which wakes no one.
+            let h = self.shared.handoff.lock().unwrap();
+            drop(self.shared.published.wait_timeout(h, Duration::from_millis(5)).unwrap());
+        }
+        self.check_failure()
     }
 
     /// Whether each submission waits for the one before (`--error-pacing`).
@@ -411,13 +431,17 @@ fn event_loop(gpu: &ErrorsGpu, s: &Shared, submissions: &mut u64) -> VkResult<()
     let mut flight: VecDeque<InFlight> = VecDeque::new();
     // Parameters of the newest generation started.
     let mut last: Option<ErrorParams> = None;
+    // Submissions the next generation is split into, from the last one's GPU time.
+    let mut parts = FIRST_PARTS;
     loop {
         // Read before looking at the shared state, so that no event in between is missed.
         let seen = s.seen();
         // Submissions complete in order; a generation is done when its last one is.
         let completed = s.submissions.value()?;
         while flight.front().is_some_and(|f| f.all_submitted() && f.last_signal <= completed) {
-            publish(gpu, s, &flight.pop_front().expect("front"))?;
+            if let Some(ms) = publish(gpu, s, &flight.pop_front().expect("front"))? {
+                parts = parts_for(ms);
+            }
         }
         let (stop, params) = {
             let r = s.request.lock().unwrap();
@@ -459,7 +483,7 @@ fn event_loop(gpu: &ErrorsGpu, s: &Shared, submissions: &mut u64) -> VkResult<()
                 }
                 let slot = Handoff::slot(g);
                 let begun = Instant::now();
-                let cmds = gpu.record(slot, g, &p, &s.readbacks[slot], None)?;
+                let cmds = gpu.record(slot, g, &p, &s.readbacks[slot], None, parts)?;
                 flight.push_back(InFlight { g, slot, cmds, submitted: 0, last_signal: 0, started: begun });
                 last = Some(p);
                 continue;
@@ -525,8 +549,26 @@ fn submit_next(gpu: &ErrorsGpu, s: &Shared, f: &mut InFlight, submissions: &mut 
     Ok(())
 }
 
-/// Generation `f.g` is done on the GPU: reads its GPU time and hands it to the reader.
-fn publish(gpu: &ErrorsGpu, s: &Shared, f: &InFlight) -> VkResult<()> {
+/// Submissions a generation is split into before any has been timed.
+const FIRST_PARTS: usize = 4;
+/// GPU time of one submission the split aims at (ms). On a shared queue a frame can be
+/// delayed by one submission, so this bounds the delay; more parts make a generation
+/// wait behind more frames (each part waits for the one before), so data gets older.
+/// On lavapipe the 1k flyover's 9 ms generations go in 2 parts, the 4k flyover's 130 ms
+/// in [`CHUNKS`]; on a real GPU a generation is one submission.
+const PART_MS: f64 = 6.0;
+
+/// Submissions for a generation like the last one, which took `ms` on the GPU.
+fn parts_for(ms: f64) -> usize {
+    if !ms.is_finite() {
+        return FIRST_PARTS;
+    }
+    ((ms / PART_MS).ceil() as usize).clamp(1, CHUNKS)
+}
+
+/// Generation `f.g` is done on the GPU: reads its GPU time (returned) and hands it to
+/// the reader.
+fn publish(gpu: &ErrorsGpu, s: &Shared, f: &InFlight) -> VkResult<Option<f64>> {
     // The generation's GPU time (sum over its submissions) and GPU spans; the slot's
     // queries are not reset before g + 2 starts, which needs g published.
     let shared = gpu.device.queue_mode == crate::vk::QueueMode::Shared;
@@ -561,5 +603,23 @@ fn publish(gpu: &ErrorsGpu, s: &Shared, f: &InFlight) -> VkResult<()> {
         h.protocol.finish(f.g);
         s.published.notify_all();
     }
-    Ok(())
+    Ok(gpu_ms)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Parts follow the last generation's GPU time, at most `CHUNKS`, at least 1.
+    #[test]
+    fn a_generation_is_split_by_the_last_ones_gpu_time() {
+        assert_eq!(parts_for(0.0), 1);
+        assert_eq!(parts_for(0.4), 1);
+        assert_eq!(parts_for(PART_MS), 1);
+        assert_eq!(parts_for(PART_MS + 0.1), 2);
+        assert_eq!(parts_for(9.0), 2);
+        assert_eq!(parts_for(130.0), CHUNKS);
+        assert_eq!(parts_for(f64::NAN), FIRST_PARTS);
+        assert_eq!(parts_for(f64::INFINITY), FIRST_PARTS);
+    }
 }

@@ -31,8 +31,104 @@ pub(crate) struct Slot {
     cmds: Vec<vk::CommandBuffer>,
 }
 
-/// Submissions a generation is split into, at most (about equal fragment counts).
-pub(crate) const CHUNKS: usize = 4;
+/// Submissions a generation is split into, at most (about equal costs, the reduction
+/// included; the errors thread chooses how many, `activity::parts_for`). On a shared
+/// queue each runs between two frames, so one submission is what a frame can be delayed
+/// by: 4 fixed parts left the 4k flyover's frames up to 56 ms late, the reduction and a
+/// quarter of the passes in one.
+pub(crate) const CHUNKS: usize = 16;
+/// What one fragment of the block reduction costs, in GIE fragments: it reads `(k-1)^2`
+/// texels where a strict GIE fragment reads two and computes a distance (measured on
+/// the 4k flyover: the reduction took a third of the passes' time for as many texels).
+fn reduce_weight(k: usize) -> u64 {
+    ((k - 1) * (k - 1)).div_ceil(4) as u64
+}
+
+/// One pass of a generation to split: `width x height` fragments of `cost` each.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(crate) struct PassSize {
+    pub width: u32,
+    pub height: u32,
+    pub cost: u64,
+}
+
+/// Rows `rows` of pass `pass`, recorded into submission `part`.
+#[derive(Clone, Debug, PartialEq)]
+pub(crate) struct Band {
+    pub pass: usize,
+    pub rows: std::ops::Range<u32>,
+    pub part: usize,
+}
+
+/// Splits `passes`, in order, into row bands over at most `parts` submissions of about
+/// equal cost. Bands are a quarter of an equal share (or one row, where a row costs
+/// more; a whole pass with one part); a submission is closed when the next band would take it past its share of
+/// what is left, so the last one does not collect what the others left. Every row of
+/// every pass is in exactly one band, in order, and the parts never go down.
+pub(crate) fn split_passes(passes: &[PassSize], parts: usize) -> Vec<Band> {
+    let parts = parts.max(1);
+    let cost_of = |p: &PassSize| u64::from(p.width) * u64::from(p.height) * p.cost;
+    let mut left: u64 = passes.iter().map(cost_of).sum();
+    // One part: whole passes, one render pass each.
+    let band_budget = if parts == 1 { u64::MAX } else { (left.div_ceil(parts as u64) / 4).max(1) };
+    let (mut part, mut in_part) = (0, 0u64);
+    let mut budget = left.div_ceil(parts as u64);
+    let mut out = Vec::new();
+    for (pass, p) in passes.iter().enumerate() {
+        let row_cost = u64::from(p.width) * p.cost;
+        let band = ((band_budget / row_cost.max(1)).max(1) as u32).min(p.height.max(1));
+        let mut row = 0;
+        while row < p.height {
+            let rows = row..(row + band).min(p.height);
+            let cost = u64::from(rows.end - rows.start) * row_cost;
+            if in_part > 0 && in_part + cost > budget && part + 1 < parts {
+                part += 1;
+                in_part = 0;
+                budget = left.div_ceil((parts - part) as u64);
+            }
+            in_part += cost;
+            left -= cost;
+            row = rows.end;
+            out.push(Band { pass, rows, part });
+        }
+    }
+    out
+}
+
+/// The command buffer a generation is being recorded into: submission `used - 1` of
+/// the slot's buffers, each between its two timestamps.
+struct Parts<'a> {
+    d: &'a ash::Device,
+    queries: Option<vk::QueryPool>,
+    q0: u32,
+    cmds: &'a [vk::CommandBuffer],
+    used: usize,
+    cmd: vk::CommandBuffer,
+}
+
+impl Parts<'_> {
+    /// The buffer of submission `part`, closing the ones before it.
+    fn at(&mut self, part: usize) -> VkResult<vk::CommandBuffer> {
+        while self.used <= part {
+            // SAFETY: `cmd` is recording; the next buffer of this slot is idle (the
+            // slot's previous generation has completed, see `record`).
+            unsafe {
+                let q = self.q0 + 2 * self.used as u32;
+                if let Some(pool) = self.queries {
+                    self.d.cmd_write_timestamp2(self.cmd, vk::PipelineStageFlags2::BOTTOM_OF_PIPE, pool, q - 1);
+                }
+                self.d.end_command_buffer(self.cmd).vk("vkEndCommandBuffer")?;
+                self.cmd = self.cmds[self.used];
+                begin_one_time(self.d, self.cmd)?;
+                if let Some(pool) = self.queries {
+                    self.d.cmd_write_timestamp2(self.cmd, vk::PipelineStageFlags2::TOP_OF_PIPE, pool, q);
+                }
+            }
+            self.used += 1;
+        }
+        Ok(self.cmd)
+    }
+}
 /// Timestamp queries per slot: a pair per submission.
 pub(crate) const QUERIES_PER_SLOT: u32 = 2 * CHUNKS as u32;
 
@@ -293,9 +389,9 @@ impl ErrorsGpu {
         unsafe { image_barrier(&self.device.raw, cmd, image.handle, image.range(mip, count), from, to) };
     }
 
-    /// Records generation `g` into its slot's command buffers: the GIE passes split in
-    /// row bands over up to [`CHUNKS`] of them, the reduction, readback and timestamps in
-    /// the last. Returns the buffers to submit, in order.
+    /// Records generation `g` into its slot's command buffers: the GIE passes and the
+    /// reduction split in row bands over `parts` of them (at most [`CHUNKS`]), the readback and
+    /// timestamps in the last. Returns the buffers to submit, in order.
     pub(crate) fn record(
         &self,
         slot_index: usize,
@@ -303,12 +399,12 @@ impl ErrorsGpu {
         p: &ErrorParams,
         readback: &Buffer,
         gie_dump: Option<&Buffer>,
+        parts: usize,
     ) -> VkResult<Vec<vk::CommandBuffer>> {
         let slot = &self.slots[slot_index];
         let d = &self.device.raw;
         let queries = self.queries.as_ref().map(|q| q.handle);
-        let mut used = 1;
-        let mut cmd = slot.cmds[0];
+        let cmd = slot.cmds[0];
         let n = self.hf.n;
         let root = self.layout.root_lod();
         // SAFETY: the slot's previous submissions (generation g-2) have completed: the
@@ -344,10 +440,25 @@ impl ErrorsGpu {
         );
         let unorm = (self.hf.format == HeightFormat::Unorm16) as i32;
         let gie_pipeline = &self.gie_pipelines[(p.mode == crate::lod::gie::ErrorMode::Strict) as usize];
-        // About equal fragment counts per submission; one pass may span several.
-        let total: u64 = (1..=n).map(|lod| self.hf.cells(lod).iter().product::<usize>() as u64).sum();
-        let budget = total.div_ceil(CHUNKS as u64).max(1);
-        let mut in_chunk = 0u64;
+        // About equal costs per submission; one pass may span several. The GIE passes
+        // (one per LOD), then the reduction's (one per block LOD, when there is one).
+        let weight = reduce_weight(self.layout.k() as usize);
+        let parts = parts.clamp(1, CHUNKS);
+        let mut sizes: Vec<PassSize> = (1..=n)
+            .map(|lod| {
+                let [width, height] = self.hf.cells(lod).map(|c| c as u32);
+                PassSize { width, height, cost: 1 }
+            })
+            .collect();
+        if slot.tbe.is_some() {
+            sizes.extend((1..=root).map(|j| {
+                let [width, height] = self.layout.blocks(j).map(|c| c as u32);
+                PassSize { width, height, cost: weight }
+            }));
+        }
+        let bands = split_passes(&sizes, parts);
+        let mut chunks = Parts { d, queries, q0, cmds: &slot.cmds[..parts], used: 1, cmd };
+        let mut bands = bands.iter().peekable();
         for lod in 1..=n {
             let [side, groups_z] = self.hf.cells(lod).map(|c| c as u32);
             let push = GiePush {
@@ -356,61 +467,48 @@ impl ErrorsGpu {
                 camera: [p.camera.x, p.camera.y, p.camera.z, p.kappa],
                 params: [self.hf.spacing.x, self.hf.height_scale, p.near, self.hf.spacing.z],
             };
-            let band = ((budget / side as u64).max(1) as u32).min(groups_z);
-            let mut row = 0;
-            while row < groups_z {
-                let rows = row..(row + band).min(groups_z);
-                let fragments = (rows.end - rows.start) as u64 * side as u64;
-                if in_chunk > 0 && in_chunk + fragments > budget && used < slot.cmds.len() {
-                    // SAFETY: `cmd` is recording; the next buffer of this slot is idle
-                    // (same argument as for the first).
-                    unsafe {
-                        let q = q0 + 2 * used as u32;
-                        if let Some(pool) = queries {
-                            d.cmd_write_timestamp2(cmd, vk::PipelineStageFlags2::BOTTOM_OF_PIPE, pool, q - 1);
-                        }
-                        d.end_command_buffer(cmd).vk("vkEndCommandBuffer")?;
-                        cmd = slot.cmds[used];
-                        begin_one_time(d, cmd)?;
-                        if let Some(pool) = queries {
-                            d.cmd_write_timestamp2(cmd, vk::PipelineStageFlags2::TOP_OF_PIPE, pool, q);
-                        }
-                    }
-                    used += 1;
-                    in_chunk = 0;
-                }
+            while let Some(band) = bands.next_if(|b| b.pass == (lod - 1) as usize) {
                 self.pass(
-                    cmd,
+                    chunks.at(band.part)?,
                     slot.gie_mips[(lod - 1) as usize].handle,
                     [side, groups_z],
-                    rows.clone(),
+                    band.rows.clone(),
                     (gie_pipeline, &self.gie_layout),
                     slot.gie_sets[(lod - 1) as usize],
                     bytemuck::bytes_of(&push),
                 );
-                in_chunk += fragments;
-                row = rows.end;
             }
-            self.barrier(cmd, &slot.gie, lod - 1, 1, (color, write, rt), (frag, read, ro));
+            self.barrier(chunks.cmd, &slot.gie, lod - 1, 1, (color, write, rt), (frag, read, ro));
         }
         let data_bytes = BlockErrors::packed_len(root, self.layout.roots) as u64 * 4;
         if let Some(tbe) = &slot.tbe {
-            self.barrier(cmd, tbe, 0, root, (copy | color, write, vk::ImageLayout::UNDEFINED), (color, write, rt));
+            self.barrier(
+                chunks.cmd,
+                tbe,
+                0,
+                root,
+                (copy | color, write, vk::ImageLayout::UNDEFINED),
+                (color, write, rt),
+            );
             for j in 1..=root {
                 let push = ReducePush { level: [j as i32, j as i32 - 1, (self.layout.k() - 1) as i32, 0] };
                 let [w, h] = self.layout.blocks(j).map(|c| c as u32);
-                self.pass(
-                    cmd,
-                    slot.tbe_mips[(j - 1) as usize].handle,
-                    [w, h],
-                    0..h,
-                    (&self.reduce_pipeline, &self.reduce_layout),
-                    slot.reduce_set,
-                    bytemuck::bytes_of(&push),
-                );
+                // Each level reads only the GIE image, finished above: no barrier between
+                // levels, and a level may span submissions like a GIE pass.
+                while let Some(band) = bands.next_if(|b| b.pass == (n + j - 1) as usize) {
+                    self.pass(
+                        chunks.at(band.part)?,
+                        slot.tbe_mips[(j - 1) as usize].handle,
+                        [w, h],
+                        band.rows.clone(),
+                        (&self.reduce_pipeline, &self.reduce_layout),
+                        slot.reduce_set,
+                        bytemuck::bytes_of(&push),
+                    );
+                }
             }
             self.barrier(
-                cmd,
+                chunks.cmd,
                 tbe,
                 0,
                 root,
@@ -423,7 +521,7 @@ impl ErrorsGpu {
             // hand-off protocol guarantees it).
             unsafe {
                 d.cmd_copy_image_to_buffer(
-                    cmd,
+                    chunks.cmd,
                     tbe.handle,
                     vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
                     readback.handle,
@@ -431,10 +529,12 @@ impl ErrorsGpu {
                 )
             };
         }
+        debug_assert!(bands.next().is_none(), "every band recorded");
+        let (cmd, used) = (chunks.cmd, chunks.used);
         if let Some(dump) = gie_dump {
             // Tests compare every GIE texel with the reference: copy all mips, LOD 1 first.
             self.barrier(
-                cmd,
+                chunks.cmd,
                 &slot.gie,
                 0,
                 n,
@@ -445,7 +545,7 @@ impl ErrorsGpu {
             // SAFETY: recording; `dump` is owned by the caller, who waits for completion.
             unsafe {
                 d.cmd_copy_image_to_buffer(
-                    cmd,
+                    chunks.cmd,
                     slot.gie.handle,
                     vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
                     dump.handle,
@@ -524,7 +624,7 @@ pub fn compute_once(
     )?;
     let timeline = TimelineSemaphore::new(device, 0)?;
     let cmds: Vec<_> = gpu
-        .record(1, 1, params, &readback, Some(&dump))?
+        .record(1, 1, params, &readback, Some(&dump), CHUNKS)?
         .into_iter()
         .map(|c| vk::CommandBufferSubmitInfo::default().command_buffer(c))
         .collect();
@@ -546,4 +646,90 @@ pub fn compute_once(
     let len = BlockErrors::packed_len(root, roots);
     let blocks: Vec<f32> = bytemuck::pod_collect_to_vec(&rb[4..4 + len * 4]);
     Ok((GroupErrors { n, roots, levels }, BlockErrors::from_packed(root, roots, &blocks)))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Checks what `split_passes` promises: every row of every pass once, in order;
+    /// parts in `0..parts`, never going down; no part above its share by more than its
+    /// last band.
+    fn check(passes: &[PassSize], parts: usize) -> Vec<Band> {
+        let bands = split_passes(passes, parts);
+        let mut next = (0, 0);
+        for b in &bands {
+            while next.0 < passes.len() && next.1 == passes[next.0].height {
+                next = (next.0 + 1, 0);
+            }
+            assert_eq!((b.pass, b.rows.start), next, "bands in order, no row left out or repeated");
+            assert!(b.rows.end > b.rows.start && b.rows.end <= passes[b.pass].height);
+            next.1 = b.rows.end;
+        }
+        assert!(next.0 == passes.len() || (next.0 == passes.len() - 1 && next.1 == passes[next.0].height));
+        assert!(bands.windows(2).all(|w| w[0].part <= w[1].part), "parts never go down");
+        assert!(bands.iter().all(|b| b.part < parts.max(1)));
+        let cost =
+            |b: &Band| u64::from(b.rows.end - b.rows.start) * u64::from(passes[b.pass].width) * passes[b.pass].cost;
+        let total: u64 = bands.iter().map(cost).sum();
+        let share = total.div_ceil(parts.max(1) as u64);
+        for part in 0..parts {
+            let of: Vec<&Band> = bands.iter().filter(|b| b.part == part).collect();
+            let sum: u64 = of.iter().map(|b| cost(b)).sum();
+            let last = of.last().map_or(0, |b| cost(b));
+            let widest_row = passes.iter().map(|p| u64::from(p.width) * p.cost).max().unwrap_or(0);
+            if parts > 1 {
+                assert!(last <= (share / 4).max(1).max(widest_row), "band of {last} against a share of {share}");
+            }
+            assert!(sum <= share + share / 2 + widest_row, "part {part}: {sum} against a share of {share}");
+        }
+        bands
+    }
+
+    /// The largest part's cost over an equal share.
+    fn worst_part(passes: &[PassSize], bands: &[Band], parts: usize) -> f64 {
+        let cost =
+            |b: &Band| u64::from(b.rows.end - b.rows.start) * u64::from(passes[b.pass].width) * passes[b.pass].cost;
+        let total: u64 = bands.iter().map(cost).sum();
+        let most = (0..parts).map(|p| bands.iter().filter(|b| b.part == p).map(cost).sum::<u64>()).max().unwrap();
+        most as f64 / (total as f64 / parts as f64)
+    }
+
+    #[test]
+    fn a_generation_splits_into_parts_of_about_equal_cost() {
+        // The 4k flyover's shape: GIE passes from 2048 x 2048 down, then a reduction
+        // whose fragments cost 256 each, on 64 x 64 blocks down.
+        let mut passes: Vec<PassSize> =
+            (1..=12).map(|l| PassSize { width: 4096 >> l, height: 4096 >> l, cost: 1 }).collect();
+        passes.extend((1..=6).map(|j| PassSize { width: 128 >> j, height: 128 >> j, cost: 256 }));
+        for parts in [1, 2, 3, 4, 7, 12, 16] {
+            let bands = check(&passes, parts);
+            let used = bands.iter().map(|b| b.part).max().unwrap() + 1;
+            assert!(used == parts, "{parts} parts asked, {used} used");
+            let worst = worst_part(&passes, &bands, parts);
+            assert!(worst <= 1.3, "{parts} parts: the largest is {worst:.2} of a share");
+        }
+        // One part: every pass whole, in one submission.
+        assert!(split_passes(&passes, 1).iter().all(|b| b.part == 0 && b.rows == (0..passes[b.pass].height)));
+        // The reduction is split too: with 16 parts it does not sit in the last one whole.
+        let bands = split_passes(&passes, 16);
+        let reduce_parts: std::collections::BTreeSet<usize> =
+            bands.iter().filter(|b| b.pass >= 12).map(|b| b.part).collect();
+        assert!(reduce_parts.len() > 1, "the reduction spans parts: {reduce_parts:?}");
+    }
+
+    #[test]
+    fn odd_shapes_split_without_losing_rows() {
+        let cases: [&[PassSize]; 4] = [
+            &[PassSize { width: 1, height: 1, cost: 1 }],
+            &[PassSize { width: 3, height: 0, cost: 1 }, PassSize { width: 5, height: 7, cost: 3 }],
+            &[PassSize { width: 1000, height: 1, cost: 1000 }, PassSize { width: 1, height: 1000, cost: 1 }],
+            &[PassSize { width: 7, height: 13, cost: 0 }, PassSize { width: 2, height: 2, cost: 1 }],
+        ];
+        for passes in cases {
+            for parts in [0, 1, 2, 5, 16, 100] {
+                check(passes, parts);
+            }
+        }
+    }
 }
