@@ -917,12 +917,10 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
             // Comparisons only from runs that went the whole path: a run stopped part way
             // (Ctrl-C, the watchdog) would make every ratio meaningless.
             let mut full = None;
-            // The comparison runs start once the errors activity has finished what the
-            // main run asked of it, so that its last passes do not land in their frames.
-            if args.compare || args.popping {
-                activity.wait_settled(Duration::from_secs_f32(args.watchdog))?;
-            }
             if (args.compare || args.popping) && !main.interrupted {
+                // The comparison runs start once the errors activity has finished what the
+                // main run asked of it, so that its last passes do not land in their frames.
+                activity.wait_settled(Duration::from_secs_f32(args.watchdog))?;
                 full = Some(bench.run(LodChoice::Full, None, None, false)?).filter(|r| !r.interrupted);
             }
             if let (true, Some(full)) = (args.popping, &full) {

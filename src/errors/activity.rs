@@ -5,7 +5,7 @@
 //! whose value is the generation number hands each finished one to the draw thread.
 
 use crate::errors::handoff::{Handoff, Read};
-use crate::errors::passes::{readback_bytes, ErrorsGpu, CHUNKS};
+use crate::errors::passes::{readback_bytes, ErrorsGpu, MAX_PARTS};
 use crate::gpu::terrain::TerrainGpu;
 use crate::lod::block::BlockLayout;
 use crate::lod::gie::{fragments_per_update, BlockErrors, ErrorParams};
@@ -555,7 +555,7 @@ const FIRST_PARTS: usize = 4;
 /// delayed by one submission, so this bounds the delay; more parts make a generation
 /// wait behind more frames (each part waits for the one before), so data gets older.
 /// On lavapipe the 1k flyover's 9 ms generations go in 2 parts, the 4k flyover's 130 ms
-/// in [`CHUNKS`]; on a real GPU a generation is one submission.
+/// in [`MAX_PARTS`]; on a real GPU a generation is one submission.
 const PART_MS: f64 = 6.0;
 
 /// Submissions for a generation like the last one, which took `ms` on the GPU.
@@ -563,7 +563,7 @@ fn parts_for(ms: f64) -> usize {
     if !ms.is_finite() {
         return FIRST_PARTS;
     }
-    ((ms / PART_MS).ceil() as usize).clamp(1, CHUNKS)
+    ((ms / PART_MS).ceil() as usize).clamp(1, MAX_PARTS)
 }
 
 /// Generation `f.g` is done on the GPU: reads its GPU time (returned) and hands it to
@@ -610,7 +610,7 @@ fn publish(gpu: &ErrorsGpu, s: &Shared, f: &InFlight) -> VkResult<Option<f64>> {
 mod tests {
     use super::*;
 
-    /// Parts follow the last generation's GPU time, at most `CHUNKS`, at least 1.
+    /// Parts follow the last generation's GPU time, at most `MAX_PARTS`, at least 1.
     #[test]
     fn a_generation_is_split_by_the_last_ones_gpu_time() {
         assert_eq!(parts_for(0.0), 1);
@@ -618,7 +618,7 @@ mod tests {
         assert_eq!(parts_for(PART_MS), 1);
         assert_eq!(parts_for(PART_MS + 0.1), 2);
         assert_eq!(parts_for(9.0), 2);
-        assert_eq!(parts_for(130.0), CHUNKS);
+        assert_eq!(parts_for(130.0), MAX_PARTS);
         assert_eq!(parts_for(f64::NAN), FIRST_PARTS);
         assert_eq!(parts_for(f64::INFINITY), FIRST_PARTS);
     }

@@ -26,7 +26,7 @@ pub(crate) struct Slot {
     tbe_mips: Vec<ImageView>,
     gie_sets: Vec<vk::DescriptorSet>,
     reduce_set: vk::DescriptorSet,
-    /// A generation is recorded into up to [`CHUNKS`] command buffers, submitted one
+    /// A generation is recorded into up to [`MAX_PARTS`] command buffers, submitted one
     /// after another, so that draw submissions can run in between on a shared queue.
     cmds: Vec<vk::CommandBuffer>,
 }
@@ -36,7 +36,7 @@ pub(crate) struct Slot {
 /// queue each runs between two frames, so one submission is what a frame can be delayed
 /// by: 4 fixed parts left the 4k flyover's frames up to 56 ms late, the reduction and a
 /// quarter of the passes in one.
-pub(crate) const CHUNKS: usize = 16;
+pub(crate) const MAX_PARTS: usize = 16;
 /// What one fragment of the block reduction costs, in GIE fragments: it reads `(k-1)^2`
 /// texels where a strict GIE fragment reads two and computes a distance (measured on
 /// the 4k flyover: the reduction took a third of the passes' time for as many texels).
@@ -62,9 +62,10 @@ pub(crate) struct Band {
 
 /// Splits `passes`, in order, into row bands over at most `parts` submissions of about
 /// equal cost. Bands are a quarter of an equal share (or one row, where a row costs
-/// more; a whole pass with one part); a submission is closed when the next band would take it past its share of
-/// what is left, so the last one does not collect what the others left. Every row of
-/// every pass is in exactly one band, in order, and the parts never go down.
+/// more; a whole pass with one part); a submission is closed when the next band would
+/// take it past its share of what is left, so the last one does not collect what the
+/// others left. Every row of every pass is in exactly one band, in order, and the parts
+/// never go down.
 pub(crate) fn split_passes(passes: &[PassSize], parts: usize) -> Vec<Band> {
     let parts = parts.max(1);
     let cost_of = |p: &PassSize| u64::from(p.width) * u64::from(p.height) * p.cost;
@@ -130,7 +131,7 @@ impl Parts<'_> {
     }
 }
 /// Timestamp queries per slot: a pair per submission.
-pub(crate) const QUERIES_PER_SLOT: u32 = 2 * CHUNKS as u32;
+pub(crate) const QUERIES_PER_SLOT: u32 = 2 * MAX_PARTS as u32;
 
 /// Everything the errors thread owns on the GPU.
 pub(crate) struct ErrorsGpu {
@@ -287,7 +288,7 @@ impl ErrorsGpu {
             }
             let reduce_set = pool.allocate(&reduce_set_layout)?;
             pool.write(reduce_set, &[(layout::REDUCE_BINDING_GIE, gie.view, terrain.nearest.handle)], &[]);
-            let cmds = (0..CHUNKS).map(|_| commands.allocate()).collect::<VkResult<Vec<_>>>()?;
+            let cmds = (0..MAX_PARTS).map(|_| commands.allocate()).collect::<VkResult<Vec<_>>>()?;
             slots.push(Slot { gie, gie_mips, tbe, tbe_mips, gie_sets, reduce_set, cmds });
         }
         Ok(ErrorsGpu {
@@ -390,8 +391,8 @@ impl ErrorsGpu {
     }
 
     /// Records generation `g` into its slot's command buffers: the GIE passes and the
-    /// reduction split in row bands over `parts` of them (at most [`CHUNKS`]), the readback and
-    /// timestamps in the last. Returns the buffers to submit, in order.
+    /// reduction split in row bands over `parts` of them (at most [`MAX_PARTS`]), the
+    /// readback and timestamps in the last. Returns the buffers to submit, in order.
     pub(crate) fn record(
         &self,
         slot_index: usize,
@@ -443,7 +444,7 @@ impl ErrorsGpu {
         // About equal costs per submission; one pass may span several. The GIE passes
         // (one per LOD), then the reduction's (one per block LOD, when there is one).
         let weight = reduce_weight(self.layout.k() as usize);
-        let parts = parts.clamp(1, CHUNKS);
+        let parts = parts.clamp(1, MAX_PARTS);
         let mut sizes: Vec<PassSize> = (1..=n)
             .map(|lod| {
                 let [width, height] = self.hf.cells(lod).map(|c| c as u32);
@@ -457,7 +458,7 @@ impl ErrorsGpu {
             }));
         }
         let bands = split_passes(&sizes, parts);
-        let mut chunks = Parts { d, queries, q0, cmds: &slot.cmds[..parts], used: 1, cmd };
+        let mut recording = Parts { d, queries, q0, cmds: &slot.cmds[..parts], used: 1, cmd };
         let mut bands = bands.iter().peekable();
         for lod in 1..=n {
             let [side, groups_z] = self.hf.cells(lod).map(|c| c as u32);
@@ -469,7 +470,7 @@ impl ErrorsGpu {
             };
             while let Some(band) = bands.next_if(|b| b.pass == (lod - 1) as usize) {
                 self.pass(
-                    chunks.at(band.part)?,
+                    recording.at(band.part)?,
                     slot.gie_mips[(lod - 1) as usize].handle,
                     [side, groups_z],
                     band.rows.clone(),
@@ -478,12 +479,12 @@ impl ErrorsGpu {
                     bytemuck::bytes_of(&push),
                 );
             }
-            self.barrier(chunks.cmd, &slot.gie, lod - 1, 1, (color, write, rt), (frag, read, ro));
+            self.barrier(recording.cmd, &slot.gie, lod - 1, 1, (color, write, rt), (frag, read, ro));
         }
         let data_bytes = BlockErrors::packed_len(root, self.layout.roots) as u64 * 4;
         if let Some(tbe) = &slot.tbe {
             self.barrier(
-                chunks.cmd,
+                recording.cmd,
                 tbe,
                 0,
                 root,
@@ -497,7 +498,7 @@ impl ErrorsGpu {
                 // levels, and a level may span submissions like a GIE pass.
                 while let Some(band) = bands.next_if(|b| b.pass == (n + j - 1) as usize) {
                     self.pass(
-                        chunks.at(band.part)?,
+                        recording.at(band.part)?,
                         slot.tbe_mips[(j - 1) as usize].handle,
                         [w, h],
                         band.rows.clone(),
@@ -508,7 +509,7 @@ impl ErrorsGpu {
                 }
             }
             self.barrier(
-                chunks.cmd,
+                recording.cmd,
                 tbe,
                 0,
                 root,
@@ -521,7 +522,7 @@ impl ErrorsGpu {
             // hand-off protocol guarantees it).
             unsafe {
                 d.cmd_copy_image_to_buffer(
-                    chunks.cmd,
+                    recording.cmd,
                     tbe.handle,
                     vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
                     readback.handle,
@@ -530,11 +531,11 @@ impl ErrorsGpu {
             };
         }
         debug_assert!(bands.next().is_none(), "every band recorded");
-        let (cmd, used) = (chunks.cmd, chunks.used);
+        let (cmd, used) = (recording.cmd, recording.used);
         if let Some(dump) = gie_dump {
             // Tests compare every GIE texel with the reference: copy all mips, LOD 1 first.
             self.barrier(
-                chunks.cmd,
+                recording.cmd,
                 &slot.gie,
                 0,
                 n,
@@ -545,7 +546,7 @@ impl ErrorsGpu {
             // SAFETY: recording; `dump` is owned by the caller, who waits for completion.
             unsafe {
                 d.cmd_copy_image_to_buffer(
-                    chunks.cmd,
+                    recording.cmd,
                     slot.gie.handle,
                     vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
                     dump.handle,
@@ -624,7 +625,7 @@ pub fn compute_once(
     )?;
     let timeline = TimelineSemaphore::new(device, 0)?;
     let cmds: Vec<_> = gpu
-        .record(1, 1, params, &readback, Some(&dump), CHUNKS)?
+        .record(1, 1, params, &readback, Some(&dump), MAX_PARTS)?
         .into_iter()
         .map(|c| vk::CommandBufferSubmitInfo::default().command_buffer(c))
         .collect();
