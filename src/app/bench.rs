@@ -70,6 +70,11 @@ pub struct BenchArgs {
     /// work side by side.
     #[arg(long, value_enum, default_value_t = crate::draw::blocks::PixelPass::Deferred)]
     pub pixels: crate::draw::blocks::PixelPass,
+    /// Blocks drawn by the ray-caster instead of as triangles (SPEC 10): none, every
+    /// other eligible block, or every eligible one, to measure its cost beside the
+    /// rasterizer's (`raycast_blocks` in frames.csv).
+    #[arg(long, value_enum, default_value_t = crate::draw::raycast::Raycast::Off)]
+    pub raycast: crate::draw::raycast::Raycast,
     /// Fail the run when a thread makes no progress for this many seconds.
     #[arg(long, value_name = "SECS", default_value = "10", value_parser = positive)]
     pub watchdog: f32,
@@ -182,11 +187,13 @@ struct Row {
     /// more than 16 levels (the fidelity's threshold): a visible jump, which a sub-level
     /// change spread over many pixels (a morph step) does not make.
     lod_change_over16: Option<f64>,
+    /// Blocks drawn by the ray-caster (not in `triangles`).
+    raycast_blocks: u64,
 }
 
 const CSV_HEADER: &str = "time_s,frame_ms,traverse_ms,gpu_ms,triangles,draw_calls,blocks,error_generation,\
                           error_age_frames,error_update_ms,queue_wait_ms,morphing,temporal_rmse,popping,lod_change_rmse,\
-                          lod_change_over16,occluded";
+                          lod_change_over16,occluded,raycast_blocks";
 
 fn opt<T: std::fmt::Display>(v: Option<T>) -> String {
     v.map_or(String::new(), |v| v.to_string())
@@ -195,7 +202,7 @@ fn opt<T: std::fmt::Display>(v: Option<T>) -> String {
 impl Row {
     fn csv(&self) -> String {
         format!(
-            "{:.4},{:.3},{:.3},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
+            "{:.4},{:.3},{:.3},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
             self.time_s,
             self.frame_ms,
             self.traverse_ms,
@@ -212,7 +219,8 @@ impl Row {
             opt(self.popping.map(|v| format!("{v:.4}"))),
             opt(self.lod_change_rmse.map(|v| format!("{v:.4}"))),
             opt(self.lod_change_over16.map(|v| format!("{v:.7}"))),
-            opt(self.occluded)
+            opt(self.occluded),
+            self.raycast_blocks
         )
     }
 }
@@ -423,6 +431,7 @@ impl Bench<'_> {
         let shading = self.args.textures.shade(Shading {
             normals: self.args.shading,
             pixels: self.args.pixels,
+            raycast: self.args.raycast,
             ..Shading::default()
         });
         let mut run = Run {
@@ -454,6 +463,7 @@ impl Bench<'_> {
             row.gpu_ms = stats.gpu_ms;
             row.queue_wait_ms = Some(stats.wait_ms);
             row.triangles = stats.triangles;
+            row.raycast_blocks = stats.raycast_blocks;
             row.draw_calls = stats.draw_calls;
         };
         // Step 0 is an untimed warm-up at the path's first pose, waited for before the
@@ -1091,6 +1101,7 @@ impl BenchArgs {
             ("--popping", self.popping),
             ("--shading heights", self.shading != crate::draw::blocks::NormalSource::GradientMap),
             ("--pixels forward", self.pixels != crate::draw::blocks::PixelPass::Deferred),
+            ("--raycast", self.raycast != crate::draw::raycast::Raycast::Off),
             ("--inject-fault", self.inject_fault.is_some()),
             ("--error-mode paper", c.error_mode != crate::lod::gie::ErrorMode::Strict),
             ("--raw-size", c.raw_size.is_some()),

@@ -5,6 +5,7 @@ use crate::app::cli::{check_messages, option_error, positive, CommonArgs, InputE
 use crate::app::outputs::{check_outputs, save_png, write_atomic};
 use crate::draw::blocks::{BlocksRenderer, NormalSource, PixelPass, Shading, Target};
 use crate::draw::frame::{DrawThread, FrameRequest, LodChoice, LodTerrain};
+use crate::draw::raycast::Raycast;
 use crate::errors::activity::ErrorsActivity;
 use crate::errors::feed::{ErrorFeed, RefreshPolicy};
 use crate::gpu::terrain::TerrainGpu;
@@ -61,6 +62,12 @@ pub struct RenderArgs {
     /// (default), or as the blocks are drawn (the earlier shading, for comparison).
     #[arg(long, value_enum, default_value_t = PixelPass::Deferred)]
     pub pixels: PixelPass,
+    /// Blocks drawn by a fragment-shader ray-caster instead of as triangles (SPEC 10):
+    /// none, every other eligible block (the crack check), or every eligible one (a
+    /// block that neither morphs nor follows a coarser neighbour's edge). Deferred
+    /// frames only.
+    #[arg(long, value_enum, default_value_t = Raycast::Off)]
+    pub raycast: Raycast,
     #[command(flatten)]
     pub streamed: StreamedOptions,
 }
@@ -80,6 +87,7 @@ impl RenderArgs {
             ("--colour-by-lod", self.colour_by_lod),
             ("--background", self.background.is_some()),
             ("--pixels forward", self.pixels != PixelPass::Deferred),
+            ("--raycast", self.raycast != Raycast::Off),
             ("--shading heights", self.shading != NormalSource::GradientMap),
             ("--raw-size", c.raw_size.is_some()),
             ("--block (an archive fixes k = 33)", c.block != 33),
@@ -227,6 +235,7 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
         colour_by_lod: args.colour_by_lod,
         normals: args.shading,
         pixels: args.pixels,
+        raycast: args.raycast,
         ..Shading::default()
     };
     if let Some(bg) = &args.background {

@@ -5,6 +5,7 @@
 
 use crate::draw::lighting::Sun;
 use crate::draw::lighting_gpu::LightingMap;
+use crate::draw::raycast::{self, Raycast};
 use crate::gpu::layout::{self as layout, BlockPush, FrameUniforms};
 use crate::gpu::shaders;
 use crate::gpu::terrain::TerrainGpu;
@@ -27,13 +28,20 @@ pub struct BlockMesh {
     pub vertices: Buffer,
     pub indices: Buffer,
     pub index_count: u32,
+    /// The outer ring of quads, after the whole mesh in `indices`: what a ray-cast block
+    /// rasterizes too, so that where it meets another block the rasterizer decides.
+    pub ring_first: u32,
+    pub ring_count: u32,
     pub index_type: vk::IndexType,
     pub bytes: u64,
 }
 
 impl BlockMesh {
     pub fn new(device: &Arc<Device>, k: u32) -> VkResult<Self> {
-        let (verts, idx) = crate::lod::block::block_mesh_data(k);
+        let (verts, mut idx) = crate::lod::block::block_mesh_data(k);
+        let ring = crate::lod::block::ring_indices(&idx, k);
+        let (whole, ring_count) = (idx.len() as u32, ring.len() as u32);
+        idx.extend(ring);
         let (index_bytes, index_type) = if k * k <= 65536 {
             let v: Vec<u16> = idx.iter().map(|&i| i as u16).collect();
             (bytemuck::cast_slice(&v).to_vec(), vk::IndexType::UINT16)
@@ -46,7 +54,9 @@ impl BlockMesh {
             bytes: (verts.len() + index_bytes.len()) as u64,
             vertices,
             indices,
-            index_count: idx.len() as u32,
+            index_count: whole,
+            ring_first: whole,
+            ring_count,
             index_type,
         })
     }
@@ -65,6 +75,8 @@ pub struct Shading {
     pub detail_weight: f32,
     pub normals: NormalSource,
     pub pixels: PixelPass,
+    /// Blocks drawn by the ray-caster instead of as triangles (deferred frames only).
+    pub raycast: Raycast,
 }
 
 /// How terrain pixels are shaded (the same image up to rounding:
@@ -114,6 +126,8 @@ struct TerrainVariant {
 struct FramePipelines {
     /// Draws the blocks: shaded (forward) or depth only (deferred).
     blocks: vk::Pipeline,
+    /// Ray-cast blocks' depth (deferred frames that ray-cast any).
+    raycast: Option<vk::Pipeline>,
     /// Deferred shading's pass over the target, after the blocks.
     shade: Option<vk::Pipeline>,
 }
@@ -130,6 +144,7 @@ impl Default for Shading {
             detail_weight: 1.0,
             normals: NormalSource::GradientMap,
             pixels: PixelPass::Deferred,
+            raycast: Raycast::Off,
         }
     }
 }
@@ -230,7 +245,10 @@ pub struct FrameSync<'a> {
 #[derive(Clone, Copy, Debug, Default)]
 pub struct DrawStats {
     pub draw_calls: u64,
+    /// Triangles rasterized (ray-cast blocks not included).
     pub triangles: u64,
+    /// Blocks drawn by the ray-caster.
+    pub raycast_blocks: u64,
     /// GPU time of the frame's commands (timestamps), when the queue has them.
     pub gpu_ms: Option<f64>,
     /// The raw begin and end timestamps behind `gpu_ms`.
@@ -262,6 +280,10 @@ pub struct BlocksRenderer {
     /// Deferred shading's first pass: the blocks, depth only, the embedding margin
     /// clipped (None without shaderClipDistance: frames are then shaded forward).
     depth_pipeline: Option<GraphicsPipeline>,
+    /// Ray-cast blocks' depth pass (made beside `depth_pipeline`).
+    raycast_pipeline: Option<GraphicsPipeline>,
+    /// The true extent in samples (what ray-cast blocks must lie inside).
+    extent: [u32; 2],
     sky_pipeline: GraphicsPipeline,
     pool: DescriptorPool,
     /// One uniform buffer and descriptor set per frame in flight.
@@ -310,6 +332,7 @@ impl BlocksRenderer {
                 (layout::TERRAIN_BINDING_GRADIENTS, sampler, vk::ShaderStageFlags::FRAGMENT),
                 (layout::TERRAIN_BINDING_LIGHTING, sampler, vk::ShaderStageFlags::FRAGMENT),
                 (layout::TERRAIN_BINDING_DEPTH, sampler, vk::ShaderStageFlags::FRAGMENT),
+                (layout::TERRAIN_BINDING_MINMAX, sampler, stages),
             ],
         )?;
         let pipeline_layout = PipelineLayout::new(
@@ -356,8 +379,29 @@ impl BlocksRenderer {
                 )
             })
             .transpose()?;
+        let raycast_pipeline = (depth_pipeline.as_ref())
+            .map(|_| {
+                GraphicsPipeline::new(
+                    device,
+                    &GraphicsPipelineDesc {
+                        vert: shaders::RAYCAST_VERT,
+                        frag: Some(shaders::RAYCAST_FRAG),
+                        rasterizer_discard: false,
+                        vertex_attribute: None,
+                        color_format: None,
+                        depth_format: Some(DEPTH_FORMAT),
+                        depth: DepthMode::TestWrite,
+                        polygon_mode: vk::PolygonMode::FILL,
+                        // raycast.vert keeps the box's far faces only.
+                        cull_back: false,
+                        layout: &pipeline_layout,
+                        specialization: &[],
+                    },
+                )
+            })
+            .transpose()?;
         let n = frames_in_flight.max(1) as u32;
-        let pool = DescriptorPool::new(device, n, &[(sampler, 6 * n), (vk::DescriptorType::UNIFORM_BUFFER, n)])?;
+        let pool = DescriptorPool::new(device, n, &[(sampler, 7 * n), (vk::DescriptorType::UNIFORM_BUFFER, n)])?;
         let ubo_size = std::mem::size_of::<FrameUniforms>() as u64;
         let mut sets = Vec::new();
         let mut uniforms = Vec::new();
@@ -381,6 +425,7 @@ impl BlocksRenderer {
                     // A placeholder until the first frame writes its depth image here
                     // (`submit_frame`).
                     (layout::TERRAIN_BINDING_DEPTH, terrain.heights.view, terrain.nearest.handle),
+                    (layout::TERRAIN_BINDING_MINMAX, terrain.minmax.view, terrain.nearest.handle),
                 ],
                 &[(layout::TERRAIN_BINDING_FRAME, ubo.handle, ubo_size)],
             );
@@ -409,6 +454,8 @@ impl BlocksRenderer {
             holes: hf.void_mask.is_some(),
             terrain_pipelines: Vec::new(),
             depth_pipeline,
+            raycast_pipeline,
+            extent: [hf.width as u32, hf.height as u32],
             sky_pipeline,
             pool,
             sets,
@@ -435,9 +482,11 @@ impl BlocksRenderer {
             deferred: depth_pass.is_some(),
         };
         let terrain = self.terrain_pipeline(variant)?;
+        let raycast = (self.raycast_pipeline.as_ref().map(|p| p.handle))
+            .filter(|_| depth_pass.is_some() && shading.raycast != Raycast::Off);
         Ok(match depth_pass {
-            Some(depth) => FramePipelines { blocks: depth, shade: Some(terrain) },
-            None => FramePipelines { blocks: terrain, shade: None },
+            Some(depth) => FramePipelines { blocks: depth, raycast, shade: Some(terrain) },
+            None => FramePipelines { blocks: terrain, raycast: None, shade: None },
         })
     }
 
@@ -590,7 +639,10 @@ impl BlocksRenderer {
             d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, pipelines.blocks);
             d.cmd_bind_vertex_buffers(cmd, 0, &[self.mesh.vertices.handle], &[0]);
             d.cmd_bind_index_buffer(cmd, self.mesh.indices.handle, 0, self.mesh.index_type);
-            for b in blocks {
+            let cast = |b: &DrawBlock| {
+                pipelines.raycast.is_some() && raycast::chosen(shading.raycast, &self.layout, b, self.extent)
+            };
+            for b in blocks.iter().filter(|b| !cast(b)) {
                 let push = block_push(&self.layout, b);
                 d.cmd_push_constants(
                     cmd,
@@ -600,6 +652,41 @@ impl BlocksRenderer {
                     bytemuck::bytes_of(&push),
                 );
                 d.cmd_draw_indexed(cmd, self.mesh.index_count, 1, 0, 0, 0);
+                stats.triangles += self.layout.triangles_per_block();
+            }
+            if pipelines.raycast.is_some() {
+                // The outer ring of every ray-cast block as triangles (see BlockMesh).
+                for b in blocks.iter().filter(|b| cast(b)) {
+                    let push = block_push(&self.layout, b);
+                    d.cmd_push_constants(
+                        cmd,
+                        self.pipeline_layout.handle,
+                        vk::ShaderStageFlags::VERTEX,
+                        0,
+                        bytemuck::bytes_of(&push),
+                    );
+                    d.cmd_draw_indexed(cmd, self.mesh.ring_count, 1, self.mesh.ring_first, 0, 0);
+                    stats.triangles += self.mesh.ring_count as u64 / 3;
+                }
+            }
+            if let Some(raycast) = pipelines.raycast {
+                // After the rasterized blocks: the rays' depth writes disable early depth
+                // tests, so the nearer terrain already in the depth image rejects what
+                // it hides only after the ray has run.
+                d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, raycast);
+                for b in blocks.iter().filter(|b| cast(b)) {
+                    let push = block_push(&self.layout, b);
+                    d.cmd_push_constants(
+                        cmd,
+                        self.pipeline_layout.handle,
+                        vk::ShaderStageFlags::VERTEX,
+                        0,
+                        bytemuck::bytes_of(&push),
+                    );
+                    // The box: 6 faces of 2 triangles, made by raycast.vert.
+                    d.cmd_draw(cmd, 36, 1, 0, 0);
+                    stats.raycast_blocks += 1;
+                }
             }
             if let Some(shade) = pipelines.shade {
                 d.cmd_end_rendering(cmd);
@@ -652,7 +739,6 @@ impl BlocksRenderer {
             d.cmd_end_rendering(cmd);
         }
         stats.draw_calls = blocks.len() as u64 + (deferred || shading.sky) as u64;
-        stats.triangles = blocks.len() as u64 * self.layout.triangles_per_block();
         stats
     }
 

@@ -79,6 +79,10 @@ pub const TERRAIN_BINDING_LIGHTING: u32 = 6;
 /// Deferred shading pass (shade.frag): the depth the blocks wrote, texelFetch only.
 pub const TERRAIN_BINDING_DEPTH: u32 = 7;
 
+/// Ray-cast blocks (raycast.vert/.frag): the min/max height pyramid (RG32F, LOD L in
+/// mip L-1), the errors activity's [`GIE_BINDING_MINMAX`] image, read-only.
+pub const TERRAIN_BINDING_MINMAX: u32 = 8;
+
 /// Lighting pass: the heightfield, texelFetch only.
 pub const LIGHTING_BINDING_HEIGHTS: u32 = 0;
 
@@ -237,6 +241,7 @@ pub const GLSL_CONSTANTS: &[(&str, u32)] = &[
     ("REDUCE_BINDING_GIE", REDUCE_BINDING_GIE),
     ("TERRAIN_BINDING_LIGHTING", TERRAIN_BINDING_LIGHTING),
     ("TERRAIN_BINDING_DEPTH", TERRAIN_BINDING_DEPTH),
+    ("TERRAIN_BINDING_MINMAX", TERRAIN_BINDING_MINMAX),
     ("LIGHTING_BINDING_HEIGHTS", LIGHTING_BINDING_HEIGHTS),
     ("SUN_MAX_STEPS", SUN_MAX_STEPS),
 ];

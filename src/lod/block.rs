@@ -375,6 +375,20 @@ pub fn cell_visible(
     frustum.intersects_aabb(min, max)
 }
 
+/// The triangles of the quads on the outer ring of the block mesh `idx` (side `k`, as
+/// [`block_mesh_data`] makes it: six indices a quad, row by row).
+pub fn ring_indices(idx: &[u32], k: u32) -> Vec<u32> {
+    let q = (k - 1) as usize;
+    assert_eq!(idx.len(), q * q * 6, "a block mesh of side {k}");
+    (idx.chunks(6).enumerate())
+        .filter(|(i, _)| {
+            let (u, v) = (i % q, i / q);
+            u == 0 || v == 0 || u == q - 1 || v == q - 1
+        })
+        .flat_map(|(_, t)| t.iter().copied())
+        .collect()
+}
+
 /// Vertex bytes (u, v) and indices of a k x k block: the one mesh every block is drawn
 /// from, each quad split along its a-i diagonal (triangles a-c-i and a-i-g).
 pub fn block_mesh_data(k: u32) -> (Vec<u8>, Vec<u32>) {
