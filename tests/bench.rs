@@ -75,7 +75,7 @@ fn short_bench_writes_every_file_with_documented_fields() {
     assert_eq!(
         lines.next().unwrap(),
         "time_s,frame_ms,traverse_ms,gpu_ms,triangles,draw_calls,blocks,error_generation,error_age_frames,\
-         error_update_ms,queue_wait_ms,morphing,temporal_rmse,popping,lod_change_rmse,lod_change_over16,occluded,raycast_blocks"
+         error_update_ms,queue_wait_ms,morphing,temporal_rmse,popping,lod_change_rmse,lod_change_over16,occluded,raycast_blocks,raycast_pixels"
     );
     let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
     assert_eq!(rows.len(), 24);

@@ -9,6 +9,7 @@ use crate::app::outputs::{plot_font, write_atomic};
 use crate::app::paths::{path_camera, CameraPath};
 use crate::draw::blocks::{BlocksRenderer, DrawStats, Shading, Target};
 use crate::draw::frame::{FrameRequest, LodChoice};
+use crate::draw::raycast::Raycast;
 use crate::errors::activity::ErrorsActivity;
 use crate::lod::block::DrawBlock;
 use crate::lod::camera::Camera;
@@ -71,8 +72,9 @@ pub struct BenchArgs {
     #[arg(long, value_enum, default_value_t = crate::draw::blocks::PixelPass::Deferred)]
     pub pixels: crate::draw::blocks::PixelPass,
     /// Blocks drawn by the ray-caster instead of as triangles (SPEC 10): none, every
-    /// other eligible block, or every eligible one, to measure its cost beside the
-    /// rasterizer's (`raycast_blocks` in frames.csv).
+    /// other eligible block, every eligible one, or those estimated to cost less than
+    /// their triangles (auto), to measure its cost beside the rasterizer's
+    /// (`raycast_blocks` and `raycast_pixels` in frames.csv).
     #[arg(long, value_enum, default_value_t = crate::draw::raycast::Raycast::Off)]
     pub raycast: crate::draw::raycast::Raycast,
     /// Fail the run when a thread makes no progress for this many seconds.
@@ -187,13 +189,15 @@ struct Row {
     /// more than 16 levels (the fidelity's threshold): a visible jump, which a sub-level
     /// change spread over many pixels (a morph step) does not make.
     lod_change_over16: Option<f64>,
-    /// Blocks drawn by the ray-caster (not in `triangles`).
+    /// Blocks drawn by the ray-caster (only their outer ring is in `triangles`).
     raycast_blocks: u64,
+    /// Pixels their boxes cover on screen (`draw::raycast::box_pixels`): the rays cast.
+    raycast_pixels: f64,
 }
 
 const CSV_HEADER: &str = "time_s,frame_ms,traverse_ms,gpu_ms,triangles,draw_calls,blocks,error_generation,\
                           error_age_frames,error_update_ms,queue_wait_ms,morphing,temporal_rmse,popping,lod_change_rmse,\
-                          lod_change_over16,occluded,raycast_blocks";
+                          lod_change_over16,occluded,raycast_blocks,raycast_pixels";
 
 fn opt<T: std::fmt::Display>(v: Option<T>) -> String {
     v.map_or(String::new(), |v| v.to_string())
@@ -202,7 +206,7 @@ fn opt<T: std::fmt::Display>(v: Option<T>) -> String {
 impl Row {
     fn csv(&self) -> String {
         format!(
-            "{:.4},{:.3},{:.3},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
+            "{:.4},{:.3},{:.3},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{:.0}",
             self.time_s,
             self.frame_ms,
             self.traverse_ms,
@@ -220,7 +224,8 @@ impl Row {
             opt(self.lod_change_rmse.map(|v| format!("{v:.4}"))),
             opt(self.lod_change_over16.map(|v| format!("{v:.7}"))),
             opt(self.occluded),
-            self.raycast_blocks
+            self.raycast_blocks,
+            self.raycast_pixels
         )
     }
 }
@@ -534,6 +539,10 @@ impl Bench<'_> {
                 }
             }
             let (blocks, _) = frame.into_parts();
+            if shading.raycast != Raycast::Off {
+                let choice = self.renderer.raycast_choice(&self.s.hf, &cam, shading.raycast);
+                row.raycast_pixels = blocks.iter().filter(|b| choice.casts(b)).map(|b| choice.box_pixels(b)).sum();
+            }
             if warm_up {
                 self.renderer.wait_frame(slot)?;
                 run.warmup_ms = Some(frame_start.elapsed().as_secs_f64() * 1e3);
@@ -677,6 +686,8 @@ fn summarize(run: &Run) -> Value {
         "error_updates": distinct,
         "median_error_update_ms": median(&run.update_gpu_ms),
         "triangles_first_frame": run.rows.first().map(|r| r.triangles),
+        "mean_raycast_blocks": run.rows.iter().map(|r| r.raycast_blocks).sum::<u64>() as f64 / n,
+        "mean_raycast_pixels": run.rows.iter().map(|r| r.raycast_pixels).sum::<f64>() / n,
     })
 }
 

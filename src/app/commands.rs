@@ -63,9 +63,9 @@ pub struct RenderArgs {
     #[arg(long, value_enum, default_value_t = PixelPass::Deferred)]
     pub pixels: PixelPass,
     /// Blocks drawn by a fragment-shader ray-caster instead of as triangles (SPEC 10):
-    /// none, every other eligible block (the crack check), or every eligible one (a
-    /// block that neither morphs nor follows a coarser neighbour's edge). Deferred
-    /// frames only.
+    /// none, every other eligible block (the crack check), every eligible one (a block
+    /// that neither morphs nor follows a coarser neighbour's edge), or those whose rays
+    /// are estimated to cost less than their triangles (auto). Deferred frames only.
     #[arg(long, value_enum, default_value_t = Raycast::Off)]
     pub raycast: Raycast,
     #[command(flatten)]

@@ -282,8 +282,8 @@ pub struct BlocksRenderer {
     depth_pipeline: Option<GraphicsPipeline>,
     /// Ray-cast blocks' depth pass (made beside `depth_pipeline`).
     raycast_pipeline: Option<GraphicsPipeline>,
-    /// The true extent in samples (what ray-cast blocks must lie inside).
-    extent: [u32; 2],
+    /// Every block's height range (ray-cast blocks' boxes).
+    ranges: raycast::BlockRanges,
     sky_pipeline: GraphicsPipeline,
     pool: DescriptorPool,
     /// One uniform buffer and descriptor set per frame in flight.
@@ -455,7 +455,7 @@ impl BlocksRenderer {
             terrain_pipelines: Vec::new(),
             depth_pipeline,
             raycast_pipeline,
-            extent: [hf.width as u32, hf.height as u32],
+            ranges: raycast::BlockRanges::of(hf, &block_layout),
             sky_pipeline,
             pool,
             sets,
@@ -590,6 +590,7 @@ impl BlocksRenderer {
         extent: vk::Extent2D,
         blocks: &[DrawBlock],
         shading: &Shading,
+        choice: &raycast::Choice,
         clear: [f32; 3],
         overlay: Option<&mut dyn FnMut(vk::CommandBuffer)>,
     ) -> DrawStats {
@@ -639,9 +640,7 @@ impl BlocksRenderer {
             d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, pipelines.blocks);
             d.cmd_bind_vertex_buffers(cmd, 0, &[self.mesh.vertices.handle], &[0]);
             d.cmd_bind_index_buffer(cmd, self.mesh.indices.handle, 0, self.mesh.index_type);
-            let cast = |b: &DrawBlock| {
-                pipelines.raycast.is_some() && raycast::chosen(shading.raycast, &self.layout, b, self.extent)
-            };
+            let cast = |b: &DrawBlock| pipelines.raycast.is_some() && choice.casts(b);
             for b in blocks.iter().filter(|b| !cast(b)) {
                 let push = block_push(&self.layout, b);
                 d.cmd_push_constants(
@@ -756,6 +755,7 @@ impl BlocksRenderer {
         dest: &FrameDest,
         blocks: &[DrawBlock],
         shading: &Shading,
+        choice: &raycast::Choice,
         overlay: Option<&mut dyn FnMut(vk::CommandBuffer)>,
     ) -> DrawStats {
         let d = &self.device.raw;
@@ -763,8 +763,19 @@ impl BlocksRenderer {
         // buffer alive until the submission completes.
         unsafe { attachment_barriers(d, cmd, dest.image, dest.last_use, dest.depth) };
         let clear = if shading.sky { SKY_HORIZON } else { shading.background };
-        let stats =
-            self.record(slot, cmd, pipelines, dest.view, dest.depth, dest.extent, blocks, shading, clear, overlay);
+        let stats = self.record(
+            slot,
+            cmd,
+            pipelines,
+            dest.view,
+            dest.depth,
+            dest.extent,
+            blocks,
+            shading,
+            choice,
+            clear,
+            overlay,
+        );
         let rendered = (
             vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT,
             vk::AccessFlags2::COLOR_ATTACHMENT_WRITE,
@@ -906,7 +917,8 @@ impl BlocksRenderer {
                 t.begin(&d, cmd);
             }
         }
-        let stats = self.record_frame(slot, cmd, pipelines, dest, blocks, shading, overlay);
+        let choice = self.raycast_choice(hf, cam, shading.raycast);
+        let stats = self.record_frame(slot, cmd, pipelines, dest, blocks, shading, &choice, overlay);
         // SAFETY: as above.
         unsafe {
             if let Some(t) = &self.offscreen[slot].timer {
@@ -926,6 +938,19 @@ impl BlocksRenderer {
         stats.queue_lock = Some((asked, got));
         s.pending = Some(stats);
         Ok(previous)
+    }
+
+    /// Which blocks a frame of `hf` seen by `cam` ray-casts with `mode` (the bench counts
+    /// their rays with the same choice).
+    pub fn raycast_choice<'a>(&'a self, hf: &'a Heightfield, cam: &'a Camera, mode: Raycast) -> raycast::Choice<'a> {
+        raycast::Choice {
+            mode,
+            layout: &self.layout,
+            hf,
+            ranges: &self.ranges,
+            cam,
+            ring_triangles: self.mesh.ring_count as u64 / 3,
+        }
     }
 
     /// Stats of the frame submitted from `slot` and not yet waited for (its GPU time
