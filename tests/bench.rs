@@ -79,7 +79,10 @@ fn short_bench_writes_every_file_with_documented_fields() {
     );
     let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
     assert_eq!(rows.len(), 24);
-    assert!(rows.iter().all(|r| r.len() == 17));
+    assert!(rows.iter().all(|r| r.len() == 19));
+    // The ray-caster is off by default: no block drawn by it, no ray cast.
+    assert!(rows.iter().all(|r| r[17] == "0" && r[18] == "0"));
+    assert_eq!(s["mean_raycast_blocks"], 0.0);
     // Without --popping no frame is read back for it.
     assert!(rows.iter().all(|r| r[12..16] == ["", "", "", ""]));
     // Occlusion culling (on by default): blocks left undrawn where it ran, empty where it
@@ -551,4 +554,25 @@ fn render_and_bench_take_textures_headless() {
         serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
     assert_eq!(summary["frames"], 6);
     assert_eq!(summary["validation_messages"], 0);
+}
+
+/// `--raycast all`: the ray-cast blocks and the rays they cast are counted per frame and
+/// in the summary, and the frames pass validation (the `bench` helper fails on any message).
+#[test]
+fn bench_counts_ray_cast_blocks_and_rays() {
+    let tmp = TempDir::new("bench-raycast");
+    let out = tmp.path().join("out");
+    let s = bench(&out, &["--frames", "6", "--no-fidelity", "--morph", "off", "--raycast", "all"]);
+    let csv = std::fs::read_to_string(out.join("frames.csv")).unwrap();
+    let rows: Vec<Vec<String>> = csv.lines().skip(1).map(|l| l.split(',').map(String::from).collect()).collect();
+    assert_eq!(rows.len(), 6);
+    let blocks: u64 = rows.iter().map(|r| r[17].parse::<u64>().unwrap()).sum();
+    let pixels: f64 = rows.iter().map(|r| r[18].parse::<f64>().unwrap()).sum();
+    assert!(blocks > 0 && pixels > 0.0, "{blocks} blocks, {pixels} pixels");
+    assert!((s["mean_raycast_blocks"].as_f64().unwrap() - blocks as f64 / 6.0).abs() < 1e-9);
+    // A ray-cast block keeps only its outer ring of quads as triangles: with block side 9
+    // that is 28 quads of 64.
+    let tris: u64 = rows.iter().map(|r| r[4].parse::<u64>().unwrap()).sum();
+    let all_blocks: u64 = rows.iter().map(|r| r[6].parse::<u64>().unwrap()).sum();
+    assert_eq!(tris, (all_blocks - blocks) * 128 + blocks * 56);
 }
