@@ -641,7 +641,7 @@ impl BlocksRenderer {
             d.cmd_bind_vertex_buffers(cmd, 0, &[self.mesh.vertices.handle], &[0]);
             d.cmd_bind_index_buffer(cmd, self.mesh.indices.handle, 0, self.mesh.index_type);
             let cast = |b: &DrawBlock| pipelines.raycast.is_some() && choice.casts(b);
-            for b in blocks.iter().filter(|b| !cast(b)) {
+            let push = |b: &DrawBlock| {
                 let push = block_push(&self.layout, b);
                 d.cmd_push_constants(
                     cmd,
@@ -650,38 +650,25 @@ impl BlocksRenderer {
                     0,
                     bytemuck::bytes_of(&push),
                 );
+            };
+            for b in blocks.iter().filter(|b| !cast(b)) {
+                push(b);
                 d.cmd_draw_indexed(cmd, self.mesh.index_count, 1, 0, 0, 0);
                 stats.triangles += self.layout.triangles_per_block();
             }
-            if pipelines.raycast.is_some() {
+            if let Some(raycast) = pipelines.raycast {
                 // The outer ring of every ray-cast block as triangles (see BlockMesh).
                 for b in blocks.iter().filter(|b| cast(b)) {
-                    let push = block_push(&self.layout, b);
-                    d.cmd_push_constants(
-                        cmd,
-                        self.pipeline_layout.handle,
-                        vk::ShaderStageFlags::VERTEX,
-                        0,
-                        bytemuck::bytes_of(&push),
-                    );
+                    push(b);
                     d.cmd_draw_indexed(cmd, self.mesh.ring_count, 1, self.mesh.ring_first, 0, 0);
                     stats.triangles += self.mesh.ring_count as u64 / 3;
                 }
-            }
-            if let Some(raycast) = pipelines.raycast {
-                // After the rasterized blocks: the rays' depth writes disable early depth
-                // tests, so the nearer terrain already in the depth image rejects what
-                // it hides only after the ray has run.
+                // Then the rays, after every rasterized triangle: their depth writes
+                // disable early depth tests, so the nearer terrain already in the depth
+                // image rejects what it hides only after the ray has run.
                 d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, raycast);
                 for b in blocks.iter().filter(|b| cast(b)) {
-                    let push = block_push(&self.layout, b);
-                    d.cmd_push_constants(
-                        cmd,
-                        self.pipeline_layout.handle,
-                        vk::ShaderStageFlags::VERTEX,
-                        0,
-                        bytemuck::bytes_of(&push),
-                    );
+                    push(b);
                     // The box: 6 faces of 2 triangles, made by raycast.vert.
                     d.cmd_draw(cmd, 36, 1, 0, 0);
                     stats.raycast_blocks += 1;
