@@ -84,22 +84,18 @@ bool spans(float ta, float tb, vec2 range) {
 // Where the ray meets the plane y = A + B.x fx + B.y fz (fx, fz from the quad's corner)
 // lifted by `lift`, if that lies in the quad on the side of the diagonal `upper`
 // (fz >= fx) or not: its crossing from above, or `ta` (where the ray enters the quad)
-// when it enters between the plane and its lift (a grazing ray meets the lifted plane
+// when it enters, descending, between the plane and its lift (a grazing ray meets the lifted plane
 // earlier along it, perhaps before this quad). Whether the point lies in the quad
 // decides, not the ray's span over the quad: the same test in both quads of an edge.
 float plane_hit(ivec2 q, float a, vec2 b, bool upper, float ta) {
     vec2 f0 = ray_o.xz - vec2(q);
     float g0 = ray_o.y - (a + lift + dot(b, f0));
     float g1 = ray_d.y - dot(b, ray_d.xz);
+    // Descending towards the plane only: the rasterizer culls the underside (and a
+    // camera under the surface sees through it).
+    if (g1 >= 0.0) return 1e30;
     float g_in = g0 + g1 * ta;
-    float t;
-    if (g_in <= 0.0 && g_in >= -lift) {
-        t = ta;
-    } else {
-        // Descending through the plane only: the rasterizer culls the underside.
-        if (g1 >= 0.0) return 1e30;
-        t = -g0 / g1;
-    }
+    float t = g_in <= 0.0 && g_in >= -lift ? ta : -g0 / g1;
     vec2 f = f0 + t * ray_d.xz;
     float side = upper ? f.y - f.x : f.x - f.y;
     if (side < -EPS || any(lessThan(f, vec2(-EPS))) || any(greaterThan(f, vec2(1.0 + EPS)))) return 1e30;

@@ -929,9 +929,12 @@ impl BlocksRenderer {
 
     /// Which blocks a frame of `hf` seen by `cam` ray-casts with `mode` (the bench counts
     /// their rays with the same choice).
+    /// A camera under the surface sees through the rasterizer's culled undersides, which
+    /// the rays do not reproduce: no block is ray-cast there.
     pub fn raycast_choice<'a>(&'a self, hf: &'a Heightfield, cam: &'a Camera, mode: Raycast) -> raycast::Choice<'a> {
+        let under = cam.position.y < hf.surface_height(cam.position.x, cam.position.z);
         raycast::Choice {
-            mode,
+            mode: if under { Raycast::Off } else { mode },
             layout: &self.layout,
             hf,
             ranges: &self.ranges,
