@@ -921,6 +921,20 @@ fn raycast_blocks_leave_no_cracks() {
             &Shading { raycast: Raycast::All, ..plain() },
         );
         assert_eq!(stats.raycast_blocks, 0, "{}: ray-cast blocks with the camera under the surface", scene.hf.source);
+        // Beyond the edge and lower than the top: rays can enter through the cut edge
+        // (review: 11 holes 2 km off Puget Sound's edge at 900 m).
+        // Above the edge under it (so not under the surface), below the terrain's top.
+        let edge = scene.hf.surface_height(wx, wz * 0.5);
+        let top = scene.hf.raw.iter().cloned().fold(f32::MIN, f32::max) * scene.hf.height_scale;
+        assert!(top > edge + 1.0, "{}: the edge is the top", scene.hf.source);
+        let pos = Vec3::new(wx * 1.05, (edge + top) * 0.5, wz * 0.5);
+        let beyond = Camera::look_at(pos, Vec3::new(wx * 0.5, edge, wz * 0.5), 50.0, 320, 240, 0.05);
+        let (_, stats) = scene.render_select(
+            &beyond,
+            LodSelect::Distance { factor: 2.0 },
+            &Shading { raycast: Raycast::All, ..plain() },
+        );
+        assert_eq!(stats.raycast_blocks, 0, "{}: ray-cast blocks seen through the cut edge", scene.hf.source);
         drop(activity);
         drop(scene);
     }

@@ -929,10 +929,15 @@ impl BlocksRenderer {
 
     /// Which blocks a frame of `hf` seen by `cam` ray-casts with `mode` (the bench counts
     /// their rays with the same choice).
-    /// A camera under the surface sees through the rasterizer's culled undersides, which
-    /// the rays do not reproduce: no block is ray-cast there.
+    /// A camera that can see the surface from below (under it, or beyond the terrain's
+    /// edge lower than its top, looking in through the cut edge) sees through the
+    /// rasterizer's culled undersides, which the rays do not reproduce: no block is
+    /// ray-cast then.
     pub fn raycast_choice<'a>(&'a self, hf: &'a Heightfield, cam: &'a Camera, mode: Raycast) -> raycast::Choice<'a> {
-        let under = cam.position.y < hf.surface_height(cam.position.x, cam.position.z);
+        let p = cam.position;
+        let (wx, wz) = hf.world_extent();
+        let beyond = p.x < 0.0 || p.z < 0.0 || p.x > wx || p.z > wz;
+        let under = p.y < hf.surface_height(p.x, p.z) || (beyond && p.y < self.ranges.top() * hf.height_scale);
         raycast::Choice {
             mode: if under { Raycast::Off } else { mode },
             layout: &self.layout,

@@ -76,6 +76,11 @@ impl BlockRanges {
         BlockRanges { levels }
     }
 
+    /// The highest raw height of the terrain.
+    pub fn top(&self) -> f32 {
+        self.levels.last().map_or(f32::NEG_INFINITY, |l| l.iter().map(|r| r[1]).fold(f32::NEG_INFINITY, f32::max))
+    }
+
     fn get(&self, layout: &BlockLayout, b: &DrawBlock) -> [f32; 2] {
         self.levels[b.lod as usize][b.bz as usize * layout.blocks(b.lod)[0] + b.bx as usize]
     }
