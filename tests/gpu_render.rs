@@ -870,6 +870,7 @@ fn raycast_blocks_leave_no_cracks() {
         knife + cliff + (x as f32 * 0.05).sin() * 3.0 + (z as f32 * 0.11).cos() * 2.0
     });
     let (mut cast_blocks, mut frames) = (0u64, 0);
+    let (mut worst_rmse, mut worst_share) = (0.0f64, 0.0f64);
     for hf in [ps, ridges] {
         let mut scene = Scene::new(&device, hf, 33, None);
         let activity = ErrorsActivity::start(&device, scene.terrain.clone(), scene.hf.clone(), scene.layout).unwrap();
@@ -899,10 +900,11 @@ fn raycast_blocks_leave_no_cracks() {
                     );
                     // Silhouettes differ: the rasterizer snaps vertices to 1/256 of a pixel
                     // and the ray-caster lifts the surface by 1/16 (raycast.frag), and the
-                    // deferred pass's derivatives change with them. Measured: at most
-                    // 0.41 % of the pixels, RMSE 7.7 (a low view whose horizon line moves
-                    // by a pixel over a third of its length).
+                    // deferred pass's derivatives change with them. Measured (printed at
+                    // the end): at most 0.40 % of the pixels, RMSE 7.7, a low view whose
+                    // horizon line moves by a pixel over a third of its length.
                     let (rmse, share) = image_difference(&raster, &cast);
+                    (worst_rmse, worst_share) = (worst_rmse.max(rmse), worst_share.max(share));
                     assert!(rmse < 10.0, "{}: RMSE {rmse} ({raycast:?})", scene.hf.source);
                     assert!(share <= 0.01, "{}: {share} of the pixels differ by more than 16 levels", scene.hf.source);
                 }
@@ -938,7 +940,10 @@ fn raycast_blocks_leave_no_cracks() {
         drop(activity);
         drop(scene);
     }
-    println!("{frames} frames, {cast_blocks} blocks ray-cast");
+    println!(
+        "{frames} frames, {cast_blocks} blocks ray-cast; worst RMSE {worst_rmse:.2}, worst share off by > 16 levels {:.3} %",
+        worst_share * 100.0
+    );
     assert!(cast_blocks > 1000, "only {cast_blocks} blocks were ray-cast");
     finish(device);
 }

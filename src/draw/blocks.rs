@@ -640,7 +640,9 @@ impl BlocksRenderer {
             d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, pipelines.blocks);
             d.cmd_bind_vertex_buffers(cmd, 0, &[self.mesh.vertices.handle], &[0]);
             d.cmd_bind_index_buffer(cmd, self.mesh.indices.handle, 0, self.mesh.index_type);
-            let cast = |b: &DrawBlock| pipelines.raycast.is_some() && choice.casts(b);
+            // Decided once per block: `auto` projects the block's box.
+            let cast: Vec<bool> = blocks.iter().map(|b| pipelines.raycast.is_some() && choice.casts(b)).collect();
+            let cast_blocks = || blocks.iter().zip(&cast).filter(|(_, &c)| c).map(|(b, _)| b);
             let push = |b: &DrawBlock| {
                 let push = block_push(&self.layout, b);
                 d.cmd_push_constants(
@@ -651,14 +653,14 @@ impl BlocksRenderer {
                     bytemuck::bytes_of(&push),
                 );
             };
-            for b in blocks.iter().filter(|b| !cast(b)) {
+            for b in blocks.iter().zip(&cast).filter(|(_, &c)| !c).map(|(b, _)| b) {
                 push(b);
                 d.cmd_draw_indexed(cmd, self.mesh.index_count, 1, 0, 0, 0);
                 stats.triangles += self.layout.triangles_per_block();
             }
             if let Some(raycast) = pipelines.raycast {
                 // The outer ring of every ray-cast block as triangles (see BlockMesh).
-                for b in blocks.iter().filter(|b| cast(b)) {
+                for b in cast_blocks() {
                     push(b);
                     d.cmd_draw_indexed(cmd, self.mesh.ring_count, 1, self.mesh.ring_first, 0, 0);
                     stats.triangles += self.mesh.ring_count as u64 / 3;
@@ -667,7 +669,7 @@ impl BlocksRenderer {
                 // disable early depth tests, so the nearer terrain already in the depth
                 // image rejects what it hides only after the ray has run.
                 d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, raycast);
-                for b in blocks.iter().filter(|b| cast(b)) {
+                for b in cast_blocks() {
                     push(b);
                     // The box: 6 faces of 2 triangles, made by raycast.vert.
                     d.cmd_draw(cmd, 36, 1, 0, 0);
