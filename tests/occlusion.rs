@@ -1,9 +1,9 @@
-//! Occlusion culling (SPEC section 10): a culled block has no visible sample. Over
-//! hundreds of low, horizon-level poses on real and crafted fields (thin ridges, cliffs,
-//! a crater's rim), the frame drawn without the hidden blocks equals, pixel for pixel,
-//! the same selection drawn with nothing culled; mutations that hide one visible block,
-//! or break the sweep's rule, make frames differ. Runs under validation and fails on any
-//! message.
+//! Occlusion culling (SPEC section 10): a culled block, or part of a block, has no
+//! visible sample. Over hundreds of low, horizon-level poses on real and crafted fields
+//! (thin ridges, cliffs, a crater's rim), the frame drawn without the hidden blocks and
+//! parts equals, pixel for pixel, the same selection drawn with nothing culled; mutations
+//! that hide one visible block or part, or break the sweep's rule, make frames differ.
+//! Runs under validation and fails on any message.
 
 mod common;
 use common::*;
@@ -88,35 +88,47 @@ struct Tally {
     poses: usize,
     culled_poses: usize,
     blocks: usize,
+    /// Blocks hidden whole.
     hidden: usize,
+    parts: usize,
+    /// Parts hidden, those of blocks hidden whole included.
+    hidden_parts: usize,
     /// Poses whose culled frame differs from the unculled one, with the pixels differing.
     differing: Vec<(usize, usize)>,
 }
 
-/// Per pose: the selection, the blocks `hide` says are hidden; the frame without them
-/// against the frame with every selected block.
+/// Per pose: the selection, the parts `hide` says are hidden (per block, as
+/// `DrawBlock::hidden_parts`); the frame without them against the frame with every
+/// selected block whole.
 fn check(
     scene: &mut Scene,
     poses: &[Camera],
     delta: f32,
     pixels: PixelPass,
-    mut hide: impl FnMut(&Scene, &Camera, &Traversal, &BlockCaches) -> Option<Vec<bool>>,
+    mut hide: impl FnMut(&Scene, &Camera, &Traversal, &BlockCaches) -> Option<Vec<u16>>,
 ) -> Tally {
     let mut tally = Tally::default();
     let target = Target::new(&scene.device, poses[0].width, poses[0].height).unwrap();
+    let all = scene.layout.all_parts();
     for (i, cam) in poses.iter().enumerate() {
         let (t, caches) = scene.select(cam, delta);
         tally.poses += 1;
         tally.blocks += t.blocks.len();
+        tally.parts += t.blocks.len() * all.count_ones() as usize;
         let Some(hidden) = hide(scene, cam, &t, &caches) else { continue };
-        assert_eq!(hidden.len(), t.blocks.len(), "one flag per block");
+        assert_eq!(hidden.len(), t.blocks.len(), "one mask per block");
         tally.culled_poses += 1;
-        let n = hidden.iter().filter(|&&h| h).count();
-        tally.hidden += n;
-        if n == 0 {
+        tally.hidden += hidden.iter().filter(|&&h| h == all).count();
+        let parts: usize = hidden.iter().map(|h| h.count_ones() as usize).sum();
+        tally.hidden_parts += parts;
+        if parts == 0 {
             continue;
         }
-        let kept: Vec<DrawBlock> = t.blocks.iter().zip(&hidden).filter(|(_, &h)| !h).map(|(b, _)| *b).collect();
+        assert!(t.blocks.iter().all(|b| b.hidden_parts == 0), "the traversal hides nothing itself");
+        let kept: Vec<DrawBlock> = (t.blocks.iter().zip(&hidden))
+            .filter(|(_, &h)| h != all)
+            .map(|(b, &h)| DrawBlock { hidden_parts: h, ..*b })
+            .collect();
         let all = scene.render(&target, cam, &t.blocks, pixels);
         let culled = scene.render(&target, cam, &kept, pixels);
         assert_eq!(all.len(), culled.len());
@@ -128,13 +140,13 @@ fn check(
     tally
 }
 
-fn sound(scene: &Scene, cam: &Camera, t: &Traversal, caches: &BlockCaches) -> Option<Vec<bool>> {
-    occlusion::hidden_blocks(&scene.hf, &scene.mm, caches, &scene.layout, cam, t).ok()
+fn sound(scene: &Scene, cam: &Camera, t: &Traversal, caches: &BlockCaches) -> Option<Vec<u16>> {
+    occlusion::hidden_parts(&scene.hf, &scene.mm, caches, &scene.layout, cam, t).ok()
 }
 
-fn with_rule(rule: Rule) -> impl FnMut(&Scene, &Camera, &Traversal, &BlockCaches) -> Option<Vec<bool>> {
+fn with_rule(rule: Rule) -> impl FnMut(&Scene, &Camera, &Traversal, &BlockCaches) -> Option<Vec<u16>> {
     move |scene, cam, t, caches| {
-        occlusion::hidden_blocks_with(&scene.hf, &scene.mm, caches, &scene.layout, cam, t, rule).ok()
+        occlusion::hidden_parts_with(&scene.hf, &scene.mm, caches, &scene.layout, cam, t, rule).ok()
     }
 }
 
@@ -176,6 +188,24 @@ fn cliff() -> Heightfield {
     hf
 }
 
+/// The cliff with pillars one sample wide and 80 units tall every 9 samples over the
+/// plain: seen from the plateau the plain is hidden behind the edge, but the pillars'
+/// tops show over it, so a part that holds one is visible though most of it is not.
+fn cliff_pillars() -> Heightfield {
+    let mut hf = field(257, 257, 2.0, |x, z| {
+        let wobble = ((z as f32) * 0.3).sin() * 0.5;
+        if x < 128 {
+            60.0 + wobble
+        } else if x % 9 == 4 && z % 9 == 4 {
+            80.0
+        } else {
+            wobble
+        }
+    });
+    hf.source = "cliff with pillars".into();
+    hf
+}
+
 /// A crater: a steep rim 50 units high round a bowl, seen from outside and inside.
 fn crater() -> Heightfield {
     let mut hf = field(257, 257, 1.0, |x, z| {
@@ -195,14 +225,16 @@ fn crater() -> Heightfield {
 fn culled_frames_equal_unculled_frames() {
     let device = gpu();
     let mut report = Vec::new();
-    let cases: [(Heightfield, u32, usize, f32); 4] = [
+    let cases: [(Heightfield, u32, usize, f32); 5] = [
         (puget_crop(), 17, 70, 300.0),
         (thin_ridges(), 17, 60, 30.0),
         (cliff(), 17, 60, 80.0),
+        (cliff_pillars(), 17, 40, 40.0),
         (crater(), 17, 60, 40.0),
     ];
     let (mut poses_all, mut culled_all) = (0, 0);
     let mut crater_share = 0.0;
+    let mut partial_parts = 0;
     for (n, (hf, k, count, above)) in cases.into_iter().enumerate() {
         let source = hf.source.clone();
         let mut scene = Scene::new(&device, hf, k);
@@ -216,13 +248,17 @@ fn culled_frames_equal_unculled_frames() {
                 t.differing
             );
             report.push(format!(
-                "{source} (spacing {:?}) delta {delta} {pixels:?}: {} poses, {} culled, {} of {} blocks hidden",
-                scene.hf.spacing, t.poses, t.culled_poses, t.hidden, t.blocks
+                "{source} (spacing {:?}) delta {delta} {pixels:?}: {} poses, {} culled, {} of {} blocks and {} of {} parts hidden",
+                scene.hf.spacing, t.poses, t.culled_poses, t.hidden, t.blocks, t.hidden_parts, t.parts
             ));
             poses_all += t.poses;
             culled_all += t.culled_poses;
             if source == "crater" && delta == 1.0 {
                 crater_share = t.hidden as f64 / t.blocks as f64;
+            }
+            if delta == 1.0 {
+                // Parts hidden beyond whole blocks: the parts' own tests at work.
+                partial_parts += t.hidden_parts - t.hidden * scene.layout.all_parts().count_ones() as usize;
             }
         }
     }
@@ -232,6 +268,7 @@ fn culled_frames_equal_unculled_frames() {
     assert!(poses_all >= 250, "{poses_all} poses");
     assert!(culled_all * 10 >= poses_all * 8, "culling ran on only {culled_all} of {poses_all} poses");
     assert!(crater_share >= 0.25, "only {:.1} % of the crater's blocks hidden", crater_share * 100.0);
+    assert!(partial_parts >= 100, "only {partial_parts} parts of partly visible blocks hidden");
     finish(device);
 }
 
@@ -253,17 +290,45 @@ fn culling_mutations_change_frames() {
             (ox..=ox + s).contains(&(ahead.x / scene.hf.spacing.x))
                 && (oz..=oz + s).contains(&(ahead.z / scene.hf.spacing.z))
         })?;
-        if hidden[centre] {
+        if hidden[centre] == scene.layout.all_parts() {
             return None;
         }
-        hidden[centre] = true;
+        hidden[centre] = scene.layout.all_parts();
         Some(hidden)
     };
-    let mutations: [(&str, Tally); 3] = [
+    // Only the part of that block under the point ahead.
+    let one_visible_part = |scene: &Scene, cam: &Camera, t: &Traversal, caches: &BlockCaches| {
+        let mut hidden = sound(scene, cam, t, caches)?;
+        let ahead = cam.position + cam.forward * 5.0;
+        let (x, z) = (ahead.x / scene.hf.spacing.x, ahead.z / scene.hf.spacing.z);
+        let p = scene.layout.parts_per_side();
+        let (i, bit) = t.blocks.iter().enumerate().find_map(|(i, b)| {
+            let s = scene.layout.block_samples(b.lod) as f32;
+            let (ox, oz) = (b.bx as f32 * s, b.bz as f32 * s);
+            let inside = (ox..ox + s).contains(&x) && (oz..oz + s).contains(&z);
+            let (px, pz) = (((x - ox) / s * p as f32) as u32, ((z - oz) / s * p as f32) as u32);
+            inside.then(|| (i, 1u16 << (pz * p + px)))
+        })?;
+        if hidden[i] & bit != 0 {
+            return None;
+        }
+        hidden[i] |= bit;
+        Some(hidden)
+    };
+    let mut mutations: Vec<(&str, Tally)> = vec![
         ("one visible block hidden", check(&mut scene, &poses, 1.0, PixelPass::Deferred, one_visible)),
+        ("one visible part hidden", check(&mut scene, &poses, 1.0, PixelPass::Deferred, one_visible_part)),
         ("occluders at their top", check(&mut scene, &poses, 1.0, PixelPass::Deferred, with_rule(Rule::OccluderTop))),
         ("no sweep order", check(&mut scene, &poses, 1.0, PixelPass::Deferred, with_rule(Rule::Unordered))),
     ];
+    drop(scene);
+    // A part tested at its lowest sample hides a pillar whose top shows over the cliff's
+    // edge (on the crater's smooth slopes a part's lowest and highest samples are too
+    // close to tell).
+    let mut scene = Scene::new(&device, cliff_pillars(), 17);
+    let poses = low_poses(&scene.hf, 40, 40.0, 5);
+    let t = check(&mut scene, &poses, 1.0, PixelPass::Deferred, with_rule(Rule::PartBottom));
+    mutations.push(("parts at their lowest", t));
     for (what, t) in &mutations {
         println!("mutation {what}: {} of {} poses differ", t.differing.len(), t.culled_poses);
         assert!(!t.differing.is_empty(), "mutation '{what}' went unnoticed over {} poses", t.poses);

@@ -178,6 +178,8 @@ struct Row {
     /// Selected blocks occlusion culling left undrawn (empty when it did not run or was
     /// skipped).
     occluded: Option<usize>,
+    /// Parts occlusion culling hid and parts it tested (summary only).
+    occluded_parts: Option<(usize, usize)>,
     /// Colour RMSE against the previous frame (with --popping).
     temporal_rmse: Option<f64>,
     /// `temporal_rmse` minus the --lod full run's at the same frame (with --popping).
@@ -531,7 +533,9 @@ impl Bench<'_> {
             if let Some(tr) = &frame.traversal {
                 row.traverse_ms = frame.traverse_ms;
                 row.morphing = tr.morphing;
-                row.occluded = tr.occlusion.filter(|o| o.skipped.is_none()).map(|o| o.hidden);
+                let culled = tr.occlusion.filter(|o| o.skipped.is_none());
+                row.occluded = culled.map(|o| o.hidden);
+                row.occluded_parts = culled.map(|o| (o.hidden_parts, o.tested_parts));
                 if let Some(g) = draw.feed.usable() {
                     row.error_generation = g.number;
                     row.error_update_ms = g.gpu_ms;
@@ -668,8 +672,11 @@ fn summarize(run: &Run) -> Value {
         let (hidden, drawn): (usize, usize) = culled.iter().fold((0, 0), |a, c| (a.0 + c.0, a.1 + c.1));
         hidden as f64 / (hidden + drawn).max(1) as f64
     });
+    let parts = run.rows.iter().filter_map(|r| r.occluded_parts).fold((0, 0), |a, c| (a.0 + c.0, a.1 + c.1));
+    let occluded_part_share = (parts.1 > 0).then(|| parts.0 as f64 / parts.1 as f64);
     json!({
         "occluded_block_share": occluded_share,
+        "occluded_part_share": occluded_part_share,
         "occlusion_culled_frames": culled.len(),
         "warmup_ms": run.warmup_ms,
         "frames": run.rows.len(),

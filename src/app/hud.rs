@@ -253,7 +253,8 @@ fn panel(ui: &mut egui::Ui, r: &Readout, history: &FrameHistory, now: f64, c: &m
                 None => "- (off)".into(),
                 Some(o) => match o.skipped {
                     Some(why) => format!("- ({})", why.as_str()),
-                    None => format!("{} of {} blocks", o.hidden, o.tested),
+                    // Parts, those of blocks hidden whole included (`--block 3`: blocks).
+                    None => format!("{} of {} parts", o.hidden_parts, o.tested_parts),
                 },
             },
         );

@@ -264,7 +264,7 @@ struct App {
     last_blocks: usize,
     /// What occlusion culling did in the last traversed frame.
     last_occlusion: Option<crate::lod::occlusion::OcclusionReport>,
-    /// The block list of the last frame (frozen with Space).
+    /// The last frame's whole selection, nothing culled (frozen with Space).
     blocks: Vec<DrawBlock>,
     screenshot_next: Option<PathBuf>,
     /// P presses not yet served.
@@ -757,6 +757,10 @@ impl App {
         }
         self.stats.most_generations_in_flight = activity.most_in_flight();
         self.last_occlusion = frame.traversal.as_ref().and_then(|t| t.occlusion);
+        // What Space freezes: the whole selection with nothing culled, as the camera will
+        // move away from where it was hidden.
+        let whole: Option<Vec<DrawBlock>> =
+            frame.traversal.as_ref().map(|t| t.selection().map(|b| DrawBlock { hidden_parts: 0, ..*b }).collect());
         let (blocks, submitted) = frame.into_parts();
         let Some(Submitted { image_index, suboptimal, extent, screenshot, readback, render_done, recording }) =
             submitted
@@ -810,7 +814,7 @@ impl App {
         }
         self.last_stats = stats;
         self.last_blocks = blocks.len();
-        self.blocks = blocks;
+        self.blocks = whole.unwrap_or(blocks);
         self.slot = (self.slot + 1) % FRAMES_IN_FLIGHT;
         self.frame += 1;
         if let Some(path) = &self.args.frame_counter {

@@ -297,6 +297,22 @@ pub struct BlocksRenderer {
     lighting: LightingMap,
 }
 
+/// The runs `(first part, parts)` of consecutive parts of `0..parts` whose bit in
+/// `hidden` is clear.
+pub fn visible_runs(hidden: u16, parts: u32) -> impl Iterator<Item = (u32, u32)> {
+    let mut p = 0;
+    std::iter::from_fn(move || {
+        while p < parts && hidden & (1 << p) != 0 {
+            p += 1;
+        }
+        let first = p;
+        while p < parts && hidden & (1 << p) == 0 {
+            p += 1;
+        }
+        (p > first).then_some((first, p - first))
+    })
+}
+
 /// One offscreen frame in flight: its commands, fence and timestamps.
 struct OffscreenSlot {
     cmd: vk::CommandBuffer,
@@ -653,10 +669,17 @@ impl BlocksRenderer {
                     bytemuck::bytes_of(&push),
                 );
             };
+            let parts = self.layout.parts_per_side().pow(2);
+            let part_indices = self.mesh.index_count / parts;
             for b in blocks.iter().zip(&cast).filter(|(_, &c)| !c).map(|(b, _)| b) {
                 push(b);
-                d.cmd_draw_indexed(cmd, self.mesh.index_count, 1, 0, 0, 0);
-                stats.triangles += self.layout.triangles_per_block();
+                // Occlusion culling's hidden parts left out: one draw per run of visible
+                // parts (each part is one range of the mesh's indices).
+                for (first, count) in visible_runs(b.hidden_parts, parts) {
+                    d.cmd_draw_indexed(cmd, count * part_indices, 1, first * part_indices, 0, 0);
+                    stats.triangles += count as u64 * self.layout.triangles_per_part();
+                    stats.draw_calls += 1;
+                }
             }
             if let Some(raycast) = pipelines.raycast {
                 // The outer ring of every ray-cast block as triangles (see BlockMesh).
@@ -726,7 +749,7 @@ impl BlocksRenderer {
         unsafe {
             d.cmd_end_rendering(cmd);
         }
-        stats.draw_calls = blocks.len() as u64 + (deferred || shading.sky) as u64;
+        stats.draw_calls += stats.raycast_blocks + (deferred || shading.sky) as u64;
         stats
     }
 
@@ -1178,5 +1201,31 @@ impl Drop for BlocksRenderer {
             self.commands.free(s.cmd);
         }
         let _ = &self.set_layout;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::visible_runs;
+
+    #[test]
+    fn visible_runs_skip_hidden_parts() {
+        let runs = |h: u16, n: u32| visible_runs(h, n).collect::<Vec<_>>();
+        assert_eq!(runs(0, 16), [(0, 16)]);
+        assert_eq!(runs(0xffff, 16), []);
+        assert_eq!(runs(0b1, 4), [(1, 3)]);
+        assert_eq!(runs(0b1000, 4), [(0, 3)]);
+        assert_eq!(runs(0b0110, 4), [(0, 1), (3, 1)]);
+        assert_eq!(runs(0b1010_0101, 8), [(1, 1), (3, 2), (6, 1)]);
+        // Every visible part once, no hidden one, for every mask of 16 parts.
+        for h in 0..=u16::MAX {
+            let mut covered = 0u32;
+            for (first, count) in visible_runs(h, 16) {
+                let bits = ((1u32 << count) - 1) << first;
+                assert_eq!(covered & bits, 0);
+                covered |= bits;
+            }
+            assert_eq!(covered, !(h as u32) & 0xffff, "mask {h:#x}");
+        }
     }
 }

@@ -155,8 +155,9 @@ impl DrawThread {
                 if self.occlusion {
                     self.probe.cull(terrain.hf, terrain.mm, &self.caches, terrain.layout, req.cam, &mut tr);
                 }
-                let hidden = tr.occlusion.map(|o| o.hidden);
-                let args = json!({"blocks": tr.blocks.len(), "morphing": tr.morphing, "occluded": hidden});
+                let hidden = tr.occlusion.map(|o| (o.hidden, o.hidden_parts));
+                let args = json!({"blocks": tr.blocks.len(), "morphing": tr.morphing,
+                    "occluded": hidden.map(|h| h.0), "occluded_parts": hidden.map(|h| h.1)});
                 self.trace.complete(DRAW_TID, "traverse", t, Instant::now(), args);
                 self.last = LastSelection::of(&tr);
                 (Some(tr), Vec::new())

@@ -58,6 +58,32 @@ impl BlockLayout {
         let q = (self.k() - 1) as u64;
         2 * q * q
     }
+    /// Parts along each side of a block ([`parts_per_side`]).
+    pub fn parts_per_side(&self) -> u32 {
+        parts_per_side(self.m)
+    }
+    /// Triangles in one part of a block.
+    pub fn triangles_per_part(&self) -> u64 {
+        let p = self.parts_per_side() as u64;
+        self.triangles_per_block() / (p * p)
+    }
+    /// Bits of [`DrawBlock::hidden_parts`] that name a part: all set, the whole block.
+    pub fn all_parts(&self) -> u16 {
+        let p = self.parts_per_side();
+        ((1u32 << (p * p)) - 1) as u16
+    }
+}
+
+/// Parts along each side of a block of `2^m` quads: the squares occlusion culling hides
+/// one by one, each a contiguous range of the block mesh's indices ([`block_mesh_data`]).
+/// Each part is an even number of quads wide, so a vertex that morphs towards its parent
+/// surface and the two samples it morphs between lie in the same part.
+pub fn parts_per_side(m: u32) -> u32 {
+    match m {
+        0 | 1 => 1,
+        2 => 2,
+        _ => 4,
+    }
 }
 
 /// Morph factors are multiples of `1 / MORPH_ONE`, exact in f32 on the CPU and the GPU.
@@ -87,6 +113,11 @@ pub struct DrawBlock {
     /// a corner inside a coarser neighbour's edge lies on that edge, whose own corners
     /// may lie on a coarser one's, so the traversal resolves them ([`resolve_corners`]).
     pub corner_raw: [u32; 4],
+    /// Parts of the block that occlusion culling found hidden and the renderer leaves
+    /// out: bit `pz * p + px` for part `(px, pz)` of the `p x p` parts
+    /// ([`parts_per_side`]). Not part of what the block is: [`DrawBlock::unmorphed`]
+    /// (the caches' key) clears it.
+    pub hidden_parts: u16,
 }
 
 /// A corner whose height is its sample's (blocks made outside the traversal).
@@ -107,6 +138,7 @@ impl DrawBlock {
             morph: MORPH_ONE,
             edge_morph: [MORPH_ONE; 4],
             corner_raw: [CORNER_UNRESOLVED; 4],
+            hidden_parts: 0,
         }
     }
     /// Raw height of corner `c` at sample `(x, z)`.
@@ -119,7 +151,7 @@ impl DrawBlock {
     /// The block with every vertex at its own LOD (factor 1): the surface the selection
     /// bounds.
     pub fn unmorphed(&self) -> Self {
-        DrawBlock { morph: MORPH_ONE, edge_morph: [MORPH_ONE; 4], ..*self }
+        DrawBlock { morph: MORPH_ONE, edge_morph: [MORPH_ONE; 4], hidden_parts: 0, ..*self }
     }
     pub fn origin(&self, layout: &BlockLayout) -> (u32, u32) {
         let s = layout.block_samples(self.lod);
@@ -173,6 +205,10 @@ pub struct OcclusionReport {
     pub tested: usize,
     /// Blocks found hidden (moved to `Traversal::occluded`).
     pub hidden: usize,
+    /// Parts of the tested blocks ([`parts_per_side`] squared each).
+    pub tested_parts: usize,
+    /// Parts found hidden, those of hidden blocks included.
+    pub hidden_parts: usize,
     /// Set when the frame was not culled.
     pub skipped: Option<Skipped>,
 }
@@ -375,22 +411,39 @@ pub fn cell_visible(
     frustum.intersects_aabb(min, max)
 }
 
+/// The quads of a block of side `k` in the order of [`block_mesh_data`]'s indices: part
+/// by part ([`parts_per_side`], rows of parts, then the part's rows of quads).
+pub fn quad_order(k: u32) -> Vec<(u32, u32)> {
+    let q = k - 1;
+    let p = parts_per_side(q.trailing_zeros());
+    let side = q / p;
+    let mut quads = Vec::with_capacity((q * q) as usize);
+    for part in 0..p * p {
+        let (px, pz) = (part % p, part / p);
+        for v in pz * side..(pz + 1) * side {
+            for u in px * side..(px + 1) * side {
+                quads.push((u, v));
+            }
+        }
+    }
+    quads
+}
+
 /// The triangles of the quads on the outer ring of the block mesh `idx` (side `k`, as
-/// [`block_mesh_data`] makes it: six indices a quad, row by row).
+/// [`block_mesh_data`] makes it: six indices a quad, in [`quad_order`]).
 pub fn ring_indices(idx: &[u32], k: u32) -> Vec<u32> {
-    let q = (k - 1) as usize;
-    assert_eq!(idx.len(), q * q * 6, "a block mesh of side {k}");
-    (idx.chunks(6).enumerate())
-        .filter(|(i, _)| {
-            let (u, v) = (i % q, i / q);
-            u == 0 || v == 0 || u == q - 1 || v == q - 1
-        })
-        .flat_map(|(_, t)| t.iter().copied())
+    let q = k - 1;
+    let order = quad_order(k);
+    assert_eq!(idx.len(), order.len() * 6, "a block mesh of side {k}");
+    (idx.chunks(6).zip(order))
+        .filter(|(_, (u, v))| *u == 0 || *v == 0 || *u == q - 1 || *v == q - 1)
+        .flat_map(|(t, _)| t.iter().copied())
         .collect()
 }
 
 /// Vertex bytes (u, v) and indices of a k x k block: the one mesh every block is drawn
-/// from, each quad split along its a-i diagonal (triangles a-c-i and a-i-g).
+/// from, each quad split along its a-i diagonal (triangles a-c-i and a-i-g), the quads in
+/// [`quad_order`] so that each part of the block is one range of indices.
 pub fn block_mesh_data(k: u32) -> (Vec<u8>, Vec<u32>) {
     let mut verts = Vec::with_capacity((k * k * 2) as usize);
     for v in 0..k {
@@ -400,14 +453,62 @@ pub fn block_mesh_data(k: u32) -> (Vec<u8>, Vec<u32>) {
         }
     }
     let mut idx = Vec::with_capacity(((k - 1) * (k - 1) * 6) as usize);
-    for v in 0..k - 1 {
-        for u in 0..k - 1 {
-            let a = v * k + u;
-            let c = a + 1;
-            let g = a + k;
-            let i = g + 1;
-            idx.extend_from_slice(&[a, c, i, a, i, g]);
-        }
+    for (u, v) in quad_order(k) {
+        let a = v * k + u;
+        let c = a + 1;
+        let g = a + k;
+        let i = g + 1;
+        idx.extend_from_slice(&[a, c, i, a, i, g]);
     }
     (verts, idx)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Every quad once; each part's range of the indices holds exactly the quads of that
+    /// part's square, and each part is an even number of quads wide (the morph argument
+    /// of occlusion culling's part boxes needs it).
+    #[test]
+    fn each_part_is_one_range_of_the_mesh() {
+        for m in 1..=8 {
+            let k = (1u32 << m) + 1;
+            let (_, idx) = block_mesh_data(k);
+            let q = k - 1;
+            let p = parts_per_side(m);
+            assert!(p == 1 || (q / p).is_multiple_of(2), "k {k}: parts of {} quads", q / p);
+            let per_part = (q * q / (p * p) * 6) as usize;
+            assert_eq!(idx.len(), per_part * (p * p) as usize);
+            let mut seen = vec![false; (q * q) as usize];
+            for (part, range) in idx.chunks(per_part).enumerate() {
+                let (px, pz) = (part as u32 % p, part as u32 / p);
+                let side = q / p;
+                for quad in range.chunks(6) {
+                    // a is the quad's lowest vertex: (u, v) = (a % k, a / k).
+                    let (u, v) = (quad[0] % k, quad[0] / k);
+                    assert_eq!(quad, [quad[0], quad[0] + 1, quad[0] + k + 1, quad[0], quad[0] + k + 1, quad[0] + k]);
+                    assert_eq!((u / side, v / side), (px, pz), "k {k}: quad ({u}, {v}) in part {part}");
+                    assert!(!std::mem::replace(&mut seen[(v * q + u) as usize], true), "k {k}: quad ({u}, {v}) twice");
+                }
+            }
+            assert!(seen.iter().all(|&s| s), "k {k}: a quad is missing");
+        }
+    }
+
+    /// The ring is the outer row of quads on every side, whatever the mesh's order.
+    #[test]
+    fn ring_is_the_outer_quads() {
+        for k in [3u32, 5, 9, 33] {
+            let (_, idx) = block_mesh_data(k);
+            let ring = ring_indices(&idx, k);
+            let q = k - 1;
+            let outer = if q == 1 { 1 } else { 4 * q - 4 };
+            assert_eq!(ring.len(), outer as usize * 6, "k {k}");
+            for quad in ring.chunks(6) {
+                let (u, v) = (quad[0] % k, quad[0] / k);
+                assert!(u == 0 || v == 0 || u == q - 1 || v == q - 1, "k {k}: ({u}, {v}) inside");
+            }
+        }
+    }
 }

@@ -68,12 +68,14 @@ impl Probe {
     ) -> OcclusionReport {
         if self.paused_for > 0 {
             self.paused_for -= 1;
-            let report = OcclusionReport { tested: t.blocks.len(), hidden: 0, skipped: Some(Skipped::Paused) };
+            let report =
+                OcclusionReport { tested: t.blocks.len(), skipped: Some(Skipped::Paused), ..Default::default() };
             t.occlusion = Some(report);
             return report;
         }
         let report = cull(hf, mm, caches, layout, cam, t);
-        let paid = report.skipped.is_none() && report.hidden as f64 >= Self::PAYS * report.tested.max(1) as f64;
+        let paid =
+            report.skipped.is_none() && report.hidden_parts as f64 >= Self::PAYS * report.tested_parts.max(1) as f64;
         self.paused_for = if paid { 0 } else { Self::EVERY - 1 };
         report
     }
@@ -265,8 +267,52 @@ fn occluders<'a>(
     })
 }
 
+/// The boxes of `b`'s parts ([`crate::lod::block::parts_per_side`]) as the sweep tests
+/// them, each with its bit of `DrawBlock::hidden_parts`. A part's triangles are its own
+/// quads', whose vertices lie over its footprint between its samples' lowest and highest
+/// (a vertex morphs towards the mean of two samples of its own part; each part is an
+/// even number of quads wide), or at a resolved corner's height. Parts along an edge
+/// that follows a coarser neighbour are left out: the stitched triangles fan past the
+/// part along that edge; they are hidden only with their whole block.
+fn part_queries<'a>(
+    hf: &'a Heightfield,
+    mm: &'a MinMaxPyramid,
+    layout: &BlockLayout,
+    b: &'a DrawBlock,
+    (cx, cz): (f64, f64),
+    rule: Rule,
+) -> impl Iterator<Item = (Query, u16)> + 'a {
+    let top = if rule == Rule::PartBottom { 0 } else { 1 };
+    let p = layout.parts_per_side();
+    let level = layout.m + b.lod - p.trailing_zeros();
+    let size = (1u64 << level) as f64;
+    let hs = hf.height_scale as f64;
+    let (sx, sz) = (hf.spacing.x as f64, hf.spacing.z as f64);
+    let corner_part = [(0, 0), (p - 1, 0), (p - 1, p - 1), (0, p - 1)];
+    let parts = if p > 1 { 0..p * p } else { 0..0 };
+    parts.filter_map(move |part| {
+        let (px, pz) = (part % p, part / p);
+        let on_edge = [pz == 0, px == p - 1, pz == p - 1, px == 0];
+        if (0..4).any(|e| on_edge[e] && b.coarser[e] > 0) {
+            return None;
+        }
+        let (x, z) = (b.bx * p + px, b.bz * p + pz);
+        let (x0, z0) = (x as f64 * size * sx, z as f64 * size * sz);
+        let rect = Rect { x0, z0, x1: x0 + size * sx, z1: z0 + size * sz };
+        let mut hi = mm.get(level, x as usize, z as usize)[top] as f64 * hs;
+        for (c, _) in corner_part.iter().enumerate().filter(|(_, &cp)| cp == (px, pz)) {
+            if b.corner_raw[c] != CORNER_UNRESOLVED {
+                hi = hi.max(f32::from_bits(b.corner_raw[c]) as f64 * hs);
+            }
+        }
+        let (near, far) = rect.distances(cx, cz);
+        Some((Query { rect, near, far, hi }, 1u16 << part))
+    })
+}
+
 /// Moves the blocks of `t` that no pixel can see into `t.occluded` (keeping their
-/// neighbours' stitching as it was), and says what it did.
+/// neighbours' stitching as it was), marks the hidden parts of the others
+/// (`DrawBlock::hidden_parts`, which the renderer leaves out), and says what it did.
 pub fn cull(
     hf: &Heightfield,
     mm: &MinMaxPyramid,
@@ -275,22 +321,30 @@ pub fn cull(
     cam: &Camera,
     t: &mut Traversal,
 ) -> OcclusionReport {
-    let hidden = hidden_blocks(hf, mm, caches, layout, cam, t);
-    let mut report = OcclusionReport { tested: t.blocks.len(), hidden: 0, skipped: hidden.as_ref().err().copied() };
+    let hidden = hidden_parts(hf, mm, caches, layout, cam, t);
+    let per_block = layout.parts_per_side().pow(2) as usize;
+    let mut report = OcclusionReport {
+        tested: t.blocks.len(),
+        tested_parts: t.blocks.len() * per_block,
+        skipped: hidden.as_ref().err().copied(),
+        ..Default::default()
+    };
     let Ok(hidden) = hidden else {
         t.occlusion = Some(report);
         return report;
     };
-    report.hidden = hidden.iter().filter(|&&h| h).count();
+    let all = layout.all_parts();
+    report.hidden = hidden.iter().filter(|&&h| h == all).count();
+    report.hidden_parts = hidden.iter().map(|h| h.count_ones() as usize).sum();
     t.occlusion = Some(report);
-    if report.hidden > 0 {
+    if report.hidden_parts > 0 {
         let blocks = std::mem::take(&mut t.blocks);
         let errors = std::mem::take(&mut t.selection_errors);
-        for ((b, e), h) in blocks.into_iter().zip(errors).zip(&hidden) {
-            if *h {
+        for ((b, e), &h) in blocks.into_iter().zip(errors).zip(&hidden) {
+            if h == all {
                 t.occluded.push(b);
             } else {
-                t.blocks.push(b);
+                t.blocks.push(DrawBlock { hidden_parts: h, ..b });
                 t.selection_errors.push(e);
             }
         }
@@ -308,22 +362,25 @@ pub enum Rule {
     OccluderTop,
     /// Every block tested against every occluder, nearer or not (no sweep order).
     Unordered,
+    /// Parts tested at their lowest sample instead of their highest.
+    PartBottom,
 }
 
-/// Per block of `t.blocks`, whether it is hidden; or why the frame cannot be culled.
-pub fn hidden_blocks(
+/// Per block of `t.blocks`, its hidden parts (`DrawBlock::hidden_parts`'s bits;
+/// `layout.all_parts()`: the whole block is hidden); or why the frame cannot be culled.
+pub fn hidden_parts(
     hf: &Heightfield,
     mm: &MinMaxPyramid,
     caches: &BlockCaches,
     layout: &BlockLayout,
     cam: &Camera,
     t: &Traversal,
-) -> Result<Vec<bool>, Skipped> {
-    hidden_blocks_with(hf, mm, caches, layout, cam, t, Rule::Sound)
+) -> Result<Vec<u16>, Skipped> {
+    hidden_parts_with(hf, mm, caches, layout, cam, t, Rule::Sound)
 }
 
 #[doc(hidden)]
-pub fn hidden_blocks_with(
+pub fn hidden_parts_with(
     hf: &Heightfield,
     mm: &MinMaxPyramid,
     caches: &BlockCaches,
@@ -331,7 +388,7 @@ pub fn hidden_blocks_with(
     cam: &Camera,
     t: &Traversal,
     rule: Rule,
-) -> Result<Vec<bool>, Skipped> {
+) -> Result<Vec<u16>, Skipped> {
     if hf.void_mask.is_some() {
         return Err(Skipped::Holes);
     }
@@ -353,10 +410,14 @@ pub fn hidden_blocks_with(
     }
     let [sx, sz] = [hf.spacing.x as f64, hf.spacing.z as f64];
     let mut occ = Vec::with_capacity(t.blocks.len() * 16);
+    // Each block's whole box, then its parts' boxes (`Query::parts`: the bits they hide).
+    let mut parts = Vec::with_capacity(t.blocks.len() * 16);
+    let all = layout.all_parts();
     let queries: Vec<Query> = t
         .blocks
         .iter()
-        .map(|b| {
+        .enumerate()
+        .map(|(i, b)| {
             let s = layout.block_samples(b.lod) as f64;
             let (ox, oz) = (b.bx as f64 * s, b.bz as f64 * s);
             let rect = Rect { x0: ox * sx, z0: oz * sz, x1: (ox + s) * sx, z1: (oz + s) * sz };
@@ -371,9 +432,13 @@ pub fn hidden_blocks_with(
             } else {
                 occ.extend(occluders(hf, mm, layout, b, lo, &extent, (c.x, c.z)));
             }
+            parts.extend(part_queries(hf, mm, layout, b, (c.x, c.z), rule).map(|(q, bit)| (q, i, bit)));
             Query { rect, near, far, hi: hi as f64 }
         })
         .collect();
+    let owners: Vec<(usize, u16)> =
+        (0..queries.len()).map(|i| (i, all)).chain(parts.iter().map(|p| (p.1, p.2))).collect();
+    let queries: Vec<Query> = queries.into_iter().chain(parts.into_iter().map(|p| p.0)).collect();
 
     // The near plane's corners, and how far from the camera they reach across the ground.
     let (right, up) = cam.basis();
@@ -388,7 +453,7 @@ pub fn hidden_blocks_with(
     let drawn_top = t
         .blocks
         .iter()
-        .zip(&queries)
+        .zip(&queries[..t.blocks.len()])
         .filter(|(_, i)| touches(&i.rect))
         .map(|(b, i)| top_over(hf, layout, b, &near_box, i.hi))
         .fold(f64::NEG_INFINITY, f64::max);
@@ -460,7 +525,11 @@ pub fn hidden_blocks_with(
             }
         }
     }
-    Ok(hidden)
+    let mut masks = vec![0u16; t.blocks.len()];
+    for (&(block, bits), _) in owners.iter().zip(&hidden).filter(|(_, &h)| h) {
+        masks[block] |= bits;
+    }
+    Ok(masks)
 }
 
 #[cfg(test)]
