@@ -172,8 +172,9 @@ pub struct CommonArgs {
     /// morph paid for inside the error bound.
     #[arg(long, value_enum, default_value_t = OnOff::On)]
     pub morph: OnOff,
-    /// Occlusion culling: blocks hidden behind nearer terrain are not drawn (provably
-    /// conservative; skipped, with the reason in the stats, where the proof does not hold).
+    /// Occlusion culling: blocks, and 4 x 4 parts of blocks, hidden behind nearer terrain
+    /// are not drawn (provably conservative; skipped, with the reason in the stats, where
+    /// the proof does not hold).
     #[arg(long, value_enum, default_value_t = OnOff::On)]
     pub occlusion: OnOff,
     /// Sun for the precomputed shadows and ambient occlusion: compass azimuth and
