@@ -410,7 +410,8 @@ pub fn hidden_parts_with(
     }
     let [sx, sz] = [hf.spacing.x as f64, hf.spacing.z as f64];
     let mut occ = Vec::with_capacity(t.blocks.len() * 16);
-    // Each block's whole box, then its parts' boxes (`Query::parts`: the bits they hide).
+    // Each block's whole box, then its parts' boxes; `owners` says whose each is and the
+    // bits of `hidden_parts` it hides.
     let mut parts = Vec::with_capacity(t.blocks.len() * 16);
     let all = layout.all_parts();
     let queries: Vec<Query> = t
@@ -526,6 +527,7 @@ pub fn hidden_parts_with(
         }
     }
     let mut masks = vec![0u16; t.blocks.len()];
+    assert_eq!(owners.len(), hidden.len(), "one owner per query");
     for (&(block, bits), _) in owners.iter().zip(&hidden).filter(|(_, &h)| h) {
         masks[block] |= bits;
     }
