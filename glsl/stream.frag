@@ -1,8 +1,8 @@
 #version 450
-// Streamed frames: lit by the light direction with normals from the surface's own
-// derivatives (flat per triangle; streamed tiles bring no gradient map yet), coloured by
-// the in-memory shading's ramp over the terrain's height range with its procedural
-// detail, fogged towards the horizon colour.
+// Streamed frames: lit by the in-memory frame's light without shadows (`--sun off`) with
+// normals from the surface's own derivatives (flat per triangle; streamed tiles bring no
+// gradient map yet), coloured by the in-memory shading's ramp and water (its sea share
+// from the vertices) with its procedural detail, fogged towards the horizon colour.
 #define USE_FrameUniforms
 #extension GL_GOOGLE_include_directive : require
 #include "layout.glsl"
@@ -10,15 +10,14 @@
 
 layout(location = 0) in vec3 v_relative;
 layout(location = 1) in vec2 v_sample;
+layout(location = 2) in float v_sea;
 layout(location = 0) out vec4 out_color;
 
 void main() {
     if (any(greaterThan(v_sample, vec2(frame.extent.xy - 1) + 1e-3))) discard;
     vec3 n = normalize(cross(dFdy(v_relative), dFdx(v_relative)));
     if (n.y < 0.0) n = -n;
-    float range = max(frame.terrain.w - frame.terrain.z, 1e-6);
-    float t = clamp((v_relative.y - frame.terrain.z) / range, 0.0, 1.0);
-    vec3 albedo = ramp(t, 1.0 - n.y) * procedural_detail(v_sample);
+    vec3 albedo = ground_colour(v_relative.y, 1.0 - n.y, v_sea) * procedural_detail(v_sample);
     float lit = frame.light.w + (1.0 - frame.light.w) * max(dot(n, frame.light.xyz), 0.0);
     vec3 c = albedo * lit;
     float d = length(v_relative - frame.camera_fog.xyz);

@@ -86,28 +86,10 @@ vec3 shade_terrain(vec3 world, int lod) {
     if (BASE_TEXTURE) {
         albedo = texture(base_tex, uv).rgb;
     } else {
-        // At least one sample spacing: a height recovered from depth (deferred) is off by
-        // a tiny fraction of the distance, which over a flat field's zero range would
-        // pick colours at random.
-        float range = max(frame.terrain.w - frame.terrain.z, min(frame.spacing.x, frame.spacing.y));
-        // Absolute heights (terrain.x: metres of the ramp's top) or the terrain's range.
-        float t = frame.terrain.x > 0.0 ? clamp(world.y / frame.terrain.x, 0.0, 1.0)
-                                        : clamp((world.y - frame.terrain.z) / range, 0.0, 1.0);
-        albedo = ramp(t, 1.0 - n.y);
-        // The lowest ground is water (sea level in most DEMs): where the samples around
-        // the pixel are at sea level (their flags). Blended, not tested, so that the
-        // shoreline is an edge that moves continuously: a step between quads flipped
-        // whole pixels between land and water whenever the surface under them moved by
-        // a fraction of a pixel (morphing, LOD changes, the camera), most of the visible
-        // jumps of a morphing frame (README, popping). The bilinear share of sea samples
-        // counts from one half (so that a lone sea sample stays dry); inside a quad of
-        // four sea samples it is 1. Decided from the samples, not the drawn height, so
-        // that LOD and morphing do not move it across the samples; the drawn height only
-        // keeps coarse triangles that rise well above the sea dry.
+        // The bilinear share of sea samples around the pixel (their flags): 1 inside a
+        // quad of four sea samples.
         float sea = mix(mix(float(s00.sea), float(s10.sea), f.x), mix(float(s01.sea), float(s11.sea), f.x), f.y);
-        float w = smoothstep(0.5, 1.0, sea);
-        if (world.y > frame.texturing.w + 0.05 * range) w = 0.0;
-        albedo = mix(albedo, WATER_COLOUR, w);
+        albedo = ground_colour(world.y, 1.0 - n.y, sea);
     }
     if (DETAIL_TEXTURE) {
         vec3 detail = texture(detail_tex, uv * frame.texturing.x).rgb;

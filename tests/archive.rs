@@ -144,6 +144,12 @@ fn tiles_hold_the_exact_heights_and_bound_and_a_wrong_value_is_caught() {
         rough(1100, 700),
         common::field16(513, 513, 10.0, 0.1, |x, z| (((x * 31 + z * 17) % 65536) ^ ((x * z) % 4096)) as u16),
         common::field(3, 3, 1.0, |x, z| (x * 3 + z) as f32 * if x == 1 && z == 1 { 9.0 } else { 1.0 }),
+        // The highest and lowest samples alone, on the last column and the last row.
+        common::field(600, 300, 1.0, |x, z| match (x, z) {
+            (599, 7) => 900.0,
+            (3, 299) => -40.0,
+            _ => ((x * 7 + z) % 13) as f32,
+        }),
     ];
     for hf in &fields {
         let dir = TempDir::new("archive-exact");
@@ -151,6 +157,12 @@ fn tiles_hold_the_exact_heights_and_bound_and_a_wrong_value_is_caught() {
         prepare_field(hf, &out);
         let archive = Archive::open(&out).unwrap();
         assert_eq!((archive.meta.width, archive.meta.height), (hf.width, hf.height));
+        // The range of every sample (a streamed terrain's colours and default view).
+        let extent = (0..hf.height as i64).flat_map(|z| (0..hf.width as i64).map(move |x| (x, z)));
+        let range = extent
+            .map(|(x, z)| sample(hf, x, z))
+            .fold([f32::INFINITY, f32::NEG_INFINITY], |[a, b], h| [a.min(h), b.max(h)]);
+        assert_eq!(archive.meta.raw_range, Some(range), "{} x {}", hf.width, hf.height);
         let bad = check_archive(hf, &archive, |_| {});
         assert!(
             bad.is_empty(),

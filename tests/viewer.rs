@@ -443,8 +443,9 @@ xdotool key Escape
 
 /// The viewer over an archive drawn streamed (`--stream`; archives larger than one image
 /// always are), driven by xdotool: `]` doubles delta, a drag turns the view, holding W
-/// flies forward over tiles read while it moves, P writes a screenshot of terrain, Escape
-/// quits; zero validation messages. Options it cannot honour are refused by name.
+/// flies forward over tiles read while it moves, its panel is drawn until H hides it, P
+/// writes a screenshot of terrain, Escape quits; zero validation messages. Options it
+/// cannot honour are refused by name.
 #[test]
 fn the_viewer_flies_over_an_archive_drawn_streamed() {
     let dir = std::env::temp_dir().join(format!("vkterrain-viewer-archive-{}", std::process::id()));
@@ -458,13 +459,16 @@ fn the_viewer_flies_over_an_archive_drawn_streamed() {
     let refused =
         viewer(&["--heightmap", archive.to_str().unwrap(), "--stream", "--texture", "x.png", "--frames", "1"]);
     let view = format!("--heightmap '{}' --stream --size 480x360 --validation on --cache-mb 64", archive.display());
+    // The drag starts right of the panel (top left), which would take it.
     let steps = r#"xdotool key bracketright
 wait_frames 2
-drag 240 180 6
+drag 400 250 6
 xdotool keydown w
 wait_frames 12
 xdotool keyup w
 wait_frames 2
+xdotool key h
+wait_frames 3
 xdotool key p
 wait_file vkterrain-1.png
 xdotool key Escape
@@ -480,7 +484,11 @@ xdotool key Escape
         let (start, end) = (&json["start_position"], &json["final_position"]);
         let moved: f64 = (0..3).map(|i| (end[i].as_f64().unwrap() - start[i].as_f64().unwrap()).powi(2)).sum();
         assert!(moved.sqrt() > 100.0, "W flew forward: {start} -> {end}");
-        assert!(json["frames"].as_u64().unwrap() >= 16, "{json}");
+        let frames = json["frames"].as_u64().unwrap();
+        assert!(frames >= 16, "{json}");
+        let hud_frames = json["hud_frames"].as_u64().unwrap();
+        assert!(hud_frames >= 16 && hud_frames < frames, "the panel drawn until H: {json}");
+        assert_eq!(json["hud_visible"], false, "H hid the panel: {json}");
         assert_eq!(json["gpu"]["frames_missing_blocks"], 0, "{json}");
         let img = image::open(tmp.join("vkterrain-1.png")).unwrap().to_rgb8();
         assert_eq!(img.dimensions(), (480, 360));

@@ -1167,12 +1167,13 @@ fn bench_streamed(
     let grid = streamed_grid(&archive, &args.common);
     let (cache_mb, gpu_mb) = (args.streamed.cache_mb(), args.streamed.gpu_mb());
     let layers = device.properties.limits.max_image_array_layers;
-    let mut streamer = atlas_bound_streamer(archive, grid, cache_mb, gpu_mb, layers)?;
-    let range = top_tiles(&mut streamer)?;
+    let mut streamer = atlas_bound_streamer(archive.clone(), grid, cache_mb, gpu_mb, layers)?;
+    let range = top_tiles(&mut streamer, &archive.meta)?;
     let [wx, wz] = grid.world_extent().map(|e| e as f32);
     let near = crate::lod::view::near_plane_for(grid.spacing[0].min(grid.spacing[1]) as f32);
     let ground = streamer.ground(f64::from(wx) * 0.5, f64::from(wz) * 0.5).unwrap_or(0.0) as f32;
-    let terrain = crate::app::paths::PathTerrain { extent: (wx, wz), heights: range, centre_ground: ground, near };
+    let terrain =
+        crate::app::paths::PathTerrain { extent: (wx, wz), heights: range.world, centre_ground: ground, near };
     let fovy = args.common.fovy;
     let camera = |i: u64| -> (Vec3, Vec3, f64) {
         match &poses {

@@ -212,6 +212,11 @@ pub fn build_ui(
                 .show(ui, |ui| panel(ui, readout, history, now, controls));
         });
     }
+    keys_window(ctx, show_help, KEYS);
+}
+
+/// The key-help overlay (F1) listing `keys`, while `show_help`.
+pub(crate) fn keys_window(ctx: &egui::Context, show_help: &mut bool, keys: &[(&str, &str)]) {
     if *show_help {
         egui::Window::new("Keys")
             .anchor(egui::Align2::CENTER_CENTER, [0.0, 0.0])
@@ -220,7 +225,7 @@ pub fn build_ui(
             .open(show_help)
             .show(ctx, |ui| {
                 egui::Grid::new("keys").num_columns(2).striped(true).show(ui, |ui| {
-                    for (k, what) in KEYS {
+                    for (k, what) in keys {
                         ui.monospace(*k);
                         ui.label(*what);
                         ui.end_row();
@@ -278,10 +283,7 @@ fn panel(ui: &mut egui::Ui, r: &Readout, history: &FrameHistory, now: f64, c: &m
         legend(ui, l);
     }
     ui.separator();
-    ui.horizontal(|ui| {
-        ui.label("delta (px)");
-        ui.add(egui::Slider::new(&mut c.delta, 0.0625..=64.0).logarithmic(true).clamping(egui::SliderClamping::Edits));
-    });
+    delta_slider(ui, &mut c.delta);
     ui.horizontal(|ui| {
         ui.label("errors");
         ui.radio_value(&mut c.mode, ErrorMode::Strict, "strict");
@@ -323,22 +325,7 @@ fn panel(ui: &mut egui::Ui, r: &Readout, history: &FrameHistory, now: f64, c: &m
             "vertical exaggeration: heights drawn this many times their scale (errors recomputed on release)",
         );
     });
-    ui.horizontal(|ui| {
-        ui.label("fog");
-        // In multiples of the default haze: a range that does not follow the value.
-        let mut haze = c.fog_density / ranges.fog_default.max(f32::MIN_POSITIVE);
-        let changed = ui
-            .add(
-                egui::Slider::new(&mut haze, 0.0..=FOG_MAX_HAZE)
-                    .suffix(" x default")
-                    .fixed_decimals(2)
-                    .clamping(egui::SliderClamping::Edits),
-            )
-            .changed();
-        if changed {
-            c.fog_density = haze * ranges.fog_default;
-        }
-    });
+    fog_slider(ui, &mut c.fog_density, ranges.fog_default);
     let mut shadows = c.sun.is_some();
     ui.horizontal(|ui| {
         ui.checkbox(&mut shadows, "sun shadows and occlusion");
@@ -357,21 +344,52 @@ fn panel(ui: &mut egui::Ui, r: &Readout, history: &FrameHistory, now: f64, c: &m
         });
         ui.small(format!("shadows are redrawn on release ({:.0} ms last time)", r.lighting_ms));
     }
-    ui.horizontal(|ui| {
-        ui.label("speed");
-        ui.add(
-            egui::Slider::new(&mut c.speed, ranges.speed.0..=ranges.speed.1)
-                .logarithmic(true)
-                .suffix("/s")
-                .fixed_decimals(0)
-                .clamping(egui::SliderClamping::Edits),
-        );
-    });
+    speed_slider(ui, &mut c.speed, ranges.speed);
     ui.horizontal(|ui| {
         if ui.button("Home").clicked() {
             c.go_home = true;
         }
         ui.small("F1 keys, H hides this panel");
+    });
+}
+
+pub(crate) fn delta_slider(ui: &mut egui::Ui, delta: &mut f32) {
+    ui.horizontal(|ui| {
+        ui.label("delta (px)");
+        ui.add(egui::Slider::new(delta, 0.0625..=64.0).logarithmic(true).clamping(egui::SliderClamping::Edits));
+    });
+}
+
+/// The fog density, in multiples of the default haze `default` (a range that does not
+/// follow the value).
+pub(crate) fn fog_slider(ui: &mut egui::Ui, density: &mut f32, default: f32) {
+    ui.horizontal(|ui| {
+        ui.label("fog");
+        let mut haze = *density / default.max(f32::MIN_POSITIVE);
+        let changed = ui
+            .add(
+                egui::Slider::new(&mut haze, 0.0..=FOG_MAX_HAZE)
+                    .suffix(" x default")
+                    .fixed_decimals(2)
+                    .clamping(egui::SliderClamping::Edits),
+            )
+            .changed();
+        if changed {
+            *density = haze * default;
+        }
+    });
+}
+
+pub(crate) fn speed_slider(ui: &mut egui::Ui, speed: &mut f32, (lo, hi): (f32, f32)) {
+    ui.horizontal(|ui| {
+        ui.label("speed");
+        ui.add(
+            egui::Slider::new(speed, lo..=hi)
+                .logarithmic(true)
+                .suffix("/s")
+                .fixed_decimals(0)
+                .clamping(egui::SliderClamping::Edits),
+        );
     });
 }
 
@@ -535,7 +553,7 @@ fn map_section(ui: &mut egui::Ui, p: &Place, c: &mut Controls) {
 }
 
 /// Swatches of the colour ramp with the heights they stand for.
-fn legend(ui: &mut egui::Ui, l: &Legend) {
+pub(crate) fn legend(ui: &mut egui::Ui, l: &Legend) {
     use crate::gpu::layout::{RAMP_COLOURS, RAMP_SNOW, RAMP_SNOW_FROM, RAMP_STOPS, RAMP_TOP_M, WATER_COLOUR};
     let metres = |u: f32| if l.absolute { u * RAMP_TOP_M } else { l.range_m[0] + u * (l.range_m[1] - l.range_m[0]) };
     let rgb = |c: [f32; 3]| {
@@ -561,7 +579,7 @@ fn legend(ui: &mut egui::Ui, l: &Legend) {
     });
 }
 
-fn plot(ui: &mut egui::Ui, name: &str, points: Vec<(f64, f32)>, now: f64, colour: Color32) {
+pub(crate) fn plot(ui: &mut egui::Ui, name: &str, points: Vec<(f64, f32)>, now: f64, colour: Color32) {
     let (rect, _) = ui.allocate_exact_size(Vec2::new(ui.available_width(), 44.0), Sense::hover());
     let painter = ui.painter_at(rect);
     painter.rect_filled(rect, 2.0, Color32::from_black_alpha(140));
@@ -730,6 +748,18 @@ impl Hud {
     /// Builds this frame's panel (applying its controls to `controls`) and uploads any
     /// new font or image data. Call before recording the frame.
     pub fn prepare(&mut self, window: &Window, readout: &Readout, controls: &mut Controls) -> anyhow::Result<()> {
+        self.prepare_with(window, |ctx, visible, help, history, now| {
+            build_ui(ctx, visible, help, readout, history, now, controls)
+        })
+    }
+
+    /// [`Hud::prepare`] with another panel: `build(ctx, visible, help, history, now)`
+    /// builds it (the streamed viewer's, [`crate::app::stream_panel`]).
+    pub fn prepare_with(
+        &mut self,
+        window: &Window,
+        mut build: impl FnMut(&egui::Context, bool, &mut bool, &FrameHistory, f64),
+    ) -> anyhow::Result<()> {
         let started = Instant::now();
         let input = self.state.take_egui_input(window);
         // A release held back from this frame's input goes into the next one.
@@ -739,8 +769,7 @@ impl Hud {
         let now = self.now();
         let (visible, mut help) = (self.visible, self.help);
         let history = &self.history;
-        let output =
-            self.ctx.run_ui(input, |ui| build_ui(ui.ctx(), visible, &mut help, readout, history, now, controls));
+        let output = self.ctx.run_ui(input, |ui| build(ui.ctx(), visible, &mut help, history, now));
         self.help = help;
         self.state.handle_platform_output(window, output.platform_output);
         let mut delta = output.textures_delta;

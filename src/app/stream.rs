@@ -4,9 +4,9 @@
 //! heightfield atlas ([`crate::draw::streamed`]); without it, frames are selections.
 
 use crate::app::cli::{CommonArgs, InputError};
-use crate::draw::streamed::{FrameView, StreamedRenderer, WindowImage};
+use crate::draw::streamed::{FrameView, HeightRange, Overlay, StreamedRenderer, WindowImage};
 use crate::errors::atlas::HeightAtlas;
-use crate::input::archive::Archive;
+use crate::input::archive::{Archive, Meta};
 use crate::lod::view::{near_plane_for, view_of_box};
 use crate::stream::streamer::{StreamStats, Streamer};
 use crate::stream::traverse::{Selection, View};
@@ -65,7 +65,7 @@ pub(crate) struct GpuFrames {
     renderer: StreamedRenderer,
     atlas: HeightAtlas,
     pub device: Arc<Device>,
-    range: [f32; 2],
+    range: HeightRange,
     /// Exponential fog density per world unit.
     pub fog: f32,
     frames: u64,
@@ -84,12 +84,12 @@ pub(crate) struct GpuFrames {
 impl GpuFrames {
     /// An atlas of `mb` MB on `device`, attached to `streamer` (tiles it reads are
     /// uploaded by the atlas's thread before the traversal may use them), and a `size`
-    /// target; `range`: the world heights the colour ramp spans.
+    /// target; `range`: the terrain's heights (the colour ramp).
     pub fn new(
         device: Arc<Device>,
         streamer: &mut Streamer,
         mb: u32,
-        range: [f32; 2],
+        range: HeightRange,
         size: (u32, u32),
     ) -> anyhow::Result<Self> {
         let grid = &streamer.grid.clone();
@@ -123,14 +123,14 @@ impl GpuFrames {
 
     /// Draws the frame (every tile the selection used is in the atlas: the cache takes
     /// only tiles the atlas's thread has uploaded): offscreen (kept in `last`), or into a
-    /// window's swapchain image.
+    /// window's swapchain image with its overlay (the panel) drawn over the terrain.
     pub fn draw(
         &mut self,
         streamer: &Streamer,
         grid: &Grid,
         view: &View,
         sel: &Selection,
-        window: Option<&WindowImage>,
+        window: Option<(&WindowImage, Option<Overlay>)>,
     ) -> anyhow::Result<()> {
         let t0 = Instant::now();
         let blocks = crate::stream::draw::stitched_blocks(grid, &streamer.cache, sel);
@@ -138,9 +138,9 @@ impl GpuFrames {
             anyhow::bail!(failure);
         }
         let (anchor, cam) = view.relative(grid);
-        let fv = FrameView { grid, anchor, cam, range: self.range, fog: self.fog };
+        let fv = FrameView { grid, anchor, cam, heights: self.range, fog: self.fog };
         let stats = match window {
-            Some(w) => self.renderer.render_to_window(&self.atlas, &fv, &blocks, w)?,
+            Some((w, overlay)) => self.renderer.render_to_window(&self.atlas, &fv, &blocks, w, overlay)?,
             None if !self.read_back => self.renderer.render_unread(&self.atlas, &fv, &blocks)?,
             None => {
                 let (pixels, stats) = self.renderer.render(&self.atlas, &fv, &blocks)?;
@@ -181,9 +181,16 @@ impl GpuFrames {
     }
 }
 
-/// The world heights the root blocks span (the colour ramp), from the top tiles, which
-/// a settled frame holds; `None` before they arrive.
-pub(crate) fn height_range(streamer: &Streamer, grid: &Grid) -> Option<[f32; 2]> {
+/// The terrain's world heights for the colour ramp, sea level and default view: those
+/// of every sample, which `prepare` records (`Meta::raw_range`), so that they are the
+/// same terrain's in memory; an archive written before that gives its root blocks'
+/// (from the top tiles, which a settled frame holds; `None` before they arrive).
+pub(crate) fn height_range(streamer: &Streamer, meta: &Meta) -> Option<HeightRange> {
+    let grid = &streamer.grid;
+    let absolute = meta.georef.absolute_heights;
+    if let Some(raw) = meta.raw_range {
+        return Some(HeightRange { world: raw.map(|h| (f64::from(h) * grid.height_scale) as f32), absolute });
+    }
     let root = crate::stream::cache::root_lod(grid);
     let [nx, nz] = grid.tiles_at(grid.top);
     let mut range: Option<[f32; 2]> = None;
@@ -195,13 +202,13 @@ pub(crate) fn height_range(streamer: &Streamer, grid: &Grid) -> Option<[f32; 2]>
             range = Some(range.map_or([lo, hi], |[a, c]| [a.min(lo), c.max(hi)]));
         }
     }
-    range
+    range.map(|world| HeightRange { world, absolute })
 }
 
 /// Reads the top tiles (a view of the whole terrain from high above, nothing split) and
-/// returns the world heights they span ([`height_range`]). Without them nothing can be
+/// returns the terrain's heights ([`height_range`]). Without the tiles nothing can be
 /// drawn: an error naming what failed (exit 2).
-pub(crate) fn top_tiles(streamer: &mut Streamer) -> anyhow::Result<[f32; 2]> {
+pub(crate) fn top_tiles(streamer: &mut Streamer, meta: &Meta) -> anyhow::Result<HeightRange> {
     let grid = streamer.grid;
     let [wx, wz] = grid.world_extent();
     let high = 2.0 * wx.max(wz) + 1.0;
@@ -214,10 +221,24 @@ pub(crate) fn top_tiles(streamer: &mut Streamer) -> anyhow::Result<[f32; 2]> {
         1.0,
     );
     settle(streamer, |_| overview, f32::MAX);
-    height_range(streamer, &grid).ok_or_else(|| {
+    let root = crate::stream::cache::root_lod(&grid);
+    let held = (0..grid.tiles_at(grid.top)[1]).all(|tz| {
+        (0..grid.tiles_at(grid.top)[0])
+            .all(|tx| streamer.cache.peek(crate::stream::cache::serving_tile(&grid, root, tx, tz)).is_some())
+    });
+    let range = height_range(streamer, meta).filter(|_| held).ok_or_else(|| {
         let why = streamer.first_failure.clone().unwrap_or_else(|| "the cache cannot hold them".into());
-        InputError(format!("the archive's top tiles could not be read: {why}")).into()
-    })
+        anyhow::Error::from(InputError(format!("the archive's top tiles could not be read: {why}")))
+    })?;
+    if meta.raw_range.is_none() {
+        eprintln!(
+            "vkterrain: note: the archive records no height range (written before it did): colours and the \
+             default view follow its top tiles' heights, {} to {}; `vkterrain prepare` it again to match the \
+             terrain drawn in memory",
+            range.world[0], range.world[1]
+        );
+    }
+    Ok(range)
 }
 
 /// The grid of an archive as the options frame it: `--spacing` and `--height-scale`
@@ -374,9 +395,9 @@ pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
     let near = near_plane_for(grid.spacing[0].min(grid.spacing[1]) as f32);
     let extent = grid.world_extent();
     // The top tiles first: the default view frames the terrain's height range.
-    let range = top_tiles(&mut streamer)?;
+    let range = top_tiles(&mut streamer, &f.archive.meta)?;
     let (position, look_at) =
-        f.common.view_points(|| view_of_box(extent.map(|e| e as f32), range, f.common.fovy, w, h, near))?;
+        f.common.view_points(|| view_of_box(extent.map(|e| e as f32), range.world, f.common.fovy, w, h, near))?;
     let view = View::look_at(position.as_dvec3(), look_at.as_dvec3(), f.common.fovy, w, h, near);
     let warm = Instant::now();
     streamer.stats = StreamStats { worst_factor: 1.0, ..Default::default() };
@@ -509,7 +530,8 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
     let warm_up_s = warm.elapsed().as_secs_f64();
     let mut gpu = match (args.gpu_mb, device) {
         (Some(mb), Some(device)) => {
-            let range = height_range(&streamer, &grid).unwrap_or([0.0, 1.0]);
+            let range = height_range(&streamer, &archive.meta)
+                .unwrap_or(HeightRange { world: [0.0, 1.0], absolute: archive.meta.georef.absolute_heights });
             Some(GpuFrames::new(device, &mut streamer, mb, range, args.size)?)
         }
         _ => None,

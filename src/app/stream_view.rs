@@ -4,14 +4,18 @@
 //! tile has not arrived are drawn as they are and the frame is counted over the bound),
 //! uploads the new tiles into the atlas and draws from it into the swapchain image.
 //!
-//! It has the in-memory viewer's camera controls ([`Controller`]); shading is plain (the
-//! ramp, no textures, shadows, morphing or panel yet), and the window title carries the
-//! figures: frame rate, blocks, frames over the bound, tiles held.
+//! It has the in-memory viewer's camera controls ([`Controller`]) and a panel of its own
+//! ([`crate::app::stream_panel`]: frames over the bound, tiles held and read, delta, fog
+//! and speed; H hides it, F1 shows the keys); shading is plain (the in-memory colours
+//! without textures, shadows or morphing), and the window title carries the main
+//! figures too.
 
 use crate::app::cli::{check_messages, CommonArgs};
 use crate::app::controls::{delta_key, Controller, Ground, Input};
+use crate::app::hud::{Hud, Legend};
 use crate::app::outputs::save_png;
 use crate::app::stream::{top_tiles, GpuFrames};
+use crate::app::stream_panel::{build_stream_ui, StreamControls, StreamReadout};
 use crate::draw::streamed::WindowImage;
 use crate::input::archive::Archive;
 use crate::lod::view::near_plane_for;
@@ -58,10 +62,13 @@ pub struct StreamViewOptions {
     pub walk: bool,
     pub cache_mb: u32,
     pub gpu_mb: u32,
+    /// Start with the panel hidden (H shows it).
+    pub no_hud: bool,
 }
 
 /// Everything that lives while the window is open, in drop order.
 struct WindowGpu {
+    hud: Hud,
     acquired: BinarySemaphore,
     swapchain: Swapchain,
     frames: GpuFrames,
@@ -87,6 +94,9 @@ struct Run {
     start_position: [f32; 3],
     mouse_turn: f32,
     screenshot: Option<String>,
+    /// Frames drawn with the panel, and whether it was shown at the end.
+    hud_frames: u64,
+    hud_visible: bool,
     stream: Option<crate::stream::streamer::StreamStats>,
     gpu: Option<serde_json::Value>,
     device: String,
@@ -99,7 +109,7 @@ struct App {
     args: StreamViewOptions,
     streamer: Streamer,
     grid: Grid,
-    range: [f32; 2],
+    range: crate::draw::streamed::HeightRange,
     near: f32,
     fog: f32,
     ctl: Controller,
@@ -112,6 +122,8 @@ struct App {
     swapchain_dirty: bool,
     minimized: bool,
     last_frame: Instant,
+    /// When the last frame was drawn (the panel's frame-time plot).
+    last_drawn: Option<Instant>,
     started: Instant,
     title_at: Instant,
     fps_frames: u64,
@@ -136,7 +148,7 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
     let m = &archive.meta;
     println!(
         "vkterrain: {shown}: {} x {} samples, {} tile levels, drawn streamed (cache {} MB, atlas {} MB); plain \
-         shading: no textures, shadows, morphing, occlusion culling or panel yet",
+         shading: no textures, shadows, morphing or occlusion culling yet",
         m.width,
         m.height,
         m.top_level + 1,
@@ -147,9 +159,9 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
     let layers = crate::errors::atlas::MAX_LAYERS;
     let mut streamer =
         crate::app::stream::atlas_bound_streamer(archive.clone(), grid, args.cache_mb, args.gpu_mb, layers)?;
-    let range = top_tiles(&mut streamer)?;
+    let range = top_tiles(&mut streamer, &archive.meta)?;
     let near = near_plane_for(grid.spacing[0].min(grid.spacing[1]) as f32);
-    let (position, target) = args.common.view_points(|| start_view(&grid, range)).map_err(anyhow::Error::from)?;
+    let (position, target) = args.common.view_points(|| start_view(&grid, range.world)).map_err(anyhow::Error::from)?;
     let f = (target - position).normalize();
     // As `render` does: the first view's tiles are read before its first frame (in walk
     // mode, once the camera stands on the ground they bring).
@@ -171,7 +183,7 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
         anyhow::anyhow!("cannot open a window ({e}); is DISPLAY set? Use `vkterrain render` for headless output")
     })?;
     event_loop.set_control_flow(ControlFlow::Poll);
-    println!("keys: W/S A/D Q/E move, drag to look, Shift faster, wheel speed, G walk, Home start, [ ] delta, P screenshot, Esc quit");
+    println!("keys: W/S A/D Q/E move, drag to look, Shift faster, wheel speed, G walk, Home start, [ ] delta, P screenshot, H panel, F1 help, Esc quit");
     let ctl = Controller::new(position, f, l / 60.0, args.walk);
     let home = (ctl.position, ctl.yaw, ctl.pitch);
     let now = Instant::now();
@@ -192,6 +204,7 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
         swapchain_dirty: false,
         minimized: false,
         last_frame: now,
+        last_drawn: None,
         started: now,
         title_at: now,
         fps_frames: 0,
@@ -214,6 +227,7 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
     run.first_failure = app.streamer.first_failure.clone();
     let messages = app.gpu.as_ref().map(|g| g.frames.device.instance.messages.clone());
     if let Some(g) = &app.gpu {
+        run.hud_visible = g.hud.visible;
         run.gpu = Some(g.frames.report());
         let instance = &g.frames.device.instance;
         run.validation_messages = instance.validation.then(|| instance.validation_messages());
@@ -246,9 +260,12 @@ impl App {
         self.run.device = device.name.clone();
         self.run.queue_mode = device.queue_mode.as_str().into();
         let acquired = BinarySemaphore::new(&device)?;
+        // One frame in flight: each streamed frame is waited for before the next.
+        let mut hud = Hud::new(&device, &window, swapchain.format, crate::draw::blocks::DEPTH_FORMAT, 1)?;
+        hud.visible = !self.args.no_hud;
         let mut frames = GpuFrames::new(device, &mut self.streamer, self.args.gpu_mb, self.range, (w, h))?;
         frames.fog = self.fog;
-        self.gpu = Some(WindowGpu { acquired, swapchain, frames, surface });
+        self.gpu = Some(WindowGpu { hud, acquired, swapchain, frames, surface });
         self.window = Some(window);
         Ok(())
     }
@@ -264,6 +281,7 @@ impl App {
         let new =
             Swapchain::new(&gpu.frames.device, &gpu.surface, (size.width, size.height), mode, Some(&gpu.swapchain))?;
         gpu.swapchain = new;
+        gpu.hud.set_format(gpu.swapchain.format, crate::draw::blocks::DEPTH_FORMAT)?;
         self.swapchain_dirty = false;
         Ok(())
     }
@@ -294,6 +312,8 @@ impl App {
             self.run.frames_over_bound += 1;
             self.run.worst_factor = self.run.worst_factor.max(sel.worst_factor);
         }
+        let interval = interval_ms(&mut self.last_drawn);
+        self.panel(&sel, interval)?;
         let gpu = self.gpu.as_mut().expect("checked above");
         // SAFETY: the swapchain and semaphore are live; the last frame was waited for, so
         // the acquire semaphore is unsignalled and free.
@@ -322,7 +342,22 @@ impl App {
             acquired: gpu.acquired.handle,
             done: gpu.swapchain.render_done[i],
         };
-        gpu.frames.draw(&self.streamer, &self.grid, &view, &sel, Some(&target))?;
+        let hud = &mut gpu.hud;
+        let panel = hud.visible;
+        let (mut hud_error, mut recorded) = (None, false);
+        let mut draw_hud = |cmd| {
+            recorded = true;
+            if let Err(e) = hud.record(cmd, extent) {
+                hud_error = Some(e);
+            }
+        };
+        let overlay: Option<crate::draw::streamed::Overlay> = if panel { Some(&mut draw_hud) } else { None };
+        gpu.frames.draw(&self.streamer, &self.grid, &view, &sel, Some((&target, overlay)))?;
+        if let Some(e) = hud_error {
+            return Err(e);
+        }
+        // Counted where the panel was recorded into the frame, not where it was asked for.
+        self.run.hud_frames += u64::from(recorded);
         let swapchains = [gpu.swapchain.handle];
         let indices = [index];
         let wait = [target.done];
@@ -361,6 +396,67 @@ impl App {
         Ok(())
     }
 
+    /// Builds this frame's panel from the last frame's figures and applies what its
+    /// controls changed; `interval_ms`: the time since the last frame (the plots).
+    fn panel(&mut self, sel: &crate::stream::traverse::Selection, interval_ms: Option<f32>) -> anyhow::Result<()> {
+        let (Some(window), Some(gpu)) = (self.window.clone(), self.gpu.as_mut()) else { return Ok(()) };
+        let p = self.ctl.position;
+        let s = &self.streamer.stats;
+        let report = gpu.frames.report();
+        let [wx, wz] = self.grid.world_extent().map(|e| e as f32);
+        let l = wx.max(wz);
+        let readout = StreamReadout {
+            blocks: self.run.last_blocks,
+            triangles: self.run.last_triangles,
+            frames: self.run.frames,
+            frames_over_bound: self.run.frames_over_bound,
+            worst_factor: self.run.worst_factor,
+            within_bound: sel.within_bound(),
+            tiles_held: self.streamer.cache.len(),
+            cache_mb: self.streamer.cache.bytes() as f64 / f64::from(1u32 << 20),
+            cache_budget_mb: self.args.cache_mb,
+            tiles_loaded: s.tiles_loaded,
+            tiles_evicted: s.tiles_evicted,
+            tiles_failed: s.tiles_failed,
+            read_mb: s.bytes_read as f64 / f64::from(1u32 << 20),
+            atlas_layers: report["atlas_layers"].as_u64().unwrap_or(0) as u32,
+            uploaded_tiles: report["tiles_uploaded"].as_u64().unwrap_or(0),
+            device: gpu.frames.device.name.clone(),
+            queue_mode: gpu.frames.device.queue_mode.as_str().into(),
+            walk: self.ctl.walk,
+            position: p,
+            above_ground: p.y - HeldGround(&self.streamer).height(p.x, p.z),
+            panel_ms: gpu.hud.last_ms,
+            legend: Some(Legend { absolute: self.range.absolute, range_m: self.range.world }),
+            fog_default: crate::lod::view::default_fog(l),
+            speed_range: (l / 6000.0, l / 6.0),
+        };
+        if let Some(ms) = interval_ms {
+            let t = gpu.hud.now();
+            gpu.hud.history.push(t, ms);
+        }
+        let before =
+            StreamControls { delta: self.delta, fog_density: gpu.frames.fog, speed: self.ctl.speed, go_home: false };
+        let mut after = before;
+        gpu.hud.prepare_with(&window, |ctx, visible, help, history, now| {
+            build_stream_ui(ctx, visible, help, &readout, history, now, &mut after)
+        })?;
+        if after != before {
+            self.delta = after.delta;
+            gpu.frames.fog = after.fog_density;
+            self.ctl.speed = after.speed;
+            if after.go_home {
+                self.go_home();
+            }
+        }
+        Ok(())
+    }
+
+    fn go_home(&mut self) {
+        (self.ctl.position, self.ctl.yaw, self.ctl.pitch) = self.home;
+        self.ctl.walk = false;
+    }
+
     fn update_title(&mut self) {
         let elapsed = self.title_at.elapsed();
         if elapsed < Duration::from_millis(250) {
@@ -395,9 +491,16 @@ impl App {
             code if delta_key(code, self.delta).is_some() => {
                 self.delta = delta_key(code, self.delta).unwrap_or(self.delta)
             }
-            KeyCode::Home => {
-                (self.ctl.position, self.ctl.yaw, self.ctl.pitch) = self.home;
-                self.ctl.walk = false;
+            KeyCode::Home => self.go_home(),
+            KeyCode::KeyH => {
+                if let Some(g) = self.gpu.as_mut() {
+                    g.hud.visible = !g.hud.visible;
+                }
+            }
+            KeyCode::F1 => {
+                if let Some(g) = self.gpu.as_mut() {
+                    g.hud.help = !g.hud.help;
+                }
             }
             KeyCode::KeyG => {
                 self.ctl.walk = !self.ctl.walk;
@@ -422,6 +525,23 @@ impl ApplicationHandler for App {
     }
 
     fn window_event(&mut self, event_loop: &ActiveEventLoop, _id: WindowId, event: WindowEvent) {
+        // The panel sees every event first; what it takes (a click on it, dragging one of
+        // its sliders) does not also move the camera.
+        let taken = match (self.gpu.as_mut(), self.window.as_ref()) {
+            (Some(g), Some(w)) => g.hud.on_event(w, &event),
+            _ => false,
+        };
+        if taken
+            && matches!(
+                event,
+                WindowEvent::KeyboardInput { .. } | WindowEvent::MouseInput { .. } | WindowEvent::MouseWheel { .. }
+            )
+        {
+            if let WindowEvent::MouseInput { state: winit::event::ElementState::Released, .. } = event {
+                self.ctl.looking = false;
+            }
+            return;
+        }
         match self.ctl.on_event(&event, &mut self.cursor) {
             Input::Pressed(code) => return self.key(code, event_loop),
             Input::Turned(turned) => {
@@ -475,4 +595,12 @@ impl Drop for App {
         }
         self.gpu = None;
     }
+}
+
+/// Milliseconds since `last` (None at the first frame), which becomes now.
+fn interval_ms(last: &mut Option<Instant>) -> Option<f32> {
+    let now = Instant::now();
+    let ms = last.map(|t| (now - t).as_secs_f32() * 1e3);
+    *last = Some(now);
+    ms
 }

@@ -341,6 +341,7 @@ fn view_archive(args: &ViewArgs) -> anyhow::Result<bool> {
         walk: args.walk,
         cache_mb: args.streamed.cache_mb(),
         gpu_mb: args.streamed.gpu_mb(),
+        no_hud: args.no_hud,
     };
     crate::app::stream_view::view_streamed(&options, archive)?;
     Ok(true)

@@ -572,7 +572,7 @@ impl BlocksRenderer {
             inv_view_proj: vp.as_dmat4().inverse().as_mat4().to_cols_array_2d(),
             camera_fog: [cam.position.x, cam.position.y, cam.position.z, shading.fog_density],
             terrain: [
-                if hf.georef.absolute_heights { crate::gpu::layout::RAMP_TOP_M } else { 0.0 },
+                crate::gpu::layout::ramp_top(hf.georef.absolute_heights),
                 hf.height_scale,
                 terrain.raw_range[0] * hf.height_scale,
                 terrain.raw_range[1] * hf.height_scale,

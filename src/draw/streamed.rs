@@ -2,9 +2,9 @@
 //! the heightfield atlas, each block's heights fetched from its tile's layer, every
 //! position relative to the camera's nearest sample (`glsl/stream.vert`).
 //!
-//! Shading is plain (normals from the surface's own derivatives, the ramp by height,
-//! fog): streamed tiles bring no gradient or lighting maps yet. Frames go offscreen (read
-//! back) or into a window's swapchain image.
+//! Shading is plain (normals from the surface's own derivatives; the in-memory ramp,
+//! water, light without shadows, and fog): streamed tiles bring no gradient or lighting
+//! maps yet. Frames go offscreen (read back) or into a window's swapchain image.
 //!
 //! [`Selection`]: crate::stream::traverse::Selection
 
@@ -173,22 +173,23 @@ impl StreamedRenderer {
         })
     }
 
-    /// The frame uniforms of a camera relative to the anchor sample; `range`: the
-    /// terrain's world heights (the colour ramp).
+    /// The frame uniforms of a camera relative to the anchor sample: the in-memory
+    /// frame's ramp, sea level and default light (no shadows: `--sun off`).
     fn uniforms(&self, atlas: &HeightAtlas, view: &FrameView) -> VkResult<FrameUniforms> {
         let a =
             |v: i64| i32::try_from(v).map_err(|_| VkError::Setup(format!("anchor sample {v} beyond the i32 range")));
         let (grid, cam) = (view.grid, &view.cam);
-        let light = glam::Vec3::new(-0.4, 0.8, -0.45).normalize();
+        let light = crate::draw::lighting::Sun::DEFAULT.direction();
+        let HeightRange { world, absolute } = view.heights;
         let vp = cam.view_proj();
         Ok(FrameUniforms {
             view_proj: vp.to_cols_array_2d(),
             inv_view_proj: vp.as_dmat4().inverse().as_mat4().to_cols_array_2d(),
             camera_fog: [cam.position.x, cam.position.y, cam.position.z, view.fog],
-            terrain: [0.0, grid.height_scale as f32, view.range[0], view.range[1]],
+            terrain: [crate::gpu::layout::ramp_top(absolute), grid.height_scale as f32, world[0], world[1]],
             spacing: [grid.spacing[0] as f32, grid.spacing[1] as f32, 0.0, 0.0],
             light: [light.x, light.y, light.z, 0.25],
-            texturing: [0.0; 4],
+            texturing: [0.0, 0.0, 0.0, crate::lod::heightfield::sea_level(absolute, world)],
             extent: [grid.width as i32, grid.height as i32, 0, self.layout.k() as i32],
             flags: [atlas.unorm16() as i32, 0, 0, 0],
             sky_zenith: [0.0; 4],
@@ -329,7 +330,7 @@ impl StreamedRenderer {
         view: &FrameView,
         blocks: &[StreamedBlock],
     ) -> VkResult<(Vec<u8>, StreamedStats)> {
-        let stats = self.draw(atlas, view, blocks, Dest::ReadBack)?;
+        let stats = self.draw(atlas, view, blocks, Dest::ReadBack, None)?;
         Ok((self.target.pixels()?, stats))
     }
 
@@ -340,24 +341,26 @@ impl StreamedRenderer {
         view: &FrameView,
         blocks: &[StreamedBlock],
     ) -> VkResult<StreamedStats> {
-        self.draw(atlas, view, blocks, Dest::Offscreen)
+        self.draw(atlas, view, blocks, Dest::Offscreen, None)
     }
 
     /// Draws `blocks` into a window's swapchain image (the view's size must be the
-    /// image's) and waits; the caller presents it.
+    /// image's) and waits; the caller presents it. `overlay` records more drawing (the
+    /// panel) into the frame's rendering after the terrain.
     pub fn render_to_window(
         &mut self,
         atlas: &HeightAtlas,
         view: &FrameView,
         blocks: &[StreamedBlock],
         window: &WindowImage,
+        overlay: Option<Overlay>,
     ) -> VkResult<StreamedStats> {
         let e = window.extent;
         if self.window_depth.as_ref().is_none_or(|d| d.extent != e) {
             self.window_depth = None; // the last frame was waited for
             self.window_depth = Some(super::blocks::depth_target(&self.device, "window depth", e)?);
         }
-        self.draw(atlas, view, blocks, Dest::Window(window))
+        self.draw(atlas, view, blocks, Dest::Window(window), overlay)
     }
 
     fn draw(
@@ -366,6 +369,7 @@ impl StreamedRenderer {
         view: &FrameView,
         blocks: &[StreamedBlock],
         dest: Dest,
+        overlay: Option<Overlay>,
     ) -> VkResult<StreamedStats> {
         let window = match dest {
             Dest::Window(w) => Some(w),
@@ -459,6 +463,9 @@ impl StreamedRenderer {
                 );
                 d.cmd_draw_indexed(cmd, self.mesh.index_count, 1, 0, 0, 0);
             }
+            if let Some(draw) = overlay {
+                draw(cmd);
+            }
             d.cmd_end_rendering(cmd);
             match dest {
                 Dest::Window(_) => {
@@ -531,14 +538,26 @@ impl StreamedRenderer {
     }
 }
 
+/// Records more drawing (a panel) into a frame's rendering, after the terrain.
+pub type Overlay<'a> = &'a mut dyn FnMut(vk::CommandBuffer);
+
+/// What the colours of a streamed terrain need of its heights, as in memory: the world
+/// heights its samples span (the ramp, the sea level) and whether they are metres above
+/// sea level (the ramp over absolute heights, sea at 0 m).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct HeightRange {
+    pub world: [f32; 2],
+    pub absolute: bool,
+}
+
 /// What a streamed frame is seen from: the grid, the anchor sample and the camera
-/// relative to it ([`crate::stream::traverse::View::relative`]), and the terrain's world
-/// height range for the colour ramp.
+/// relative to it ([`crate::stream::traverse::View::relative`]), and the terrain's
+/// heights for its colours.
 pub struct FrameView<'a> {
     pub grid: &'a Grid,
     pub anchor: [i64; 2],
     pub cam: Camera,
-    pub range: [f32; 2],
+    pub heights: HeightRange,
     /// Exponential fog density per world unit.
     pub fog: f32,
 }

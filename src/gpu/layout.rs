@@ -283,6 +283,16 @@ pub const RAMP_SNOW_FROM: [f32; 2] = [0.72, 0.8];
 pub const RAMP_TOP_M: f32 = 5000.0;
 pub const WATER_COLOUR: [f32; 3] = [0.05, 0.16, 0.30];
 
+/// `FrameUniforms::terrain.x`, the ramp's top: [`RAMP_TOP_M`] when heights are metres
+/// above sea level, else 0 (the ramp spans the terrain's own range).
+pub fn ramp_top(absolute_heights: bool) -> f32 {
+    if absolute_heights {
+        RAMP_TOP_M
+    } else {
+        0.0
+    }
+}
+
 /// Every block, for the header generator and the SPIR-V check.
 pub fn all_blocks() -> Vec<BlockInfo> {
     vec![

@@ -312,11 +312,7 @@ impl Heightfield {
     /// are metres above sea level, else the lowest height plus a thousandth of the
     /// height range (`raw_range`, raw units).
     pub fn sea_level(&self, raw_range: [f32; 2]) -> f32 {
-        if self.georef.absolute_heights {
-            return 0.0;
-        }
-        let (lo, hi) = (raw_range[0] * self.height_scale, raw_range[1] * self.height_scale);
-        lo + 1e-3 * (hi - lo).max(1e-6)
+        sea_level(self.georef.absolute_heights, raw_range.map(|h| h * self.height_scale))
     }
 
     /// Whether grid sample `(x, z)` is drawn as a hole (`--voids hole`): a void of the
@@ -388,6 +384,16 @@ impl RawSamples for Heightfield {
 }
 
 /// A crafted float field of `w x h` samples at spacing 1, for the core's unit tests.
+/// [`Heightfield::sea_level`] of a terrain whose samples span `world_range` (world
+/// heights): shared with streamed terrains, which know the range without the samples.
+pub fn sea_level(absolute_heights: bool, world_range: [f32; 2]) -> f32 {
+    if absolute_heights {
+        return 0.0;
+    }
+    let [lo, hi] = world_range;
+    lo + 1e-3 * (hi - lo).max(1e-6)
+}
+
 #[cfg(test)]
 pub(crate) fn test_field(w: usize, h: usize, f: impl Fn(usize, usize) -> f32) -> Heightfield {
     let s: Vec<f32> = (0..w * h).map(|i| f(i % w, i / w)).collect();

@@ -86,6 +86,8 @@ struct Run<'a> {
     leaves_total: u64,
     stop: &'a AtomicBool,
     height_scale: f32,
+    /// Lowest and highest raw height read so far (every sample is in some leaf window).
+    range: Mutex<[f32; 2]>,
 }
 
 /// The largest world coordinate an archive holds (extent and heights): what the
@@ -157,6 +159,7 @@ pub fn prepare(
         leaves_total,
         stop,
         height_scale: frame.height_scale,
+        range: Mutex::new([f32::INFINITY, f32::NEG_INFINITY]),
     };
     run.build(top, 0, 0)?;
     let mut meta = Meta {
@@ -177,6 +180,7 @@ pub fn prepare(
         void_samples: frame.void_samples,
         source: source.name(),
         tiles: 0,
+        raw_range: Some(run.range.into_inner().expect("range lock")),
     };
     let writer = run.writer.into_inner().expect("writer lock");
     let archive_bytes = writer.finish(&mut meta).map_err(io)?;
@@ -270,6 +274,12 @@ impl Run<'_> {
                 self.height_scale,
                 crate::lod::heightfield::MAX_WORLD
             )));
+        }
+        // The window's samples beyond the extent repeat its edge: real samples all.
+        let (lo, hi) = window.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), &h| (a.min(h), b.max(h)));
+        {
+            let mut r = self.range.lock().expect("range lock");
+            *r = [r[0].min(lo), r[1].max(hi)];
         }
         // Row `z` (tile-local, -1..=T+1) of the window from column `x`.
         let row = |x: i64, z: i64, count: usize| &window[(z + 1) as usize * w + (x + 1) as usize..][..count];

@@ -55,6 +55,12 @@ pub struct Meta {
     pub source: String,
     /// Tiles stored (the archive's PMTiles entries).
     pub tiles: u64,
+    /// Lowest and highest raw height of every sample: the colour ramp, sea level and
+    /// default view of a streamed terrain, which holds only some of its samples, are
+    /// then those of the same terrain in memory. Absent in archives written before it
+    /// (their top tiles' range is used instead, and said so).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub raw_range: Option<[f32; 2]>,
 }
 
 impl Meta {
@@ -191,6 +197,11 @@ impl Archive {
                     meta.version
                 ),
             ));
+        }
+        if let Some([lo, hi]) = meta.raw_range {
+            if !(lo.is_finite() && hi.is_finite() && lo <= hi) {
+                return Err(bad(path, format!("metadata height range {lo} to {hi} is not a range of heights")));
+            }
         }
         meta.sample_format().map_err(|e| bad(path, e))?;
         if meta.tile_quads != TILE_QUADS || meta.width < 3 || meta.height < 3 || meta.top_level > 20 {
@@ -529,5 +540,40 @@ impl Drop for ArchiveWriter {
         if self.file.take().is_some() || self.tmp.exists() {
             let _ = std::fs::remove_file(&self.tmp);
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Archives written before `raw_range` existed still open (without it), and one
+    /// without a range writes none.
+    #[test]
+    fn the_height_range_is_optional_in_the_metadata() {
+        let meta = Meta {
+            kind: "vkterrain terrain archive".into(),
+            version: ARCHIVE_VERSION,
+            width: 257,
+            height: 257,
+            tile_quads: TILE_QUADS,
+            top_level: 0,
+            samples: "unorm16".into(),
+            spacing: [1.0, 1.0],
+            height_scale: 0.1,
+            georef: Georef::default(),
+            void_samples: 0,
+            source: "test".into(),
+            tiles: 1,
+            raw_range: Some([-3.0, 7.5]),
+        };
+        let json = serde_json::to_value(&meta).unwrap();
+        assert_eq!(json["raw_range"], serde_json::json!([-3.0, 7.5]));
+        assert_eq!(serde_json::from_value::<Meta>(json.clone()).unwrap(), meta);
+        let mut old = json;
+        old.as_object_mut().unwrap().remove("raw_range");
+        let read: Meta = serde_json::from_value(old).unwrap();
+        assert_eq!(read.raw_range, None);
+        assert!(serde_json::to_value(&read).unwrap().get("raw_range").is_none());
     }
 }
