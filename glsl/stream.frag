@@ -2,7 +2,8 @@
 // Streamed frames: lit by the in-memory frame's light without shadows (`--sun off`) with
 // normals from the surface's own derivatives (flat per triangle; streamed tiles bring no
 // gradient map yet), coloured by the in-memory shading's ramp and water (its sea share
-// from the vertices) with its procedural detail, fogged towards the horizon colour.
+// from the vertices) with its procedural detail, fogged towards the horizon colour; the
+// sky (sky.frag) is drawn after the blocks where none was.
 #define USE_FrameUniforms
 #extension GL_GOOGLE_include_directive : require
 #include "layout.glsl"

@@ -3,12 +3,14 @@
 //! position relative to the camera's nearest sample (`glsl/stream.vert`).
 //!
 //! Shading is plain (normals from the surface's own derivatives; the in-memory ramp,
-//! water, light without shadows, and fog): streamed tiles bring no gradient or lighting
-//! maps yet. Frames go offscreen (read back) or into a window's swapchain image.
+//! water, light without shadows, fog and sky): streamed tiles bring no gradient or
+//! lighting maps yet. Frames go offscreen (read back) or into a window's swapchain image.
 //!
 //! [`Selection`]: crate::stream::traverse::Selection
 
-use super::blocks::{attachment_barriers, BlockMesh, Target, COLOR_FORMAT, COLOR_RANGE, DEPTH_FORMAT, SKY_HORIZON};
+use super::blocks::{
+    attachment_barriers, BlockMesh, Target, COLOR_FORMAT, COLOR_RANGE, DEPTH_FORMAT, SKY_HORIZON, SKY_ZENITH,
+};
 use crate::errors::atlas::HeightAtlas;
 use crate::gpu::layout::{self, BlockPush, FrameUniforms};
 use crate::gpu::shaders;
@@ -38,9 +40,9 @@ pub struct StreamedRenderer {
     cmd: vk::CommandBuffer,
     fence: Fence,
     commands: CommandPool,
-    /// The terrain pipeline for each colour format drawn to (the offscreen target's, a
+    /// The pipelines for each colour format drawn to (the offscreen target's, a
     /// window's swapchain's).
-    pipelines: Vec<(vk::Format, GraphicsPipeline)>,
+    pipelines: Vec<(vk::Format, FramePipelines)>,
     pipeline_layout: PipelineLayout,
     /// The capture hook's pipeline, layout, set and set layout.
     capture: Option<(GraphicsPipeline, PipelineLayout, vk::DescriptorSet, DescriptorSetLayout)>,
@@ -76,6 +78,35 @@ enum Dest<'a> {
     Window(&'a WindowImage),
 }
 
+/// A streamed frame's pipelines for one colour format: the blocks, then the in-memory
+/// frame's sky where none was drawn (depth still clear: hidden sky is never shaded).
+struct FramePipelines {
+    terrain: GraphicsPipeline,
+    sky: GraphicsPipeline,
+}
+
+impl FramePipelines {
+    fn new(device: &Arc<Device>, layout: &PipelineLayout, format: vk::Format) -> VkResult<Self> {
+        let sky = GraphicsPipeline::new(
+            device,
+            &GraphicsPipelineDesc {
+                vert: shaders::FULLSCREEN_VERT,
+                frag: Some(shaders::SKY_FRAG),
+                rasterizer_discard: false,
+                vertex_attribute: None,
+                color_format: Some(format),
+                depth_format: Some(DEPTH_FORMAT),
+                depth: DepthMode::Background,
+                polygon_mode: vk::PolygonMode::FILL,
+                cull_back: false,
+                layout,
+                specialization: &[],
+            },
+        )?;
+        Ok(FramePipelines { terrain: terrain_pipeline(device, layout, format)?, sky })
+    }
+}
+
 /// The terrain pipeline of streamed frames for colour attachments of `format`.
 fn terrain_pipeline(device: &Arc<Device>, layout: &PipelineLayout, format: vk::Format) -> VkResult<GraphicsPipeline> {
     GraphicsPipeline::new(
@@ -109,7 +140,7 @@ impl StreamedRenderer {
         )?;
         let push = std::mem::size_of::<BlockPush>() as u32;
         let pipeline_layout = PipelineLayout::new(device, &set_layout, push, vertex)?;
-        let pipeline = terrain_pipeline(device, &pipeline_layout, COLOR_FORMAT)?;
+        let pipelines = FramePipelines::new(device, &pipeline_layout, COLOR_FORMAT)?;
         // The capture hook writes from the vertex stage: only where the device allows it.
         let capture = if device.features.vertex_stores {
             let l = DescriptorSetLayout::new(
@@ -159,7 +190,7 @@ impl StreamedRenderer {
             cmd,
             fence: Fence::new(device, true)?,
             commands,
-            pipelines: vec![(COLOR_FORMAT, pipeline)],
+            pipelines: vec![(COLOR_FORMAT, pipelines)],
             pipeline_layout,
             capture,
             pool,
@@ -192,7 +223,7 @@ impl StreamedRenderer {
             texturing: [0.0, 0.0, 0.0, crate::lod::heightfield::sea_level(absolute, world)],
             extent: [grid.width as i32, grid.height as i32, 0, self.layout.k() as i32],
             flags: [atlas.unorm16() as i32, 0, 0, 0],
-            sky_zenith: [0.0; 4],
+            sky_zenith: [SKY_ZENITH[0], SKY_ZENITH[1], SKY_ZENITH[2], 1.0],
             sky_horizon: [SKY_HORIZON[0], SKY_HORIZON[1], SKY_HORIZON[2], 1.0],
             anchor: [a(view.anchor[0])?, a(view.anchor[1])?, atlas.side() as i32, 0],
         })
@@ -302,15 +333,16 @@ impl StreamedRenderer {
         self.fence.wait(u64::MAX)
     }
 
-    /// The terrain pipeline for colour attachments of `format`, made the first time.
-    fn pipeline(&mut self, format: vk::Format) -> VkResult<vk::Pipeline> {
+    /// The terrain and sky pipelines for colour attachments of `format`, made the first
+    /// time.
+    fn pipeline(&mut self, format: vk::Format) -> VkResult<(vk::Pipeline, vk::Pipeline)> {
         if let Some((_, p)) = self.pipelines.iter().find(|(f, _)| *f == format) {
-            return Ok(p.handle);
+            return Ok((p.terrain.handle, p.sky.handle));
         }
-        let p = terrain_pipeline(&self.device, &self.pipeline_layout, format)?;
-        let handle = p.handle;
+        let p = FramePipelines::new(&self.device, &self.pipeline_layout, format)?;
+        let handles = (p.terrain.handle, p.sky.handle);
         self.pipelines.push((format, p));
-        Ok(handle)
+        Ok(handles)
     }
 
     /// Offscreen frames at `width x height` from now on.
@@ -380,7 +412,7 @@ impl StreamedRenderer {
         self.frame += 1;
         let (pushes, missing, generation) = self.pushes(atlas, blocks);
         let format = window.map_or(COLOR_FORMAT, |w| w.format);
-        let pipeline = self.pipeline(format)?;
+        let (pipeline, sky) = self.pipeline(format)?;
         let d = self.device.raw.clone();
         let cmd = self.cmd;
         let (color, color_view, depth, extent) = match window {
@@ -463,6 +495,8 @@ impl StreamedRenderer {
                 );
                 d.cmd_draw_indexed(cmd, self.mesh.index_count, 1, 0, 0, 0);
             }
+            d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, sky);
+            d.cmd_draw(cmd, 3, 1, 0, 0);
             if let Some(draw) = overlay {
                 draw(cmd);
             }

@@ -220,3 +220,22 @@ pub fn archive_of(hf: &Heightfield, dir: &TempDir) -> Arc<vkterrain::input::arch
     .expect("prepare");
     Arc::new(vkterrain::input::archive::Archive::open(&out).expect("open"))
 }
+
+/// Pixels of a frame that are not sky: the sky is drawn as a gradient from the horizon
+/// colour to the zenith's (`draw::blocks::SKY_*`, stored sRGB-encoded), so a pixel within
+/// a few levels of any colour along it counts as sky (terrain fogged out to the horizon
+/// colour too).
+pub fn terrain_pixels(img: &image::RgbaImage) -> usize {
+    use vkterrain::draw::blocks::{SKY_HORIZON, SKY_ZENITH};
+    let srgb = |c: f32| {
+        let s = if c <= 0.003_130_8 { c * 12.92 } else { 1.055 * c.powf(1.0 / 2.4) - 0.055 };
+        (s * 255.0).round()
+    };
+    let sky: Vec<[f32; 3]> = (0..=256)
+        .map(|i| {
+            let t = i as f32 / 256.0;
+            [0, 1, 2].map(|k| srgb(SKY_HORIZON[k] + (SKY_ZENITH[k] - SKY_HORIZON[k]) * t))
+        })
+        .collect();
+    img.pixels().filter(|p| !sky.iter().any(|s| (0..3).all(|k| (f32::from(p[k]) - s[k]).abs() <= 3.0))).count()
+}
