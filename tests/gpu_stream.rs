@@ -95,14 +95,8 @@ fn streamed_frames_match(hf: &Heightfield, unorm16: bool) {
             let sel = settled(&mut s, view);
             let blocks = draw::stitched_blocks(&grid, &s.cache, &sel);
             assert!(sel.used.iter().all(|k| atlas.holds(*k)), "pose {i}: a used tile is not drawable");
-            let (anchor, cam) = view.relative(&grid);
-            let fv = FrameView {
-                grid: &grid,
-                anchor,
-                cam,
-                heights: HeightRange { world: [0.0, 1000.0], absolute: false },
-                fog: 0.0,
-            };
+            let fv = frame_view(&grid, view);
+            let anchor = fv.anchor;
             let want = expected(&grid, &s, anchor, &blocks);
             let got = renderer.capture(&atlas, &fv, &blocks).unwrap();
             assert_eq!(got.len(), want.len(), "pose {i}");
@@ -142,6 +136,12 @@ fn streamed_frames_match(hf: &Heightfield, unorm16: bool) {
         assert!(mutated >= 2, "the wrong-tile check ran at {mutated} poses");
     }
     common::finish(device);
+}
+
+/// A frame seen from `view`, its ramp over 0 to 1000 m, no fog.
+fn frame_view<'a>(grid: &'a Grid, view: &View) -> FrameView<'a> {
+    let (anchor, cam) = view.relative(grid);
+    FrameView { grid, anchor, cam, heights: HeightRange { world: [0.0, 1000.0], absolute: false }, fog: 0.0 }
 }
 
 /// The atlas's thread rewrites a layer only when the host cache has let its tile go and
@@ -184,15 +184,15 @@ fn an_atlas_layer_is_reused_only_after_the_frames_that_drew_it() {
         assert!(first.iter().all(|t| atlas.holds(t.key)));
         // Frame 1 completes (an empty frame signals it on the draw queue's timeline).
         let mut renderer = StreamedRenderer::new(&device, draw::layout(&grid), 64, 48).unwrap();
-        let (anchor, cam) = view.relative(&grid);
-        let fv = FrameView {
-            grid: &grid,
-            anchor,
-            cam,
-            heights: HeightRange { world: [0.0, 1000.0], absolute: false },
-            fog: 0.0,
-        };
+        let fv = frame_view(&grid, &view);
         renderer.render_unread(&atlas, &fv, &[]).unwrap();
+        // The frame's fence has signalled; the atlas's thread reads the frame timeline,
+        // which lavapipe may update a moment later (seen once on a loaded machine): wait
+        // for the value itself.
+        let (sems, values) = ([atlas.frames()], [1u64]);
+        let info = ash::vk::SemaphoreWaitInfo::default().semaphores(&sems).values(&values);
+        // SAFETY: the atlas's semaphore is live; the arrays outlive the call.
+        unsafe { device.raw.wait_semaphores(&info, 10_000_000_000) }.expect("frame 1 completes");
         assert_eq!(pass(next), (2, 0));
         assert!(next.iter().all(|t| atlas.holds(t.key)) && !first.iter().any(|t| atlas.holds(t.key)));
         assert_eq!(atlas.uploaded().tiles, 4);

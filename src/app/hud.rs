@@ -200,19 +200,21 @@ pub fn build_ui(
     controls: &mut Controls,
 ) {
     if show_panel {
-        egui::Window::new("vkterrain").default_pos([8.0, 8.0]).default_width(270.0).auto_sized().show(ctx, |ui| {
-            ui.set_max_width(270.0);
-            // Scrolls when the window is too small to show it whole (title bar and
-            // margins take about 70 points).
-            let room = (ctx.content_rect().height() - 80.0).max(40.0);
-            // The minimum too: a window made small and then large again grows back.
-            egui::ScrollArea::vertical()
-                .max_height(room)
-                .min_scrolled_height(room)
-                .show(ui, |ui| panel(ui, readout, history, now, controls));
-        });
+        panel_window(ctx, "vkterrain", |ui| panel(ui, readout, history, now, controls));
     }
     keys_window(ctx, show_help, KEYS);
+}
+
+/// The panel's window, top left, `body` in a scroll area that fits the window.
+pub(crate) fn panel_window(ctx: &egui::Context, title: &str, body: impl FnOnce(&mut egui::Ui)) {
+    egui::Window::new(title).default_pos([8.0, 8.0]).default_width(270.0).auto_sized().show(ctx, |ui| {
+        ui.set_max_width(270.0);
+        // Scrolls when the window is too small to show it whole (title bar and margins
+        // take about 70 points).
+        let room = (ctx.content_rect().height() - 80.0).max(40.0);
+        // The minimum too: a window made small and then large again grows back.
+        egui::ScrollArea::vertical().max_height(room).min_scrolled_height(room).show(ui, body);
+    });
 }
 
 /// The key-help overlay (F1) listing `keys`, while `show_help`.
@@ -733,6 +735,27 @@ impl Hud {
             self.clicks.pressed_on_panel = consumed;
         }
         consumed
+    }
+
+    /// Passes `event` to the panel ([`Hud::on_event`]); true when it took an input the
+    /// camera must then not also act on (a key, a click, the wheel).
+    pub fn takes_input(&mut self, window: &Window, event: &WindowEvent) -> bool {
+        self.on_event(window, event)
+            && matches!(
+                event,
+                WindowEvent::KeyboardInput { .. } | WindowEvent::MouseInput { .. } | WindowEvent::MouseWheel { .. }
+            )
+    }
+
+    /// The panel's own keys: H hides or shows it, F1 the key help. True when `code` was
+    /// one of them.
+    pub fn on_key(&mut self, code: winit::keyboard::KeyCode) -> bool {
+        match code {
+            winit::keyboard::KeyCode::KeyH => self.visible = !self.visible,
+            winit::keyboard::KeyCode::F1 => self.help = !self.help,
+            _ => return false,
+        }
+        true
     }
 
     /// Whether a control of the panel is being dragged (the sun is redrawn on release).

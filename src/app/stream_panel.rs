@@ -4,7 +4,9 @@
 //! bound and the worst factor (SPEC 8: a block whose finer tile is not held yet), the
 //! tiles held, read, evicted and uploaded, and the bytes read.
 
-use crate::app::hud::{delta_slider, fog_slider, keys_window, legend, plot, speed_slider, FrameHistory, Legend};
+use crate::app::hud::{
+    delta_slider, fog_slider, keys_window, legend, panel_window, plot, speed_slider, FrameHistory, Legend,
+};
 use egui::Color32;
 use glam::Vec3;
 
@@ -77,17 +79,7 @@ pub fn build_stream_ui(
     c: &mut StreamControls,
 ) {
     if show_panel {
-        egui::Window::new("vkterrain (streamed)").default_pos([8.0, 8.0]).default_width(270.0).auto_sized().show(
-            ctx,
-            |ui| {
-                ui.set_max_width(270.0);
-                let room = (ctx.content_rect().height() - 80.0).max(40.0);
-                egui::ScrollArea::vertical()
-                    .max_height(room)
-                    .min_scrolled_height(room)
-                    .show(ui, |ui| panel(ui, r, history, now, c));
-            },
-        );
+        panel_window(ctx, "vkterrain (streamed)", |ui| panel(ui, r, history, now, c));
     }
     keys_window(ctx, show_help, STREAM_KEYS);
 }

@@ -492,14 +492,9 @@ impl App {
                 self.delta = delta_key(code, self.delta).unwrap_or(self.delta)
             }
             KeyCode::Home => self.go_home(),
-            KeyCode::KeyH => {
+            KeyCode::KeyH | KeyCode::F1 => {
                 if let Some(g) = self.gpu.as_mut() {
-                    g.hud.visible = !g.hud.visible;
-                }
-            }
-            KeyCode::F1 => {
-                if let Some(g) = self.gpu.as_mut() {
-                    g.hud.help = !g.hud.help;
+                    g.hud.on_key(code);
                 }
             }
             KeyCode::KeyG => {
@@ -528,15 +523,10 @@ impl ApplicationHandler for App {
         // The panel sees every event first; what it takes (a click on it, dragging one of
         // its sliders) does not also move the camera.
         let taken = match (self.gpu.as_mut(), self.window.as_ref()) {
-            (Some(g), Some(w)) => g.hud.on_event(w, &event),
+            (Some(g), Some(w)) => g.hud.takes_input(w, &event),
             _ => false,
         };
-        if taken
-            && matches!(
-                event,
-                WindowEvent::KeyboardInput { .. } | WindowEvent::MouseInput { .. } | WindowEvent::MouseWheel { .. }
-            )
-        {
+        if taken {
             if let WindowEvent::MouseInput { state: winit::event::ElementState::Released, .. } = event {
                 self.ctl.looking = false;
             }

@@ -1124,14 +1124,9 @@ impl App {
                 }
             }
             KeyCode::KeyL => self.shading.colour_by_lod = !self.shading.colour_by_lod,
-            KeyCode::KeyH => {
+            KeyCode::KeyH | KeyCode::F1 => {
                 if let Some(g) = self.gpu.as_mut() {
-                    g.hud.visible = !g.hud.visible;
-                }
-            }
-            KeyCode::F1 => {
-                if let Some(g) = self.gpu.as_mut() {
-                    g.hud.help = !g.hud.help;
+                    g.hud.on_key(code);
                 }
             }
             KeyCode::Space => self.frozen = if self.frozen.is_some() { None } else { Some(self.blocks.clone()) },
@@ -1203,15 +1198,10 @@ impl ApplicationHandler for App {
         // The panel sees every event first; what it takes (a click on it, dragging one of
         // its sliders) does not also move the camera.
         let taken = match (self.gpu.as_mut(), self.window.as_ref()) {
-            (Some(g), Some(w)) => g.hud.on_event(w, &event),
+            (Some(g), Some(w)) => g.hud.takes_input(w, &event),
             _ => false,
         };
-        if taken
-            && matches!(
-                event,
-                WindowEvent::KeyboardInput { .. } | WindowEvent::MouseInput { .. } | WindowEvent::MouseWheel { .. }
-            )
-        {
+        if taken {
             if let WindowEvent::MouseInput { state: ElementState::Released, .. } = event {
                 self.ctl.looking = false;
             }

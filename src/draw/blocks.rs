@@ -213,6 +213,28 @@ pub fn depth_precise_enough(hf: &Heightfield, terrain: &TerrainGpu, cam: &Camera
 }
 
 /// A depth attachment that the deferred shading pass also samples.
+/// The sky behind the terrain (`sky.frag`), drawn after the blocks where none was (depth
+/// still clear: hidden sky is never shaded), for colour attachments of `format`; reads
+/// only the frame uniforms of `layout`'s set.
+pub fn sky_pipeline(device: &Arc<Device>, layout: &PipelineLayout, format: vk::Format) -> VkResult<GraphicsPipeline> {
+    GraphicsPipeline::new(
+        device,
+        &GraphicsPipelineDesc {
+            vert: shaders::FULLSCREEN_VERT,
+            frag: Some(shaders::SKY_FRAG),
+            rasterizer_discard: false,
+            vertex_attribute: None,
+            color_format: Some(format),
+            depth_format: Some(DEPTH_FORMAT),
+            depth: DepthMode::Background,
+            polygon_mode: vk::PolygonMode::FILL,
+            cull_back: false,
+            layout,
+            specialization: &[],
+        },
+    )
+}
+
 pub fn depth_target(device: &Arc<Device>, name: &str, extent: vk::Extent2D) -> VkResult<Image> {
     let usage = vk::ImageUsageFlags::DEPTH_STENCIL_ATTACHMENT | vk::ImageUsageFlags::SAMPLED;
     Image::new(device, name, extent, DEPTH_FORMAT, 1, usage, false)
@@ -357,22 +379,7 @@ impl BlocksRenderer {
             std::mem::size_of::<BlockPush>() as u32,
             vk::ShaderStageFlags::VERTEX,
         )?;
-        let sky_pipeline = GraphicsPipeline::new(
-            device,
-            &GraphicsPipelineDesc {
-                vert: shaders::FULLSCREEN_VERT,
-                frag: Some(shaders::SKY_FRAG),
-                rasterizer_discard: false,
-                vertex_attribute: None,
-                color_format: Some(color_format),
-                depth_format: Some(DEPTH_FORMAT),
-                depth: DepthMode::Background,
-                polygon_mode: vk::PolygonMode::FILL,
-                cull_back: false,
-                layout: &pipeline_layout,
-                specialization: &[],
-            },
-        )?;
+        let sky_pipeline = sky_pipeline(device, &pipeline_layout, color_format)?;
         let depth_pipeline = device
             .features
             .clip_distance

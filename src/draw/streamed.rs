@@ -87,22 +87,7 @@ struct FramePipelines {
 
 impl FramePipelines {
     fn new(device: &Arc<Device>, layout: &PipelineLayout, format: vk::Format) -> VkResult<Self> {
-        let sky = GraphicsPipeline::new(
-            device,
-            &GraphicsPipelineDesc {
-                vert: shaders::FULLSCREEN_VERT,
-                frag: Some(shaders::SKY_FRAG),
-                rasterizer_discard: false,
-                vertex_attribute: None,
-                color_format: Some(format),
-                depth_format: Some(DEPTH_FORMAT),
-                depth: DepthMode::Background,
-                polygon_mode: vk::PolygonMode::FILL,
-                cull_back: false,
-                layout,
-                specialization: &[],
-            },
-        )?;
+        let sky = super::blocks::sky_pipeline(device, layout, format)?;
         Ok(FramePipelines { terrain: terrain_pipeline(device, layout, format)?, sky })
     }
 }
