@@ -141,7 +141,8 @@ fn streamed_frames_match(hf: &Heightfield, unorm16: bool) {
 /// A frame seen from `view`, its ramp over 0 to 1000 m, no fog.
 fn frame_view<'a>(grid: &'a Grid, view: &View) -> FrameView<'a> {
     let (anchor, cam) = view.relative(grid);
-    FrameView { grid, anchor, cam, heights: HeightRange { world: [0.0, 1000.0], absolute: false }, fog: 0.0 }
+    let heights = HeightRange { world: [0.0, 1000.0], absolute: false };
+    FrameView { grid, anchor, cam, heights, fog: 0.0, light: glam::Vec3::Y }
 }
 
 /// The atlas's thread rewrites a layer only when the host cache has let its tile go and
@@ -365,11 +366,13 @@ fn render_draws_an_archive_streamed_within_the_bound() {
 
 /// A streamed frame is coloured as the same terrain in memory: at the default view (the
 /// same camera, from the archive's recorded height range, not its top tiles' coarser
-/// one) and at a low view towards the horizon, with the same ramp, snow line, sea level,
-/// light and sky, the frames differ only by the streamed path's own selection and flat
-/// normals, and both show the Sound's water. Before the range, the water and the sky were
-/// shared (the top tiles' range: the peaks' snow twice as wide; no water; a flat sky):
-/// RMSE 21.3 at the default view (another camera), 17.1 at the low one.
+/// one), at a low view towards the horizon and from under the surface, with the same
+/// ramp, snow line, sea level, light, sky and culled underside, the frames differ only by
+/// the streamed path's own selection and flat normals, and both show the Sound's water.
+/// Before the range, the water and the sky were shared (the top tiles' range: the peaks'
+/// snow twice as wide; no water; a flat sky): RMSE 21.3 at the default view (another
+/// camera), 17.1 at the low one; before the underside was culled, 77 from under it.
+/// `--sun` turns the light as in memory.
 #[test]
 fn a_streamed_frame_is_coloured_as_the_terrain_in_memory() {
     let dir = TempDir::new("gpu-stream-colours");
@@ -396,29 +399,56 @@ fn a_streamed_frame_is_coloured_as_the_terrain_in_memory() {
             .filter(|p| i32::from(p[2]) > i32::from(p[1]) + 15 && i32::from(p[2]) > i32::from(p[0]) + 40)
             .count()
     };
-    let low = ["--camera", "30000,900,30000", "--look-at", "90000,0,90000"];
-    for (view, extra) in [("default view", &[][..]), ("low view", &low[..])] {
-        // Streamed frames have no shadows: the frame in memory without a sun.
-        let (cam_mem, mem) = frame(&[extra, &["--sun", "off"]].concat(), "mem.png");
-        let (cam_str, streamed) = frame(&[extra, &["--stream"]].concat(), "str.png");
-        assert_eq!(cam_str, cam_mem, "{view}: the same camera");
-        assert_eq!(mem.dimensions(), streamed.dimensions());
+    let rmse = |a: &image::RgbImage, b: &image::RgbImage| {
+        assert_eq!(a.dimensions(), b.dimensions());
         let (mut sq, mut far) = (0.0f64, 0usize);
-        for (p, q) in mem.pixels().zip(streamed.pixels()) {
+        for (p, q) in a.pixels().zip(b.pixels()) {
             let d: Vec<f64> = (0..3).map(|c| f64::from(p[c]) - f64::from(q[c])).collect();
             sq += d.iter().map(|v| v * v).sum::<f64>() / 3.0;
             far += usize::from(d.iter().any(|v| v.abs() > 16.0));
         }
-        let n = (mem.width() * mem.height()) as f64;
-        let (rmse, far_share) = ((sq / n).sqrt(), far as f64 / n);
+        let n = f64::from(a.width() * a.height());
+        ((sq / n).sqrt(), far as f64 / n)
+    };
+    let low = ["--camera", "30000,900,30000", "--look-at", "90000,0,90000"];
+    // Under the surface both paths see the sky through the terrain's culled underside,
+    // and the hillsides that face the camera from below (slivers: larger differences).
+    let under = ["--camera", "80000,-2000,80000", "--look-at", "90000,500,90000"];
+    let views: [(&str, &[&str], f64, f64, bool); 3] = [
+        ("default view", &[], 5.0, 0.015, true),
+        ("low view", &low, 5.0, 0.015, true),
+        ("under", &under, 12.0, 0.02, false),
+    ];
+    for (view, extra, most_rmse, most_far, water_seen) in views {
+        // Streamed frames have no shadows: the frame in memory without a sun.
+        let (cam_mem, mem) = frame(&[extra, &["--sun", "off"]].concat(), "mem.png");
+        let (cam_str, streamed) = frame(&[extra, &["--stream"]].concat(), "str.png");
+        assert_eq!(cam_str, cam_mem, "{view}: the same camera");
+        let (e, far_share) = rmse(&mem, &streamed);
         println!(
-            "{view}: streamed against in memory: RMSE {rmse:.2}, {:.2} % of pixels over 16 levels",
+            "{view}: streamed against in memory: RMSE {e:.2}, {:.2} % of pixels over 16 levels",
             100.0 * far_share
         );
-        assert!(rmse < 5.0 && far_share < 0.015, "{view}: RMSE {rmse:.2}, {:.2} % over 16 levels", 100.0 * far_share);
-        let (wm, ws) = (water(&mem), water(&streamed));
-        assert!(wm > 200 && ws * 5 > wm * 2, "{view}: water pixels: {wm} in memory, {ws} streamed");
+        assert!(
+            e < most_rmse && far_share < most_far,
+            "{view}: RMSE {e:.2}, {:.2} % over 16 levels",
+            100.0 * far_share
+        );
+        if water_seen {
+            let (wm, ws) = (water(&mem), water(&streamed));
+            assert!(wm > 200 && ws * 5 > wm * 2, "{view}: water pixels: {wm} in memory, {ws} streamed");
+        }
     }
+    // `--sun` sets the light's direction (without its shadows): the streamed frame lit
+    // from the west-south-west is nearer the in-memory one (with shadows) than the
+    // streamed frame lit from the default direction.
+    let sun = ["--sun", "120,30"];
+    let (_, mem) = frame(&sun, "mem.png");
+    let (_, streamed) = frame(&[&sun[..], &["--stream"]].concat(), "str.png");
+    let (_, default_sun) = frame(&["--stream"], "str-default.png");
+    let ((lit, _), (unlit, _)) = (rmse(&mem, &streamed), rmse(&mem, &default_sun));
+    println!("--sun 120,30: RMSE {lit:.2} lit from there, {unlit:.2} from the default direction");
+    assert!(lit < 10.0 && lit * 1.5 < unlit, "--sun 120,30: RMSE {lit:.2}, from the default direction {unlit:.2}");
 }
 
 /// The temporary directories of terrains prepared on the fly, in the temporary directory.

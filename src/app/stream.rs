@@ -4,6 +4,7 @@
 //! heightfield atlas ([`crate::draw::streamed`]); without it, frames are selections.
 
 use crate::app::cli::{CommonArgs, InputError};
+use crate::draw::lighting::Sun;
 use crate::draw::streamed::{FrameView, HeightRange, Overlay, StreamedRenderer, WindowImage};
 use crate::errors::atlas::HeightAtlas;
 use crate::input::archive::{Archive, Meta};
@@ -68,6 +69,8 @@ pub(crate) struct GpuFrames {
     range: HeightRange,
     /// Exponential fog density per world unit.
     pub fog: f32,
+    /// Unit vector towards the sun ([`GpuFrames::sun`]).
+    light: glam::Vec3,
     frames: u64,
     /// Frames where some block's tile found no atlas layer (those blocks not drawn).
     pub frames_missing_blocks: u64,
@@ -111,6 +114,7 @@ impl GpuFrames {
             device,
             range,
             fog: 0.0,
+            light: Sun::DEFAULT.direction(),
             frames: 0,
             frames_missing_blocks: 0,
             blocks: 0,
@@ -138,7 +142,7 @@ impl GpuFrames {
             anyhow::bail!(failure);
         }
         let (anchor, cam) = view.relative(grid);
-        let fv = FrameView { grid, anchor, cam, heights: self.range, fog: self.fog };
+        let fv = FrameView { grid, anchor, cam, heights: self.range, fog: self.fog, light: self.light };
         let stats = match window {
             Some((w, overlay)) => self.renderer.render_to_window(&self.atlas, &fv, &blocks, w, overlay)?,
             None if !self.read_back => self.renderer.render_unread(&self.atlas, &fv, &blocks)?,
@@ -157,6 +161,12 @@ impl GpuFrames {
     }
 
     /// Offscreen frames at `width x height` from now on (a window's screenshot).
+    /// Lights the frames from `sun`'s direction (`--sun`; with none, from the default
+    /// direction, as in memory), without its shadows.
+    pub fn sun(&mut self, sun: Option<Sun>) {
+        self.light = sun.unwrap_or(Sun::DEFAULT).direction();
+    }
+
     pub fn resize(&mut self, width: u32, height: u32) -> anyhow::Result<()> {
         self.renderer.resize(width, height)?;
         Ok(())
@@ -405,6 +415,7 @@ pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
     let settle_ms = warm.elapsed().as_secs_f64() * 1e3;
     let mut gpu = GpuFrames::new(f.device.clone(), &mut streamer, f.gpu_mb, range, (w, h))?;
     gpu.fog = f.fog;
+    gpu.sun(f.common.sun.0);
     gpu.draw(&streamer, &grid, &view, &sel, None)?;
     let missing = gpu.frames_missing_blocks > 0;
     let report = serde_json::json!({

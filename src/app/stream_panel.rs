@@ -103,7 +103,10 @@ fn panel(ui: &mut egui::Ui, r: &StreamReadout, history: &FrameHistory, now: f64,
             ui.end_row();
         };
         row("over the bound", format!("{} of {} frames", r.frames_over_bound, r.frames));
-        row("worst", format!("{:.2} x delta", r.worst_factor));
+        // A block far over the bound next to the camera reaches huge factors.
+        let worst =
+            if r.worst_factor < 1e4 { format!("{:.2}", r.worst_factor) } else { format!("{:.2e}", r.worst_factor) };
+        row("worst", format!("{worst} x delta"));
         row("triangles", r.triangles.to_string());
         row("blocks", r.blocks.to_string());
         row("tiles held", format!("{} ({:.0} of {} MB)", r.tiles_held, r.cache_mb, r.cache_budget_mb));

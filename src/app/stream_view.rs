@@ -265,6 +265,7 @@ impl App {
         hud.visible = !self.args.no_hud;
         let mut frames = GpuFrames::new(device, &mut self.streamer, self.args.gpu_mb, self.range, (w, h))?;
         frames.fog = self.fog;
+        frames.sun(self.args.common.sun.0);
         self.gpu = Some(WindowGpu { hud, acquired, swapchain, frames, surface });
         self.window = Some(window);
         Ok(())
@@ -408,7 +409,8 @@ impl App {
         let readout = StreamReadout {
             blocks: self.run.last_blocks,
             triangles: self.run.last_triangles,
-            frames: self.run.frames,
+            // This frame included, as in the count over the bound.
+            frames: self.run.frames + 1,
             frames_over_bound: self.run.frames_over_bound,
             worst_factor: self.run.worst_factor,
             within_bound: sel.within_bound(),

@@ -105,7 +105,9 @@ fn terrain_pipeline(device: &Arc<Device>, layout: &PipelineLayout, format: vk::F
             depth_format: Some(DEPTH_FORMAT),
             depth: DepthMode::TestWrite,
             polygon_mode: vk::PolygonMode::FILL,
-            cull_back: false,
+            // Seen from above only, as in memory: a camera under the surface sees the sky
+            // through it, not its underside (the same mesh, the same winding).
+            cull_back: true,
             layout,
             specialization: &[],
         },
@@ -190,12 +192,12 @@ impl StreamedRenderer {
     }
 
     /// The frame uniforms of a camera relative to the anchor sample: the in-memory
-    /// frame's ramp, sea level and default light (no shadows: `--sun off`).
+    /// frame's ramp, sea level and light (without its shadows).
     fn uniforms(&self, atlas: &HeightAtlas, view: &FrameView) -> VkResult<FrameUniforms> {
         let a =
             |v: i64| i32::try_from(v).map_err(|_| VkError::Setup(format!("anchor sample {v} beyond the i32 range")));
         let (grid, cam) = (view.grid, &view.cam);
-        let light = crate::draw::lighting::Sun::DEFAULT.direction();
+        let light = view.light;
         let HeightRange { world, absolute } = view.heights;
         let vp = cam.view_proj();
         Ok(FrameUniforms {
@@ -579,6 +581,9 @@ pub struct FrameView<'a> {
     pub heights: HeightRange,
     /// Exponential fog density per world unit.
     pub fog: f32,
+    /// Unit vector towards the sun (`--sun`: its direction; streamed frames have no
+    /// shadows).
+    pub light: glam::Vec3,
 }
 
 impl Drop for StreamedRenderer {
