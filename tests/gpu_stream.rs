@@ -352,6 +352,25 @@ fn render_draws_an_archive_streamed_within_the_bound() {
     let on_the_fly = frame(&ps, &dir.path().join("fly.png"));
     assert_eq!(on_the_fly, frame(&pre, &dir.path().join("pre.png")), "the same frame from either");
     assert_eq!(on_the_fly_dirs(), stale_before, "the temporary archive is removed");
+    // A raw file streamed: prepared on the fly with --raw-size and --spacing (as the
+    // loader reads it; no spacing assumed), drawn at that spacing. An archive knows its
+    // own size: --raw-size with one is refused, naming it.
+    let raw = dir.path().join("t.f32");
+    let samples: Vec<u8> =
+        (0..300 * 200).flat_map(|i| (((i % 300 + i / 300) % 37) as f32 * 3.0).to_le_bytes()).collect();
+    std::fs::write(&raw, samples).unwrap();
+    let mut args = vec!["render", "--heightmap", raw.to_str().unwrap(), "--raw-size", "300x200", "--spacing", "10"];
+    args.extend(["--stream", "--size", "64x48", "--out", p]);
+    let o = cli(&args);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(r["spacing_m"], serde_json::json!([10.0, 10.0]), "{r}");
+    assert!(!err.contains("ASSUMED; give --spacing"), "{err}");
+    let o = render(&["--raw-size", "300x200"]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(err.contains("--raw-size") && err.contains("s.pmtiles"), "{err}");
     // A viewport larger than an image, and an archive whose top tiles are cut off: exit
     // 2, one line naming the problem.
     let o = render(&["--size", "20000x100"]);

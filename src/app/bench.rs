@@ -1122,7 +1122,6 @@ impl BenchArgs {
             ("--raycast", self.raycast != crate::draw::raycast::Raycast::Off),
             ("--inject-fault", self.inject_fault.is_some()),
             ("--error-mode paper", c.error_mode != crate::lod::gie::ErrorMode::Strict),
-            ("--raw-size", c.raw_size.is_some()),
             ("--block (an archive fixes k = 33)", c.block != 33),
         ]
         .into_iter()

@@ -89,7 +89,6 @@ impl RenderArgs {
             ("--pixels forward", self.pixels != PixelPass::Deferred),
             ("--raycast", self.raycast != Raycast::Off),
             ("--shading heights", self.shading != NormalSource::GradientMap),
-            ("--raw-size", c.raw_size.is_some()),
             ("--block (an archive fixes k = 33)", c.block != 33),
         ]
         .into_iter()

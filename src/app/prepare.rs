@@ -187,7 +187,7 @@ pub(crate) fn raster_size(path: &Path) -> Option<(usize, usize)> {
 /// behind; a directory a killed run left is removed by the next.
 pub(crate) fn prepare_on_the_fly(
     path: &Path,
-    raw_size: Option<(u32, u32)>,
+    common: &crate::app::cli::CommonArgs,
 ) -> anyhow::Result<crate::input::archive::Archive> {
     for stale in crate::input::left_by_dead_runs(&std::env::temp_dir(), ON_THE_FLY_PREFIX) {
         let _ = std::fs::remove_dir_all(stale);
@@ -199,9 +199,10 @@ pub(crate) fn prepare_on_the_fly(
         input: vec![path.to_path_buf()],
         out: dir.join("terrain.pmtiles"),
         synthetic: None,
-        spacing: None,
-        height_scale: None,
-        raw_size,
+        // The file's frame as the options give it, as the loader would read it.
+        spacing: common.spacing,
+        height_scale: common.height_scale,
+        raw_size: common.raw_size,
         windows: false,
     };
     let opened = prepare_archive(&args)

@@ -255,14 +255,15 @@ pub(crate) fn top_tiles(streamer: &mut Streamer, meta: &Meta) -> anyhow::Result<
 /// override the archive's own, and say so (as the loader does for files).
 pub(crate) fn streamed_grid(archive: &Archive, common: &CommonArgs) -> Grid {
     let mut grid = Grid::from_meta(&archive.meta);
-    if let Some(s) = common.spacing {
+    // (A file prepared on the fly already has them: nothing to say.)
+    if let Some(s) = common.spacing.filter(|s| [f64::from(s.x), f64::from(s.z)] != grid.spacing) {
         eprintln!(
             "vkterrain: note: spacing {} x {} m from --spacing, not the archive's {} x {}",
             s.x, s.z, grid.spacing[0], grid.spacing[1]
         );
         grid.spacing = [f64::from(s.x), f64::from(s.z)];
     }
-    if let Some(h) = common.height_scale {
+    if let Some(h) = common.height_scale.filter(|h| f64::from(*h) != grid.height_scale) {
         eprintln!("vkterrain: note: height scale {h} from --height-scale, not the archive's {}", grid.height_scale);
         grid.height_scale = f64::from(h);
     }
@@ -357,10 +358,17 @@ pub fn streamed_archive(
             ))
             .into());
         }
-        return Ok(Some(Arc::new(crate::app::prepare::prepare_on_the_fly(path, common.raw_size)?)));
+        return Ok(Some(Arc::new(crate::app::prepare::prepare_on_the_fly(path, common)?)));
     }
     if common.voids == crate::input::load::VoidMode::Hole {
         return Ok(None); // refused by the loader, naming the archive
+    }
+    if common.raw_size.is_some() {
+        return Err(InputError(format!(
+            "{}: --raw-size is for raw height files; an archive knows its own size",
+            path.display()
+        ))
+        .into());
     }
     let archive = Archive::open(path).map_err(|e| InputError(e.to_string()))?;
     if !stream && (archive.grid_side() <= 4096 || archive.grid_side() <= max_side()) {

@@ -297,7 +297,6 @@ impl ViewArgs {
             ("--flyover", self.flyover),
             ("--resize-at", !self.resize_at.is_empty()),
             ("--error-mode paper", self.common.error_mode != ErrorMode::Strict),
-            ("--raw-size", self.common.raw_size.is_some()),
             ("--block (an archive fixes k = 33)", self.common.block != 33),
         ]
         .into_iter()
