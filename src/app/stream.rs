@@ -160,13 +160,13 @@ impl GpuFrames {
         Ok(())
     }
 
-    /// Offscreen frames at `width x height` from now on (a window's screenshot).
     /// Lights the frames from `sun`'s direction (`--sun`; with none, from the default
     /// direction, as in memory), without its shadows.
     pub fn sun(&mut self, sun: Option<Sun>) {
         self.light = sun.unwrap_or(Sun::DEFAULT).direction();
     }
 
+    /// Offscreen frames at `width x height` from now on (a window's screenshot).
     pub fn resize(&mut self, width: u32, height: u32) -> anyhow::Result<()> {
         self.renderer.resize(width, height)?;
         Ok(())
