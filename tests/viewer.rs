@@ -450,9 +450,9 @@ xdotool key Escape
 /// cannot honour are refused by name.
 #[test]
 fn the_viewer_flies_over_an_archive_drawn_streamed() {
-    let dir = std::env::temp_dir().join(format!("vkterrain-viewer-archive-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    let archive = dir.join("s.pmtiles");
+    // Removed when dropped, also when an assertion below fails.
+    let dir = common::TempDir::new("viewer-archive");
+    let archive = dir.path().join("s.pmtiles");
     let prepared = Command::new(env!("CARGO_BIN_EXE_vkterrain"))
         .args(["prepare", "--synthetic", "1025", "--out", archive.to_str().unwrap()])
         .env("RUST_LOG", "error")
@@ -498,7 +498,7 @@ xdotool key Escape
         assert!(terrain > 480 * 360 / 5, "{terrain} terrain pixels");
         checked = true;
     });
-    let _ = std::fs::remove_dir_all(&dir);
+    drop(dir);
     assert!(prepared.status.success(), "{}", String::from_utf8_lossy(&prepared.stderr));
     assert!(checked);
     let err = String::from_utf8_lossy(&refused.stderr);
