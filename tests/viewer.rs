@@ -498,9 +498,32 @@ xdotool key Escape
         assert!(terrain > 480 * 360 / 5, "{terrain} terrain pixels");
         checked = true;
     });
+    // --flyover as in memory: north along the middle, three quarters of the way over the
+    // run, reading tiles as it goes.
+    let flown = viewer(&[
+        "--heightmap",
+        archive.to_str().unwrap(),
+        "--stream",
+        "--flyover",
+        "--frames",
+        "10",
+        "--size",
+        "320x240",
+        "--validation",
+        "on",
+    ]);
     drop(dir);
     assert!(prepared.status.success(), "{}", String::from_utf8_lossy(&prepared.stderr));
     assert!(checked);
+    let stdout = String::from_utf8_lossy(&flown.stdout);
+    assert!(flown.status.success(), "{}", String::from_utf8_lossy(&flown.stderr));
+    let json: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
+    assert_eq!((json["frames"].as_u64(), json["validation_messages"].as_u64()), (Some(10), Some(0)), "{json}");
+    // The synthetic terrain: 1025 samples, 30 m apart; the last frame is frame 9 of 10.
+    let side = 1024.0 * 30.0;
+    let end = &json["final_position"];
+    let (x, z) = (end[0].as_f64().unwrap(), end[2].as_f64().unwrap());
+    assert!((x - side / 2.0).abs() < 1.0 && (z - side * (1.0 - 0.75 * 0.9)).abs() < 1.0, "{json}");
     let err = String::from_utf8_lossy(&refused.stderr);
     assert_eq!(refused.status.code(), Some(2), "{err}");
     assert!(err.contains("--texture") && err.contains("streamed"), "{err}");

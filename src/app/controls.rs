@@ -103,6 +103,18 @@ impl Controller {
 
     /// Never below the terrain (seed 002); in walk mode, on the terrain at eye height
     /// (walking off an edge, or switching to walk outside, lands on its border).
+    /// The viewers' `--flyover` at `t` in [0, 1): north from the south edge to three
+    /// quarters of the way across (so the view ends on terrain), above the highest
+    /// ground `top` by a twentieth of the terrain's size, looking ahead and down; kept
+    /// above the ground under it.
+    pub fn fly_over(&mut self, terrain: &dyn Ground, top: f32, t: f32) {
+        let (wx, wz) = terrain.extent();
+        self.position = Vec3::new(wx * 0.5, top + 0.05 * wx.max(wz), wz * (1.0 - 0.75 * t));
+        self.yaw = -std::f32::consts::FRAC_PI_2;
+        self.pitch = -0.35;
+        self.clamp_to_ground(terrain);
+    }
+
     pub fn clamp_to_ground(&mut self, terrain: &dyn Ground) {
         let (wx, wz) = terrain.extent();
         let ground = terrain.height(self.position.x.clamp(0.0, wx), self.position.z.clamp(0.0, wz));
@@ -246,4 +258,13 @@ pub(crate) fn open_window(
         }
     }
     Ok((window, surface, device))
+}
+
+/// Where the `--flyover` is at frame `frame`: over the run with `--frames N`, else once
+/// every 60 seconds since `started`.
+pub fn flyover_time(frames: Option<u64>, frame: u64, started: std::time::Instant) -> f32 {
+    match frames {
+        Some(n) => frame as f32 / n.max(1) as f32,
+        None => (started.elapsed().as_secs_f32() / 60.0).fract(),
+    }
 }

@@ -32,7 +32,8 @@ pub struct StreamReadout {
     pub uploaded_tiles: u64,
     pub device: String,
     pub queue_mode: String,
-    pub walk: bool,
+    /// "flyover", "walk" or "fly".
+    pub camera: &'static str,
     pub position: Vec3,
     pub above_ground: f32,
     /// CPU time the panel took last frame.
@@ -117,7 +118,7 @@ fn panel(ui: &mut egui::Ui, r: &StreamReadout, history: &FrameHistory, now: f64,
         // The name without the driver's details in brackets (it fits the panel).
         row("device", r.device.split(" (").next().unwrap_or_default().chars().take(24).collect());
         row("queues", r.queue_mode.clone());
-        row("camera", if r.walk { "walk" } else { "fly" }.into());
+        row("camera", r.camera.into());
         row("position", format!("{:.0}, {:.0}, {:.0}", r.position.x, r.position.y, r.position.z));
         row("above ground", format!("{:.0}", r.above_ground));
     });

@@ -11,7 +11,7 @@
 //! figures too.
 
 use crate::app::cli::{check_messages, CommonArgs};
-use crate::app::controls::{delta_key, Controller, Ground, Input};
+use crate::app::controls::{delta_key, flyover_time, Controller, Ground, Input};
 use crate::app::hud::{Hud, Legend};
 use crate::app::outputs::save_png;
 use crate::app::stream::{top_tiles, GpuFrames};
@@ -64,6 +64,8 @@ pub struct StreamViewOptions {
     pub gpu_mb: u32,
     /// Start with the panel hidden (H shows it).
     pub no_hud: bool,
+    /// The in-memory viewer's `--flyover` (the tiles read as it goes).
+    pub flyover: bool,
 }
 
 /// Everything that lives while the window is open, in drop order.
@@ -301,7 +303,12 @@ impl App {
         let dt = (now - self.last_frame).as_secs_f32().min(0.25);
         self.last_frame = now;
         let before = self.ctl.position;
-        self.ctl.update(&HeldGround(&self.streamer), dt);
+        if self.args.flyover {
+            let t = flyover_time(self.args.frames, self.run.frames, self.started);
+            self.ctl.fly_over(&HeldGround(&self.streamer), self.range.world[1], t);
+        } else {
+            self.ctl.update(&HeldGround(&self.streamer), dt);
+        }
         let velocity = (self.ctl.position - before) / dt.max(1e-6);
         let Some(gpu) = self.gpu.as_ref() else { return Ok(()) };
         let extent = gpu.swapchain.extent;
@@ -425,7 +432,13 @@ impl App {
             uploaded_tiles: report["tiles_uploaded"].as_u64().unwrap_or(0),
             device: gpu.frames.device.name.clone(),
             queue_mode: gpu.frames.device.queue_mode.as_str().into(),
-            walk: self.ctl.walk,
+            camera: if self.args.flyover {
+                "flyover"
+            } else if self.ctl.walk {
+                "walk"
+            } else {
+                "fly"
+            },
             position: p,
             above_ground: p.y - HeldGround(&self.streamer).height(p.x, p.z),
             panel_ms: gpu.hud.last_ms,

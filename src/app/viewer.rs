@@ -4,7 +4,7 @@
 
 use crate::app::cli::{CommonArgs, InputError, TextureArgs, Textures};
 use crate::app::commands::Session;
-use crate::app::controls::{delta_key, Controller, Input};
+use crate::app::controls::{delta_key, flyover_time, Controller, Input};
 use crate::app::hud::{Controls, Hud, Ranges, Readout};
 use crate::app::outputs::save_png;
 use crate::draw::blocks::{BlocksRenderer, DrawStats, FrameDest, FrameSync, PixelPass, Shading, DEPTH_FORMAT};
@@ -294,7 +294,6 @@ impl ViewArgs {
             ("--record-path", self.record_path.is_some()),
             ("--go-to", self.go_to.is_some()),
             ("--exaggeration", self.exaggeration != 1.0),
-            ("--flyover", self.flyover),
             ("--resize-at", !self.resize_at.is_empty()),
             ("--error-mode paper", self.common.error_mode != ErrorMode::Strict),
             ("--block (an archive fixes k = 33)", self.common.block != 33),
@@ -341,6 +340,7 @@ fn view_archive(args: &ViewArgs) -> anyhow::Result<bool> {
         cache_mb: args.streamed.cache_mb(),
         gpu_mb: args.streamed.gpu_mb(),
         no_hud: args.no_hud,
+        flyover: args.flyover,
     };
     crate::app::stream_view::view_streamed(&options, archive)?;
     Ok(true)
@@ -604,17 +604,9 @@ impl App {
         let gpu = self.gpu.as_ref().unwrap();
         let extent = gpu.swapchain.extent;
         if self.args.flyover {
-            let (wx, wz) = self.hf.world_extent();
-            let t = match self.args.frames {
-                Some(n) => self.frame as f32 / n.max(1) as f32,
-                None => (self.started.elapsed().as_secs_f32() / 60.0).fract(),
-            };
+            let t = flyover_time(self.args.frames, self.frame, self.started);
             let top = self.mm.range()[1] * self.hf.height_scale;
-            // South edge to three quarters of the way north, so the view ends on terrain.
-            self.ctl.position = Vec3::new(wx * 0.5, top + 0.05 * wx.max(wz), wz * (1.0 - 0.75 * t));
-            self.ctl.yaw = -std::f32::consts::FRAC_PI_2;
-            self.ctl.pitch = -0.35;
-            self.ctl.clamp_to_ground(&*self.hf);
+            self.ctl.fly_over(&*self.hf, top, t);
         } else {
             let before = self.ctl.position;
             self.ctl.update(&*self.hf, dt);
