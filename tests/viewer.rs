@@ -443,6 +443,51 @@ xdotool key Escape
     });
 }
 
+/// `--go-to` puts the streamed viewer where the in-memory one goes: the same latitude and
+/// longitude on the same world (SRTM Rainier, a geographic CRS), under validation; an
+/// archive that says nothing about where it is refuses it (exit 2).
+#[test]
+fn the_streamed_viewer_goes_to_a_latitude_as_in_memory() {
+    let dir = common::TempDir::new("viewer-go-to");
+    let dem = common::data("srtm3/mt_rainier_90m.tif");
+    let archive = dir.path().join("r.pmtiles");
+    let a = archive.to_str().unwrap();
+    let prepared = Command::new(env!("CARGO_BIN_EXE_vkterrain"))
+        .args(["prepare", dem.to_str().unwrap(), "--out", a])
+        .env("RUST_LOG", "error")
+        .output()
+        .unwrap();
+    assert!(prepared.status.success(), "{}", String::from_utf8_lossy(&prepared.stderr));
+    let run = |heightmap: &str, stream: bool| {
+        let mut args = vec!["--heightmap", heightmap, "--size", "160x120", "--frames", "2", "--validation", "on"];
+        args.extend(["--go-to", "46.8529 N 121.7604 W"]);
+        if stream {
+            args.push("--stream");
+        }
+        let out = viewer(&args);
+        let stdout = String::from_utf8_lossy(&out.stdout);
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        let json: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
+        assert_eq!(json["validation_messages"], 0, "{json}");
+        let p = &json["final_position"];
+        (p[0].as_f64().unwrap(), p[2].as_f64().unwrap())
+    };
+    let (memory, streamed) = (run(dem.to_str().unwrap(), false), run(a, true));
+    assert!((memory.0 - streamed.0).abs() < 1.0 && (memory.1 - streamed.1).abs() < 1.0, "{memory:?} {streamed:?}");
+    // An archive of a PNG (no georeferencing) refuses it, naming the problem.
+    let png = dir.path().join("p.pmtiles");
+    let ps = common::data("puget_sound/ps_height_1k.png");
+    let o = Command::new(env!("CARGO_BIN_EXE_vkterrain"))
+        .args(["prepare", ps.to_str().unwrap(), "--out", png.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(o.status.success());
+    let out = viewer(&["--heightmap", png.to_str().unwrap(), "--stream", "--frames", "1", "--go-to", "46.85,-121.76"]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(err.contains("--go-to") && err.contains("says nothing about where it is"), "{err}");
+}
+
 /// The viewer over an archive drawn streamed (`--stream`; archives larger than one image
 /// always are), driven by xdotool: `]` doubles delta, a drag turns the view, holding W
 /// flies forward over tiles read while it moves, its panel is drawn until H hides it, P

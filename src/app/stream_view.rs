@@ -66,6 +66,8 @@ pub struct StreamViewOptions {
     pub no_hud: bool,
     /// The in-memory viewer's `--flyover` (the tiles read as it goes).
     pub flyover: bool,
+    /// Start over this latitude and longitude (degrees), as the in-memory `--go-to`.
+    pub go_to: Option<[f64; 2]>,
 }
 
 /// Everything that lives while the window is open, in drop order.
@@ -143,6 +145,33 @@ fn start_view(grid: &Grid, [lo, hi]: [f32; 2]) -> (Vec3, Vec3) {
     (Vec3::new(wx * 0.5, hi + 0.08 * l, wz * 0.92), Vec3::new(wx * 0.5, lo, wz * 0.35))
 }
 
+/// `--go-to` as the in-memory viewer's: `from` moved over a latitude and longitude, as
+/// high above the ground there as it is above the ground under it (at least a fiftieth
+/// of the terrain's size), the ground from the tiles held.
+fn go_to(
+    meta: &crate::input::archive::Meta,
+    grid: &Grid,
+    streamer: &Streamer,
+    from: Vec3,
+    lat: f64,
+    lon: f64,
+) -> anyhow::Result<Vec3> {
+    let spacing = crate::lod::heightfield::Spacing { x: grid.spacing[0] as f32, z: grid.spacing[1] as f32 };
+    let Some(geo) = crate::app::geo::Geo::new(&meta.georef, spacing) else {
+        return Err(crate::app::cli::InputError(format!(
+            "--go-to: {} says nothing about where it is (no CRS or geotransform)",
+            meta.source
+        ))
+        .into());
+    };
+    let Some((x, z)) = geo.world_of(lat, lon) else { return Ok(from) };
+    let ground = HeldGround(streamer);
+    let (wx, wz) = ground.extent();
+    let at = |x: f32, z: f32| ground.height(x.clamp(0.0, wx), z.clamp(0.0, wz));
+    let above = (from.y - at(from.x, from.z)).max(0.02 * wx.max(wz));
+    Ok(Vec3::new(x, at(x, z) + above, z))
+}
+
 /// `vkterrain view` over an archive drawn streamed.
 pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow::Result<()> {
     let shown = crate::app::stream::terrain_name(&args.common);
@@ -165,6 +194,10 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
     let near = near_plane_for(grid.spacing[0].min(grid.spacing[1]) as f32);
     let (position, target) = args.common.view_points(|| start_view(&grid, range.world)).map_err(anyhow::Error::from)?;
     let f = (target - position).normalize();
+    let position = match args.go_to {
+        Some([lat, lon]) => go_to(&archive.meta, &grid, &streamer, position, lat, lon)?,
+        None => position,
+    };
     // As `render` does: the first view's tiles are read before its first frame (in walk
     // mode, once the camera stands on the ground they bring).
     let (w, h) = args.common.size.unwrap_or((1280, 720));

@@ -292,7 +292,6 @@ impl ViewArgs {
             ("--detail", self.textures.detail.is_some()),
             ("--trace", self.trace.is_some()),
             ("--record-path", self.record_path.is_some()),
-            ("--go-to", self.go_to.is_some()),
             ("--exaggeration", self.exaggeration != 1.0),
             ("--resize-at", !self.resize_at.is_empty()),
             ("--error-mode paper", self.common.error_mode != ErrorMode::Strict),
@@ -341,6 +340,7 @@ fn view_archive(args: &ViewArgs) -> anyhow::Result<bool> {
         gpu_mb: args.streamed.gpu_mb(),
         no_hud: args.no_hud,
         flyover: args.flyover,
+        go_to: args.go_to,
     };
     crate::app::stream_view::view_streamed(&options, archive)?;
     Ok(true)
