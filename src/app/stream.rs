@@ -191,16 +191,10 @@ impl GpuFrames {
     }
 }
 
-/// The terrain's world heights for the colour ramp, sea level and default view: those
-/// of every sample, which `prepare` records (`Meta::raw_range`), so that they are the
-/// same terrain's in memory; an archive written before that gives its root blocks'
-/// (from the top tiles, which a settled frame holds; `None` before they arrive).
-pub(crate) fn height_range(streamer: &Streamer, meta: &Meta) -> Option<HeightRange> {
+/// The world heights the root blocks span, from the top tiles, which a settled frame
+/// holds; `None` while any is missing.
+fn top_tiles_range(streamer: &Streamer) -> Option<[f32; 2]> {
     let grid = &streamer.grid;
-    let absolute = meta.georef.absolute_heights;
-    if let Some(raw) = meta.raw_range {
-        return Some(HeightRange { world: raw.map(|h| (f64::from(h) * grid.height_scale) as f32), absolute });
-    }
     let root = crate::stream::cache::root_lod(grid);
     let [nx, nz] = grid.tiles_at(grid.top);
     let mut range: Option<[f32; 2]> = None;
@@ -212,7 +206,19 @@ pub(crate) fn height_range(streamer: &Streamer, meta: &Meta) -> Option<HeightRan
             range = Some(range.map_or([lo, hi], |[a, c]| [a.min(lo), c.max(hi)]));
         }
     }
-    range.map(|world| HeightRange { world, absolute })
+    range
+}
+
+/// The terrain's world heights for the colour ramp, sea level and default view: those
+/// of every sample, which `prepare` records (`Meta::raw_range`), so that they are the
+/// same terrain's in memory; an archive written before that gives its root blocks'
+/// ([`top_tiles_range`]).
+pub(crate) fn height_range(streamer: &Streamer, meta: &Meta) -> Option<HeightRange> {
+    let world = match meta.raw_range {
+        Some(raw) => raw.map(|h| (f64::from(h) * streamer.grid.height_scale) as f32),
+        None => top_tiles_range(streamer)?,
+    };
+    Some(HeightRange { world, absolute: meta.georef.absolute_heights })
 }
 
 /// Reads the top tiles (a view of the whole terrain from high above, nothing split) and
@@ -231,11 +237,7 @@ pub(crate) fn top_tiles(streamer: &mut Streamer, meta: &Meta) -> anyhow::Result<
         1.0,
     );
     settle(streamer, |_| overview, f32::MAX);
-    let root = crate::stream::cache::root_lod(&grid);
-    let held = (0..grid.tiles_at(grid.top)[1]).all(|tz| {
-        (0..grid.tiles_at(grid.top)[0])
-            .all(|tx| streamer.cache.peek(crate::stream::cache::serving_tile(&grid, root, tx, tz)).is_some())
-    });
+    let held = top_tiles_range(streamer).is_some();
     let range = height_range(streamer, meta).filter(|_| held).ok_or_else(|| {
         let why = streamer.first_failure.clone().unwrap_or_else(|| "the cache cannot hold them".into());
         anyhow::Error::from(InputError(format!("the archive's top tiles could not be read: {why}")))
