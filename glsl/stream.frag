@@ -12,6 +12,7 @@
 layout(location = 0) in vec3 v_relative;
 layout(location = 1) in vec2 v_sample;
 layout(location = 2) in float v_sea;
+layout(location = 3) flat in int v_lod;
 layout(location = 0) out vec4 out_color;
 
 void main() {
@@ -19,6 +20,11 @@ void main() {
     vec3 n = normalize(cross(dFdy(v_relative), dFdx(v_relative)));
     if (n.y < 0.0) n = -n;
     vec3 albedo = ground_colour(v_relative.y, 1.0 - n.y, v_sea) * procedural_detail(v_sample);
+    // Colour by LOD (frame.flags.y), mixed as in memory (terrain_shade.glsl).
+    if (frame.flags.y != 0) {
+        vec3 palette[] = LOD_PALETTE;
+        albedo = mix(albedo, palette[v_lod % palette.length()], 0.6);
+    }
     float lit = frame.light.w + (1.0 - frame.light.w) * max(dot(n, frame.light.xyz), 0.0);
     vec3 c = albedo * lit;
     float d = length(v_relative - frame.camera_fog.xyz);

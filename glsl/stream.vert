@@ -17,6 +17,8 @@ layout(location = 1) out vec2 v_sample;
 // 1 at a vertex at or below sea level: interpolated, the share of sea around a point
 // (streamed tiles bring no per-sample flags; in memory the four samples around it).
 layout(location = 2) out float v_sea;
+// The block's LOD (the colour-by-LOD view).
+layout(location = 3) flat out int v_lod;
 
 void main() {
     vec3 p = place_block_vertex(ivec2(in_local));
@@ -25,5 +27,6 @@ void main() {
     // only decides the last half sample at the far edges).
     v_sample = p.xz / frame.spacing.xy + vec2(frame.anchor.xy);
     v_sea = float(p.y <= frame.texturing.w);
+    v_lod = block_pc.block.w;
     gl_Position = frame.view_proj * vec4(p, 1.0);
 }

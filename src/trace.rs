@@ -13,6 +13,8 @@ use std::time::Instant;
 /// Thread ids in the trace.
 pub const DRAW_TID: u32 = 1;
 pub const ERRORS_TID: u32 = 2;
+/// A streamed terrain's IO thread (tile reads).
+pub const IO_TID: u32 = 3;
 /// GPU tracks: what each queue executed, from timestamp queries. With one shared queue
 /// both activities' work is on [`GPU_DRAW_QUEUE_TID`].
 pub const GPU_DRAW_QUEUE_TID: u32 = 10;
@@ -50,6 +52,7 @@ impl Trace {
         t.push(
             json!({"ph": "M", "pid": 1, "tid": ERRORS_TID, "name": "thread_name", "args": {"name": "errors activity"}}),
         );
+        t.push(json!({"ph": "M", "pid": 1, "tid": IO_TID, "name": "thread_name", "args": {"name": "IO (tile reads, streamed terrains)"}}));
         Ok(t)
     }
 

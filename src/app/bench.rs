@@ -158,6 +158,16 @@ pub fn write_poses(poses: &[(Vec3, Vec3)]) -> String {
     out
 }
 
+/// Writes a viewer's flight to `path` (`--record-path`), replaced whole, and says so.
+pub fn record_poses(path: &std::path::Path, flight: &[(Vec3, Vec3)]) -> anyhow::Result<()> {
+    let text = write_poses(flight);
+    crate::app::outputs::write_atomic(path, |tmp| {
+        std::fs::write(tmp, &text).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))
+    })?;
+    println!("vkterrain: recorded {} poses to {}", flight.len(), path.display());
+    Ok(())
+}
+
 /// One row of frames.csv.
 #[derive(Clone, Debug, Default)]
 struct Row {
@@ -1163,10 +1173,14 @@ fn bench_streamed(
         .into());
     }
     std::fs::create_dir_all(&args.out).map_err(|e| anyhow::anyhow!("{}: {e}", args.out.display()))?;
+    // The three threads' work: each frame's selection and drawing, the IO thread's reads,
+    // the atlas's uploads (CPU tracks only: streamed frames take no timestamps).
+    let trace_path = args.out.join("trace.json");
+    let trace = Trace::to_file(&trace_path).map_err(|e| anyhow::anyhow!("{}: {e}", trace_path.display()))?;
     let grid = streamed_grid(&archive, &args.common);
     let (cache_mb, gpu_mb) = (args.streamed.cache_mb(), args.streamed.gpu_mb());
     let layers = device.properties.limits.max_image_array_layers;
-    let mut streamer = atlas_bound_streamer(archive.clone(), grid, cache_mb, gpu_mb, layers)?;
+    let mut streamer = atlas_bound_streamer(archive.clone(), grid, cache_mb, gpu_mb, layers, &trace)?;
     let range = top_tiles(&mut streamer, &archive.meta)?;
     let [wx, wz] = grid.world_extent().map(|e| e as f32);
     let near = crate::lod::view::near_plane_for(grid.spacing[0].min(grid.spacing[1]) as f32);
@@ -1192,7 +1206,7 @@ fn bench_streamed(
         View::look_at(p.as_dvec3(), l.as_dvec3(), fovy, size.0, size.1, near)
     };
     let messages = device.instance.messages.clone();
-    let mut gpu = GpuFrames::new(device.clone(), &mut streamer, gpu_mb, range, size)?;
+    let mut gpu = GpuFrames::new(device.clone(), &mut streamer, gpu_mb, range, size, &trace)?;
     gpu.sun(args.common.sun.0);
     // As the in-memory bench: frames are drawn, not read back.
     gpu.read_back = false;
@@ -1213,11 +1227,14 @@ fn bench_streamed(
         // The camera half a second ahead along the path: its tiles are asked for next.
         let ahead = view((i + 15).min(frames - 1));
         let sel = streamer.frame(&v, Some(&ahead), args.delta, 0.5);
-        let select_ms = t0.elapsed().as_secs_f64() * 1e3;
         let t1 = Instant::now();
+        let select_ms = (t1 - t0).as_secs_f64() * 1e3;
+        trace.complete(DRAW_TID, "select (traversal over held tiles)", t0, t1, json!({"frame": i}));
         gpu.draw(&streamer, &grid, &v, &sel, None)?;
         let draw_ms = t1.elapsed().as_secs_f64() * 1e3;
         let ms = t0.elapsed().as_secs_f64() * 1e3;
+        trace.complete(DRAW_TID, "frame", t0, Instant::now(), json!({"frame": i, "over_bound": sel.over_bound}));
+        trace.counter("tiles held", streamer.cache.len() as u64);
         frame_ms.push(ms);
         triangles += gpu.triangles;
         csv += &format!(
@@ -1260,6 +1277,8 @@ fn bench_streamed(
     });
     drop(gpu);
     drop(device);
+    drop(streamer); // joins the IO thread: its last read is in the trace
+    trace.finish().map_err(|e| anyhow::anyhow!("{}: {e}", trace_path.display()))?;
     write_atomic(&args.out.join("frames.csv"), |tmp| Ok(std::fs::write(tmp, &csv)?))?;
     let text = serde_json::to_string_pretty(&summary)?;
     write_atomic(&args.out.join("summary.json"), |tmp| Ok(std::fs::write(tmp, &text)?))?;

@@ -84,7 +84,6 @@ impl RenderArgs {
             ("--audit (a streamed frame is audited offline against the full data: SPEC 8)", self.audit),
             ("--lod full|distance", self.lod != LodChoice::Error),
             ("--error-mode paper", c.error_mode != crate::lod::gie::ErrorMode::Strict),
-            ("--colour-by-lod", self.colour_by_lod),
             ("--background", self.background.is_some()),
             ("--pixels forward", self.pixels != PixelPass::Deferred),
             ("--raycast", self.raycast != Raycast::Off),
@@ -375,6 +374,7 @@ fn render_streamed(args: &RenderArgs, device: Arc<Device>, archive: Arc<Archive>
         fog: args.fog,
         cache_mb: args.streamed.cache_mb(),
         gpu_mb: args.streamed.gpu_mb(),
+        colour_by_lod: args.colour_by_lod,
     })?;
     save_png(&args.out, r.width, r.height, &r.pixels)?;
     let mut out = r.report;

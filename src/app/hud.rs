@@ -306,27 +306,9 @@ fn panel(ui: &mut egui::Ui, r: &Readout, history: &FrameHistory, now: f64, c: &m
         .on_hover_text("shade each visible pixel once, after a depth-only pass over the blocks")
         .on_disabled_hover_text("wireframe and LOD colours are shaded forward");
     if c.colour_by_lod {
-        ui.horizontal_wrapped(|ui| {
-            ui.label("LOD");
-            for (i, col) in LOD_PALETTE.iter().enumerate() {
-                let (rect, _) = ui.allocate_exact_size(Vec2::splat(12.0), Sense::hover());
-                let rgb = |v: f32| (v * 255.0).round() as u8;
-                ui.painter().rect_filled(rect, 2.0, Color32::from_rgb(rgb(col[0]), rgb(col[1]), rgb(col[2])));
-                ui.label(if i + 1 == LOD_PALETTE.len() {
-                    format!("{i}, {}..", i + LOD_PALETTE.len())
-                } else {
-                    i.to_string()
-                });
-            }
-        });
-        ui.small("0 is the finest level; colours repeat every 6 levels, mixed 60 % over the ground.");
+        lod_legend(ui);
     }
-    ui.horizontal(|ui| {
-        ui.label("vertical x");
-        ui.add(egui::Slider::new(&mut c.exaggeration, 0.25..=20.0).logarithmic(true).fixed_decimals(2)).on_hover_text(
-            "vertical exaggeration: heights drawn this many times their scale (errors recomputed on release)",
-        );
-    });
+    exaggeration_slider(ui, &mut c.exaggeration, "errors recomputed on release");
     fog_slider(ui, &mut c.fog_density, ranges.fog_default);
     let mut shadows = c.sun.is_some();
     ui.horizontal(|ui| {
@@ -353,6 +335,47 @@ fn panel(ui: &mut egui::Ui, r: &Readout, history: &FrameHistory, now: f64, c: &m
         }
         ui.small("F1 keys, H hides this panel");
     });
+}
+
+/// The colour-by-LOD view's palette, level by level.
+pub(crate) fn lod_legend(ui: &mut egui::Ui) {
+    ui.horizontal_wrapped(|ui| {
+        ui.label("LOD");
+        for (i, col) in LOD_PALETTE.iter().enumerate() {
+            let (rect, _) = ui.allocate_exact_size(Vec2::splat(12.0), Sense::hover());
+            let rgb = |v: f32| (v * 255.0).round() as u8;
+            ui.painter().rect_filled(rect, 2.0, Color32::from_rgb(rgb(col[0]), rgb(col[1]), rgb(col[2])));
+            ui.label(if i + 1 == LOD_PALETTE.len() {
+                format!("{i}, {}..", i + LOD_PALETTE.len())
+            } else {
+                i.to_string()
+            });
+        }
+    });
+    ui.small("0 is the finest level; colours repeat every 6 levels, mixed 60 % over the ground.");
+}
+
+/// The vertical exaggeration, over [`EXAGGERATION_RANGE`]; `when` says when a change
+/// takes effect.
+pub(crate) fn exaggeration_slider(ui: &mut egui::Ui, exaggeration: &mut f32, when: &str) {
+    ui.horizontal(|ui| {
+        ui.label("vertical x");
+        let range = EXAGGERATION_RANGE[0]..=EXAGGERATION_RANGE[1];
+        ui.add(egui::Slider::new(exaggeration, range).logarithmic(true).fixed_decimals(2))
+            .on_hover_text(format!("vertical exaggeration: heights drawn this many times their scale ({when})"));
+    });
+}
+
+/// The vertical exaggeration's range (the slider's, and Z / X's steps of 1.5 stop there).
+pub(crate) const EXAGGERATION_RANGE: [f32; 2] = [0.25, 20.0];
+
+/// The exaggeration after Z (less) or X (more), or None for another key.
+pub(crate) fn exaggeration_key(code: winit::keyboard::KeyCode, exaggeration: f32) -> Option<f32> {
+    match code {
+        winit::keyboard::KeyCode::KeyX => Some((exaggeration * 1.5).min(EXAGGERATION_RANGE[1])),
+        winit::keyboard::KeyCode::KeyZ => Some((exaggeration / 1.5).max(EXAGGERATION_RANGE[0])),
+        _ => None,
+    }
 }
 
 pub(crate) fn delta_slider(ui: &mut egui::Ui, delta: &mut f32) {

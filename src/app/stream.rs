@@ -9,9 +9,11 @@ use crate::draw::streamed::{FrameView, HeightRange, Overlay, StreamedRenderer, W
 use crate::errors::atlas::HeightAtlas;
 use crate::input::archive::{Archive, Meta};
 use crate::lod::view::{near_plane_for, view_of_box};
+use crate::stream::io::TileSource;
 use crate::stream::streamer::{StreamStats, Streamer};
 use crate::stream::traverse::{Selection, View};
-use crate::stream::Grid;
+use crate::stream::{Grid, TileKey};
+use crate::trace::{Trace, DRAW_TID, IO_TID};
 use crate::vk::Device;
 use glam::DVec3;
 use std::path::PathBuf;
@@ -66,11 +68,14 @@ pub(crate) struct GpuFrames {
     renderer: StreamedRenderer,
     atlas: HeightAtlas,
     pub device: Arc<Device>,
-    range: HeightRange,
+    /// The terrain's heights (the colour ramp, sea level).
+    pub range: HeightRange,
     /// Exponential fog density per world unit.
     pub fog: f32,
     /// Unit vector towards the sun ([`GpuFrames::sun`]).
     light: glam::Vec3,
+    /// Blocks tinted by their LOD.
+    pub colour_by_lod: bool,
     frames: u64,
     /// Frames where some block's tile found no atlas layer (those blocks not drawn).
     pub frames_missing_blocks: u64,
@@ -82,21 +87,25 @@ pub(crate) struct GpuFrames {
     pub last: Vec<u8>,
     /// Offscreen frames are read back into `last` (a benchmark's are not).
     pub read_back: bool,
+    trace: Trace,
 }
 
 impl GpuFrames {
     /// An atlas of `mb` MB on `device`, attached to `streamer` (tiles it reads are
     /// uploaded by the atlas's thread before the traversal may use them), and a `size`
-    /// target; `range`: the terrain's heights (the colour ramp).
+    /// target; `range`: the terrain's heights (the colour ramp). Frames and the atlas's
+    /// uploads are recorded in `trace`.
     pub fn new(
         device: Arc<Device>,
         streamer: &mut Streamer,
         mb: u32,
         range: HeightRange,
         size: (u32, u32),
+        trace: &Trace,
     ) -> anyhow::Result<Self> {
         let grid = &streamer.grid.clone();
-        let atlas = HeightAtlas::new(&device, grid, u64::from(mb) << 20).map_err(|e| InputError(e.to_string()))?;
+        let atlas = HeightAtlas::traced(&device, grid, u64::from(mb) << 20, trace.clone())
+            .map_err(|e| InputError(e.to_string()))?;
         eprintln!(
             "vkterrain: atlas of {} layers ({} x {} {}) on {}, uploaded by its own thread on the {} queue",
             atlas.layer_count(),
@@ -115,6 +124,7 @@ impl GpuFrames {
             range,
             fog: 0.0,
             light: Sun::DEFAULT.direction(),
+            colour_by_lod: false,
             frames: 0,
             frames_missing_blocks: 0,
             blocks: 0,
@@ -122,6 +132,7 @@ impl GpuFrames {
             drawing: Duration::ZERO,
             last: Vec::new(),
             read_back: true,
+            trace: trace.clone(),
         })
     }
 
@@ -142,7 +153,15 @@ impl GpuFrames {
             anyhow::bail!(failure);
         }
         let (anchor, cam) = view.relative(grid);
-        let fv = FrameView { grid, anchor, cam, heights: self.range, fog: self.fog, light: self.light };
+        let fv = FrameView {
+            grid,
+            anchor,
+            cam,
+            heights: self.range,
+            fog: self.fog,
+            light: self.light,
+            colour_by_lod: self.colour_by_lod,
+        };
         let stats = match window {
             Some((w, overlay)) => self.renderer.render_to_window(&self.atlas, &fv, &blocks, w, overlay)?,
             None if !self.read_back => self.renderer.render_unread(&self.atlas, &fv, &blocks)?,
@@ -157,6 +176,8 @@ impl GpuFrames {
         self.blocks = stats.blocks;
         self.triangles = stats.blocks as u64 * crate::stream::draw::layout(grid).triangles_per_block();
         self.drawing += t0.elapsed();
+        let args = serde_json::json!({"frame": self.frames, "blocks": stats.blocks, "missing": stats.missing});
+        self.trace.complete(DRAW_TID, "draw (record, submit, wait)", t0, Instant::now(), args);
         Ok(())
     }
 
@@ -272,15 +293,36 @@ pub(crate) fn streamed_grid(archive: &Archive, common: &CommonArgs) -> Grid {
     grid
 }
 
+/// An archive whose reads (on the IO thread) are recorded in a trace, one span a tile.
+struct TracedSource {
+    archive: Arc<Archive>,
+    trace: Trace,
+}
+
+impl TileSource for TracedSource {
+    fn read(&self, key: TileKey) -> Result<Option<(crate::input::archive::tile::Tile, u64)>, String> {
+        let t0 = Instant::now();
+        let read = TileSource::read(&*self.archive, key);
+        let args = match &read {
+            Ok(Some((_, bytes))) => serde_json::json!({"level": key.level, "tx": key.tx, "tz": key.tz, "bytes": bytes}),
+            Ok(None) => serde_json::json!({"level": key.level, "tx": key.tx, "tz": key.tz, "absent": true}),
+            Err(e) => serde_json::json!({"level": key.level, "tx": key.tx, "tz": key.tz, "failed": e}),
+        };
+        self.trace.complete(IO_TID, "read tile", t0, Instant::now(), args);
+        read
+    }
+}
+
 /// A streamer for `archive` whose host cache of `cache_mb` never holds more tiles than an
 /// atlas of `gpu_mb` has layers (`device_limit`: the device's array layers), so that
-/// every tile a frame draws from has a layer.
+/// every tile a frame draws from has a layer. Its IO thread's reads go into `trace`.
 pub(crate) fn atlas_bound_streamer(
     archive: Arc<Archive>,
     grid: Grid,
     cache_mb: u32,
     gpu_mb: u32,
     device_limit: u32,
+    trace: &Trace,
 ) -> anyhow::Result<Streamer> {
     let layers = HeightAtlas::layers_for(&grid, u64::from(gpu_mb) << 20, device_limit);
     if layers == 0 {
@@ -290,7 +332,11 @@ pub(crate) fn atlas_bound_streamer(
         ))
         .into());
     }
-    let mut streamer = Streamer::new(archive, grid, cache_mb as usize * (1 << 20));
+    let source: Arc<dyn TileSource> = match trace.enabled() {
+        true => Arc::new(TracedSource { archive, trace: trace.clone() }),
+        false => archive,
+    };
+    let mut streamer = Streamer::new(source, grid, cache_mb as usize * (1 << 20));
     streamer.limit_tiles(HeightAtlas::cache_tiles(layers));
     Ok(streamer)
 }
@@ -389,6 +435,8 @@ pub struct ArchiveFrame<'a> {
     pub fog: f32,
     pub cache_mb: u32,
     pub gpu_mb: u32,
+    /// Blocks tinted by their LOD.
+    pub colour_by_lod: bool,
 }
 
 /// What [`render_archive`] drew: the pixels and the JSON facts.
@@ -411,7 +459,7 @@ pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
         return Err(InputError(format!("--size {w}x{h}: larger than the device's maxImageDimension2D ({max})")).into());
     }
     let layers = f.device.properties.limits.max_image_array_layers;
-    let mut streamer = atlas_bound_streamer(f.archive.clone(), grid, f.cache_mb, f.gpu_mb, layers)?;
+    let mut streamer = atlas_bound_streamer(f.archive.clone(), grid, f.cache_mb, f.gpu_mb, layers, &Trace::off())?;
     let near = near_plane_for(grid.spacing[0].min(grid.spacing[1]) as f32);
     let extent = grid.world_extent();
     // The top tiles first: the default view frames the terrain's height range.
@@ -423,8 +471,9 @@ pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
     streamer.stats = StreamStats { worst_factor: 1.0, ..Default::default() };
     let (_, sel) = settle(&mut streamer, |_| view, f.delta);
     let settle_ms = warm.elapsed().as_secs_f64() * 1e3;
-    let mut gpu = GpuFrames::new(f.device.clone(), &mut streamer, f.gpu_mb, range, (w, h))?;
+    let mut gpu = GpuFrames::new(f.device.clone(), &mut streamer, f.gpu_mb, range, (w, h), &Trace::off())?;
     gpu.fog = f.fog;
+    gpu.colour_by_lod = f.colour_by_lod;
     gpu.sun(f.common.sun.0);
     gpu.draw(&streamer, &grid, &view, &sel, None)?;
     let missing = gpu.frames_missing_blocks > 0;
@@ -531,7 +580,7 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
     let mut streamer = match (args.gpu_mb, &device) {
         (Some(mb), Some(d)) => {
             let layers = d.properties.limits.max_image_array_layers;
-            atlas_bound_streamer(archive.clone(), grid, args.cache_mb, mb, layers)?
+            atlas_bound_streamer(archive.clone(), grid, args.cache_mb, mb, layers, &Trace::off())?
         }
         _ => Streamer::new(archive.clone(), grid, args.cache_mb as usize * (1 << 20)),
     };
@@ -553,7 +602,7 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
         (Some(mb), Some(device)) => {
             let range = height_range(&streamer, &archive.meta)
                 .unwrap_or(HeightRange { world: [0.0, 1.0], absolute: archive.meta.georef.absolute_heights });
-            Some(GpuFrames::new(device, &mut streamer, mb, range, args.size)?)
+            Some(GpuFrames::new(device, &mut streamer, mb, range, args.size, &Trace::off())?)
         }
         _ => None,
     };

@@ -5,7 +5,8 @@
 //! tiles held, read, evicted and uploaded, and the bytes read.
 
 use crate::app::hud::{
-    delta_slider, fog_slider, keys_window, legend, panel_window, plot, speed_slider, FrameHistory, Legend,
+    delta_slider, exaggeration_slider, fog_slider, keys_window, legend, lod_legend, panel_window, plot, speed_slider,
+    FrameHistory, Legend,
 };
 use egui::Color32;
 use glam::Vec3;
@@ -50,6 +51,10 @@ pub struct StreamControls {
     pub delta: f32,
     pub fog_density: f32,
     pub speed: f32,
+    /// Vertical exaggeration (applied at once: no errors to recompute).
+    pub exaggeration: f32,
+    /// Blocks tinted by their LOD.
+    pub colour_by_lod: bool,
     /// Set for one frame by the "Home" button.
     pub go_home: bool,
 }
@@ -63,6 +68,8 @@ pub const STREAM_KEYS: &[(&str, &str)] = &[
     ("G", "walk on the ground / fly"),
     ("Home", "back to the start view"),
     ("[ and ]", "halve / double delta"),
+    ("Z / X", "less / more vertical exaggeration"),
+    ("L", "colour blocks by LOD"),
     ("P", "screenshot (next free vkterrain-N.png)"),
     ("H", "hide / show this panel"),
     ("F1", "this help"),
@@ -129,6 +136,11 @@ fn panel(ui: &mut egui::Ui, r: &StreamReadout, history: &FrameHistory, now: f64,
     delta_slider(ui, &mut c.delta);
     fog_slider(ui, &mut c.fog_density, r.fog_default);
     speed_slider(ui, &mut c.speed, r.speed_range);
+    exaggeration_slider(ui, &mut c.exaggeration, "at once");
+    ui.checkbox(&mut c.colour_by_lod, "LOD colours");
+    if c.colour_by_lod {
+        lod_legend(ui);
+    }
     ui.horizontal(|ui| {
         if ui.button("Home").clicked() {
             c.go_home = true;

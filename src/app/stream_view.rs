@@ -22,6 +22,7 @@ use crate::lod::view::near_plane_for;
 use crate::stream::streamer::Streamer;
 use crate::stream::traverse::View;
 use crate::stream::Grid;
+use crate::trace::{Trace, DRAW_TID};
 use crate::vk::{vk, BinarySemaphore, Surface, Swapchain, VkResultExt};
 use glam::Vec3;
 use std::sync::Arc;
@@ -68,6 +69,16 @@ pub struct StreamViewOptions {
     pub flyover: bool,
     /// Start over this latitude and longitude (degrees), as the in-memory `--go-to`.
     pub go_to: Option<[f64; 2]>,
+    /// Write every frame's camera position and look-at point here at exit (the poses
+    /// `bench --path` replays).
+    pub record_path: Option<std::path::PathBuf>,
+    /// Heights drawn this many times the archive's scale (Z / X and the panel change it).
+    pub exaggeration: f32,
+    /// Window resizes asked at frames (frame, width, height).
+    pub resizes: Vec<(u64, u32, u32)>,
+    /// Write a Chrome trace here: the draw thread's frames, the IO thread's reads, the
+    /// atlas's uploads.
+    pub trace: Option<std::path::PathBuf>,
 }
 
 /// Everything that lives while the window is open, in drop order.
@@ -95,6 +106,10 @@ struct Run {
     final_yaw: f32,
     final_pitch: f32,
     final_delta: f32,
+    /// Vertical exaggeration at exit.
+    exaggeration: f32,
+    /// Swapchains made again after the window's size changed.
+    resizes: u64,
     start_position: [f32; 3],
     mouse_turn: f32,
     screenshot: Option<String>,
@@ -119,6 +134,11 @@ struct App {
     ctl: Controller,
     home: (Vec3, f32, f32),
     delta: f32,
+    /// Vertical exaggeration over the archive's (or `--height-scale`'s) scale.
+    exaggeration: f32,
+    true_height_scale: f64,
+    /// Every frame's camera and look-at point, with `--record-path`.
+    flight: Vec<(Vec3, Vec3)>,
     window: Option<Arc<Window>>,
     gpu: Option<WindowGpu>,
     error: Option<anyhow::Error>,
@@ -134,6 +154,7 @@ struct App {
     screenshot_next: Option<std::path::PathBuf>,
     screenshots_asked: u64,
     interrupted: Arc<std::sync::atomic::AtomicBool>,
+    trace: Trace,
     run: Run,
 }
 
@@ -175,7 +196,10 @@ fn go_to(
 /// `vkterrain view` over an archive drawn streamed.
 pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow::Result<()> {
     let shown = crate::app::stream::terrain_name(&args.common);
-    let grid = crate::app::stream::streamed_grid(&archive, &args.common);
+    let mut grid = crate::app::stream::streamed_grid(&archive, &args.common);
+    let true_height_scale = grid.height_scale;
+    // Only the drawn heights scale: the bound (`D * height_scale`) follows.
+    grid.height_scale *= f64::from(args.exaggeration);
     let m = &archive.meta;
     println!(
         "vkterrain: {shown}: {} x {} samples, {} tile levels, drawn streamed (cache {} MB, atlas {} MB); plain \
@@ -186,10 +210,16 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
         args.cache_mb,
         args.gpu_mb
     );
+    let trace = match &args.trace {
+        Some(p) => {
+            Trace::to_file(p).map_err(|e| crate::app::cli::InputError(format!("--trace {}: {e}", p.display())))?
+        }
+        None => Trace::off(),
+    };
     // The device's own limit is known once the window is open; the atlas is cut to it.
     let layers = crate::errors::atlas::MAX_LAYERS;
     let mut streamer =
-        crate::app::stream::atlas_bound_streamer(archive.clone(), grid, args.cache_mb, args.gpu_mb, layers)?;
+        crate::app::stream::atlas_bound_streamer(archive.clone(), grid, args.cache_mb, args.gpu_mb, layers, &trace)?;
     let range = top_tiles(&mut streamer, &archive.meta)?;
     let near = near_plane_for(grid.spacing[0].min(grid.spacing[1]) as f32);
     let (position, target) = args.common.view_points(|| start_view(&grid, range.world)).map_err(anyhow::Error::from)?;
@@ -232,6 +262,9 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
         ctl,
         home,
         delta: args.delta,
+        exaggeration: args.exaggeration,
+        true_height_scale,
+        flight: Vec::new(),
         window: None,
         gpu: None,
         error: None,
@@ -246,11 +279,21 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
         screenshot_next: None,
         screenshots_asked: 0,
         interrupted,
-        run: Run { streamed: true, worst_factor: 1.0, start_position: position.to_array(), ..Default::default() },
+        trace: trace.clone(),
+        run: Run {
+            streamed: true,
+            worst_factor: 1.0,
+            start_position: position.to_array(),
+            exaggeration: args.exaggeration,
+            ..Default::default()
+        },
     };
     event_loop.run_app(&mut app)?;
     if let Some(e) = app.error.take() {
         return Err(e);
+    }
+    if let Some(path) = &args.record_path {
+        crate::app::bench::record_poses(path, &app.flight)?;
     }
     let secs = app.started.elapsed().as_secs_f64();
     let mut run = std::mem::take(&mut app.run);
@@ -258,6 +301,7 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
     run.avg_fps = run.frames as f64 / secs.max(1e-9);
     run.final_position = app.ctl.position.to_array();
     (run.final_yaw, run.final_pitch, run.final_delta) = (app.ctl.yaw, app.ctl.pitch, app.delta);
+    run.exaggeration = app.exaggeration;
     run.stream = Some(app.streamer.stats.clone());
     run.first_failure = app.streamer.first_failure.clone();
     let messages = app.gpu.as_ref().map(|g| g.frames.device.instance.messages.clone());
@@ -267,8 +311,13 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
         let instance = &g.frames.device.instance;
         run.validation_messages = instance.validation.then(|| instance.validation_messages());
     }
-    // Everything Vulkan goes before the messages are counted for the exit status.
+    // Everything Vulkan goes before the messages are counted for the exit status (and the
+    // IO thread is joined: its last read is in the trace).
     drop(app);
+    if let Some(p) = &args.trace {
+        trace.finish().map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))?;
+        println!("vkterrain: trace {}", p.display());
+    }
     println!("{}", serde_json::to_string(&run)?);
     if let Some(m) = messages {
         check_messages(&m)?;
@@ -287,7 +336,8 @@ impl App {
     fn open(&mut self, event_loop: &ActiveEventLoop) -> anyhow::Result<()> {
         let (w, h) = self.args.common.size.unwrap_or((1280, 720));
         let title = format!("vkterrain: {} (streamed)", crate::app::stream::terrain_name(&self.args.common));
-        let sizes = [("--size".to_string(), w, h)];
+        let resizes = self.args.resizes.iter().map(|&(f, w, h)| (format!("--resize-at {f}"), w, h));
+        let sizes: Vec<(String, u32, u32)> = std::iter::once(("--size".to_string(), w, h)).chain(resizes).collect();
         let (window, surface, device) =
             crate::app::controls::open_window(event_loop, &self.args.common, title, &sizes)?;
         let size = window.inner_size();
@@ -298,7 +348,7 @@ impl App {
         // One frame in flight: each streamed frame is waited for before the next.
         let mut hud = Hud::new(&device, &window, swapchain.format, crate::draw::blocks::DEPTH_FORMAT, 1)?;
         hud.visible = !self.args.no_hud;
-        let mut frames = GpuFrames::new(device, &mut self.streamer, self.args.gpu_mb, self.range, (w, h))?;
+        let mut frames = GpuFrames::new(device, &mut self.streamer, self.args.gpu_mb, self.range, (w, h), &self.trace)?;
         frames.fog = self.fog;
         frames.sun(self.args.common.sun.0);
         self.gpu = Some(WindowGpu { hud, acquired, swapchain, frames, surface });
@@ -319,6 +369,7 @@ impl App {
         gpu.swapchain = new;
         gpu.hud.set_format(gpu.swapchain.format, crate::draw::blocks::DEPTH_FORMAT)?;
         self.swapchain_dirty = false;
+        self.run.resizes += 1;
         Ok(())
     }
 
@@ -346,9 +397,15 @@ impl App {
         let Some(gpu) = self.gpu.as_ref() else { return Ok(()) };
         let extent = gpu.swapchain.extent;
         let view = self.view(extent.width, extent.height);
+        if self.args.record_path.is_some() {
+            self.flight.push((self.ctl.position, self.ctl.position + self.ctl.forward()));
+        }
         // Where the camera will be in half a second: its tiles are asked for next.
         let ahead = View { position: view.position + velocity.as_dvec3() * 0.5, ..view };
+        let selecting = Instant::now();
         let sel = self.streamer.frame(&view, Some(&ahead), self.delta, 0.5);
+        let frame = serde_json::json!({"frame": self.run.frames});
+        self.trace.complete(DRAW_TID, "select (traversal over held tiles)", selecting, Instant::now(), frame.clone());
         if !sel.within_bound() {
             self.run.frames_over_bound += 1;
             self.run.worst_factor = self.run.worst_factor.max(sel.worst_factor);
@@ -404,6 +461,7 @@ impl App {
         let wait = [target.done];
         let present =
             vk::PresentInfoKHR::default().wait_semaphores(&wait).swapchains(&swapchains).image_indices(&indices);
+        let presenting = Instant::now();
         let presented = {
             let _lock = gpu.frames.device.draw_queue.lock();
             // SAFETY: the queue is locked; the image was acquired and rendered.
@@ -414,6 +472,7 @@ impl App {
             Err(vk::Result::ERROR_OUT_OF_DATE_KHR) => self.swapchain_dirty = true,
             Err(e) => return Err(e).vk("vkQueuePresentKHR").map_err(Into::into),
         }
+        self.trace.complete(DRAW_TID, "present", presenting, Instant::now(), frame.clone());
         if let Some(path) = self.screenshot_next.take() {
             // The same frame again, offscreen at the window's size, read back.
             let (w, h) = (extent.width, extent.height);
@@ -423,6 +482,8 @@ impl App {
             println!("vkterrain: screenshot {}", path.display());
             self.run.screenshot = Some(path.display().to_string());
         }
+        self.trace.complete(DRAW_TID, "frame", now, Instant::now(), frame);
+        self.trace.counter("tiles held", self.streamer.cache.len() as u64);
         self.run.frames += 1;
         self.run.last_blocks = gpu.frames.blocks;
         self.run.last_triangles = gpu.frames.triangles;
@@ -483,8 +544,14 @@ impl App {
             let t = gpu.hud.now();
             gpu.hud.history.push(t, ms);
         }
-        let before =
-            StreamControls { delta: self.delta, fog_density: gpu.frames.fog, speed: self.ctl.speed, go_home: false };
+        let before = StreamControls {
+            delta: self.delta,
+            fog_density: gpu.frames.fog,
+            speed: self.ctl.speed,
+            exaggeration: self.exaggeration,
+            colour_by_lod: gpu.frames.colour_by_lod,
+            go_home: false,
+        };
         let mut after = before;
         gpu.hud.prepare_with(&window, |ctx, visible, help, history, now| {
             build_stream_ui(ctx, visible, help, &readout, history, now, &mut after)
@@ -493,11 +560,33 @@ impl App {
             self.delta = after.delta;
             gpu.frames.fog = after.fog_density;
             self.ctl.speed = after.speed;
+            self.set_exaggeration(after.exaggeration);
+            if let Some(g) = self.gpu.as_mut() {
+                g.frames.colour_by_lod = after.colour_by_lod;
+            }
             if after.go_home {
                 self.go_home();
             }
         }
         Ok(())
+    }
+
+    /// Draws heights `exaggeration` times the archive's scale from the next frame: the
+    /// traversal's bound, the ground and the colours all follow the one scale (no errors
+    /// to recompute: a tile's `D` is in raw units).
+    fn set_exaggeration(&mut self, exaggeration: f32) {
+        if exaggeration == self.exaggeration {
+            return;
+        }
+        let ratio = exaggeration / self.exaggeration;
+        self.exaggeration = exaggeration;
+        let scale = self.true_height_scale * f64::from(exaggeration);
+        self.grid.height_scale = scale;
+        self.streamer.grid.height_scale = scale;
+        self.range.world = self.range.world.map(|h| h * ratio);
+        if let Some(g) = self.gpu.as_mut() {
+            g.frames.range = self.range;
+        }
     }
 
     fn go_home(&mut self) {
@@ -540,6 +629,15 @@ impl App {
                 self.delta = delta_key(code, self.delta).unwrap_or(self.delta)
             }
             KeyCode::Home => self.go_home(),
+            KeyCode::KeyL => {
+                if let Some(g) = self.gpu.as_mut() {
+                    g.frames.colour_by_lod = !g.frames.colour_by_lod;
+                }
+            }
+            KeyCode::KeyX | KeyCode::KeyZ => {
+                let e = crate::app::hud::exaggeration_key(code, self.exaggeration).unwrap_or(self.exaggeration);
+                self.set_exaggeration(e);
+            }
             KeyCode::KeyH | KeyCode::F1 => {
                 if let Some(g) = self.gpu.as_mut() {
                     g.hud.on_key(code);
@@ -596,6 +694,11 @@ impl ApplicationHandler for App {
                 self.swapchain_dirty = true;
             }
             WindowEvent::RedrawRequested => {
+                if let Some((_, w, h)) = self.args.resizes.iter().find(|r| r.0 == self.run.frames).copied() {
+                    if let Some(win) = &self.window {
+                        let _ = win.request_inner_size(winit::dpi::PhysicalSize::new(w, h));
+                    }
+                }
                 if self.args.frames.is_some_and(|n| self.run.frames + 1 >= n) {
                     if let Some(p) = self.args.screenshot.clone() {
                         self.screenshot_next = Some(p);

@@ -78,7 +78,8 @@ pub struct ViewArgs {
     #[arg(long, value_name = "FILE")]
     pub record_path: Option<PathBuf>,
     /// Write a Chrome trace of both threads (Perfetto: the draw thread's phases, error
-    /// requests, submissions, generations signalled and observed), as `bench` does.
+    /// requests, submissions, generations signalled and observed), as `bench` does; over
+    /// an archive drawn streamed, the draw, IO and atlas threads' work.
     #[arg(long, value_name = "FILE.json")]
     pub trace: Option<PathBuf>,
     /// Start over this latitude and longitude (degrees, e.g. 46.85,-121.76 or
@@ -290,10 +291,6 @@ impl ViewArgs {
         [
             ("--texture", self.textures.texture.is_some()),
             ("--detail", self.textures.detail.is_some()),
-            ("--trace", self.trace.is_some()),
-            ("--record-path", self.record_path.is_some()),
-            ("--exaggeration", self.exaggeration != 1.0),
-            ("--resize-at", !self.resize_at.is_empty()),
             ("--error-mode paper", self.common.error_mode != ErrorMode::Strict),
             ("--block (an archive fixes k = 33)", self.common.block != 33),
         ]
@@ -301,11 +298,39 @@ impl ViewArgs {
         .filter_map(|(name, set)| set.then_some(name))
         .collect()
     }
+
+    /// `--resize-at`'s resizes (frame, width, height), once `--size` and each of them is
+    /// checked against what a window can be: refused before anything is loaded.
+    fn window_resizes(&self) -> Result<Vec<(u64, u32, u32)>, InputError> {
+        let mut resizes = Vec::new();
+        for r in &self.resize_at {
+            let parsed = r.split_once(':').and_then(|(f, s)| {
+                let (w, h) = s.split_once('x')?;
+                Some((f.parse().ok()?, w.parse().ok()?, h.parse().ok()?))
+            });
+            match parsed {
+                Some((f, w, h)) if w > 0 && h > 0 => resizes.push((f, w, h)),
+                Some(_) => return Err(InputError(format!("--resize-at {r}: the size must be at least 1x1"))),
+                _ => return Err(InputError(format!("--resize-at {r}: expected FRAME:WxH"))),
+            }
+        }
+        // Window systems take 16-bit signed sizes (winit panics beyond); the device's
+        // image limit is checked once it exists.
+        let sizes = self.common.size.iter().map(|&(w, h)| ("--size".to_string(), w, h));
+        for (opt, w, h) in sizes.chain(resizes.iter().map(|&(f, w, h)| (format!("--resize-at {f}"), w, h))) {
+            if w > MAX_WINDOW_SIDE || h > MAX_WINDOW_SIDE {
+                return Err(InputError(format!(
+                    "{opt} {w}x{h}: larger than a window can be ({MAX_WINDOW_SIDE} pixels a side)"
+                )));
+            }
+        }
+        Ok(resizes)
+    }
 }
 
 /// The viewer over an archive drawn streamed ([`crate::app::stream_view`]), when it is
 /// one: `--stream`, or larger than one image on the device.
-fn view_archive(args: &ViewArgs) -> anyhow::Result<bool> {
+fn view_archive(args: &ViewArgs, resizes: &[(u64, u32, u32)]) -> anyhow::Result<bool> {
     let max_side = || {
         let instance = Instance::new(&InstanceOptions { validation: false, extensions: Vec::new() }).ok()?;
         let options = DeviceOptions { gpu: args.common.gpu.clone(), queues: args.common.queues, swapchain: false };
@@ -341,6 +366,10 @@ fn view_archive(args: &ViewArgs) -> anyhow::Result<bool> {
         no_hud: args.no_hud,
         flyover: args.flyover,
         go_to: args.go_to,
+        record_path: args.record_path.clone(),
+        exaggeration: args.exaggeration,
+        resizes: resizes.to_vec(),
+        trace: args.trace.clone(),
     };
     crate::app::stream_view::view_streamed(&options, archive)?;
     Ok(true)
@@ -358,7 +387,8 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
         ],
         &[("--heightmap", args.common.heightmap.as_deref()), args.textures.inputs()[0], args.textures.inputs()[1]],
     )?;
-    if view_archive(args)? {
+    let resizes = args.window_resizes()?;
+    if view_archive(args, &resizes)? {
         return Ok(());
     }
     let mut hf = args.common.load_heightfield(None)?;
@@ -371,29 +401,6 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
     };
     // Ctrl-C (or SIGTERM) ends the session cleanly: the trace stays valid JSON.
     let interrupted = super::signals::Stop::install().flag().clone();
-    let mut resizes = Vec::new();
-    for r in &args.resize_at {
-        let parsed = r.split_once(':').and_then(|(f, s)| {
-            let (w, h) = s.split_once('x')?;
-            Some((f.parse().ok()?, w.parse().ok()?, h.parse().ok()?))
-        });
-        match parsed {
-            Some((f, w, h)) if w > 0 && h > 0 => resizes.push((f, w, h)),
-            Some(_) => return Err(InputError(format!("--resize-at {r}: the size must be at least 1x1")).into()),
-            _ => return Err(InputError(format!("--resize-at {r}: expected FRAME:WxH")).into()),
-        }
-    }
-    // Window systems take 16-bit signed sizes (winit panics beyond); the device's image
-    // limit is checked once it exists.
-    let sizes = args.common.size.iter().map(|&(w, h)| ("--size".to_string(), w, h));
-    for (opt, w, h) in sizes.chain(resizes.iter().map(|&(f, w, h)| (format!("--resize-at {f}"), w, h))) {
-        if w > MAX_WINDOW_SIDE || h > MAX_WINDOW_SIDE {
-            return Err(InputError(format!(
-                "{opt} {w}x{h}: larger than a window can be ({MAX_WINDOW_SIDE} pixels a side)"
-            ))
-            .into());
-        }
-    }
     let Textures { base, detail } = args.textures.load(&hf)?;
     let mm = MinMaxPyramid::build(&hf);
     let (w, h) = args.common.size.unwrap_or((1280, 720));
@@ -494,11 +501,7 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
         return Err(e);
     }
     if let Some(path) = &args.record_path {
-        let text = crate::app::bench::write_poses(&app.flight);
-        crate::app::outputs::write_atomic(path, |tmp| {
-            std::fs::write(tmp, &text).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))
-        })?;
-        println!("vkterrain: recorded {} poses to {}", app.flight.len(), path.display());
+        crate::app::bench::record_poses(path, &app.flight)?;
     }
     let secs = app.started.elapsed().as_secs_f64();
     app.stats.frames = app.frame;
@@ -1106,8 +1109,10 @@ impl App {
             }
             KeyCode::KeyN => self.draw.morph = !self.draw.morph,
             KeyCode::KeyC => self.draw.occlusion = !self.draw.occlusion,
-            KeyCode::KeyX => self.exaggeration = (self.exaggeration * 1.5).min(20.0),
-            KeyCode::KeyZ => self.exaggeration = (self.exaggeration / 1.5).max(0.25),
+            KeyCode::KeyX | KeyCode::KeyZ => {
+                self.exaggeration =
+                    crate::app::hud::exaggeration_key(code, self.exaggeration).unwrap_or(self.exaggeration)
+            }
             KeyCode::KeyF => {
                 self.shading.wireframe = !self.shading.wireframe;
                 if self.gpu.as_ref().is_some_and(|g| !g.device.features.wireframe) {

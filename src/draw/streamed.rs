@@ -209,7 +209,7 @@ impl StreamedRenderer {
             light: [light.x, light.y, light.z, 0.25],
             texturing: [0.0, 0.0, 0.0, crate::lod::heightfield::sea_level(absolute, world)],
             extent: [grid.width as i32, grid.height as i32, 0, self.layout.k() as i32],
-            flags: [atlas.unorm16() as i32, 0, 0, 0],
+            flags: [atlas.unorm16() as i32, i32::from(view.colour_by_lod), 0, 0],
             sky_zenith: [SKY_ZENITH[0], SKY_ZENITH[1], SKY_ZENITH[2], 1.0],
             sky_horizon: [SKY_HORIZON[0], SKY_HORIZON[1], SKY_HORIZON[2], 1.0],
             anchor: [a(view.anchor[0])?, a(view.anchor[1])?, atlas.side() as i32, 0],
@@ -584,6 +584,8 @@ pub struct FrameView<'a> {
     /// Unit vector towards the sun (`--sun`: its direction; streamed frames have no
     /// shadows).
     pub light: glam::Vec3,
+    /// Blocks tinted by their LOD (`--colour-by-lod`, the viewer's L), as in memory.
+    pub colour_by_lod: bool,
 }
 
 impl Drop for StreamedRenderer {

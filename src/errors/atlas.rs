@@ -14,6 +14,7 @@ use crate::errors::handoff::AtlasLayers;
 use crate::stream::cache::{Heights, TileData};
 use crate::stream::streamer::TileGate;
 use crate::stream::{Grid, TileKey};
+use crate::trace::{Trace, ERRORS_TID};
 use crate::vk::{
     image_barrier, vk, Buffer, CommandPool, Device, Image, TimelineSemaphore, VkError, VkResult, VkResultExt,
 };
@@ -120,6 +121,12 @@ impl HeightAtlas {
     /// as fit, at most the device's `maxImageArrayLayers` and [`MAX_LAYERS`]), and the
     /// errors activity's thread that fills it.
     pub fn new(device: &Arc<Device>, grid: &Grid, budget_bytes: u64) -> VkResult<Self> {
+        Self::traced(device, grid, budget_bytes, Trace::off())
+    }
+
+    /// [`HeightAtlas::new`], its thread's uploads recorded in `trace` (one span a
+    /// generation, on the errors activity's track).
+    pub fn traced(device: &Arc<Device>, grid: &Grid, budget_bytes: u64, trace: Trace) -> VkResult<Self> {
         let side = (grid.tile_quads + 3) as u32;
         let unorm16 = grid.height_bytes == 2;
         let layer_bytes = Self::layer_bytes(grid);
@@ -172,7 +179,7 @@ impl HeightAtlas {
             .spawn({
                 let (device, shared) = (device.clone(), shared.clone());
                 move || {
-                    if let Err(e) = uploads(&device, &shared) {
+                    if let Err(e) = uploads(&device, &shared, &trace) {
                         let mut s = shared.lock();
                         s.failure = Some(format!("atlas uploads: {e}"));
                         s.busy = 0;
@@ -299,7 +306,7 @@ const SAMPLED: (vk::PipelineStageFlags2, vk::AccessFlags2, vk::ImageLayout) = (
 /// The errors activity's loop for a streamed terrain: each batch of tiles handed over is
 /// one generation (layers claimed under the lock, the heights copied on the errors queue,
 /// the generation's timeline value waited for on this thread), then handed back.
-fn uploads(device: &Arc<Device>, shared: &Shared) -> VkResult<()> {
+fn uploads(device: &Arc<Device>, shared: &Shared, trace: &Trace) -> VkResult<()> {
     let pool = CommandPool::new(device, device.errors_queue.family)?;
     let cmd = pool.allocate()?;
     let texel = if shared.unorm16 { 2 } else { 4 };
@@ -318,6 +325,7 @@ fn uploads(device: &Arc<Device>, shared: &Shared) -> VkResult<()> {
             std::mem::take(&mut s.todo)
         };
         let count = batch.len();
+        let started = std::time::Instant::now();
         let g = generation + 1;
         // Frames that drew from a layer must have completed before it is rewritten: the
         // draw queue's timeline, read now (a stale value only protects more).
@@ -366,6 +374,10 @@ fn uploads(device: &Arc<Device>, shared: &Shared) -> VkResult<()> {
             }
             generation = g;
         }
+        // Outside the state's lock: the trace has its own.
+        let args = serde_json::json!({"generation": g, "tiles": count, "uploaded": placed.len(), "without_a_layer": dropped.len()});
+        let name = if placed.is_empty() { "tiles back (none to upload)" } else { "upload tiles" };
+        trace.complete(ERRORS_TID, name, started, std::time::Instant::now(), args);
         {
             let mut s = shared.lock();
             if !placed.is_empty() {

@@ -141,8 +141,10 @@ gpu_block! {
         /// true extent in samples (x, z), grid samples along x (the shaders take the
         /// grid's size from the images), block side k.
         extent: [i32; 4] => "ivec4",
-        /// heights are unorm16 (1) or float (0), unused x 3. Switches that select a
-        /// shading path are specialization constants (`TerrainSpec`), not flags.
+        /// heights are unorm16 (1) or float (0); y: streamed frames tinted by LOD
+        /// (stream.frag: a uniform, not a pipeline of its own); unused x 2. In memory,
+        /// switches that select a shading path are specialization constants
+        /// (`TerrainSpec`), not flags.
         flags: [i32; 4] => "ivec4",
         /// Sky: zenith colour (rgb), w: 1 = draw the sky gradient, 0 = plain background.
         sky_zenith: [f32; 4] => "vec4",
