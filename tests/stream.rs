@@ -18,7 +18,9 @@ use vkterrain::lod::heightfield::Heightfield;
 use vkterrain::lod::heightfield::RawSamples;
 use vkterrain::lod::pyramid::MinMaxPyramid;
 use vkterrain::lod::traversal::stitch_selection;
-use vkterrain::stream::cache::{root_lod, serving_tile, Heights, HostCache, Refused, TileData, BLOCK_QUADS};
+use vkterrain::stream::cache::{
+    root_lod, serving_tile, Heights, HostCache, Refused, Square, TileData, BLOCK_QUADS, SUB,
+};
 use vkterrain::stream::io::TileSource;
 use vkterrain::stream::streamer::{Streamer, RETRY_FRAMES};
 use vkterrain::stream::traverse::{select, Selection, View};
@@ -126,18 +128,35 @@ fn tile_summaries_equal_the_full_resolution_oracle() {
                         hi = hi.max(hf.raw_at(x, z));
                     }
                 }
+                // D of the whole block and of each of its SUB x SUB squares, from the
+                // in-memory deviations, and each square's vertices' range (its edges'
+                // vertices included).
+                let q = BLOCK_QUADS / SUB;
                 let mut dmax = 0.0f32;
-                if lod > 0 {
-                    let level_d = &d[lod as usize - 1];
-                    let cells = hf.cells(lod)[0];
-                    for gz in bz as usize * BLOCK_QUADS..(bz as usize + 1) * BLOCK_QUADS {
-                        for gx in bx as usize * BLOCK_QUADS..(bx as usize + 1) * BLOCK_QUADS {
-                            dmax = dmax.max(level_d[gz * cells + gx]);
+                let mut squares = [Square { lo: f32::INFINITY, hi: f32::NEG_INFINITY, d: 0.0 }; SUB * SUB];
+                for (i, sq) in squares.iter_mut().enumerate() {
+                    let (sx, sz) = ((i % SUB * q) as i64, (i / SUB * q) as i64);
+                    for v in sz..=sz + q as i64 {
+                        for u in sx..=sx + q as i64 {
+                            let h = hf.raw_at(ox + u * stride, oz + v * stride);
+                            (sq.lo, sq.hi) = (sq.lo.min(h), sq.hi.max(h));
+                        }
+                    }
+                    if lod > 0 {
+                        let cells = hf.cells(lod)[0];
+                        for gz in sz as usize..sz as usize + q {
+                            for gx in sx as usize..sx as usize + q {
+                                let v = d[lod as usize - 1]
+                                    [(bz as usize * BLOCK_QUADS + gz) * cells + bx as usize * BLOCK_QUADS + gx];
+                                sq.d = sq.d.max(v);
+                                dmax = dmax.max(v);
+                            }
                         }
                     }
                 }
                 let s = data.block(&grid, lod, bx, bz);
                 assert_eq!((s.lo, s.hi, s.d), (lo, hi, dmax), "block {lod}/{bx}/{bz} of tile {level}/{tx}/{tz}");
+                assert_eq!(s.squares, squares, "block {lod}/{bx}/{bz}'s squares");
                 checked += 1;
             }
         }

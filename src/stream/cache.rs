@@ -23,7 +23,23 @@ pub struct BlockSummary {
     pub lo: f32,
     pub hi: f32,
     pub d: f32,
+    /// The same of each of the block's `SUB x SUB` squares (row-major, `BLOCK_QUADS /
+    /// SUB` quads a side: the triangles over a square use its own vertices alone): the
+    /// traversal bounds each from its own box, as the in-memory error images bound each
+    /// group at its own distance ([`crate::stream::traverse`]).
+    pub squares: [Square; SUB * SUB],
 }
+
+/// A square of a block: its vertices' range and `D_j` under it, raw units.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Square {
+    pub lo: f32,
+    pub hi: f32,
+    pub d: f32,
+}
+
+/// Squares a block side whose deviation is kept apart ([`BlockSummary::sub_d`]).
+pub const SUB: usize = 4;
 
 /// The LOD of the blocks the archive's roots are: one block over the top tile's square.
 pub fn root_lod(grid: &Grid) -> u32 {
@@ -112,22 +128,38 @@ impl TileData {
             let mut summaries = Vec::with_capacity(per_side * per_side);
             for bz in 0..per_side {
                 for bx in 0..per_side {
-                    let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
+                    let q = BLOCK_QUADS / SUB;
+                    let mut squares = [Square { lo: f32::INFINITY, hi: f32::NEG_INFINITY, d: 0.0 }; SUB * SUB];
                     for v in 0..=BLOCK_QUADS {
                         for u in 0..=BLOCK_QUADS {
                             let h = vertex((bx * BLOCK_QUADS + u) * stride, (bz * BLOCK_QUADS + v) * stride);
-                            lo = lo.min(h);
-                            hi = hi.max(h);
+                            // A vertex on a square's edge is each neighbouring square's.
+                            let (sx0, sx1) = (u.saturating_sub(1) / q, (u / q).min(SUB - 1));
+                            let (sz0, sz1) = (v.saturating_sub(1) / q, (v / q).min(SUB - 1));
+                            for sz in sz0..=sz1 {
+                                for sx in sx0..=sx1 {
+                                    let s = &mut squares[sz * SUB + sx];
+                                    (s.lo, s.hi) = (s.lo.min(h), s.hi.max(h));
+                                }
+                            }
                         }
                     }
-                    let mut d = 0.0f32;
                     if has_d {
-                        for gz in bz * BLOCK_QUADS..(bz + 1) * BLOCK_QUADS {
-                            let row = &tile.deviation[offset + gz * groups + bx * BLOCK_QUADS..][..BLOCK_QUADS];
-                            d = row.iter().fold(d, |m, v| m.max(*v));
+                        for gz in 0..BLOCK_QUADS {
+                            let row = &tile.deviation[offset + (bz * BLOCK_QUADS + gz) * groups + bx * BLOCK_QUADS..]
+                                [..BLOCK_QUADS];
+                            for (sx, cells) in row.chunks_exact(q).enumerate() {
+                                let s = &mut squares[gz / q * SUB + sx];
+                                s.d = cells.iter().fold(s.d, |m, v| m.max(*v));
+                            }
                         }
                     }
-                    summaries.push(BlockSummary { lo, hi, d });
+                    let fold =
+                        |f: fn(&Square) -> f32, m: fn(f32, f32) -> f32, from: f32| squares.iter().map(f).fold(from, m);
+                    let (lo, hi) =
+                        (fold(|s| s.lo, f32::min, f32::INFINITY), fold(|s| s.hi, f32::max, f32::NEG_INFINITY));
+                    let d = fold(|s| s.d, f32::max, 0.0);
+                    summaries.push(BlockSummary { lo, hi, d, squares });
                 }
             }
             if has_d {
@@ -163,7 +195,8 @@ impl TileData {
 pub fn tile_bytes_estimate(grid: &Grid, level: u8) -> usize {
     let t = grid.tile_quads;
     let own_d = if level > 0 { t * t } else { 0 };
-    (t + 3) * (t + 3) * grid.height_bytes + own_d * 4 + 4096
+    let summaries = (t / BLOCK_QUADS).pow(2) * std::mem::size_of::<BlockSummary>();
+    (t + 3) * (t + 3) * grid.height_bytes + own_d * 4 + summaries + 4096
 }
 
 /// Why a tile was not taken into the cache.

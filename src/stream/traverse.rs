@@ -10,11 +10,11 @@
 //! within the bound but above `prefetch * delta` want their finer tile too, at a lower
 //! priority, so that it is there before it is needed.
 
-use super::cache::{layout, root_lod, serving_tile, HostCache, Resident, BLOCK_QUADS};
+use super::cache::{layout, root_lod, serving_tile, BlockSummary, HostCache, Resident, BLOCK_QUADS, SUB};
 use super::{Grid, TileKey};
 use crate::lod::block::DrawBlock;
 use crate::lod::block_cache::BoundedCache;
-use crate::lod::camera::{world_to_pixels, Camera};
+use crate::lod::camera::{angular_factor, distance_to_aabb, world_to_pixels, Camera};
 use crate::lod::stitch::{strip_departure, StripDeviation};
 use crate::lod::traversal::{stitch_blocks, LodAt, SparseLods};
 use foldhash::{HashSet, HashSetExt};
@@ -122,6 +122,33 @@ fn block_box(grid: &Grid, anchor: [i64; 2], lod: u32, bx: u32, bz: u32, lo: f32,
     (Vec3::new(x(x0), y(lo), z(z0)), Vec3::new(x(x0 + size), y(hi), z(z0 + size)))
 }
 
+/// The block's error bound in pixels (strict mode): `D * height_scale` projected from its
+/// box, and where that exceeds delta, the largest of its squares' `D`s each projected from
+/// its own box ([`BlockSummary::squares`]; the in-memory bound takes a distance for
+/// each group). Both are sound: every sample of a square lies in the square's part of
+/// the box, no nearer than the square's box, and within the whole box's angles.
+fn block_error_px(height_scale: f64, cam: &Camera, s: &BlockSummary, (min, max): (Vec3, Vec3), delta: f32) -> f32 {
+    let scale = height_scale as f32;
+    let whole = s.d * scale * world_to_pixels(cam, min, max, delta);
+    if whole <= delta {
+        return whole;
+    }
+    let per_distance = scale * cam.kappa() * angular_factor(cam, min, max, delta);
+    // The squares' edges: neighbours share theirs bit for bit, and the outer ones are the
+    // box's own, so the squares cover the box.
+    let edge = |a: f32, b: f32, i: usize| if i == SUB { b } else { a + (b - a) * i as f32 / SUB as f32 };
+    let mut worst = 0.0f32;
+    for (i, sq) in s.squares.iter().enumerate() {
+        let (sx, sz) = (i % SUB, i / SUB);
+        // The square's heights, scaled as the box's are ([`block_box`]).
+        let y = |h: f32| (f64::from(h) * height_scale) as f32;
+        let lo = Vec3::new(edge(min.x, max.x, sx), y(sq.lo - sq.d), edge(min.z, max.z, sz));
+        let hi = Vec3::new(edge(min.x, max.x, sx + 1), y(sq.hi + sq.d), edge(min.z, max.z, sz + 1));
+        worst = worst.max(sq.d * per_distance / distance_to_aabb(cam.position, lo, hi).max(cam.near));
+    }
+    worst.min(whole)
+}
+
 /// What stitching has been measured to cost, per block configuration (camera-free).
 pub type StripCache = BoundedCache<DrawBlock, StripDeviation>;
 
@@ -208,7 +235,7 @@ impl<'a> Traverser<'a> {
                 self.out.culled += 1;
                 continue;
             }
-            let error_px = (f64::from(s.d) * grid.height_scale) as f32 * world_to_pixels(&self.cam, min, max, delta);
+            let error_px = block_error_px(grid.height_scale, &self.cam, &s, (min, max), delta);
             let finer = (lod > 0).then(|| serving_tile(grid, lod - 1, 2 * bx, 2 * bz));
             let finer_held = finer.is_some_and(|k| cache.contains(k));
             let stitching = self.forced.contains(&(lod, bx, bz));
@@ -330,5 +357,80 @@ impl<'a> Traverser<'a> {
         out.kept = self.kept.into_iter().collect();
         out.kept.sort();
         self.out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::stream::cache::Square;
+
+    /// A vertical deviation of `D` anywhere in a block's square `i` (the only one that
+    /// deviates), between the square's own heights (each square at other heights),
+    /// projects to no more pixels than the block's bound, from cameras close to each
+    /// corner, above and beside the block, and far; near one corner, a deviation in the
+    /// far corner is bounded well below the whole block's bound (what the squares are
+    /// for). A bound that mixed the squares up (x for z), or took another square's
+    /// heights, fails the first check.
+    #[test]
+    fn each_square_is_bounded_from_its_own_place() {
+        let (side, d, delta) = (320.0f32, 4.0f32, 1.0f32);
+        // Square i spans heights 4i..4i + 6: the block 0..66.
+        let square = |i: usize, d: f32| Square { lo: 4.0 * i as f32, hi: 4.0 * i as f32 + 6.0, d };
+        let (lo, hi) = (0.0f32, 66.0f32);
+        let (min, max) = (Vec3::new(0.0, lo - d, 0.0), Vec3::new(side, hi + d, side));
+        let mut cameras = Vec::new();
+        for &(x, z) in &[(-5.0, -5.0), (side + 5.0, -5.0), (-5.0, side + 5.0), (side + 5.0, side + 5.0), (160.0, -40.0)]
+        {
+            for &y in &[2.0f32, 20.0, 60.0, 400.0] {
+                for &(tx, tz) in &[(160.0f32, 160.0f32), (0.0, 0.0), (side, 0.0), (0.0, side), (side, side)] {
+                    cameras.push(Camera::look_at(Vec3::new(x, y, z), Vec3::new(tx, 10.0, tz), 45.0, 640, 480, 0.5));
+                }
+            }
+        }
+        cameras.push(Camera::look_at(
+            Vec3::new(160.0, 3000.0, 170.0),
+            Vec3::new(160.0, 0.0, 160.0),
+            45.0,
+            640,
+            480,
+            0.5,
+        ));
+        let (mut checked, mut tighter) = (0usize, 0usize);
+        for cam in &cameras {
+            let vp = cam.view_proj();
+            for i in 0..SUB * SUB {
+                let mut squares = std::array::from_fn(|j| square(j, 0.0));
+                squares[i].d = d;
+                let s = BlockSummary { lo, hi, d, squares };
+                let bound = block_error_px(1.0, cam, &s, (min, max), delta);
+                let whole = d * world_to_pixels(cam, min, max, delta);
+                assert!(bound <= whole, "never looser than the whole block's");
+                let step = side / SUB as f32;
+                let (x0, z0) = ((i % SUB) as f32 * step, (i / SUB) as f32 * step);
+                let heights = [squares[i].lo - d, squares[i].hi];
+                for (u, v, y) in (0..=4).flat_map(|u| (0..=4).flat_map(move |v| heights.map(|y| (u, v, y)))) {
+                    let p = Vec3::new(x0 + step * u as f32 / 4.0, y, z0 + step * v as f32 / 4.0);
+                    let on_screen = |q: Option<(f32, f32)>| {
+                        q.filter(|&(x, y)| (0.0..=640.0).contains(&x) && (0.0..=480.0).contains(&y))
+                    };
+                    let (Some(a), Some(b)) =
+                        (on_screen(cam.project(&vp, p)), on_screen(cam.project(&vp, p + Vec3::Y * d)))
+                    else {
+                        continue;
+                    };
+                    let px = ((a.0 - b.0).powi(2) + (a.1 - b.1).powi(2)).sqrt();
+                    let at = cam.position;
+                    assert!(
+                        px <= bound * 1.0001,
+                        "square {i}, camera at {at}: a deviation at {p} is {px} px, bound {bound}"
+                    );
+                    checked += 1;
+                }
+                tighter += usize::from(bound < 0.5 * whole);
+            }
+        }
+        assert!(checked > 10_000, "{checked} deviations on screen");
+        assert!(tighter > 100, "{tighter} squares bounded at under half the whole block's");
     }
 }
