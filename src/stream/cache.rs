@@ -16,29 +16,37 @@ use std::sync::Arc;
 pub const BLOCK_QUADS: usize = 32;
 
 /// What the bound needs of one block of LOD `j`, in raw height units: the range of its
-/// LOD-`j` vertices and `D_j`, the largest deviation of the full-resolution samples from
-/// its surface. Every sample under the block lies in `[lo - d, hi + d]`.
+/// LOD-`j` vertices, `D_j`, the largest deviation of the full-resolution samples from its
+/// surface, and the heights both can take: every sample under the block and every point
+/// of its surface lie in `[min, max]`, within `[lo - d, hi + d]` (each group's samples lie
+/// within its own `D` of its quad, which lies between the quad's corners).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct BlockSummary {
     pub lo: f32,
     pub hi: f32,
     pub d: f32,
+    pub min: f32,
+    pub max: f32,
     /// The same of each of the block's `SUB x SUB` squares (row-major, `BLOCK_QUADS /
-    /// SUB` quads a side: the triangles over a square use its own vertices alone): the
-    /// traversal bounds each from its own box, as the in-memory error images bound each
-    /// group at its own distance ([`crate::stream::traverse`]).
+    /// SUB` groups a side): the traversal bounds each from its own box, as the in-memory
+    /// error images bound each group at its own distance ([`crate::stream::traverse`]).
     pub squares: [Square; SUB * SUB],
+    /// The largest `D_j` of the row of groups along each edge (north, east, south, west),
+    /// over each square it crosses: a stitched strip's samples deviate from the block's
+    /// own surface by no more ([`crate::stream::traverse`]).
+    pub edge_d: [[f32; SUB]; 4],
 }
 
-/// A square of a block: its vertices' range and `D_j` under it, raw units.
+/// A square of a block: the largest `D_j` of its groups and the heights its samples and
+/// surface lie between, raw units.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Square {
-    pub lo: f32,
-    pub hi: f32,
     pub d: f32,
+    pub min: f32,
+    pub max: f32,
 }
 
-/// Squares a block side whose deviation is kept apart ([`BlockSummary::sub_d`]).
+/// Squares a block side whose deviation is kept apart ([`BlockSummary::squares`]).
 pub const SUB: usize = 4;
 
 /// The LOD of the blocks the archive's roots are: one block over the top tile's square.
@@ -129,37 +137,43 @@ impl TileData {
             for bz in 0..per_side {
                 for bx in 0..per_side {
                     let q = BLOCK_QUADS / SUB;
-                    let mut squares = [Square { lo: f32::INFINITY, hi: f32::NEG_INFINITY, d: 0.0 }; SUB * SUB];
-                    for v in 0..=BLOCK_QUADS {
-                        for u in 0..=BLOCK_QUADS {
-                            let h = vertex((bx * BLOCK_QUADS + u) * stride, (bz * BLOCK_QUADS + v) * stride);
-                            // A vertex on a square's edge is each neighbouring square's.
-                            let (sx0, sx1) = (u.saturating_sub(1) / q, (u / q).min(SUB - 1));
-                            let (sz0, sz1) = (v.saturating_sub(1) / q, (v / q).min(SUB - 1));
-                            for sz in sz0..=sz1 {
-                                for sx in sx0..=sx1 {
-                                    let s = &mut squares[sz * SUB + sx];
-                                    (s.lo, s.hi) = (s.lo.min(h), s.hi.max(h));
+                    let mut squares = [Square { d: 0.0, min: f32::INFINITY, max: f32::NEG_INFINITY }; SUB * SUB];
+                    let mut edge_d = [[0.0f32; SUB]; 4];
+                    let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
+                    for gz in 0..BLOCK_QUADS {
+                        for gx in 0..BLOCK_QUADS {
+                            let corner = |u: usize, v: usize| {
+                                vertex((bx * BLOCK_QUADS + gx + u) * stride, (bz * BLOCK_QUADS + gz + v) * stride)
+                            };
+                            let c = [corner(0, 0), corner(1, 0), corner(0, 1), corner(1, 1)];
+                            let (cmin, cmax) = (
+                                c.into_iter().fold(f32::INFINITY, f32::min),
+                                c.into_iter().fold(f32::NEG_INFINITY, f32::max),
+                            );
+                            let g = if has_d {
+                                tile.deviation[offset + (bz * BLOCK_QUADS + gz) * groups + bx * BLOCK_QUADS + gx]
+                            } else {
+                                0.0
+                            };
+                            let s = &mut squares[gz / q * SUB + gx / q];
+                            s.d = s.d.max(g);
+                            (s.min, s.max) = (s.min.min(cmin - g), s.max.max(cmax + g));
+                            (lo, hi) = (lo.min(cmin), hi.max(cmax));
+                            let last = BLOCK_QUADS - 1;
+                            for (e, on) in [gz == 0, gx == last, gz == last, gx == 0].into_iter().enumerate() {
+                                if on {
+                                    let k = if e % 2 == 0 { gx / q } else { gz / q };
+                                    edge_d[e][k] = edge_d[e][k].max(g);
                                 }
-                            }
-                        }
-                    }
-                    if has_d {
-                        for gz in 0..BLOCK_QUADS {
-                            let row = &tile.deviation[offset + (bz * BLOCK_QUADS + gz) * groups + bx * BLOCK_QUADS..]
-                                [..BLOCK_QUADS];
-                            for (sx, cells) in row.chunks_exact(q).enumerate() {
-                                let s = &mut squares[gz / q * SUB + sx];
-                                s.d = cells.iter().fold(s.d, |m, v| m.max(*v));
                             }
                         }
                     }
                     let fold =
                         |f: fn(&Square) -> f32, m: fn(f32, f32) -> f32, from: f32| squares.iter().map(f).fold(from, m);
-                    let (lo, hi) =
-                        (fold(|s| s.lo, f32::min, f32::INFINITY), fold(|s| s.hi, f32::max, f32::NEG_INFINITY));
                     let d = fold(|s| s.d, f32::max, 0.0);
-                    summaries.push(BlockSummary { lo, hi, d, squares });
+                    let (min, max) =
+                        (fold(|s| s.min, f32::min, f32::INFINITY), fold(|s| s.max, f32::max, f32::NEG_INFINITY));
+                    summaries.push(BlockSummary { lo, hi, d, min, max, squares, edge_d });
                 }
             }
             if has_d {

@@ -134,17 +134,59 @@ fn block_error_px(height_scale: f64, cam: &Camera, s: &BlockSummary, (min, max):
         return whole;
     }
     let per_distance = scale * cam.kappa() * angular_factor(cam, min, max, delta);
-    // The squares' edges: neighbours share theirs bit for bit, and the outer ones are the
-    // box's own, so the squares cover the box.
-    let edge = |a: f32, b: f32, i: usize| if i == SUB { b } else { a + (b - a) * i as f32 / SUB as f32 };
     let mut worst = 0.0f32;
     for (i, sq) in s.squares.iter().enumerate() {
-        let (sx, sz) = (i % SUB, i / SUB);
-        // The square's heights, scaled as the box's are ([`block_box`]).
-        let y = |h: f32| (f64::from(h) * height_scale) as f32;
-        let lo = Vec3::new(edge(min.x, max.x, sx), y(sq.lo - sq.d), edge(min.z, max.z, sz));
-        let hi = Vec3::new(edge(min.x, max.x, sx + 1), y(sq.hi + sq.d), edge(min.z, max.z, sz + 1));
+        let (lo, hi) = square_box(height_scale, (min, max), i % SUB, i / SUB, sq.min, sq.max);
         worst = worst.max(sq.d * per_distance / distance_to_aabb(cam.position, lo, hi).max(cam.near));
+    }
+    worst.min(whole)
+}
+
+/// The box of square `(sx, sz)` of a block whose box is `(min, max)`, between raw heights
+/// `lo` and `hi`. The squares' edges: neighbours share theirs bit for bit, and the outer
+/// ones are the box's own, so the squares cover the box; heights are scaled as the box's
+/// are ([`block_box`]).
+fn square_box(height_scale: f64, (min, max): (Vec3, Vec3), sx: usize, sz: usize, lo: f32, hi: f32) -> (Vec3, Vec3) {
+    let edge = |a: f32, b: f32, i: usize| if i == SUB { b } else { a + (b - a) * i as f32 / SUB as f32 };
+    let y = |h: f32| (f64::from(h) * height_scale) as f32;
+    (
+        Vec3::new(edge(min.x, max.x, sx), y(lo), edge(min.z, max.z, sz)),
+        Vec3::new(edge(min.x, max.x, sx + 1), y(hi), edge(min.z, max.z, sz + 1)),
+    )
+}
+
+/// The error bound in pixels of a block's stitched strip along edge `e` (north, east,
+/// south, west; [`DrawBlock::cells_across`]'s order): `D + departure` (the samples'
+/// deviation from the block's own surface plus the strip's from it, [`strip_departure`])
+/// projected from the block's box widened to the strip's heights, and where that exceeds
+/// delta, square by square along that edge (the strip is the row of quads along it), each
+/// with its own `D` and box.
+fn strip_error_px(
+    height_scale: f64,
+    cam: &Camera,
+    s: &BlockSummary,
+    (e, dep): (usize, &StripDeviation),
+    (min, max): (Vec3, Vec3),
+    delta: f32,
+) -> f32 {
+    let scale = height_scale as f32;
+    let whole = (s.d + dep.edge[e]) * scale * world_to_pixels(cam, min, max, delta);
+    if whole <= delta {
+        return whole;
+    }
+    let per_distance = scale * cam.kappa() * angular_factor(cam, min, max, delta);
+    let along = |k: usize| match e {
+        0 => (k, 0),
+        1 => (SUB - 1, k),
+        2 => (k, SUB - 1),
+        _ => (0, k),
+    };
+    let mut worst = 0.0f32;
+    for (k, (sx, sz)) in (0..SUB).map(along).enumerate() {
+        let sq = &s.squares[sz * SUB + sx];
+        let (lo, hi) = square_box(height_scale, (min, max), sx, sz, sq.min.min(dep.lo), sq.max.max(dep.hi));
+        let d = s.edge_d[e][k] + dep.edge[e];
+        worst = worst.max(d * per_distance / distance_to_aabb(cam.position, lo, hi).max(cam.near));
     }
     worst.min(whole)
 }
@@ -230,7 +272,7 @@ impl<'a> Traverser<'a> {
             let tile = cache.peek(key).expect("a block is visited only when its tile is held");
             self.used.insert(key);
             let s = tile.block(grid, lod, bx, bz);
-            let (min, max) = block_box(grid, self.anchor, lod, bx, bz, s.lo - s.d, s.hi + s.d);
+            let (min, max) = block_box(grid, self.anchor, lod, bx, bz, s.min, s.max);
             if !self.frustum.intersects_aabb(min, max) {
                 self.out.culled += 1;
                 continue;
@@ -294,12 +336,12 @@ impl<'a> Traverser<'a> {
                     continue;
                 }
                 let sel = &self.out.blocks[i];
+                let s = self.cache.peek(sel.tile).expect("a drawn block's tile is held").block(grid, b.lod, b.bx, b.bz);
                 let dep = strips.get_or_compute(*b, || strip_departure(&resident, &layout, b));
-                let (lo, hi) = ((sel.lo - sel.d).min(dep.lo), (sel.hi + sel.d).max(dep.hi));
-                let (min, max) = block_box(grid, self.anchor, b.lod, b.bx, b.bz, lo, hi);
-                let to_px = (grid.height_scale as f32) * world_to_pixels(&self.cam, min, max, delta);
+                let (lo, hi) = (s.min.min(dep.lo), s.max.max(dep.hi));
+                let boxed = block_box(grid, self.anchor, b.lod, b.bx, b.bz, lo, hi);
                 for (e, (nx, nz)) in b.cells_across().into_iter().enumerate() {
-                    let px = (sel.d + dep.edge[e]) * to_px;
+                    let px = strip_error_px(grid.height_scale, &self.cam, &s, (e, &dep), boxed, delta);
                     let over = dep.edge[e] > 0.0 && px > delta;
                     let t_junction = b.coarser[e] > b.stride() << layout.m;
                     if !(over || t_junction) {
@@ -376,50 +418,27 @@ mod tests {
     fn each_square_is_bounded_from_its_own_place() {
         let (side, d, delta) = (320.0f32, 4.0f32, 1.0f32);
         // Square i spans heights 4i..4i + 6: the block 0..66.
-        let square = |i: usize, d: f32| Square { lo: 4.0 * i as f32, hi: 4.0 * i as f32 + 6.0, d };
+        let square = |i: usize, d: f32| Square { d, min: 4.0 * i as f32 - d, max: 4.0 * i as f32 + 6.0 + d };
         let (lo, hi) = (0.0f32, 66.0f32);
         let (min, max) = (Vec3::new(0.0, lo - d, 0.0), Vec3::new(side, hi + d, side));
-        let mut cameras = Vec::new();
-        for &(x, z) in &[(-5.0, -5.0), (side + 5.0, -5.0), (-5.0, side + 5.0), (side + 5.0, side + 5.0), (160.0, -40.0)]
-        {
-            for &y in &[2.0f32, 20.0, 60.0, 400.0] {
-                for &(tx, tz) in &[(160.0f32, 160.0f32), (0.0, 0.0), (side, 0.0), (0.0, side), (side, side)] {
-                    cameras.push(Camera::look_at(Vec3::new(x, y, z), Vec3::new(tx, 10.0, tz), 45.0, 640, 480, 0.5));
-                }
-            }
-        }
-        cameras.push(Camera::look_at(
-            Vec3::new(160.0, 3000.0, 170.0),
-            Vec3::new(160.0, 0.0, 160.0),
-            45.0,
-            640,
-            480,
-            0.5,
-        ));
+        let cameras = cameras_around(side);
         let (mut checked, mut tighter) = (0usize, 0usize);
         for cam in &cameras {
             let vp = cam.view_proj();
             for i in 0..SUB * SUB {
                 let mut squares = std::array::from_fn(|j| square(j, 0.0));
-                squares[i].d = d;
-                let s = BlockSummary { lo, hi, d, squares };
+                squares[i] = square(i, d);
+                let s = BlockSummary { lo, hi, d, min: lo - d, max: hi + d, squares, edge_d: [[d; SUB]; 4] };
                 let bound = block_error_px(1.0, cam, &s, (min, max), delta);
                 let whole = d * world_to_pixels(cam, min, max, delta);
                 assert!(bound <= whole, "never looser than the whole block's");
                 let step = side / SUB as f32;
                 let (x0, z0) = ((i % SUB) as f32 * step, (i / SUB) as f32 * step);
-                let heights = [squares[i].lo - d, squares[i].hi];
+                // A segment of length D between the square's heights.
+                let heights = [squares[i].min, squares[i].max - d];
                 for (u, v, y) in (0..=4).flat_map(|u| (0..=4).flat_map(move |v| heights.map(|y| (u, v, y)))) {
                     let p = Vec3::new(x0 + step * u as f32 / 4.0, y, z0 + step * v as f32 / 4.0);
-                    let on_screen = |q: Option<(f32, f32)>| {
-                        q.filter(|&(x, y)| (0.0..=640.0).contains(&x) && (0.0..=480.0).contains(&y))
-                    };
-                    let (Some(a), Some(b)) =
-                        (on_screen(cam.project(&vp, p)), on_screen(cam.project(&vp, p + Vec3::Y * d)))
-                    else {
-                        continue;
-                    };
-                    let px = ((a.0 - b.0).powi(2) + (a.1 - b.1).powi(2)).sqrt();
+                    let Some(px) = projected(cam, &vp, p, d) else { continue };
                     let at = cam.position;
                     assert!(
                         px <= bound * 1.0001,
@@ -432,5 +451,97 @@ mod tests {
         }
         assert!(checked > 10_000, "{checked} deviations on screen");
         assert!(tighter > 100, "{tighter} squares bounded at under half the whole block's");
+    }
+
+    /// Cameras close to each corner of a `side`-wide block at the origin, low and high,
+    /// looking at its middle and its corners, and one far above.
+    fn cameras_around(side: f32) -> Vec<Camera> {
+        let mut cameras = Vec::new();
+        let (far, mid) = (side + 5.0, side / 2.0);
+        for &(x, z) in &[(-5.0, -5.0), (far, -5.0), (-5.0, far), (far, far), (mid, -40.0)] {
+            for &y in &[2.0f32, 20.0, 60.0, 400.0] {
+                for &(tx, tz) in &[(mid, mid), (0.0, 0.0), (side, 0.0), (0.0, side), (side, side)] {
+                    cameras.push(Camera::look_at(Vec3::new(x, y, z), Vec3::new(tx, 10.0, tz), 45.0, 640, 480, 0.5));
+                }
+            }
+        }
+        let above = Vec3::new(mid, 3000.0, mid + 10.0);
+        cameras.push(Camera::look_at(above, Vec3::new(mid, 0.0, mid), 45.0, 640, 480, 0.5));
+        cameras
+    }
+
+    /// The pixels a vertical segment of `length` from `p` up spans, when both its ends
+    /// are on the screen.
+    fn projected(cam: &Camera, vp: &glam::Mat4, p: Vec3, length: f32) -> Option<f32> {
+        let on_screen = |q: Option<(f32, f32)>| {
+            q.filter(|&(x, y)| (0.0..=cam.width as f32).contains(&x) && (0.0..=cam.height as f32).contains(&y))
+        };
+        let (a, b) = (on_screen(cam.project(vp, p))?, on_screen(cam.project(vp, p + Vec3::Y * length))?);
+        Some(((a.0 - b.0).powi(2) + (a.1 - b.1).powi(2)).sqrt())
+    }
+
+    /// A stitched strip's deviation (`D` of the edge's row of groups over a square plus
+    /// the strip's departure) anywhere on that row projects to no more pixels than the
+    /// strip's bound, for each edge and each square along it in turn, from the same
+    /// cameras; the bound is never looser than the whole block's. A bound that took the
+    /// squares along the opposite edge, or another edge's row, fails it.
+    #[test]
+    fn a_strip_is_bounded_from_the_squares_along_its_edge() {
+        let (side, delta) = (320.0f32, 1.0f32);
+        let quad = side / BLOCK_QUADS as f32;
+        let square = |i: usize, d: f32| Square { d, min: 3.0 * i as f32 - d, max: 3.0 * i as f32 + 5.0 + d };
+        let (lo, hi, d, departure) = (0.0f32, 50.0f32, 3.0f32, 2.0f32);
+        let (mut checked, mut tighter) = (0usize, 0usize);
+        for cam in &cameras_around(side) {
+            let vp = cam.view_proj();
+            for e in 0..4 {
+                let mut dep = StripDeviation { edge: [0.0; 4], lo: lo - 1.0, hi: hi + 1.0 };
+                dep.edge[e] = departure;
+                let (min, max) = (Vec3::new(0.0, lo - d - 1.0, 0.0), Vec3::new(side, hi + d + 1.0, side));
+                for k in 0..SUB {
+                    let (sx, sz) = match e {
+                        0 => (k, 0),
+                        1 => (SUB - 1, k),
+                        2 => (k, SUB - 1),
+                        _ => (0, k),
+                    };
+                    let mut squares = std::array::from_fn(|j| square(j, 0.0));
+                    squares[sz * SUB + sx] = square(sz * SUB + sx, d);
+                    // Only this square's part of the edge's row deviates.
+                    let mut edge_d = [[0.0; SUB]; 4];
+                    edge_d[e][k] = d;
+                    let s = BlockSummary { lo, hi, d, min: lo - d, max: hi + d, squares, edge_d };
+                    let bound = strip_error_px(1.0, cam, &s, (e, &dep), (min, max), delta);
+                    let whole = (d + departure) * world_to_pixels(cam, min, max, delta);
+                    assert!(bound <= whole);
+                    tighter += usize::from(bound < 0.5 * whole);
+                    // Points along the edge over the square, on the row of quads along it.
+                    let step = side / SUB as f32;
+                    let sq = &s.squares[sz * SUB + sx];
+                    let (y0, y1) = (sq.min.min(dep.lo), sq.max.max(dep.hi) - (d + departure));
+                    for (t, inward, y) in (0..=8)
+                        .flat_map(|t| [0.0, quad].into_iter().flat_map(move |w| [y0, y1].map(move |y| (t, w, y))))
+                    {
+                        let run = k as f32 * step + step * t as f32 / 8.0;
+                        let (x, z) = match e {
+                            0 => (run, inward),
+                            1 => (side - inward, run),
+                            2 => (run, side - inward),
+                            _ => (inward, run),
+                        };
+                        let p = Vec3::new(x, y, z);
+                        let Some(px) = projected(cam, &vp, p, d + departure) else { continue };
+                        assert!(
+                            px <= bound * 1.0001,
+                            "edge {e}, square {k}, camera at {}: {px} px at {p}, bound {bound}",
+                            cam.position
+                        );
+                        checked += 1;
+                    }
+                }
+            }
+        }
+        assert!(checked > 5_000, "{checked} deviations on screen");
+        assert!(tighter > 50, "{tighter} strips bounded at under half the whole block's");
     }
 }
