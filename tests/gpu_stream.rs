@@ -295,16 +295,31 @@ fn render_draws_an_archive_streamed_within_the_bound() {
     let terrain = common::terrain_pixels(&img);
     assert!(terrain > 320 * 240 / 3, "{terrain} terrain pixels");
 
-    // One MB holds the top tiles and little more: the frame is drawn, over the bound.
-    let o = render(&["--cache-mb", "1"]);
+    // `--audit` measures the streamed frame as drawn against every sample (the archive
+    // in memory): within delta, every visible sample covered.
+    let o = render(&["--audit"]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let audited = r["max_audited_error_px"].as_f64().unwrap();
+    println!("render --stream --audit: {audited:.3} px over {} samples", r["audited_samples"]);
+    assert_eq!((r["audit_within_delta"].as_bool(), r["uncovered_samples"].as_u64()), (Some(true), Some(0)), "{r}");
+    assert!(audited > 0.3 && r["audited_samples"].as_u64().unwrap() > 100_000, "{r}");
+
+    // One MB holds the top tiles and little more: the frame is drawn, over the bound, and
+    // the audit says by how much.
+    let o = render(&["--cache-mb", "1", "--audit"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let over: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    println!("--cache-mb 1: audited {} px", over["max_audited_error_px"]);
+    assert_eq!(over["audit_within_delta"], false, "{over}");
+    assert_eq!(over["uncovered_samples"], 0, "{over}");
     let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!(r["within_bound"], false, "{r}");
     assert!(r["blocks_over_bound"].as_u64().unwrap() > 0 && r["worst_factor"].as_f64().unwrap() > 1.0, "{r}");
     assert!(String::from_utf8_lossy(&o.stderr).contains("over the bound"));
 
     for (extra, named) in [
-        (vec!["--audit"], "--audit"),
+        (vec!["--export-mesh", "m.glb"], "--export-mesh"),
         (vec!["--lod", "full"], "--lod full"),
         (vec!["--background", "0,0,0"], "--background"),
     ] {

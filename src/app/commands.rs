@@ -81,7 +81,6 @@ impl RenderArgs {
             ("--texture", self.textures.texture.is_some()),
             ("--detail", self.textures.detail.is_some()),
             ("--export-mesh", self.export_mesh.is_some()),
-            ("--audit (a streamed frame is audited offline against the full data: SPEC 8)", self.audit),
             ("--lod full|distance", self.lod != LodChoice::Error),
             ("--error-mode paper", c.error_mode != crate::lod::gie::ErrorMode::Strict),
             ("--background", self.background.is_some()),
@@ -330,17 +329,21 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
         out["error_update_ms"] = json!(ms);
     }
     if let Some(a) = audited {
-        // JSON has no infinity: a drawn point behind the eye (an unbounded error) is
-        // reported as `audit_unbounded` with null figures.
-        out["max_audited_error_px"] = json!(a.max_error_px);
-        out["audited_over_delta"] = json!(a.max_error_px / args.delta);
-        out["audit_unbounded"] = json!(!a.max_error_px.is_finite());
-        out["audit_within_delta"] = json!(a.max_error_px <= args.delta * 1.01);
-        out["audited_samples"] = json!(a.samples);
-        out["uncovered_samples"] = json!(a.uncovered);
+        audit_into(&mut out, &a, args.delta);
     }
     println!("{out}");
     finish(s)
+}
+
+/// The audit's figures in a render's JSON. JSON has no infinity: a drawn point behind the
+/// eye (an unbounded error) is reported as `audit_unbounded` with null figures.
+fn audit_into(out: &mut serde_json::Value, a: &audit::AuditResult, delta: f32) {
+    out["max_audited_error_px"] = json!(a.max_error_px);
+    out["audited_over_delta"] = json!(a.max_error_px / delta);
+    out["audit_unbounded"] = json!(!a.max_error_px.is_finite());
+    out["audit_within_delta"] = json!(a.max_error_px <= delta * 1.01);
+    out["audited_samples"] = json!(a.samples);
+    out["uncovered_samples"] = json!(a.uncovered);
 }
 
 /// `render` over an archive drawn streamed ([`crate::app::stream::render_archive`]).
@@ -378,6 +381,25 @@ fn render_streamed(args: &RenderArgs, device: Arc<Device>, archive: Arc<Archive>
     })?;
     save_png(&args.out, r.width, r.height, &r.pixels)?;
     let mut out = r.report;
+    if args.audit {
+        // Offline, against every sample (SPEC 8): the whole terrain in memory, which the
+        // streamed path itself never holds.
+        let hf = args
+            .common
+            .load_heightfield(None)
+            .map_err(|e| InputError(format!("--audit compares the frame with every sample, in memory: {e:#}")))?;
+        let layout = crate::lod::block::BlockLayout::of(&hf, 33).map_err(InputError)?;
+        let v = &r.view;
+        let cam = crate::lod::camera::Camera {
+            position: v.position.as_vec3(),
+            forward: v.forward,
+            fovy: v.fovy,
+            width: v.width,
+            height: v.height,
+            near: v.near,
+        };
+        audit_into(&mut out, &audit::audit_blocks(&hf, &layout, &r.drawn, &cam), args.delta);
+    }
     out["queue_mode"] = json!(queue_mode);
     out["error_mode"] = json!(args.common.error_mode.as_str());
     crate::app::outputs::TerrainFacts::of_archive(&archive.meta).merge_into(&mut out);

@@ -445,6 +445,9 @@ pub struct ArchiveRender {
     pub height: u32,
     pub pixels: Vec<u8>,
     pub report: serde_json::Value,
+    /// The blocks as drawn (stitched) and the camera, in the world (`render --audit`).
+    pub drawn: Vec<crate::lod::block::DrawBlock>,
+    pub view: View,
 }
 
 /// Draws one frame of an archive through the streaming path: the tiles the view needs
@@ -503,7 +506,8 @@ pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
         "look_at": [look_at.x, look_at.y, look_at.z],
         "peak_resident_mb": crate::app::outputs::peak_resident_mb(),
     });
-    Ok(ArchiveRender { width: w, height: h, pixels: std::mem::take(&mut gpu.last), report })
+    let (pixels, drawn) = (std::mem::take(&mut gpu.last), sel.stitched);
+    Ok(ArchiveRender { width: w, height: h, pixels, report, drawn, view })
 }
 
 /// A frame rate the flight can be paced at: 0.1 to 10,000 frames a second.

@@ -77,12 +77,17 @@ pub fn rendered_raw<S: RawSamples + ?Sized>(
 /// For every sample inside the frustum, the pixel distance between the true point and
 /// the rendered surface's point at the same `(x, z)`.
 pub fn audit(hf: &Heightfield, layout: &BlockLayout, traversal: &Traversal, cam: &Camera) -> AuditResult {
-    let frustum = cam.frustum();
-    let vp = cam.view_proj();
     // The whole selection: an occluded block is still selected at its LOD, and the audit
     // does not rely on culling being right (the culling tests check that separately).
     let selection: Vec<DrawBlock> = traversal.selection().copied().collect();
-    let map = block_index_map(layout, &selection);
+    audit_blocks(hf, layout, &selection, cam)
+}
+
+/// [`audit`] of a block list as drawn (stitched), such as a streamed frame's.
+pub fn audit_blocks(hf: &Heightfield, layout: &BlockLayout, selection: &[DrawBlock], cam: &Camera) -> AuditResult {
+    let frustum = cam.frustum();
+    let vp = cam.view_proj();
+    let map = block_index_map(layout, selection);
     let [cells, rows] = layout.cells().map(|c| c as i64);
     let m = layout.m;
     let mut r = AuditResult::default();
