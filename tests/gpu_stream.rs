@@ -142,7 +142,7 @@ fn streamed_frames_match(hf: &Heightfield, unorm16: bool) {
 fn frame_view<'a>(grid: &'a Grid, view: &View) -> FrameView<'a> {
     let (anchor, cam) = view.relative(grid);
     let heights = HeightRange { world: [0.0, 1000.0], absolute: false };
-    FrameView { grid, anchor, cam, heights, fog: 0.0, light: glam::Vec3::Y, colour_by_lod: false }
+    FrameView { grid, anchor, cam, heights, fog: 0.0, light: glam::Vec3::Y, colour_by_lod: false, background: None }
 }
 
 /// The atlas's thread rewrites a layer only when the host cache has let its tile go and
@@ -321,7 +321,7 @@ fn render_draws_an_archive_streamed_within_the_bound() {
     for (extra, named) in [
         (vec!["--export-mesh", "m.glb"], "--export-mesh"),
         (vec!["--lod", "full"], "--lod full"),
-        (vec!["--background", "0,0,0"], "--background"),
+        (vec!["--pixels", "forward"], "--pixels forward"),
     ] {
         let o = render(&extra);
         let err = String::from_utf8_lossy(&o.stderr);
@@ -448,8 +448,12 @@ fn a_streamed_frame_is_coloured_as_the_terrain_in_memory() {
     // Under the surface both paths see the sky through the terrain's culled underside,
     // and the hillsides that face the camera from below (slivers: larger differences).
     let under = ["--camera", "80000,-2000,80000", "--look-at", "90000,500,90000"];
-    let views: [(&str, &[&str], f64, f64, bool); 3] = [
+    // `--background`: a plain colour where the sky was, as in memory (a frame that kept
+    // the sky differs from memory's over the whole sky).
+    let plain = ["--background", "0.3,0.1,0.1"];
+    let views: [(&str, &[&str], f64, f64, bool); 4] = [
         ("default view", &[], 5.0, 0.015, true),
+        ("plain background", &plain, 5.0, 0.015, true),
         ("low view", &low, 5.0, 0.015, true),
         ("under", &under, 12.0, 0.02, false),
     ];

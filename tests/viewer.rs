@@ -21,6 +21,16 @@ fn viewer(args: &[&str]) -> std::process::Output {
     cmd.output().expect("run the viewer (needs Xvfb: apt-get install xvfb)")
 }
 
+/// A viewer run that must succeed under validation with no message: its exit line.
+fn clean_run(args: &[&str]) -> serde_json::Value {
+    let out = viewer(args);
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{args:?}: {}", String::from_utf8_lossy(&out.stderr));
+    let json: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
+    assert_eq!(json["validation_messages"], 0, "{json}");
+    json
+}
+
 #[test]
 fn flyover_with_resizes_writes_a_screenshot_and_exits_cleanly() {
     let shot = std::env::temp_dir().join(format!("vkterrain-viewer-{}.png", std::process::id()));
@@ -464,11 +474,7 @@ fn the_streamed_viewer_goes_to_a_latitude_as_in_memory() {
         if stream {
             args.push("--stream");
         }
-        let out = viewer(&args);
-        let stdout = String::from_utf8_lossy(&out.stdout);
-        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-        let json: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
-        assert_eq!(json["validation_messages"], 0, "{json}");
+        let json = clean_run(&args);
         let p = &json["final_position"];
         (p[0].as_f64().unwrap(), p[2].as_f64().unwrap())
     };
@@ -647,11 +653,7 @@ fn the_streamed_viewer_exaggerates_heights_as_in_memory() {
         if stream {
             args.push("--stream");
         }
-        let out = viewer(&args);
-        let stdout = String::from_utf8_lossy(&out.stdout);
-        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-        let json: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
-        assert_eq!(json["validation_messages"], 0, "{json}");
+        let json = clean_run(&args);
         assert_eq!(json["exaggeration"].as_f64(), Some(exaggeration.parse().unwrap()), "{json}");
         (json["start_position"].clone(), image::open(&png).unwrap().to_rgb8())
     };

@@ -83,7 +83,6 @@ impl RenderArgs {
             ("--export-mesh", self.export_mesh.is_some()),
             ("--lod full|distance", self.lod != LodChoice::Error),
             ("--error-mode paper", c.error_mode != crate::lod::gie::ErrorMode::Strict),
-            ("--background", self.background.is_some()),
             ("--pixels forward", self.pixels != PixelPass::Deferred),
             ("--raycast", self.raycast != Raycast::Off),
             ("--shading heights", self.shading != NormalSource::GradientMap),
@@ -378,6 +377,7 @@ fn render_streamed(args: &RenderArgs, device: Arc<Device>, archive: Arc<Archive>
         cache_mb: args.streamed.cache_mb(),
         gpu_mb: args.streamed.gpu_mb(),
         colour_by_lod: args.colour_by_lod,
+        background: args.background.as_deref().map(parse_background).transpose()?,
     })?;
     save_png(&args.out, r.width, r.height, &r.pixels)?;
     let mut out = r.report;

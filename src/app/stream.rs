@@ -76,6 +76,8 @@ pub(crate) struct GpuFrames {
     light: glam::Vec3,
     /// Blocks tinted by their LOD.
     pub colour_by_lod: bool,
+    /// A plain background instead of the sky.
+    pub background: Option<[f32; 3]>,
     frames: u64,
     /// Frames where some block's tile found no atlas layer (those blocks not drawn).
     pub frames_missing_blocks: u64,
@@ -125,6 +127,7 @@ impl GpuFrames {
             fog: 0.0,
             light: Sun::DEFAULT.direction(),
             colour_by_lod: false,
+            background: None,
             frames: 0,
             frames_missing_blocks: 0,
             blocks: 0,
@@ -161,6 +164,7 @@ impl GpuFrames {
             fog: self.fog,
             light: self.light,
             colour_by_lod: self.colour_by_lod,
+            background: self.background,
         };
         let stats = match window {
             Some((w, overlay)) => self.renderer.render_to_window(&self.atlas, &fv, &blocks, w, overlay)?,
@@ -437,6 +441,8 @@ pub struct ArchiveFrame<'a> {
     pub gpu_mb: u32,
     /// Blocks tinted by their LOD.
     pub colour_by_lod: bool,
+    /// A plain background instead of the sky.
+    pub background: Option<[f32; 3]>,
 }
 
 /// What [`render_archive`] drew: the pixels and the JSON facts.
@@ -477,6 +483,7 @@ pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
     let mut gpu = GpuFrames::new(f.device.clone(), &mut streamer, f.gpu_mb, range, (w, h), &Trace::off())?;
     gpu.fog = f.fog;
     gpu.colour_by_lod = f.colour_by_lod;
+    gpu.background = f.background;
     gpu.sun(f.common.sun.0);
     gpu.draw(&streamer, &grid, &view, &sel, None)?;
     let missing = gpu.frames_missing_blocks > 0;

@@ -210,8 +210,12 @@ impl StreamedRenderer {
             texturing: [0.0, 0.0, 0.0, crate::lod::heightfield::sea_level(absolute, world)],
             extent: [grid.width as i32, grid.height as i32, 0, self.layout.k() as i32],
             flags: [atlas.unorm16() as i32, i32::from(view.colour_by_lod), 0, 0],
-            sky_zenith: [SKY_ZENITH[0], SKY_ZENITH[1], SKY_ZENITH[2], 1.0],
-            sky_horizon: [SKY_HORIZON[0], SKY_HORIZON[1], SKY_HORIZON[2], 1.0],
+            // As in memory: a plain background is the horizon's colour (the fog's too).
+            sky_zenith: [SKY_ZENITH[0], SKY_ZENITH[1], SKY_ZENITH[2], f32::from(u8::from(view.background.is_none()))],
+            sky_horizon: match view.background {
+                Some([r, g, b]) => [r, g, b, 1.0],
+                None => [SKY_HORIZON[0], SKY_HORIZON[1], SKY_HORIZON[2], 1.0],
+            },
             anchor: [a(view.anchor[0])?, a(view.anchor[1])?, atlas.side() as i32, 0],
         })
     }
@@ -586,6 +590,8 @@ pub struct FrameView<'a> {
     pub light: glam::Vec3,
     /// Blocks tinted by their LOD (`--colour-by-lod`, the viewer's L), as in memory.
     pub colour_by_lod: bool,
+    /// A plain background instead of the sky (`--background`, linear RGB).
+    pub background: Option<[f32; 3]>,
 }
 
 impl Drop for StreamedRenderer {
