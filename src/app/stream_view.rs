@@ -5,10 +5,10 @@
 //! uploads the new tiles into the atlas and draws from it into the swapchain image.
 //!
 //! It has the in-memory viewer's camera controls ([`Controller`]) and a panel of its own
-//! ([`crate::app::stream_panel`]: frames over the bound, tiles held and read, delta, fog
-//! and speed; H hides it, F1 shows the keys); shading is plain (the in-memory colours
-//! without textures, shadows or morphing), and the window title carries the main
-//! figures too.
+//! ([`crate::app::stream_panel`]: frames over the bound, tiles held and read, delta, fog,
+//! speed, exaggeration and LOD colours; H hides it, F1 shows the keys); shading is plain
+//! (the in-memory colours without textures, shadows or morphing), and the window title
+//! carries the main figures too.
 
 use crate::app::cli::{check_messages, CommonArgs};
 use crate::app::controls::{delta_key, flyover_time, Controller, Ground, Input};
@@ -248,7 +248,10 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
         anyhow::anyhow!("cannot open a window ({e}); is DISPLAY set? Use `vkterrain render` for headless output")
     })?;
     event_loop.set_control_flow(ControlFlow::Poll);
-    println!("keys: W/S A/D Q/E move, drag to look, Shift faster, wheel speed, G walk, Home start, [ ] delta, P screenshot, H panel, F1 help, Esc quit");
+    println!(
+        "keys: W/S A/D Q/E move, drag to look, Shift faster, wheel speed, G walk, Home start, [ ] delta, Z/X \
+         exaggeration, L LOD colours, P screenshot, H panel, F1 help, Esc quit"
+    );
     let ctl = Controller::new(position, f, l / 60.0, args.walk);
     let home = (ctl.position, ctl.yaw, ctl.pitch);
     let now = Instant::now();
