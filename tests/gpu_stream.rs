@@ -546,3 +546,63 @@ fn bench_runs_a_path_over_an_archive_drawn_streamed() {
     assert_eq!(r.status.code(), Some(2), "{err}");
     assert!(err.contains("--compare") && err.contains("streamed"), "{err}");
 }
+
+/// `render --stream --audit` audits in the archive's block layout (one square of
+/// 2^n + 1 samples), which is not the in-memory one for narrow or small terrains: an
+/// adversarial review found the audit, in the in-memory layout, reading past its block
+/// map (a panic) on a 2000 x 34 field and reporting samples uncovered on a 40 x 40 one,
+/// where the frames were right. Random heights from -5 to 5, 10 m apart, from the
+/// review's cameras.
+#[test]
+fn a_streamed_frame_of_a_narrow_terrain_audits_in_the_archives_layout() {
+    let dir = TempDir::new("gpu-stream-narrow");
+    for (w, h, camera, look_at) in [
+        (2000, 34, "20050,40,170", "10000,0,170"),
+        (40, 40, "200,40,450", "200,0,200"),
+        (34, 2000, "170,40,20050", "170,0,10000"),
+    ] {
+        let raw = dir.path().join(format!("f{w}x{h}.f32"));
+        let mut state = 9u64;
+        let bytes: Vec<u8> = (0..w * h)
+            .flat_map(|_| {
+                state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+                (((state >> 40) as f32 / (1u64 << 24) as f32) * 10.0 - 5.0).to_le_bytes()
+            })
+            .collect();
+        std::fs::write(&raw, bytes).unwrap();
+        let archive = dir.path().join(format!("f{w}x{h}.pmtiles"));
+        let size = format!("{w}x{h}");
+        let o = cli(&["prepare", raw.to_str().unwrap(), "--raw-size", &size, "--spacing", "10", "--height-scale", "1"]
+            .into_iter()
+            .chain(["--out", archive.to_str().unwrap()])
+            .collect::<Vec<_>>());
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let png = dir.path().join("r.png");
+        let o = cli(&[
+            "render",
+            "--heightmap",
+            archive.to_str().unwrap(),
+            "--stream",
+            "--audit",
+            "--validation",
+            "on",
+            "--size",
+            "256x256",
+            "--camera",
+            camera,
+            "--look-at",
+            look_at,
+            "--out",
+            png.to_str().unwrap(),
+        ]);
+        assert!(o.status.success(), "{size}: {}", String::from_utf8_lossy(&o.stderr));
+        let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+        assert_eq!(r["within_bound"], true, "{size}: {r}");
+        assert_eq!(
+            (r["audit_within_delta"].as_bool(), r["uncovered_samples"].as_u64()),
+            (Some(true), Some(0)),
+            "{size}: {r}"
+        );
+        assert_eq!(r["gpu"]["validation_messages"], 0, "{size}: {r}");
+    }
+}

@@ -388,7 +388,6 @@ fn render_streamed(args: &RenderArgs, device: Arc<Device>, archive: Arc<Archive>
             .common
             .load_heightfield(None)
             .map_err(|e| InputError(format!("--audit compares the frame with every sample, in memory: {e:#}")))?;
-        let layout = crate::lod::block::BlockLayout::of(&hf, 33).map_err(InputError)?;
         let v = &r.view;
         let cam = crate::lod::camera::Camera {
             position: v.position.as_vec3(),
@@ -398,7 +397,10 @@ fn render_streamed(args: &RenderArgs, device: Arc<Device>, archive: Arc<Archive>
             height: v.height,
             near: v.near,
         };
-        audit_into(&mut out, &audit::audit_blocks(&hf, &layout, &r.drawn, &cam), args.delta);
+        // In the archive's block layout (one square of 2^n + 1 samples a side), which is
+        // not the in-memory one for every size: the samples beyond the true extent repeat
+        // its edge in both.
+        audit_into(&mut out, &audit::audit_blocks(&hf, &r.layout, &r.drawn, &cam), args.delta);
     }
     out["queue_mode"] = json!(queue_mode);
     out["error_mode"] = json!(args.common.error_mode.as_str());

@@ -451,8 +451,10 @@ pub struct ArchiveRender {
     pub height: u32,
     pub pixels: Vec<u8>,
     pub report: serde_json::Value,
-    /// The blocks as drawn (stitched) and the camera, in the world (`render --audit`).
+    /// The blocks as drawn (stitched), in the archive's block layout, and the camera, in
+    /// the world (`render --audit`).
     pub drawn: Vec<crate::lod::block::DrawBlock>,
+    pub layout: crate::lod::block::BlockLayout,
     pub view: View,
 }
 
@@ -514,7 +516,8 @@ pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
         "peak_resident_mb": crate::app::outputs::peak_resident_mb(),
     });
     let (pixels, drawn) = (std::mem::take(&mut gpu.last), sel.stitched);
-    Ok(ArchiveRender { width: w, height: h, pixels, report, drawn, view })
+    let layout = crate::stream::draw::layout(&grid);
+    Ok(ArchiveRender { width: w, height: h, pixels, report, drawn, layout, view })
 }
 
 /// A frame rate the flight can be paced at: 0.1 to 10,000 frames a second.
