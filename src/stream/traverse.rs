@@ -4,7 +4,8 @@
 //! and exact whatever the distance to the terrain's origin.
 //!
 //! A block splits while its error exceeds delta, as in memory ([`crate::lod::traversal`],
-//! strict mode's block bound: `D * height_scale * world_to_pixels`). Where it should
+//! strict mode's block bound: `D * height_scale * world_to_pixels`, refined square by
+//! square where that exceeds delta: [`block_error_px`]). Where it should
 //! split but the finer tile is not held, it is drawn as it is, the tile is wanted with
 //! the block's error / delta as its priority, and the block counts over the bound. Blocks
 //! within the bound but above `prefetch * delta` want their finer tile too, at a lower
