@@ -47,7 +47,7 @@ pub struct Square {
 }
 
 /// Squares a block side whose deviation is kept apart ([`BlockSummary::squares`]).
-pub const SUB: usize = 4;
+pub const SUB: usize = 8;
 
 /// The LOD of the blocks the archive's roots are: one block over the top tile's square.
 pub fn root_lod(grid: &Grid) -> u32 {

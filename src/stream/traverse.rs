@@ -418,9 +418,9 @@ mod tests {
     #[test]
     fn each_square_is_bounded_from_its_own_place() {
         let (side, d, delta) = (320.0f32, 4.0f32, 1.0f32);
-        // Square i spans heights 4i..4i + 6: the block 0..66.
+        // Square i spans heights 4i..4i + 6: the block 0..4 (SUB^2 - 1) + 6.
         let square = |i: usize, d: f32| Square { d, min: 4.0 * i as f32 - d, max: 4.0 * i as f32 + 6.0 + d };
-        let (lo, hi) = (0.0f32, 66.0f32);
+        let (lo, hi) = (0.0f32, 4.0 * (SUB * SUB - 1) as f32 + 6.0);
         let (min, max) = (Vec3::new(0.0, lo - d, 0.0), Vec3::new(side, hi + d, side));
         let cameras = cameras_around(side);
         let (mut checked, mut tighter) = (0usize, 0usize);
@@ -491,7 +491,7 @@ mod tests {
         let (side, delta) = (320.0f32, 1.0f32);
         let quad = side / BLOCK_QUADS as f32;
         let square = |i: usize, d: f32| Square { d, min: 3.0 * i as f32 - d, max: 3.0 * i as f32 + 5.0 + d };
-        let (lo, hi, d, departure) = (0.0f32, 50.0f32, 3.0f32, 2.0f32);
+        let (lo, hi, d, departure) = (0.0f32, 3.0 * (SUB * SUB - 1) as f32 + 5.0, 3.0f32, 2.0f32);
         let (mut checked, mut tighter) = (0usize, 0usize);
         for cam in &cameras_around(side) {
             let vp = cam.view_proj();
