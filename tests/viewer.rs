@@ -31,6 +31,20 @@ fn clean_run(args: &[&str]) -> serde_json::Value {
     json
 }
 
+/// The poses of a flight recorded with `--record-path`: `frames` of them, six numbers
+/// each, and north from frame to frame (a flyover: z decreases).
+fn flown_north(recorded: &str, frames: usize) -> Vec<Vec<f64>> {
+    let poses: Vec<Vec<f64>> = recorded
+        .lines()
+        .filter(|l| !l.starts_with('#'))
+        .map(|l| l.split_whitespace().map(|v| v.parse().unwrap()).collect())
+        .collect();
+    assert_eq!(poses.len(), frames);
+    assert!(poses.iter().all(|p| p.len() == 6));
+    assert!(poses.windows(2).all(|w| w[1][2] < w[0][2]), "{poses:?}");
+    poses
+}
+
 #[test]
 fn flyover_with_resizes_writes_a_screenshot_and_exits_cleanly() {
     let shot = std::env::temp_dir().join(format!("vkterrain-viewer-{}.png", std::process::id()));
@@ -135,16 +149,7 @@ fn recorded_flight_replays_as_a_bench_path() {
     let summary = std::fs::read_to_string(dir.join("out/summary.json"));
     let _ = std::fs::remove_dir_all(&dir);
     assert!(out.status.success(), "viewer failed: {}", String::from_utf8_lossy(&out.stderr));
-    let recorded = recorded.expect("the flight was written");
-    let poses: Vec<Vec<f32>> = recorded
-        .lines()
-        .filter(|l| !l.starts_with('#'))
-        .map(|l| l.split_whitespace().map(|v| v.parse().unwrap()).collect())
-        .collect();
-    assert_eq!(poses.len(), 9);
-    assert!(poses.iter().all(|p| p.len() == 6));
-    // The flyover moves north: z decreases from frame to frame.
-    assert!(poses.windows(2).all(|w| w[1][2] < w[0][2]), "{poses:?}");
+    flown_north(&recorded.expect("the flight was written"), 9);
     assert!(bench.status.success(), "bench failed: {}", String::from_utf8_lossy(&bench.stderr));
     let s: serde_json::Value = serde_json::from_str(&summary.unwrap()).unwrap();
     assert_eq!(s["frames"], 9);
@@ -602,15 +607,7 @@ xdotool key Escape
     assert!(json["resizes"].as_u64().unwrap() >= 1, "--resize-at: {json}");
     // The recorded flight: one pose a frame, north from frame to frame, ending where the
     // run did; replayed streamed, one frame a pose.
-    let poses: Vec<Vec<f64>> = recorded
-        .expect("the flight was written")
-        .lines()
-        .filter(|l| !l.starts_with('#'))
-        .map(|l| l.split_whitespace().map(|v| v.parse().unwrap()).collect())
-        .collect();
-    assert_eq!(poses.len(), 10);
-    assert!(poses.iter().all(|p| p.len() == 6));
-    assert!(poses.windows(2).all(|w| w[1][2] < w[0][2]), "{poses:?}");
+    let poses = flown_north(&recorded.expect("the flight was written"), 10);
     assert!(((poses[9][0] - x).abs() < 1e-2) && (poses[9][2] - z).abs() < 1e-2, "{:?} {json}", poses[9]);
     assert!(replayed.status.success(), "bench failed: {}", String::from_utf8_lossy(&replayed.stderr));
     let s: serde_json::Value = serde_json::from_str(&summary.expect("summary.json")).unwrap();
