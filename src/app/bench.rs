@@ -533,6 +533,9 @@ impl Bench<'_> {
                     Ok((done, t, Instant::now()))
                 })?;
             let (done, submit_start, submit_end) = frame.submitted;
+            if let Some(stats) = &done {
+                draw.observe(stats);
+            }
             if let Some(n) = frame.taken {
                 let g = draw.feed.usable().expect("a generation was just taken");
                 if let Some(ms) = g.gpu_ms {

@@ -842,6 +842,7 @@ impl App {
             self.trace.complete(DRAW_TID, "wait (frame slot)", from, to, json!({"frame": frame}));
         }
         self.last_gpu_ms = done.gpu_ms;
+        self.draw.observe(done);
         let lock = done.queue_lock.map_or(0.0, |(a, g)| (g - a).as_secs_f64() * 1e3);
         self.last_waits = (done.wait_ms, lock);
     }

@@ -105,6 +105,12 @@ impl DrawThread {
         }
     }
 
+    /// A finished frame's statistics: what a triangle costs the GPU, which decides
+    /// whether the occlusion sweep pays ([`occlusion::Probe`]).
+    pub fn observe(&mut self, done: &crate::draw::blocks::DrawStats) {
+        self.probe.observe(done.gpu_ms, done.triangles);
+    }
+
     /// The same thread with occlusion culling on or off.
     pub fn with_occlusion(mut self, on: bool) -> Self {
         self.occlusion = on;

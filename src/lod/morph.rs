@@ -46,6 +46,7 @@ use crate::lod::heightfield::Heightfield;
 use crate::lod::pyramid::MinMaxPyramid;
 use crate::lod::stitch::{strip_segment, StitchCache, CORNER_EDGES, STRIP_SEGMENTS};
 use foldhash::HashMap;
+use rayon::prelude::*;
 
 /// What a block's morph costs, in pixels for this frame's camera.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -395,10 +396,12 @@ pub fn assign_with(
     let edges = EdgeVars::new(layout, t, |i| t.blocks[i].lod < root);
     // The root has no parent to morph from.
     // Cheap edge terms first; the exact ones (cached per block, costly the first time a
-    // block is seen) only for blocks that the cheap ones hold back.
+    // block is seen) only for blocks that the cheap ones hold back. Each block's cost is
+    // its own (the caches are shared behind a lock), so they are computed on every core:
+    // on a GPU the frame waits for this loop, not for the GPU.
     let mut costs: Vec<Option<MorphCost>> = t
         .blocks
-        .iter()
+        .par_iter()
         .enumerate()
         .map(|(i, b)| {
             (b.lod < root).then(|| cost(hf, mm, caches, layout, cam, delta, b, edges.fixed(i), EdgeTerms::Cheap))
@@ -421,6 +424,25 @@ pub fn assign_with(
         })
         .collect();
     let mut e = edges.start(&q);
+    // The exact terms of the blocks the cheap ones hold back from the start, on every
+    // core. The rounds below take them where they would compute them, so the factors are
+    // the same as computing each one there; a block held back only later computes its own.
+    let mut exact_ahead: Vec<Option<MorphCost>> = vec![None; n];
+    if rule != MorphRule::ParentSurface {
+        let fits_at_start = |i: usize, c: &MorphCost| {
+            let now = edges.values(i, &e);
+            c.bound(morph_value(q[i]), now.map(morph_value)) <= delta || (q[i] == MORPH_ONE && now == [MORPH_ONE; 4])
+        };
+        let held: Vec<usize> = (0..n).filter(|&i| costs[i].is_some_and(|c| !fits_at_start(i, &c))).collect();
+        let ahead: Vec<MorphCost> = held
+            .par_iter()
+            .map(|&i| cost(hf, mm, caches, layout, cam, delta, &t.blocks[i], edges.fixed(i), EdgeTerms::Exact))
+            .collect();
+        assert_eq!(ahead.len(), held.len());
+        for (i, c) in held.into_iter().zip(ahead) {
+            exact_ahead[i] = Some(c);
+        }
+    }
     let mut settled = false;
     for _ in 0..MAX_ROUNDS {
         if rule == MorphRule::ParentSurface {
@@ -441,17 +463,9 @@ pub fn assign_with(
             }
             if !exact[i] {
                 exact[i] = true;
-                let c = cheap.min(&cost(
-                    hf,
-                    mm,
-                    caches,
-                    layout,
-                    cam,
-                    delta,
-                    &t.blocks[i],
-                    edges.fixed(i),
-                    EdgeTerms::Exact,
-                ));
+                let c = cheap.min(&exact_ahead[i].take().unwrap_or_else(|| {
+                    cost(hf, mm, caches, layout, cam, delta, &t.blocks[i], edges.fixed(i), EdgeTerms::Exact)
+                }));
                 costs[i] = Some(c);
                 if fits(&c) {
                     continue;

@@ -43,18 +43,48 @@ pub const BINS: usize = 4096;
 
 /// When to run the sweep. It costs the draw thread about as much as a traversal, and
 /// where nearly every block shows a sample (a high camera over rolling terrain) it hides
-/// nothing; so after a run that hid under [`Probe::PAYS`] of the blocks it runs again only
-/// every [`Probe::EVERY`]-th frame, and every frame again once it pays.
+/// nothing; so after a run that did not pay ([`Probe::pays`]) it runs again only every
+/// [`Probe::EVERY`]-th frame, and every frame again once it pays.
+///
+/// Paying is judged by time once the GPU's time per triangle is known (timestamps): the
+/// triangles the sweep kept from the GPU against the sweep's own time on the draw
+/// thread. On lavapipe a triangle costs about 100 ns and a sweep that hides 1 % of the
+/// parts pays; on a discrete GPU it costs about 2 ns, the frame waits for the CPU, and
+/// the same sweep costs twice what it saves (docs/benchmarks.md, "On a GPU").
 #[derive(Clone, Copy, Debug, Default)]
 pub struct Probe {
     paused_for: u32,
+    /// GPU nanoseconds per drawn triangle, from the latest timed frame.
+    triangle_ns: Option<f64>,
 }
 
 impl Probe {
-    /// Share of the tested blocks a run must hide to run on the next frame.
+    /// Share of the tested parts a run must hide to run on the next frame, while no frame
+    /// has been timed.
     pub const PAYS: f64 = 0.01;
     /// How often a run that did not pay is tried again.
     pub const EVERY: u32 = 8;
+
+    /// A finished frame's GPU time and triangles (`None` where the queue has no
+    /// timestamps): what a triangle costs from now on.
+    pub fn observe(&mut self, gpu_ms: Option<f64>, triangles: u64) {
+        if let (Some(ms), true) = (gpu_ms, triangles > 0) {
+            self.triangle_ns = Some(ms * 1e6 / triangles as f64);
+        }
+    }
+
+    /// Whether a sweep that ran for `sweep_ms` paid: the GPU time of the triangles it
+    /// kept from the GPU at `triangle_ns` each is at least its own time; with no timing,
+    /// it hid at least [`Probe::PAYS`] of the parts.
+    pub fn pays(report: &OcclusionReport, sweep_ms: f64, triangle_ns: Option<f64>, triangles_per_part: u64) -> bool {
+        if report.skipped.is_some() {
+            return false;
+        }
+        match triangle_ns {
+            Some(ns) => report.hidden_parts as f64 * triangles_per_part as f64 * ns * 1e-6 >= sweep_ms,
+            None => report.hidden_parts as f64 >= Self::PAYS * report.tested_parts.max(1) as f64,
+        }
+    }
 
     /// Culls `t` if this frame is due, and learns from the result.
     pub fn cull(
@@ -73,9 +103,10 @@ impl Probe {
             t.occlusion = Some(report);
             return report;
         }
+        let started = std::time::Instant::now();
         let report = cull(hf, mm, caches, layout, cam, t);
-        let paid =
-            report.skipped.is_none() && report.hidden_parts as f64 >= Self::PAYS * report.tested_parts.max(1) as f64;
+        let sweep_ms = started.elapsed().as_secs_f64() * 1e3;
+        let paid = Self::pays(&report, sweep_ms, self.triangle_ns, layout.triangles_per_part());
         self.paused_for = if paid { 0 } else { Self::EVERY - 1 };
         report
     }
@@ -586,6 +617,32 @@ mod tests {
         let ran: Vec<usize> = (0..seen.len()).filter(|&i| seen[i] != Some(Skipped::Paused)).collect();
         assert_eq!(ran, [0, Probe::EVERY as usize, 2 * Probe::EVERY as usize], "{seen:?}");
         assert!(ran.iter().all(|&i| seen[i] == Some(Skipped::CameraOutside)));
+    }
+
+    /// A sweep pays when the triangles it hid would have cost the GPU at least its own
+    /// time, whatever share of the parts that is; a skipped one never pays; untimed, the
+    /// share decides.
+    #[test]
+    fn a_sweep_pays_by_the_time_it_saves() {
+        let r = |hidden_parts, tested_parts| OcclusionReport { hidden_parts, tested_parts, ..Default::default() };
+        // 100 parts of 128 triangles at 100 ns: 1.28 ms saved.
+        assert!(Probe::pays(&r(100, 20_000), 1.2, Some(100.0), 128));
+        assert!(!Probe::pays(&r(100, 20_000), 1.3, Some(100.0), 128));
+        // The same sweep at 2 ns a triangle saves 0.0256 ms: it does not pay, though it
+        // hid more than PAYS of the parts.
+        assert!(!Probe::pays(&r(300, 20_000), 0.5, Some(2.0), 128));
+        assert!(Probe::pays(&r(300, 20_000), 0.5, None, 128));
+        assert!(!Probe::pays(&r(100, 20_000), 0.5, None, 128));
+        let skipped = OcclusionReport { skipped: Some(Skipped::CameraOutside), ..r(20_000, 20_000) };
+        assert!(!Probe::pays(&skipped, 0.0, Some(100.0), 128));
+        // What a frame's timing teaches: 2 ms for a million triangles is 2 ns each.
+        let mut p = Probe::default();
+        p.observe(None, 1_000_000);
+        assert_eq!(p.triangle_ns, None);
+        p.observe(Some(2.0), 0);
+        assert_eq!(p.triangle_ns, None);
+        p.observe(Some(2.0), 1_000_000);
+        assert_eq!(p.triangle_ns, Some(2.0));
     }
 
     /// The interval holds every point of the rectangle, and no wider than its corners.
