@@ -582,6 +582,58 @@ fn rough_and_smooth(seed: u64) -> Heightfield {
     hf
 }
 
+/// The morph's terms are computed on every core, the exact ones ahead of the rounds that
+/// ask for them: the factors are those of computing each term where the rounds ask for
+/// it, on one thread, whatever the threads (poses of every kind, with stale error data so
+/// that blocks sit between their split and their own error, and caches shared between
+/// poses so that some terms are found computed).
+#[test]
+fn morph_factors_do_not_depend_on_the_threads() {
+    let hf = rough_and_smooth(5);
+    let mm = MinMaxPyramid::build(&hf);
+    let layout = BlockLayout::of(&hf, 9).unwrap();
+    let pools: Vec<rayon::ThreadPool> =
+        [1, 3, 8].iter().map(|&n| rayon::ThreadPoolBuilder::new().num_threads(n).build().unwrap()).collect();
+    let caches: Vec<BlockCaches> = pools.iter().map(|_| BlockCaches::default()).collect();
+    let mut rng = Rng(77);
+    let (mut morphing, mut held) = (0, 0);
+    for kind in [Pose::NearGround, Pose::High, Pose::LookingDown, Pose::Horizon] {
+        for _ in 0..12 {
+            let cam = pose(&hf, &mut rng, kind);
+            // The errors were computed a little away from here.
+            let shift = Vec3::new(rng.next() - 0.5, rng.next() - 0.5, rng.next() - 0.5) * hf.spacing.min() * 8.0;
+            let at = Camera { position: cam.position + shift, ..cam };
+            let b = block_errors(
+                &group_errors_with(&hf, &mm, &ErrorParams::new(&at, ErrorMode::Strict), WorldPart::Exact),
+                layout.m,
+            );
+            let select = LodSelect::errors(&b, at.position, 1.0, ErrorMode::Strict).with_morph(false);
+            let lazy_caches = BlockCaches::default();
+            let mut want = traverse(&hf, &mm, &lazy_caches, &layout, &cam, select);
+            morph::assign_with(&hf, &mm, &lazy_caches, &layout, &cam, 1.0, &mut want, MorphRule::BoundedLazy);
+            morphing += want.morphing;
+            held += want.blocks.iter().filter(|b| b.morph > 0 && b.morph < MORPH_ONE).count();
+            for (pool, caches) in pools.iter().zip(&caches) {
+                let mut got = pool.install(|| traverse(&hf, &mm, caches, &layout, &cam, select));
+                pool.install(|| morph::assign(&hf, &mm, caches, &layout, &cam, 1.0, &mut got));
+                assert_eq!(got.blocks.len(), want.blocks.len());
+                assert_eq!(
+                    got.blocks,
+                    want.blocks,
+                    "{kind:?} at {}, {} threads",
+                    cam.position,
+                    pool.current_num_threads()
+                );
+                assert_eq!(got.max_block_error, want.max_block_error);
+            }
+        }
+    }
+    assert!(
+        morphing > 200 && held > 50,
+        "{morphing} morphing blocks, {held} between their parent's surface and their own"
+    );
+}
+
 #[test]
 fn strict_holds_delta_on_adversarial_fields() {
     let mut report = Vec::new();

@@ -460,7 +460,7 @@ impl Bench<'_> {
             warmup_ms: None,
             rss: Vec::new(),
         };
-        let mut draw = draw_thread(&self.args.common, self.trace.clone());
+        let mut draw = draw_thread(&self.args.common, self.trace.clone(), Some(&self.s.device))?;
         // Row of the frame pending in each offscreen slot.
         let mut pending: Vec<Option<usize>> = vec![None; self.targets.len()];
         let mut temporal = self.args.popping.then(TemporalDiff::default);

@@ -4,7 +4,7 @@ use crate::app::cli::OnOff;
 use crate::app::cli::{check_messages, option_error, positive, CommonArgs, InputError, StreamedOptions, TextureArgs};
 use crate::app::outputs::{check_outputs, save_png, write_atomic};
 use crate::draw::blocks::{BlocksRenderer, NormalSource, PixelPass, Shading, Target};
-use crate::draw::frame::{DrawThread, FrameRequest, LodChoice, LodTerrain};
+use crate::draw::frame::{traversal_threads, DrawThread, FrameRequest, LodChoice, LodTerrain};
 use crate::draw::raycast::Raycast;
 use crate::errors::activity::ErrorsActivity;
 use crate::errors::feed::{ErrorFeed, RefreshPolicy};
@@ -194,10 +194,16 @@ pub fn open_device(common: &CommonArgs) -> anyhow::Result<Arc<Device>> {
 
 /// The draw thread as the options set it up (its error feed's mode and refresh policy,
 /// morphing, occlusion culling), recording into `trace`.
-pub fn draw_thread(common: &CommonArgs, trace: Trace) -> DrawThread {
+/// Its traversal runs on [`traversal_threads`] for `device`, when known (the viewer makes
+/// its device later and sets them then).
+pub fn draw_thread(common: &CommonArgs, trace: Trace, device: Option<&Device>) -> anyhow::Result<DrawThread> {
     let policy = RefreshPolicy { moved_fraction: common.refresh_at, max_share: common.update_share };
-    DrawThread::new(ErrorFeed::new(common.error_mode, policy), common.morph == OnOff::On, trace)
-        .with_occlusion(common.occlusion == OnOff::On)
+    let mut draw = DrawThread::new(ErrorFeed::new(common.error_mode, policy), common.morph == OnOff::On, trace)
+        .with_occlusion(common.occlusion == OnOff::On);
+    if let Some(device) = device {
+        draw.set_threads(traversal_threads(common.traversal_threads, device.properties.device_type))?;
+    }
+    Ok(draw)
 }
 
 fn parse_background(s: &str) -> Result<[f32; 3], InputError> {
@@ -266,7 +272,7 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
     };
     // `render` is the draw thread's first frame: it waits for the generation computed at
     // its own camera, so its output is deterministic.
-    let mut draw = draw_thread(&args.common, Trace::off());
+    let mut draw = draw_thread(&args.common, Trace::off(), Some(&s.device))?;
     let request = FrameRequest { frame: 0, cam: &cam, lod: args.lod, delta: args.delta, blocks: None };
     let frame = draw.step(activity.as_ref(), s.lod_terrain(), request, |blocks| {
         let t = Instant::now();

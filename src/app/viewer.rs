@@ -8,7 +8,7 @@ use crate::app::controls::{delta_key, flyover_time, Controller, Input};
 use crate::app::hud::{Controls, Hud, Ranges, Readout};
 use crate::app::outputs::save_png;
 use crate::draw::blocks::{BlocksRenderer, DrawStats, FrameDest, FrameSync, PixelPass, Shading, DEPTH_FORMAT};
-use crate::draw::frame::{DrawThread, FrameRequest, LodChoice, LodTerrain};
+use crate::draw::frame::{traversal_threads, DrawThread, FrameRequest, LodChoice, LodTerrain};
 use crate::draw::lighting::Sun;
 use crate::errors::activity::ErrorsActivity;
 use crate::gpu::terrain::{TerrainGpu, Texture};
@@ -450,7 +450,7 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
         mode: args.common.error_mode,
         sun: args.common.sun.0,
         frozen: None,
-        draw: crate::app::commands::draw_thread(&args.common, trace.clone()),
+        draw: crate::app::commands::draw_thread(&args.common, trace.clone(), None)?,
         trace: trace.clone(),
         interrupted: interrupted.clone(),
         frame: 0,
@@ -579,6 +579,8 @@ impl App {
         self.stats.geometry_bytes = crate::app::commands::renderer_geometry_bytes(self.layout.k());
         self.stats.terrain = crate::app::outputs::TerrainFacts::of(&self.hf);
         self.stats.device = device.name.clone();
+        let threads = traversal_threads(self.args.common.traversal_threads, device.properties.device_type);
+        self.draw.set_threads(threads)?;
         self.gpu =
             Some(Gpu { hud, acquired, depth, swapchain, renderer, activity: Some(activity), terrain, surface, device });
         self.window = Some(window);

@@ -90,6 +90,19 @@ pub struct DrawThread {
     caches: BlockCaches,
     last: LastSelection,
     trace: Trace,
+    /// The traversal's worker threads (`None`: rayon's global pool).
+    pool: Option<rayon::ThreadPool>,
+}
+
+/// Threads for the traversal's per-block work: `asked`, else 1 on a CPU device (lavapipe:
+/// its rasterizer threads already keep every core busy, and spreading the traversal
+/// over them made it slower: docs/benchmarks.md, "On a GPU"), else every core.
+pub fn traversal_threads(asked: Option<u16>, device_type: ash::vk::PhysicalDeviceType) -> usize {
+    match asked {
+        Some(n) => n as usize,
+        None if device_type == ash::vk::PhysicalDeviceType::CPU => 1,
+        None => std::thread::available_parallelism().map_or(1, |n| n.get()),
+    }
 }
 
 impl DrawThread {
@@ -102,7 +115,19 @@ impl DrawThread {
             caches: BlockCaches::default(),
             last: LastSelection::default(),
             trace,
+            pool: None,
         }
+    }
+
+    /// Runs the traversal's per-block work on `threads` threads of its own.
+    pub fn set_threads(&mut self, threads: usize) -> anyhow::Result<()> {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .thread_name(|i| format!("traverse-{i}"))
+            .build()
+            .map_err(|e| anyhow::anyhow!("the traversal's {threads} threads: {e}"))?;
+        self.pool = Some(pool);
+        Ok(())
     }
 
     /// A finished frame's statistics: what a triangle costs the GPU, which decides
@@ -131,7 +156,11 @@ impl DrawThread {
 
     /// Traverses with this thread's caches, outside a frame (the bench's reference runs).
     pub fn traverse(&self, terrain: LodTerrain, cam: &Camera, select: LodSelect) -> Traversal {
-        traverse(terrain.hf, terrain.mm, &self.caches, terrain.layout, cam, select)
+        let run = || traverse(terrain.hf, terrain.mm, &self.caches, terrain.layout, cam, select);
+        match &self.pool {
+            Some(pool) => pool.install(run),
+            None => run(),
+        }
     }
 
     /// One frame: the error feed (when there is an activity), the block selection (unless

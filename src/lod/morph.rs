@@ -105,6 +105,9 @@ pub enum MorphRule {
     Underpaid,
     /// Every block on its parent's surface (factor 0), the bound ignored.
     ParentSurface,
+    /// [`MorphRule::Bounded`] with each exact term computed only where the rounds ask for
+    /// it, on the calling thread: what the renderer's rule must equal (a test).
+    BoundedLazy,
 }
 
 /// How the edge regions are measured.
@@ -428,7 +431,7 @@ pub fn assign_with(
     // core. The rounds below take them where they would compute them, so the factors are
     // the same as computing each one there; a block held back only later computes its own.
     let mut exact_ahead: Vec<Option<MorphCost>> = vec![None; n];
-    if rule != MorphRule::ParentSurface {
+    if rule == MorphRule::Bounded || rule == MorphRule::Underpaid {
         let fits_at_start = |i: usize, c: &MorphCost| {
             let now = edges.values(i, &e);
             c.bound(morph_value(q[i]), now.map(morph_value)) <= delta || (q[i] == MORPH_ONE && now == [MORPH_ONE; 4])

@@ -43,34 +43,48 @@ pub const BINS: usize = 4096;
 
 /// When to run the sweep. It costs the draw thread about as much as a traversal, and
 /// where nearly every block shows a sample (a high camera over rolling terrain) it hides
-/// nothing; so after a run that did not pay ([`Probe::pays`]) it runs again only every
-/// [`Probe::EVERY`]-th frame, and every frame again once it pays.
+/// nothing; so after a run that did not pay ([`Probe::pays`]) it pauses
+/// ([`Probe::pause_after`]), and runs every frame again once it pays.
 ///
-/// Paying is judged by time once the GPU's time per triangle is known (timestamps): the
+/// Paying is judged by time once frames are timed (timestamps): the GPU time of the
 /// triangles the sweep kept from the GPU against the sweep's own time on the draw
 /// thread. On lavapipe a triangle costs about 100 ns and a sweep that hides 1 % of the
-/// parts pays; on a discrete GPU it costs about 2 ns, the frame waits for the CPU, and
-/// the same sweep costs twice what it saves (docs/benchmarks.md, "On a GPU").
+/// parts pays; on a discrete GPU it costs about 2 ns and the frame waits for the CPU:
+/// there the same sweep costs a hundred times what it saves (docs/benchmarks.md, "On a
+/// GPU"), and the pause keeps it under [`Probe::SHARE`] of the frames' time.
 #[derive(Clone, Copy, Debug, Default)]
 pub struct Probe {
     paused_for: u32,
-    /// GPU nanoseconds per drawn triangle, from the latest timed frame.
-    triangle_ns: Option<f64>,
+    /// The latest timed frame: its GPU milliseconds and nanoseconds per triangle.
+    timing: Option<(f64, f64)>,
 }
 
 impl Probe {
     /// Share of the tested parts a run must hide to run on the next frame, while no frame
     /// has been timed.
     pub const PAYS: f64 = 0.01;
-    /// How often a run that did not pay is tried again.
+    /// The least pause, in frames, after a run that did not pay.
     pub const EVERY: u32 = 8;
+    /// Largest share of the frames' time that sweeps which do not pay may take.
+    pub const SHARE: f64 = 0.05;
+    /// The longest pause, in frames.
+    pub const MAX_PAUSE: u32 = 256;
 
     /// A finished frame's GPU time and triangles (`None` where the queue has no
-    /// timestamps): what a triangle costs from now on.
+    /// timestamps): what a frame and a triangle cost from now on.
     pub fn observe(&mut self, gpu_ms: Option<f64>, triangles: u64) {
         if let (Some(ms), true) = (gpu_ms, triangles > 0) {
-            self.triangle_ns = Some(ms * 1e6 / triangles as f64);
+            self.timing = Some((ms, ms * 1e6 / triangles as f64));
         }
+    }
+
+    /// Frames to skip after a sweep of `sweep_ms` that did not pay: at least
+    /// [`Probe::EVERY`], and enough that such sweeps take at most [`Probe::SHARE`] of
+    /// the frames' time (a frame taken as long as its GPU time), up to
+    /// [`Probe::MAX_PAUSE`].
+    pub fn pause_after(sweep_ms: f64, frame_ms: Option<f64>) -> u32 {
+        let frames = frame_ms.map_or(0.0, |f| sweep_ms / (Self::SHARE * f.max(1e-3)));
+        (frames.ceil().min(Self::MAX_PAUSE as f64) as u32).max(Self::EVERY)
     }
 
     /// Whether a sweep that ran for `sweep_ms` paid: the GPU time of the triangles it
@@ -106,8 +120,8 @@ impl Probe {
         let started = std::time::Instant::now();
         let report = cull(hf, mm, caches, layout, cam, t);
         let sweep_ms = started.elapsed().as_secs_f64() * 1e3;
-        let paid = Self::pays(&report, sweep_ms, self.triangle_ns, layout.triangles_per_part());
-        self.paused_for = if paid { 0 } else { Self::EVERY - 1 };
+        let paid = Self::pays(&report, sweep_ms, self.timing.map(|t| t.1), layout.triangles_per_part());
+        self.paused_for = if paid { 0 } else { Self::pause_after(sweep_ms, self.timing.map(|t| t.0)) - 1 };
         report
     }
 }
@@ -638,11 +652,24 @@ mod tests {
         // What a frame's timing teaches: 2 ms for a million triangles is 2 ns each.
         let mut p = Probe::default();
         p.observe(None, 1_000_000);
-        assert_eq!(p.triangle_ns, None);
+        assert_eq!(p.timing, None);
         p.observe(Some(2.0), 0);
-        assert_eq!(p.triangle_ns, None);
+        assert_eq!(p.timing, None);
         p.observe(Some(2.0), 1_000_000);
-        assert_eq!(p.triangle_ns, Some(2.0));
+        assert_eq!(p.timing, Some((2.0, 2.0)));
+    }
+
+    /// Sweeps that do not pay take at most SHARE of the frames' time: a 16 ms sweep
+    /// beside 3.5 ms frames (a GPU) pauses 92 frames; beside 200 ms frames (lavapipe) the
+    /// least pause; untimed, the least pause; never longer than MAX_PAUSE.
+    #[test]
+    fn sweeps_that_do_not_pay_take_a_bounded_share_of_the_time() {
+        let pause = Probe::pause_after(16.0, Some(3.5));
+        assert_eq!(pause, 92);
+        assert!(16.0 / (pause as f64 * 3.5) <= Probe::SHARE);
+        assert_eq!(Probe::pause_after(12.0, Some(200.0)), Probe::EVERY);
+        assert_eq!(Probe::pause_after(16.0, None), Probe::EVERY);
+        assert_eq!(Probe::pause_after(1e6, Some(0.1)), Probe::MAX_PAUSE);
     }
 
     /// The interval holds every point of the rectangle, and no wider than its corners.
