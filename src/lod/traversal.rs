@@ -8,6 +8,7 @@ use crate::lod::heightfield::{Heightfield, RawSamples};
 use crate::lod::morph;
 use crate::lod::pyramid::MinMaxPyramid;
 use foldhash::HashSet;
+use rayon::prelude::*;
 
 pub use crate::lod::morph::BlockCaches;
 use glam::Vec3;
@@ -85,6 +86,13 @@ fn select_blocks(
             _ => None,
         };
         let before = forced.len();
+        if strict.is_some() {
+            // The strips of blocks seen for the first time are computed here, on every
+            // core, rather than one by one below.
+            out.blocks.par_iter().filter(|b| b.coarser != [0; 4]).for_each(|b| {
+                caches.stitch.get(hf, layout, b);
+            });
+        }
         let [cells, rows] = layout.cells().map(|c| c as i64);
         for b in &out.blocks {
             if b.coarser == [0; 4] {
