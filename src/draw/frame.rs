@@ -90,13 +90,14 @@ pub struct DrawThread {
     caches: BlockCaches,
     last: LastSelection,
     trace: Trace,
-    /// The traversal's worker threads (`None`: rayon's global pool).
+    /// The traversal's worker threads (`None`: the draw thread alone).
     pool: Option<rayon::ThreadPool>,
 }
 
 /// Threads for the traversal's per-block work: `asked`, else 1 on a CPU device (lavapipe:
-/// its rasterizer threads already keep every core busy, and spreading the traversal
-/// over them made it slower: docs/benchmarks.md, "On a GPU"), else every core.
+/// its rasterizer threads already keep every core busy, and even one pool worker beside
+/// them slowed the fly path's traversal from 1.9 to 3.2 ms a frame: docs/benchmarks.md,
+/// "On a GPU"), else every core.
 pub fn traversal_threads(asked: Option<u16>, device_type: ash::vk::PhysicalDeviceType) -> usize {
     match asked {
         Some(n) => n as usize,
@@ -119,8 +120,13 @@ impl DrawThread {
         }
     }
 
-    /// Runs the traversal's per-block work on `threads` threads of its own.
+    /// Runs the traversal's per-block work on `threads` threads of its own (1: on the
+    /// draw thread itself, with no pool).
     pub fn set_threads(&mut self, threads: usize) -> anyhow::Result<()> {
+        if threads <= 1 {
+            self.pool = None;
+            return Ok(());
+        }
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(threads)
             .thread_name(|i| format!("traverse-{i}"))

@@ -463,6 +463,20 @@ pub fn block_mesh_data(k: u32) -> (Vec<u8>, Vec<u32>) {
     (verts, idx)
 }
 
+/// `f` over `items` in order: on every thread of the rayon pool the caller runs in
+/// (`ThreadPool::install`), or on the calling thread alone when it runs in none. The
+/// draw thread installs its traversal in a pool on a GPU and runs it on itself on a CPU
+/// device, where rayon's workers would take cycles from the rasterizer's threads
+/// (docs/benchmarks.md, "On a GPU"); the results are the same either way.
+pub fn map_in_pool<T: Sync, R: Send>(items: &[T], f: impl Fn(usize, &T) -> R + Sync + Send) -> Vec<R> {
+    use rayon::prelude::*;
+    if rayon::current_thread_index().is_some() {
+        items.par_iter().enumerate().map(|(i, v)| f(i, v)).collect()
+    } else {
+        items.iter().enumerate().map(|(i, v)| f(i, v)).collect()
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

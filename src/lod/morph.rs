@@ -38,7 +38,7 @@
 //! block's box grown to every state's heights. Computed fresh for this frame's camera, so
 //! stale error data plays no part here.
 
-use crate::lod::block::{block_aabb, morph_value, BlockLayout, DrawBlock, Traversal, MORPH_ONE};
+use crate::lod::block::{block_aabb, map_in_pool, morph_value, BlockLayout, DrawBlock, Traversal, MORPH_ONE};
 use crate::lod::block_cache::BoundedCache;
 use crate::lod::camera::angular_factor;
 use crate::lod::camera::{distance_to_aabb, Camera};
@@ -46,7 +46,6 @@ use crate::lod::heightfield::Heightfield;
 use crate::lod::pyramid::MinMaxPyramid;
 use crate::lod::stitch::{strip_segment, StitchCache, CORNER_EDGES, STRIP_SEGMENTS};
 use foldhash::HashMap;
-use rayon::prelude::*;
 
 /// What a block's morph costs, in pixels for this frame's camera.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -400,16 +399,11 @@ pub fn assign_with(
     // The root has no parent to morph from.
     // Cheap edge terms first; the exact ones (cached per block, costly the first time a
     // block is seen) only for blocks that the cheap ones hold back. Each block's cost is
-    // its own (the caches are shared behind a lock), so they are computed on every core:
-    // on a GPU the frame waits for this loop, not for the GPU.
-    let mut costs: Vec<Option<MorphCost>> = t
-        .blocks
-        .par_iter()
-        .enumerate()
-        .map(|(i, b)| {
-            (b.lod < root).then(|| cost(hf, mm, caches, layout, cam, delta, b, edges.fixed(i), EdgeTerms::Cheap))
-        })
-        .collect();
+    // its own (the caches are shared behind a lock), so they are computed on every core
+    // of the caller's pool: on a GPU the frame waits for this loop, not for the GPU.
+    let mut costs: Vec<Option<MorphCost>> = map_in_pool(&t.blocks, |i, b| {
+        (b.lod < root).then(|| cost(hf, mm, caches, layout, cam, delta, b, edges.fixed(i), EdgeTerms::Cheap))
+    });
     let mut exact = vec![false; n];
     // Start from the ramp; the bound may ask for more.
     let mut q: Vec<u16> = costs
@@ -437,10 +431,9 @@ pub fn assign_with(
             c.bound(morph_value(q[i]), now.map(morph_value)) <= delta || (q[i] == MORPH_ONE && now == [MORPH_ONE; 4])
         };
         let held: Vec<usize> = (0..n).filter(|&i| costs[i].is_some_and(|c| !fits_at_start(i, &c))).collect();
-        let ahead: Vec<MorphCost> = held
-            .par_iter()
-            .map(|&i| cost(hf, mm, caches, layout, cam, delta, &t.blocks[i], edges.fixed(i), EdgeTerms::Exact))
-            .collect();
+        let ahead: Vec<MorphCost> = map_in_pool(&held, |_, &i| {
+            cost(hf, mm, caches, layout, cam, delta, &t.blocks[i], edges.fixed(i), EdgeTerms::Exact)
+        });
         assert_eq!(ahead.len(), held.len());
         for (i, c) in held.into_iter().zip(ahead) {
             exact_ahead[i] = Some(c);

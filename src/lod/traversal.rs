@@ -1,14 +1,13 @@
 //! Quadtree traversal on the CPU (SPEC section 5, seed 000 section 3.3): which blocks to
 //! draw, at which LOD, with their neighbours' LODs for crack-free stitching.
 
-use crate::lod::block::{block_aabb, lod_map, BlockLayout, DrawBlock, Traversal, EDGE_CORNERS};
+use crate::lod::block::{block_aabb, lod_map, map_in_pool, BlockLayout, DrawBlock, Traversal, EDGE_CORNERS};
 use crate::lod::camera::{angular_factor, distance_to_aabb, world_to_pixels, Camera};
 use crate::lod::gie::{BlockErrors, ErrorMode};
 use crate::lod::heightfield::{Heightfield, RawSamples};
 use crate::lod::morph;
 use crate::lod::pyramid::MinMaxPyramid;
 use foldhash::HashSet;
-use rayon::prelude::*;
 
 pub use crate::lod::morph::BlockCaches;
 use glam::Vec3;
@@ -88,9 +87,11 @@ fn select_blocks(
         let before = forced.len();
         if strict.is_some() {
             // The strips of blocks seen for the first time are computed here, on every
-            // core, rather than one by one below.
-            out.blocks.par_iter().filter(|b| b.coarser != [0; 4]).for_each(|b| {
-                caches.stitch.get(hf, layout, b);
+            // core of the caller's pool, rather than one by one below.
+            map_in_pool(&out.blocks, |_, b| {
+                if b.coarser != [0; 4] {
+                    caches.stitch.get(hf, layout, b);
+                }
             });
         }
         let [cells, rows] = layout.cells().map(|c| c as i64);
