@@ -180,7 +180,7 @@ pub struct CommonArgs {
     /// Threads for the traversal's per-block work (the morph's bounds). Default: 1 on a
     /// CPU device such as lavapipe, whose rasterizer already keeps every core busy; every
     /// core on a GPU, where the frame waits for the traversal.
-    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u16).range(1..))]
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u16).range(1..=256))]
     pub traversal_threads: Option<u16>,
     /// Sun for the precomputed shadows and ambient occlusion: compass azimuth and
     /// elevation in degrees (azimuth 0 is north, the top of the heightmap), or `off`.
