@@ -322,6 +322,7 @@ fn render_draws_an_archive_streamed_within_the_bound() {
         (vec!["--export-mesh", "m.glb"], "--export-mesh"),
         (vec!["--lod", "full"], "--lod full"),
         (vec!["--pixels", "forward"], "--pixels forward"),
+        (vec!["--traversal-threads", "2"], "--traversal-threads"),
     ] {
         let o = render(&extra);
         let err = String::from_utf8_lossy(&o.stderr);

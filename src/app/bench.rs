@@ -1134,10 +1134,9 @@ impl BenchArgs {
             ("--pixels forward", self.pixels != crate::draw::blocks::PixelPass::Deferred),
             ("--raycast", self.raycast != crate::draw::raycast::Raycast::Off),
             ("--inject-fault", self.inject_fault.is_some()),
-            ("--error-mode paper", c.error_mode != crate::lod::gie::ErrorMode::Strict),
-            ("--block (an archive fixes k = 33)", c.block != 33),
         ]
         .into_iter()
+        .chain(c.not_streamed())
         .filter_map(|(name, set)| set.then_some(name))
         .collect()
     }

@@ -188,6 +188,19 @@ pub struct CommonArgs {
     pub sun: SunArg,
 }
 
+impl CommonArgs {
+    /// The shared options a streamed terrain cannot honour yet, each with whether it was
+    /// given a value other than its default (drawing anyway would ignore it silently).
+    pub fn not_streamed(&self) -> [(&'static str, bool); 3] {
+        [
+            ("--error-mode paper", self.error_mode != crate::lod::gie::ErrorMode::Strict),
+            ("--block (an archive fixes k = 33)", self.block != 33),
+            // The streamed traversal has no morph terms to spread over threads.
+            ("--traversal-threads", self.traversal_threads.is_some()),
+        ]
+    }
+}
+
 /// The `--sun` option: a sun, or none (no shadows or occlusion).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct SunArg(pub Option<crate::draw::lighting::Sun>);

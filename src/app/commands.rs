@@ -82,13 +82,12 @@ impl RenderArgs {
             ("--detail", self.textures.detail.is_some()),
             ("--export-mesh", self.export_mesh.is_some()),
             ("--lod full|distance", self.lod != LodChoice::Error),
-            ("--error-mode paper", c.error_mode != crate::lod::gie::ErrorMode::Strict),
             ("--pixels forward", self.pixels != PixelPass::Deferred),
             ("--raycast", self.raycast != Raycast::Off),
             ("--shading heights", self.shading != NormalSource::GradientMap),
-            ("--block (an archive fixes k = 33)", c.block != 33),
         ]
         .into_iter()
+        .chain(c.not_streamed())
         .filter_map(|(name, set)| set.then_some(name))
         .collect()
     }

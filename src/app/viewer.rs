@@ -288,15 +288,11 @@ impl ViewArgs {
     /// The options the streamed viewer cannot honour yet, given a value other than their
     /// default (drawing anyway would ignore them silently).
     fn not_streamed(&self) -> Vec<&'static str> {
-        [
-            ("--texture", self.textures.texture.is_some()),
-            ("--detail", self.textures.detail.is_some()),
-            ("--error-mode paper", self.common.error_mode != ErrorMode::Strict),
-            ("--block (an archive fixes k = 33)", self.common.block != 33),
-        ]
-        .into_iter()
-        .filter_map(|(name, set)| set.then_some(name))
-        .collect()
+        [("--texture", self.textures.texture.is_some()), ("--detail", self.textures.detail.is_some())]
+            .into_iter()
+            .chain(self.common.not_streamed())
+            .filter_map(|(name, set)| set.then_some(name))
+            .collect()
     }
 
     /// `--resize-at`'s resizes (frame, width, height), once `--size` and each of them is
