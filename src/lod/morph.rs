@@ -136,7 +136,7 @@ pub fn cost(
     let hs = hf.height_scale;
     let j = b.lod;
     let regions = match terms {
-        EdgeTerms::Exact => caches.stitch.regions(hf, layout, b, fixed),
+        EdgeTerms::Exact => caches.stitch.regions(hf, mm, layout, b, fixed),
         EdgeTerms::Cheap => caches.stitch.regions_bound(hf, mm, layout, b, fixed),
     };
     let (mut min, mut max) = block_aabb(hf, mm, layout, j, b.bx, b.bz);
