@@ -112,6 +112,38 @@ fn flyover_with_resizes_writes_a_screenshot_and_exits_cleanly() {
     assert!(distinct.len() > 200, "the screenshot is nearly blank ({} colours)", distinct.len());
 }
 
+/// The streamed viewer runs the same window loop: resized twice during a flyover, it
+/// draws at each new size, writes the last frame at the last size and exits cleanly.
+#[test]
+fn the_streamed_viewer_resizes_and_writes_a_screenshot() {
+    let dir = common::TempDir::new("viewer-stream-resize");
+    let shot = dir.path().join("last.png");
+    let dem = common::data("puget_sound/ps_height_1k.png");
+    let json = clean_run(&[
+        "--heightmap",
+        dem.to_str().unwrap(),
+        "--stream",
+        "--frames",
+        "12",
+        "--flyover",
+        "--size",
+        "320x240",
+        "--resize-at",
+        "4:400x300",
+        "--resize-at",
+        "8:240x200",
+        "--validation",
+        "on",
+        "--screenshot",
+        shot.to_str().unwrap(),
+    ]);
+    assert_eq!(json["streamed"], true, "{json}");
+    assert_eq!(json["frames"], 12, "{json}");
+    assert!(json["resizes"].as_u64().unwrap() >= 2, "{json}");
+    let img = image::open(&shot).expect("screenshot written").to_rgb8();
+    assert_eq!((img.width(), img.height()), (240, 200), "the screenshot has the resized window's size");
+}
+
 #[test]
 fn viewer_rejects_bad_options_without_opening_a_window() {
     let out = viewer(&["--detail-weight", "2"]);

@@ -20,3 +20,4 @@ pub mod stream_panel;
 pub mod stream_view;
 pub mod timeline;
 pub mod viewer;
+pub mod window_loop;

@@ -11,11 +11,12 @@
 //! carries the main figures too.
 
 use crate::app::cli::{check_messages, CommonArgs};
-use crate::app::controls::{delta_key, flyover_time, Controller, Ground, Input};
+use crate::app::controls::{delta_key, flyover_time, Controller, Ground};
 use crate::app::hud::{Hud, Legend};
 use crate::app::outputs::save_png;
 use crate::app::stream::{top_tiles, GpuFrames};
 use crate::app::stream_panel::{build_stream_ui, StreamControls, StreamReadout};
+use crate::app::window_loop::{WindowApp, WindowState, Windowed};
 use crate::draw::streamed::WindowImage;
 use crate::input::archive::Archive;
 use crate::lod::view::near_plane_for;
@@ -27,11 +28,8 @@ use crate::vk::{vk, BinarySemaphore, Surface, Swapchain, VkResultExt};
 use glam::Vec3;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
-use winit::application::ApplicationHandler;
-use winit::event::WindowEvent;
 use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop};
 use winit::keyboard::KeyCode;
-use winit::window::{Window, WindowId};
 
 /// The ground under the camera, from the tiles held (nearest vertex of the finest);
 /// 0 where none is held yet.
@@ -139,21 +137,16 @@ struct App {
     true_height_scale: f64,
     /// Every frame's camera and look-at point, with `--record-path`.
     flight: Vec<(Vec3, Vec3)>,
-    window: Option<Arc<Window>>,
+    /// The window, what the event loop keeps of it, and the scripted run's options.
+    win: WindowState,
     gpu: Option<WindowGpu>,
-    error: Option<anyhow::Error>,
-    cursor: Option<(f32, f32)>,
-    swapchain_dirty: bool,
-    minimized: bool,
     last_frame: Instant,
     /// When the last frame was drawn (the panel's frame-time plot).
     last_drawn: Option<Instant>,
     started: Instant,
     title_at: Instant,
     fps_frames: u64,
-    screenshot_next: Option<std::path::PathBuf>,
     screenshots_asked: u64,
-    interrupted: Arc<std::sync::atomic::AtomicBool>,
     trace: Trace,
     run: Run,
 }
@@ -255,7 +248,7 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
     let ctl = Controller::new(position, f, l / 60.0, args.walk);
     let home = (ctl.position, ctl.yaw, ctl.pitch);
     let now = Instant::now();
-    let mut app = App {
+    let app = App {
         args: args.clone(),
         streamer,
         grid,
@@ -268,20 +261,14 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
         exaggeration: args.exaggeration,
         true_height_scale,
         flight: Vec::new(),
-        window: None,
+        win: WindowState::new(interrupted, args.frames, args.screenshot.clone(), args.resizes.clone()),
         gpu: None,
-        error: None,
-        cursor: None,
-        swapchain_dirty: false,
-        minimized: false,
         last_frame: now,
         last_drawn: None,
         started: now,
         title_at: now,
         fps_frames: 0,
-        screenshot_next: None,
         screenshots_asked: 0,
-        interrupted,
         trace: trace.clone(),
         run: Run {
             streamed: true,
@@ -291,8 +278,10 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
             ..Default::default()
         },
     };
-    event_loop.run_app(&mut app)?;
-    if let Some(e) = app.error.take() {
+    let mut windowed = Windowed(app);
+    event_loop.run_app(&mut windowed)?;
+    let mut app = windowed.0;
+    if let Some(e) = app.win.error.take() {
         return Err(e);
     }
     if let Some(path) = &args.record_path {
@@ -329,17 +318,10 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
 }
 
 impl App {
-    fn fail(&mut self, event_loop: &ActiveEventLoop, e: anyhow::Error) {
-        if self.error.is_none() {
-            self.error = Some(e);
-        }
-        event_loop.exit();
-    }
-
     fn open(&mut self, event_loop: &ActiveEventLoop) -> anyhow::Result<()> {
         let (w, h) = self.args.common.size.unwrap_or((1280, 720));
         let title = format!("vkterrain: {} (streamed)", crate::app::stream::terrain_name(&self.args.common));
-        let resizes = self.args.resizes.iter().map(|&(f, w, h)| (format!("--resize-at {f}"), w, h));
+        let resizes = self.win.resizes.iter().map(|&(f, w, h)| (format!("--resize-at {f}"), w, h));
         let sizes: Vec<(String, u32, u32)> = std::iter::once(("--size".to_string(), w, h)).chain(resizes).collect();
         let (window, surface, device) =
             crate::app::controls::open_window(event_loop, &self.args.common, title, &sizes)?;
@@ -355,12 +337,12 @@ impl App {
         frames.fog = self.fog;
         frames.sun(self.args.common.sun.0);
         self.gpu = Some(WindowGpu { hud, acquired, swapchain, frames, surface });
-        self.window = Some(window);
+        self.win.window = Some(window);
         Ok(())
     }
 
     fn recreate_swapchain(&mut self) -> anyhow::Result<()> {
-        let (Some(gpu), Some(window)) = (self.gpu.as_mut(), self.window.as_ref()) else { return Ok(()) };
+        let (Some(gpu), Some(window)) = (self.gpu.as_mut(), self.win.window.as_ref()) else { return Ok(()) };
         let size = window.inner_size();
         if size.width == 0 || size.height == 0 {
             return Ok(());
@@ -371,7 +353,7 @@ impl App {
             Swapchain::new(&gpu.frames.device, &gpu.surface, (size.width, size.height), mode, Some(&gpu.swapchain))?;
         gpu.swapchain = new;
         gpu.hud.set_format(gpu.swapchain.format, crate::draw::blocks::DEPTH_FORMAT)?;
-        self.swapchain_dirty = false;
+        self.win.swapchain_dirty = false;
         self.run.resizes += 1;
         Ok(())
     }
@@ -382,8 +364,9 @@ impl App {
         View::look_at(p, p + self.ctl.forward().as_dvec3(), self.args.common.fovy, width, height, self.near)
     }
 
-    fn draw(&mut self) -> anyhow::Result<()> {
-        if self.swapchain_dirty {
+    /// One frame ([`WindowApp::draw`]: the window is open and shown).
+    fn draw_frame(&mut self) -> anyhow::Result<()> {
+        if self.win.swapchain_dirty {
             self.recreate_swapchain()?;
         }
         let now = Instant::now();
@@ -429,7 +412,7 @@ impl App {
         let (index, suboptimal) = match acquire {
             Ok(r) => r,
             Err(vk::Result::ERROR_OUT_OF_DATE_KHR) => {
-                self.swapchain_dirty = true;
+                self.win.swapchain_dirty = true;
                 return Ok(());
             }
             Err(e) => return Err(e).vk("vkAcquireNextImageKHR").map_err(Into::into),
@@ -471,12 +454,12 @@ impl App {
             unsafe { gpu.swapchain.loader.queue_present(gpu.frames.device.draw_queue.handle, &present) }
         };
         match presented {
-            Ok(sub) => self.swapchain_dirty |= sub || suboptimal,
-            Err(vk::Result::ERROR_OUT_OF_DATE_KHR) => self.swapchain_dirty = true,
+            Ok(sub) => self.win.swapchain_dirty |= sub || suboptimal,
+            Err(vk::Result::ERROR_OUT_OF_DATE_KHR) => self.win.swapchain_dirty = true,
             Err(e) => return Err(e).vk("vkQueuePresentKHR").map_err(Into::into),
         }
         self.trace.complete(DRAW_TID, "present", presenting, Instant::now(), frame.clone());
-        if let Some(path) = self.screenshot_next.take() {
+        if let Some(path) = self.win.screenshot_next.take() {
             // The same frame again, offscreen at the window's size, read back.
             let (w, h) = (extent.width, extent.height);
             gpu.frames.resize(w, h)?;
@@ -504,7 +487,7 @@ impl App {
     /// Builds this frame's panel from the last frame's figures and applies what its
     /// controls changed; `interval_ms`: the time since the last frame (the plots).
     fn panel(&mut self, sel: &crate::stream::traverse::Selection, interval_ms: Option<f32>) -> anyhow::Result<()> {
-        let (Some(window), Some(gpu)) = (self.window.clone(), self.gpu.as_mut()) else { return Ok(()) };
+        let (Some(window), Some(gpu)) = (self.win.window.clone(), self.gpu.as_mut()) else { return Ok(()) };
         let p = self.ctl.position;
         let s = &self.streamer.stats;
         let report = gpu.frames.report();
@@ -620,7 +603,7 @@ impl App {
             p.y - ground,
             if self.ctl.walk { " | walk" } else { "" },
         );
-        if let Some(w) = &self.window {
+        if let Some(w) = &self.win.window {
             w.set_title(&title);
         }
     }
@@ -652,82 +635,44 @@ impl App {
             }
             KeyCode::KeyP => {
                 self.screenshots_asked += 1;
-                self.screenshot_next = Some(crate::app::outputs::next_free_screenshot());
+                self.win.screenshot_next = Some(crate::app::outputs::next_free_screenshot());
             }
             _ => {}
         }
     }
 }
 
-impl ApplicationHandler for App {
-    fn resumed(&mut self, event_loop: &ActiveEventLoop) {
-        if self.gpu.is_none() {
-            if let Err(e) = self.open(event_loop) {
-                self.fail(event_loop, e);
-            }
-        }
+impl WindowApp for App {
+    fn window_state(&mut self) -> &mut WindowState {
+        &mut self.win
     }
 
-    fn window_event(&mut self, event_loop: &ActiveEventLoop, _id: WindowId, event: WindowEvent) {
-        // The panel sees every event first; what it takes (a click on it, dragging one of
-        // its sliders) does not also move the camera.
-        let taken = match (self.gpu.as_mut(), self.window.as_ref()) {
-            (Some(g), Some(w)) => g.hud.takes_input(w, &event),
-            _ => false,
-        };
-        if taken {
-            if let WindowEvent::MouseInput { state: winit::event::ElementState::Released, .. } = event {
-                self.ctl.looking = false;
-            }
-            return;
-        }
-        match self.ctl.on_event(&event, &mut self.cursor) {
-            Input::Pressed(code) => return self.key(code, event_loop),
-            Input::Turned(turned) => {
-                self.run.mouse_turn += turned;
-                return;
-            }
-            Input::Taken => return,
-            Input::Other => {}
-        }
-        match event {
-            WindowEvent::CloseRequested => event_loop.exit(),
-            WindowEvent::Resized(size) => {
-                self.minimized = size.width == 0 || size.height == 0;
-                self.swapchain_dirty = true;
-            }
-            WindowEvent::RedrawRequested => {
-                if let Some((_, w, h)) = self.args.resizes.iter().find(|r| r.0 == self.run.frames).copied() {
-                    if let Some(win) = &self.window {
-                        let _ = win.request_inner_size(winit::dpi::PhysicalSize::new(w, h));
-                    }
-                }
-                if self.args.frames.is_some_and(|n| self.run.frames + 1 >= n) {
-                    if let Some(p) = self.args.screenshot.clone() {
-                        self.screenshot_next = Some(p);
-                    }
-                }
-                if let Err(e) = self.draw() {
-                    self.fail(event_loop, e);
-                    return;
-                }
-                if self.args.frames.is_some_and(|n| self.run.frames >= n) {
-                    event_loop.exit();
-                }
-            }
-            _ => {}
-        }
+    fn hud(&mut self) -> Option<&mut Hud> {
+        self.gpu.as_mut().map(|g| &mut g.hud)
     }
 
-    fn about_to_wait(&mut self, event_loop: &ActiveEventLoop) {
-        if self.interrupted.load(std::sync::atomic::Ordering::SeqCst) {
-            event_loop.exit();
-            return;
-        }
-        event_loop.set_control_flow(if self.minimized { ControlFlow::Wait } else { ControlFlow::Poll });
-        if let (Some(w), false) = (&self.window, self.minimized) {
-            w.request_redraw();
-        }
+    fn open(&mut self, event_loop: &ActiveEventLoop) -> anyhow::Result<()> {
+        App::open(self, event_loop)
+    }
+
+    fn camera_controls(&mut self) -> (&mut Controller, &mut WindowState) {
+        (&mut self.ctl, &mut self.win)
+    }
+
+    fn key(&mut self, code: KeyCode, event_loop: &ActiveEventLoop) {
+        App::key(self, code, event_loop)
+    }
+
+    fn turned(&mut self, turned: f32) {
+        self.run.mouse_turn += turned;
+    }
+
+    fn frames_drawn(&self) -> u64 {
+        self.run.frames
+    }
+
+    fn draw(&mut self) -> anyhow::Result<()> {
+        self.draw_frame()
     }
 }
 

@@ -4,9 +4,10 @@
 
 use crate::app::cli::{CommonArgs, InputError, TextureArgs, Textures};
 use crate::app::commands::Session;
-use crate::app::controls::{delta_key, flyover_time, Controller, Input};
+use crate::app::controls::{delta_key, flyover_time, Controller};
 use crate::app::hud::{Controls, Hud, Ranges, Readout};
 use crate::app::outputs::save_png;
+use crate::app::window_loop::{WindowApp, WindowState, Windowed};
 use crate::draw::blocks::{BlocksRenderer, DrawStats, FrameDest, FrameSync, PixelPass, Shading, DEPTH_FORMAT};
 use crate::draw::frame::{traversal_threads, DrawThread, FrameRequest, LodChoice, LodTerrain};
 use crate::draw::lighting::Sun;
@@ -29,12 +30,8 @@ use serde_json::json;
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
-use winit::application::ApplicationHandler;
-use winit::dpi::PhysicalSize;
-use winit::event::{ElementState, WindowEvent};
 use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop};
 use winit::keyboard::KeyCode;
-use winit::window::{Window, WindowId};
 
 use crate::draw::frame::FRAMES_IN_FLIGHT;
 /// The largest window side X11 and Wayland accept.
@@ -214,9 +211,9 @@ struct App {
     layout: BlockLayout,
     base: Option<Texture>,
     detail: Option<Texture>,
-    window: Option<Arc<Window>>,
+    /// The window, what the event loop keeps of it, and the scripted run's options.
+    win: WindowState,
     gpu: Option<Gpu>,
-    error: Option<anyhow::Error>,
     ctl: Controller,
     /// Where Home puts the camera: position, yaw, pitch.
     home: (Vec3, f32, f32),
@@ -228,8 +225,6 @@ struct App {
     true_height_scale: f32,
     /// Horizontal speed over the last frame (world units per second), for the title.
     ground_speed: f32,
-    /// Last cursor position in the window, for drag-to-look.
-    cursor: Option<(f32, f32)>,
     shading: Shading,
     delta: f32,
     mode: ErrorMode,
@@ -240,16 +235,9 @@ struct App {
     draw: DrawThread,
     frame: u64,
     slot: usize,
-    swapchain_dirty: bool,
-    minimized: bool,
-    /// The window is fully hidden (winit's Occluded): nothing is drawn either.
-    occluded: bool,
     /// Poses of the frames drawn, for --record-path.
     flight: Vec<(Vec3, Vec3)>,
     trace: Trace,
-    /// Set by Ctrl-C: the viewer closes as if its window were closed, so the trace and
-    /// the recorded flight are written.
-    interrupted: Arc<std::sync::atomic::AtomicBool>,
     last_frame: Instant,
     started: Instant,
     title_at: Instant,
@@ -267,10 +255,8 @@ struct App {
     last_occlusion: Option<crate::lod::occlusion::OcclusionReport>,
     /// The last frame's whole selection, nothing culled (frozen with Space).
     blocks: Vec<DrawBlock>,
-    screenshot_next: Option<PathBuf>,
     /// P presses not yet served.
     screenshots_asked: u64,
-    resizes: Vec<(u64, u32, u32)>,
     stats: RunStats,
 }
 
@@ -431,15 +417,13 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
         layout,
         base,
         detail,
-        window: None,
+        win: WindowState::new(interrupted, args.frames, args.screenshot.clone(), resizes),
         gpu: None,
-        error: None,
         home: (ctl.position, ctl.yaw, ctl.pitch),
         geo,
         exaggeration: args.exaggeration,
         true_height_scale,
         ground_speed: 0.0,
-        cursor: None,
         ctl,
         shading: args.textures.shade(Shading { fog_density: fog, ..Shading::default() }),
         delta: args.delta,
@@ -448,12 +432,8 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
         frozen: None,
         draw: crate::app::commands::draw_thread(&args.common, trace.clone(), None)?,
         trace: trace.clone(),
-        interrupted: interrupted.clone(),
         frame: 0,
         slot: 0,
-        swapchain_dirty: false,
-        minimized: false,
-        occluded: false,
         flight: Vec::new(),
         last_frame: now,
         started: now,
@@ -466,9 +446,7 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
         last_blocks: 0,
         last_occlusion: None,
         blocks: Vec::new(),
-        screenshot_next: None,
         screenshots_asked: 0,
-        resizes,
         stats: RunStats::default(),
     };
     app.stats.exaggeration = args.exaggeration;
@@ -482,7 +460,9 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
         }
         app.go_to(lat, lon);
     }
-    event_loop.run_app(&mut app)?;
+    let mut windowed = Windowed(app);
+    event_loop.run_app(&mut windowed)?;
+    let mut app = windowed.0;
     let counter = app.gpu.as_ref().map(|g| g.device.instance.messages.clone());
     // Waits for the GPU, joins the errors thread, destroys the device and instance, so
     // that the object tracker's leak reports are counted below.
@@ -493,7 +473,7 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
     }
     let validation = counter.as_ref().map(|c| c.count());
     let first_message = counter.as_ref().and_then(|c| c.messages().first().cloned());
-    if let Some(e) = app.error.take() {
+    if let Some(e) = app.win.error.take() {
         return Err(e);
     }
     if let Some(path) = &args.record_path {
@@ -517,16 +497,9 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
 }
 
 impl App {
-    fn fail(&mut self, event_loop: &ActiveEventLoop, e: anyhow::Error) {
-        if self.error.is_none() {
-            self.error = Some(e);
-        }
-        event_loop.exit();
-    }
-
     fn open(&mut self, event_loop: &ActiveEventLoop) -> anyhow::Result<()> {
         let requested = self.args.common.size.iter().map(|&(w, h)| ("--size".to_string(), w, h));
-        let resizes = self.resizes.iter().map(|&(f, w, h)| (format!("--resize-at {f}"), w, h));
+        let resizes = self.win.resizes.iter().map(|&(f, w, h)| (format!("--resize-at {f}"), w, h));
         let sizes: Vec<(String, u32, u32)> = requested.chain(resizes).collect();
         let title = format!("vkterrain: {}", self.hf.source);
         let (window, surface, device) =
@@ -579,12 +552,12 @@ impl App {
         self.draw.set_threads(threads)?;
         self.gpu =
             Some(Gpu { hud, acquired, depth, swapchain, renderer, activity: Some(activity), terrain, surface, device });
-        self.window = Some(window);
+        self.win.window = Some(window);
         Ok(())
     }
 
     fn recreate_swapchain(&mut self) -> anyhow::Result<()> {
-        let (Some(gpu), Some(window)) = (self.gpu.as_mut(), self.window.as_ref()) else { return Ok(()) };
+        let (Some(gpu), Some(window)) = (self.gpu.as_mut(), self.win.window.as_ref()) else { return Ok(()) };
         let size = window.inner_size();
         if size.width == 0 || size.height == 0 {
             return Ok(());
@@ -595,7 +568,7 @@ impl App {
         gpu.swapchain = new;
         gpu.depth = depth_image(&gpu.device, gpu.swapchain.extent)?;
         gpu.hud.set_format(gpu.swapchain.format, DEPTH_FORMAT)?;
-        self.swapchain_dirty = false;
+        self.win.swapchain_dirty = false;
         self.stats.resizes += 1;
         Ok(())
     }
@@ -629,15 +602,10 @@ impl App {
         )
     }
 
-    fn draw(&mut self) -> anyhow::Result<()> {
-        if self.gpu.is_none() {
-            return Ok(()); // opening failed; the event loop is exiting with that error
-        }
-        if self.swapchain_dirty {
+    /// One frame ([`WindowApp::draw`]: the window is open and shown).
+    fn draw_frame(&mut self) -> anyhow::Result<()> {
+        if self.win.swapchain_dirty {
             self.recreate_swapchain()?;
-        }
-        if self.minimized || self.occluded {
-            return Ok(()); // nothing is rendered while minimized or hidden
         }
         let now = Instant::now();
         let interval = (now - self.last_frame).as_secs_f32();
@@ -670,7 +638,7 @@ impl App {
             blocks: self.frozen.as_deref(),
         };
         let (hf, shading) = (&self.hf, &self.shading);
-        let (screenshot_next, screenshots_asked) = (&mut self.screenshot_next, &mut self.screenshots_asked);
+        let (screenshot_next, screenshots_asked) = (&mut self.win.screenshot_next, &mut self.screenshots_asked);
         let frame = self.draw.step(Some(activity), terrain, request, |blocks| {
             let acquired = gpu.acquired[slot_index].handle;
             // SAFETY: the swapchain and semaphore are live; the acquire semaphore of this
@@ -758,7 +726,7 @@ impl App {
         let Some(Submitted { image_index, suboptimal, extent, screenshot, readback, render_done, recording }) =
             submitted
         else {
-            self.swapchain_dirty = true;
+            self.win.swapchain_dirty = true;
             return Ok(());
         };
         let gpu = self.gpu.as_mut().unwrap();
@@ -787,8 +755,8 @@ impl App {
         self.trace.complete(DRAW_TID, "present", presenting, Instant::now(), json!({"frame": self.frame}));
         self.trace.complete(DRAW_TID, "frame", frame_start, Instant::now(), json!({"frame": self.frame}));
         match presented {
-            Ok(sub) => self.swapchain_dirty |= sub || suboptimal,
-            Err(vk::Result::ERROR_OUT_OF_DATE_KHR) => self.swapchain_dirty = true,
+            Ok(sub) => self.win.swapchain_dirty |= sub || suboptimal,
+            Err(vk::Result::ERROR_OUT_OF_DATE_KHR) => self.win.swapchain_dirty = true,
             Err(e) => return Err(e).vk("vkQueuePresentKHR").map_err(Into::into),
         }
         if let (Some(path), Some(buf)) = (screenshot, readback) {
@@ -849,7 +817,7 @@ impl App {
     /// the window.
     fn cursor_ray(&self) -> Vec3 {
         let fwd = self.ctl.forward();
-        let (Some((x, y)), Some(window)) = (self.cursor, &self.window) else { return fwd };
+        let (Some((x, y)), Some(window)) = (self.win.cursor, &self.win.window) else { return fwd };
         let size = window.inner_size();
         if size.width == 0 || size.height == 0 {
             return fwd;
@@ -959,7 +927,7 @@ impl App {
     fn cursor_ground(&self) -> Option<Vec3> {
         let (wx, wz) = self.hf.world_extent();
         let inside = |q: &Vec3| (0.0..=wx).contains(&q.x) && (0.0..=wz).contains(&q.z);
-        self.cursor.map(|_| ground_hit(&self.hf, self.ctl.position, self.cursor_ray())).filter(inside)
+        self.win.cursor.map(|_| ground_hit(&self.hf, self.ctl.position, self.cursor_ray())).filter(inside)
     }
 
     /// The panel's map section: the camera and `cursor` (the terrain point under the
@@ -968,7 +936,7 @@ impl App {
         let geo = self.geo.as_ref()?;
         let p = self.ctl.position;
         let centre = ground_hit(&self.hf, p, self.ctl.forward());
-        let height = self.window.as_ref().map_or(1, |w| w.inner_size().height.max(1)) as f32;
+        let height = self.win.window.as_ref().map_or(1, |w| w.inner_size().height.max(1)) as f32;
         let metres_per_pixel = (centre - p).length() * 2.0 * (self.args.common.fovy.to_radians() * 0.5).tan() / height;
         let f = self.ctl.forward();
         let (up, right) = (glam::Vec2::new(f.x, f.z), glam::Vec2::new(-f.z, f.x));
@@ -1040,7 +1008,7 @@ impl App {
         readout.ranges = Ranges { fog_default: default_fog(&self.hf), speed: (l / 6000.0, l / 6.0) };
         let before = self.controls();
         let mut after = before;
-        let (Some(gpu), Some(window)) = (self.gpu.as_mut(), self.window.as_ref()) else { return Ok(()) };
+        let (Some(gpu), Some(window)) = (self.gpu.as_mut(), self.win.window.as_ref()) else { return Ok(()) };
         readout.panel_ms = gpu.hud.last_ms;
         readout.wireframe_available = gpu.device.features.wireframe;
         readout.lighting_ms = gpu.renderer.lighting().last_ms();
@@ -1092,7 +1060,7 @@ impl App {
             cam.position.y,
             cam.position.z,
         );
-        if let Some(w) = &self.window {
+        if let Some(w) = &self.win.window {
             w.set_title(&title);
         }
     }
@@ -1156,10 +1124,6 @@ impl App {
     }
 }
 
-/// The first `vkterrain-N.png` in the working directory that names nothing (not even a
-/// broken link): screenshots never overwrite. Taken when the frame is written, so that
-/// numbers are not skipped.
-/// A haze at the terrain's scale: 18% fog across its width.
 /// A frame handed to the swapchain's queue: what presenting and the screenshot need.
 struct Submitted {
     image_index: u32,
@@ -1171,6 +1135,7 @@ struct Submitted {
     recording: Instant,
 }
 
+/// A haze at the terrain's scale: 18% fog across its width.
 fn default_fog(hf: &Heightfield) -> f32 {
     let (wx, wz) = hf.world_extent();
     crate::lod::view::default_fog(wx.max(wz))
@@ -1180,84 +1145,39 @@ fn depth_image(device: &Arc<Device>, extent: vk::Extent2D) -> anyhow::Result<Ima
     Ok(crate::draw::blocks::depth_target(device, "depth", extent)?)
 }
 
-impl ApplicationHandler for App {
-    fn resumed(&mut self, event_loop: &ActiveEventLoop) {
-        if self.gpu.is_none() {
-            if let Err(e) = self.open(event_loop) {
-                self.fail(event_loop, e);
-            }
+impl WindowApp for App {
+    fn window_state(&mut self) -> &mut WindowState {
+        &mut self.win
+    }
+
+    fn hud(&mut self) -> Option<&mut Hud> {
+        self.gpu.as_mut().map(|g| &mut g.hud)
+    }
+
+    fn open(&mut self, event_loop: &ActiveEventLoop) -> anyhow::Result<()> {
+        App::open(self, event_loop)
+    }
+
+    fn camera_controls(&mut self) -> (&mut Controller, &mut WindowState) {
+        (&mut self.ctl, &mut self.win)
+    }
+
+    fn key(&mut self, code: KeyCode, event_loop: &ActiveEventLoop) {
+        App::key(self, code, event_loop)
+    }
+
+    fn turned(&mut self, turned: f32) {
+        self.stats.mouse_turn += turned;
+        if self.ctl.orbit.is_some() {
+            self.stats.orbit_turn += turned;
         }
     }
 
-    fn window_event(&mut self, event_loop: &ActiveEventLoop, _id: WindowId, event: WindowEvent) {
-        // The panel sees every event first; what it takes (a click on it, dragging one of
-        // its sliders) does not also move the camera.
-        let taken = match (self.gpu.as_mut(), self.window.as_ref()) {
-            (Some(g), Some(w)) => g.hud.takes_input(w, &event),
-            _ => false,
-        };
-        if taken {
-            if let WindowEvent::MouseInput { state: ElementState::Released, .. } = event {
-                self.ctl.looking = false;
-            }
-            return;
-        }
-        match self.ctl.on_event(&event, &mut self.cursor) {
-            Input::Pressed(code) => return self.key(code, event_loop),
-            Input::Turned(turned) => {
-                self.stats.mouse_turn += turned;
-                if self.ctl.orbit.is_some() {
-                    self.stats.orbit_turn += turned;
-                }
-                return;
-            }
-            Input::Taken => return,
-            Input::Other => {}
-        }
-        match event {
-            WindowEvent::CloseRequested => event_loop.exit(),
-            WindowEvent::Occluded(hidden) => self.occluded = hidden,
-            WindowEvent::Resized(size) => {
-                self.minimized = size.width == 0 || size.height == 0;
-                self.swapchain_dirty = true;
-            }
-            WindowEvent::RedrawRequested => {
-                if let Some((_, w, h)) = self.resizes.iter().find(|r| r.0 == self.frame).copied() {
-                    if let Some(win) = &self.window {
-                        let _ = win.request_inner_size(PhysicalSize::new(w, h));
-                    }
-                }
-                let last = self.args.frames.is_some_and(|n| self.frame + 1 >= n);
-                if last {
-                    if let Some(p) = self.args.screenshot.clone() {
-                        self.screenshot_next = Some(p);
-                    }
-                }
-                if let Err(e) = self.draw() {
-                    self.fail(event_loop, e);
-                    return;
-                }
-                if self.args.frames.is_some_and(|n| self.frame >= n) {
-                    event_loop.exit();
-                }
-            }
-            _ => {}
-        }
+    fn frames_drawn(&self) -> u64 {
+        self.frame
     }
 
-    fn about_to_wait(&mut self, event_loop: &ActiveEventLoop) {
-        if self.interrupted.load(std::sync::atomic::Ordering::SeqCst) {
-            event_loop.exit();
-            return;
-        }
-        // While minimized or hidden no redraw is asked for and the loop waits for the next
-        // event (the one that shows the window again) instead of polling.
-        let hidden = self.minimized || self.occluded;
-        event_loop.set_control_flow(if hidden { ControlFlow::Wait } else { ControlFlow::Poll });
-        if let Some(w) = &self.window {
-            if !hidden {
-                w.request_redraw();
-            }
-        }
+    fn draw(&mut self) -> anyhow::Result<()> {
+        self.draw_frame()
     }
 }
