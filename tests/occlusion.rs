@@ -12,7 +12,7 @@ use std::sync::Arc;
 use vkterrain::draw::blocks::{BlocksRenderer, PixelPass, Shading, Target, COLOR_FORMAT};
 use vkterrain::gpu::terrain::TerrainGpu;
 use vkterrain::input::load::{self, LoadOptions};
-use vkterrain::lod::block::{BlockLayout, DrawBlock, Traversal};
+use vkterrain::lod::block::{part_boxes, parts_outside, BlockLayout, DrawBlock, Traversal, PART_FRUSTUM_MARGIN_PX};
 use vkterrain::lod::camera::Camera;
 use vkterrain::lod::gie::{block_errors, group_errors_with, ErrorMode, ErrorParams, WorldPart};
 use vkterrain::lod::heightfield::Heightfield;
@@ -334,5 +334,74 @@ fn culling_mutations_change_frames() {
         assert!(!t.differing.is_empty(), "mutation '{what}' went unnoticed over {} poses", t.poses);
     }
     drop(scene);
+    finish(device);
+}
+
+/// The parts of drawn blocks that lie outside the frustum (widened by
+/// `PART_FRUSTUM_MARGIN_PX`), as the draw thread leaves them out.
+fn outside(margin_px: f32) -> impl FnMut(&Scene, &Camera, &Traversal, &BlockCaches) -> Option<Vec<u16>> {
+    move |scene, cam, t, _| {
+        let frustum = cam.frustum_widened(margin_px);
+        Some(t.blocks.iter().map(|b| parts_outside(&scene.hf, &scene.mm, &scene.layout, &frustum, b)).collect())
+    }
+}
+
+/// Frustum culling of parts (the blocks stay, their parts outside the image go): over
+/// low poses on a real and two crafted fields, where a block crosses the image's edge
+/// on nearly every pose, the frame without those parts equals the frame with every
+/// block whole. Mutations: parts culled by a frustum narrower than the image, parts
+/// tested at their lowest height (a peak that rises into the image from below its
+/// bottom edge). (That a part's box holds its stitched triangles is the unit test
+/// `part_boxes_hold_their_triangles`: a neighbour 3 LODs coarser at the image's edge is
+/// too rare in a frame to catch the mutation there.)
+#[test]
+fn parts_outside_the_frustum_are_never_seen() {
+    let device = gpu();
+    let mut report = Vec::new();
+    let cases: [(Heightfield, usize, f32); 3] =
+        [(puget_crop(), 60, 300.0), (cliff_pillars(), 50, 40.0), (thin_ridges(), 50, 30.0)];
+    let mut hidden_all = 0;
+    let mut mutations: Vec<(String, Tally)> = Vec::new();
+    for (n, (hf, count, above)) in cases.into_iter().enumerate() {
+        let source = hf.source.clone();
+        let mut scene = Scene::new(&device, hf, 17);
+        let poses = low_poses(&scene.hf, count, above, 31 + n as u64);
+        let t = check(&mut scene, &poses, 1.0, PixelPass::Deferred, outside(PART_FRUSTUM_MARGIN_PX));
+        assert!(
+            t.differing.is_empty(),
+            "{source}: frames without the parts outside differ (pose, pixels): {:?}",
+            t.differing
+        );
+        report.push(format!("{source}: {} poses, {} of {} parts outside", t.poses, t.hidden_parts, t.parts));
+        hidden_all += t.hidden_parts;
+        if source == "cliff with pillars" {
+            let narrow = check(&mut scene, &poses, 1.0, PixelPass::Deferred, outside(-2.0));
+            mutations.push((format!("{source}: frustum 2 px inside the image"), narrow));
+            let lowest = |scene: &Scene, cam: &Camera, t: &Traversal, _: &BlockCaches| {
+                let frustum = cam.frustum_widened(PART_FRUSTUM_MARGIN_PX);
+                let hs = scene.hf.height_scale;
+                let masks = t.blocks.iter().map(|b| {
+                    part_boxes(&scene.mm, &scene.layout, b)
+                        .filter(|pb| {
+                            let (x1, z1) = (pb.x0 + pb.size, pb.z0 + pb.size);
+                            let (min, max) = scene.hf.world_box(pb.x0, pb.z0, x1, z1, [pb.raw[0] * hs; 2]);
+                            !frustum.intersects_aabb(min, max)
+                        })
+                        .fold(0, |m, pb| m | pb.bit)
+                });
+                Some(masks.collect())
+            };
+            mutations.push((
+                format!("{source}: parts at their lowest"),
+                check(&mut scene, &poses, 1.0, PixelPass::Deferred, lowest),
+            ));
+        }
+    }
+    println!("parts outside the frustum: {}", report.join("; "));
+    assert!(hidden_all >= 500, "only {hidden_all} parts outside the frustum: the check is nearly vacuous");
+    for (what, t) in &mutations {
+        println!("mutation {what}: {} of {} poses differ", t.differing.len(), t.poses);
+        assert!(!t.differing.is_empty(), "mutation '{what}' went unnoticed over {} poses", t.poses);
+    }
     finish(device);
 }

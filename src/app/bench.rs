@@ -190,6 +190,9 @@ struct Row {
     occluded: Option<usize>,
     /// Parts occlusion culling hid and parts it tested (summary only).
     occluded_parts: Option<(usize, usize)>,
+    /// Parts of drawn blocks left out as outside the frustum, and the drawn blocks' parts
+    /// (summary only).
+    outside_parts: (usize, usize),
     /// Colour RMSE against the previous frame (with --popping).
     temporal_rmse: Option<f64>,
     /// `temporal_rmse` minus the --lod full run's at the same frame (with --popping).
@@ -549,6 +552,8 @@ impl Bench<'_> {
                 let culled = tr.occlusion.filter(|o| o.skipped.is_none());
                 row.occluded = culled.map(|o| o.hidden);
                 row.occluded_parts = culled.map(|o| (o.hidden_parts, o.tested_parts));
+                row.outside_parts =
+                    (tr.frustum_parts, tr.blocks.len() * self.s.layout.all_parts().count_ones() as usize);
                 if let Some(g) = draw.feed.usable() {
                     row.error_generation = g.number;
                     row.error_update_ms = g.gpu_ms;
@@ -687,9 +692,12 @@ fn summarize(run: &Run) -> Value {
     });
     let parts = run.rows.iter().filter_map(|r| r.occluded_parts).fold((0, 0), |a, c| (a.0 + c.0, a.1 + c.1));
     let occluded_part_share = (parts.1 > 0).then(|| parts.0 as f64 / parts.1 as f64);
+    let outside = run.rows.iter().fold((0, 0), |a, r| (a.0 + r.outside_parts.0, a.1 + r.outside_parts.1));
+    let outside_part_share = (outside.1 > 0).then(|| outside.0 as f64 / outside.1 as f64);
     json!({
         "occluded_block_share": occluded_share,
         "occluded_part_share": occluded_part_share,
+        "outside_part_share": outside_part_share,
         "occlusion_culled_frames": culled.len(),
         "warmup_ms": run.warmup_ms,
         "frames": run.rows.len(),

@@ -7,7 +7,7 @@
 
 use crate::errors::activity::ErrorsActivity;
 use crate::errors::feed::{ErrorFeed, LastSelection};
-use crate::lod::block::{BlockLayout, DrawBlock, Traversal};
+use crate::lod::block::{hide_parts_outside, BlockLayout, DrawBlock, Traversal};
 use crate::lod::camera::Camera;
 use crate::lod::heightfield::Heightfield;
 use crate::lod::occlusion;
@@ -196,9 +196,11 @@ impl DrawThread {
                 if self.occlusion {
                     self.probe.cull(terrain.hf, terrain.mm, &self.caches, terrain.layout, req.cam, &mut tr);
                 }
+                hide_parts_outside(terrain.hf, terrain.mm, terrain.layout, req.cam, &mut tr);
                 let hidden = tr.occlusion.map(|o| (o.hidden, o.hidden_parts));
                 let args = json!({"blocks": tr.blocks.len(), "morphing": tr.morphing,
-                    "occluded": hidden.map(|h| h.0), "occluded_parts": hidden.map(|h| h.1)});
+                    "occluded": hidden.map(|h| h.0), "occluded_parts": hidden.map(|h| h.1),
+                    "parts_outside": tr.frustum_parts});
                 self.trace.complete(DRAW_TID, "traverse", t, Instant::now(), args);
                 self.last = LastSelection::of(&tr);
                 (Some(tr), Vec::new())

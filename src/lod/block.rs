@@ -2,7 +2,7 @@
 //! (LOD, neighbours, corners, morph factors), the selection a traversal produces, and the
 //! vertex shader's placement of a block's vertices in plain Rust.
 
-use crate::lod::camera::Frustum;
+use crate::lod::camera::{Camera, Frustum};
 use crate::lod::heightfield::{Heightfield, RawSamples};
 use crate::lod::pyramid::MinMaxPyramid;
 use glam::Vec3;
@@ -242,6 +242,9 @@ pub struct Traversal {
     pub occluded: Vec<DrawBlock>,
     /// Blocks the frustum culled (what occlusion culling checks its argument against).
     pub frustum_culled: Vec<DrawBlock>,
+    /// Parts of drawn blocks left out because they lie outside the frustum
+    /// ([`hide_parts_outside`]; 0 until it runs).
+    pub frustum_parts: usize,
     /// What occlusion culling did, when it ran.
     pub occlusion: Option<OcclusionReport>,
 }
@@ -394,6 +397,98 @@ fn own_vertex_raw<S: RawSamples + ?Sized>(hf: &S, b: &DrawBlock, last: u32, u: u
     morph_raw(p, raw, f)
 }
 
+/// A part of a drawn block ([`parts_per_side`]) as culling tests it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PartBox {
+    /// Its bit of [`DrawBlock::hidden_parts`].
+    pub bit: u16,
+    /// Its square of samples: from `(x0, z0)`, `size` samples on a side.
+    pub x0: i64,
+    pub z0: i64,
+    pub size: i64,
+    /// The lowest and highest raw height of its triangles' vertices.
+    pub raw: [f32; 2],
+}
+
+/// The parts of `b` that can be left out alone, with their boxes. A part's triangles are
+/// its own quads', whose vertices lie over its square between its samples' lowest and
+/// highest (a vertex morphs towards the mean of two samples of its own part: each part is
+/// an even number of quads wide), or at a resolved corner's height. Parts along an edge
+/// that follows a coarser neighbour are not listed: the stitched triangles fan past the
+/// part along that edge, so they go only with their whole block.
+pub fn part_boxes<'a>(
+    mm: &'a MinMaxPyramid,
+    layout: &BlockLayout,
+    b: &'a DrawBlock,
+) -> impl Iterator<Item = PartBox> + 'a {
+    let p = layout.parts_per_side();
+    let level = layout.m + b.lod - p.trailing_zeros();
+    let size = 1i64 << level;
+    let corner_part = [(0, 0), (p - 1, 0), (p - 1, p - 1), (0, p - 1)];
+    let parts = if p > 1 { 0..p * p } else { 0..0 };
+    parts.filter_map(move |part| {
+        let (px, pz) = (part % p, part / p);
+        let on_edge = [pz == 0, px == p - 1, pz == p - 1, px == 0];
+        if (0..4).any(|e| on_edge[e] && b.coarser[e] > 0) {
+            return None;
+        }
+        let (x, z) = (b.bx * p + px, b.bz * p + pz);
+        let mut raw = mm.get(level, x as usize, z as usize);
+        for (c, _) in corner_part.iter().enumerate().filter(|(_, &cp)| cp == (px, pz)) {
+            if b.corner_raw[c] != CORNER_UNRESOLVED {
+                let h = f32::from_bits(b.corner_raw[c]);
+                raw = [raw[0].min(h), raw[1].max(h)];
+            }
+        }
+        Some(PartBox { bit: 1 << part, x0: x as i64 * size, z0: z as i64 * size, size, raw })
+    })
+}
+
+/// Margin, in pixels beyond the image's edges, of the frustum that culls parts: a part
+/// is left out only when its box lies wholly beyond it, so that rounding in the vertex
+/// shader cannot bring one of its triangles onto a pixel centre.
+pub const PART_FRUSTUM_MARGIN_PX: f32 = 1.0;
+
+/// The parts of `b` ([`part_boxes`]) whose boxes lie wholly outside `frustum`, as bits of
+/// [`DrawBlock::hidden_parts`]: no pixel of the frame can show them.
+pub fn parts_outside(
+    hf: &Heightfield,
+    mm: &MinMaxPyramid,
+    layout: &BlockLayout,
+    frustum: &Frustum,
+    b: &DrawBlock,
+) -> u16 {
+    let hs = hf.height_scale;
+    part_boxes(mm, layout, b)
+        .filter(|pb| {
+            let (x1, z1) = (pb.x0 + pb.size, pb.z0 + pb.size);
+            let (min, max) = hf.world_box(pb.x0, pb.z0, x1, z1, [pb.raw[0] * hs, pb.raw[1] * hs]);
+            !frustum.intersects_aabb(min, max)
+        })
+        .fold(0, |hidden, pb| hidden | pb.bit)
+}
+
+/// Leaves out of every drawn block of `t` the parts outside `cam`'s frustum widened by
+/// [`PART_FRUSTUM_MARGIN_PX`] ([`parts_outside`]); returns how many parts that hid.
+/// Blocks stay in the selection, whatever they hide, so that nothing else changes.
+pub fn hide_parts_outside(
+    hf: &Heightfield,
+    mm: &MinMaxPyramid,
+    layout: &BlockLayout,
+    cam: &Camera,
+    t: &mut Traversal,
+) -> usize {
+    let frustum = cam.frustum_widened(PART_FRUSTUM_MARGIN_PX);
+    let mut hidden = 0;
+    for b in &mut t.blocks {
+        let outside = parts_outside(hf, mm, layout, &frustum, b) & !b.hidden_parts;
+        hidden += outside.count_ones() as usize;
+        b.hidden_parts |= outside;
+    }
+    t.frustum_parts = hidden;
+    hidden
+}
+
 /// Frustum-visible test for the finest cell `(cx, cz)` (used by the tiling check).
 pub fn cell_visible(
     hf: &Heightfield,
@@ -480,6 +575,85 @@ pub fn map_in_pool<T: Sync, R: Send>(items: &[T], f: impl Fn(usize, &T) -> R + S
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Vertices of each listed part's triangles that fall outside its box ([`part_boxes`]
+    /// computed for `boxed`, placed for `b`), over every part of the index ranges.
+    fn part_box_escapes(
+        hf: &Heightfield,
+        mm: &MinMaxPyramid,
+        layout: &BlockLayout,
+        b: &DrawBlock,
+        boxed: &DrawBlock,
+    ) -> usize {
+        let (_, idx) = block_mesh_data(layout.k());
+        let p = layout.parts_per_side();
+        let per_part = idx.len() / (p * p) as usize;
+        let mut escapes = 0;
+        for pb in part_boxes(mm, layout, boxed) {
+            let part = pb.bit.trailing_zeros() as usize;
+            for &i in &idx[part * per_part..(part + 1) * per_part] {
+                let (u, v) = (i % layout.k(), i / layout.k());
+                let (sx, sz, raw) = block_vertex(hf, layout, b, u, v);
+                let inside = (pb.x0..=pb.x0 + pb.size).contains(&sx)
+                    && (pb.z0..=pb.z0 + pb.size).contains(&sz)
+                    && (pb.raw[0]..=pb.raw[1]).contains(&raw);
+                escapes += usize::from(!inside);
+            }
+        }
+        escapes
+    }
+
+    /// Every vertex of a listed part's triangles lies in its box (what makes culling a part
+    /// by its box conservative), for blocks beside neighbours 1 to m LODs coarser (whose
+    /// edge vertices collapse up to half a neighbour's segment away), every morph factor
+    /// and resolved corners, over rough noise (where a part's neighbours' samples are
+    /// far outside its own range). Mutation: boxes made as if no neighbour were coarser
+    /// let the stitched vertices escape.
+    #[test]
+    fn part_boxes_hold_their_triangles() {
+        let n = 257usize;
+        let mut s = 0x9e37_79b9_u64;
+        let samples: Vec<f32> = (0..n * n)
+            .map(|_| {
+                s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+                (s >> 40) as f32 / (1u64 << 24) as f32 * 100.0
+            })
+            .collect();
+        let hf = Heightfield::embed("noise", n, n, &samples, crate::lod::heightfield::HeightFormat::Float32, 1.0, 1.0)
+            .unwrap();
+        let mm = MinMaxPyramid::build(&hf);
+        let layout = BlockLayout::of(&hf, 17).unwrap();
+        let (mut listed, mut escaped_when_unstitched) = (0, 0);
+        let mut rng = |k: u32| {
+            s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            ((s >> 33) % k as u64) as u32
+        };
+        for lod in 0..3u32 {
+            let blocks_per_side = (n as u32 - 1) / layout.block_samples(lod);
+            for _ in 0..60 {
+                let mut b = DrawBlock::new(lod, rng(blocks_per_side), rng(blocks_per_side));
+                for e in 0..4 {
+                    // A neighbour 1 to m LODs coarser on about half the edges.
+                    if rng(2) == 0 {
+                        b.coarser[e] = 1 << (lod + 1 + rng(layout.m));
+                    }
+                    b.edge_morph[e] = rng(MORPH_ONE as u32 + 1) as u16;
+                }
+                b.morph = rng(MORPH_ONE as u32 + 1) as u16;
+                for c in 0..4 {
+                    if rng(3) == 0 {
+                        b.corner_raw[c] = (rng(1000) as f32 * 0.1).to_bits();
+                    }
+                }
+                listed += part_boxes(&mm, &layout, &b).count();
+                assert_eq!(part_box_escapes(&hf, &mm, &layout, &b, &b), 0, "{b:?}");
+                let unstitched = DrawBlock { coarser: [0; 4], ..b };
+                escaped_when_unstitched += part_box_escapes(&hf, &mm, &layout, &b, &unstitched);
+            }
+        }
+        assert!(listed >= 1000, "only {listed} parts listed");
+        assert!(escaped_when_unstitched > 0, "mutation: boxes blind to coarser neighbours went unnoticed");
+    }
 
     /// Every quad once; each part's range of the indices holds exactly the quads of that
     /// part's square, and each part is an even number of quads wide (the morph argument

@@ -126,9 +126,15 @@ impl Camera {
     }
 
     pub fn frustum(&self) -> Frustum {
+        self.frustum_widened(0.0)
+    }
+
+    /// The frustum with its four side planes moved `margin_px` pixels out beyond the
+    /// image's edges (the near plane stays).
+    pub fn frustum_widened(&self, margin_px: f32) -> Frustum {
         let (right, up) = self.basis();
-        let tv = (self.fovy * 0.5).tan();
-        let th = tv * self.aspect();
+        let tv = (self.fovy * 0.5).tan() * (1.0 + 2.0 * margin_px / self.height as f32);
+        let th = (self.fovy * 0.5).tan() * self.aspect() * (1.0 + 2.0 * margin_px / self.width as f32);
         let f = self.forward;
         let normals = [
             (right + th * f).normalize(),
@@ -237,6 +243,36 @@ mod tests {
                     "camera at {pos}: frustum edge projects to {got:?}, not {want:?}"
                 );
             }
+        }
+    }
+
+    /// A widened frustum holds the points that project up to its margin beyond the
+    /// image's edges and no farther; the plain one stops at the edges.
+    #[test]
+    fn the_widened_frustum_reaches_its_margin_beyond_the_image() {
+        let cam = Camera::look_at(Vec3::new(10.0, 5.0, -3.0), Vec3::new(40.0, 0.0, 7.0), 35.0, 640, 360, 0.1);
+        let (right, up) = cam.basis();
+        let tv = (cam.fovy * 0.5).tan();
+        let th = tv * cam.aspect();
+        let vp = cam.view_proj();
+        // The point 100 units ahead that projects to pixel (px, py).
+        let at = |px: f32, py: f32| {
+            let d = cam.forward + (2.0 * px / 640.0 - 1.0) * th * right + (1.0 - 2.0 * py / 360.0) * tv * up;
+            let p = cam.position + d * 100.0;
+            let (gx, gy) = cam.project(&vp, p).unwrap();
+            assert!((gx - px).abs() < 1e-2 && (gy - py).abs() < 1e-2, "({px}, {py}) projects to ({gx}, {gy})");
+            p
+        };
+        let (plain, wide) = (cam.frustum(), cam.frustum_widened(2.0));
+        for (px, py) in [(-1.9, 100.0), (641.9, 50.0), (300.0, -1.9), (10.0, 361.9)] {
+            assert!(wide.contains_point(at(px, py)), "({px}, {py}) is inside the 2 px margin");
+            assert!(!plain.contains_point(at(px, py)), "({px}, {py}) is outside the image");
+        }
+        for (px, py) in [(-2.1, 100.0), (642.1, 50.0), (300.0, -2.1), (10.0, 362.1)] {
+            assert!(!wide.contains_point(at(px, py)), "({px}, {py}) is beyond the 2 px margin");
+        }
+        for (px, py) in [(0.1, 100.0), (639.9, 50.0), (300.0, 0.1), (10.0, 359.9)] {
+            assert!(plain.contains_point(at(px, py)), "({px}, {py}) is inside the image");
         }
     }
 

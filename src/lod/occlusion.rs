@@ -30,7 +30,7 @@
 //! LODs coarser (its edge's vertices, or its parent's, would lie beyond the culled
 //! block's edge); such a frame is not culled either.
 
-use crate::lod::block::{block_aabb, block_vertex, BlockLayout, DrawBlock, Traversal, CORNER_UNRESOLVED};
+use crate::lod::block::{block_aabb, block_vertex, part_boxes, BlockLayout, DrawBlock, Traversal, CORNER_UNRESOLVED};
 pub use crate::lod::block::{OcclusionReport, Skipped};
 use crate::lod::camera::Camera;
 use crate::lod::heightfield::Heightfield;
@@ -312,13 +312,8 @@ fn occluders<'a>(
     })
 }
 
-/// The boxes of `b`'s parts ([`crate::lod::block::parts_per_side`]) as the sweep tests
-/// them, each with its bit of `DrawBlock::hidden_parts`. A part's triangles are its own
-/// quads', whose vertices lie over its footprint between its samples' lowest and highest
-/// (a vertex morphs towards the mean of two samples of its own part; each part is an
-/// even number of quads wide), or at a resolved corner's height. Parts along an edge
-/// that follows a coarser neighbour are left out: the stitched triangles fan past the
-/// part along that edge; they are hidden only with their whole block.
+/// The boxes of `b`'s parts ([`part_boxes`]) as the sweep tests them, each with its bit
+/// of `DrawBlock::hidden_parts`: its footprint under its highest vertex.
 fn part_queries<'a>(
     hf: &'a Heightfield,
     mm: &'a MinMaxPyramid,
@@ -328,30 +323,14 @@ fn part_queries<'a>(
     rule: Rule,
 ) -> impl Iterator<Item = (Query, u16)> + 'a {
     let top = if rule == Rule::PartBottom { 0 } else { 1 };
-    let p = layout.parts_per_side();
-    let level = layout.m + b.lod - p.trailing_zeros();
-    let size = (1u64 << level) as f64;
     let hs = hf.height_scale as f64;
     let (sx, sz) = (hf.spacing.x as f64, hf.spacing.z as f64);
-    let corner_part = [(0, 0), (p - 1, 0), (p - 1, p - 1), (0, p - 1)];
-    let parts = if p > 1 { 0..p * p } else { 0..0 };
-    parts.filter_map(move |part| {
-        let (px, pz) = (part % p, part / p);
-        let on_edge = [pz == 0, px == p - 1, pz == p - 1, px == 0];
-        if (0..4).any(|e| on_edge[e] && b.coarser[e] > 0) {
-            return None;
-        }
-        let (x, z) = (b.bx * p + px, b.bz * p + pz);
-        let (x0, z0) = (x as f64 * size * sx, z as f64 * size * sz);
+    part_boxes(mm, layout, b).map(move |pb| {
+        let (x0, z0) = (pb.x0 as f64 * sx, pb.z0 as f64 * sz);
+        let size = pb.size as f64;
         let rect = Rect { x0, z0, x1: x0 + size * sx, z1: z0 + size * sz };
-        let mut hi = mm.get(level, x as usize, z as usize)[top] as f64 * hs;
-        for (c, _) in corner_part.iter().enumerate().filter(|(_, &cp)| cp == (px, pz)) {
-            if b.corner_raw[c] != CORNER_UNRESOLVED {
-                hi = hi.max(f32::from_bits(b.corner_raw[c]) as f64 * hs);
-            }
-        }
         let (near, far) = rect.distances(cx, cz);
-        Some((Query { rect, near, far, hi }, 1u16 << part))
+        (Query { rect, near, far, hi: pb.raw[top] as f64 * hs }, pb.bit)
     })
 }
 
