@@ -19,11 +19,13 @@ layout(location = 0) out vec4 out_color;
 void main() {
     float z = texelFetch(depth, ivec2(gl_FragCoord.xy), 0).r;
     vec3 colour;
+    // One unprojection for both: llvmpipe runs both sides of a branch whose condition
+    // differs across its pixels, and at depth 0 this is the sky's ray (sky.glsl).
+    vec4 w = frame.inv_view_proj * vec4(v_ndc, z, 1.0);
     // Reversed Z, cleared to 0: nothing drawn here.
     if (z == 0.0) {
-        colour = frame.sky_zenith.w > 0.5 ? sky_colour(v_ndc) : frame.sky_horizon.rgb;
+        colour = frame.sky_zenith.w > 0.5 ? sky_colour_of(w) : frame.sky_horizon.rgb;
     } else {
-        vec4 w = frame.inv_view_proj * vec4(v_ndc, z, 1.0);
         colour = shade_terrain(w.xyz / w.w, 0);
     }
     out_color = vec4(colour, 1.0);
