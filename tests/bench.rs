@@ -75,11 +75,11 @@ fn short_bench_writes_every_file_with_documented_fields() {
     assert_eq!(
         lines.next().unwrap(),
         "time_s,frame_ms,traverse_ms,gpu_ms,triangles,draw_calls,blocks,error_generation,error_age_frames,\
-         error_update_ms,queue_wait_ms,morphing,temporal_rmse,popping,lod_change_rmse,lod_change_over16,occluded,raycast_blocks,raycast_pixels"
+         error_update_ms,queue_wait_ms,morphing,temporal_rmse,popping,lod_change_rmse,lod_change_over16,occluded,raycast_blocks,raycast_pixels,hidden_parts"
     );
     let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
     assert_eq!(rows.len(), 24);
-    assert!(rows.iter().all(|r| r.len() == 19));
+    assert!(rows.iter().all(|r| r.len() == 20));
     // The ray-caster is off by default: no block drawn by it, no ray cast.
     assert!(rows.iter().all(|r| r[17] == "0" && r[18] == "0"));
     assert_eq!(s["mean_raycast_blocks"], 0.0);
@@ -91,6 +91,9 @@ fn short_bench_writes_every_file_with_documented_fields() {
     assert!(rows.iter().all(|r| r[16].is_empty() || r[16].parse::<usize>().is_ok()));
     assert!(ran >= 1, "the first frame always runs the sweep");
     assert_eq!(s["occlusion_culled_frames"], ran);
+    // Blocks crossing the image's edge leave their parts outside it undrawn.
+    let outside = s["outside_part_share"].as_f64().unwrap();
+    assert!(outside > 0.0 && outside < 1.0, "outside_part_share {outside}");
     // Terrain is ahead for the first three quarters of the path (at the far edge the
     // camera looks out past it, as at the end of the paper's Figure 8).
     assert!(rows[..18].iter().all(|r| r[4].parse::<u64>().unwrap() > 0), "frames with terrain ahead draw triangles");
@@ -571,8 +574,11 @@ fn bench_counts_ray_cast_blocks_and_rays() {
     assert!(blocks > 0 && pixels > 0.0, "{blocks} blocks, {pixels} pixels");
     assert!((s["mean_raycast_blocks"].as_f64().unwrap() - blocks as f64 / 6.0).abs() < 1e-9);
     // A ray-cast block keeps only its outer ring of quads as triangles: with block side 9
-    // that is 28 quads of 64.
+    // that is 28 quads of 64; the others draw 128 less 8 for each part left out (16 parts
+    // of 2 x 2 quads).
     let tris: u64 = rows.iter().map(|r| r[4].parse::<u64>().unwrap()).sum();
     let all_blocks: u64 = rows.iter().map(|r| r[6].parse::<u64>().unwrap()).sum();
-    assert_eq!(tris, (all_blocks - blocks) * 128 + blocks * 56);
+    let hidden: u64 = rows.iter().map(|r| r[19].parse::<u64>().unwrap()).sum();
+    assert!(hidden > 0, "no part left out: the check below would not see them counted");
+    assert_eq!(tris, (all_blocks - blocks) * 128 - hidden * 8 + blocks * 56);
 }

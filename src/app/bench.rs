@@ -208,11 +208,14 @@ struct Row {
     raycast_blocks: u64,
     /// Pixels their boxes cover on screen (`draw::raycast::box_pixels`): the rays cast.
     raycast_pixels: f64,
+    /// Parts left out of the blocks drawn as triangles: hidden by occlusion culling or
+    /// outside the frustum (`DrawBlock::hidden_parts`).
+    hidden_parts: u64,
 }
 
 const CSV_HEADER: &str = "time_s,frame_ms,traverse_ms,gpu_ms,triangles,draw_calls,blocks,error_generation,\
                           error_age_frames,error_update_ms,queue_wait_ms,morphing,temporal_rmse,popping,lod_change_rmse,\
-                          lod_change_over16,occluded,raycast_blocks,raycast_pixels";
+                          lod_change_over16,occluded,raycast_blocks,raycast_pixels,hidden_parts";
 
 fn opt<T: std::fmt::Display>(v: Option<T>) -> String {
     v.map_or(String::new(), |v| v.to_string())
@@ -221,7 +224,7 @@ fn opt<T: std::fmt::Display>(v: Option<T>) -> String {
 impl Row {
     fn csv(&self) -> String {
         format!(
-            "{:.4},{:.3},{:.3},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{:.0}",
+            "{:.4},{:.3},{:.3},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{:.0},{}",
             self.time_s,
             self.frame_ms,
             self.traverse_ms,
@@ -240,7 +243,8 @@ impl Row {
             opt(self.lod_change_over16.map(|v| format!("{v:.7}"))),
             opt(self.occluded),
             self.raycast_blocks,
-            self.raycast_pixels
+            self.raycast_pixels,
+            self.hidden_parts
         )
     }
 }
@@ -484,6 +488,7 @@ impl Bench<'_> {
             row.queue_wait_ms = Some(stats.wait_ms);
             row.triangles = stats.triangles;
             row.raycast_blocks = stats.raycast_blocks;
+            row.hidden_parts = stats.hidden_parts;
             row.draw_calls = stats.draw_calls;
         };
         // Step 0 is an untimed warm-up at the path's first pose, waited for before the

@@ -271,6 +271,8 @@ pub struct DrawStats {
     pub triangles: u64,
     /// Blocks drawn by the ray-caster.
     pub raycast_blocks: u64,
+    /// Parts left out of the blocks drawn as triangles (`DrawBlock::hidden_parts`).
+    pub hidden_parts: u64,
     /// GPU time of the frame's commands (timestamps), when the queue has them.
     pub gpu_ms: Option<f64>,
     /// The raw begin and end timestamps behind `gpu_ms`.
@@ -678,10 +680,12 @@ impl BlocksRenderer {
             };
             let parts = self.layout.parts_per_side().pow(2);
             let part_indices = self.mesh.index_count / parts;
+            let layout_parts = self.layout.all_parts();
             for b in blocks.iter().zip(&cast).filter(|(_, &c)| !c).map(|(b, _)| b) {
                 push(b);
                 // Occlusion culling's hidden parts left out: one draw per run of visible
                 // parts (each part is one range of the mesh's indices).
+                stats.hidden_parts += (b.hidden_parts & layout_parts).count_ones() as u64;
                 for (first, count) in visible_runs(b.hidden_parts, parts) {
                     d.cmd_draw_indexed(cmd, count * part_indices, 1, first * part_indices, 0, 0);
                     stats.triangles += count as u64 * self.layout.triangles_per_part();
