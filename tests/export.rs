@@ -166,7 +166,15 @@ fn render_exports_the_mesh() {
     let (pos, idx, extras) = read_glb(&std::fs::read(&glb).unwrap());
     assert_eq!(idx.len() as u64 / 3, j["mesh_triangles"].as_u64().unwrap());
     assert_eq!(j["mesh_triangles_beyond_extent"], 0);
-    assert_eq!(j["mesh_triangles"], j["triangles"], "the file holds every triangle drawn");
+    // The file holds the drawn blocks whole: the triangles rasterized and the parts left
+    // out of them (here outside the frustum: the camera sees part of the field).
+    let hidden = j["hidden_triangles"].as_u64().unwrap();
+    assert!(j["hidden_parts"].as_u64().unwrap() > 0 && hidden > 0, "{j}");
+    assert_eq!(
+        j["mesh_triangles"].as_u64().unwrap(),
+        j["triangles"].as_u64().unwrap() + hidden,
+        "the file holds every triangle drawn and every hidden part"
+    );
     assert_eq!(pos.len() as u64, j["mesh_vertices"].as_u64().unwrap());
     assert_eq!(extras["terrain"]["spacing_m"], serde_json::json!([2.0, 3.0]));
     // Every vertex lies over the terrain's extent, and every triangle that is not

@@ -305,6 +305,10 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
         "error_mode": args.common.error_mode.as_str(),
         "delta": args.delta,
         "triangles": stats.triangles,
+        // Parts of drawn blocks left out (occluded or outside the frustum): the
+        // exported mesh keeps them, so that it has no holes where the view had none.
+        "hidden_parts": stats.hidden_parts,
+        "hidden_triangles": stats.hidden_parts * s.layout.triangles_per_part(),
         "draw_calls": stats.draw_calls,
         "blocks": trav.blocks.len(),
         "occlusion": trav.occlusion,
