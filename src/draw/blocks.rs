@@ -17,6 +17,7 @@ use crate::vk::{
     DescriptorSetLayout, Device, Fence, FrameTimer, GraphicsPipeline, GraphicsPipelineDesc, Image, PipelineLayout,
     VkResult, VkResultExt,
 };
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
 pub const COLOR_FORMAT: vk::Format = vk::Format::R8G8B8A8_SRGB;
@@ -161,12 +162,25 @@ pub struct Target {
     pub readback: Buffer,
     pub width: u32,
     pub height: u32,
+    /// Whether the last frame submitted into this target copies its image into
+    /// `readback` ([`BlocksRenderer::submit_offscreen`]).
+    read_back: AtomicBool,
 }
 
 impl Target {
     /// The last finished frame's RGBA8 pixels (the readback buffer).
+    ///
+    /// # Panics
+    /// If that frame was submitted without its readback: the buffer would hold an older
+    /// frame.
     pub fn pixels(&self) -> VkResult<Vec<u8>> {
+        assert!(self.read_back.load(Ordering::Relaxed), "the target's last frame was not read back");
         Ok(self.readback.mapped()?[..(self.width * self.height * 4) as usize].to_vec())
+    }
+
+    /// Records whether the frame being recorded into the target copies into `readback`.
+    pub(crate) fn set_read_back(&self, yes: bool) {
+        self.read_back.store(yes, Ordering::Relaxed);
     }
 
     pub fn new(device: &Arc<Device>, width: u32, height: u32) -> VkResult<Self> {
@@ -191,6 +205,7 @@ impl Target {
             )?,
             width,
             height,
+            read_back: AtomicBool::new(false),
         })
     }
 }
@@ -212,7 +227,6 @@ pub fn depth_precise_enough(hf: &Heightfield, terrain: &TerrainGpu, cam: &Camera
     crate::lod::camera::distance_to_aabb(cam.position, min, max) <= DEFERRED_MAX_SPACINGS * hf.spacing.min()
 }
 
-/// A depth attachment that the deferred shading pass also samples.
 /// The sky behind the terrain (`sky.frag`), drawn after the blocks where none was (depth
 /// still clear: hidden sky is never shaded), for colour attachments of `format`; reads
 /// only the frame uniforms of `layout`'s set.
@@ -235,6 +249,7 @@ pub fn sky_pipeline(device: &Arc<Device>, layout: &PipelineLayout, format: vk::F
     )
 }
 
+/// A depth attachment that the deferred shading pass also samples.
 pub fn depth_target(device: &Arc<Device>, name: &str, extent: vk::Extent2D) -> VkResult<Image> {
     let usage = vk::ImageUsageFlags::DEPTH_STENCIL_ATTACHMENT | vk::ImageUsageFlags::SAMPLED;
     Image::new(device, name, extent, DEPTH_FORMAT, 1, usage, false)
@@ -864,7 +879,7 @@ impl BlocksRenderer {
         blocks: &[DrawBlock],
         shading: &Shading,
     ) -> VkResult<(Vec<u8>, DrawStats)> {
-        self.submit_offscreen(0, hf, terrain, target, cam, blocks, shading)?;
+        self.submit_offscreen(0, hf, terrain, target, cam, blocks, shading, true)?;
         let stats = self.wait_frame(0)?.expect("a frame was just submitted");
         Ok((target.pixels()?, stats))
     }
@@ -876,7 +891,11 @@ impl BlocksRenderer {
 
     /// Records and submits a frame from slot `slot` into `target` (which no other
     /// pending frame may use), after waiting for the slot's previous frame, whose stats
-    /// are returned. Nothing waits for the new frame: see [`Self::wait_frame`].
+    /// are returned. With `read_back` the frame ends by copying its image into the
+    /// target's readback buffer ([`Target::pixels`]); without, it ends as a window's
+    /// frame does, drawn (the copy costs a frame's worth of bandwidth, and on lavapipe
+    /// the queue's thread copies on the CPU). Nothing waits for the new frame: see
+    /// [`Self::wait_frame`].
     #[allow(clippy::too_many_arguments)]
     pub fn submit_offscreen(
         &mut self,
@@ -887,16 +906,22 @@ impl BlocksRenderer {
         cam: &Camera,
         blocks: &[DrawBlock],
         shading: &Shading,
+        read_back: bool,
     ) -> VkResult<Option<DrawStats>> {
         let dest = FrameDest {
             image: target.color.handle,
             view: target.color.view,
             extent: vk::Extent2D { width: target.width, height: target.height },
             depth: &target.depth,
-            last_use: (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_READ),
-            copy_to: Some(target.readback.handle),
+            // The target's previous frame ended with the copy or with its drawing.
+            last_use: (
+                vk::PipelineStageFlags2::COPY | vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT,
+                vk::AccessFlags2::TRANSFER_READ | vk::AccessFlags2::COLOR_ATTACHMENT_WRITE,
+            ),
+            copy_to: read_back.then_some(target.readback.handle),
             present: false,
         };
+        target.set_read_back(read_back);
         self.submit_frame(slot, hf, terrain, &dest, cam, blocks, shading, None, FrameSync::default())
     }
 

@@ -501,8 +501,9 @@ impl StreamedRenderer {
                 Dest::ReadBack => {
                     image_barrier(&d, cmd, color, COLOR_RANGE, rendered, crate::vk::COPY_SOURCE);
                     crate::vk::copy_image_to_host(&d, cmd, color, extent, self.target.readback.handle);
+                    self.target.set_read_back(true);
                 }
-                Dest::Offscreen => {}
+                Dest::Offscreen => self.target.set_read_back(false),
             }
         }
         self.submit_and_wait(atlas, generation, window.map(|w| (w.acquired, w.done)))?;
