@@ -178,8 +178,9 @@ pub struct CommonArgs {
     #[arg(long, value_enum, default_value_t = OnOff::On)]
     pub occlusion: OnOff,
     /// Threads for the traversal's per-block work (the morph's bounds). Default: 1 on a
-    /// CPU device such as lavapipe, whose rasterizer already keeps every core busy; every
-    /// core on a GPU, where the frame waits for the traversal.
+    /// CPU device such as lavapipe, where a pool's workers beside the rasterizer's threads
+    /// made the traversal slower; every core on a GPU, where the frame waits for the
+    /// traversal.
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u16).range(1..=256))]
     pub traversal_threads: Option<u16>,
     /// Sun for the precomputed shadows and ambient occlusion: compass azimuth and
