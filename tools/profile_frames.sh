@@ -16,23 +16,9 @@ set -euo pipefail
 seconds=${1:?usage: tools/profile_frames.sh SECONDS BENCH_ARGS...}
 shift
 command -v perf >/dev/null || { echo "profile_frames.sh: perf is not installed (apt-get install linux-perf)" >&2; exit 2; }
-here=$(cd "$(dirname "$0")" && pwd)
-# shellcheck source=env.sh
-source "$here/env.sh"
-bin="$CARGO_TARGET_DIR/debug/vkterrain"
-[ -x "$bin" ] || { echo "profile_frames.sh: $bin not built (tools/cargo.sh build)" >&2; exit 2; }
-tmp=$(mktemp -d)
-pid=""
-cleanup() { [ -n "$pid" ] && kill "$pid" 2>/dev/null; rm -rf "$tmp"; }
-trap cleanup EXIT
-export XDG_RUNTIME_DIR="$tmp/xdg"
-mkdir -p "$XDG_RUNTIME_DIR"
-"$bin" bench "$@" --out "$tmp/bench" >"$tmp/log" 2>&1 &
-pid=$!
-until grep -q "frames (" "$tmp/log" 2>/dev/null; do
-    kill -0 "$pid" 2>/dev/null || { cat "$tmp/log" >&2; echo "profile_frames.sh: the bench ended before its frame loop" >&2; exit 1; }
-    sleep 0.2
-done
+SCRIPT=profile_frames.sh
+# shellcheck source=bench_frames.sh
+source "$(dirname "$0")/bench_frames.sh" "$@"
 perf record -q -F 999 -o "$tmp/perf.data" -p "$pid" -- sleep "$seconds" >/dev/null 2>&1
 wait "$pid" || { cat "$tmp/log" >&2; exit 1; }
 pid=""

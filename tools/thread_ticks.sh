@@ -15,23 +15,9 @@
 set -euo pipefail
 seconds=${1:?usage: tools/thread_ticks.sh SECONDS BENCH_ARGS...}
 shift
-here=$(cd "$(dirname "$0")" && pwd)
-# shellcheck source=env.sh
-source "$here/env.sh"
-bin="$CARGO_TARGET_DIR/debug/vkterrain"
-[ -x "$bin" ] || { echo "thread_ticks.sh: $bin not built (tools/cargo.sh build)" >&2; exit 2; }
-tmp=$(mktemp -d)
-pid=""
-cleanup() { [ -n "$pid" ] && kill "$pid" 2>/dev/null; wait 2>/dev/null; rm -rf "$tmp"; }
-trap cleanup EXIT
-export XDG_RUNTIME_DIR="$tmp/xdg"
-mkdir -p "$XDG_RUNTIME_DIR"
-"$bin" bench "$@" --out "$tmp/bench" >"$tmp/log" 2>&1 &
-pid=$!
-until grep -q "frames (" "$tmp/log" 2>/dev/null; do
-    kill -0 "$pid" 2>/dev/null || { cat "$tmp/log" >&2; echo "thread_ticks.sh: the bench ended before its frame loop" >&2; exit 1; }
-    sleep 0.2
-done
+SCRIPT=thread_ticks.sh
+# shellcheck source=bench_frames.sh
+source "$(dirname "$0")/bench_frames.sh" "$@"
 # Per thread: id, name, user + system ticks.
 snap() { for t in /proc/"$pid"/task/*; do awk '{ sub(/^[^(]*\(/, ""); n = $0; sub(/\).*/, "", n); sub(/^[^)]*\) /, ""); print n, $12 + $13 }' "$t/stat" | sed "s/^/$(basename "$t") /"; done | sort; }
 machine() { awk '/^cpu /{ print $2 + $3 + $4 + $7 + $8, $5 + $6 }' /proc/stat; }
