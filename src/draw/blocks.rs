@@ -352,6 +352,32 @@ pub fn visible_runs(hidden: u16, parts: u32) -> impl Iterator<Item = (u32, u32)>
     })
 }
 
+/// Records a block's parts whose bits in `hidden` are clear, one indexed draw per run of
+/// them (each part is one range of the mesh's indices); returns the parts left out, the
+/// triangles drawn and the draws.
+///
+/// # Safety
+/// `cmd` is recording inside a rendering, with `mesh`'s buffers bound and the block's
+/// push constants set.
+pub(crate) unsafe fn draw_visible_parts(
+    d: &ash::Device,
+    cmd: vk::CommandBuffer,
+    mesh: &BlockMesh,
+    layout: &BlockLayout,
+    hidden: u16,
+) -> [u64; 3] {
+    let parts = layout.parts_per_side().pow(2);
+    let part_indices = mesh.index_count / parts;
+    let mut drawn = [u64::from((hidden & layout.all_parts()).count_ones()), 0, 0];
+    for (first, count) in visible_runs(hidden, parts) {
+        // SAFETY: the caller's recording state (see above); the range lies in the mesh.
+        unsafe { d.cmd_draw_indexed(cmd, count * part_indices, 1, first * part_indices, 0, 0) };
+        drawn[1] += u64::from(count) * layout.triangles_per_part();
+        drawn[2] += 1;
+    }
+    drawn
+}
+
 /// One offscreen frame in flight: its commands, fence and timestamps.
 struct OffscreenSlot {
     cmd: vk::CommandBuffer,
@@ -693,19 +719,13 @@ impl BlocksRenderer {
                     bytemuck::bytes_of(&push),
                 );
             };
-            let parts = self.layout.parts_per_side().pow(2);
-            let part_indices = self.mesh.index_count / parts;
-            let layout_parts = self.layout.all_parts();
             for b in blocks.iter().zip(&cast).filter(|(_, &c)| !c).map(|(b, _)| b) {
                 push(b);
-                // Occlusion culling's hidden parts left out: one draw per run of visible
-                // parts (each part is one range of the mesh's indices).
-                stats.hidden_parts += (b.hidden_parts & layout_parts).count_ones() as u64;
-                for (first, count) in visible_runs(b.hidden_parts, parts) {
-                    d.cmd_draw_indexed(cmd, count * part_indices, 1, first * part_indices, 0, 0);
-                    stats.triangles += count as u64 * self.layout.triangles_per_part();
-                    stats.draw_calls += 1;
-                }
+                // Occlusion culling's hidden parts left out.
+                let [hidden, triangles, draws] = draw_visible_parts(d, cmd, &self.mesh, &self.layout, b.hidden_parts);
+                stats.hidden_parts += hidden;
+                stats.triangles += triangles;
+                stats.draw_calls += draws;
             }
             if let Some(raycast) = pipelines.raycast {
                 // The outer ring of every ray-cast block as triangles (see BlockMesh).

@@ -9,7 +9,8 @@
 //! [`Selection`]: crate::stream::traverse::Selection
 
 use super::blocks::{
-    attachment_barriers, BlockMesh, Target, COLOR_FORMAT, COLOR_RANGE, DEPTH_FORMAT, SKY_HORIZON, SKY_ZENITH,
+    attachment_barriers, draw_visible_parts, BlockMesh, Target, COLOR_FORMAT, COLOR_RANGE, DEPTH_FORMAT, SKY_HORIZON,
+    SKY_ZENITH,
 };
 use crate::errors::atlas::HeightAtlas;
 use crate::gpu::layout::{self, BlockPush, FrameUniforms};
@@ -31,6 +32,14 @@ pub struct StreamedStats {
     /// Blocks left out because their tile had no atlas layer (counted over the bound by
     /// the caller; 0 when the atlas holds the frame's tiles).
     pub missing: usize,
+    /// Parts of drawn blocks left out ([`DrawBlock::hidden_parts`]: outside the frustum).
+    ///
+    /// [`DrawBlock::hidden_parts`]: crate::lod::block::DrawBlock::hidden_parts
+    pub hidden_parts: u64,
+    /// Triangles drawn (the drawn blocks' less their hidden parts').
+    pub triangles: u64,
+    /// Indexed draws: one per run of visible parts of a block.
+    pub draw_calls: u64,
 }
 
 pub struct StreamedRenderer {
@@ -223,7 +232,7 @@ impl StreamedRenderer {
     /// Push constants of each block that has an atlas layer, recording that frame
     /// `self.frame` draws from it; the count of blocks without one; the generation the
     /// frame waits for (`Self::submit_and_wait`).
-    fn pushes(&self, atlas: &HeightAtlas, blocks: &[StreamedBlock]) -> (Vec<BlockPush>, usize, u64) {
+    fn pushes(&self, atlas: &HeightAtlas, blocks: &[StreamedBlock]) -> (Vec<(BlockPush, u16)>, usize, u64) {
         let mut out = Vec::with_capacity(blocks.len());
         let mut missing = 0;
         let side = atlas.side();
@@ -239,7 +248,7 @@ impl StreamedRenderer {
             let c = b.coarser;
             let tile_span = |level: u8| (side as i64 - 3) << level;
             let t = sb.tile;
-            out.push(BlockPush {
+            let push = BlockPush {
                 block: [ox as i32, oz as i32, b.stride() as i32, b.lod as i32],
                 coarser_neighbour_stride: [c[0] as i32, c[1] as i32, c[2] as i32, c[3] as i32],
                 morph_edges: b.edge_morph.map(morph_value),
@@ -254,7 +263,8 @@ impl StreamedRenderer {
                     i32::from(t.level),
                     layer as i32,
                 ],
-            });
+            };
+            out.push((push, b.hidden_parts));
         }
         (out, missing, generation)
     }
@@ -402,6 +412,7 @@ impl StreamedRenderer {
         self.bind(atlas, view, set)?;
         self.frame += 1;
         let (pushes, missing, generation) = self.pushes(atlas, blocks);
+        let mut stats = StreamedStats { blocks: pushes.len(), missing, ..StreamedStats::default() };
         let format = window.map_or(COLOR_FORMAT, |w| w.format);
         let (pipeline, sky) = self.pipeline(format)?;
         let d = self.device.raw.clone();
@@ -476,7 +487,7 @@ impl StreamedRenderer {
             );
             d.cmd_bind_vertex_buffers(cmd, 0, &[self.mesh.vertices.handle], &[0]);
             d.cmd_bind_index_buffer(cmd, self.mesh.indices.handle, 0, self.mesh.index_type);
-            for p in &pushes {
+            for (p, hidden) in &pushes {
                 d.cmd_push_constants(
                     cmd,
                     self.pipeline_layout.handle,
@@ -484,7 +495,11 @@ impl StreamedRenderer {
                     0,
                     bytemuck::bytes_of(p),
                 );
-                d.cmd_draw_indexed(cmd, self.mesh.index_count, 1, 0, 0, 0);
+                // Parts outside the frustum left out, as in memory.
+                let [hidden, triangles, draws] = draw_visible_parts(&d, cmd, &self.mesh, &self.layout, *hidden);
+                stats.hidden_parts += hidden;
+                stats.triangles += triangles;
+                stats.draw_calls += draws;
             }
             d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, sky);
             d.cmd_draw(cmd, 3, 1, 0, 0);
@@ -507,7 +522,7 @@ impl StreamedRenderer {
             }
         }
         self.submit_and_wait(atlas, generation, window.map(|w| (w.acquired, w.done)))?;
-        Ok(StreamedStats { blocks: pushes.len(), missing })
+        Ok(stats)
     }
 
     /// Test hook: the position (relative to the anchor) the vertex shader gives every
@@ -554,7 +569,7 @@ impl StreamedRenderer {
                 cmd,
                 (pipeline, pipeline_layout, set),
                 &self.mesh,
-                &pushes,
+                &pushes.iter().map(|(p, _)| *p).collect::<Vec<_>>(),
                 positions.handle,
             )?;
         }

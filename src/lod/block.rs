@@ -423,6 +423,19 @@ pub fn part_boxes<'a>(
 ) -> impl Iterator<Item = PartBox> + 'a {
     let p = layout.parts_per_side();
     let level = layout.m + b.lod - p.trailing_zeros();
+    part_boxes_by(layout, b, move |px, pz| mm.get(level, (b.bx * p + px) as usize, (b.bz * p + pz) as usize))
+}
+
+/// [`part_boxes`] with each part's raw height range from `raw(px, pz)` (the part's
+/// column and row in its block): the range of its samples, from wherever the caller
+/// keeps them (the in-memory pyramid; a streamed tile's summaries).
+pub fn part_boxes_by<'a>(
+    layout: &BlockLayout,
+    b: &'a DrawBlock,
+    raw: impl Fn(u32, u32) -> [f32; 2] + 'a,
+) -> impl Iterator<Item = PartBox> + 'a {
+    let p = layout.parts_per_side();
+    let level = layout.m + b.lod - p.trailing_zeros();
     let size = 1i64 << level;
     let corner_part = [(0, 0), (p - 1, 0), (p - 1, p - 1), (0, p - 1)];
     let parts = if p > 1 { 0..p * p } else { 0..0 };
@@ -433,7 +446,7 @@ pub fn part_boxes<'a>(
             return None;
         }
         let (x, z) = (b.bx * p + px, b.bz * p + pz);
-        let mut raw = mm.get(level, x as usize, z as usize);
+        let mut raw = raw(px, pz);
         for (c, _) in corner_part.iter().enumerate().filter(|(_, &cp)| cp == (px, pz)) {
             if b.corner_raw[c] != CORNER_UNRESOLVED {
                 let h = f32::from_bits(b.corner_raw[c]);

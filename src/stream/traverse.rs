@@ -116,7 +116,20 @@ impl Selection {
 /// Relative world box of block `(lod, bx, bz)` between raw heights `lo` and `hi`.
 fn block_box(grid: &Grid, anchor: [i64; 2], lod: u32, bx: u32, bz: u32, lo: f32, hi: f32) -> (Vec3, Vec3) {
     let size = (BLOCK_QUADS << lod) as i64;
-    let (x0, z0) = (i64::from(bx) * size - anchor[0], i64::from(bz) * size - anchor[1]);
+    square_of_samples_box(grid, anchor, [i64::from(bx) * size, i64::from(bz) * size], size, lo, hi)
+}
+
+/// Relative world box of the square of `size` samples a side from sample `from`, between
+/// raw heights `lo` and `hi`.
+pub(crate) fn square_of_samples_box(
+    grid: &Grid,
+    anchor: [i64; 2],
+    from: [i64; 2],
+    size: i64,
+    lo: f32,
+    hi: f32,
+) -> (Vec3, Vec3) {
+    let (x0, z0) = (from[0] - anchor[0], from[1] - anchor[1]);
     let x = |s: i64| (s as f64 * grid.spacing[0]) as f32;
     let z = |s: i64| (s as f64 * grid.spacing[1]) as f32;
     let y = |h: f32| (f64::from(h) * grid.height_scale) as f32;
