@@ -171,6 +171,7 @@ impl Archive {
         };
         let head = read(0, (pmtiles::HEADER_LEN as u64).min(len), "header")?;
         let header = Header::decode(&head).map_err(|e| bad(path, e))?;
+        header.check_sections().map_err(|e| bad(path, e))?;
         if header.internal_compression != pmtiles::COMPRESSION_GZIP
             || header.tile_compression != pmtiles::COMPRESSION_ZSTD
         {
@@ -263,6 +264,13 @@ impl Archive {
         )
     }
 
+    /// Every section the header names lies within the file (`check`; opening checks only
+    /// that the header does not contradict itself, so that a truncated archive still
+    /// streams what it holds).
+    pub fn check_layout(&self) -> Result<(), HeightfieldError> {
+        self.header.check_within(self.len).map_err(|e| bad(&self.path, e))
+    }
+
     fn tile_error(&self, level: u8, tx: u32, tz: u32, message: impl std::fmt::Display) -> HeightfieldError {
         bad(&self.path, format!("{}: {message}", self.tile_name(level, tx, tz)))
     }
@@ -293,6 +301,12 @@ impl Archive {
         let Some(e) = entry else {
             return Err(err("missing from the archive's directory".into()));
         };
+        if e.offset.checked_add(u64::from(e.length)).is_none_or(|end| end > self.header.data_len) {
+            return Err(err(format!(
+                "its entry (bytes {}.. of tile data, {} long) lies outside the tile data section ({} bytes): the archive is corrupt",
+                e.offset, e.length, self.header.data_len
+            )));
+        }
         let start = self.header.data_offset.checked_add(e.offset);
         let end = start.and_then(|s| s.checked_add(u64::from(e.length)));
         if end.is_none_or(|end| end > self.len) {
@@ -327,6 +341,11 @@ impl Archive {
     fn leaf(&self, pointer: Entry) -> Result<std::sync::Arc<Vec<Entry>>, String> {
         if let Some(dir) = self.leaves.lock().expect("leaf cache").get(&pointer.offset) {
             return Ok(dir.clone());
+        }
+        if pointer.offset.checked_add(u64::from(pointer.length)).is_none_or(|end| end > self.header.leaf_len) {
+            return Err(
+                "its leaf directory's entry lies outside the leaf directories' section: the archive is corrupt".into(),
+            );
         }
         let start = self.header.leaf_offset.checked_add(pointer.offset);
         let end = start.and_then(|s| s.checked_add(u64::from(pointer.length)));

@@ -165,6 +165,65 @@ impl Header {
     }
 }
 
+impl Header {
+    /// The sections the header names (root directory, metadata, leaf directories, tile
+    /// data), as `(name, offset, length)`.
+    pub fn sections(&self) -> [(&'static str, u64, u64); 4] {
+        [
+            ("root directory", self.root_offset, self.root_len),
+            ("metadata", self.metadata_offset, self.metadata_len),
+            ("leaf directories", self.leaf_offset, self.leaf_len),
+            ("tile data", self.data_offset, self.data_len),
+        ]
+    }
+
+    /// A header that contradicts itself: a section that overflows, starts inside the
+    /// header, or overlaps another. (Truncation makes none of these: a truncated archive
+    /// still opens, and its missing tiles fail one by one.)
+    pub fn check_sections(&self) -> Result<(), String> {
+        let sections = self.sections();
+        for (name, offset, len) in sections {
+            if offset.checked_add(len).is_none() {
+                return Err(format!("header: the {name} section at byte {offset}, {len} bytes long, overflows"));
+            }
+            if len > 0 && offset < HEADER_LEN as u64 {
+                return Err(format!("header: the {name} section starts at byte {offset}, inside the header"));
+            }
+        }
+        for (i, a) in sections.iter().enumerate() {
+            for b in &sections[i + 1..] {
+                if a.2 > 0 && b.2 > 0 && a.1 < b.1 + b.2 && b.1 < a.1 + a.2 {
+                    return Err(format!(
+                        "header: the {} section (bytes {}..{}) overlaps the {} section (bytes {}..{})",
+                        a.0,
+                        a.1,
+                        a.1 + a.2,
+                        b.0,
+                        b.1,
+                        b.1 + b.2
+                    ));
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// [`Header::check_sections`], and every section (and the leaf directories' offset,
+    /// even with none) within a file of `file_len` bytes: what `check` verifies.
+    pub fn check_within(&self, file_len: u64) -> Result<(), String> {
+        self.check_sections()?;
+        for (name, offset, len) in self.sections() {
+            if offset + len > file_len {
+                return Err(format!(
+                    "header: the {name} section (bytes {offset}..{}) lies past the end of the file ({file_len} bytes)",
+                    offset + len
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
 /// One directory entry (spec 4.1): `run_length` 0 points at a leaf directory.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Entry {
