@@ -517,6 +517,18 @@ fn the_streamed_viewer_goes_to_a_latitude_as_in_memory() {
     };
     let (memory, streamed) = (run(dem.to_str().unwrap(), false), run(a, true));
     assert!((memory.0 - streamed.0).abs() < 1.0 && (memory.1 - streamed.1).abs() < 1.0, "{memory:?} {streamed:?}");
+    // A point off the terrain is refused by both (exit 2, naming what the terrain spans),
+    // not flown to: the camera would start over nothing.
+    for (heightmap, stream) in [(dem.to_str().unwrap(), false), (a, true)] {
+        let mut args = vec!["--heightmap", heightmap, "--size", "160x120", "--frames", "1", "--go-to", "46.85,-100"];
+        if stream {
+            args.push("--stream");
+        }
+        let out = viewer(&args);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{args:?}: {err}");
+        assert!(err.contains("--go-to 46.85000 N, 100.00000 W: off the terrain (it spans"), "{err}");
+    }
     // An archive of a PNG (no georeferencing) refuses it, naming the problem.
     let png = dir.path().join("p.pmtiles");
     let ps = common::data("puget_sound/ps_height_1k.png");
@@ -584,6 +596,7 @@ xdotool key Escape
         assert!(hud_frames >= 16 && hud_frames < frames, "the panel drawn until H: {json}");
         assert_eq!(json["hud_visible"], false, "H hid the panel: {json}");
         assert_eq!(json["exaggeration"], 1.5, "X: {json}");
+        assert!(json["samples"].is_array() && json["spacing_m"].is_array(), "the terrain's facts: {json}");
         assert_eq!(json["gpu"]["frames_missing_blocks"], 0, "{json}");
         let img = image::open(tmp.join("vkterrain-1.png")).unwrap().to_rgba8();
         assert_eq!(img.dimensions(), (480, 360));

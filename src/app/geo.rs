@@ -77,6 +77,27 @@ impl Geo {
         Some(self.crs_to_world([xs[0], ys[0]]))
     }
 
+    /// World `(x, z)` of a latitude and longitude on a terrain of `extent` world units, or
+    /// why not (off the terrain, with the corners it spans; or outside what the CRS maps):
+    /// a go-to elsewhere would put the camera over nothing, silently.
+    pub fn world_on_terrain(&self, lat: f64, lon: f64, extent: (f32, f32)) -> Result<(f32, f32), String> {
+        let asked = format_lat_lon(lat, lon);
+        let spans = match (self.lat_lon(0.0, 0.0), self.lat_lon(extent.0, extent.1)) {
+            (Some(a), Some(b)) => {
+                format!(" (it spans {} to {})", format_lat_lon(a[0], a[1]), format_lat_lon(b[0], b[1]))
+            }
+            _ => String::new(),
+        };
+        let Some((x, z)) = self.world_of(lat, lon) else {
+            return Err(format!("{asked}: cannot be placed in the terrain's CRS ({}){spans}", self.crs()));
+        };
+        let on = |v: f32, side: f32| v.is_finite() && (0.0..=side).contains(&v);
+        if !(on(x, extent.0) && on(z, extent.1)) {
+            return Err(format!("{asked}: off the terrain{spans}"));
+        }
+        Ok((x, z))
+    }
+
     /// "46.85120 N, 121.76031 W", then the projected coordinates for a projected CRS.
     pub fn describe(&self, x: f32, z: f32) -> String {
         let ll = self.lat_lon(x, z).map(|[lat, lon]| format_lat_lon(lat, lon));
@@ -201,5 +222,15 @@ mod tests {
         let [lat, lon] = geo.lat_lon(x, z).unwrap();
         assert!((lat - 46.8529).abs() < 1e-8 && (lon + 121.7604).abs() < 1e-8, "{lat} {lon}");
         assert_eq!(geo.north(), [0.0, -1.0]);
+        // On a 10 km square from that origin the summit is on the terrain; a point just
+        // beyond its east edge, the antipode and a latitude PROJ cannot map are refused,
+        // each naming the corners the terrain spans.
+        let extent = (10_000.0, 10_000.0);
+        assert_eq!(geo.world_on_terrain(46.8529, -121.7604, extent).unwrap(), (x, z));
+        let [lat, lon] = geo.lat_lon(10_050.0, 5_000.0).unwrap();
+        for (lat, lon) in [(lat, lon), (-46.8529, 58.2396), (89.99, -121.76)] {
+            let e = geo.world_on_terrain(lat, lon, extent).unwrap_err();
+            assert!(e.contains("spans") && (e.contains("off the terrain") || e.contains("cannot be placed")), "{e}");
+        }
     }
 }

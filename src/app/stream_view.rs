@@ -120,6 +120,9 @@ struct Run {
     queue_mode: String,
     validation_messages: Option<u64>,
     first_failure: Option<String>,
+    /// Where the terrain is and its scale, as the in-memory viewer's exit line says.
+    #[serde(flatten)]
+    terrain: crate::app::outputs::TerrainFacts,
 }
 
 struct App {
@@ -178,9 +181,10 @@ fn go_to(
         ))
         .into());
     };
-    let Some((x, z)) = geo.world_of(lat, lon) else { return Ok(from) };
     let ground = HeldGround(streamer);
     let (wx, wz) = ground.extent();
+    let (x, z) =
+        geo.world_on_terrain(lat, lon, (wx, wz)).map_err(|e| crate::app::cli::InputError(format!("--go-to {e}")))?;
     let at = |x: f32, z: f32| ground.height(x.clamp(0.0, wx), z.clamp(0.0, wz));
     let above = (from.y - at(from.x, from.z)).max(0.02 * wx.max(wz));
     Ok(Vec3::new(x, at(x, z) + above, z))
@@ -275,6 +279,7 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
             worst_factor: 1.0,
             start_position: position.to_array(),
             exaggeration: args.exaggeration,
+            terrain: crate::app::outputs::TerrainFacts::of_archive(&archive.meta, &args.common),
             ..Default::default()
         },
     };

@@ -458,7 +458,7 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
             ))
             .into());
         }
-        app.go_to(lat, lon);
+        app.go_to(lat, lon).map_err(|e| InputError(format!("--go-to {e}")))?;
     }
     let mut windowed = Windowed(app);
     event_loop.run_app(&mut windowed)?;
@@ -873,7 +873,10 @@ impl App {
             self.go_home();
         }
         if let Some([lat, lon]) = c.go_to {
-            self.go_to(lat, lon);
+            // The camera stays where it is; the panel's box keeps what was typed.
+            if let Err(e) = self.go_to(lat, lon) {
+                eprintln!("vkterrain: note: go-to {e}");
+            }
         }
         self.exaggeration = c.exaggeration;
     }
@@ -913,14 +916,16 @@ impl App {
     /// Moves the camera over a latitude and longitude, as high above the ground there as
     /// it is above the ground here (at least a fiftieth of the terrain's size), heading
     /// and pitch kept.
-    fn go_to(&mut self, lat: f64, lon: f64) {
-        let Some((x, z)) = self.geo.as_ref().and_then(|g| g.world_of(lat, lon)) else { return };
+    fn go_to(&mut self, lat: f64, lon: f64) -> Result<(), String> {
         let (wx, wz) = self.hf.world_extent();
+        let Some(geo) = self.geo.as_ref() else { return Ok(()) };
+        let (x, z) = geo.world_on_terrain(lat, lon, (wx, wz))?;
         let ground = |x: f32, z: f32| self.hf.surface_height(x.clamp(0.0, wx), z.clamp(0.0, wz));
         let p = self.ctl.position;
         let above = (p.y - ground(p.x, p.z)).max(0.02 * wx.max(wz));
         self.ctl.position = Vec3::new(x, ground(x, z) + above, z);
         self.ctl.orbit = None;
+        Ok(())
     }
 
     /// The terrain point under the cursor, when the cursor is over the terrain.
