@@ -357,6 +357,25 @@ fn a_damaged_archive_is_refused_naming_the_file_and_the_tile() {
         let e = open("header-field.pmtiles", &bad);
         assert!(e.contains(what), "byte {at}: {e}");
     }
+    // Header words that contradict the file (an adversarial review found `check` calling
+    // each of these intact): the tile data's length (0, 1, past the end, overflowing), the
+    // leaf directories' offset and length (there are none), the root directory's and the
+    // metadata's lengths (overlapping what follows).
+    let word = |at: usize, v: u64| {
+        let mut b = bytes.clone();
+        b[at..at + 8].copy_from_slice(&v.to_le_bytes());
+        b
+    };
+    for (at, v) in
+        [(64, 0), (64, 1), (64, 9_999_999_999), (64, u64::MAX), (40, u64::MAX), (48, 5), (16, 100_000), (32, 100_000)]
+    {
+        let p = dir.path().join("contradicts.pmtiles");
+        std::fs::write(&p, word(at, v)).unwrap();
+        let o = cli(&["check", p.to_str().unwrap()]);
+        let e = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "check accepted header word at {at} = {v}: {e}");
+        assert!(e.contains("contradicts.pmtiles") && (e.contains("header") || e.contains("tile ")), "{e}");
+    }
     let e = open("truncated.pmtiles", &bytes[..bytes.len() * 2 / 3]);
     assert!(e.contains("tile ") && e.contains("truncated"), "{e}");
     let e = open("header.pmtiles", &bytes[..60]);
@@ -428,7 +447,9 @@ fn refused(args: &[&str], needles: &[&str]) {
     let o = common::run_bounded(&args.iter().map(|a| a.to_string()).collect::<Vec<_>>(), 60);
     let e = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(2), "{args:?}: {e}");
-    let lines: Vec<&str> = e.lines().filter(|l| !l.starts_with("vkterrain: note:")).collect();
+    // Notes and the progress line of a run that started are not errors.
+    let lines: Vec<&str> =
+        e.lines().filter(|l| !l.starts_with("vkterrain: note:") && !l.starts_with("vkterrain: preparing ")).collect();
     assert_eq!(lines.len(), 1, "{args:?}: one error line: {e}");
     for n in needles {
         assert!(lines[0].contains(n), "{args:?}: '{}' does not mention '{n}'", lines[0]);
@@ -542,17 +563,22 @@ fn a_terminated_run_leaves_nothing_and_stale_partials_are_removed() {
     }
 }
 
+/// A void read window by window is refused naming the sample, why it is not filled
+/// (that read, not the input's size: this one fits in memory) and what to do; read whole,
+/// the same file prepares with its voids filled.
 #[test]
 fn voids_read_window_by_window_are_refused_naming_the_sample() {
     let dir = TempDir::new("archive-voids");
     let out = dir.path().join("fuji.pmtiles");
     let fuji = common::data("srtm3/mt_fuji_90m.tif");
-    let o = cli(&["prepare", fuji.to_str().unwrap(), "--windows", "--out", out.to_str().unwrap()]);
-    assert_eq!(o.status.code(), Some(2), "{}", String::from_utf8_lossy(&o.stderr));
-    let e = String::from_utf8_lossy(&o.stderr);
-    assert!(e.contains("mt_fuji_90m.tif") && e.contains("column") && e.contains("void"), "{e}");
+    refused(
+        &["prepare", fuji.to_str().unwrap(), "--windows", "--out", out.to_str().unwrap()],
+        &["mt_fuji_90m.tif", "column", "void", "read window by window", "gdal_fillnodata"],
+    );
     let left: Vec<_> = std::fs::read_dir(dir.path()).unwrap().collect();
     assert!(left.is_empty(), "left behind: {left:?}");
+    let o = cli(&["prepare", fuji.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+    assert!(o.status.success(), "read whole, voids are filled: {}", String::from_utf8_lossy(&o.stderr));
 }
 
 /// An archive as the input of `prepare` is read tile by tile, not whole: the same tiles
@@ -695,6 +721,28 @@ fn a_mosaic_of_tiles_prepares_like_the_whole() {
         out.set_spatial_ref(&srs).unwrap();
     }
     refused(&["prepare", pieces.to_str().unwrap(), "--out", bad.to_str().unwrap()], &["piece6.tif", "left it out"]);
+    // Two tiles 40,000 samples apart: a strip longer than a whole read takes is read
+    // window by window, and the gap between them (voids) is refused naming the mosaic by
+    // its files, not by its temporary VRT.
+    std::fs::remove_file(&int16).unwrap();
+    let strip = dir.path().join("strip");
+    std::fs::create_dir(&strip).unwrap();
+    for (i, x0) in [0.0, 40_000.0].into_iter().enumerate() {
+        let mut out = driver.create_with_band_type::<f32, _>(strip.join(format!("s{i}.tif")), 10, 10, 1).unwrap();
+        out.set_geo_transform(&[t[0] + x0 * t[1], t[1], 0.0, t[3], 0.0, t[5]]).unwrap();
+        out.set_spatial_ref(&srs).unwrap();
+        let mut band = out.rasterband(1).unwrap();
+        band.set_no_data_value(Some(-32768.0)).unwrap();
+        band.write((0, 0), (10, 10), &mut gdal::raster::Buffer::new((10, 10), vec![100.0f32; 100])).unwrap();
+    }
+    let o = common::run_bounded(
+        &["prepare".into(), strip.display().to_string(), "--out".into(), bad.display().to_string()],
+        60,
+    );
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{e}");
+    assert!(e.contains("read window by window") && e.contains("a mosaic of 2 files"), "{e}");
+    assert!(!e.contains("mosaic.vrt") && !e.contains("vkterrain prepare"), "{e}");
     let empty = dir.path().join("empty");
     std::fs::create_dir(&empty).unwrap();
     refused(&["prepare", empty.to_str().unwrap(), "--out", bad.to_str().unwrap()], &["no elevation tiles"]);

@@ -60,7 +60,11 @@ fn windowed(path: &std::path::Path, asked: bool) -> Result<bool, InputError> {
         return Ok(true);
     }
     Ok(match WindowReader::open(path) {
-        Ok(r) => r.raster.width * r.raster.height > IN_MEMORY_SAMPLES,
+        // Too many samples for memory, or a side longer than a whole read takes (a strip).
+        Ok(r) => {
+            r.raster.width * r.raster.height > IN_MEMORY_SAMPLES
+                || r.raster.width.max(r.raster.height) > crate::lod::heightfield::MAX_SIDE
+        }
         // The whole-file loader gives the full message.
         Err(_) => false,
     })
@@ -140,8 +144,9 @@ fn remove_stale_mosaics() {
 const MOSAIC_PREFIX: &str = "vkterrain-mosaic-";
 
 /// A source under another name (a mosaic is named by its files, not by its temporary
-/// VRT, so that the archive's metadata is the same every run).
-struct Named<'a>(&'a dyn Source, String);
+/// VRT, so that the archive's metadata is the same every run), in its errors too: the
+/// source, the name, the VRT's path.
+struct Named<'a>(&'a dyn Source, String, String);
 
 impl Source for Named<'_> {
     fn name(&self) -> String {
@@ -154,7 +159,7 @@ impl Source for Named<'_> {
         self.0.samples()
     }
     fn read(&self, x0: i64, z0: i64, nx: usize, nz: usize, stride: usize, out: &mut Vec<f32>) -> Result<(), String> {
-        self.0.read(x0, z0, nx, nz, stride, out)
+        self.0.read(x0, z0, nx, nz, stride, out).map_err(|e| e.replace(&self.2, &self.1))
     }
 }
 
@@ -266,6 +271,11 @@ fn prepare_archive(args: &PrepareArgs) -> anyhow::Result<serde_json::Value> {
             Some(vrt)
         }
     };
+    // A mosaic's errors name it by its files, not by its temporary VRT.
+    let named = |e: String| match (&mosaic_name, &input) {
+        (Some(name), Some(vrt)) => InputError(e.replace(&vrt.display().to_string(), name)),
+        _ => InputError(e),
+    };
     let loaded;
     let synthetic;
     let windows;
@@ -273,7 +283,7 @@ fn prepare_archive(args: &PrepareArgs) -> anyhow::Result<serde_json::Value> {
     let from_archive;
     let (source, frame): (&dyn Source, Frame) = match (&input, args.synthetic) {
         (Some(path), None) if crate::input::archive::Archive::sniff(path) => {
-            archive = crate::input::archive::Archive::open(path).map_err(|e| InputError(e.to_string()))?;
+            archive = crate::input::archive::Archive::open(path).map_err(|e| named(e.to_string()))?;
             let m = &archive.meta;
             let frame = Frame {
                 spacing: args.spacing.map_or(m.spacing, |s| [s.x, s.z]),
@@ -305,13 +315,13 @@ fn prepare_archive(args: &PrepareArgs) -> anyhow::Result<serde_json::Value> {
             (&synthetic, frame)
         }
         (Some(path), None) if windowed(path, args.windows)? => {
-            let reader = WindowReader::open(path).map_err(|e| InputError(e.to_string()))?;
-            let shown = path.display().to_string();
+            let reader = WindowReader::open(path).map_err(|e| named(e.to_string()))?;
+            let shown = mosaic_name.clone().unwrap_or_else(|| path.display().to_string());
             // The same known-data-set lookup as the whole read: read window by window, a
             // file keeps the scale its publisher documents.
-            let known = georef::known_for_file(&shown, path, &reader.raster).map_err(|e| InputError(e.to_string()))?;
+            let known = georef::known_for_file(&shown, path, &reader.raster).map_err(|e| named(e.to_string()))?;
             let scale = georef::decide(&shown, &reader.raster, args.spacing, args.height_scale, known)
-                .map_err(|e| InputError(e.to_string()))?;
+                .map_err(|e| named(e.to_string()))?;
             let (w, h) = (reader.raster.width, reader.raster.height);
             for line in crate::input::describe_frame(&shown, w, h, &scale.georef, scale.spacing, scale.height_scale) {
                 eprintln!("vkterrain: note: {line}");
@@ -334,7 +344,7 @@ fn prepare_archive(args: &PrepareArgs) -> anyhow::Result<serde_json::Value> {
                 max_grid_side: None,
                 voids: VoidMode::Fill,
             };
-            loaded = load::load(path, &opts).map_err(|e| InputError(e.to_string()))?;
+            loaded = load::load(path, &opts).map_err(|e| named(e.to_string()))?;
             for line in crate::input::describe(&loaded) {
                 eprintln!("vkterrain: note: {line}");
             }
@@ -351,7 +361,8 @@ fn prepare_archive(args: &PrepareArgs) -> anyhow::Result<serde_json::Value> {
     let named;
     let source: &dyn Source = match mosaic_name {
         Some(name) => {
-            named = Named(source, name);
+            let vrt = input.as_ref().map(|p| p.display().to_string()).unwrap_or_default();
+            named = Named(source, name, vrt);
             &named
         }
         None => source,
@@ -428,6 +439,7 @@ pub struct CheckArgs {
 pub fn check(args: &CheckArgs) -> anyhow::Result<()> {
     let started = std::time::Instant::now();
     let archive = crate::input::archive::Archive::open(&args.archive).map_err(|e| InputError(e.to_string()))?;
+    archive.check_layout().map_err(|e| InputError(e.to_string()))?;
     let m = &archive.meta;
     let bar = indicatif::ProgressBar::new(m.tiles().count() as u64);
     let mut tiles = 0u64;

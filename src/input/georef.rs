@@ -547,8 +547,9 @@ impl WindowReader {
             };
             if void || !s.is_finite() {
                 return Err(format!(
-                    "{shown}: sample at column {}, row {} is {}: voids (nodata) are filled only for inputs that fit in memory; \
-                     fill them first (gdal_fillnodata) or prepare a smaller input",
+                    "{shown}: sample at column {}, row {} is {}: read window by window (inputs over 8193 x 8193 samples or \
+                     32769 a side, or --windows), voids (nodata) cannot be filled: fill them first (gdal_fillnodata), \
+                     or prepare an input that is read whole",
                     x0 + i % nx,
                     z0 + i / nx,
                     if void { "a void (nodata)".to_string() } else { s.to_string() }
