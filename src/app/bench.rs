@@ -119,6 +119,8 @@ pub fn read_poses(path: &Path) -> Result<Vec<(Vec3, Vec3)>, InputError> {
     crate::input::regular_file(path).map_err(|e| InputError(format!("--path {e}")))?;
     let text = std::fs::read_to_string(path).map_err(|e| InputError(format!("--path {}: {e}", path.display())))?;
     let mut poses = Vec::new();
+    // A byte-order mark (as some editors save UTF-8) is not part of the first line.
+    let text = text.strip_prefix('\u{feff}').unwrap_or(&text);
     for (n, line) in text.lines().enumerate() {
         let line = line.split('#').next().unwrap_or("").trim();
         if line.is_empty() {
@@ -326,6 +328,10 @@ struct Run {
     warmup_ms: Option<f64>,
     /// (frame, resident MiB) every 250 frames: a leak grows without bound, a cache levels off.
     rss: Vec<(u64, f64)>,
+    /// Wall time from the first timed frame's start until every frame in flight finished
+    /// (ms): what `avg_fps` divides by. The frames' own times leave out the GPU work of
+    /// the last frames in flight, which a short run would count as free.
+    wall_ms: Option<f64>,
 }
 
 /// Colour RMSE of each frame against the one before; frames may finish out of order
@@ -466,7 +472,9 @@ impl Bench<'_> {
             interrupted: false,
             warmup_ms: None,
             rss: Vec::new(),
+            wall_ms: None,
         };
+        let mut timed_from: Option<Instant> = None;
         let mut draw = draw_thread(&self.args.common, self.trace.clone(), Some(&self.s.device))?;
         // Row of the frame pending in each offscreen slot.
         let mut pending: Vec<Option<usize>> = vec![None; self.targets.len()];
@@ -508,6 +516,9 @@ impl Bench<'_> {
             }
             let (cam, time_s) = self.camera(i);
             let frame_start = Instant::now();
+            if !warm_up {
+                timed_from.get_or_insert(frame_start);
+            }
             let mut row = Row { time_s, ..Row::default() };
             let replay = ceiling.map(|c| c.get(i as usize).map_or(&[][..], |b| &b[..]));
             if self.draw_oom_at == Some(i) {
@@ -629,6 +640,7 @@ impl Bench<'_> {
                 }
             }
         }
+        run.wall_ms = timed_from.map(|t| t.elapsed().as_secs_f64() * 1e3);
         Ok(run)
     }
 }
@@ -693,7 +705,7 @@ fn frame_time_excess(run: &[f64], reference: &[f64]) -> Option<(f64, f64)> {
 fn summarize(run: &Run) -> Value {
     let mut ms: Vec<f64> = run.rows.iter().map(|r| r.frame_ms).collect();
     ms.sort_by(|a, b| a.partial_cmp(b).unwrap());
-    let total_s: f64 = ms.iter().sum::<f64>() / 1e3;
+    let total_s: f64 = run.wall_ms.unwrap_or_else(|| ms.iter().sum::<f64>()) / 1e3;
     let tris: u64 = run.rows.iter().map(|r| r.triangles).sum();
     let n = run.rows.len().max(1) as f64;
     let distinct = run.generations.len();
@@ -857,9 +869,15 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     // Installed first, so that a Ctrl-C during set-up still ends with a summary.
     let signals = super::signals::Stop::install();
     let stop = signals.flag().clone();
-    if args.out.exists() && !args.out.is_dir() {
-        return Err(InputError(format!("--out {}: exists and is not a directory", args.out.display())).into());
+    if args.compare && args.lod != LodChoice::Error {
+        // --compare makes the error run and compares the others with it.
+        return Err(InputError(format!(
+            "--compare runs every LOD selection itself (error, full, distance, the ceiling): drop --lod {}",
+            if args.lod == LodChoice::Full { "full" } else { "distance" }
+        ))
+        .into());
     }
+    crate::app::outputs::output_dir("--out", &args.out)?;
     let poses = match &args.path {
         PathArg::File(p) => Some(read_poses(p)?),
         PathArg::Builtin(_) => None,
@@ -876,7 +894,7 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     }
     args.streamed.note_unused();
     let s = Session::with_device(device, &args.common, Some(&args.textures))?;
-    std::fs::create_dir_all(&args.out).map_err(|e| anyhow::anyhow!("{}: {e}", args.out.display()))?;
+    crate::app::outputs::output_dir("--out", &args.out)?;
     let size = args.common.size.unwrap_or((640, 480));
     s.check_viewport(size)?;
     let trace_path = args.out.join("trace.json");
@@ -1190,15 +1208,8 @@ fn bench_streamed(
         .into());
     }
     let size = args.common.size.unwrap_or((640, 480));
-    let max = device.max_image_dimension_2d();
-    if size.0 > max || size.1 > max {
-        return Err(InputError(format!(
-            "--size {}x{}: larger than the device's maxImageDimension2D ({max})",
-            size.0, size.1
-        ))
-        .into());
-    }
-    std::fs::create_dir_all(&args.out).map_err(|e| anyhow::anyhow!("{}: {e}", args.out.display()))?;
+    crate::app::cli::check_image_size(&device, "--size", size)?;
+    crate::app::outputs::output_dir("--out", &args.out)?;
     // The three threads' work: each frame's selection and drawing, the IO thread's reads,
     // the atlas's uploads (CPU tracks only: streamed frames take no timestamps).
     let trace_path = args.out.join("trace.json");
@@ -1238,10 +1249,15 @@ fn bench_streamed(
     gpu.read_back = false;
     // As a viewer would: the first view's tiles are read before the run.
     crate::app::stream::settle(&mut streamer, |_| view(0), args.delta);
-    streamer.stats = crate::stream::streamer::StreamStats { worst_factor: 1.0, ..Default::default() };
+    // The path's own figures from here; what the first view read is `warm_up`.
+    let warm_up = std::mem::replace(
+        &mut streamer.stats,
+        crate::stream::streamer::StreamStats { worst_factor: 1.0, ..Default::default() },
+    );
     let mut progress = Progress::new("streamed", frames);
-    let mut csv =
-        String::from("time_s,frame_ms,select_ms,draw_ms,blocks,triangles,over_bound,worst_factor,tiles_held\n");
+    let mut csv = String::from(
+        "time_s,frame_ms,select_ms,draw_ms,blocks,triangles,hidden_parts,over_bound,worst_factor,tiles_held\n",
+    );
     let (mut frame_ms, mut triangles) = (Vec::new(), 0u64);
     let started = Instant::now();
     for i in 0..frames {
@@ -1264,10 +1280,11 @@ fn bench_streamed(
         frame_ms.push(ms);
         triangles += gpu.triangles;
         csv += &format!(
-            "{:.4},{ms:.3},{select_ms:.3},{draw_ms:.3},{},{},{},{:.4},{}\n",
+            "{:.4},{ms:.3},{select_ms:.3},{draw_ms:.3},{},{},{},{},{:.4},{}\n",
             camera(i).2,
             gpu.blocks,
             gpu.triangles,
+            gpu.hidden_parts,
             sel.over_bound,
             sel.worst_factor,
             streamer.cache.len()
@@ -1278,7 +1295,7 @@ fn bench_streamed(
     let drawn = frame_ms.len() as u64;
     let (sorted, mean) = sorted_with_mean(frame_ms.iter().copied());
     let stats = streamer.stats.clone();
-    let summary = json!({
+    let mut summary = json!({
         "streamed": true,
         "terrain": terrain_name(&args.common),
         "frames": drawn,
@@ -1294,6 +1311,7 @@ fn bench_streamed(
         "size": [size.0, size.1],
         "cache_mb": cache_mb,
         "stream": stats,
+        "warm_up": { "frames": warm_up.frames, "tiles_loaded": warm_up.tiles_loaded, "bytes_read": warm_up.bytes_read },
         "gpu": gpu.report(),
         "device": device.name,
         "queue_mode": device.queue_mode.as_str(),
@@ -1301,6 +1319,7 @@ fn bench_streamed(
         "peak_resident_mb": crate::app::outputs::peak_resident_mb(),
         "interrupted": signals.requested(),
     });
+    crate::app::outputs::TerrainFacts::of_archive(&archive.meta, &args.common).merge_into(&mut summary);
     drop(gpu);
     drop(device);
     drop(streamer); // joins the IO thread: its last read is in the trace
@@ -1319,6 +1338,29 @@ fn bench_streamed(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A pose file saved with a byte-order mark reads as without one; a mark anywhere
+    /// else is still refused, naming the line.
+    #[test]
+    fn pose_files_may_start_with_a_byte_order_mark() {
+        let dir = std::env::temp_dir().join(format!("vkterrain-poses-bom-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("p.txt");
+        std::fs::write(&path, "\u{feff}1 2 3 4 5 6\n7 8 9 1 2 3\n").unwrap();
+        let read = read_poses(&path);
+        std::fs::write(&path, "1 2 3 4 5 6\n\u{feff}7 8 9 1 2 3\n").unwrap();
+        let inner = read_poses(&path);
+        std::fs::remove_dir_all(&dir).unwrap();
+        let poses = read.unwrap();
+        assert_eq!(
+            poses,
+            [
+                (Vec3::new(1.0, 2.0, 3.0), Vec3::new(4.0, 5.0, 6.0)),
+                (Vec3::new(7.0, 8.0, 9.0), Vec3::new(1.0, 2.0, 3.0))
+            ]
+        );
+        assert!(inner.unwrap_err().0.contains("p.txt:2"));
+    }
 
     /// Keyed pixels are left out; the RMSE is over the rest, and only a channel more
     /// than 16 levels off counts as a visible jump (16 itself does not).
