@@ -236,7 +236,31 @@ fn bad_options() {
     fails_cleanly(&["render", "--pixels", "deferrred"], &["--pixels", "one of: deferred, forward"]);
     let s = Scratch::new();
     fails_cleanly(&["render", "--out", &s.path("picture.jpg").display().to_string()], &["--out", ".png"]);
-    fails_cleanly(&["errors", "--repeat", "0"], &["--repeat"]);
+    fails_cleanly(&["errors", "--repeat", "0"], &["--repeat", "1 or more"]);
+    let bench_out = s.path("bench-out").display().to_string();
+    for lod in ["full", "distance"] {
+        fails_cleanly(
+            &["bench", "--compare", "--lod", lod, "--out", &bench_out],
+            &["--compare", &format!("--lod {lod}")],
+        );
+    }
+    assert!(!std::path::Path::new(&bench_out).exists(), "refused before --out was made");
+    let file = s.path("a-file");
+    std::fs::write(&file, b"x").unwrap();
+    let file = file.display().to_string();
+    fails_cleanly(&["quality", "--out", &file], &["--out", "a-file", "not a directory"]);
+    fails_cleanly(&["quality", "--poses", "99999999999", "--out", &bench_out], &["--poses", "1 to 10000"]);
+    fails_cleanly(&["errors", "--repeat=-1"], &["--repeat", "1 or more"]);
+    fails_cleanly(&["render", "--fog", "-1"], &["--fog", "0 or more"]);
+    fails_cleanly(&["render", "--background", "-1,0,0"], &["--background"]);
+    fails_cleanly(&["render", "--fog", "nan"], &["--fog", "finite"]);
+    for window in ["0,inf", "nan,1", "5,1", "0"] {
+        let args = ["timeline", "--trace", "t.json", "--out", "t.png", "--window", window];
+        fails_cleanly(&args, &["--window", "finite numbers, FROM < TO"]);
+    }
+    // Before the device and the generations: a dump that cannot be written fails first.
+    let dump = s.path("no-such-dir/errors.f32").display().to_string();
+    fails_cleanly(&["errors", "--dump", &dump], &["--dump", "errors.f32"]);
     fails_cleanly(&["render", "--gpu", "no-such-gpu"], &["--gpu no-such-gpu", "no such device"]);
     fails_cleanly(&["render", "--size", "20000x100"], &["--size 20000x100", "maxImageDimension2D"]);
 }

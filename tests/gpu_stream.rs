@@ -291,6 +291,18 @@ fn render_draws_an_archive_streamed_within_the_bound() {
     assert_eq!(r["gpu"]["frames_missing_blocks"], 0, "{r}");
     assert_eq!(r["gpu"]["validation_messages"], 0, "{r}");
     assert!(r["blocks"].as_u64().unwrap() > 10, "{r}");
+    // The fields docs/commands.md names: the streamer's `stats`, which count every tile
+    // the frame read (the top tiles too: each one uploaded was read first), and the block
+    // grid as in memory (1025^2: one root of 2^10 + 1 samples).
+    let (loaded, uploaded) =
+        (r["stats"]["tiles_loaded"].as_u64().unwrap(), r["gpu"]["tiles_uploaded"].as_u64().unwrap());
+    assert!(uploaded > 0 && loaded >= uploaded, "{loaded} tiles read, {uploaded} uploaded: {r}");
+    assert!(r["frames_to_settle"].as_u64().unwrap() >= 1, "{r}");
+    assert_eq!(
+        (r["grid"].clone(), r["roots"].clone()),
+        (serde_json::json!([1025, 1025]), serde_json::json!([1, 1])),
+        "{r}"
+    );
     let img = image::open(&png).unwrap().to_rgba8();
     let terrain = common::terrain_pixels(&img);
     assert!(terrain > 320 * 240 / 3, "{terrain} terrain pixels");
@@ -539,6 +551,13 @@ fn bench_runs_a_path_over_an_archive_drawn_streamed() {
     assert_eq!(summary["gpu"]["frames_missing_blocks"], 0, "{summary}");
     assert!(summary["avg_fps"].as_f64().unwrap() > 0.0 && summary["mean_triangles"].as_f64().unwrap() > 1000.0);
     assert_eq!(summary["frames_over_bound"], summary["stream"]["frames_over_bound"]);
+    // The terrain's facts, as every bench summary has them (synthetic: 30 m, 0.1 m a unit).
+    assert_eq!(summary["samples"], serde_json::json!([1025, 1025]), "{summary}");
+    assert_eq!(
+        (summary["spacing_m"].clone(), summary["height_scale_m"].as_f64()),
+        (serde_json::json!([30.0, 30.0]), Some(0.1f32 as f64)),
+        "{summary}"
+    );
     let csv = std::fs::read_to_string(out.join("frames.csv")).unwrap();
     assert_eq!(csv.lines().count(), 13, "{csv}");
     let r = run(&["--compare"]);
@@ -605,4 +624,61 @@ fn a_streamed_frame_of_a_narrow_terrain_audits_in_the_archives_layout() {
         );
         assert_eq!(r["gpu"]["validation_messages"], 0, "{size}: {r}");
     }
+}
+
+/// Parts of streamed blocks whose boxes lie outside the frustum (widened by a pixel) are
+/// left out, and no pixel shows it: at 96 low views around and across a rough field
+/// (cliffs, ridges, a spike; many blocks crossing the image's edges) the frame drawn with
+/// them left out is the frame drawn whole, bit for bit, under validation. Mutation: a
+/// frustum narrowed by 40 pixels leaves out visible parts, and the frames differ.
+#[test]
+fn streamed_parts_outside_the_frustum_are_never_seen() {
+    let hf = common::rough();
+    let dir = TempDir::new("gpu-stream-parts");
+    let archive = common::archive_of(&hf, &dir);
+    let grid = Grid::from_meta(&archive.meta);
+    let device = common::gpu();
+    {
+        let mut s = Streamer::new(archive, grid, 1 << 30);
+        let atlas = HeightAtlas::new(&device, &grid, 64 << 20).unwrap();
+        s.attach(Box::new(atlas.feed()), HeightAtlas::cache_tiles(atlas.layer_count()));
+        let mut renderer = StreamedRenderer::new(&device, draw::layout(&grid), 160, 120).unwrap();
+        let (mut hidden, mut parts, mut caught) = (0usize, 0usize, 0usize);
+        let mut poses = 0;
+        for i in 0..96 {
+            let a = f64::from(i) * std::f64::consts::TAU / 24.0;
+            let r = 300.0 + 250.0 * f64::from(i % 4);
+            let (x, z) = (1500.0 + r * a.cos(), 2500.0 + r * a.sin());
+            let ground = f64::from(hf.surface_height(x as f32, z as f32));
+            let p = DVec3::new(x, ground + 15.0 + 25.0 * f64::from(i % 3), z);
+            // Level with the ground or a little down, turned off the radius.
+            let heading = a + 1.2 + 0.4 * f64::from(i % 5);
+            let t = p + DVec3::new(heading.cos() * 1000.0, -40.0 * f64::from(i % 2), heading.sin() * 1000.0);
+            let view = View::look_at(p, t, 50.0, 160, 120, 1.0);
+            let sel = settled(&mut s, &view);
+            let whole = draw::stitched_blocks(&grid, &s.cache, &sel);
+            let fv = frame_view(&grid, &view);
+            let mut culled = whole.clone();
+            let n = draw::hide_parts_outside(&grid, &s.cache, fv.anchor, &fv.cam, &mut culled);
+            hidden += n;
+            parts += whole.len() * 16;
+            let (a_px, a) = renderer.render(&atlas, &fv, &whole).unwrap();
+            let (b_px, b) = renderer.render(&atlas, &fv, &culled).unwrap();
+            assert_eq!(b.hidden_parts, n as u64, "pose {i}");
+            assert_eq!(a.triangles - b.triangles, n as u64 * draw::layout(&grid).triangles_per_part(), "pose {i}");
+            assert!(a_px == b_px, "pose {i}: {n} parts left out changed the frame");
+            let mut narrowed = whole.clone();
+            draw::hide_parts_outside_by(&grid, &s.cache, fv.anchor, &fv.cam, -40.0, &mut narrowed);
+            let (c_px, _) = renderer.render(&atlas, &fv, &narrowed).unwrap();
+            caught += usize::from(c_px != a_px);
+            poses += 1;
+        }
+        eprintln!(
+            "{hidden} of {parts} parts outside the frustum; a narrowed frustum caught at {caught} of {poses} poses"
+        );
+        assert_eq!(poses, 96);
+        assert!(hidden * 20 > parts, "{hidden} of {parts} parts outside the frustum: the poses test little");
+        assert!(caught * 2 > poses, "mutation: a narrowed frustum changed only {caught} of {poses} frames");
+    }
+    common::finish(device);
 }

@@ -513,6 +513,21 @@ fn the_stream_command_flies_within_its_budget_and_degrades_on_a_damaged_archive(
         assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
         serde_json::from_slice::<serde_json::Value>(&o.stdout).unwrap()
     };
+    // A frame's step longer than the flight's whole line is refused (exit 2), not flown.
+    let o = cli(&["stream", a, "--frames", "10", "--speed", "1e30"]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(err.contains("--speed 1e30") && err.contains("longer than the flight's line across"), "{err}");
+    // A frame larger than the device's images, or a negative number, is a bad option too.
+    for (args, needle) in [
+        (&["--gpu-mb", "16", "--size", "16385x8"][..], "--size 16385x8: larger than the device's maxImageDimension2D"),
+        (&["--fps", "-1"][..], "--fps"),
+    ] {
+        let o = cli(&[&["stream", a, "--frames", "2"][..], args].concat());
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{err}");
+        assert!(err.contains(needle) && !err.contains("unexpected argument"), "{err}");
+    }
     let r = fly(a);
     let stats = &r["stats"];
     assert_eq!(r["frames"], 360);
@@ -633,4 +648,69 @@ fn streamed_frames_over_real_terrain_audit_within_delta() {
     println!("{blocks} blocks over 16 poses, worst {worst:.3} px");
     assert!(blocks > 500, "{blocks} blocks");
     assert!(worst > 0.5 * DELTA, "the bound is that loose? worst {worst} px");
+}
+
+/// The boxes streamed frames cull parts by (`draw::part_boxes`, from each tile's square
+/// summaries) hold every vertex of their part's triangles, read from the held tiles, at
+/// the poses' settled frames: as drawn (stitched), and with coarser neighbours 1 to m
+/// LODs coarser put on random edges and random resolved corners (where stitched vertices
+/// collapse along a neighbour's longer segment). Mutation: boxes made as if no neighbour
+/// were coarser let those vertices escape.
+#[test]
+fn streamed_part_boxes_hold_their_triangles() {
+    let Fixture { archive, grid, _dir, .. } = fixture("stream-part-boxes");
+    let layout = draw::layout(&grid);
+    let (_, idx) = vkterrain::lod::block::block_mesh_data(layout.k());
+    let per_part = idx.len() / layout.parts_per_side().pow(2) as usize;
+    let mut s = Streamer::new(archive, grid, 1 << 30);
+    let mut state = 0x9e37_79b9_u64;
+    let mut rng = |k: u32| {
+        state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        ((state >> 33) % u64::from(k)) as u32
+    };
+    let (mut listed, mut variants, mut escaped_when_unstitched) = (0usize, 0usize, 0usize);
+    for (i, view) in poses().iter().enumerate() {
+        let sel = settled(&mut s, view, 12);
+        let resident = draw::Resident { grid: &grid, cache: &s.cache };
+        // Vertices of `drawn`'s listed parts outside the boxes made for `boxed`.
+        let escapes = |drawn: &draw::StreamedBlock, boxed: &draw::StreamedBlock| {
+            let boxes = draw::part_boxes(&grid, &s.cache, boxed).expect("a drawn block's tile is held");
+            let mut out = 0;
+            for pb in &boxes {
+                let part = pb.bit.trailing_zeros() as usize;
+                for &j in &idx[part * per_part..(part + 1) * per_part] {
+                    let (sx, sz, raw) = block_vertex(&resident, &layout, &drawn.block, j % layout.k(), j / layout.k());
+                    let inside = (pb.x0..=pb.x0 + pb.size).contains(&sx)
+                        && (pb.z0..=pb.z0 + pb.size).contains(&sz)
+                        && (pb.raw[0]..=pb.raw[1]).contains(&raw);
+                    out += usize::from(!inside);
+                }
+            }
+            (boxes.len(), out)
+        };
+        for sb in draw::stitched_blocks(&grid, &s.cache, &sel) {
+            let mut variant = sb;
+            let lod = sb.block.lod;
+            for e in 0..4 {
+                if rng(2) == 0 && variant.block.coarser[e] == 0 {
+                    variant.block.coarser[e] = 1 << (lod + 1 + rng(layout.m));
+                }
+            }
+            for c in 0..4 {
+                if rng(3) == 0 {
+                    variant.block.corner_raw[c] = (rng(2000) as f32 * 0.1 - 50.0).to_bits();
+                }
+            }
+            for b in [sb, variant] {
+                let (n, out) = escapes(&b, &b);
+                assert_eq!(out, 0, "pose {i}: {:?}: vertices outside their part's box", b.block);
+                listed += n;
+                let unstitched = draw::StreamedBlock { block: DrawBlock { coarser: [0; 4], ..b.block }, ..b };
+                escaped_when_unstitched += escapes(&b, &unstitched).1;
+            }
+            variants += 1;
+        }
+    }
+    assert!(variants > 500 && listed > 10_000, "{variants} blocks, {listed} parts listed");
+    assert!(escaped_when_unstitched > 0, "mutation: boxes blind to coarser neighbours went unnoticed");
 }

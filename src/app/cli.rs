@@ -1,4 +1,5 @@
-//! Command-line options shared by every subcommand (same names, same meanings).
+//! Command-line options shared by the drawing subcommands (`view`, `render`, `errors`,
+//! `bench`, `quality`: same names, same meanings).
 
 use crate::draw::blocks::Shading;
 use crate::gpu::terrain::Texture;
@@ -103,7 +104,7 @@ pub fn parse_spacing(s: &str) -> Result<Spacing, String> {
     }
 }
 
-/// Options every subcommand shares.
+/// Options the drawing subcommands share.
 #[derive(Args, Clone, Debug)]
 pub struct CommonArgs {
     /// Heightfield file (.png, .jpg, .tif/.tiff, .r16, .f32, .hgt). Default: the built-in
@@ -308,6 +309,16 @@ pub fn check_messages(messages: &crate::vk::MessageCounter) -> anyhow::Result<()
     let n = messages.count();
     if n > 0 {
         anyhow::bail!("{n} validation message(s); first: {}", messages.messages().first().cloned().unwrap_or_default());
+    }
+    Ok(())
+}
+
+/// An image size option (`--size`, a window's) must fit in one image on `device` (exit
+/// code 2 naming the option, not a failure when the image is made).
+pub fn check_image_size(device: &crate::vk::Device, option: &str, (w, h): (u32, u32)) -> Result<(), InputError> {
+    let max = device.max_image_dimension_2d();
+    if w > max || h > max {
+        return Err(InputError(format!("{option} {w}x{h}: larger than the device's maxImageDimension2D ({max})")));
     }
     Ok(())
 }

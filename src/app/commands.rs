@@ -46,13 +46,13 @@ pub struct RenderArgs {
     #[arg(long)]
     pub audit: bool,
     /// Plain background instead of the sky (R,G,B in 0..1).
-    #[arg(long, value_name = "R,G,B")]
+    #[arg(long, value_name = "R,G,B", allow_hyphen_values = true)]
     pub background: Option<String>,
     /// Tint blocks by LOD.
     #[arg(long)]
     pub colour_by_lod: bool,
     /// Exponential fog density per world unit (0 disables).
-    #[arg(long, value_name = "DENSITY", default_value = "0")]
+    #[arg(long, value_name = "DENSITY", default_value = "0", value_parser = crate::app::cli::non_negative, allow_negative_numbers = true)]
     pub fog: f32,
     /// Where normals come from: a gradient map made at load (default), or the first
     /// wave's sixteen height fetches per pixel (same image up to rounding).
@@ -98,9 +98,10 @@ pub struct ErrorsArgs {
     #[command(flatten)]
     pub common: CommonArgs,
     /// Generations to compute (the median update time is reported).
-    #[arg(long, value_name = "N", default_value_t = 1)]
-    pub repeat: u32,
-    /// Write the block-error pyramid as little-endian f32 (see README for the layout).
+    #[arg(long, value_name = "N", default_value_t = 1, value_parser = crate::app::cli::at_least_one, allow_negative_numbers = true)]
+    pub repeat: u64,
+    /// Write the block-error pyramid as little-endian f32 (layout: docs/commands.md,
+    /// "Block-error dump layout").
     #[arg(long, value_name = "FILE")]
     pub dump: Option<PathBuf>,
 }
@@ -150,12 +151,8 @@ impl Session {
     }
 
     /// The viewport must fit in one image on this device.
-    pub fn check_viewport(&self, (w, h): (u32, u32)) -> Result<(), InputError> {
-        let max = self.device.max_image_dimension_2d();
-        if w > max || h > max {
-            return Err(InputError(format!("--size {w}x{h}: larger than the device's maxImageDimension2D ({max})")));
-        }
-        Ok(())
+    pub fn check_viewport(&self, size: (u32, u32)) -> Result<(), InputError> {
+        crate::app::cli::check_image_size(&self.device, "--size", size)
     }
 
     /// The heightfield must fit in one image on this device.
@@ -413,13 +410,7 @@ fn render_streamed(args: &RenderArgs, device: Arc<Device>, archive: Arc<Archive>
     }
     out["queue_mode"] = json!(queue_mode);
     out["error_mode"] = json!(args.common.error_mode.as_str());
-    crate::app::outputs::TerrainFacts::of_archive(&archive.meta).merge_into(&mut out);
-    if let Some(s) = args.common.spacing {
-        out["spacing_m"] = json!([s.x, s.z]);
-    }
-    if let Some(h) = args.common.height_scale {
-        out["height_scale_m"] = json!(h);
-    }
+    crate::app::outputs::TerrainFacts::of_archive(&archive.meta, &args.common).merge_into(&mut out);
     println!("{out}");
     // Every Vulkan object is gone now: messages from their destruction count too.
     check_messages(&messages)?;
@@ -457,9 +448,9 @@ fn finish(s: Session) -> anyhow::Result<()> {
 }
 
 pub fn errors(args: &ErrorsArgs) -> anyhow::Result<()> {
-    if args.repeat == 0 {
-        return Err(InputError("--repeat must be at least 1".into()).into());
-    }
+    // Checked before the device and the generations: a dump that cannot be written
+    // would otherwise fail at the end.
+    check_outputs(&[("--dump", args.dump.as_deref())], &[("--heightmap", args.common.heightmap.as_deref())])?;
     let s = Session::open(&args.common, None)?;
     let cam = args.common.camera(&s.hf, (1280, 720))?;
     let activity = ErrorsActivity::start(&s.device, s.terrain.clone(), s.hf.clone(), s.layout)?;

@@ -248,14 +248,8 @@ pub(crate) fn open_window(
     for note in device.notes() {
         println!("vkterrain: note: {note}");
     }
-    let max = device.max_image_dimension_2d();
     for (opt, w, h) in sizes {
-        if *w > max || *h > max {
-            return Err(crate::app::cli::InputError(format!(
-                "{opt} {w}x{h}: larger than the device's maxImageDimension2D ({max})"
-            ))
-            .into());
-        }
+        crate::app::cli::check_image_size(&device, opt, (*w, *h))?;
     }
     Ok((window, surface, device))
 }

@@ -23,6 +23,16 @@ pub fn write_atomic(path: &Path, write: impl FnOnce(&Path) -> anyhow::Result<()>
     written
 }
 
+/// An output directory option (`bench --out`, `quality --out`): an existing file there is
+/// refused naming the option, and the directory is made (with its parents) before any
+/// work, so that a long run does not fail at its end.
+pub fn output_dir(option: &str, dir: &Path) -> Result<(), InputError> {
+    if dir.exists() && !dir.is_dir() {
+        return Err(InputError(format!("{option} {}: exists and is not a directory", dir.display())));
+    }
+    std::fs::create_dir_all(dir).map_err(|e| InputError(format!("{option} {}: {e}", dir.display())))
+}
+
 /// Checks a command's output options before any work: each names a file that can be
 /// written ([`output_target`]), no two name the same file, and none names an input.
 pub fn check_outputs(outputs: &[(&str, Option<&Path>)], inputs: &[(&str, Option<&Path>)]) -> Result<(), InputError> {
@@ -156,13 +166,15 @@ impl TerrainFacts {
         }
     }
 
-    /// The facts an archive's metadata records (voids were filled by `prepare`).
-    pub fn of_archive(m: &crate::input::archive::Meta) -> Self {
+    /// The facts an archive's metadata records (voids were filled by `prepare`), with
+    /// `--spacing` and `--height-scale` where `common` gives them (the streamed terrain is
+    /// drawn at those).
+    pub fn of_archive(m: &crate::input::archive::Meta, common: &crate::app::cli::CommonArgs) -> Self {
         let g = &m.georef;
         TerrainFacts {
             crs: g.crs.clone(),
-            spacing_m: m.spacing,
-            height_scale_m: m.height_scale,
+            spacing_m: common.spacing.map_or(m.spacing, |s| [s.x, s.z]),
+            height_scale_m: common.height_scale.unwrap_or(m.height_scale),
             origin: (g.step != [0.0; 2]).then_some(g.origin),
             samples: [m.width, m.height],
             void_samples: m.void_samples,

@@ -25,7 +25,7 @@ pub struct QualityArgs {
     #[arg(long, value_enum, default_value_t = CameraPath::PaperFlyover)]
     pub path: CameraPath,
     /// Poses along the path (the first is the path's start view).
-    #[arg(long, value_name = "N", default_value_t = 3)]
+    #[arg(long, value_name = "N", default_value_t = 3, value_parser = parse_poses, allow_negative_numbers = true)]
     pub poses: u64,
     /// Output directory (quality.csv, quality.json, quality.png).
     #[arg(long, value_name = "DIR")]
@@ -44,14 +44,21 @@ pub struct Point {
     pub mean_stitch_splits: f64,
 }
 
+/// Most poses a sweep takes: each is traversed 27 times (a million would run for days).
+const MAX_POSES: u64 = 10_000;
+
+fn parse_poses(s: &str) -> Result<u64, String> {
+    match s.parse::<u64>() {
+        Ok(n) if (1..=MAX_POSES).contains(&n) => Ok(n),
+        _ => Err(format!("'{s}': a whole number from 1 to {MAX_POSES}")),
+    }
+}
+
 const DELTAS: [f32; 9] = [0.35, 0.5, 0.7, 1.0, 1.4, 2.0, 2.8, 4.0, 5.6];
 const FACTORS: [f32; 9] = [32.0, 22.6, 16.0, 11.3, 8.0, 5.66, 4.0, 2.83, 2.0];
 
 pub fn quality(args: &QualityArgs) -> anyhow::Result<()> {
-    if args.poses == 0 {
-        return Err(InputError("--poses must be at least 1".into()).into());
-    }
-    std::fs::create_dir_all(&args.out).map_err(|e| anyhow::anyhow!("{}: {e}", args.out.display()))?;
+    crate::app::outputs::output_dir("--out", &args.out)?;
     let hf = args.common.load_heightfield(None)?;
     let layout = BlockLayout::of(&hf, args.common.block).map_err(InputError)?;
     let mm = MinMaxPyramid::build(&hf);

@@ -31,16 +31,16 @@ pub struct StreamArgs {
     #[arg(long, default_value_t = 1800, value_parser = clap::value_parser!(u32).range(1..))]
     pub frames: u32,
     /// Frame rate the flight is paced at (the IO thread has 1/FPS s a frame).
-    #[arg(long, default_value_t = 30.0, value_parser = parse_fps)]
+    #[arg(long, default_value_t = 30.0, value_parser = parse_fps, allow_negative_numbers = true)]
     pub fps: f32,
     /// Height above the ground, world units.
-    #[arg(long, default_value_t = 200.0, value_parser = crate::app::cli::positive)]
+    #[arg(long, default_value_t = 200.0, value_parser = crate::app::cli::positive, allow_negative_numbers = true)]
     pub altitude: f32,
     /// Ground speed, world units a second (a low-flying jet: 300 m/s).
-    #[arg(long, default_value_t = 300.0, value_parser = crate::app::cli::positive)]
+    #[arg(long, default_value_t = 300.0, value_parser = crate::app::cli::positive, allow_negative_numbers = true)]
     pub speed: f32,
     /// Screen-space error threshold, pixels.
-    #[arg(long, default_value_t = 1.0, value_parser = crate::app::cli::positive)]
+    #[arg(long, default_value_t = 1.0, value_parser = crate::app::cli::positive, allow_negative_numbers = true)]
     pub delta: f32,
     /// Viewport, WIDTHxHEIGHT.
     #[arg(long, default_value = "640x480", value_parser = crate::app::cli::parse_size)]
@@ -81,9 +81,14 @@ pub(crate) struct GpuFrames {
     frames: u64,
     /// Frames where some block's tile found no atlas layer (those blocks not drawn).
     pub frames_missing_blocks: u64,
-    /// Blocks and triangles of the last frame drawn.
+    /// Blocks, triangles, parts left out (outside the frustum) and draws of the last
+    /// frame drawn.
     pub blocks: usize,
     pub triangles: u64,
+    pub hidden_parts: u64,
+    pub draw_calls: u64,
+    /// Parts left out over every frame drawn.
+    hidden_parts_total: u64,
     drawing: Duration,
     /// The last frame drawn offscreen (RGBA8, sRGB), when `read_back`.
     pub last: Vec<u8>,
@@ -132,6 +137,9 @@ impl GpuFrames {
             frames_missing_blocks: 0,
             blocks: 0,
             triangles: 0,
+            hidden_parts: 0,
+            draw_calls: 0,
+            hidden_parts_total: 0,
             drawing: Duration::ZERO,
             last: Vec::new(),
             read_back: true,
@@ -151,11 +159,12 @@ impl GpuFrames {
         window: Option<(&WindowImage, Option<Overlay>)>,
     ) -> anyhow::Result<()> {
         let t0 = Instant::now();
-        let blocks = crate::stream::draw::stitched_blocks(grid, &streamer.cache, sel);
+        let mut blocks = crate::stream::draw::stitched_blocks(grid, &streamer.cache, sel);
         if let Some(failure) = self.atlas.failure() {
             anyhow::bail!(failure);
         }
         let (anchor, cam) = view.relative(grid);
+        crate::stream::draw::hide_parts_outside(grid, &streamer.cache, anchor, &cam, &mut blocks);
         let fv = FrameView {
             grid,
             anchor,
@@ -178,9 +187,17 @@ impl GpuFrames {
         self.frames_missing_blocks += (stats.missing > 0) as u64;
         self.frames += 1;
         self.blocks = stats.blocks;
-        self.triangles = stats.blocks as u64 * crate::stream::draw::layout(grid).triangles_per_block();
+        self.triangles = stats.triangles;
+        self.hidden_parts = stats.hidden_parts;
+        self.draw_calls = stats.draw_calls;
+        self.hidden_parts_total += stats.hidden_parts;
         self.drawing += t0.elapsed();
-        let args = serde_json::json!({"frame": self.frames, "blocks": stats.blocks, "missing": stats.missing});
+        let args = serde_json::json!({
+            "frame": self.frames,
+            "blocks": stats.blocks,
+            "missing": stats.missing,
+            "hidden_parts": stats.hidden_parts,
+        });
         self.trace.complete(DRAW_TID, "draw (record, submit, wait)", t0, Instant::now(), args);
         Ok(())
     }
@@ -209,6 +226,7 @@ impl GpuFrames {
             "upload_generations": up.generations,
             "tiles_without_a_layer": up.dropped,
             "frames_missing_blocks": self.frames_missing_blocks,
+            "hidden_parts_per_frame": self.hidden_parts_total as f64 / self.frames.max(1) as f64,
             "draw_ms_per_frame": 1e3 * self.drawing.as_secs_f64() / self.frames.max(1) as f64,
             "validation": validation,
             "validation_messages": validation.then(|| self.device.instance.validation_messages()),
@@ -465,10 +483,7 @@ pub struct ArchiveRender {
 pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
     let grid = streamed_grid(&f.archive, f.common);
     let (w, h) = f.common.size.unwrap_or((1280, 720));
-    let max = f.device.max_image_dimension_2d();
-    if w > max || h > max {
-        return Err(InputError(format!("--size {w}x{h}: larger than the device's maxImageDimension2D ({max})")).into());
-    }
+    crate::app::cli::check_image_size(&f.device, "--size", (w, h))?;
     let layers = f.device.properties.limits.max_image_array_layers;
     let mut streamer = atlas_bound_streamer(f.archive.clone(), grid, f.cache_mb, f.gpu_mb, layers, &Trace::off())?;
     let near = near_plane_for(grid.spacing[0].min(grid.spacing[1]) as f32);
@@ -479,7 +494,10 @@ pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
         f.common.view_points(|| view_of_box(extent.map(|e| e as f32), range.world, f.common.fovy, w, h, near))?;
     let view = View::look_at(position.as_dvec3(), look_at.as_dvec3(), f.common.fovy, w, h, near);
     let warm = Instant::now();
-    streamer.stats = StreamStats { worst_factor: 1.0, ..Default::default() };
+    // The stats keep the top tiles' reads (this frame's too); frames and the worst factor
+    // count from here.
+    let frames_before = streamer.stats.frames;
+    streamer.stats.worst_factor = 1.0;
     let (_, sel) = settle(&mut streamer, |_| view, f.delta);
     let settle_ms = warm.elapsed().as_secs_f64() * 1e3;
     let mut gpu = GpuFrames::new(f.device.clone(), &mut streamer, f.gpu_mb, range, (w, h), &Trace::off())?;
@@ -496,17 +514,18 @@ pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
         "delta": f.delta,
         "blocks": gpu.blocks,
         "triangles": gpu.triangles,
-        "draw_calls": gpu.blocks,
+        "hidden_parts": gpu.hidden_parts,
+        "draw_calls": gpu.draw_calls,
         "within_bound": sel.within_bound() && !missing,
         "blocks_over_bound": sel.over_bound,
         "worst_factor": sel.worst_factor,
         "stitch_splits": sel.stitch_splits,
         "blocks_missing_a_layer": missing,
-        "frames_to_settle": streamer.stats.frames,
+        "frames_to_settle": streamer.stats.frames - frames_before,
         "settle_ms": settle_ms,
         "cache_mb": f.cache_mb,
-        // Over the frames it took to read the view's tiles, the last one drawn.
-        "settling": streamer.stats,
+        // Every tile read for the frame (the top tiles first, then the view's).
+        "stats": streamer.stats,
         "first_failure": streamer.first_failure,
         "gpu": gpu.report(),
         "device": f.device.name,
@@ -517,6 +536,10 @@ pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
     });
     let (pixels, drawn) = (std::mem::take(&mut gpu.last), sel.stitched);
     let layout = crate::stream::draw::layout(&grid);
+    // The block grid as in memory: `roots` squares of 2^n + 1 samples sharing borders.
+    let mut report = report;
+    report["grid"] = serde_json::json!(layout.roots.map(|r| (r << layout.n) + 1));
+    report["roots"] = serde_json::json!(layout.roots);
     Ok(ArchiveRender { width: w, height: h, pixels, report, drawn, layout, view })
 }
 
@@ -547,6 +570,17 @@ fn drop_from_page_cache(path: &std::path::Path) -> std::io::Result<()> {
     Ok(())
 }
 
+/// Where a flight is `d` world units along a line of `length` (from its start), and the
+/// way it heads (1 out, -1 back): it turns at each end rather than leaving the terrain.
+fn along_line(d: f64, length: f64) -> (f64, f64) {
+    let u = d.rem_euclid(2.0 * length);
+    if u <= length {
+        (u, 1.0)
+    } else {
+        (2.0 * length - u, -1.0)
+    }
+}
+
 pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
     if let Some(out) = &args.out {
         if out.extension().and_then(|e| e.to_str()).map(|e| e.to_lowercase()) != Some("png".into()) {
@@ -569,8 +603,24 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
     let start = DVec3::new(0.05 * extent[0], 0.0, 0.05 * extent[1]);
     let along = DVec3::new(0.9 * extent[0], 0.0, 0.9 * extent[1]);
     let dir = along.normalize();
+    let line = along.length();
     let fps = f64::from(args.fps);
     let speed = f64::from(args.speed);
+    let distance = speed * f64::from(args.frames) / fps;
+    if speed / fps > line {
+        return Err(InputError(format!(
+            "--speed {:e}: {:e} units a frame at {fps} fps, longer than the flight's line across {shown} ({line:.0} units)",
+            args.speed,
+            speed / fps
+        ))
+        .into());
+    }
+    let turns = (distance / line).floor() as u64;
+    if turns > 0 {
+        eprintln!(
+            "vkterrain: note: the flight ({distance:.0} units) is longer than its line across {shown} ({line:.0} units): it turns back at the ends ({turns} times)"
+        );
+    }
     let read_before = disk_bytes_read();
     eprintln!(
         "vkterrain: streaming {} ({} x {} samples, {} tile levels): {} frames at {fps} fps, {speed:.0} units/s, {} above the ground, cache {} MB",
@@ -587,7 +637,9 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
             use crate::vk::{DeviceOptions, Instance, InstanceOptions, QueueRequest};
             let instance = Instance::new(&InstanceOptions { validation: args.validate, extensions: Vec::new() })?;
             let options = DeviceOptions { gpu: None, queues: QueueRequest::Auto, swapchain: false };
-            Some(Device::new(instance, &options).map_err(crate::app::cli::option_error)?)
+            let device = Device::new(instance, &options).map_err(crate::app::cli::option_error)?;
+            crate::app::cli::check_image_size(&device, "--size", args.size)?;
+            Some(device)
         }
         None => None,
     };
@@ -598,19 +650,21 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
         }
         _ => Streamer::new(archive.clone(), grid, args.cache_mb as usize * (1 << 20)),
     };
+    // The view at frame `f`, and the way it heads.
     let pose = |streamer: &Streamer, f: u32| {
-        let at = start + dir * speed * f64::from(f) / fps;
+        let (offset, way) = along_line(speed * f64::from(f) / fps, line);
+        let (at, heading) = (start + dir * offset, dir * way);
         let ground = |p: DVec3| streamer.ground(p.x, p.z).unwrap_or(0.0);
         // Above the highest of the ground here and a little ahead (from the tiles held).
-        let lookahead = dir * 4.0 * f64::from(args.altitude);
+        let lookahead = heading * 4.0 * f64::from(args.altitude);
         let altitude = ground(at).max(ground(at + lookahead)) + f64::from(args.altitude);
         let position = DVec3::new(at.x, altitude, at.z);
-        let target = position + dir * 1000.0 + DVec3::new(0.0, -1000.0 * 0.15, 0.0);
-        View::look_at(position, target, 45.0, w, h, 1.0)
+        let target = position + heading * 1000.0 + DVec3::new(0.0, -1000.0 * 0.15, 0.0);
+        (View::look_at(position, target, 45.0, w, h, 1.0), heading)
     };
     // As a viewer would: the first view's tiles are read before the flight starts.
     let warm = Instant::now();
-    settle(&mut streamer, |s| pose(s, 0), args.delta);
+    settle(&mut streamer, |s| pose(s, 0).0, args.delta);
     let warm_up_s = warm.elapsed().as_secs_f64();
     let mut gpu = match (args.gpu_mb, device) {
         (Some(mb), Some(device)) => {
@@ -628,9 +682,9 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
     let mut selecting = Duration::ZERO;
     let mut altitude = 0.0;
     for f in 0..args.frames {
-        let view = pose(&streamer, f);
+        let (view, heading) = pose(&streamer, f);
         altitude = view.position.y;
-        let ahead = View { position: view.position + dir * speed * 0.5, ..view };
+        let ahead = View { position: view.position + heading * speed * 0.5, ..view };
         let t0 = Instant::now();
         let sel = streamer.frame(&view, Some(&ahead), args.delta, 0.5);
         selecting += t0.elapsed();
@@ -658,7 +712,9 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
         "frames_over_bound_share": frames_over_bound as f64 / frames as f64,
         "stats": flight,
         "warm_up": { "seconds": warm_up_s, "frames": warm_stats.frames, "tiles_loaded": warm_stats.tiles_loaded },
-        "distance": speed * f64::from(args.frames) / fps,
+        "distance": distance,
+        "line_length": line,
+        "turns": turns,
         "cache_mb": args.cache_mb,
         "distinct_tiles_mb": distinct_mb,
         "distinct_over_cache": distinct_mb / f64::from(args.cache_mb),
@@ -694,4 +750,31 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
         flight.bytes_read as f64 / 1e6,
     );
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::along_line;
+
+    /// The flight turns at both ends: every position lies on the line, it moves no
+    /// faster than the distance flown (no jump at a turn), and heads back after each end.
+    #[test]
+    fn a_flight_turns_at_the_ends_of_its_line() {
+        let length = 1000.0;
+        let step = 7.3;
+        let mut last = along_line(0.0, length);
+        assert_eq!(last, (0.0, 1.0));
+        for i in 1..2000 {
+            let d = f64::from(i) * step;
+            let (at, way) = along_line(d, length);
+            assert!((0.0..=length).contains(&at), "{d}: {at}");
+            assert!((at - last.0).abs() <= step + 1e-9, "{d}: jumped from {} to {at}", last.0);
+            // Out on the first pass, back on the second, out again on the third.
+            let pass = (d / length).floor() as i64;
+            assert_eq!(way, if pass % 2 == 0 { 1.0 } else { -1.0 }, "{d}");
+            last = (at, way);
+        }
+        assert_eq!(along_line(1500.0, length), (500.0, -1.0));
+        assert_eq!(along_line(2500.0, length), (500.0, 1.0));
+    }
 }

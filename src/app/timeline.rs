@@ -18,8 +18,20 @@ pub struct TimelineArgs {
     #[arg(long, value_name = "FILE.png")]
     pub out: PathBuf,
     /// Time window to draw, milliseconds from the trace's start: FROM,TO.
-    #[arg(long, value_name = "FROM,TO")]
-    pub window: Option<String>,
+    #[arg(long, value_name = "FROM,TO", value_parser = parse_window, allow_hyphen_values = true)]
+    pub window: Option<(f64, f64)>,
+}
+
+/// `--window FROM,TO`: finite milliseconds, FROM below TO (an infinite end would ask the
+/// axis for endless ticks).
+fn parse_window(w: &str) -> Result<(f64, f64), String> {
+    let bad = || format!("'{w}': expected FROM,TO in milliseconds, finite numbers, FROM < TO");
+    let (a, b) = w.split_once(',').ok_or_else(bad)?;
+    let (a, b): (f64, f64) = (a.trim().parse().map_err(|_| bad())?, b.trim().parse().map_err(|_| bad())?);
+    if !(a.is_finite() && b.is_finite() && a < b) {
+        return Err(bad());
+    }
+    Ok((a, b))
 }
 
 /// A bar on a lane.
@@ -58,18 +70,7 @@ pub fn timeline(args: &TimelineArgs) -> anyhow::Result<()> {
     if spans.is_empty() {
         return Err(InputError(format!("--trace {}: no spans", args.trace.display())).into());
     }
-    let (from, to) = match &args.window {
-        Some(w) => {
-            let bad = || InputError(format!("--window {w}: expected FROM,TO in milliseconds, FROM < TO"));
-            let (a, b) = w.split_once(',').ok_or_else(bad)?;
-            let (a, b): (f64, f64) = (a.trim().parse().map_err(|_| bad())?, b.trim().parse().map_err(|_| bad())?);
-            if a >= b {
-                return Err(bad().into());
-            }
-            (a, b)
-        }
-        None => (0.0, spans.iter().map(|s| s.end_ms).fold(0.0, f64::max)),
-    };
+    let (from, to) = args.window.unwrap_or((0.0, spans.iter().map(|s| s.end_ms).fold(0.0, f64::max)));
     let order: Vec<u32> = lanes.keys().copied().collect();
     draw(&args.out, &order, &lanes, &spans, (from, to))?;
     println!("vkterrain: timeline {} ({} spans, {:.0}..{:.0} ms)", args.out.display(), spans.len(), from, to);
