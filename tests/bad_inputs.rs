@@ -253,6 +253,7 @@ fn bad_options() {
     fails_cleanly(&["errors", "--repeat=-1"], &["--repeat", "1 or more"]);
     fails_cleanly(&["render", "--fog", "-1"], &["--fog", "0 or more"]);
     fails_cleanly(&["render", "--background", "-1,0,0"], &["--background"]);
+    fails_cleanly(&["render", "--size", "99999999999x1"], &["--size", "width 99999999999 is larger than any image"]);
     fails_cleanly(&["render", "--fog", "nan"], &["--fog", "finite"]);
     for window in ["0,inf", "nan,1", "5,1", "0"] {
         let args = ["timeline", "--trace", "t.json", "--out", "t.png", "--window", window];

@@ -17,7 +17,10 @@ fn quality(morph: &str) -> serde_json::Value {
     let read = |name: &str| std::fs::read_to_string(out.join(name));
     let (json, csv, png) = (read("quality.json"), read("quality.csv"), std::fs::metadata(out.join("quality.png")));
     let _ = std::fs::remove_dir_all(&out);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{stderr}");
+    // Off a terminal, progress is whole lines, not a line of carriage returns.
+    assert!(!stderr.contains('\r'), "{stderr:?}");
     assert!(png.unwrap().len() > 1000, "quality.png is missing or empty");
     assert!(csv.unwrap().starts_with("method,parameter,mean_triangles,audited_max_px,mean_stitch_splits\n"));
     serde_json::from_str(&json.unwrap()).unwrap()

@@ -258,9 +258,12 @@ pub fn rss_mib() -> Option<f64> {
     Some(pages * 4096.0 / (1024.0 * 1024.0))
 }
 
-/// Progress on stderr: a bar on a terminal, a line per 10% otherwise.
-struct Progress {
+/// Progress on stderr: a bar on a terminal, a line per 10% otherwise (a captured log
+/// stays one line per step, not one line of carriage returns).
+pub(crate) struct Progress {
     label: String,
+    /// What is counted ("frames", "settings").
+    unit: &'static str,
     total: u64,
     start: Instant,
     last: Instant,
@@ -270,9 +273,14 @@ struct Progress {
 
 impl Progress {
     fn new(label: &str, total: u64) -> Self {
+        Progress::counting(label, total, "frames")
+    }
+
+    pub(crate) fn counting(label: &str, total: u64, unit: &'static str) -> Self {
         let now = Instant::now();
         Progress {
             label: label.into(),
+            unit,
             total,
             start: now,
             last: now,
@@ -281,12 +289,13 @@ impl Progress {
         }
     }
 
-    fn tick(&mut self, done: u64) {
+    pub(crate) fn tick(&mut self, done: u64) {
         let elapsed = self.start.elapsed();
         if elapsed < Duration::from_secs(2) && done < self.total {
             return; // only runs longer than a couple of seconds show progress
         }
-        let fps = done as f64 / elapsed.as_secs_f64().max(1e-9);
+        let rate = done as f64 / elapsed.as_secs_f64().max(1e-9);
+        let per_s = if self.unit == "frames" { "fps".to_string() } else { format!("{} a second", self.unit) };
         if self.tty {
             if self.last.elapsed() < Duration::from_millis(200) && done < self.total {
                 return;
@@ -295,11 +304,12 @@ impl Progress {
             let width = 30;
             let filled = (done * width / self.total.max(1)) as usize;
             eprint!(
-                "\r{:>10} [{}{}] {done}/{} frames, {fps:.1} fps ",
+                "\r{:>10} [{}{}] {done}/{} {}, {rate:.1} {per_s} ",
                 self.label,
                 "#".repeat(filled),
                 ".".repeat(width as usize - filled),
-                self.total
+                self.total,
+                self.unit
             );
             if done >= self.total {
                 eprintln!();
@@ -309,7 +319,7 @@ impl Progress {
             if decile > self.last_decile {
                 self.last_decile = decile;
                 let percent = done * 100 / self.total.max(1);
-                eprintln!("{}: {done}/{} frames ({percent}%), {fps:.1} fps", self.label, self.total);
+                eprintln!("{}: {done}/{} {} ({percent}%), {rate:.1} {per_s}", self.label, self.total, self.unit);
             }
         }
         let _ = std::io::stderr().flush();

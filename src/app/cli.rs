@@ -26,8 +26,18 @@ pub enum OnOff {
 
 pub fn parse_size(s: &str) -> Result<(u32, u32), String> {
     let (w, h) = s.split_once(['x', 'X']).ok_or_else(|| format!("'{s}': expected WIDTHxHEIGHT, e.g. 1280x720"))?;
-    let w: u32 = w.trim().parse().map_err(|_| format!("'{s}': width is not a whole number"))?;
-    let h: u32 = h.trim().parse().map_err(|_| format!("'{s}': height is not a whole number"))?;
+    let side = |v: &str, what: &str| -> Result<u32, String> {
+        let v = v.trim();
+        match v.parse::<u32>() {
+            Ok(n) => Ok(n),
+            // All digits, yet no u32: too large for any image, not malformed.
+            Err(_) if !v.is_empty() && v.bytes().all(|b| b.is_ascii_digit()) => {
+                Err(format!("'{s}': {what} {v} is larger than any image"))
+            }
+            Err(_) => Err(format!("'{s}': {what} is not a whole number")),
+        }
+    };
+    let (w, h) = (side(w, "width")?, side(h, "height")?);
     if w == 0 || h == 0 {
         return Err(format!("'{s}': width and height must be at least 1"));
     }

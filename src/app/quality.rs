@@ -15,7 +15,6 @@ use crate::lod::traversal::{traverse, BlockCaches, LodSelect};
 use clap::Args;
 use serde_json::json;
 use std::path::{Path, PathBuf};
-use std::time::Instant;
 
 #[derive(Args, Debug)]
 pub struct QualityArgs {
@@ -70,7 +69,7 @@ pub fn quality(args: &QualityArgs) -> anyhow::Result<()> {
     let caches = BlockCaches::default();
     let mut points = Vec::new();
     let total = 2 * DELTAS.len() + FACTORS.len();
-    let started = Instant::now();
+    let mut progress = crate::app::bench::Progress::counting("quality", total as u64, "settings");
     for (n, setting) in (0..total).enumerate() {
         let (method, parameter) = match setting {
             s if s < DELTAS.len() => ("strict", DELTAS[s]),
@@ -101,9 +100,8 @@ pub fn quality(args: &QualityArgs) -> anyhow::Result<()> {
             audited_max_px: worst,
             mean_stitch_splits: splits / poses,
         });
-        eprint!("\rquality: {}/{total} settings ({:.0} s)", n + 1, started.elapsed().as_secs_f64());
+        progress.tick(n as u64 + 1);
     }
-    eprintln!();
 
     let mut table = String::from("method,parameter,mean_triangles,audited_max_px,mean_stitch_splits\n");
     for p in &points {
