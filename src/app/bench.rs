@@ -887,7 +887,7 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
         ))
         .into());
     }
-    crate::app::outputs::output_dir("--out", &args.out)?;
+    crate::app::outputs::check_output_dir("--out", &args.out)?;
     let poses = match &args.path {
         PathArg::File(p) => Some(read_poses(p)?),
         PathArg::Builtin(_) => None,

@@ -27,10 +27,17 @@ pub fn write_atomic(path: &Path, write: impl FnOnce(&Path) -> anyhow::Result<()>
 /// refused naming the option, and the directory is made (with its parents) before any
 /// work, so that a long run does not fail at its end.
 pub fn output_dir(option: &str, dir: &Path) -> Result<(), InputError> {
+    check_output_dir(option, dir)?;
+    std::fs::create_dir_all(dir).map_err(|e| InputError(format!("{option} {}: {e}", dir.display())))
+}
+
+/// [`output_dir`]'s check alone, for a command that refuses other options first and
+/// makes nothing until they pass.
+pub fn check_output_dir(option: &str, dir: &Path) -> Result<(), InputError> {
     if dir.exists() && !dir.is_dir() {
         return Err(InputError(format!("{option} {}: exists and is not a directory", dir.display())));
     }
-    std::fs::create_dir_all(dir).map_err(|e| InputError(format!("{option} {}: {e}", dir.display())))
+    Ok(())
 }
 
 /// Checks a command's output options before any work: each names a file that can be
