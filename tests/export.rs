@@ -198,3 +198,57 @@ fn render_exports_the_mesh() {
     assert_eq!(bad.status.code(), Some(2), "{}", String::from_utf8_lossy(&bad.stderr));
     assert!(String::from_utf8_lossy(&bad.stderr).contains(".glb"));
 }
+
+/// `render --stream --export-mesh`: the streamed frame's mesh from the tiles it held, as
+/// in memory: every drawn triangle and every part left out (outside the frustum) in the
+/// file, a watertight surface over every sample it covers (no two triangles disagree),
+/// within the archive's heights, facing up, with the terrain's facts in its extras.
+#[test]
+fn a_streamed_render_exports_its_mesh() {
+    let dir = TempDir::new("export-streamed");
+    let archive = dir.path().join("s.pmtiles");
+    let a = archive.to_str().unwrap();
+    let o = Command::new(env!("CARGO_BIN_EXE_vkterrain"))
+        .args(["prepare", "--synthetic", "1025", "--out", a])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let glb = dir.path().join("s.glb");
+    let out = Command::new(env!("CARGO_BIN_EXE_vkterrain"))
+        .args(["render", "--heightmap", a, "--stream", "--validation", "on", "--size", "320x240"])
+        .args(["--camera", "1500,900,16000", "--look-at", "15000,300,15000"])
+        .args(["--out", dir.path().join("s.png").to_str().unwrap(), "--export-mesh", glb.to_str().unwrap()])
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{stderr}");
+    let j: serde_json::Value = serde_json::from_slice(&out.stdout).expect("JSON on stdout");
+    assert_eq!((j["streamed"].as_bool(), j["gpu"]["validation_messages"].as_u64()), (Some(true), Some(0)), "{j}");
+    let (pos, idx, extras) = read_glb(&std::fs::read(&glb).unwrap());
+    assert_eq!(idx.len() as u64 / 3, j["mesh_triangles"].as_u64().unwrap());
+    assert_eq!(pos.len() as u64, j["mesh_vertices"].as_u64().unwrap());
+    let hidden = j["hidden_triangles"].as_u64().unwrap();
+    assert!(hidden > 0, "the view leaves parts outside the frustum: {j}");
+    assert_eq!(
+        j["mesh_triangles"].as_u64().unwrap() + j["mesh_triangles_beyond_extent"].as_u64().unwrap(),
+        j["triangles"].as_u64().unwrap() + hidden,
+        "the file holds every triangle drawn and every part left out: {j}"
+    );
+    assert_eq!(extras["terrain"]["samples"], serde_json::json!([1025, 1025]));
+    // The archive's heights, in memory, bound the surface; mesh_heights asserts that no
+    // two triangles over a sample disagree (a crack) and gives the covered samples.
+    let hf = vkterrain::input::archive::Archive::open(&archive).unwrap().heightfield().unwrap();
+    let (lo, hi) = hf.raw.iter().fold((f32::MAX, f32::MIN), |(a, b), &v| (a.min(v), b.max(v)));
+    let scale = hf.height_scale;
+    assert!(
+        pos.iter().all(|p| p[1] >= lo * scale - 1e-3 && p[1] <= hi * scale + 1e-3),
+        "heights outside the archive's"
+    );
+    let covered = mesh_heights(&hf, &pos, &idx).iter().filter(|h| h.is_some()).count();
+    assert!(covered > 100_000, "{covered} samples covered");
+    for t in idx.chunks_exact(3) {
+        let [a, b, c] = [0, 1, 2].map(|j| Vec3::from(pos[t[j] as usize]));
+        let n = (b - a).cross(c - a);
+        assert!(n.length() <= 1e-6 || n.y > 0.0, "triangle {t:?} faces down");
+    }
+}

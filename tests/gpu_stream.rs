@@ -331,7 +331,6 @@ fn render_draws_an_archive_streamed_within_the_bound() {
     assert!(String::from_utf8_lossy(&o.stderr).contains("over the bound"));
 
     for (extra, named) in [
-        (vec!["--export-mesh", "m.glb"], "--export-mesh"),
         (vec!["--lod", "full"], "--lod full"),
         (vec!["--pixels", "forward"], "--pixels forward"),
         (vec!["--traversal-threads", "2"], "--traversal-threads"),

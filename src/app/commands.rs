@@ -80,7 +80,6 @@ impl RenderArgs {
         [
             ("--texture", self.textures.texture.is_some()),
             ("--detail", self.textures.detail.is_some()),
-            ("--export-mesh", self.export_mesh.is_some()),
             ("--lod full|distance", self.lod != LodChoice::Error),
             ("--pixels forward", self.pixels != PixelPass::Deferred),
             ("--raycast", self.raycast != Raycast::Off),
@@ -325,10 +324,7 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
     });
     crate::app::outputs::TerrainFacts::of(&s.hf).merge_into(&mut out);
     if let Some(m) = &exported {
-        out["mesh_vertices"] = json!(m.positions.len());
-        out["mesh_triangles"] = json!(m.triangles());
-        out["mesh_triangles_beyond_extent"] = json!(m.beyond_extent);
-        out["mesh_triangles_in_holes"] = json!(m.in_holes);
+        mesh_into(&mut out, m);
     }
     if let Some(ms) = errors_ms {
         out["error_update_ms"] = json!(ms);
@@ -338,6 +334,14 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
     }
     println!("{out}");
     finish(s)
+}
+
+/// An exported mesh's figures in a render's JSON.
+fn mesh_into(out: &mut serde_json::Value, m: &crate::lod::mesh::DrawnMesh) {
+    out["mesh_vertices"] = json!(m.positions.len());
+    out["mesh_triangles"] = json!(m.triangles());
+    out["mesh_triangles_beyond_extent"] = json!(m.beyond_extent);
+    out["mesh_triangles_in_holes"] = json!(m.in_holes);
 }
 
 /// The audit's figures in a render's JSON. JSON has no infinity: a drawn point behind the
@@ -384,9 +388,15 @@ fn render_streamed(args: &RenderArgs, device: Arc<Device>, archive: Arc<Archive>
         gpu_mb: args.streamed.gpu_mb(),
         colour_by_lod: args.colour_by_lod,
         background: args.background.as_deref().map(parse_background).transpose()?,
+        export_mesh: args.export_mesh.is_some(),
     })?;
     save_png(&args.out, r.width, r.height, &r.pixels)?;
     let mut out = r.report;
+    if let (Some(path), Some(m)) = (&args.export_mesh, &r.mesh) {
+        let facts = crate::app::outputs::TerrainFacts::of_archive(&archive.meta, &args.common);
+        crate::app::export::write_glb(path, m, &facts)?;
+        mesh_into(&mut out, m);
+    }
     if args.audit {
         // Offline, against every sample (SPEC 8): the whole terrain in memory, which the
         // streamed path itself never holds.

@@ -461,6 +461,8 @@ pub struct ArchiveFrame<'a> {
     pub colour_by_lod: bool,
     /// A plain background instead of the sky.
     pub background: Option<[f32; 3]>,
+    /// Also make the drawn mesh (`render --export-mesh`), from the tiles the frame held.
+    pub export_mesh: bool,
 }
 
 /// What [`render_archive`] drew: the pixels and the JSON facts.
@@ -474,6 +476,8 @@ pub struct ArchiveRender {
     pub drawn: Vec<crate::lod::block::DrawBlock>,
     pub layout: crate::lod::block::BlockLayout,
     pub view: View,
+    /// The drawn mesh in world units, when asked ([`ArchiveFrame::export_mesh`]).
+    pub mesh: Option<crate::lod::mesh::DrawnMesh>,
 }
 
 /// Draws one frame of an archive through the streaming path: the tiles the view needs
@@ -515,6 +519,7 @@ pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
         "blocks": gpu.blocks,
         "triangles": gpu.triangles,
         "hidden_parts": gpu.hidden_parts,
+        "hidden_triangles": gpu.hidden_parts * crate::stream::draw::layout(&grid).triangles_per_part(),
         "draw_calls": gpu.draw_calls,
         "within_bound": sel.within_bound() && !missing,
         "blocks_over_bound": sel.over_bound,
@@ -536,11 +541,29 @@ pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
     });
     let (pixels, drawn) = (std::mem::take(&mut gpu.last), sel.stitched);
     let layout = crate::stream::draw::layout(&grid);
+    // The blocks whole (parts left out included, as in memory), their vertices from the
+    // held tiles, which are the drawn ones.
+    let mesh = f.export_mesh.then(|| {
+        let resident = crate::stream::draw::Resident { grid: &grid, cache: &streamer.cache };
+        let world = |x: i64, z: i64, raw: f32| {
+            [
+                (x as f64 * grid.spacing[0]) as f32,
+                (f64::from(raw) * grid.height_scale) as f32,
+                (z as f64 * grid.spacing[1]) as f32,
+            ]
+        };
+        let surface = crate::lod::mesh::MeshSurface {
+            last: [grid.width as i64 - 1, grid.height as i64 - 1],
+            world: &world,
+            hole: None,
+        };
+        crate::lod::mesh::drawn_mesh_of(&resident, &layout, &drawn, &surface)
+    });
     // The block grid as in memory: `roots` squares of 2^n + 1 samples sharing borders.
     let mut report = report;
     report["grid"] = serde_json::json!(layout.roots.map(|r| (r << layout.n) + 1));
     report["roots"] = serde_json::json!(layout.roots);
-    Ok(ArchiveRender { width: w, height: h, pixels, report, drawn, layout, view })
+    Ok(ArchiveRender { width: w, height: h, pixels, report, drawn, layout, view, mesh })
 }
 
 /// A frame rate the flight can be paced at: 0.1 to 10,000 frames a second.

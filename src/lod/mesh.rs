@@ -8,7 +8,7 @@
 //! vertices only those triangles use go too.
 
 use crate::lod::block::{block_mesh_data, block_vertex, BlockLayout, DrawBlock};
-use crate::lod::heightfield::Heightfield;
+use crate::lod::heightfield::{Heightfield, RawSamples};
 
 /// Positions (world units) and triangle indices of the drawn surface.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -29,11 +29,36 @@ impl DrawnMesh {
 
 /// The mesh of `blocks` as drawn.
 pub fn drawn_mesh(hf: &Heightfield, layout: &BlockLayout, blocks: &[DrawBlock]) -> DrawnMesh {
+    let hole = |x: i64, z: i64| hf.is_hole(x, z);
+    let surface = MeshSurface {
+        last: [hf.width as i64 - 1, hf.height as i64 - 1],
+        world: &|x, z, raw| hf.world_position(x, z, raw).to_array(),
+        hole: hf.void_mask.is_some().then_some(&hole as &dyn Fn(i64, i64) -> bool),
+    };
+    drawn_mesh_of(hf, layout, blocks, &surface)
+}
+
+/// Where a terrain's samples are, for [`drawn_mesh_of`]: its last sample along x and z
+/// (the true extent), world positions of samples, and its holes (`--voids hole`).
+pub struct MeshSurface<'a> {
+    pub last: [i64; 2],
+    pub world: &'a dyn Fn(i64, i64, f32) -> [f32; 3],
+    pub hole: Option<&'a dyn Fn(i64, i64) -> bool>,
+}
+
+/// [`drawn_mesh`] over samples from anywhere (a heightfield in memory, a streamed
+/// frame's held tiles).
+pub fn drawn_mesh_of<S: RawSamples + ?Sized>(
+    samples: &S,
+    layout: &BlockLayout,
+    blocks: &[DrawBlock],
+    surface: &MeshSurface,
+) -> DrawnMesh {
     let k = layout.k();
     let (_, pattern) = block_mesh_data(k);
     let per_block = (k * k) as usize;
     let mut mesh = DrawnMesh::default();
-    let (last_x, last_z) = (hf.width as i64 - 1, hf.height as i64 - 1);
+    let [last_x, last_z] = surface.last;
     // Block-local vertices: sample position, world position, inside the true extent.
     let mut local: Vec<((i64, i64), [f32; 3], bool)> = Vec::with_capacity(per_block);
     // Index of each block vertex in the mesh, once a kept triangle uses it.
@@ -43,8 +68,8 @@ pub fn drawn_mesh(hf: &Heightfield, layout: &BlockLayout, blocks: &[DrawBlock]) 
         index.fill(u32::MAX);
         for v in 0..k {
             for u in 0..k {
-                let (sx, sz, raw) = block_vertex(hf, layout, b, u, v);
-                local.push(((sx, sz), hf.world_position(sx, sz, raw).to_array(), sx <= last_x && sz <= last_z));
+                let (sx, sz, raw) = block_vertex(samples, layout, b, u, v);
+                local.push(((sx, sz), (surface.world)(sx, sz, raw), sx <= last_x && sz <= last_z));
             }
         }
         for t in pattern.chunks_exact(3) {
@@ -52,7 +77,7 @@ pub fn drawn_mesh(hf: &Heightfield, layout: &BlockLayout, blocks: &[DrawBlock]) 
                 mesh.beyond_extent += 1;
                 continue;
             }
-            if hf.void_mask.is_some() && in_hole(hf, t.iter().map(|&i| local[i as usize].0)) {
+            if surface.hole.is_some_and(|hole| in_hole(hole, t.iter().map(|&i| local[i as usize].0))) {
                 mesh.in_holes += 1;
                 continue;
             }
@@ -72,7 +97,7 @@ pub fn drawn_mesh(hf: &Heightfield, layout: &BlockLayout, blocks: &[DrawBlock]) 
 
 /// The shader's hole rule (`terrain_shade.glsl::in_hole`) at a triangle's centre: the
 /// bilinear share of hole samples around it is at least one half.
-fn in_hole(hf: &Heightfield, corners: impl Iterator<Item = (i64, i64)>) -> bool {
+fn in_hole(is_hole: &dyn Fn(i64, i64) -> bool, corners: impl Iterator<Item = (i64, i64)>) -> bool {
     let (mut x, mut z) = (0.0f64, 0.0f64);
     for (sx, sz) in corners {
         x += sx as f64 / 3.0;
@@ -80,7 +105,7 @@ fn in_hole(hf: &Heightfield, corners: impl Iterator<Item = (i64, i64)>) -> bool 
     }
     let (x0, z0) = (x.floor() as i64, z.floor() as i64);
     let (fx, fz) = (x - x0 as f64, z - z0 as f64);
-    let h = |dx: i64, dz: i64| hf.is_hole(x0 + dx, z0 + dz) as u8 as f64;
+    let h = |dx: i64, dz: i64| is_hole(x0 + dx, z0 + dz) as u8 as f64;
     let share = (h(0, 0) * (1.0 - fx) + h(1, 0) * fx) * (1.0 - fz) + (h(0, 1) * (1.0 - fx) + h(1, 1) * fx) * fz;
     share >= 0.5
 }
