@@ -681,3 +681,42 @@ fn streamed_parts_outside_the_frustum_are_never_seen() {
     }
     common::finish(device);
 }
+
+/// A stop signal while a terrain file is prepared on the fly for `render --stream` ends
+/// the run with 128 + the signal and leaves nothing behind: not the partial archive, not
+/// its private directory (an adversarial review found the directory left until the next
+/// streamed run removed it).
+#[test]
+fn a_stream_prepared_on_the_fly_and_stopped_leaves_nothing() {
+    let ps = common::data("puget_sound/ps_height_4k.jpg");
+    for (signal, code) in [("TERM", 143), ("INT", 130)] {
+        let tmp = TempDir::new("gpu-stream-stop");
+        let out = tmp.path().join("out");
+        std::fs::create_dir(&out).unwrap();
+        let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_vkterrain"))
+            .args(["render", "--heightmap", ps.to_str().unwrap(), "--stream", "--validation", "off"])
+            .args(["--size", "64x48", "--out", out.join("x.png").to_str().unwrap()])
+            .env("TMPDIR", tmp.path())
+            .env("RUST_LOG", "error")
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null())
+            .spawn()
+            .unwrap();
+        let private = tmp.path().join(format!("vkterrain-streamed-{}", child.id()));
+        let partial = private.join(format!(".terrain.pmtiles.partial-{}", child.id()));
+        // Wait (polling the condition, not a fixed sleep) for the partial archive.
+        let started = std::time::Instant::now();
+        while !partial.exists() {
+            assert!(child.try_wait().unwrap().is_none(), "SIG{signal}: the run ended before it was stopped");
+            assert!(started.elapsed().as_secs() < 120, "SIG{signal}: no partial archive after 120 s");
+            std::thread::sleep(std::time::Duration::from_millis(5));
+        }
+        let kill =
+            std::process::Command::new("kill").args([&format!("-{signal}"), &child.id().to_string()]).status().unwrap();
+        assert!(kill.success());
+        let status = child.wait().unwrap();
+        assert_eq!(status.code(), Some(code), "SIG{signal}: {status:?}");
+        assert!(!private.exists(), "SIG{signal}: {} left behind", private.display());
+        assert!(std::fs::read_dir(&out).unwrap().next().is_none(), "SIG{signal}: an output was written");
+    }
+}

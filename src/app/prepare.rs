@@ -173,7 +173,7 @@ impl Drop for MosaicDir {
 }
 
 pub fn prepare(args: &PrepareArgs) -> anyhow::Result<()> {
-    let json = prepare_archive(args)?;
+    let json = prepare_archive(args, &|| {})?;
     println!("{}", serde_json::to_string_pretty(&json)?);
     Ok(())
 }
@@ -210,14 +210,20 @@ pub(crate) fn prepare_on_the_fly(
         raw_size: common.raw_size,
         windows: false,
     };
-    let opened = prepare_archive(&args)
+    // An interrupted prepare exits the process: the directory goes first.
+    let remove_dir = || {
+        let _ = std::fs::remove_dir_all(&dir);
+    };
+    let opened = prepare_archive(&args, &remove_dir)
         .and_then(|_| crate::input::archive::Archive::open(&args.out).map_err(|e| InputError(e.to_string()).into()));
     let _ = std::fs::remove_dir_all(&dir);
     opened
 }
 
-/// [`prepare`] without printing its report: the report.
-fn prepare_archive(args: &PrepareArgs) -> anyhow::Result<serde_json::Value> {
+/// [`prepare`] without printing its report: the report. A stop signal ends the process
+/// (128 + the signal) once the partial output is gone, after `before_exit` (the caller's
+/// own cleaning: exit() runs no destructors).
+fn prepare_archive(args: &PrepareArgs, before_exit: &dyn Fn()) -> anyhow::Result<serde_json::Value> {
     if args.out.is_dir() {
         return Err(InputError(format!(
             "--out {}: is a directory; name the archive file to write",
@@ -370,6 +376,7 @@ fn prepare_archive(args: &PrepareArgs) -> anyhow::Result<serde_json::Value> {
     if stop.requested() {
         drop(mosaic_dir.take());
         eprintln!("vkterrain: interrupted: no archive written");
+        before_exit();
         std::process::exit(stop.exit_code());
     }
     let (w, h) = source.size();
@@ -401,6 +408,7 @@ fn prepare_archive(args: &PrepareArgs) -> anyhow::Result<serde_json::Value> {
         Err(PrepareError::Interrupted) => {
             eprintln!("vkterrain: interrupted: no archive written");
             drop(mosaic_dir.take()); // exit() runs no destructors
+            before_exit();
             std::process::exit(stop.exit_code());
         }
         // The output cannot be written (a missing directory, no space, no permission): a

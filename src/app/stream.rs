@@ -593,6 +593,15 @@ fn drop_from_page_cache(path: &std::path::Path) -> std::io::Result<()> {
     Ok(())
 }
 
+/// `v` as a person reads it: plain below 10^7, in exponent form above (1e30, not 31 digits).
+fn readable(v: f32) -> String {
+    if v.abs() < 1e7 {
+        format!("{}", (v * 10.0).round() / 10.0)
+    } else {
+        format!("{v:e}")
+    }
+}
+
 /// Where a flight is `d` world units along a line of `length` (from its start), and the
 /// way it heads (1 out, -1 back): it turns at each end rather than leaving the terrain.
 fn along_line(d: f64, length: f64) -> (f64, f64) {
@@ -632,16 +641,17 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
     let distance = speed * f64::from(args.frames) / fps;
     if speed / fps > line {
         return Err(InputError(format!(
-            "--speed {:e}: {:e} units a frame at {fps} fps, longer than the flight's line across {shown} ({line:.0} units)",
-            args.speed,
-            speed / fps
+            "--speed {}: {} units a frame at {fps} fps, longer than the flight's line across {shown} ({line:.0} units)",
+            readable(args.speed),
+            readable((speed / fps) as f32)
         ))
         .into());
     }
     let turns = (distance / line).floor() as u64;
     if turns > 0 {
         eprintln!(
-            "vkterrain: note: the flight ({distance:.0} units) is longer than its line across {shown} ({line:.0} units): it turns back at the ends ({turns} times)"
+            "vkterrain: note: the flight ({distance:.0} units) is longer than its line across {shown} ({line:.0} units): it turns back at the ends ({})",
+            if turns == 1 { "once".to_string() } else { format!("{turns} times") }
         );
     }
     let read_before = disk_bytes_read();
