@@ -528,6 +528,17 @@ fn the_stream_command_flies_within_its_budget_and_degrades_on_a_damaged_archive(
         assert_eq!(o.status.code(), Some(2), "{err}");
         assert!(err.contains(needle) && !err.contains("unexpected argument"), "{err}");
     }
+    // Top tiles that cannot be read (the tile data's offset moved past the file's end):
+    // nothing could be drawn, so the flight is refused naming why (exit 2), as `render`
+    // refuses it, not flown as frames of nothing.
+    let mut moved = std::fs::read(&archive).unwrap();
+    moved[56..64].copy_from_slice(&(1u64 << 40).to_le_bytes());
+    let moved_path = dir.path().join("moved.pmtiles");
+    std::fs::write(&moved_path, &moved).unwrap();
+    let o = cli(&["stream", moved_path.to_str().unwrap(), "--frames", "10"]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(err.contains("top tiles could not be read") && err.contains("moved.pmtiles"), "{err}");
     let r = fly(a);
     let stats = &r["stats"];
     assert_eq!(r["frames"], 360);

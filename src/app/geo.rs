@@ -161,8 +161,11 @@ pub fn parse_lat_lon(s: &str) -> Result<[f64; 2], String> {
         num.parse::<f64>().map(|v| v * sign).map_err(|_| bad())
     };
     let (lat, lon) = (value(&parts[0], 'N', 'S')?, value(&parts[1], 'E', 'W')?);
-    if !(-90.0..=90.0).contains(&lat) || !(-180.0..=360.0).contains(&lon) {
-        return Err(bad());
+    if !(-90.0..=90.0).contains(&lat) {
+        return Err(format!("'{s}': latitude {lat} is not within -90 to 90 degrees"));
+    }
+    if !(-180.0..=360.0).contains(&lon) {
+        return Err(format!("'{s}': longitude {lon} is not within -180 to 360 degrees"));
     }
     Ok([lat, lon])
 }
@@ -189,7 +192,9 @@ mod tests {
         assert_eq!(parse_lat_lon("46.85 N 121.76 W").unwrap(), [46.85, -121.76]);
         assert_eq!(parse_lat_lon("27.98S, 86.92E").unwrap(), [-27.98, 86.92]);
         assert!(parse_lat_lon("46.85").is_err());
-        assert!(parse_lat_lon("95, 10").is_err());
+        assert!(parse_lat_lon("95, 10").unwrap_err().contains("latitude 95 is not within"));
+        assert!(parse_lat_lon("46.85,-181").unwrap_err().contains("longitude -181 is not within"));
+        assert!(parse_lat_lon("nan, 10").is_err());
         assert!(parse_lat_lon("abc, 10").is_err());
         assert_eq!(format_lat_lon(-27.5, 86.25), "27.50000 S, 86.25000 E");
     }

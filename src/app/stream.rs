@@ -695,16 +695,15 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
         let target = position + heading * 1000.0 + DVec3::new(0.0, -1000.0 * 0.15, 0.0);
         (View::look_at(position, target, 45.0, w, h, 1.0), heading)
     };
-    // As a viewer would: the first view's tiles are read before the flight starts.
+    // As a viewer would: the top tiles (without which nothing can be drawn: refused, as
+    // `render` refuses them, rather than a flight of empty frames), then the first
+    // view's, are read before the flight starts.
     let warm = Instant::now();
+    let range = top_tiles(&mut streamer, &archive.meta)?;
     settle(&mut streamer, |s| pose(s, 0).0, args.delta);
     let warm_up_s = warm.elapsed().as_secs_f64();
     let mut gpu = match (args.gpu_mb, device) {
-        (Some(mb), Some(device)) => {
-            let range = height_range(&streamer, &archive.meta)
-                .unwrap_or(HeightRange { world: [0.0, 1.0], absolute: archive.meta.georef.absolute_heights });
-            Some(GpuFrames::new(device, &mut streamer, mb, range, args.size, &Trace::off())?)
-        }
+        (Some(mb), Some(device)) => Some(GpuFrames::new(device, &mut streamer, mb, range, args.size, &Trace::off())?),
         _ => None,
     };
     let warm_stats = streamer.stats.clone();
