@@ -694,7 +694,7 @@ fn a_stream_prepared_on_the_fly_and_stopped_leaves_nothing() {
         let out = tmp.path().join("out");
         std::fs::create_dir(&out).unwrap();
         let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_vkterrain"))
-            .args(["render", "--heightmap", ps.to_str().unwrap(), "--stream", "--validation", "off"])
+            .args(["render", "--heightmap", ps.to_str().unwrap(), "--stream", "--validation", "on"])
             .args(["--size", "64x48", "--out", out.join("x.png").to_str().unwrap()])
             .env("TMPDIR", tmp.path())
             .env("RUST_LOG", "error")
