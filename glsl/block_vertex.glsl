@@ -8,8 +8,9 @@
 #ifdef HEIGHTS_ATLAS
 // Streamed frames: `heights` is the atlas (sampler2DArray); the block's tile holds every
 // 2^level-th sample from its origin, behind a one-sample border. Clamped into the layer:
-// only the morph's neighbours of an edge vertex can fall outside the tile, and streamed
-// blocks do not morph (their factor 1 ignores them).
+// only the morph's neighbours of a coarser neighbour's edge vertex can fall outside the
+// tile, and streamed blocks never morph those edges (their factor 1 ignores them;
+// src/stream/morph.rs).
 float raw_at(ivec2 s) {
     ivec3 t = ivec3(((s - block_pc.tile.xy) >> block_pc.tile.z) + 1, block_pc.tile.w);
     t.xy = clamp(t.xy, ivec2(0), ivec2(frame.anchor.z - 1));

@@ -90,10 +90,12 @@ fn streamed_frames_match(hf: &Heightfield, unorm16: bool) {
         // Tiles read reach the cache through the atlas's thread: every held tile is drawable.
         s.attach(Box::new(atlas.feed()), HeightAtlas::cache_tiles(atlas.layer_count()));
         let mut renderer = StreamedRenderer::new(&device, draw::layout(&grid), 320, 240).unwrap();
-        let (mut compared, mut mutated) = (0usize, 0usize);
+        let (mut compared, mut mutated, mut morphed) = (0usize, 0usize, 0usize);
         for (i, view) in views().iter().enumerate() {
             let sel = settled(&mut s, view);
             let blocks = draw::stitched_blocks(&grid, &s.cache, &sel);
+            // Morphed vertices too: the parent's surface from the atlas as on the CPU.
+            morphed += blocks.iter().filter(|b| b.block.morph < vkterrain::lod::block::MORPH_ONE).count();
             assert!(sel.used.iter().all(|k| atlas.holds(*k)), "pose {i}: a used tile is not drawable");
             let fv = frame_view(&grid, view);
             let anchor = fv.anchor;
@@ -133,6 +135,7 @@ fn streamed_frames_match(hf: &Heightfield, unorm16: bool) {
             assert!(terrain > pixels.len() / 4 / 5, "pose {i}: {terrain} terrain pixels of {}", pixels.len() / 4);
         }
         assert!(compared > 100_000, "vertices compared: {compared}");
+        assert!(morphed > 20, "morphing blocks compared: {morphed}");
         assert!(mutated >= 2, "the wrong-tile check ran at {mutated} poses");
     }
     common::finish(device);

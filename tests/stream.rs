@@ -97,7 +97,7 @@ fn tile_summaries_equal_the_full_resolution_oracle() {
     let Fixture { hf, archive, grid, _dir } = fixture("stream-summaries");
     assert_eq!((grid.top, root_lod(&grid)), (2, 5), "a 1025^2 terrain: three tile levels, root blocks of LOD 5");
     let d = exact_deviation(&hf);
-    let mut checked = 0;
+    let (mut checked, mut groups_checked) = (0, 0usize);
     for (level, tx, tz) in archive.meta.tiles() {
         let tile = archive.read_tile(level, tx, tz).unwrap().unwrap();
         let data = TileData::new(&grid, tile.clone()).unwrap();
@@ -178,8 +178,24 @@ fn tile_summaries_equal_the_full_resolution_oracle() {
                 }
                 checked += 1;
             }
+            // Every group's D as the morph reads it (`TileData::group_d`), the parent LOD's
+            // from the tile serving it.
+            if lod > 0 {
+                let (groups, cells) = ((grid.tile_quads << level) >> lod, hf.cells(lod)[0]);
+                for (gx, gz) in (0..groups).flat_map(|z| (0..groups).map(move |x| (x, z))) {
+                    let (gx, gz) = (tx as usize * groups + gx, tz as usize * groups + gz);
+                    assert_eq!(
+                        data.group_d(&grid, lod, gx, gz),
+                        d[lod as usize - 1][gz * cells + gx],
+                        "D_{lod} ({gx}, {gz})"
+                    );
+                    groups_checked += 1;
+                }
+            }
         }
     }
+    // Every group of LOD 1 and above once (LOD 0 has no D): 1024^2 / 4 + 1024^2 / 16 + ...
+    assert_eq!(groups_checked, (1..=5).map(|l| (1024usize >> l).pow(2)).sum::<usize>());
     // 16 + 4 tiles of 64 blocks, the top tile's 64 + 16 + 4 + 1.
     assert_eq!(checked, 16 * 64 + 4 * 64 + 64 + 16 + 4 + 1);
 }
@@ -219,15 +235,18 @@ fn streamed_blocks_stitch_from_held_tiles_as_in_memory() {
     let layout = BlockLayout::of(&hf, 33).unwrap();
     assert_eq!(draw::layout(&grid), layout, "the archive's block layout is the heightfield's");
     let mut s = Streamer::new(archive, grid, 1 << 30);
-    let (mut stitched_edges, mut compared) = (0usize, 0usize);
+    let (mut stitched_edges, mut compared, mut morphing) = (0usize, 0usize, 0usize);
     for (i, view) in poses().iter().enumerate() {
         let sel = settled(&mut s, view, 12);
         let streamed = draw::stitched_blocks(&grid, &s.cache, &sel);
         let mut memory: Vec<DrawBlock> = sel.blocks.iter().map(|b| DrawBlock::new(b.lod, b.bx, b.bz)).collect();
         let map = stitch_selection(&hf, &layout, &mut memory);
         assert_eq!(streamed.len(), memory.len(), "pose {i}");
+        morphing += sel.morphing;
         for (a, b) in streamed.iter().zip(&memory) {
-            assert_eq!(a.block, *b, "pose {i}");
+            // The same blocks and neighbours; the streamed ones morph (what the
+            // watertightness below checks with them).
+            assert_eq!(a.block.unmorphed(), *b, "pose {i}");
             stitched_edges += b.coarser.iter().filter(|&&c| c > 0).count();
         }
         let resident = draw::Resident { grid: &grid, cache: &s.cache };
@@ -247,6 +266,7 @@ fn streamed_blocks_stitch_from_held_tiles_as_in_memory() {
     }
     assert!(stitched_edges > 100, "the poses stitch blocks to coarser neighbours: {stitched_edges}");
     assert!(compared > 10_000, "edge samples compared: {compared}");
+    assert!(morphing > 100, "blocks morphing over the poses: {morphing}");
 }
 
 /// A sample no held tile has reads as NaN (so a block drawn from a missing tile cannot
@@ -294,6 +314,61 @@ fn the_audit_catches_a_selection_that_ignores_the_deviation() {
         })
         .fold(0.0f32, f32::max);
     assert!(worst > 10.0 * DELTA, "coarse blocks audit at {worst} px");
+}
+
+/// Streamed frames geomorph inside the bound (`stream::morph`): over the poses and a
+/// flight toward the horizon in short steps (blocks split and merge all along it, so
+/// many are caught just past their split, where the ramp gives nothing and the factor
+/// comes from the bound alone), every drawn block audits within delta on the rough field,
+/// and a good share of the blocks is between its parent's surface and its own. The same
+/// selections with the factors halved, or every block on its parent's surface, audit
+/// over delta: the audit sees the morph.
+#[test]
+fn morphed_streamed_frames_audit_within_delta_and_an_underpaid_morph_does_not() {
+    use vkterrain::lod::block::MORPH_ONE;
+    use vkterrain::lod::morph::MorphRule;
+    use vkterrain::stream::morph;
+    use vkterrain::stream::traverse::StripCache;
+    let Fixture { hf, archive, grid, _dir } = fixture("stream-morph");
+    let layout = BlockLayout::of(&hf, 33).unwrap();
+    let mut s = Streamer::new(archive, grid, 1 << 30);
+    let mut views = poses();
+    for i in 0..24 {
+        let p = DVec3::new(200.0 + 37.0 * f64::from(i), 130.0, 300.0 + 83.0 * f64::from(i));
+        views.push(View::look_at(p, p + DVec3::new(500.0, -40.0, 900.0), 45.0, 320, 240, 1.0));
+    }
+    let strips = StripCache::with_entries(1 << 14);
+    let (mut blocks, mut between, mut worst) = (0usize, 0usize, 0.0f32);
+    let (mut underpaid, mut on_parent) = (0.0f32, 0.0f32);
+    for (i, view) in views.iter().enumerate() {
+        let sel = settled(&mut s, view, 12);
+        let cam = camera(view);
+        assert_eq!(sel.stitched.len(), sel.blocks.len());
+        for (b, drawn) in sel.blocks.iter().zip(&sel.stitched) {
+            let audited = audit_block(&hf, &layout, drawn, &cam);
+            assert!(audited <= DELTA * 1.001, "view {i}: block {b:?} ({drawn:?}) audits at {audited} px");
+            worst = worst.max(audited);
+            between += usize::from(drawn.morph > 0 && drawn.morph < MORPH_ONE);
+        }
+        assert_eq!(
+            sel.morphing,
+            sel.stitched.iter().filter(|b| b.morph < MORPH_ONE || b.edge_morph.iter().any(|&e| e < MORPH_ONE)).count()
+        );
+        blocks += sel.blocks.len();
+        for (rule, worst_broken) in [(MorphRule::Underpaid, &mut underpaid), (MorphRule::ParentSurface, &mut on_parent)]
+        {
+            let mut broken = sel.clone();
+            broken.stitched.iter_mut().for_each(|b| *b = b.unmorphed());
+            morph::assign(&grid, &s.cache, &strips, view, DELTA, &mut broken, rule);
+            for drawn in &broken.stitched {
+                *worst_broken = worst_broken.max(audit_block(&hf, &layout, drawn, &cam));
+            }
+        }
+    }
+    println!("{blocks} blocks, {between} between their parent's surface and their own, worst {worst:.3} px; broken: halved {underpaid:.2} px, on the parent {on_parent:.2} px");
+    assert!(between * 5 > blocks, "{between} of {blocks} blocks morph part way");
+    assert!(underpaid > 1.2 * DELTA, "factors halved audit at {underpaid} px");
+    assert!(on_parent > 1.5 * DELTA, "parents' surfaces audit at {on_parent} px");
 }
 
 #[test]

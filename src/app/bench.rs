@@ -1228,6 +1228,7 @@ fn bench_streamed(
     let (cache_mb, gpu_mb) = (args.streamed.cache_mb(), args.streamed.gpu_mb());
     let layers = device.properties.limits.max_image_array_layers;
     let mut streamer = atlas_bound_streamer(archive.clone(), grid, cache_mb, gpu_mb, layers, &trace)?;
+    streamer.morph = crate::app::stream::morph_rule(args.common.morph);
     let range = top_tiles(&mut streamer, &archive.meta)?;
     let [wx, wz] = grid.world_extent().map(|e| e as f32);
     let near = crate::lod::view::near_plane_for(grid.spacing[0].min(grid.spacing[1]) as f32);

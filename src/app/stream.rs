@@ -3,11 +3,12 @@
 //! held and drew as JSON. With `--gpu-mb` every frame is also drawn on the GPU from the
 //! heightfield atlas ([`crate::draw::streamed`]); without it, frames are selections.
 
-use crate::app::cli::{CommonArgs, InputError};
+use crate::app::cli::{CommonArgs, InputError, OnOff};
 use crate::draw::lighting::Sun;
 use crate::draw::streamed::{FrameView, HeightRange, Overlay, StreamedRenderer, WindowImage};
 use crate::errors::atlas::HeightAtlas;
 use crate::input::archive::{Archive, Meta};
+use crate::lod::morph::MorphRule;
 use crate::lod::view::{near_plane_for, view_of_box};
 use crate::stream::io::TileSource;
 use crate::stream::streamer::{StreamStats, Streamer};
@@ -60,6 +61,15 @@ pub struct StreamArgs {
     /// validation) and report their messages.
     #[arg(long, requires = "gpu_mb")]
     pub validate: bool,
+    /// Geomorphing, paid for inside the bound from the tiles' summaries (as the other
+    /// commands' `--morph`).
+    #[arg(long, value_enum, default_value_t = OnOff::On)]
+    pub morph: OnOff,
+}
+
+/// How a streamer's drawn blocks morph for `--morph`.
+pub(crate) fn morph_rule(morph: OnOff) -> Option<MorphRule> {
+    (morph == OnOff::On).then_some(MorphRule::Bounded)
 }
 
 /// The GPU side of streamed frames: device, atlas and renderer, and what they did.
@@ -490,6 +500,7 @@ pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
     crate::app::cli::check_image_size(&f.device, "--size", (w, h))?;
     let layers = f.device.properties.limits.max_image_array_layers;
     let mut streamer = atlas_bound_streamer(f.archive.clone(), grid, f.cache_mb, f.gpu_mb, layers, &Trace::off())?;
+    streamer.morph = morph_rule(f.common.morph);
     let near = near_plane_for(grid.spacing[0].min(grid.spacing[1]) as f32);
     let extent = grid.world_extent();
     // The top tiles first: the default view frames the terrain's height range.
@@ -525,6 +536,8 @@ pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
         "blocks_over_bound": sel.over_bound,
         "worst_factor": sel.worst_factor,
         "stitch_splits": sel.stitch_splits,
+        "morph": f.common.morph == OnOff::On,
+        "morphing": sel.morphing,
         "blocks_missing_a_layer": missing,
         "frames_to_settle": streamer.stats.frames - frames_before,
         "settle_ms": settle_ms,
@@ -683,6 +696,7 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
         }
         _ => Streamer::new(archive.clone(), grid, args.cache_mb as usize * (1 << 20)),
     };
+    streamer.morph = morph_rule(args.morph);
     // The view at frame `f`, and the way it heads.
     let pose = |streamer: &Streamer, f: u32| {
         let (offset, way) = along_line(speed * f64::from(f) / fps, line);
@@ -710,7 +724,7 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
     streamer.stats.worst_factor = 1.0; // the flight's own worst
     let started = Instant::now();
     let period = Duration::from_secs_f64(1.0 / fps);
-    let mut blocks = 0u64;
+    let (mut blocks, mut morphing) = (0u64, 0u64);
     let mut selecting = Duration::ZERO;
     let mut altitude = 0.0;
     for f in 0..args.frames {
@@ -721,6 +735,7 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
         let sel = streamer.frame(&view, Some(&ahead), args.delta, 0.5);
         selecting += t0.elapsed();
         blocks += sel.blocks.len() as u64;
+        morphing += sel.morphing as u64;
         if let Some(g) = gpu.as_mut() {
             g.draw(&streamer, &grid, &view, &sel, None)?;
         }
@@ -753,6 +768,8 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
         "disk_bytes_read": match (read_before, disk_bytes_read()) { (Some(a), Some(b)) => Some(b - a), _ => None },
         "peak_resident_mb": crate::app::outputs::peak_resident_mb(),
         "blocks_per_frame": blocks as f64 / frames as f64,
+        "morph": args.morph == OnOff::On,
+        "morphing_per_frame": morphing as f64 / frames as f64,
         "select_ms_per_frame": 1e3 * selecting.as_secs_f64() / frames as f64,
         "seconds": seconds,
         "last_altitude": altitude,

@@ -7,7 +7,7 @@
 //! It has the in-memory viewer's camera controls ([`Controller`]) and a panel of its own
 //! ([`crate::app::stream_panel`]: frames over the bound, tiles held and read, delta, fog,
 //! speed, exaggeration and LOD colours; H hides it, F1 shows the keys); shading is plain
-//! (the in-memory colours without textures, shadows or morphing), and the window title
+//! (the in-memory colours without textures or shadows; blocks morph), and the window title
 //! carries the main figures too.
 
 use crate::app::cli::{check_messages, CommonArgs};
@@ -200,7 +200,7 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
     let m = &archive.meta;
     println!(
         "vkterrain: {shown}: {} x {} samples, {} tile levels, drawn streamed (cache {} MB, atlas {} MB); plain \
-         shading: no textures, shadows, morphing or occlusion culling yet",
+         shading: no textures, shadows or occlusion culling yet",
         m.width,
         m.height,
         m.top_level + 1,
@@ -217,6 +217,7 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
     let layers = crate::errors::atlas::MAX_LAYERS;
     let mut streamer =
         crate::app::stream::atlas_bound_streamer(archive.clone(), grid, args.cache_mb, args.gpu_mb, layers, &trace)?;
+    streamer.morph = crate::app::stream::morph_rule(args.common.morph);
     let range = top_tiles(&mut streamer, &archive.meta)?;
     let near = near_plane_for(grid.spacing[0].min(grid.spacing[1]) as f32);
     let (position, target) = args.common.view_points(|| start_view(&grid, range.world)).map_err(anyhow::Error::from)?;

@@ -194,6 +194,19 @@ impl TileData {
         self.heights.get((j + 1) * self.side + i + 1)
     }
 
+    /// `D` of group `(gx, gz)` (terrain group coordinates) of LOD `lod`, which this tile
+    /// serves (`D_0` is 0): the layout [`TileData::new`] reads.
+    pub fn group_d(&self, grid: &Grid, lod: u32, gx: usize, gz: usize) -> f32 {
+        if lod == 0 {
+            return 0.0;
+        }
+        let (t, level) = (grid.tile_quads, u32::from(self.key.level));
+        let offset: usize = (level.max(1)..lod).map(|j| (t >> (j - level)).pow(2)).sum();
+        let groups = t >> (lod - level);
+        let (lx, lz) = (gx - self.key.tx as usize * groups, gz - self.key.tz as usize * groups);
+        self.deviation[offset + lz * groups + lx]
+    }
+
     /// The summary of block `(bx, bz)` (terrain block coordinates) of LOD `lod`, which
     /// this tile serves.
     pub fn block(&self, grid: &Grid, lod: u32, bx: u32, bz: u32) -> BlockSummary {

@@ -19,9 +19,9 @@ pub struct StreamedBlock {
     pub tile: TileKey,
 }
 
-/// The blocks of `sel` stitched to each other (unmorphed: streamed frames do not
-/// geomorph yet), with the tiles they are drawn from: as the selection stitched them, or
-/// (a selection made without the stitching rule) stitched here.
+/// The blocks of `sel` stitched to each other, with the tiles they are drawn from: as the
+/// selection stitched (and morphed, [`super::morph`]) them, or (a selection made without
+/// the stitching rule) stitched here, unmorphed.
 pub fn stitched_blocks(grid: &Grid, cache: &HostCache, sel: &Selection) -> Vec<StreamedBlock> {
     let blocks = if sel.stitched.len() == sel.blocks.len() {
         sel.stitched.clone()
@@ -37,8 +37,9 @@ pub fn stitched_blocks(grid: &Grid, cache: &HostCache, sel: &Selection) -> Vec<S
 
 /// The parts of a streamed block that can be left out alone, with their boxes
 /// ([`part_boxes_by`]): each part's heights are the range of the squares of its tile's
-/// summary it covers, which holds every sample under them (and a streamed block's
-/// vertices are samples: it does not morph). `None` when its tile is not held.
+/// summary it covers, which holds every sample under them and every point of the
+/// block's surface and its parent's (a morphed vertex lies between its sample and the
+/// mean of two samples of its square). `None` when its tile is not held.
 pub fn part_boxes(grid: &Grid, cache: &HostCache, sb: &StreamedBlock) -> Option<Vec<PartBox>> {
     let b = &sb.block;
     let summary = cache.peek(sb.tile)?.block(grid, b.lod, b.bx, b.bz);

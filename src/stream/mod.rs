@@ -10,12 +10,15 @@
 //!   to the camera's sample, with the bound kept honest: a block that should split but
 //!   whose finer tile is not resident is drawn as it is, requested and counted.
 //!
+//! - [`morph`]: the drawn blocks' geomorph, paid for inside the bound from the tiles'
+//!   summaries;
 //! - [`draw`]: a selection's blocks stitched as the vertex shader draws them, read from
 //!   the held tiles.
 
 pub mod cache;
 pub mod draw;
 pub mod io;
+pub mod morph;
 pub mod streamer;
 pub mod traverse;
 

@@ -4,8 +4,10 @@
 
 use super::cache::{tile_bytes_estimate, HostCache, Refused, TileData};
 use super::io::{Io, Loaded, TileSource};
+use super::morph;
 use super::traverse::{select, Selection, StripCache, View};
 use super::{Grid, TileKey};
+use crate::lod::morph::MorphRule;
 use foldhash::{HashMap, HashMapExt, HashSet, HashSetExt};
 use std::sync::Arc;
 
@@ -70,6 +72,9 @@ pub struct Streamer {
     pub first_failure: Option<String>,
     /// What stitching costs each block configuration drawn (archive data: kept).
     strips: StripCache,
+    /// How drawn blocks morph ([`crate::stream::morph`]); `None`: they do not (`--morph
+    /// off`).
+    pub morph: Option<MorphRule>,
     /// The GPU atlas's way in, once attached.
     gate: Option<Box<dyn TileGate>>,
     /// Tiles sent through the gate and not back yet (not asked for again).
@@ -90,6 +95,7 @@ impl Streamer {
             // Four times the blocks of a frame to the horizon (about 4,000): the blocks a
             // flight keeps drawing are never measured again.
             strips: StripCache::with_entries(1 << 15),
+            morph: Some(MorphRule::Bounded),
             gate: None,
             gated: HashSet::new(),
         }
@@ -194,7 +200,10 @@ impl Streamer {
         self.take(arrived);
         self.cache.begin_frame();
         self.stats.frames += 1;
-        let sel = select(&self.grid, &self.cache, view, delta, prefetch, Some(&self.strips));
+        let mut sel = select(&self.grid, &self.cache, view, delta, prefetch, Some(&self.strips));
+        if let Some(rule) = self.morph {
+            sel.morphing = morph::assign(&self.grid, &self.cache, &self.strips, view, delta, &mut sel, rule);
+        }
         self.cache.mark_used(sel.used.iter().copied());
         self.cache.mark_kept(sel.kept.iter().copied());
         let mut wanted = sel.wanted.clone();

@@ -104,6 +104,8 @@ pub struct Selection {
     /// Blocks split because a finer neighbour's stitched strip exceeded delta, or would
     /// have met it in a T-junction.
     pub stitch_splits: usize,
+    /// Drawn blocks that morph ([`super::morph`]; 0 before it runs).
+    pub morphing: usize,
 }
 
 impl Selection {
@@ -114,7 +116,7 @@ impl Selection {
 }
 
 /// Relative world box of block `(lod, bx, bz)` between raw heights `lo` and `hi`.
-fn block_box(grid: &Grid, anchor: [i64; 2], lod: u32, bx: u32, bz: u32, lo: f32, hi: f32) -> (Vec3, Vec3) {
+pub(super) fn block_box(grid: &Grid, anchor: [i64; 2], lod: u32, bx: u32, bz: u32, lo: f32, hi: f32) -> (Vec3, Vec3) {
     let size = (BLOCK_QUADS << lod) as i64;
     square_of_samples_box(grid, anchor, [i64::from(bx) * size, i64::from(bz) * size], size, lo, hi)
 }
@@ -160,7 +162,14 @@ fn block_error_px(height_scale: f64, cam: &Camera, s: &BlockSummary, (min, max):
 /// `lo` and `hi`. The squares' edges: neighbours share theirs bit for bit, and the outer
 /// ones are the box's own, so the squares cover the box; heights are scaled as the box's
 /// are ([`block_box`]).
-fn square_box(height_scale: f64, (min, max): (Vec3, Vec3), sx: usize, sz: usize, lo: f32, hi: f32) -> (Vec3, Vec3) {
+pub(super) fn square_box(
+    height_scale: f64,
+    (min, max): (Vec3, Vec3),
+    sx: usize,
+    sz: usize,
+    lo: f32,
+    hi: f32,
+) -> (Vec3, Vec3) {
     let edge = |a: f32, b: f32, i: usize| if i == SUB { b } else { a + (b - a) * i as f32 / SUB as f32 };
     let y = |h: f32| (f64::from(h) * height_scale) as f32;
     (
