@@ -371,6 +371,55 @@ fn morphed_streamed_frames_audit_within_delta_and_an_underpaid_morph_does_not() 
     assert!(on_parent > 1.5 * DELTA, "parents' surfaces audit at {on_parent} px");
 }
 
+/// What streamed morphing is for, as in memory (`tests/traversal.rs`,
+/// `morphing_turns_jumps_into_small_steps`): along a low flight over Puget Sound in
+/// short steps, the drawn surface of settled streamed frames moves a little everywhere
+/// instead of jumping where blocks split or merge. The squared screen motion between
+/// consecutive frames ([`common::surface_motion`]) with morphing against without.
+#[test]
+fn streamed_morphing_turns_jumps_into_small_steps() {
+    use vkterrain::input::load::{self, LoadOptions};
+    let hf = load::load(&common::data("puget_sound/ps_height_1k.png"), &LoadOptions::default()).unwrap();
+    let dir = TempDir::new("stream-morph-motion");
+    let archive = common::archive_of(&hf, &dir);
+    let grid = Grid::from_meta(&archive.meta);
+    let layout = BlockLayout::of(&hf, 33).unwrap();
+    let (wx, wz) = hf.world_extent();
+    let views: Vec<View> = (0..24)
+        .map(|i| {
+            let (x, z) = (wx * (0.3 + 0.004 * i as f32), wz * 0.6);
+            let p = DVec3::new(f64::from(x), f64::from(hf.surface_height(x, z) + 600.0), f64::from(z));
+            View::look_at(p, p + DVec3::new(1.0, -0.25, -0.3), 60.0, 640, 480, 8.0)
+        })
+        .collect();
+    let mut motion = [0.0f64; 2];
+    let mut partial = 0usize;
+    for (on, total) in [false, true].into_iter().zip(motion.iter_mut()) {
+        let mut s = Streamer::new(archive.clone(), grid, 1 << 30);
+        if !on {
+            s.morph = None;
+        }
+        let mut before: Option<Vec<f32>> = None;
+        for view in &views {
+            let sel = settled(&mut s, view, 16);
+            let cam = camera(view);
+            if on {
+                partial +=
+                    sel.stitched.iter().filter(|b| b.morph > 0 && b.morph < vkterrain::lod::block::MORPH_ONE).count();
+            }
+            let surface = common::drawn_surface(&hf, &layout, &sel.stitched);
+            if let Some(b) = &before {
+                *total += common::surface_motion(&hf, &cam, b, &surface);
+            }
+            before = Some(surface);
+        }
+    }
+    let [off, on] = motion;
+    println!("low flight, streamed: squared screen motion of the drawn surface, no morph {off:.0}, morph {on:.0} (ratio {:.3}); {partial} blocks part way", on / off);
+    assert!(partial > views.len(), "too few morph states to test ({partial})");
+    assert!(off > 0.0 && on < off / 2.0, "morphing {on}, without {off}");
+}
+
 #[test]
 fn a_cache_too_small_for_the_path_counts_every_frame_over_the_bound_honestly() {
     let Fixture { hf, archive, grid, _dir } = fixture("stream-small");

@@ -802,23 +802,6 @@ fn audit_catches_unpaid_morphs() {
     );
 }
 
-/// Drawn surface height (raw) at every covered sample, NaN where nothing is drawn.
-fn drawn_surface(hf: &Heightfield, layout: &BlockLayout, t: &Traversal) -> Vec<f32> {
-    let mut h = vec![f32::NAN; hf.width * hf.height];
-    for b in &t.blocks {
-        let (ox, oz) = b.origin(layout);
-        let side = layout.block_samples(b.lod) as usize;
-        for z in oz as usize..(oz as usize + side + 1).min(hf.height) {
-            for x in ox as usize..(ox as usize + side + 1).min(hf.width) {
-                if let Some(r) = vkterrain::lod::audit::rendered_raw(hf, layout, b, x as i64, z as i64) {
-                    h[z * hf.width + x] = r;
-                }
-            }
-        }
-    }
-    h
-}
-
 /// Screen displacement of the drawn surface between consecutive frames, summed over
 /// every visible sample (squared pixels, each weighted by the screen area of a sample
 /// spacing there), with error data refreshed every fourth frame and stale (corrected) in
@@ -847,26 +830,9 @@ fn surface_displacement(
             let a = audit(hf, layout, &t, cam);
             assert!(a.max_error_px <= 1.01, "morphing frame at {:?}: audited {} px", cam.position, a.max_error_px);
         }
-        let surface = drawn_surface(hf, layout, &t);
+        let surface = drawn_surface(hf, layout, &t.blocks);
         if let Some(prev) = &previous {
-            let vp = cam.view_proj();
-            let frustum = cam.frustum();
-            assert_eq!(surface.len(), prev.len(), "surfaces of two frames");
-            for (i, (&a, &b)) in surface.iter().zip(prev).enumerate() {
-                if a.is_nan() || b.is_nan() || a == b {
-                    continue;
-                }
-                let (x, z) = ((i % hf.width) as f32 * hf.spacing.x, (i / hf.width) as f32 * hf.spacing.z);
-                let pa = Vec3::new(x, a * hf.height_scale, z);
-                let pb = Vec3::new(x, b * hf.height_scale, z);
-                if !frustum.contains_point(pa) || !frustum.contains_point(pb) {
-                    continue;
-                }
-                if let (Some(qa), Some(qb)) = (cam.project(&vp, pa), cam.project(&vp, pb)) {
-                    let area = (hf.spacing.min() * cam.kappa() / (pa - cam.position).length()).powi(2).min(1e4);
-                    energy += (((qa.0 - qb.0).powi(2) + (qa.1 - qb.1).powi(2)) * area) as f64;
-                }
-            }
+            energy += surface_motion(hf, cam, prev, &surface);
         }
         previous = Some(surface);
     }

@@ -239,3 +239,50 @@ pub fn terrain_pixels(img: &image::RgbaImage) -> usize {
         .collect();
     img.pixels().filter(|p| !sky.iter().any(|s| (0..3).all(|k| (f32::from(p[k]) - s[k]).abs() <= 3.0))).count()
 }
+
+/// Drawn surface height (raw) at every sample `blocks` cover, NaN where nothing is drawn.
+pub fn drawn_surface(
+    hf: &Heightfield,
+    layout: &vkterrain::lod::block::BlockLayout,
+    blocks: &[vkterrain::lod::block::DrawBlock],
+) -> Vec<f32> {
+    let mut h = vec![f32::NAN; hf.width * hf.height];
+    for b in blocks {
+        let (ox, oz) = b.origin(layout);
+        let side = layout.block_samples(b.lod) as usize;
+        for z in oz as usize..(oz as usize + side + 1).min(hf.height) {
+            for x in ox as usize..(ox as usize + side + 1).min(hf.width) {
+                if let Some(r) = vkterrain::lod::audit::rendered_raw(hf, layout, b, x as i64, z as i64) {
+                    h[z * hf.width + x] = r;
+                }
+            }
+        }
+    }
+    h
+}
+
+/// Screen motion between two drawn surfaces ([`drawn_surface`]) seen by `cam`: over
+/// every sample drawn in both, inside the frustum, the squared pixel distance between
+/// its two drawn points, weighted by the screen area of a sample spacing there.
+pub fn surface_motion(hf: &Heightfield, cam: &vkterrain::lod::camera::Camera, before: &[f32], now: &[f32]) -> f64 {
+    assert_eq!(now.len(), before.len(), "surfaces of two frames");
+    let vp = cam.view_proj();
+    let frustum = cam.frustum();
+    let mut energy = 0.0f64;
+    for (i, (&a, &b)) in now.iter().zip(before).enumerate() {
+        if a.is_nan() || b.is_nan() || a == b {
+            continue;
+        }
+        let (x, z) = ((i % hf.width) as f32 * hf.spacing.x, (i / hf.width) as f32 * hf.spacing.z);
+        let pa = glam::Vec3::new(x, a * hf.height_scale, z);
+        let pb = glam::Vec3::new(x, b * hf.height_scale, z);
+        if !frustum.contains_point(pa) || !frustum.contains_point(pb) {
+            continue;
+        }
+        if let (Some(qa), Some(qb)) = (cam.project(&vp, pa), cam.project(&vp, pb)) {
+            let area = (hf.spacing.min() * cam.kappa() / (pa - cam.position).length()).powi(2).min(1e4);
+            energy += (((qa.0 - qb.0).powi(2) + (qa.1 - qb.1).powi(2)) * area) as f64;
+        }
+    }
+    energy
+}
