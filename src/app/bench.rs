@@ -1267,9 +1267,9 @@ fn bench_streamed(
     );
     let mut progress = Progress::new("streamed", frames);
     let mut csv = String::from(
-        "time_s,frame_ms,select_ms,draw_ms,blocks,triangles,hidden_parts,over_bound,worst_factor,tiles_held\n",
+        "time_s,frame_ms,select_ms,draw_ms,blocks,triangles,hidden_parts,morphing,over_bound,worst_factor,tiles_held\n",
     );
-    let (mut frame_ms, mut triangles) = (Vec::new(), 0u64);
+    let (mut frame_ms, mut triangles, mut morphing) = (Vec::new(), 0u64, 0u64);
     let started = Instant::now();
     for i in 0..frames {
         if signals.requested() {
@@ -1290,12 +1290,14 @@ fn bench_streamed(
         trace.counter("tiles held", streamer.cache.len() as u64);
         frame_ms.push(ms);
         triangles += gpu.triangles;
+        morphing += sel.morphing as u64;
         csv += &format!(
-            "{:.4},{ms:.3},{select_ms:.3},{draw_ms:.3},{},{},{},{},{:.4},{}\n",
+            "{:.4},{ms:.3},{select_ms:.3},{draw_ms:.3},{},{},{},{},{},{:.4},{}\n",
             camera(i).2,
             gpu.blocks,
             gpu.triangles,
             gpu.hidden_parts,
+            sel.morphing,
             sel.over_bound,
             sel.worst_factor,
             streamer.cache.len()
@@ -1316,6 +1318,8 @@ fn bench_streamed(
         "mean_frame_ms": mean,
         "p99_frame_ms": (!sorted.is_empty()).then(|| percentile(&sorted, 0.99)),
         "mean_triangles": triangles as f64 / drawn.max(1) as f64,
+        "morph": args.common.morph == crate::app::cli::OnOff::On,
+        "mean_morphing_blocks": morphing as f64 / drawn.max(1) as f64,
         "frames_over_bound": stats.frames_over_bound,
         "worst_factor": stats.worst_factor,
         "delta": args.delta,
