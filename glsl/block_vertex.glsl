@@ -39,6 +39,11 @@ const ivec2 EDGE_CORNERS[4] = ivec2[4](ivec2(0, 1), ivec2(1, 2), ivec2(3, 2), iv
 // `s + d` (d = 0: not morphed). The three fetches then run once. llvmpipe runs every
 // side of a branch that differs between the vertices it shades together, so fetches
 // inside the branches were paid for up to three times over.
+// The raw height of the sample the last placed vertex stands on, before any morph or
+// stitching moved it (streamed frames decide water from it, as memory decides it from
+// the samples: morphing must not move the shore).
+float placed_sample_raw;
+
 vec3 place_block_vertex(ivec2 local) {
     int last = frame.extent.w - 1;
     int stride = block_pc.block.z;
@@ -110,6 +115,7 @@ vec3 place_block_vertex(ivec2 local) {
     }
 
     float raw = raw_at(s);
+    placed_sample_raw = raw;
     precise float p = (raw_at(s - d) + raw_at(s + d)) * 0.5;
     float h = given ? given_raw : (d == ivec2(0) ? raw : morph_raw(p, raw, f));
     // Integer sample coordinates relative to the anchor before any float (SPEC 8): a

@@ -14,8 +14,9 @@ layout(set = 0, binding = TERRAIN_BINDING_HEIGHTS) uniform sampler2DArray height
 layout(location = 0) in uvec2 in_local;
 layout(location = 0) out vec3 v_relative;
 layout(location = 1) out vec2 v_sample;
-// 1 at a vertex at or below sea level: interpolated, the share of sea around a point
-// (streamed tiles bring no per-sample flags; in memory the four samples around it).
+// 1 at a vertex whose sample is at or below sea level (its sample's, not its morphed
+// height): interpolated, the share of sea around a point (streamed tiles bring no
+// per-sample flags; in memory the four samples around it).
 layout(location = 2) out float v_sea;
 // The block's LOD (the colour-by-LOD view).
 layout(location = 3) flat out int v_lod;
@@ -26,7 +27,7 @@ void main() {
     // Samples from the terrain's origin, for the true-extent test (exact enough: it
     // only decides the last half sample at the far edges).
     v_sample = p.xz / frame.spacing.xy + vec2(frame.anchor.xy);
-    v_sea = float(p.y <= frame.texturing.w);
+    v_sea = float(placed_sample_raw * frame.terrain.y <= frame.texturing.w);
     v_lod = block_pc.block.w;
     gl_Position = frame.view_proj * vec4(p, 1.0);
 }
