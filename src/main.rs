@@ -41,12 +41,16 @@ enum Command {
 }
 
 fn main() -> ExitCode {
-    tracing_subscriber::fmt()
-        .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into()))
+    let logging = tracing_subscriber::fmt()
         .with_writer(std::io::stderr)
         // Colour codes only on a terminal: a log file or CI gets plain text.
-        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
-        .init();
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()));
+    match tracing_subscriber::EnvFilter::try_from_default_env() {
+        // RUST_LOG asks for a log: tracing's own lines, with times and places.
+        Ok(filter) => logging.with_env_filter(filter).init(),
+        // Else warnings read like the program's other messages.
+        Err(_) => logging.with_env_filter("warn").event_format(Plain).init(),
+    }
     // Usage errors are one line naming the option, exit code 2; help and version print
     // as usual.
     let cli = match Cli::try_parse() {
@@ -111,4 +115,29 @@ fn error_chain(e: &anyhow::Error) -> String {
         }
     }
     line
+}
+
+/// Warnings and errors as `vkterrain: warning: ...`, as the program's own notes print.
+struct Plain;
+
+impl<S, N> tracing_subscriber::fmt::FormatEvent<S, N> for Plain
+where
+    S: tracing::Subscriber + for<'a> tracing_subscriber::registry::LookupSpan<'a>,
+    N: for<'a> tracing_subscriber::fmt::FormatFields<'a> + 'static,
+{
+    fn format_event(
+        &self,
+        ctx: &tracing_subscriber::fmt::FmtContext<'_, S, N>,
+        mut writer: tracing_subscriber::fmt::format::Writer<'_>,
+        event: &tracing::Event<'_>,
+    ) -> std::fmt::Result {
+        let level = match *event.metadata().level() {
+            tracing::Level::ERROR => "error",
+            tracing::Level::WARN => "warning",
+            _ => "note",
+        };
+        write!(writer, "vkterrain: {level}: ")?;
+        ctx.field_format().format_fields(writer.by_ref(), event)?;
+        writeln!(writer)
+    }
 }

@@ -631,11 +631,18 @@ fn the_stream_command_flies_within_its_budget_and_degrades_on_a_damaged_archive(
     let a = archive.to_str().unwrap();
     let o = cli(&["prepare", "--synthetic", "2049", "--out", a]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    // RUST_LOG unset, as a user runs it (the tests' runner asks for errors only).
     let fly = |path: &str| {
-        let o =
-            cli(&["stream", path, "--cache-mb", "8", "--frames", "360", "--fps", "120", "--speed", "8000", "--cold"]);
+        let args = ["stream", path, "--cache-mb", "8", "--frames", "360", "--fps", "120", "--speed", "8000", "--cold"];
+        let o = common::run_bounded_logging(&args.map(String::from), 600, None);
         assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-        serde_json::from_slice::<serde_json::Value>(&o.stdout).unwrap()
+        let r = serde_json::from_slice::<serde_json::Value>(&o.stdout).unwrap();
+        // Warnings read as the program's other messages, one line each.
+        let err = String::from_utf8_lossy(&o.stderr);
+        for line in err.lines().filter(|l| l.contains("streaming:")) {
+            assert!(line.starts_with("vkterrain: warning: streaming: "), "{line}");
+        }
+        (r, err.contains("vkterrain: warning: streaming: "))
     };
     // A frame's step longer than the flight's whole line is refused (exit 2), not flown.
     let o = cli(&["stream", a, "--frames", "10", "--speed", "1e30"]);
@@ -663,7 +670,7 @@ fn the_stream_command_flies_within_its_budget_and_degrades_on_a_damaged_archive(
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(2), "{err}");
     assert!(err.contains("top tiles could not be read") && err.contains("moved.pmtiles"), "{err}");
-    let r = fly(a);
+    let (r, _) = fly(a);
     let stats = &r["stats"];
     assert_eq!(r["frames"], 360);
     assert_eq!(r["frames_over_bound"], stats["frames_over_bound"]);
@@ -674,7 +681,8 @@ fn the_stream_command_flies_within_its_budget_and_degrades_on_a_damaged_archive(
     let bytes = std::fs::read(&archive).unwrap();
     let cut = dir.path().join("cut.pmtiles");
     std::fs::write(&cut, &bytes[..bytes.len() / 2]).unwrap();
-    let r = fly(cut.to_str().unwrap());
+    let (r, warned) = fly(cut.to_str().unwrap());
+    assert!(warned, "the damaged tiles are warned about");
     let failure = r["first_failure"].as_str().unwrap_or_else(|| panic!("no failure reported: {r}"));
     assert!(failure.contains("cut.pmtiles") && failure.contains("tile ") && failure.contains("truncated"), "{failure}");
     assert!(r["stats"]["tiles_failed"].as_u64().unwrap() > 0);

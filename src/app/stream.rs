@@ -559,11 +559,8 @@ pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
     let mesh = f.export_mesh.then(|| {
         let resident = crate::stream::draw::Resident { grid: &grid, cache: &streamer.cache };
         let world = |x: i64, z: i64, raw: f32| {
-            [
-                (x as f64 * grid.spacing[0]) as f32,
-                (f64::from(raw) * grid.height_scale) as f32,
-                (z as f64 * grid.spacing[1]) as f32,
-            ]
+            let [wx, wz] = grid.world_xz(x as f64, z as f64);
+            [wx as f32, (f64::from(raw) * grid.height_scale) as f32, wz as f32]
         };
         let surface = crate::lod::mesh::MeshSurface {
             last: [grid.width as i64 - 1, grid.height as i64 - 1],

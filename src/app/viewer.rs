@@ -402,11 +402,6 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
         anyhow::anyhow!("cannot open a window ({e}); is DISPLAY set? Use `vkterrain render` for headless output")
     })?;
     event_loop.set_control_flow(ControlFlow::Poll);
-    // The same table as the panel's key help (F1).
-    println!("keys:");
-    for (k, what) in crate::app::hud::KEYS {
-        println!("  {k:<13} {what}");
-    }
     let now = Instant::now();
     let geo = crate::app::geo::Geo::new(&hf.georef, hf.spacing);
     let ctl = Controller::new(cam.position, f, l / 60.0, args.walk);
@@ -459,6 +454,11 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
             .into());
         }
         app.go_to(lat, lon).map_err(|e| InputError(format!("--go-to {e}")))?;
+    }
+    // Once the options are accepted. The same table as the panel's key help (F1).
+    println!("keys:");
+    for (k, what) in crate::app::hud::KEYS {
+        println!("  {k:<13} {what}");
     }
     let mut windowed = Windowed(app);
     event_loop.run_app(&mut windowed)?;

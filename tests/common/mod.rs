@@ -99,9 +99,18 @@ impl Drop for TempDir {
 /// if it is still running after `limit_s` seconds: a bad input must end a run, never
 /// block it (a FIFO read would).
 pub fn run_bounded(args: &[String], limit_s: u64) -> std::process::Output {
-    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_vkterrain"))
+    run_bounded_logging(args, limit_s, Some("error"))
+}
+
+/// [`run_bounded`] with `RUST_LOG` set to `log`, or unset (`None`: as a user runs it).
+pub fn run_bounded_logging(args: &[String], limit_s: u64, log: Option<&str>) -> std::process::Output {
+    let mut command = std::process::Command::new(env!("CARGO_BIN_EXE_vkterrain"));
+    match log {
+        Some(l) => command.env("RUST_LOG", l),
+        None => command.env_remove("RUST_LOG"),
+    };
+    let mut child = command
         .args(args)
-        .env("RUST_LOG", "error")
         .stdout(std::process::Stdio::piped())
         .stderr(std::process::Stdio::piped())
         .spawn()
