@@ -722,4 +722,34 @@ fn a_stream_prepared_on_the_fly_and_stopped_leaves_nothing() {
         assert!(!private.exists(), "SIG{signal}: {} left behind", private.display());
         assert!(std::fs::read_dir(&out).unwrap().next().is_none(), "SIG{signal}: an output was written");
     }
+    // Stopped once the archive is open (its directory gone), while the frame is drawn and
+    // audited: the preparation's handlers are obeyed, so the run ends as the signal asks
+    // (it used to draw on and exit 0), writing nothing.
+    let tmp = TempDir::new("gpu-stream-stop-after");
+    let out = tmp.path().join("out");
+    std::fs::create_dir(&out).unwrap();
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_vkterrain"))
+        .args(["render", "--heightmap", ps.to_str().unwrap(), "--stream", "--validation", "on", "--audit"])
+        .args(["--size", "640x480", "--out", out.join("x.png").to_str().unwrap()])
+        .env("TMPDIR", tmp.path())
+        .env("RUST_LOG", "error")
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let private = tmp.path().join(format!("vkterrain-streamed-{}", child.id()));
+    let started = std::time::Instant::now();
+    let (mut seen, mut gone) = (false, false);
+    while !gone {
+        assert!(child.try_wait().unwrap().is_none(), "the run ended before it was stopped");
+        assert!(started.elapsed().as_secs() < 240, "the preparation did not end in 240 s");
+        seen |= private.exists();
+        gone = seen && !private.exists();
+        std::thread::sleep(std::time::Duration::from_millis(5));
+    }
+    let kill = std::process::Command::new("kill").args(["-TERM", &child.id().to_string()]).status().unwrap();
+    assert!(kill.success());
+    let status = child.wait().unwrap();
+    assert_eq!(status.code(), Some(143), "stopped after the preparation: {status:?}");
+    assert!(std::fs::read_dir(&out).unwrap().next().is_none(), "stopped after the preparation: an output was written");
 }

@@ -899,7 +899,8 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     };
     let device = crate::app::commands::open_device(&args.common)?;
     let max_side = || device.max_image_dimension_2d() as usize;
-    if let Some(archive) = crate::app::stream::streamed_archive(&args.common, args.streamed.stream, max_side)? {
+    // The bench polls its own stop handlers (`signals`), not a preparation's.
+    if let Some((archive, _)) = crate::app::stream::streamed_archive(&args.common, args.streamed.stream, max_side)? {
         return bench_streamed(args, device, archive, poses, frames, &signals);
     }
     args.streamed.note_unused();

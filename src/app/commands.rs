@@ -242,8 +242,8 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
     let shading = args.textures.shade(shading);
     let device = open_device(&args.common)?;
     let max_side = || device.max_image_dimension_2d() as usize;
-    if let Some(archive) = crate::app::stream::streamed_archive(&args.common, args.streamed.stream, max_side)? {
-        return render_streamed(args, device, archive);
+    if let Some((archive, stop)) = crate::app::stream::streamed_archive(&args.common, args.streamed.stream, max_side)? {
+        return render_streamed(args, device, archive, stop.as_ref());
     }
     args.streamed.note_unused();
     let s = Session::with_device(device, &args.common, Some(&args.textures))?;
@@ -356,7 +356,13 @@ fn audit_into(out: &mut serde_json::Value, a: &audit::AuditResult, delta: f32) {
 }
 
 /// `render` over an archive drawn streamed ([`crate::app::stream::render_archive`]).
-fn render_streamed(args: &RenderArgs, device: Arc<Device>, archive: Arc<Archive>) -> anyhow::Result<()> {
+/// `stop`: the signal handlers a preparation on the fly left (obeyed between steps).
+fn render_streamed(
+    args: &RenderArgs,
+    device: Arc<Device>,
+    archive: Arc<Archive>,
+    stop: Option<&crate::app::signals::Stop>,
+) -> anyhow::Result<()> {
     let shown = crate::app::stream::terrain_name(&args.common);
     let refused = args.not_streamed();
     if !refused.is_empty() {
@@ -369,7 +375,7 @@ fn render_streamed(args: &RenderArgs, device: Arc<Device>, archive: Arc<Archive>
     let m = &archive.meta;
     eprintln!(
         "vkterrain: {shown}: {} x {} samples, {} tile levels, drawn streamed (cache {} MB, atlas {} MB); plain \
-         shading: no textures, shadows, morphing or occlusion culling yet",
+         shading: no textures, shadows or occlusion culling yet",
         m.width,
         m.height,
         m.top_level + 1,
@@ -389,14 +395,9 @@ fn render_streamed(args: &RenderArgs, device: Arc<Device>, archive: Arc<Archive>
         colour_by_lod: args.colour_by_lod,
         background: args.background.as_deref().map(parse_background).transpose()?,
         export_mesh: args.export_mesh.is_some(),
+        stop,
     })?;
-    save_png(&args.out, r.width, r.height, &r.pixels)?;
     let mut out = r.report;
-    if let (Some(path), Some(m)) = (&args.export_mesh, &r.mesh) {
-        let facts = crate::app::outputs::TerrainFacts::of_archive(&archive.meta, &args.common);
-        crate::app::export::write_glb(path, m, &facts)?;
-        mesh_into(&mut out, m);
-    }
     if args.audit {
         // Offline, against every sample (SPEC 8): the whole terrain in memory, which the
         // streamed path itself never holds.
@@ -417,6 +418,14 @@ fn render_streamed(args: &RenderArgs, device: Arc<Device>, archive: Arc<Archive>
         // not the in-memory one for every size: the samples beyond the true extent repeat
         // its edge in both.
         audit_into(&mut out, &audit::audit_blocks(&hf, &r.layout, &r.drawn, &cam), args.delta);
+    }
+    // Outputs last, so that a stop asked for before leaves none.
+    crate::app::stream::exit_if_stopped(stop);
+    save_png(&args.out, r.width, r.height, &r.pixels)?;
+    if let (Some(path), Some(m)) = (&args.export_mesh, &r.mesh) {
+        let facts = crate::app::outputs::TerrainFacts::of_archive(&archive.meta, &args.common);
+        crate::app::export::write_glb(path, m, &facts)?;
+        mesh_into(&mut out, m);
     }
     out["queue_mode"] = json!(queue_mode);
     out["error_mode"] = json!(args.common.error_mode.as_str());

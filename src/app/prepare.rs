@@ -2,6 +2,7 @@
 //! Ctrl-C, the report).
 
 use crate::app::cli::InputError;
+use crate::app::signals::Stop;
 use crate::input::georef::{self, WindowReader};
 use crate::input::load::{self, LoadOptions, VoidMode};
 use crate::lod::heightfield::{Georef, Spacing};
@@ -173,7 +174,7 @@ impl Drop for MosaicDir {
 }
 
 pub fn prepare(args: &PrepareArgs) -> anyhow::Result<()> {
-    let json = prepare_archive(args, &|| {})?;
+    let (json, _) = prepare_archive(args, &|| {})?;
     println!("{}", serde_json::to_string_pretty(&json)?);
     Ok(())
 }
@@ -189,11 +190,13 @@ pub(crate) fn raster_size(path: &Path) -> Option<(usize, usize)> {
 /// A terrain file prepared on the fly into an archive, to be drawn streamed: written into
 /// a private temporary directory and opened, then the directory is removed (the open
 /// handle keeps the file readable until the archive is dropped), so nothing is left
-/// behind; a directory a killed run left is removed by the next.
+/// behind; a directory a killed run left is removed by the next. With the archive, the
+/// stop signals' handlers the preparation installed (SIGINT, SIGTERM and SIGHUP no longer
+/// end the process by themselves): a caller that installs none of its own polls these.
 pub(crate) fn prepare_on_the_fly(
     path: &Path,
     common: &crate::app::cli::CommonArgs,
-) -> anyhow::Result<crate::input::archive::Archive> {
+) -> anyhow::Result<(crate::input::archive::Archive, Stop)> {
     for stale in crate::input::left_by_dead_runs(&std::env::temp_dir(), ON_THE_FLY_PREFIX) {
         let _ = std::fs::remove_dir_all(stale);
     }
@@ -214,8 +217,10 @@ pub(crate) fn prepare_on_the_fly(
     let remove_dir = || {
         let _ = std::fs::remove_dir_all(&dir);
     };
-    let opened = prepare_archive(&args, &remove_dir)
-        .and_then(|_| crate::input::archive::Archive::open(&args.out).map_err(|e| InputError(e.to_string()).into()));
+    let opened = prepare_archive(&args, &remove_dir).and_then(|(_, stop)| {
+        let archive = crate::input::archive::Archive::open(&args.out).map_err(|e| InputError(e.to_string()))?;
+        Ok((archive, stop))
+    });
     let _ = std::fs::remove_dir_all(&dir);
     opened
 }
@@ -223,7 +228,7 @@ pub(crate) fn prepare_on_the_fly(
 /// [`prepare`] without printing its report: the report. A stop signal ends the process
 /// (128 + the signal) once the partial output is gone, after `before_exit` (the caller's
 /// own cleaning: exit() runs no destructors).
-fn prepare_archive(args: &PrepareArgs, before_exit: &dyn Fn()) -> anyhow::Result<serde_json::Value> {
+fn prepare_archive(args: &PrepareArgs, before_exit: &dyn Fn()) -> anyhow::Result<(serde_json::Value, Stop)> {
     if args.out.is_dir() {
         return Err(InputError(format!(
             "--out {}: is a directory; name the archive file to write",
@@ -233,7 +238,7 @@ fn prepare_archive(args: &PrepareArgs, before_exit: &dyn Fn()) -> anyhow::Result
     }
     // First of all (SIGINT, SIGTERM, SIGHUP), so every run that can clean up does (a
     // signal while a mosaic is read whole takes effect when the read ends).
-    let stop = super::signals::Stop::install();
+    let stop = Stop::install();
     remove_stale_mosaics();
     let files = expand_inputs(&args.input)?;
     for input in &files {
@@ -433,7 +438,7 @@ fn prepare_archive(args: &PrepareArgs, before_exit: &dyn Fn()) -> anyhow::Result
         report.seconds,
         peak.map_or("unknown".into(), |mb| format!("{mb:.0} MB")),
     );
-    Ok(json)
+    Ok((json, stop))
 }
 
 #[derive(clap::Args, Debug)]

@@ -4,6 +4,7 @@
 //! heightfield atlas ([`crate::draw::streamed`]); without it, frames are selections.
 
 use crate::app::cli::{CommonArgs, InputError, OnOff};
+use crate::app::signals::Stop;
 use crate::draw::lighting::Sun;
 use crate::draw::streamed::{FrameView, HeightRange, Overlay, StreamedRenderer, WindowImage};
 use crate::errors::atlas::HeightAtlas;
@@ -401,11 +402,14 @@ pub fn terrain_name(common: &CommonArgs) -> String {
 
 /// The archive `common.heightmap` names when a command draws it streamed: with
 /// `--stream`, or when its grid is larger than one image (`max_side()`, the device's).
+/// A file prepared on the fly comes with the stop signals' handlers its preparation
+/// installed ([`crate::app::prepare::prepare_on_the_fly`]), for a caller with none of its
+/// own to poll.
 pub fn streamed_archive(
     common: &CommonArgs,
     stream: bool,
     max_side: impl FnOnce() -> usize,
-) -> anyhow::Result<Option<Arc<Archive>>> {
+) -> anyhow::Result<Option<(Arc<Archive>, Option<Stop>)>> {
     let Some(path) = common.heightmap.as_deref() else {
         if stream {
             return Err(InputError("--stream draws a terrain file or archive: give one with --heightmap".into()).into());
@@ -438,7 +442,8 @@ pub fn streamed_archive(
             ))
             .into());
         }
-        return Ok(Some(Arc::new(crate::app::prepare::prepare_on_the_fly(path, common)?)));
+        let (archive, stop) = crate::app::prepare::prepare_on_the_fly(path, common)?;
+        return Ok(Some((Arc::new(archive), Some(stop))));
     }
     if common.voids == crate::input::load::VoidMode::Hole {
         return Ok(None); // refused by the loader, naming the archive
@@ -454,7 +459,7 @@ pub fn streamed_archive(
     if !stream && (archive.grid_side() <= 4096 || archive.grid_side() <= max_side()) {
         return Ok(None);
     }
-    Ok(Some(Arc::new(archive)))
+    Ok(Some((Arc::new(archive), None)))
 }
 
 /// One frame of an archive drawn streamed (`render` over an archive larger than one
@@ -473,6 +478,17 @@ pub struct ArchiveFrame<'a> {
     pub background: Option<[f32; 3]>,
     /// Also make the drawn mesh (`render --export-mesh`), from the tiles the frame held.
     pub export_mesh: bool,
+    /// Stop signals to obey between the frame's steps (a run with handlers installed,
+    /// which then no longer end it by themselves), exiting with 128 + the signal.
+    pub stop: Option<&'a Stop>,
+}
+
+/// Ends the process as the signal would have, once a stop was asked for.
+pub(crate) fn exit_if_stopped(stop: Option<&Stop>) {
+    if let Some(s) = stop.filter(|s| s.requested()) {
+        eprintln!("vkterrain: interrupted: no output written");
+        std::process::exit(s.exit_code());
+    }
 }
 
 /// What [`render_archive`] drew: the pixels and the JSON facts.
@@ -505,6 +521,7 @@ pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
     let extent = grid.world_extent();
     // The top tiles first: the default view frames the terrain's height range.
     let range = top_tiles(&mut streamer, &f.archive.meta)?;
+    exit_if_stopped(f.stop);
     let (position, look_at) =
         f.common.view_points(|| view_of_box(extent.map(|e| e as f32), range.world, f.common.fovy, w, h, near))?;
     let view = View::look_at(position.as_dvec3(), look_at.as_dvec3(), f.common.fovy, w, h, near);
@@ -514,6 +531,7 @@ pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
     let frames_before = streamer.stats.frames;
     streamer.stats.worst_factor = 1.0;
     let (_, sel) = settle(&mut streamer, |_| view, f.delta);
+    exit_if_stopped(f.stop);
     let settle_ms = warm.elapsed().as_secs_f64() * 1e3;
     let mut gpu = GpuFrames::new(f.device.clone(), &mut streamer, f.gpu_mb, range, (w, h), &Trace::off())?;
     gpu.fog = f.fog;
@@ -521,6 +539,7 @@ pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
     gpu.background = f.background;
     gpu.sun(f.common.sun.0);
     gpu.draw(&streamer, &grid, &view, &sel, None)?;
+    exit_if_stopped(f.stop);
     let missing = gpu.frames_missing_blocks > 0;
     let report = serde_json::json!({
         "width": w,

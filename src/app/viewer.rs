@@ -318,8 +318,9 @@ fn view_archive(args: &ViewArgs, resizes: &[(u64, u32, u32)]) -> anyhow::Result<
         let options = DeviceOptions { gpu: args.common.gpu.clone(), queues: args.common.queues, swapchain: false };
         Device::new(instance, &options).ok().map(|d| d.max_image_dimension_2d() as usize)
     };
-    // Without a device the in-memory path says why, as before.
-    let Some(archive) =
+    // Without a device the in-memory path says why, as before. The viewer installs its
+    // own stop handlers (a preparation's are not needed).
+    let Some((archive, _)) =
         crate::app::stream::streamed_archive(&args.common, args.streamed.stream, || max_side().unwrap_or(usize::MAX))?
     else {
         args.streamed.note_unused();
