@@ -753,3 +753,57 @@ fn a_stream_prepared_on_the_fly_and_stopped_leaves_nothing() {
     assert_eq!(status.code(), Some(143), "stopped after the preparation: {status:?}");
     assert!(std::fs::read_dir(&out).unwrap().next().is_none(), "stopped after the preparation: an output was written");
 }
+
+/// An adversarial review's field (flat 16-bit ground with one LOD-1 vertex raised 6
+/// units: `D_1 = 0` everywhere, so the squares around it allow no morph at all), seen from
+/// just above with the raised block's neighbour 4 LODs coarser: the stitched fan triangles
+/// along that edge carry the next square's morphed vertices into samples of a square
+/// whose own terms were 0. Morphed, it audited at 5.95 px (delta 1) while `--morph off`
+/// audits at 0; the strip is now paid with the whole edge's largest move.
+#[test]
+fn a_stitched_fan_carries_no_unpaid_morph() {
+    let dir = TempDir::new("gpu-stream-fan");
+    let (n, base, (vx, vz), w) = (2049u32, 30000u16, (524u32, 1028u32), 6.0f64);
+    let vert = |x: u32, z: u32| if (x, z) == (vx, vz) { w } else { 0.0 };
+    let img = image::ImageBuffer::<image::Luma<u16>, Vec<u16>>::from_fn(n, n, |x, z| {
+        if x.abs_diff(vx) > 3 || z.abs_diff(vz) > 3 {
+            return image::Luma([base]);
+        }
+        let (x0, z0) = (x / 2 * 2, z / 2 * 2);
+        let (u, v) = (f64::from(x - x0) / 2.0, f64::from(z - z0) / 2.0);
+        let (a, c, i, g) = (vert(x0, z0), vert(x0 + 2, z0), vert(x0 + 2, z0 + 2), vert(x0, z0 + 2));
+        let h = if u >= v { a + u * (c - a) + v * (i - c) } else { a + v * (g - a) + u * (i - g) };
+        image::Luma([base + h as u16])
+    });
+    let field = dir.path().join("fan.png");
+    img.save(&field).unwrap();
+    let out = dir.path().join("fan-out.png");
+    let o = cli(&[
+        "render",
+        "--heightmap",
+        field.to_str().unwrap(),
+        "--spacing",
+        "30",
+        "--height-scale",
+        "0.1",
+        "--stream",
+        "--audit",
+        "--size",
+        "320x240",
+        "--validation",
+        "on",
+        "--camera",
+        "15508,3001.5,30748",
+        "--look-at",
+        "15510,3000,30750",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(r["within_bound"], true, "{r}");
+    assert!(r["morphing"].as_u64().unwrap() > 0, "{r}");
+    assert_eq!(r["audit_within_delta"], true, "{r}");
+    assert!(r["max_audited_error_px"].as_f64().unwrap() <= 1.0, "{r}");
+    assert_eq!(r["gpu"]["validation_messages"], 0, "{r}");
+}
