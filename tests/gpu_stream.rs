@@ -685,6 +685,26 @@ fn streamed_parts_outside_the_frustum_are_never_seen() {
     common::finish(device);
 }
 
+/// `render --stream` of `input` under validation, its temporary files in `tmp` and its
+/// image in `out`, silent.
+fn spawn_streamed_render(
+    input: &std::path::Path,
+    tmp: &TempDir,
+    out: &std::path::Path,
+    extra: &[&str],
+) -> std::process::Child {
+    std::process::Command::new(env!("CARGO_BIN_EXE_vkterrain"))
+        .args(["render", "--heightmap", input.to_str().unwrap(), "--stream", "--validation", "on"])
+        .args(extra)
+        .args(["--out", out.join("x.png").to_str().unwrap()])
+        .env("TMPDIR", tmp.path())
+        .env("RUST_LOG", "error")
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap()
+}
+
 /// A stop signal while a terrain file is prepared on the fly for `render --stream` ends
 /// the run with 128 + the signal and leaves nothing behind: not the partial archive, not
 /// its private directory (an adversarial review found the directory left until the next
@@ -696,15 +716,7 @@ fn a_stream_prepared_on_the_fly_and_stopped_leaves_nothing() {
         let tmp = TempDir::new("gpu-stream-stop");
         let out = tmp.path().join("out");
         std::fs::create_dir(&out).unwrap();
-        let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_vkterrain"))
-            .args(["render", "--heightmap", ps.to_str().unwrap(), "--stream", "--validation", "on"])
-            .args(["--size", "64x48", "--out", out.join("x.png").to_str().unwrap()])
-            .env("TMPDIR", tmp.path())
-            .env("RUST_LOG", "error")
-            .stdout(std::process::Stdio::null())
-            .stderr(std::process::Stdio::null())
-            .spawn()
-            .unwrap();
+        let mut child = spawn_streamed_render(&ps, &tmp, &out, &["--size", "64x48"]);
         let private = tmp.path().join(format!("vkterrain-streamed-{}", child.id()));
         let partial = private.join(format!(".terrain.pmtiles.partial-{}", child.id()));
         // Wait (polling the condition, not a fixed sleep) for the partial archive.
@@ -728,15 +740,7 @@ fn a_stream_prepared_on_the_fly_and_stopped_leaves_nothing() {
     let tmp = TempDir::new("gpu-stream-stop-after");
     let out = tmp.path().join("out");
     std::fs::create_dir(&out).unwrap();
-    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_vkterrain"))
-        .args(["render", "--heightmap", ps.to_str().unwrap(), "--stream", "--validation", "on", "--audit"])
-        .args(["--size", "640x480", "--out", out.join("x.png").to_str().unwrap()])
-        .env("TMPDIR", tmp.path())
-        .env("RUST_LOG", "error")
-        .stdout(std::process::Stdio::null())
-        .stderr(std::process::Stdio::null())
-        .spawn()
-        .unwrap();
+    let mut child = spawn_streamed_render(&ps, &tmp, &out, &["--audit", "--size", "640x480"]);
     let private = tmp.path().join(format!("vkterrain-streamed-{}", child.id()));
     let started = std::time::Instant::now();
     let (mut seen, mut gone) = (false, false);

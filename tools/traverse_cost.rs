@@ -38,9 +38,13 @@ struct Args {
     /// Metres per height unit (default: what the file says).
     #[arg(long)]
     height_scale: Option<f32>,
-    /// A pose file (`cx cy cz lx ly lz` a line), or `paper-flyover` (600 frames).
+    /// A pose file (`cx cy cz lx ly lz` a line), or `paper-flyover`.
     #[arg(long, default_value = "paper-flyover")]
     path: String,
+    /// Frames over the paper flyover (`bench --frames`: 60 frames take larger steps, so
+    /// more blocks are new each frame).
+    #[arg(long, default_value_t = 600)]
+    frames: usize,
     #[arg(long, default_value_t = 60.0)]
     fovy: f32,
     #[arg(long, default_value = "640x480")]
@@ -80,7 +84,9 @@ fn main() -> anyhow::Result<()> {
     let layout = BlockLayout::of(&hf, a.block).map_err(anyhow::Error::msg)?;
     let near = vkterrain::lod::view::near_plane(&hf);
     let cams: Vec<Camera> = if a.path == "paper-flyover" {
-        (0..600).map(|i| path_camera(&hf, &mm, CameraPath::PaperFlyover, i, 600, a.fovy, (w, h)).0).collect()
+        (0..a.frames)
+            .map(|i| path_camera(&hf, &mm, CameraPath::PaperFlyover, i as u64, a.frames as u64, a.fovy, (w, h)).0)
+            .collect()
     } else {
         let poses = vkterrain::app::bench::read_poses(std::path::Path::new(&a.path))?;
         poses.iter().map(|(c, l)| Camera::look_at(*c, *l, a.fovy, w, h, near)).collect()
