@@ -294,6 +294,15 @@ fn render_draws_an_archive_streamed_within_the_bound() {
     assert_eq!(r["gpu"]["frames_missing_blocks"], 0, "{r}");
     assert_eq!(r["gpu"]["validation_messages"], 0, "{r}");
     assert!(r["blocks"].as_u64().unwrap() > 10, "{r}");
+    // The morph terms spread over three threads: the same frame, byte for byte.
+    let one_thread = std::fs::read(&png).unwrap();
+    let o = render(&["--traversal-threads", "3"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let threaded: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!((r["traversal_threads"].as_u64(), threaded["traversal_threads"].as_u64()), (Some(1), Some(3)));
+    assert!(threaded["morphing"].as_u64().unwrap() > 0, "{threaded}");
+    assert_eq!((&threaded["morphing"], &threaded["blocks"]), (&r["morphing"], &r["blocks"]), "{threaded}");
+    assert!(std::fs::read(&png).unwrap() == one_thread, "three threads drew another frame");
     // The fields docs/commands.md names: the streamer's `stats`, which count every tile
     // the frame read (the top tiles too: each one uploaded was read first), and the block
     // grid as in memory (1025^2: one root of 2^10 + 1 samples).
@@ -333,11 +342,30 @@ fn render_draws_an_archive_streamed_within_the_bound() {
     assert!(r["blocks_over_bound"].as_u64().unwrap() > 0 && r["worst_factor"].as_f64().unwrap() > 1.0, "{r}");
     assert!(String::from_utf8_lossy(&o.stderr).contains("over the bound"));
 
-    for (extra, named) in [
-        (vec!["--lod", "full"], "--lod full"),
-        (vec!["--pixels", "forward"], "--pixels forward"),
-        (vec!["--traversal-threads", "2"], "--traversal-threads"),
-    ] {
+    // `--lod full`: every block at LOD 0, so the frame as drawn is every sample (audited
+    // at 0 px), with more triangles than the bound's.
+    let o = render(&["--lod", "full", "--audit"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let full: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(
+        (full["lod"].as_str(), full["within_bound"].as_bool(), full["morphing"].as_u64()),
+        (Some("full"), Some(true), Some(0)),
+        "{full}"
+    );
+    assert!(full["max_audited_error_px"].as_f64().unwrap() < 1e-3 && full["uncovered_samples"] == 0, "{full}");
+    assert!(full["triangles"].as_u64().unwrap() > 2 * r["triangles"].as_u64().unwrap(), "{full} against {r}");
+    let o = render(&["--lod", "distance"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let rings: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(
+        (rings["lod"].as_str(), rings["gpu"]["validation_messages"].as_u64()),
+        (Some("distance"), Some(0)),
+        "{rings}"
+    );
+    assert!(rings["triangles"].as_u64().unwrap() < full["triangles"].as_u64().unwrap(), "{rings}");
+    for (extra, named) in
+        [(vec!["--pixels", "forward"], "--pixels forward"), (vec!["--error-mode", "paper"], "--error-mode paper")]
+    {
         let o = render(&extra);
         let err = String::from_utf8_lossy(&o.stderr);
         assert_eq!(o.status.code(), Some(2), "{extra:?}: {err}");
@@ -562,6 +590,25 @@ fn bench_runs_a_path_over_an_archive_drawn_streamed() {
     );
     let csv = std::fs::read_to_string(out.join("frames.csv")).unwrap();
     assert_eq!(csv.lines().count(), 13, "{csv}");
+    assert_eq!((summary["lod"].as_str(), summary["traversal_threads"].as_u64()), (Some("error"), Some(1)));
+    // The baselines stream too: full resolution draws more triangles than the bound's
+    // blocks, the distance rings another selection; neither morphs.
+    let triangles = |extra: &[&str]| {
+        let r = run(extra);
+        assert!(r.status.success(), "{extra:?}: {}", String::from_utf8_lossy(&r.stderr));
+        let s: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap()).unwrap();
+        assert_eq!(
+            (s["validation_messages"].as_u64(), s["mean_morphing_blocks"].as_f64()),
+            (Some(0), Some(0.0)),
+            "{s}"
+        );
+        assert_eq!(s["lod"].as_str(), Some(extra[1]), "{s}");
+        s["mean_triangles"].as_f64().unwrap()
+    };
+    let bound = summary["mean_triangles"].as_f64().unwrap();
+    let (full, rings) = (triangles(&["--lod", "full"]), triangles(&["--lod", "distance"]));
+    println!("bench --stream triangles: bound {bound:.0}, full {full:.0}, rings {rings:.0}");
+    assert!(full > 2.0 * bound && rings < full && rings != bound, "bound {bound}, full {full}, rings {rings}");
     let r = run(&["--compare"]);
     let err = String::from_utf8_lossy(&r.stderr);
     assert_eq!(r.status.code(), Some(2), "{err}");

@@ -371,6 +371,98 @@ fn morphed_streamed_frames_audit_within_delta_and_an_underpaid_morph_does_not() 
     assert!(on_parent > 1.5 * DELTA, "parents' surfaces audit at {on_parent} px");
 }
 
+/// `--traversal-threads` with streamed frames: the morph terms spread over a pool of
+/// threads give every block the factors one thread gives it, in the same order, through
+/// the streamer and through [`morph::assign`] alone on the same selection.
+#[test]
+fn streamed_morph_factors_are_the_same_on_any_number_of_threads() {
+    use vkterrain::lod::block::TraversalPool;
+    use vkterrain::lod::morph::MorphRule;
+    use vkterrain::stream::morph;
+    use vkterrain::stream::traverse::StripCache;
+    let Fixture { hf: _, archive, grid, _dir } = fixture("stream-threads");
+    let mut one = Streamer::new(archive.clone(), grid, 1 << 30);
+    let mut three = Streamer::new(archive, grid, 1 << 30);
+    three.set_threads(3).unwrap();
+    assert_eq!((one.threads(), three.threads()), (1, 3));
+    let pool = TraversalPool::new(3).unwrap();
+    let strips = StripCache::with_entries(1 << 14);
+    let mut morphing = 0;
+    for (i, view) in poses().iter().enumerate() {
+        let sel = settled(&mut one, view, 12);
+        assert_eq!(settled(&mut three, view, 12).stitched, sel.stitched, "pose {i}: the streamers' frames");
+        let mut again = sel.clone();
+        again.stitched.iter_mut().for_each(|b| *b = b.unmorphed());
+        let n = pool.install(|| morph::assign(&grid, &one.cache, &strips, view, DELTA, &mut again, MorphRule::Bounded));
+        assert_eq!((n, &again.stitched), (sel.morphing, &sel.stitched), "pose {i}: assigned in the pool");
+        morphing += sel.morphing;
+    }
+    assert!(morphing > 100, "{morphing} blocks morph: the factors compared are mostly 1");
+}
+
+/// `--lod full|distance` with streamed frames: under `Full` every settled block is at
+/// LOD 0; under `Distance` no block is drawn coarser than the rings allow: each drawn
+/// block of LOD > 0 is farther than twice its side, measured to its box from every
+/// sample (no farther than the box the streamed rule measures, which holds its tile's
+/// `D` too). Rings of 1.5 sides fail that check; the rule changes the selection (coarser
+/// than full, other than the bound's) and nothing morphs outside the bound's rule.
+#[test]
+fn streamed_full_and_distance_lods_keep_their_rules() {
+    use vkterrain::lod::block::block_aabb;
+    use vkterrain::lod::camera::distance_to_aabb;
+    use vkterrain::stream::traverse::StreamedLod;
+    let Fixture { hf, archive, grid, _dir } = fixture("stream-lod-rules");
+    let mm = MinMaxPyramid::build(&hf);
+    let layout = BlockLayout::of(&hf, 33).unwrap();
+    let mut s = Streamer::new(archive, grid, 1 << 30);
+    let (mut coarse, mut closer_than_rings, mut fewer, mut other) = (0usize, 0usize, 0usize, 0usize);
+    for (i, view) in poses().iter().enumerate() {
+        s.lod = StreamedLod::Error;
+        let bound = settled(&mut s, view, 12);
+        s.lod = StreamedLod::Full;
+        let full = settled(&mut s, view, 16);
+        assert!(
+            full.blocks.iter().all(|b| b.lod == 0),
+            "pose {i}: full draws LOD {:?}",
+            full.blocks.iter().map(|b| b.lod).max()
+        );
+        assert_eq!(full.morphing, 0, "pose {i}");
+        let cam = camera(view);
+        // The ring rule at `factor` against the samples' own boxes.
+        let within_rings = |blocks: &[vkterrain::stream::traverse::Selected], factor: f32| {
+            blocks.iter().filter(|b| b.lod > 0 && !b.t_junction).all(|b| {
+                let (min, max) = block_aabb(&hf, &mm, &layout, b.lod, b.bx, b.bz);
+                distance_to_aabb(cam.position, min, max) > factor * (max.x - min.x) * (1.0 - 1e-5)
+            })
+        };
+        for factor in [2.0, 1.5] {
+            s.lod = StreamedLod::Distance { factor };
+            let rings = settled(&mut s, view, 12);
+            assert_eq!(rings.morphing, 0, "pose {i}");
+            assert!(
+                within_rings(&rings.blocks, factor),
+                "pose {i}: a block nearer than {factor} sides is drawn coarse"
+            );
+            if factor == 2.0 {
+                fewer += usize::from(rings.blocks.len() < full.blocks.len());
+                other += usize::from(rings.blocks != bound.blocks);
+                coarse += rings.blocks.iter().filter(|b| b.lod > 0).count();
+            } else {
+                // The mutation: rings of 1.5 sides, checked as if they were of 2.
+                closer_than_rings += usize::from(!within_rings(&rings.blocks, 2.0));
+            }
+        }
+    }
+    let poses = poses().len();
+    println!("rings: {coarse} coarse blocks; fewer blocks than full at {fewer} of {poses} poses, other than the bound's at {other}; rings of 1.5 caught at {closer_than_rings}");
+    assert!(coarse > 100, "{coarse} coarse blocks under the rings");
+    assert!(
+        fewer * 3 > poses * 2 && other * 3 > poses * 2,
+        "rings fewer than full at {fewer}, other than the bound at {other} of {poses} poses"
+    );
+    assert!(closer_than_rings > 3, "rings of 1.5 sides passed the check of 2 at {closer_than_rings} poses");
+}
+
 /// What streamed morphing is for, as in memory (`tests/traversal.rs`,
 /// `morphing_turns_jumps_into_small_steps`): along a low flight over Puget Sound in
 /// short steps, the drawn surface of settled streamed frames moves a little everywhere

@@ -1180,7 +1180,6 @@ impl BenchArgs {
         [
             ("--texture", self.textures.texture.is_some()),
             ("--detail", self.textures.detail.is_some()),
-            ("--lod full|distance", self.lod != LodChoice::Error),
             ("--compare", self.compare),
             ("--popping", self.popping),
             ("--shading heights", self.shading != crate::draw::blocks::NormalSource::GradientMap),
@@ -1230,6 +1229,8 @@ fn bench_streamed(
     let layers = device.properties.limits.max_image_array_layers;
     let mut streamer = atlas_bound_streamer(archive.clone(), grid, cache_mb, gpu_mb, layers, &trace)?;
     streamer.morph = crate::app::stream::morph_rule(args.common.morph);
+    streamer.lod = crate::app::stream::streamed_lod(args.lod);
+    crate::app::stream::streamer_threads(&mut streamer, args.common.traversal_threads, Some(&device))?;
     let range = top_tiles(&mut streamer, &archive.meta)?;
     let [wx, wz] = grid.world_extent().map(|e| e as f32);
     let near = crate::lod::view::near_plane_for(grid.spacing[0].min(grid.spacing[1]) as f32);
@@ -1319,8 +1320,10 @@ fn bench_streamed(
         "mean_frame_ms": mean,
         "p99_frame_ms": (!sorted.is_empty()).then(|| percentile(&sorted, 0.99)),
         "mean_triangles": triangles as f64 / drawn.max(1) as f64,
+        "lod": format!("{:?}", args.lod).to_lowercase(),
         "morph": args.common.morph == crate::app::cli::OnOff::On,
         "mean_morphing_blocks": morphing as f64 / drawn.max(1) as f64,
+        "traversal_threads": streamer.threads(),
         "frames_over_bound": stats.frames_over_bound,
         "worst_factor": stats.worst_factor,
         "delta": args.delta,

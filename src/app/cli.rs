@@ -203,12 +203,10 @@ pub struct CommonArgs {
 impl CommonArgs {
     /// The shared options a streamed terrain cannot honour yet, each with whether it was
     /// given a value other than its default (drawing anyway would ignore it silently).
-    pub fn not_streamed(&self) -> [(&'static str, bool); 3] {
+    pub fn not_streamed(&self) -> [(&'static str, bool); 2] {
         [
             ("--error-mode paper", self.error_mode != crate::lod::gie::ErrorMode::Strict),
             ("--block (an archive fixes k = 33)", self.block != 33),
-            // The streamed traversal has no morph terms to spread over threads.
-            ("--traversal-threads", self.traversal_threads.is_some()),
         ]
     }
 }

@@ -80,7 +80,6 @@ impl RenderArgs {
         [
             ("--texture", self.textures.texture.is_some()),
             ("--detail", self.textures.detail.is_some()),
-            ("--lod full|distance", self.lod != LodChoice::Error),
             ("--pixels forward", self.pixels != PixelPass::Deferred),
             ("--raycast", self.raycast != Raycast::Off),
             ("--shading heights", self.shading != NormalSource::GradientMap),
@@ -396,6 +395,7 @@ fn render_streamed(
         background: args.background.as_deref().map(parse_background).transpose()?,
         export_mesh: args.export_mesh.is_some(),
         stop,
+        lod: args.lod,
     })?;
     let mut out = r.report;
     if args.audit {

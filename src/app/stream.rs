@@ -5,15 +5,17 @@
 
 use crate::app::cli::{CommonArgs, InputError, OnOff};
 use crate::app::signals::Stop;
+use crate::draw::frame::{traversal_threads, LodChoice};
 use crate::draw::lighting::Sun;
 use crate::draw::streamed::{FrameView, HeightRange, Overlay, StreamedRenderer, WindowImage};
 use crate::errors::atlas::HeightAtlas;
 use crate::input::archive::{Archive, Meta};
 use crate::lod::morph::MorphRule;
+use crate::lod::traversal::DISTANCE_FACTOR;
 use crate::lod::view::{near_plane_for, view_of_box};
 use crate::stream::io::TileSource;
 use crate::stream::streamer::{StreamStats, Streamer};
-use crate::stream::traverse::{Selection, View};
+use crate::stream::traverse::{Selection, StreamedLod, View};
 use crate::stream::{Grid, TileKey};
 use crate::trace::{Trace, DRAW_TID, IO_TID};
 use crate::vk::Device;
@@ -66,6 +68,10 @@ pub struct StreamArgs {
     /// commands' `--morph`).
     #[arg(long, value_enum, default_value_t = OnOff::On)]
     pub morph: OnOff,
+    /// Threads for the per-block morph terms of each frame. Default: as `render`'s
+    /// (1 on a CPU device such as lavapipe, every core on a GPU), 1 without `--gpu-mb`.
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u16).range(1..=256))]
+    pub traversal_threads: Option<u16>,
 }
 
 /// How a streamer's drawn blocks morph for `--morph`.
@@ -374,6 +380,21 @@ pub(crate) fn atlas_bound_streamer(
     Ok(streamer)
 }
 
+/// Gives the streamer's per-block morph terms the threads `--traversal-threads` asks
+/// for, else [`traversal_threads`]'s default for `device` (1 with none: a flight on the
+/// host alone).
+pub(crate) fn streamer_threads(
+    streamer: &mut Streamer,
+    asked: Option<u16>,
+    device: Option<&Device>,
+) -> anyhow::Result<()> {
+    let threads = match device {
+        Some(d) => traversal_threads(asked, d.properties.device_type),
+        None => asked.map_or(1, usize::from),
+    };
+    streamer.set_threads(threads).map_err(|e| anyhow::anyhow!(e))
+}
+
 /// Frames at the view `at` gives (it may depend on the tiles held: a camera kept above
 /// the ground) until the selection is within the bound, the IO thread settled after
 /// each: the frame a viewer shows once the tiles of its first view are read. At most
@@ -481,6 +502,17 @@ pub struct ArchiveFrame<'a> {
     /// Stop signals to obey between the frame's steps (a run with handlers installed,
     /// which then no longer end it by themselves), exiting with 128 + the signal.
     pub stop: Option<&'a Stop>,
+    /// How blocks choose their LOD (`--lod`).
+    pub lod: LodChoice,
+}
+
+/// The streamed rule for a `--lod` choice (the in-memory rings' factor).
+pub(crate) fn streamed_lod(lod: LodChoice) -> StreamedLod {
+    match lod {
+        LodChoice::Error => StreamedLod::Error,
+        LodChoice::Full => StreamedLod::Full,
+        LodChoice::Distance => StreamedLod::Distance { factor: DISTANCE_FACTOR },
+    }
 }
 
 /// Ends the process as the signal would have, once a stop was asked for.
@@ -517,6 +549,8 @@ pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
     let layers = f.device.properties.limits.max_image_array_layers;
     let mut streamer = atlas_bound_streamer(f.archive.clone(), grid, f.cache_mb, f.gpu_mb, layers, &Trace::off())?;
     streamer.morph = morph_rule(f.common.morph);
+    streamer.lod = streamed_lod(f.lod);
+    streamer_threads(&mut streamer, f.common.traversal_threads, Some(&f.device))?;
     let near = near_plane_for(grid.spacing[0].min(grid.spacing[1]) as f32);
     let extent = grid.world_extent();
     // The top tiles first: the default view frames the terrain's height range.
@@ -555,8 +589,10 @@ pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
         "blocks_over_bound": sel.over_bound,
         "worst_factor": sel.worst_factor,
         "stitch_splits": sel.stitch_splits,
+        "lod": format!("{:?}", f.lod).to_lowercase(),
         "morph": f.common.morph == OnOff::On,
         "morphing": sel.morphing,
+        "traversal_threads": streamer.threads(),
         "blocks_missing_a_layer": missing,
         "frames_to_settle": streamer.stats.frames - frames_before,
         "settle_ms": settle_ms,
@@ -713,6 +749,7 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
         _ => Streamer::new(archive.clone(), grid, args.cache_mb as usize * (1 << 20)),
     };
     streamer.morph = morph_rule(args.morph);
+    streamer_threads(&mut streamer, args.traversal_threads, device.as_deref())?;
     // The view at frame `f`, and the way it heads.
     let pose = |streamer: &Streamer, f: u32| {
         let (offset, way) = along_line(speed * f64::from(f) / fps, line);
@@ -787,6 +824,7 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
         "morph": args.morph == OnOff::On,
         "morphing_per_frame": morphing as f64 / frames as f64,
         "select_ms_per_frame": 1e3 * selecting.as_secs_f64() / frames as f64,
+        "traversal_threads": streamer.threads(),
         "seconds": seconds,
         "last_altitude": altitude,
         "first_failure": streamer.first_failure,

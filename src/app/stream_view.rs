@@ -339,6 +339,8 @@ impl App {
         // One frame in flight: each streamed frame is waited for before the next.
         let mut hud = Hud::new(&device, &window, swapchain.format, crate::draw::blocks::DEPTH_FORMAT, 1)?;
         hud.visible = !self.args.no_hud;
+        let threads = self.args.common.traversal_threads;
+        crate::app::stream::streamer_threads(&mut self.streamer, threads, Some(&device))?;
         let mut frames = GpuFrames::new(device, &mut self.streamer, self.args.gpu_mb, self.range, (w, h), &self.trace)?;
         frames.fog = self.fog;
         frames.sun(self.args.common.sun.0);

@@ -7,12 +7,12 @@
 
 use crate::errors::activity::ErrorsActivity;
 use crate::errors::feed::{ErrorFeed, LastSelection};
-use crate::lod::block::{hide_parts_outside, BlockLayout, DrawBlock, Traversal};
+use crate::lod::block::{hide_parts_outside, BlockLayout, DrawBlock, Traversal, TraversalPool};
 use crate::lod::camera::Camera;
 use crate::lod::heightfield::Heightfield;
 use crate::lod::occlusion;
 use crate::lod::pyramid::MinMaxPyramid;
-use crate::lod::traversal::{traverse, BlockCaches, LodSelect};
+use crate::lod::traversal::{traverse, BlockCaches, LodSelect, DISTANCE_FACTOR};
 use crate::trace::{Trace, DRAW_TID};
 use serde_json::json;
 use std::time::Instant;
@@ -90,8 +90,8 @@ pub struct DrawThread {
     caches: BlockCaches,
     last: LastSelection,
     trace: Trace,
-    /// The traversal's worker threads (`None`: the draw thread alone).
-    pool: Option<rayon::ThreadPool>,
+    /// The traversal's worker threads (none: the draw thread alone).
+    pool: TraversalPool,
 }
 
 /// Threads for the traversal's per-block work: `asked`, else 1 on a CPU device (lavapipe:
@@ -116,23 +116,14 @@ impl DrawThread {
             caches: BlockCaches::default(),
             last: LastSelection::default(),
             trace,
-            pool: None,
+            pool: TraversalPool::default(),
         }
     }
 
     /// Runs the traversal's per-block work on `threads` threads of its own (1: on the
     /// draw thread itself, with no pool).
     pub fn set_threads(&mut self, threads: usize) -> anyhow::Result<()> {
-        if threads <= 1 {
-            self.pool = None;
-            return Ok(());
-        }
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .thread_name(|i| format!("traverse-{i}"))
-            .build()
-            .map_err(|e| anyhow::anyhow!("the traversal's {threads} threads: {e}"))?;
-        self.pool = Some(pool);
+        self.pool = TraversalPool::new(threads).map_err(|e| anyhow::anyhow!(e))?;
         Ok(())
     }
 
@@ -155,18 +146,14 @@ impl DrawThread {
             (LodChoice::Error, Some(g)) => {
                 LodSelect::errors(&g.errors, g.params.camera, delta, g.params.mode).with_morph(self.morph)
             }
-            (LodChoice::Error, None) | (LodChoice::Distance, _) => LodSelect::Distance { factor: 2.0 },
+            (LodChoice::Error, None) | (LodChoice::Distance, _) => LodSelect::Distance { factor: DISTANCE_FACTOR },
             (LodChoice::Full, _) => LodSelect::Full,
         }
     }
 
     /// Traverses with this thread's caches, outside a frame (the bench's reference runs).
     pub fn traverse(&self, terrain: LodTerrain, cam: &Camera, select: LodSelect) -> Traversal {
-        let run = || traverse(terrain.hf, terrain.mm, &self.caches, terrain.layout, cam, select);
-        match &self.pool {
-            Some(pool) => pool.install(run),
-            None => run(),
-        }
+        self.pool.install(|| traverse(terrain.hf, terrain.mm, &self.caches, terrain.layout, cam, select))
     }
 
     /// One frame: the error feed (when there is an activity), the block selection (unless

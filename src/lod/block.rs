@@ -576,6 +576,40 @@ pub fn block_mesh_data(k: u32) -> (Vec<u8>, Vec<u32>) {
 /// draw thread installs its traversal in a pool on a GPU and runs it on itself on a CPU
 /// device, where rayon's workers would take cycles from the rasterizer's threads
 /// (docs/benchmarks.md, "On a GPU"); the results are the same either way.
+/// The traversal's worker threads for [`map_in_pool`] (`--traversal-threads`): a rayon
+/// pool of its own, or none for one thread (the caller's: the draw thread, the
+/// streamer's frame).
+#[derive(Default)]
+pub struct TraversalPool(Option<rayon::ThreadPool>);
+
+impl TraversalPool {
+    /// `threads` workers named `traverse-i` (1 or 0: none, the calling thread alone).
+    pub fn new(threads: usize) -> Result<Self, String> {
+        if threads <= 1 {
+            return Ok(TraversalPool(None));
+        }
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .thread_name(|i| format!("traverse-{i}"))
+            .build()
+            .map(|p| TraversalPool(Some(p)))
+            .map_err(|e| format!("the traversal's {threads} threads: {e}"))
+    }
+
+    /// How many threads run [`map_in_pool`] inside [`TraversalPool::install`].
+    pub fn threads(&self) -> usize {
+        self.0.as_ref().map_or(1, |p| p.current_num_threads())
+    }
+
+    /// Runs `f` with [`map_in_pool`] spreading over this pool's threads.
+    pub fn install<R: Send>(&self, f: impl FnOnce() -> R + Send) -> R {
+        match &self.0 {
+            Some(pool) => pool.install(f),
+            None => f(),
+        }
+    }
+}
+
 pub fn map_in_pool<T: Sync, R: Send>(items: &[T], f: impl Fn(usize, &T) -> R + Sync + Send) -> Vec<R> {
     use rayon::prelude::*;
     if rayon::current_thread_index().is_some() {

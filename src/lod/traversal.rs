@@ -12,6 +12,10 @@ use foldhash::HashSet;
 pub use crate::lod::morph::BlockCaches;
 use glam::Vec3;
 
+/// The distance rings' factor the renderers use for `--lod distance` (and before their
+/// first error data): a block splits while the camera is nearer than twice its side.
+pub const DISTANCE_FACTOR: f32 = 2.0;
+
 /// How the LOD of each block is chosen.
 #[derive(Clone, Copy, Debug)]
 pub enum LodSelect<'a> {

@@ -36,7 +36,7 @@
 use super::cache::{layout, root_lod, serving_tile, HostCache, Resident, BLOCK_QUADS, SUB};
 use super::traverse::{block_box, square_box, Selection, StripCache, View};
 use super::Grid;
-use crate::lod::block::{morph_value, DrawBlock, MORPH_ONE};
+use crate::lod::block::{map_in_pool, morph_value, DrawBlock, MORPH_ONE};
 use crate::lod::camera::{angular_factor, distance_to_aabb, Camera};
 use crate::lod::morph::{MorphRule, MORPH_RANGE};
 use crate::lod::stitch::{coarser_sides, strip_departure};
@@ -186,24 +186,21 @@ pub fn assign(
         return 0; // a selection made without the stitching rule is not drawn
     }
     let (anchor, cam) = view.relative(grid);
-    let q: Vec<u16> = sel
-        .stitched
-        .iter()
-        .zip(&sel.blocks)
-        .map(|(b, s)| {
-            if s.over {
-                return MORPH_ONE;
-            }
-            let Some(t) = terms(grid, cache, strips, (anchor, &cam), delta, b) else { return MORPH_ONE };
-            let ramp = ((t.parent_px / delta - 1.0) / (MORPH_RANGE - 1.0)).clamp(0.0, 1.0);
-            let from = (ramp * MORPH_ONE as f32).ceil() as u16;
-            match rule {
-                MorphRule::ParentSurface => 0,
-                MorphRule::Underpaid => t.least_factor(from, delta) / 2,
-                MorphRule::Bounded | MorphRule::BoundedLazy => t.least_factor(from, delta),
-            }
-        })
-        .collect();
+    // Each block's terms on every thread of the caller's pool (`--traversal-threads`):
+    // the same factors in the same order on any number.
+    let q: Vec<u16> = map_in_pool(&sel.stitched, |i, b| {
+        if sel.blocks[i].over {
+            return MORPH_ONE;
+        }
+        let Some(t) = terms(grid, cache, strips, (anchor, &cam), delta, b) else { return MORPH_ONE };
+        let ramp = ((t.parent_px / delta - 1.0) / (MORPH_RANGE - 1.0)).clamp(0.0, 1.0);
+        let from = (ramp * MORPH_ONE as f32).ceil() as u16;
+        match rule {
+            MorphRule::ParentSurface => 0,
+            MorphRule::Underpaid => t.least_factor(from, delta) / 2,
+            MorphRule::Bounded | MorphRule::BoundedLazy => t.least_factor(from, delta),
+        }
+    });
     let index: HashMap<(u32, u32, u32), usize> = {
         let mut m = HashMap::with_capacity(sel.stitched.len());
         for (i, b) in sel.stitched.iter().enumerate() {

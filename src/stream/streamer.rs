@@ -5,8 +5,9 @@
 use super::cache::{tile_bytes_estimate, HostCache, Refused, TileData};
 use super::io::{Io, Loaded, TileSource};
 use super::morph;
-use super::traverse::{select, Selection, StripCache, View};
+use super::traverse::{select_by, Selection, StreamedLod, StripCache, View};
 use super::{Grid, TileKey};
+use crate::lod::block::TraversalPool;
 use crate::lod::morph::MorphRule;
 use foldhash::{HashMap, HashMapExt, HashSet, HashSetExt};
 use std::sync::Arc;
@@ -75,10 +76,14 @@ pub struct Streamer {
     /// How drawn blocks morph ([`crate::stream::morph`]); `None`: they do not (`--morph
     /// off`).
     pub morph: Option<MorphRule>,
+    /// How blocks choose their LOD (`--lod`); only the bound's selection morphs.
+    pub lod: StreamedLod,
     /// The GPU atlas's way in, once attached.
     gate: Option<Box<dyn TileGate>>,
     /// Tiles sent through the gate and not back yet (not asked for again).
     gated: HashSet<TileKey>,
+    /// Threads for the per-block morph terms (`--traversal-threads`; none: the caller's).
+    pool: TraversalPool,
 }
 
 impl Streamer {
@@ -96,9 +101,23 @@ impl Streamer {
             // flight keeps drawing are never measured again.
             strips: StripCache::with_entries(1 << 15),
             morph: Some(MorphRule::Bounded),
+            lod: StreamedLod::Error,
             gate: None,
             gated: HashSet::new(),
+            pool: TraversalPool::default(),
         }
+    }
+
+    /// Computes each frame's per-block morph terms on `threads` threads of its own (1:
+    /// on the caller's); the frames are the same on any number.
+    pub fn set_threads(&mut self, threads: usize) -> Result<(), String> {
+        self.pool = TraversalPool::new(threads)?;
+        Ok(())
+    }
+
+    /// The threads [`Streamer::set_threads`] gave the morph terms.
+    pub fn threads(&self) -> usize {
+        self.pool.threads()
     }
 
     /// From now on tiles read go through `gate` (the GPU atlas) before the cache takes
@@ -200,15 +219,16 @@ impl Streamer {
         self.take(arrived);
         self.cache.begin_frame();
         self.stats.frames += 1;
-        let mut sel = select(&self.grid, &self.cache, view, delta, prefetch, Some(&self.strips));
-        if let Some(rule) = self.morph {
-            sel.morphing = morph::assign(&self.grid, &self.cache, &self.strips, view, delta, &mut sel, rule);
+        let mut sel = select_by(&self.grid, &self.cache, view, (self.lod, delta), prefetch, Some(&self.strips));
+        if let Some(rule) = self.morph.filter(|_| self.lod == StreamedLod::Error) {
+            let (grid, cache, strips) = (&self.grid, &self.cache, &self.strips);
+            sel.morphing = self.pool.install(|| morph::assign(grid, cache, strips, view, delta, &mut sel, rule));
         }
         self.cache.mark_used(sel.used.iter().copied());
         self.cache.mark_kept(sel.kept.iter().copied());
         let mut wanted = sel.wanted.clone();
         if let Some(a) = ahead {
-            let next = select(&self.grid, &self.cache, a, delta, prefetch, None);
+            let next = select_by(&self.grid, &self.cache, a, (self.lod, delta), prefetch, None);
             self.cache.mark_kept(next.used.iter().chain(&next.kept).copied());
             // Below every tile the current frame needs.
             wanted.extend(next.wanted.iter().map(|&(k, p)| (k, p.min(1.0) * 0.5)));

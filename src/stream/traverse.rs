@@ -59,6 +59,20 @@ impl View {
     }
 }
 
+/// How a streamed frame chooses its blocks' LODs (`--lod`), as in memory
+/// ([`crate::lod::traversal::LodSelect`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub enum StreamedLod {
+    /// The bound: a block splits while its error exceeds delta (the renderer's).
+    #[default]
+    Error,
+    /// Every block at LOD 0 (the reference image), as far as the held tiles go.
+    Full,
+    /// Distance rings (the GeoMipMapping-style baseline): a block splits while the camera
+    /// is nearer than `factor` times its side.
+    Distance { factor: f32 },
+}
+
 /// A block the frame draws.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Selected {
@@ -233,6 +247,22 @@ pub fn select(
     prefetch: f32,
     strips: Option<&StripCache>,
 ) -> Selection {
+    select_by(grid, cache, view, (StreamedLod::Error, delta), prefetch, strips)
+}
+
+/// [`select`] with the LOD chosen by `lod`. Under [`StreamedLod::Full`] and
+/// [`StreamedLod::Distance`] a block splits where the rule says, whatever its error; one
+/// that should split but whose finer tile is not held is drawn as it is and counted over,
+/// and stitched strips split neighbours only to avoid T-junctions: as in memory, those
+/// selections are not bounded by delta.
+pub fn select_by(
+    grid: &Grid,
+    cache: &HostCache,
+    view: &View,
+    (lod, delta): (StreamedLod, f32),
+    prefetch: f32,
+    strips: Option<&StripCache>,
+) -> Selection {
     let root = root_lod(grid);
     let top = serving_tile(grid, root, 0, 0);
     if !cache.contains(top) {
@@ -241,6 +271,7 @@ pub fn select(
         return out;
     }
     let mut t = Traverser::new(grid, cache, view, delta, prefetch);
+    t.lod = lod;
     t.visit(vec![(root, 0, 0)]);
     if let Some(strips) = strips {
         t.stitch(strips);
@@ -253,6 +284,7 @@ struct Traverser<'a> {
     grid: &'a Grid,
     cache: &'a HostCache,
     delta: f32,
+    lod: StreamedLod,
     prefetch: f32,
     anchor: [i64; 2],
     cam: Camera,
@@ -271,6 +303,7 @@ impl<'a> Traverser<'a> {
             grid,
             cache,
             delta,
+            lod: StreamedLod::Error,
             prefetch,
             anchor,
             frustum: cam.frustum(),
@@ -301,18 +334,32 @@ impl<'a> Traverser<'a> {
                 continue;
             }
             let error_px = block_error_px(grid.height_scale, &self.cam, &s, (min, max), delta);
+            let should_split = lod > 0
+                && match self.lod {
+                    StreamedLod::Error => error_px > delta,
+                    StreamedLod::Full => true,
+                    StreamedLod::Distance { factor } => {
+                        distance_to_aabb(self.cam.position, min, max) <= factor * (max.x - min.x)
+                    }
+                };
             let finer = (lod > 0).then(|| serving_tile(grid, lod - 1, 2 * bx, 2 * bz));
             let finer_held = finer.is_some_and(|k| cache.contains(k));
             let stitching = self.forced.contains(&(lod, bx, bz));
-            if (error_px > delta || stitching) && finer_held {
+            if (should_split || stitching) && finer_held {
                 for (cx, cz) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
                     stack.push((lod - 1, 2 * bx + cx, 2 * bz + cz));
                 }
                 continue;
             }
-            let over = error_px > delta && lod > 0;
-            // A neighbour's stitching needs the finer tile as much as the block's own error.
-            let want = if stitching { (error_px / delta).max(2.0) } else { error_px / delta };
+            let over = should_split;
+            // A neighbour's stitching needs the finer tile as much as the block's own error
+            // (under the other rules a split the rule asks for, as much as stitching).
+            let want = match self.lod {
+                StreamedLod::Error if !stitching => error_px / delta,
+                StreamedLod::Error => (error_px / delta).max(2.0),
+                _ if should_split || stitching => 2.0,
+                _ => 0.0,
+            };
             if let Some(k) = finer.filter(|k| want > self.prefetch && grid.stores(*k)) {
                 if finer_held {
                     self.kept.insert(k);
@@ -365,7 +412,7 @@ impl<'a> Traverser<'a> {
                 let boxed = block_box(grid, self.anchor, b.lod, b.bx, b.bz, lo, hi);
                 for (e, (nx, nz)) in b.cells_across().into_iter().enumerate() {
                     let px = strip_error_px(grid.height_scale, &self.cam, &s, (e, &dep), boxed, delta);
-                    let over = dep.edge[e] > 0.0 && px > delta;
+                    let over = self.lod == StreamedLod::Error && dep.edge[e] > 0.0 && px > delta;
                     let t_junction = b.coarser[e] > b.stride() << layout.m;
                     if !(over || t_junction) {
                         continue;
