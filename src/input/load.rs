@@ -127,7 +127,7 @@ fn load_archive(path: &Path, opts: &LoadOptions) -> Result<Heightfield, Heightfi
         if side > max {
             return Err(bad(format!(
                 "{} x {} samples need a grid {side} samples a side, larger than the device's maxImageDimension2D \
-                 ({max}); `render` and `stream` draw it streamed, this command does not yet",
+                 ({max}); `view`, `render`, `bench` and `stream` draw it streamed, this command does not yet",
                 m.width, m.height
             )));
         }
