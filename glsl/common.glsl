@@ -6,3 +6,14 @@
 float decode_raw(float texel, int unorm16) {
     return unorm16 != 0 ? round(texel * 65535.0) : texel;
 }
+
+// A sample's gradient of world height by central differences: its neighbours' world
+// heights east and west, south and north, `step` world units from it along x and z.
+vec2 central_gradient(float east, float west, float south, float north, vec2 step) {
+    return vec2(east - west, south - north) / (2.0 * step);
+}
+
+// The unit normal of a surface whose world height has gradient `g` (x, z).
+vec3 normal_of(vec2 g) {
+    return normalize(vec3(-g.x, 1.0, -g.y));
+}

@@ -28,8 +28,8 @@ struct Sample {
 };
 
 Sample from_heights(ivec2 s) {
-    vec2 g = vec2(world_height(s + ivec2(1, 0)) - world_height(s - ivec2(1, 0)),
-                  world_height(s + ivec2(0, 1)) - world_height(s - ivec2(0, 1))) / (2.0 * frame.spacing.xy);
+    vec2 g = central_gradient(world_height(s + ivec2(1, 0)), world_height(s - ivec2(1, 0)),
+                              world_height(s + ivec2(0, 1)), world_height(s - ivec2(0, 1)), frame.spacing.xy);
     return Sample(g, world_height(s) <= frame.texturing.w);
 }
 
@@ -78,8 +78,7 @@ vec3 shade_terrain(vec3 world, int lod) {
         s01 = from_texel(t.x);
         s11 = from_texel(t.y);
     }
-    vec2 g = mix(mix(s00.gradient, s10.gradient, f.x), mix(s01.gradient, s11.gradient, f.x), f.y);
-    vec3 n = normalize(vec3(-g.x, 1.0, -g.y));
+    vec3 n = normal_of(mix(mix(s00.gradient, s10.gradient, f.x), mix(s01.gradient, s11.gradient, f.x), f.y));
 
     vec3 albedo;
     vec2 uv = p / max(extent, vec2(1.0));

@@ -3,7 +3,7 @@
 //! Figure 8, and a Chrome trace of both activities.
 
 use crate::app::cli::positive;
-use crate::app::cli::{CommonArgs, InputError, TextureArgs};
+use crate::app::cli::{value_name, CommonArgs, InputError, TextureArgs};
 use crate::app::commands::{draw_thread, Session};
 use crate::app::outputs::{plot_font, write_atomic};
 use crate::app::paths::{path_camera, CameraPath};
@@ -1167,11 +1167,6 @@ fn fidelity(bench: &mut Bench, activity: &ErrorsActivity) -> anyhow::Result<Valu
     Ok(Value::Array(out))
 }
 
-/// The command-line spelling of a value-enum option (`deferred`, `gradient-map`).
-fn value_name(v: impl clap::ValueEnum) -> String {
-    v.to_possible_value().map(|p| p.get_name().to_string()).unwrap_or_default()
-}
-
 impl BenchArgs {
     /// The options a streamed run cannot honour yet, given a value other than their
     /// default.
@@ -1182,7 +1177,6 @@ impl BenchArgs {
             ("--detail", self.textures.detail.is_some()),
             ("--compare", self.compare),
             ("--popping", self.popping),
-            ("--shading heights", self.shading != crate::draw::blocks::NormalSource::GradientMap),
             ("--pixels forward", self.pixels != crate::draw::blocks::PixelPass::Deferred),
             ("--raycast", self.raycast != crate::draw::raycast::Raycast::Off),
             ("--inject-fault", self.inject_fault.is_some()),
@@ -1257,6 +1251,7 @@ fn bench_streamed(
     };
     let messages = device.instance.messages.clone();
     let mut gpu = GpuFrames::new(device.clone(), &mut streamer, gpu_mb, range, size, &trace)?;
+    gpu.set_normals(args.shading);
     gpu.sun(args.common.sun.0);
     // As the in-memory bench: frames are drawn, not read back.
     gpu.read_back = false;
@@ -1321,6 +1316,7 @@ fn bench_streamed(
         "p99_frame_ms": (!sorted.is_empty()).then(|| percentile(&sorted, 0.99)),
         "mean_triangles": triangles as f64 / drawn.max(1) as f64,
         "lod": format!("{:?}", args.lod).to_lowercase(),
+        "shading": value_name(args.shading),
         "morph": args.common.morph == crate::app::cli::OnOff::On,
         "mean_morphing_blocks": morphing as f64 / drawn.max(1) as f64,
         "traversal_threads": streamer.threads(),

@@ -82,7 +82,6 @@ impl RenderArgs {
             ("--detail", self.textures.detail.is_some()),
             ("--pixels forward", self.pixels != PixelPass::Deferred),
             ("--raycast", self.raycast != Raycast::Off),
-            ("--shading heights", self.shading != NormalSource::GradientMap),
         ]
         .into_iter()
         .chain(c.not_streamed())
@@ -396,6 +395,7 @@ fn render_streamed(
         export_mesh: args.export_mesh.is_some(),
         stop,
         lod: args.lod,
+        normals: args.shading,
     })?;
     let mut out = r.report;
     if args.audit {

@@ -164,6 +164,11 @@ impl GpuFrames {
         })
     }
 
+    /// Where the frames' normals come from (`--shading`), set before the first frame.
+    pub fn set_normals(&mut self, normals: crate::draw::blocks::NormalSource) {
+        self.renderer.set_normals(normals);
+    }
+
     /// Draws the frame (every tile the selection used is in the atlas: the cache takes
     /// only tiles the atlas's thread has uploaded): offscreen (kept in `last`), or into a
     /// window's swapchain image with its overlay (the panel) drawn over the terrain.
@@ -504,6 +509,8 @@ pub struct ArchiveFrame<'a> {
     pub stop: Option<&'a Stop>,
     /// How blocks choose their LOD (`--lod`).
     pub lod: LodChoice,
+    /// Where the frame's normals come from (`--shading`).
+    pub normals: crate::draw::blocks::NormalSource,
 }
 
 /// The streamed rule for a `--lod` choice (the in-memory rings' factor).
@@ -568,6 +575,7 @@ pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
     exit_if_stopped(f.stop);
     let settle_ms = warm.elapsed().as_secs_f64() * 1e3;
     let mut gpu = GpuFrames::new(f.device.clone(), &mut streamer, f.gpu_mb, range, (w, h), &Trace::off())?;
+    gpu.set_normals(f.normals);
     gpu.fog = f.fog;
     gpu.colour_by_lod = f.colour_by_lod;
     gpu.background = f.background;
@@ -590,6 +598,7 @@ pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
         "worst_factor": sel.worst_factor,
         "stitch_splits": sel.stitch_splits,
         "lod": format!("{:?}", f.lod).to_lowercase(),
+        "shading": crate::app::cli::value_name(f.normals),
         "morph": f.common.morph == OnOff::On,
         "morphing": sel.morphing,
         "traversal_threads": streamer.threads(),

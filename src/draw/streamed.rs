@@ -2,15 +2,16 @@
 //! the heightfield atlas, each block's heights fetched from its tile's layer, every
 //! position relative to the camera's nearest sample (`glsl/stream.vert`).
 //!
-//! Shading is plain (normals from the surface's own derivatives; the in-memory ramp,
-//! water, light without shadows, fog and sky): streamed tiles bring no gradient or
-//! lighting maps yet. Frames go offscreen (read back) or into a window's swapchain image.
+//! Shading is plain (the in-memory ramp, water, light without shadows, fog and sky;
+//! normals from the surface's derivatives, or with `--shading heights` as in memory from
+//! the heights of the block's tile): streamed tiles bring no gradient or lighting maps
+//! yet. Frames go offscreen (read back) or into a window's swapchain image.
 //!
 //! [`Selection`]: crate::stream::traverse::Selection
 
 use super::blocks::{
-    attachment_barriers, draw_visible_parts, BlockMesh, Target, COLOR_FORMAT, COLOR_RANGE, DEPTH_FORMAT, SKY_HORIZON,
-    SKY_ZENITH,
+    attachment_barriers, draw_visible_parts, BlockMesh, NormalSource, Target, COLOR_FORMAT, COLOR_RANGE, DEPTH_FORMAT,
+    SKY_HORIZON, SKY_ZENITH,
 };
 use crate::errors::atlas::HeightAtlas;
 use crate::gpu::layout::{self, BlockPush, FrameUniforms};
@@ -64,6 +65,8 @@ pub struct StreamedRenderer {
     pub target: Target,
     /// Depth for frames drawn to a window, at its size.
     window_depth: Option<Image>,
+    /// Where the terrain pipelines' normals come from.
+    normals: NormalSource,
 }
 
 /// A swapchain image to draw a frame into: acquired (`acquired` signalled when it may be
@@ -95,14 +98,21 @@ struct FramePipelines {
 }
 
 impl FramePipelines {
-    fn new(device: &Arc<Device>, layout: &PipelineLayout, format: vk::Format) -> VkResult<Self> {
+    fn new(device: &Arc<Device>, layout: &PipelineLayout, format: vk::Format, normals: NormalSource) -> VkResult<Self> {
         let sky = super::blocks::sky_pipeline(device, layout, format)?;
-        Ok(FramePipelines { terrain: terrain_pipeline(device, layout, format)?, sky })
+        Ok(FramePipelines { terrain: terrain_pipeline(device, layout, format, normals)?, sky })
     }
 }
 
-/// The terrain pipeline of streamed frames for colour attachments of `format`.
-fn terrain_pipeline(device: &Arc<Device>, layout: &PipelineLayout, format: vk::Format) -> VkResult<GraphicsPipeline> {
+/// The terrain pipeline of streamed frames for colour attachments of `format`, its
+/// normals from `normals` (stream.frag: the surface's derivatives for the gradient map,
+/// which streamed tiles do not bring, or the tile's heights).
+fn terrain_pipeline(
+    device: &Arc<Device>,
+    layout: &PipelineLayout,
+    format: vk::Format,
+    normals: NormalSource,
+) -> VkResult<GraphicsPipeline> {
     GraphicsPipeline::new(
         device,
         &GraphicsPipelineDesc {
@@ -118,7 +128,7 @@ fn terrain_pipeline(device: &Arc<Device>, layout: &PipelineLayout, format: vk::F
             // through it, not its underside (the same mesh, the same winding).
             cull_back: true,
             layout,
-            specialization: &[],
+            specialization: &[(layout::SPEC_NORMALS_FROM_HEIGHTS, normals == NormalSource::Heights)],
         },
     )
 }
@@ -130,13 +140,14 @@ impl StreamedRenderer {
         let set_layout = DescriptorSetLayout::new(
             device,
             &[
-                (layout::TERRAIN_BINDING_HEIGHTS, vk::DescriptorType::COMBINED_IMAGE_SAMPLER, vertex),
+                // The fragment stage reads the block's tile for its normals.
+                (layout::TERRAIN_BINDING_HEIGHTS, vk::DescriptorType::COMBINED_IMAGE_SAMPLER, both),
                 (layout::TERRAIN_BINDING_FRAME, vk::DescriptorType::UNIFORM_BUFFER, both),
             ],
         )?;
         let push = std::mem::size_of::<BlockPush>() as u32;
         let pipeline_layout = PipelineLayout::new(device, &set_layout, push, vertex)?;
-        let pipelines = FramePipelines::new(device, &pipeline_layout, COLOR_FORMAT)?;
+        let pipelines = FramePipelines::new(device, &pipeline_layout, COLOR_FORMAT, NormalSource::default())?;
         // The capture hook writes from the vertex stage: only where the device allows it.
         let capture = if device.features.vertex_stores {
             let l = DescriptorSetLayout::new(
@@ -197,6 +208,7 @@ impl StreamedRenderer {
             mesh: BlockMesh::new(device, layout.k())?,
             target: Target::new(device, width, height)?,
             window_depth: None,
+            normals: NormalSource::default(),
         })
     }
 
@@ -340,10 +352,20 @@ impl StreamedRenderer {
         if let Some((_, p)) = self.pipelines.iter().find(|(f, _)| *f == format) {
             return Ok((p.terrain.handle, p.sky.handle));
         }
-        let p = FramePipelines::new(&self.device, &self.pipeline_layout, format)?;
+        let p = FramePipelines::new(&self.device, &self.pipeline_layout, format, self.normals)?;
         let handles = (p.terrain.handle, p.sky.handle);
         self.pipelines.push((format, p));
         Ok(handles)
+    }
+
+    /// Normals from `normals` from now on (`--shading`; [`NormalSource::GradientMap`], the
+    /// default, takes them from the surface's derivatives: streamed tiles bring no gradient
+    /// map). Before the first frame: the pipelines of the other source are destroyed.
+    pub fn set_normals(&mut self, normals: NormalSource) {
+        if normals != self.normals {
+            self.normals = normals;
+            self.pipelines.clear();
+        }
     }
 
     /// Offscreen frames at `width x height` from now on.
