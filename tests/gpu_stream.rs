@@ -300,6 +300,7 @@ fn render_draws_an_archive_streamed_within_the_bound() {
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let threaded: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!((r["traversal_threads"].as_u64(), threaded["traversal_threads"].as_u64()), (Some(1), Some(3)));
+    assert_eq!(r["shading"], "flat", "{r}");
     assert!(threaded["morphing"].as_u64().unwrap() > 0, "{threaded}");
     assert_eq!((&threaded["morphing"], &threaded["blocks"]), (&r["morphing"], &r["blocks"]), "{threaded}");
     assert!(std::fs::read(&png).unwrap() == one_thread, "three threads drew another frame");

@@ -1316,7 +1316,7 @@ fn bench_streamed(
         "p99_frame_ms": (!sorted.is_empty()).then(|| percentile(&sorted, 0.99)),
         "mean_triangles": triangles as f64 / drawn.max(1) as f64,
         "lod": format!("{:?}", args.lod).to_lowercase(),
-        "shading": value_name(args.shading),
+        "shading": crate::draw::streamed::StreamedRenderer::shading_name(args.shading),
         "morph": args.common.morph == crate::app::cli::OnOff::On,
         "mean_morphing_blocks": morphing as f64 / drawn.max(1) as f64,
         "traversal_threads": streamer.threads(),

@@ -598,7 +598,7 @@ pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
         "worst_factor": sel.worst_factor,
         "stitch_splits": sel.stitch_splits,
         "lod": format!("{:?}", f.lod).to_lowercase(),
-        "shading": crate::app::cli::value_name(f.normals),
+        "shading": StreamedRenderer::shading_name(f.normals),
         "morph": f.common.morph == OnOff::On,
         "morphing": sel.morphing,
         "traversal_threads": streamer.threads(),

@@ -358,6 +358,15 @@ impl StreamedRenderer {
         Ok(handles)
     }
 
+    /// How `normals` is drawn in streamed frames, by name (`shading` in the JSON): the
+    /// default, [`NormalSource::GradientMap`], is drawn flat (each triangle's own normal).
+    pub fn shading_name(normals: NormalSource) -> &'static str {
+        match normals {
+            NormalSource::GradientMap => "flat",
+            NormalSource::Heights => "heights",
+        }
+    }
+
     /// Normals from `normals` from now on (`--shading`; [`NormalSource::GradientMap`], the
     /// default, takes them from the surface's derivatives: streamed tiles bring no gradient
     /// map). Before the first frame: the pipelines of the other source are destroyed.
