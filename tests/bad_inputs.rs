@@ -217,6 +217,10 @@ fn unreadable_file() {
 fn bad_options() {
     fails_cleanly(&["render", "--delta", "0"], &["--delta", "greater than 0"]);
     fails_cleanly(&["render", "--delta", "-1"], &["--delta"]);
+    // A negative count names its option, as other numbers do (clap alone took "-1" for
+    // an unknown option).
+    fails_cleanly(&["render", "--traversal-threads", "-1"], &["--traversal-threads"]);
+    fails_cleanly(&["stream", "x.pmtiles", "--traversal-threads", "-1"], &["--traversal-threads"]);
     fails_cleanly(&["render", "--block", "10"], &["--block 10", "2^m + 1"]);
     fails_cleanly(&["render", "--size", "0x480"], &["--size", "at least 1"]);
     fails_cleanly(&["render", "--camera", "NaN,1,2"], &["--camera", "finite"]);

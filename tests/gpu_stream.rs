@@ -364,9 +364,13 @@ fn render_draws_an_archive_streamed_within_the_bound() {
         "{rings}"
     );
     assert!(rings["triangles"].as_u64().unwrap() < full["triangles"].as_u64().unwrap(), "{rings}");
-    for (extra, named) in
-        [(vec!["--pixels", "forward"], "--pixels forward"), (vec!["--error-mode", "paper"], "--error-mode paper")]
-    {
+    for (extra, named) in [
+        (vec!["--pixels", "forward"], "--pixels forward"),
+        (vec!["--error-mode", "paper"], "--error-mode paper"),
+        // The errors activity's pacing, which streamed frames do not run.
+        (vec!["--error-pacing", "free"], "--error-pacing"),
+        (vec!["--refresh-at", "0.2"], "--refresh-at"),
+    ] {
         let o = render(&extra);
         let err = String::from_utf8_lossy(&o.stderr);
         assert_eq!(o.status.code(), Some(2), "{extra:?}: {err}");

@@ -40,7 +40,8 @@ pub struct BenchArgs {
     /// Frames, evenly spaced in simulated time along the path.
     #[arg(long, value_name = "N", default_value_t = 600)]
     pub frames: u64,
-    /// Output directory (frames.csv, summary.json, plot.png, trace.json).
+    /// Output directory (frames.csv, summary.json, trace.json; plot.png for a terrain
+    /// drawn in memory).
     #[arg(long, value_name = "DIR")]
     pub out: PathBuf,
     /// Screen-space error threshold in pixels.
@@ -1214,6 +1215,11 @@ fn bench_streamed(
     let size = args.common.size.unwrap_or((640, 480));
     crate::app::cli::check_image_size(&device, "--size", size)?;
     crate::app::outputs::output_dir("--out", &args.out)?;
+    if !args.no_fidelity {
+        eprintln!(
+            "vkterrain: note: a streamed bench measures no fidelity against --lod full and writes no plot.png yet"
+        );
+    }
     // The three threads' work: each frame's selection and drawing, the IO thread's reads,
     // the atlas's uploads (CPU tracks only: streamed frames take no timestamps).
     let trace_path = args.out.join("trace.json");

@@ -192,7 +192,7 @@ pub struct CommonArgs {
     /// CPU device such as lavapipe, where a pool's workers beside the rasterizer's threads
     /// made the traversal slower; every core on a GPU, where the frame waits for the
     /// traversal.
-    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u16).range(1..=256))]
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u16).range(1..=256), allow_negative_numbers = true)]
     pub traversal_threads: Option<u16>,
     /// Sun for the precomputed shadows and ambient occlusion: compass azimuth and
     /// elevation in degrees (azimuth 0 is north, the top of the heightmap), or `off`.
@@ -203,10 +203,15 @@ pub struct CommonArgs {
 impl CommonArgs {
     /// The shared options a streamed terrain cannot honour yet, each with whether it was
     /// given a value other than its default (drawing anyway would ignore it silently).
-    pub fn not_streamed(&self) -> [(&'static str, bool); 2] {
+    pub fn not_streamed(&self) -> [(&'static str, bool); 5] {
+        let default_share = 0.05; // --refresh-at's and --update-share's, parsed the same way
         [
             ("--error-mode paper", self.error_mode != crate::lod::gie::ErrorMode::Strict),
             ("--block (an archive fixes k = 33)", self.block != 33),
+            // The errors activity's pacing: streamed frames bound their blocks on the CPU.
+            ("--refresh-at", self.refresh_at != default_share),
+            ("--update-share", self.update_share != default_share),
+            ("--error-pacing", self.error_pacing != crate::errors::activity::Pacing::Auto),
         ]
     }
 }

@@ -70,7 +70,7 @@ pub struct StreamArgs {
     pub morph: OnOff,
     /// Threads for the per-block morph terms of each frame. Default: as `render`'s
     /// (1 on a CPU device such as lavapipe, every core on a GPU), 1 without `--gpu-mb`.
-    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u16).range(1..=256))]
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u16).range(1..=256), allow_negative_numbers = true)]
     pub traversal_threads: Option<u16>,
 }
 
