@@ -445,8 +445,3 @@ impl TextureArgs {
         Shading { detail_tiling: self.detail_tiling, detail_weight, ..shading }
     }
 }
-
-/// The command-line spelling of a value-enum option (`deferred`, `gradient-map`).
-pub fn value_name(v: impl clap::ValueEnum) -> String {
-    v.to_possible_value().map(|p| p.get_name().to_string()).unwrap_or_default()
-}
