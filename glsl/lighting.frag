@@ -9,8 +9,12 @@
 layout(set = 0, binding = LIGHTING_BINDING_HEIGHTS) uniform sampler2D heights;
 layout(location = 0) out vec2 out_light;
 
+// World height of terrain sample s: the nearest sample the heights hold (every
+// source.x-th: LightingSource::height_near), clamped to the image as raw_at clamps.
 float height_at(ivec2 s) {
-    return decode_raw(texelFetch(heights, s, 0).r, lighting_pc.grid.w) * lighting_pc.params.y;
+    int stride = lighting_pc.source.x;
+    ivec2 t = min((s + stride / 2) / stride, textureSize(heights, 0) - 1);
+    return decode_raw(texelFetch(heights, t, 0).r, lighting_pc.grid.w) * lighting_pc.params.y;
 }
 
 // Height of the sample nearest p + d t, or false outside the true extent.

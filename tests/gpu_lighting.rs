@@ -4,8 +4,8 @@
 
 mod common;
 use common::*;
-use vkterrain::draw::lighting::{reference, Sun, MAX_LIGHTING_SIDE};
-use vkterrain::draw::lighting_gpu::LightingMap;
+use vkterrain::draw::lighting::{reference, source_reference, LightingSource, Sun, MAX_LIGHTING_SIDE};
+use vkterrain::draw::lighting_gpu::{LightingMap, OwnLighting};
 use vkterrain::gpu::terrain::TerrainGpu;
 use vkterrain::input::load::{self, LoadOptions};
 use vkterrain::lod::heightfield::Heightfield;
@@ -34,7 +34,7 @@ fn check(device: &std::sync::Arc<vkterrain::vk::Device>, name: &str, hf: &Height
     assert!(map.read().unwrap().iter().all(|&t| t == [255, 255]), "{name}: without a sun everything is lit");
     let mut previous: Option<Vec<[f32; 2]>> = None;
     for &sun in suns {
-        map.set_sun(hf, Some(sun)).unwrap();
+        map.set_sun(&LightingSource::whole(hf), Some(sun)).unwrap();
         let gpu = map.read().unwrap();
         let cpu = reference(hf, Some(sun), max_side);
         let (worst, share) = compare(&gpu, &cpu);
@@ -52,6 +52,57 @@ fn check(device: &std::sync::Arc<vkterrain::vk::Device>, name: &str, hf: &Height
         }
         previous = Some(cpu);
     }
+}
+
+/// Every `stride`-th sample of `hf`: what a streamed terrain's coarser tiles hold.
+fn every(hf: &Heightfield, stride: usize) -> Heightfield {
+    let [w, h] = [hf.width, hf.height].map(|e| (e - 1) / stride + 1);
+    let raw: Vec<f32> = (0..w * h).map(|i| hf.raw_at(((i % w) * stride) as i64, ((i / w) * stride) as i64)).collect();
+    let spacing = [hf.spacing.x * stride as f32, hf.spacing.z * stride as f32];
+    Heightfield::embed("every", w, h, &raw, hf.format, spacing, hf.height_scale).unwrap()
+}
+
+/// The map streamed frames make (`OwnLighting`: heights of its own, every `stride`-th
+/// sample of `hf`) against its reference, which marches through `hf`'s samples and reads
+/// the nearest one held.
+fn check_strided(
+    device: &std::sync::Arc<vkterrain::vk::Device>,
+    name: &str,
+    hf: &Heightfield,
+    stride: usize,
+    suns: &[Sun],
+) {
+    let mut own = OwnLighting::new(device, every(hf, stride), stride, [hf.width, hf.height], None).unwrap();
+    assert!(own.map.read().unwrap().iter().all(|&t| t == [255, 255]), "{name}: without a sun everything is lit");
+    for &sun in suns {
+        own.set_sun(Some(sun)).unwrap();
+        let gpu = own.map.read().unwrap();
+        let cpu = source_reference(&own.source(), Some(sun), MAX_LIGHTING_SIDE);
+        let (worst, share) = compare(&gpu, &cpu);
+        println!("{name} every {stride} {sun:?}: worst {worst:.4}, share off {share:.5}");
+        assert!(share <= 0.0005, "{name} {sun:?}: {share} of texels differ from the reference (worst {worst})");
+        assert!(cpu.iter().any(|l| l[0] < 0.5) && cpu.iter().any(|l| l[1] < 0.9), "{name} {sun:?}: nothing shaded");
+    }
+    // A taller terrain darkens the map: the height scale reaches the shader.
+    let before = own.map.read().unwrap();
+    own.set_height_scale(hf.height_scale * 3.0).unwrap();
+    let (_, share) =
+        compare(&own.map.read().unwrap(), &before.iter().map(|t| t.map(|v| v as f32 / 255.0)).collect::<Vec<_>>());
+    assert!(share > 0.01, "{name}: a height scale three times larger changed {share} of the map");
+}
+
+#[test]
+fn a_map_from_every_other_sample_matches_its_reference() {
+    let device = gpu();
+    let low_east = Sun { azimuth: 90.0, elevation: 12.0 };
+    let odd = Sun { azimuth: 217.5, elevation: 33.0 };
+    let bumps = field16(129, 129, 1.0, 0.01, |x, z| {
+        (30000.0 + 9000.0 * ((x as f32 * 0.37).sin() + (z as f32 * 0.23).cos() * (x as f32 * 0.11).sin())) as u16
+    });
+    check_strided(&device, "bumps16", &bumps, 2, &[low_east, odd]);
+    let ps = load::load(&data("puget_sound/ps_height_1k.png"), &LoadOptions::default()).unwrap();
+    check_strided(&device, "puget sound", &ps, 4, &[Sun { azimuth: 260.0, elevation: 15.0 }]);
+    finish(device);
 }
 
 #[test]

@@ -3,7 +3,7 @@
 //! This module records and submits frames; the draw thread (see `render`) decides what
 //! to draw.
 
-use crate::draw::lighting::Sun;
+use crate::draw::lighting::{LightingSource, Sun};
 use crate::draw::lighting_gpu::LightingMap;
 use crate::draw::raycast::{self, Raycast};
 use crate::gpu::layout::{self as layout, BlockPush, FrameUniforms};
@@ -859,12 +859,12 @@ impl BlocksRenderer {
     /// Redraws the lighting map for `sun` (`None`: no shadows or occlusion); frames
     /// recorded from now on use it.
     pub fn set_sun(&mut self, hf: &Heightfield, sun: Option<Sun>) -> VkResult<()> {
-        self.lighting.set_sun(hf, sun)
+        self.lighting.set_sun(&LightingSource::whole(hf), sun)
     }
 
     /// Redraws the lighting map over `hf` at its (new) height scale.
     pub fn redraw_lighting(&mut self, hf: &Heightfield) -> VkResult<()> {
-        self.lighting.redraw(hf)
+        self.lighting.redraw(&LightingSource::whole(hf))
     }
 
     /// The lighting map (tests read it back).

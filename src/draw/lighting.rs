@@ -82,25 +82,73 @@ pub fn lighting_side(side: usize, max_side: usize) -> usize {
 /// Texels of the lighting map along x and z for `hf`'s grid, and the samples per texel
 /// (the same on both axes, chosen for the longer one).
 pub fn lighting_size(hf: &Heightfield, max_side: usize) -> ([usize; 2], usize) {
-    let [gw, gh] = hf.grid();
-    let step = samples_per_texel(gw.max(gh), max_side);
-    ([(gw - 1) / step + 1, (gh - 1) / step + 1], step)
+    LightingSource::whole(hf).size(max_side)
+}
+
+/// The heights a lighting map is made from: `hf` holds every `stride`-th sample (a power
+/// of two) of a terrain of `extent` samples, and its spacing is `stride` times the
+/// terrain's. In memory that is the terrain itself (stride 1); a streamed terrain lights
+/// from the tiles of a coarser level (the map has one texel per `stride` samples there),
+/// and a march through the terrain's samples reads the nearest sample `hf` holds.
+#[derive(Clone, Copy)]
+pub struct LightingSource<'a> {
+    pub hf: &'a Heightfield,
+    pub stride: usize,
+    pub extent: [usize; 2],
+}
+
+impl<'a> LightingSource<'a> {
+    pub fn whole(hf: &'a Heightfield) -> Self {
+        LightingSource { hf, stride: 1, extent: [hf.width, hf.height] }
+    }
+
+    /// `hf` holding every `stride`-th sample of a terrain of `extent` samples.
+    pub fn every(hf: &'a Heightfield, stride: usize, extent: [usize; 2]) -> Self {
+        debug_assert!(stride.is_power_of_two());
+        debug_assert_eq!([hf.width, hf.height], extent.map(|e| (e - 1) / stride + 1));
+        LightingSource { hf, stride, extent }
+    }
+
+    /// The terrain's spacing (metres between its samples).
+    pub fn spacing(&self) -> Spacing {
+        Spacing { x: self.hf.spacing.x / self.stride as f32, z: self.hf.spacing.z / self.stride as f32 }
+    }
+
+    /// Texels along x and z and samples per texel: `hf`'s grid taken at the terrain's
+    /// resolution, as [`lighting_size`] takes an in-memory grid.
+    pub fn size(&self, max_side: usize) -> ([usize; 2], usize) {
+        let [gw, gh] = self.hf.grid().map(|g| (g - 1) * self.stride + 1);
+        let step = samples_per_texel(gw.max(gh), max_side);
+        ([(gw - 1) / step + 1, (gh - 1) / step + 1], step)
+    }
+
+    /// World height of terrain sample `(x, z)` (not negative): the nearest sample held.
+    fn height_near(&self, x: i64, z: i64) -> f32 {
+        let (s, half) = (self.stride as i64, self.stride as i64 / 2);
+        self.hf.height_at((x + half) / s, (z + half) / s)
+    }
 }
 
 /// Sun visibility (0 shadowed .. 1 lit) and ambient occlusion (share of open sky, 1 on
 /// flat open ground) at sample `(x, z)`, or `[1, 1]` without a sun.
 pub fn light_at(hf: &Heightfield, x: i64, z: i64, sun: Option<Sun>) -> [f32; 2] {
+    source_light_at(&LightingSource::whole(hf), x, z, sun)
+}
+
+/// [`light_at`] at terrain sample `(x, z)` of `src`.
+pub fn source_light_at(src: &LightingSource, x: i64, z: i64, sun: Option<Sun>) -> [f32; 2] {
     let Some(sun) = sun else { return [1.0, 1.0] };
-    let (w, h) = (hf.width as i64, hf.height as i64);
-    let h0 = hf.height_at(x, z);
+    let [w, h] = src.extent.map(|e| e as i64);
+    let h0 = src.height_near(x, z);
     let p = [x as f32, z as f32];
     // Nearest sample to p + d t; None outside the true extent (nothing there casts).
     let at = |d: [f32; 2], t: f32| -> Option<f32> {
         let qx = (p[0] + d[0] * t + 0.5).floor() as i64;
         let qz = (p[1] + d[1] * t + 0.5).floor() as i64;
-        (qx >= 0 && qz >= 0 && qx < w && qz < h).then(|| hf.height_at(qx, qz))
+        (qx >= 0 && qz >= 0 && qx < w && qz < h).then(|| src.height_near(qx, qz))
     };
-    let (d, tan_sun, metres_per_step) = sun.march(hf.spacing);
+    let spacing = src.spacing();
+    let (d, tan_sun, metres_per_step) = sun.march(spacing);
     let mut horizon = f32::MIN;
     let mut t = 1.0f32;
     for _ in 0..SUN_MAX_STEPS {
@@ -113,7 +161,7 @@ pub fn light_at(hf: &Heightfield, x: i64, z: i64, sun: Option<Sun>) -> [f32; 2] 
     for d in AO_DIRECTIONS {
         let mut tan = 0.0f32;
         // Metres per unit of `t` along this direction in samples.
-        let (mx, mz) = (d[0] * hf.spacing.x, d[1] * hf.spacing.z);
+        let (mx, mz) = (d[0] * spacing.x, d[1] * spacing.z);
         let metres = (mx * mx + mz * mz).sqrt();
         for t in AO_DISTANCES {
             let Some(hq) = at(d, t) else { break };
@@ -128,14 +176,20 @@ pub fn light_at(hf: &Heightfield, x: i64, z: i64, sun: Option<Sun>) -> [f32; 2] 
 /// The whole map, row-major, [`lighting_size`] texels: texel `(i, j)` is sample
 /// `(i, j) * samples_per_texel`.
 pub fn reference(hf: &Heightfield, sun: Option<Sun>, max_side: usize) -> Vec<[f32; 2]> {
-    let ([w, h], step) = lighting_size(hf, max_side);
+    source_reference(&LightingSource::whole(hf), sun, max_side)
+}
+
+/// [`reference`] of the map made from `src`.
+pub fn source_reference(src: &LightingSource, sun: Option<Sun>, max_side: usize) -> Vec<[f32; 2]> {
+    let ([w, h], step) = src.size(max_side);
     let step = step as i64;
-    (0..w * h).map(|i| light_at(hf, (i % w) as i64 * step, (i / w) as i64 * step, sun)).collect()
+    (0..w * h).map(|i| source_light_at(src, (i % w) as i64 * step, (i / w) as i64 * step, sun)).collect()
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::lod::heightfield::HeightFormat;
 
     fn field(side: usize, f: impl Fn(usize, usize) -> f32) -> Heightfield {
         crate::lod::heightfield::test_field(side, side, f)
@@ -182,6 +236,31 @@ mod tests {
             }
         }
         assert!(reference(&hf, None, MAX_LIGHTING_SIDE).iter().all(|&l| l == [1.0, 1.0]));
+    }
+
+    /// A map made from every other sample marches through the terrain's samples and
+    /// reads the nearest one held: on a terrain that is constant over the samples each
+    /// held one stands for, it equals the map of the terrain itself, texel for texel
+    /// (ridges and pits so that shadows and occlusion both vary; spacing 1.5 x 0.75 so
+    /// that the halved spacing matters).
+    #[test]
+    fn a_map_from_every_other_sample_reads_the_nearest_one() {
+        let coarse =
+            |c: usize, r: usize| ((c * 7 + r * 3) % 11) as f32 * 0.8 + if c == 20 || r == 9 { 9.0 } else { 0.0 };
+        let side = 65usize;
+        let samples: Vec<f32> =
+            (0..side * side).map(|i| coarse((i % side).div_ceil(2), (i / side).div_ceil(2))).collect();
+        let full = Heightfield::embed("full", side, side, &samples, HeightFormat::Float32, [1.5, 0.75], 2.0).unwrap();
+        let held: Vec<f32> = (0..33 * 33).map(|i| coarse(i % 33, i / 33)).collect();
+        let half = Heightfield::embed("half", 33, 33, &held, HeightFormat::Float32, [3.0, 1.5], 2.0).unwrap();
+        let src = LightingSource::every(&half, 2, [side, side]);
+        assert_eq!(src.size(33), lighting_size(&full, 33));
+        for sun in [Sun { azimuth: 70.0, elevation: 20.0 }, Sun { azimuth: 200.0, elevation: 8.0 }] {
+            let want = reference(&full, Some(sun), 33);
+            let got = source_reference(&src, Some(sun), 33);
+            assert_eq!(got, want, "{sun:?}");
+            assert!(want.iter().any(|l| l[0] < 0.5) && want.iter().any(|l| l[1] < 0.9), "{sun:?}: nothing shaded");
+        }
     }
 
     /// A wall 10 high along x = 40: with the sun in the east (+x) at 30 degrees, ground

@@ -2,7 +2,7 @@
 //! visibility, ambient occlusion), at load and whenever the sun moves. The terrain
 //! shader samples it; `crate::draw::lighting` is its CPU reference.
 
-use crate::draw::lighting::{lighting_size, Sun, MAX_LIGHTING_SIDE};
+use crate::draw::lighting::{LightingSource, Sun, MAX_LIGHTING_SIDE};
 use crate::gpu::layout::{self as layout, LightingPush};
 use crate::gpu::shaders;
 use crate::gpu::terrain::TerrainGpu;
@@ -46,7 +46,21 @@ impl LightingMap {
         sun: Option<Sun>,
         max_side: usize,
     ) -> VkResult<Self> {
-        let ([w, h], _) = lighting_size(hf, max_side);
+        let heights = (terrain.heights.view, terrain.nearest.handle);
+        Self::of_source(device, &LightingSource::whole(hf), heights, sun, max_side)
+    }
+
+    /// The map made from `src`, whose heights the GPU reads through `heights` (an image
+    /// view of `src.hf`'s grid and a nearest sampler, kept alive by the caller as long as
+    /// the map).
+    pub fn of_source(
+        device: &Arc<Device>,
+        src: &LightingSource,
+        heights: (vk::ImageView, vk::Sampler),
+        sun: Option<Sun>,
+        max_side: usize,
+    ) -> VkResult<Self> {
+        let ([w, h], _) = src.size(max_side);
         let image = Image::new(
             device,
             "lighting map",
@@ -72,7 +86,7 @@ impl LightingMap {
         )?;
         let pool = DescriptorPool::new(device, 1, &[(sampler_ty, 1)])?;
         let set = pool.allocate(&set_layout)?;
-        pool.write(set, &[(layout::LIGHTING_BINDING_HEIGHTS, terrain.heights.view, terrain.nearest.handle)], &[]);
+        pool.write(set, &[(layout::LIGHTING_BINDING_HEIGHTS, heights.0, heights.1)], &[]);
         let mut map = LightingMap {
             image,
             sampler: Sampler::new(device, vk::Filter::LINEAR, vk::SamplerAddressMode::CLAMP_TO_EDGE)?,
@@ -87,7 +101,7 @@ impl LightingMap {
             last_ms: 0.0,
             device: device.clone(),
         };
-        map.draw(hf, sun, true)?;
+        map.draw(src, sun, true)?;
         Ok(map)
     }
 
@@ -103,30 +117,32 @@ impl LightingMap {
     /// Redraws the map for `sun` on the draw queue and waits. Frames already submitted
     /// that sample the map finish first (the barrier below orders the rewrite after
     /// their fragment shaders); frames recorded after this call see the new map.
-    pub fn set_sun(&mut self, hf: &Heightfield, sun: Option<Sun>) -> VkResult<()> {
+    pub fn set_sun(&mut self, src: &LightingSource, sun: Option<Sun>) -> VkResult<()> {
         if sun != self.sun {
-            self.draw(hf, sun, false)?;
+            self.draw(src, sun, false)?;
         }
         Ok(())
     }
 
-    /// Redraws the map for the same sun over `hf` with a new height scale (the viewer's
+    /// Redraws the map for the same sun over `src` with a new height scale (the viewer's
     /// vertical exaggeration), as [`Self::set_sun`] does.
-    pub fn redraw(&mut self, hf: &Heightfield) -> VkResult<()> {
-        self.draw(hf, self.sun, false)
+    pub fn redraw(&mut self, src: &LightingSource) -> VkResult<()> {
+        self.draw(src, self.sun, false)
     }
 
-    fn draw(&mut self, hf: &Heightfield, sun: Option<Sun>, first: bool) -> VkResult<()> {
-        let (d, tan, metres_per_step) = sun.map_or(([0.0; 2], 0.0, 1.0), |s| s.march(hf.spacing));
+    fn draw(&mut self, src: &LightingSource, sun: Option<Sun>, first: bool) -> VkResult<()> {
+        let (hf, spacing) = (src.hf, src.spacing());
+        let (d, tan, metres_per_step) = sun.map_or(([0.0; 2], 0.0, 1.0), |s| s.march(spacing));
         let push = LightingPush {
             sun: [d[0], tan, d[1], sun.is_some() as i32 as f32],
             grid: [
-                hf.width as i32,
-                hf.height as i32,
-                lighting_size(hf, self.max_side).1 as i32,
+                src.extent[0] as i32,
+                src.extent[1] as i32,
+                src.size(self.max_side).1 as i32,
                 (hf.format == HeightFormat::Unorm16) as i32,
             ],
-            params: [hf.spacing.x, hf.height_scale, hf.spacing.z, metres_per_step],
+            params: [spacing.x, hf.height_scale, spacing.z, metres_per_step],
+            source: [src.stride as i32, 0, 0, 0],
         };
         let extent = self.image.extent;
         let raw = &self.device.raw;
@@ -224,5 +240,71 @@ impl LightingMap {
             }
         })?;
         Ok(bytemuck::pod_collect_to_vec(&buffer.mapped()?[..bytes as usize]))
+    }
+}
+
+/// A lighting map made from heights it holds itself: every `stride`-th sample of a
+/// terrain that is not in one image (streamed frames), uploaded once into an image of its
+/// own on the draw queue's family.
+pub struct OwnLighting {
+    /// First: its descriptor set reads `_heights` through `_nearest`.
+    pub map: LightingMap,
+    _heights: Image,
+    _nearest: Sampler,
+    hf: Heightfield,
+    stride: usize,
+    extent: [usize; 2],
+}
+
+impl OwnLighting {
+    /// The map of the terrain of `extent` samples whose every `stride`-th sample `hf`
+    /// holds ([`LightingSource::every`]), for `sun`.
+    pub fn new(
+        device: &Arc<Device>,
+        hf: Heightfield,
+        stride: usize,
+        extent: [usize; 2],
+        sun: Option<Sun>,
+    ) -> VkResult<Self> {
+        let pool = CommandPool::new(device, device.draw_queue.family)?;
+        let (heights, _) = crate::gpu::terrain::heights_image(device, &pool, &hf, "lighting heights", false)?;
+        let nearest = Sampler::new(device, vk::Filter::NEAREST, vk::SamplerAddressMode::CLAMP_TO_EDGE)?;
+        let src = LightingSource::every(&hf, stride, extent);
+        let map = LightingMap::of_source(device, &src, (heights.view, nearest.handle), sun, MAX_LIGHTING_SIDE)?;
+        Ok(OwnLighting { map, _heights: heights, _nearest: nearest, hf, stride, extent })
+    }
+
+    /// A map that lights everything (no shadows, the whole sky open): for frames with
+    /// no heights to make one from.
+    pub fn everything_lit(device: &Arc<Device>) -> VkResult<Self> {
+        let flat = Heightfield::embed("flat", 3, 3, &[0.0; 9], HeightFormat::Float32, 1.0, 1.0)
+            .map_err(|e| crate::vk::VkError::Setup(e.to_string()))?;
+        Self::new(device, flat, 1, [3, 3], None)
+    }
+
+    pub fn source(&self) -> LightingSource<'_> {
+        LightingSource::every(&self.hf, self.stride, self.extent)
+    }
+
+    /// Terrain samples per texel of the map.
+    pub fn samples_per_texel(&self) -> usize {
+        self.source().size(self.map.max_side).1
+    }
+
+    /// Redraws the map for `sun` ([`LightingMap::set_sun`]).
+    pub fn set_sun(&mut self, sun: Option<Sun>) -> VkResult<()> {
+        let src = LightingSource::every(&self.hf, self.stride, self.extent);
+        self.map.set_sun(&src, sun)
+    }
+
+    /// Redraws the map with heights at `scale` world units per raw unit (the viewer's
+    /// vertical exaggeration).
+    pub fn set_height_scale(&mut self, scale: f32) -> VkResult<()> {
+        if scale != self.hf.height_scale {
+            self.hf.height_scale = scale;
+            let src = LightingSource::every(&self.hf, self.stride, self.extent);
+            self.map.redraw(&src)?;
+        }
+        Ok(())
     }
 }

@@ -131,7 +131,8 @@ gpu_block! {
         /// metres at the top of the colour ramp for absolute heights (0: the ramp spans
         /// the terrain's range), height_scale, min height, max height (world units).
         terrain: [f32; 4] => "vec4",
-        /// Sample spacing x, z (world units), unused x 2.
+        /// Sample spacing x, z (world units); z: terrain samples per lighting texel in
+        /// streamed frames (stream.frag), unused in memory; w unused.
         spacing: [f32; 4] => "vec4",
         /// xyz: direction towards the light, w: ambient.
         light: [f32; 4] => "vec4",
@@ -182,6 +183,8 @@ gpu_block! {
         grid: [i32; 4] => "ivec4",
         /// spacing x, height_scale, spacing z, metres per unit step along `sun.xz`.
         params: [f32; 4] => "vec4",
+        /// x: samples per height texel (`LightingSource::stride`: 1 in memory), yzw: 0.
+        source: [i32; 4] => "ivec4",
     }
 }
 

@@ -58,16 +58,9 @@ impl TerrainGpu {
     ) -> VkResult<Self> {
         let pool = CommandPool::new(device, device.draw_queue.family)?;
         let [gw, gh] = hf.grid().map(|v| v as u32);
-        let (format, bytes): (vk::Format, Vec<u8>) = match hf.format {
-            HeightFormat::Unorm16 => {
-                (vk::Format::R16_UNORM, hf.raw.iter().flat_map(|&v| (v as u16).to_le_bytes()).collect())
-            }
-            HeightFormat::Float32 => (vk::Format::R32_SFLOAT, bytemuck::cast_slice(&hf.raw).to_vec()),
-        };
         let usage = vk::ImageUsageFlags::SAMPLED | vk::ImageUsageFlags::TRANSFER_DST;
         let extent = |w: u32, h: u32| vk::Extent2D { width: w, height: h };
-        let heights = Image::new(device, "heightfield", extent(gw, gh), format, 1, usage, true)?;
-        upload(device, &pool, &heights, &[&bytes])?;
+        let (heights, height_bytes) = heights_image(device, &pool, hf, "heightfield", true)?;
 
         let mips: Vec<Vec<u8>> = mm.levels.iter().map(|l| bytemuck::cast_slice(l).to_vec()).collect();
         let mip_refs: Vec<&[u8]> = mips.iter().map(|m| m.as_slice()).collect();
@@ -101,7 +94,7 @@ impl TerrainGpu {
         };
         let base_img = tex("base texture", base.unwrap_or(&white))?;
         let detail_img = tex("detail texture", detail.unwrap_or(&white))?;
-        let total = bytes.len()
+        let total = height_bytes
             + mips.iter().map(|m| m.len()).sum::<usize>()
             + mm.dev.iter().map(|l| l.len() * 4).sum::<usize>()
             + grads.len() * 4;
@@ -122,6 +115,28 @@ impl TerrainGpu {
             bytes: total as u64,
         })
     }
+}
+
+/// `hf`'s grid of raw heights as a sampled image (R16 unorm or R32 float, as the shaders
+/// decode them), uploaded; `shared`: both queues read it. Also the bytes it holds.
+pub fn heights_image(
+    device: &Arc<Device>,
+    pool: &CommandPool,
+    hf: &Heightfield,
+    name: &str,
+    shared: bool,
+) -> VkResult<(Image, usize)> {
+    let [gw, gh] = hf.grid().map(|v| v as u32);
+    let (format, bytes): (vk::Format, Vec<u8>) = match hf.format {
+        HeightFormat::Unorm16 => {
+            (vk::Format::R16_UNORM, hf.raw.iter().flat_map(|&v| (v as u16).to_le_bytes()).collect())
+        }
+        HeightFormat::Float32 => (vk::Format::R32_SFLOAT, bytemuck::cast_slice(&hf.raw).to_vec()),
+    };
+    let usage = vk::ImageUsageFlags::SAMPLED | vk::ImageUsageFlags::TRANSFER_DST;
+    let image = Image::new(device, name, vk::Extent2D { width: gw, height: gh }, format, 1, usage, shared)?;
+    upload(device, pool, &image, &[&bytes])?;
+    Ok((image, bytes.len()))
 }
 
 /// Uploads every mip level of `image` and leaves it in SHADER_READ_ONLY_OPTIMAL.

@@ -359,11 +359,31 @@ impl Archive {
         Ok(dir)
     }
 
+    /// Every `2^level`-th sample of the terrain along both axes as one heightfield
+    /// ([`level_heightfield`]), every tile of the level read and checked.
+    pub fn level_heightfield(&self, level: u8) -> Result<Heightfield, HeightfieldError> {
+        let m = &self.meta;
+        let format = match m.sample_format().expect("checked at open") {
+            Samples::Unorm16 => HeightFormat::Unorm16,
+            Samples::Float32 => HeightFormat::Float32,
+        };
+        let terrain = LevelTerrain {
+            name: &bytes::shown(&self.path),
+            extent: [m.width, m.height],
+            tile_quads: m.tile_quads,
+            format,
+            spacing: m.spacing,
+            height_scale: m.height_scale,
+        };
+        level_heightfield(&terrain, level, |tx, tz| {
+            self.read_tile(level, tx, tz)?.ok_or_else(|| self.tile_error(level, tx, tz, "missing"))
+        })
+    }
+
     /// The whole terrain at full resolution as one heightfield (level-0 tiles), for
     /// terrains that fit in one GPU image; every tile is read and its checksum verified.
     pub fn heightfield(&self) -> Result<Heightfield, HeightfieldError> {
         let m = &self.meta;
-        let shown = bytes::shown(&self.path);
         if m.width > crate::lod::heightfield::MAX_SIDE || m.height > crate::lod::heightfield::MAX_SIDE {
             return Err(bad(
                 &self.path,
@@ -376,39 +396,61 @@ impl Archive {
                 ),
             ));
         }
-        let mut samples = vec![0.0f32; m.width * m.height];
-        let [nx, nz] = m.tiles_at(0);
-        let t = m.tile_quads;
-        for tz in 0..nz {
-            for tx in 0..nx {
-                let tile = self.read_tile(0, tx, tz)?.ok_or_else(|| self.tile_error(0, tx, tz, "missing"))?;
-                for j in 0..=t {
-                    let z = tz as usize * t + j;
-                    if z >= m.height {
-                        break;
-                    }
-                    let x0 = tx as usize * t;
-                    let count = (t + 1).min(m.width - x0);
-                    let row = &tile.heights[(j + 1) * tile.side + 1..][..count];
-                    samples[z * m.width + x0..][..count].copy_from_slice(row);
-                }
-            }
-        }
+        let mut hf = self.level_heightfield(0)?;
         // The coarser tiles are not needed here, but a damaged one is better found now.
         for (level, tx, tz) in m.tiles().filter(|&(level, _, _)| level > 0) {
             self.read_tile(level, tx, tz)?.ok_or_else(|| self.tile_error(level, tx, tz, "missing"))?;
         }
-        let format = match m.sample_format().expect("checked at open") {
-            Samples::Unorm16 => HeightFormat::Unorm16,
-            Samples::Float32 => HeightFormat::Float32,
-        };
-        let mut hf =
-            Heightfield::embed(&shown, m.width, m.height, &samples, format, Spacing::from(m.spacing), m.height_scale)?;
         hf.georef = m.georef.clone();
         hf.georef.notes.insert(0, format!("a prepared archive of {} tiles, from {}", m.tiles, m.source));
         hf.void_samples = m.void_samples;
         Ok(hf)
     }
+}
+
+/// What [`level_heightfield`] needs of a terrain.
+pub struct LevelTerrain<'a> {
+    /// The file, for errors.
+    pub name: &'a str,
+    /// True extent in samples.
+    pub extent: [usize; 2],
+    pub tile_quads: usize,
+    pub format: HeightFormat,
+    pub spacing: [f32; 2],
+    pub height_scale: f32,
+}
+
+/// Every `2^level`-th sample of `terrain` along both axes as one heightfield: the
+/// vertices of the level's tiles as `read(tx, tz)` gives them, `((width - 1) >> level) +
+/// 1` by `((height - 1) >> level) + 1`, spacing `2^level` times the terrain's. Level 0 is
+/// the whole terrain ([`Archive::heightfield`]); a coarser level is what streamed frames
+/// make their lighting map from.
+pub fn level_heightfield<E: From<HeightfieldError>>(
+    terrain: &LevelTerrain,
+    level: u8,
+    mut read: impl FnMut(u32, u32) -> Result<Tile, E>,
+) -> Result<Heightfield, E> {
+    let [w, h] = terrain.extent.map(|e| ((e - 1) >> level) + 1);
+    let t = terrain.tile_quads;
+    let mut samples = vec![0.0f32; w * h];
+    for tz in 0..(h - 1).div_ceil(t) as u32 {
+        for tx in 0..(w - 1).div_ceil(t) as u32 {
+            let tile = read(tx, tz)?;
+            let x0 = tx as usize * t;
+            for j in 0..=t {
+                let z = tz as usize * t + j;
+                if z >= h {
+                    break;
+                }
+                let count = (t + 1).min(w - x0);
+                let row = &tile.heights[(j + 1) * tile.side + 1..][..count];
+                samples[z * w + x0..][..count].copy_from_slice(row);
+            }
+        }
+    }
+    let stride = (1u32 << level) as f32;
+    let spacing = Spacing::from([terrain.spacing[0] * stride, terrain.spacing[1] * stride]);
+    Ok(Heightfield::embed(terrain.name, w, h, &samples, terrain.format, spacing, terrain.height_scale)?)
 }
 
 /// Removes `.NAME.partial-PID` files beside `out` whose process is gone (a run killed by
