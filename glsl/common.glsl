@@ -17,3 +17,10 @@ vec2 central_gradient(float east, float west, float south, float north, vec2 ste
 vec3 normal_of(vec2 g) {
     return normalize(vec3(-g.x, 1.0, -g.y));
 }
+
+// The light on a surface of unit normal `n` (both renderers): the ambient share
+// `light.w` scaled by the open sky `sun_ao.g`, the sun from `light.xyz` by its
+// visibility `sun_ao.r` (the lighting map, lighting.frag).
+float light_of(vec3 n, vec4 light, vec2 sun_ao) {
+    return light.w * sun_ao.g + (1.0 - light.w) * max(dot(n, normalize(light.xyz)), 0.0) * sun_ao.r;
+}

@@ -1,6 +1,7 @@
 #version 450
-// Streamed frames: lit by the in-memory frame's light without shadows (`--sun off`),
-// coloured by the in-memory shading's ramp and water (its sea share from the vertices)
+// Streamed frames: lit by the in-memory frame's light, its sun shadows and ambient
+// occlusion from a lighting map made as in memory (lighting.frag) from every
+// spacing.z-th sample (the tiles of a coarser level: draw/streamed.rs), coloured by the in-memory shading's ramp and water (its sea share from the vertices)
 // with its procedural detail, fogged towards the horizon colour; the sky (sky.frag) is
 // drawn after the blocks where none was. Normals: by default from the surface's own
 // derivatives (flat per triangle); with NORMALS_FROM_HEIGHTS (`--shading heights`) as
@@ -18,6 +19,7 @@
 #include "ramp.glsl"
 
 layout(set = 0, binding = TERRAIN_BINDING_HEIGHTS) uniform sampler2DArray heights;
+layout(set = 0, binding = TERRAIN_BINDING_LIGHTING) uniform sampler2D lighting;
 
 layout(location = 0) in vec3 v_relative;
 layout(location = 1) in vec2 v_sample;
@@ -70,8 +72,10 @@ void main() {
         vec3 palette[] = LOD_PALETTE;
         albedo = mix(albedo, palette[v_lod % palette.length()], 0.6);
     }
-    float lit = frame.light.w + (1.0 - frame.light.w) * max(dot(n, frame.light.xyz), 0.0);
-    vec3 c = albedo * lit;
+    // Texel i of the lighting map is terrain sample i * frame.spacing.z.
+    vec2 texels = vec2(textureSize(lighting, 0));
+    vec2 sun_ao = texture(lighting, (v_sample / frame.spacing.z + 0.5) / texels).rg;
+    vec3 c = albedo * light_of(n, frame.light, sun_ao);
     float d = length(v_relative - frame.camera_fog.xyz);
     float fog = 1.0 - exp(-frame.camera_fog.w * d);
     out_color = vec4(mix(c, frame.sky_horizon.rgb, clamp(fog, 0.0, 1.0)), 1.0);

@@ -106,8 +106,7 @@ vec3 shade_terrain(vec3 world, int lod) {
     vec2 texels = vec2(textureSize(lighting, 0));
     vec2 grid = vec2(textureSize(heights, 0));
     vec2 lit = texture(lighting, (p * (texels - 1.0) / (grid - 1.0) + 0.5) / texels).rg;
-    vec3 l = normalize(frame.light.xyz);
-    vec3 color = albedo * (frame.light.w * lit.g + (1.0 - frame.light.w) * max(dot(n, l), 0.0) * lit.r);
+    vec3 color = albedo * light_of(n, frame.light, lit);
     float dist = length(world - frame.camera_fog.xyz);
     float fog = 1.0 - exp(-frame.camera_fog.w * dist);
     return mix(color, frame.sky_horizon.rgb, fog);

@@ -57,6 +57,7 @@ fn main() -> anyhow::Result<()> {
         let mut s = Streamer::new(archive, grid, 1 << 30);
         let atlas = HeightAtlas::new(&device, &grid, 512 << 20)?;
         s.attach(Box::new(atlas.feed()), HeightAtlas::cache_tiles(atlas.layer_count()));
+        let lit = vkterrain::draw::lighting_gpu::OwnLighting::everything_lit(&device)?;
         let mut renderer = StreamedRenderer::new(&device, draw::layout(&grid), args.width, args.height)?;
         let extent = grid.world_extent();
         let start = DVec3::new(0.05 * extent[0], 0.0, 0.05 * extent[1]);
@@ -88,6 +89,7 @@ fn main() -> anyhow::Result<()> {
                 heights: HeightRange { world: [0.0, 1000.0], absolute: false },
                 fog: 0.0,
                 light: glam::Vec3::Y,
+                lighting: &lit,
                 colour_by_lod: false,
                 background: None,
             };

@@ -1263,7 +1263,7 @@ fn bench_streamed(
     let messages = device.instance.messages.clone();
     let mut gpu = GpuFrames::new(device.clone(), &mut streamer, gpu_mb, range, size, &trace)?;
     gpu.set_normals(args.shading);
-    gpu.sun(args.common.sun.0);
+    gpu.sun(args.common.sun.0)?;
     // As the in-memory bench: frames are drawn, not read back.
     gpu.read_back = false;
     // As a viewer would: the first view's tiles are read before the run.

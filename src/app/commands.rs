@@ -371,15 +371,7 @@ fn render_streamed(
         .into());
     }
     let m = &archive.meta;
-    eprintln!(
-        "vkterrain: {shown}: {} x {} samples, {} tile levels, drawn streamed (cache {} MB, atlas {} MB); plain \
-         shading: no textures, shadows or occlusion culling yet",
-        m.width,
-        m.height,
-        m.top_level + 1,
-        args.streamed.cache_mb(),
-        args.streamed.gpu_mb()
-    );
+    eprintln!("{}", crate::app::stream::streamed_banner(&shown, m, args.streamed.cache_mb(), args.streamed.gpu_mb()));
     let queue_mode = device.queue_mode.as_str();
     let messages = device.instance.messages.clone();
     let r = crate::app::stream::render_archive(crate::app::stream::ArchiveFrame {

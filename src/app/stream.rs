@@ -7,6 +7,7 @@ use crate::app::cli::{CommonArgs, InputError, OnOff};
 use crate::app::signals::Stop;
 use crate::draw::frame::{traversal_threads, LodChoice};
 use crate::draw::lighting::Sun;
+use crate::draw::lighting_gpu::OwnLighting;
 use crate::draw::streamed::{FrameView, HeightRange, Overlay, StreamedRenderer, WindowImage};
 use crate::errors::atlas::HeightAtlas;
 use crate::input::archive::{Archive, Meta};
@@ -79,10 +80,25 @@ pub(crate) fn morph_rule(morph: OnOff) -> Option<MorphRule> {
     (morph == OnOff::On).then_some(MorphRule::Bounded)
 }
 
+/// What a viewer or `render` says when it opens `shown` streamed.
+pub(crate) fn streamed_banner(shown: &str, m: &Meta, cache_mb: u32, gpu_mb: u32) -> String {
+    format!(
+        "vkterrain: {shown}: {} x {} samples, {} tile levels, drawn streamed (cache {cache_mb} MB, atlas {gpu_mb} MB); \
+         no textures or occlusion culling yet",
+        m.width,
+        m.height,
+        m.top_level + 1,
+    )
+}
+
 /// The GPU side of streamed frames: device, atlas and renderer, and what they did.
 pub(crate) struct GpuFrames {
     /// Before the atlas: its frames are waited for before the atlas's thread stops.
     renderer: StreamedRenderer,
+    /// Sun shadows and ambient occlusion (after the renderer, whose frames read it).
+    lighting: OwnLighting,
+    /// Why the frames have no shadows, when the lighting map's heights could not be read.
+    no_shadows: Option<String>,
     atlas: HeightAtlas,
     pub device: Arc<Device>,
     /// The terrain's heights (the colour ramp, sea level).
@@ -141,9 +157,27 @@ impl GpuFrames {
         );
         streamer.attach(Box::new(atlas.feed()), HeightAtlas::cache_tiles(atlas.layer_count()));
         let renderer = StreamedRenderer::new(&device, crate::stream::draw::layout(grid), size.0, size.1)?;
+        let t0 = Instant::now();
+        let (lighting, no_shadows) =
+            match crate::draw::streamed::lighting_heights(streamer.source().as_ref(), grid, "the archive") {
+                Ok((hf, stride)) => (OwnLighting::new(&device, hf, stride, [grid.width, grid.height], None)?, None),
+                Err(e) => {
+                    tracing::warn!("streamed frames without shadows: {e:#}");
+                    (OwnLighting::everything_lit(&device)?, Some(format!("{e:#}")))
+                }
+            };
+        eprintln!(
+            "vkterrain: lighting map {} x {} (shadows, ambient occlusion) from samples {} apart ({:.0} ms)",
+            lighting.map.image.extent.width,
+            lighting.map.image.extent.height,
+            lighting.source().stride,
+            t0.elapsed().as_secs_f64() * 1e3
+        );
         Ok(GpuFrames {
             atlas,
             renderer,
+            lighting,
+            no_shadows,
             device,
             range,
             fog: 0.0,
@@ -194,6 +228,7 @@ impl GpuFrames {
             heights: self.range,
             fog: self.fog,
             light: self.light,
+            lighting: &self.lighting,
             colour_by_lod: self.colour_by_lod,
             background: self.background,
         };
@@ -224,10 +259,23 @@ impl GpuFrames {
         Ok(())
     }
 
-    /// Lights the frames from `sun`'s direction (`--sun`; with none, from the default
-    /// direction, as in memory), without its shadows.
-    pub fn sun(&mut self, sun: Option<Sun>) {
+    /// Lights the frames from `sun`'s direction with its shadows and ambient occlusion
+    /// (`--sun`; with none, from the default direction without them, as in memory).
+    pub fn sun(&mut self, sun: Option<Sun>) -> anyhow::Result<()> {
         self.light = sun.unwrap_or(Sun::DEFAULT).direction();
+        if self.no_shadows.is_none() {
+            self.lighting.set_sun(sun)?;
+        }
+        Ok(())
+    }
+
+    /// Redraws the lighting map for heights at `scale` world units per raw unit (the
+    /// viewer's vertical exaggeration).
+    pub fn set_height_scale(&mut self, scale: f64) -> anyhow::Result<()> {
+        if self.no_shadows.is_none() {
+            self.lighting.set_height_scale(scale as f32)?;
+        }
+        Ok(())
     }
 
     /// Offscreen frames at `width x height` from now on (a window's screenshot).
@@ -250,6 +298,14 @@ impl GpuFrames {
             "frames_missing_blocks": self.frames_missing_blocks,
             "hidden_parts_per_frame": self.hidden_parts_total as f64 / self.frames.max(1) as f64,
             "draw_ms_per_frame": 1e3 * self.drawing.as_secs_f64() / self.frames.max(1) as f64,
+            "lighting": {
+                "texels": [self.lighting.map.image.extent.width, self.lighting.map.image.extent.height],
+                "samples_per_texel": self.lighting.samples_per_texel(),
+                "heights_samples_apart": self.lighting.source().stride,
+                "shadows": self.lighting.map.sun().is_some(),
+                "unreadable": self.no_shadows,
+                "last_draw_ms": self.lighting.map.last_ms(),
+            },
             "validation": validation,
             "validation_messages": validation.then(|| self.device.instance.validation_messages()),
         })
@@ -579,7 +635,7 @@ pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
     gpu.fog = f.fog;
     gpu.colour_by_lod = f.colour_by_lod;
     gpu.background = f.background;
-    gpu.sun(f.common.sun.0);
+    gpu.sun(f.common.sun.0)?;
     gpu.draw(&streamer, &grid, &view, &sel, None)?;
     exit_if_stopped(f.stop);
     let missing = gpu.frames_missing_blocks > 0;

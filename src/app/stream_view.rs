@@ -198,15 +198,7 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
     // Only the drawn heights scale: the bound (`D * height_scale`) follows.
     grid.height_scale *= f64::from(args.exaggeration);
     let m = &archive.meta;
-    println!(
-        "vkterrain: {shown}: {} x {} samples, {} tile levels, drawn streamed (cache {} MB, atlas {} MB); plain \
-         shading: no textures, shadows or occlusion culling yet",
-        m.width,
-        m.height,
-        m.top_level + 1,
-        args.cache_mb,
-        args.gpu_mb
-    );
+    println!("{}", crate::app::stream::streamed_banner(&shown, m, args.cache_mb, args.gpu_mb));
     let trace = match &args.trace {
         Some(p) => {
             Trace::to_file(p).map_err(|e| crate::app::cli::InputError(format!("--trace {}: {e}", p.display())))?
@@ -343,7 +335,7 @@ impl App {
         crate::app::stream::streamer_threads(&mut self.streamer, threads, Some(&device))?;
         let mut frames = GpuFrames::new(device, &mut self.streamer, self.args.gpu_mb, self.range, (w, h), &self.trace)?;
         frames.fog = self.fog;
-        frames.sun(self.args.common.sun.0);
+        frames.sun(self.args.common.sun.0)?;
         self.gpu = Some(WindowGpu { hud, acquired, swapchain, frames, surface });
         self.win.window = Some(window);
         Ok(())
@@ -554,7 +546,7 @@ impl App {
             self.delta = after.delta;
             gpu.frames.fog = after.fog_density;
             self.ctl.speed = after.speed;
-            self.set_exaggeration(after.exaggeration);
+            self.set_exaggeration(after.exaggeration)?;
             if let Some(g) = self.gpu.as_mut() {
                 g.frames.colour_by_lod = after.colour_by_lod;
             }
@@ -567,10 +559,10 @@ impl App {
 
     /// Draws heights `exaggeration` times the archive's scale from the next frame: the
     /// traversal's bound, the ground and the colours all follow the one scale (no errors
-    /// to recompute: a tile's `D` is in raw units).
-    fn set_exaggeration(&mut self, exaggeration: f32) {
+    /// to recompute: a tile's `D` is in raw units); the lighting map is redrawn.
+    fn set_exaggeration(&mut self, exaggeration: f32) -> anyhow::Result<()> {
         if exaggeration == self.exaggeration {
-            return;
+            return Ok(());
         }
         let ratio = exaggeration / self.exaggeration;
         self.exaggeration = exaggeration;
@@ -580,7 +572,9 @@ impl App {
         self.range.world = self.range.world.map(|h| h * ratio);
         if let Some(g) = self.gpu.as_mut() {
             g.frames.range = self.range;
+            g.frames.set_height_scale(scale)?;
         }
+        Ok(())
     }
 
     fn go_home(&mut self) {
@@ -630,7 +624,9 @@ impl App {
             }
             KeyCode::KeyX | KeyCode::KeyZ => {
                 let e = crate::app::hud::exaggeration_key(code, self.exaggeration).unwrap_or(self.exaggeration);
-                self.set_exaggeration(e);
+                if let Err(e) = self.set_exaggeration(e) {
+                    self.win.fail(event_loop, e);
+                }
             }
             KeyCode::KeyH | KeyCode::F1 => {
                 if let Some(g) = self.gpu.as_mut() {

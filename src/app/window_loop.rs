@@ -68,7 +68,7 @@ impl WindowState {
         self.minimized || self.occluded
     }
 
-    fn fail(&mut self, event_loop: &ActiveEventLoop, e: anyhow::Error) {
+    pub(crate) fn fail(&mut self, event_loop: &ActiveEventLoop, e: anyhow::Error) {
         if self.error.is_none() {
             self.error = Some(e);
         }

@@ -2,10 +2,12 @@
 //! the heightfield atlas, each block's heights fetched from its tile's layer, every
 //! position relative to the camera's nearest sample (`glsl/stream.vert`).
 //!
-//! Shading is plain (the in-memory ramp, water, light without shadows, fog and sky;
-//! normals from the surface's derivatives, or with `--shading heights` as in memory from
-//! the heights of the block's tile): streamed tiles bring no gradient or lighting maps
-//! yet. Frames go offscreen (read back) or into a window's swapchain image.
+//! Shading is the in-memory ramp, water, light, fog and sky; normals from the surface's
+//! derivatives, or with `--shading heights` as in memory from the heights of the block's
+//! tile (streamed tiles bring no gradient map); sun shadows and ambient occlusion from a
+//! lighting map made as in memory from the tiles of a coarser level
+//! ([`lighting_heights`]). Frames go offscreen (read back) or into a window's swapchain
+//! image.
 //!
 //! [`Selection`]: crate::stream::traverse::Selection
 
@@ -13,13 +15,19 @@ use super::blocks::{
     attachment_barriers, draw_visible_parts, BlockMesh, NormalSource, Target, COLOR_FORMAT, COLOR_RANGE, DEPTH_FORMAT,
     SKY_HORIZON, SKY_ZENITH,
 };
+use crate::draw::lighting::{samples_per_texel, MAX_LIGHTING_SIDE};
+use crate::draw::lighting_gpu::OwnLighting;
 use crate::errors::atlas::HeightAtlas;
 use crate::gpu::layout::{self, BlockPush, FrameUniforms};
 use crate::gpu::shaders;
+use crate::input::archive::{level_heightfield, LevelTerrain};
 use crate::lod::block::{morph_value, BlockLayout, CORNER_UNRESOLVED};
 use crate::lod::camera::Camera;
+use crate::lod::heightfield::{HeightFormat, Heightfield, HeightfieldError};
 use crate::stream::draw::StreamedBlock;
+use crate::stream::io::TileSource;
 use crate::stream::Grid;
+use crate::stream::TileKey;
 use crate::vk::{
     begin_one_time, image_barrier, vk, Buffer, CommandPool, DepthMode, DescriptorPool, DescriptorSetLayout, Device,
     Fence, GraphicsPipeline, GraphicsPipelineDesc, Image, PipelineLayout, Sampler, VkError, VkResult, VkResultExt,
@@ -143,6 +151,11 @@ impl StreamedRenderer {
                 // The fragment stage reads the block's tile for its normals.
                 (layout::TERRAIN_BINDING_HEIGHTS, vk::DescriptorType::COMBINED_IMAGE_SAMPLER, both),
                 (layout::TERRAIN_BINDING_FRAME, vk::DescriptorType::UNIFORM_BUFFER, both),
+                (
+                    layout::TERRAIN_BINDING_LIGHTING,
+                    vk::DescriptorType::COMBINED_IMAGE_SAMPLER,
+                    vk::ShaderStageFlags::FRAGMENT,
+                ),
             ],
         )?;
         let push = std::mem::size_of::<BlockPush>() as u32;
@@ -171,7 +184,7 @@ impl StreamedRenderer {
             device,
             2,
             &[
-                (vk::DescriptorType::COMBINED_IMAGE_SAMPLER, 2),
+                (vk::DescriptorType::COMBINED_IMAGE_SAMPLER, 3),
                 (vk::DescriptorType::UNIFORM_BUFFER, 2),
                 (vk::DescriptorType::STORAGE_BUFFER, 1),
             ],
@@ -213,7 +226,7 @@ impl StreamedRenderer {
     }
 
     /// The frame uniforms of a camera relative to the anchor sample: the in-memory
-    /// frame's ramp, sea level and light (without its shadows).
+    /// frame's ramp, sea level and light (its shadows from `view.lighting`).
     fn uniforms(&self, atlas: &HeightAtlas, view: &FrameView) -> VkResult<FrameUniforms> {
         let a =
             |v: i64| i32::try_from(v).map_err(|_| VkError::Setup(format!("anchor sample {v} beyond the i32 range")));
@@ -226,7 +239,8 @@ impl StreamedRenderer {
             inv_view_proj: vp.as_dmat4().inverse().as_mat4().to_cols_array_2d(),
             camera_fog: [cam.position.x, cam.position.y, cam.position.z, view.fog],
             terrain: [crate::gpu::layout::ramp_top(absolute), grid.height_scale as f32, world[0], world[1]],
-            spacing: [grid.spacing[0] as f32, grid.spacing[1] as f32, 0.0, 0.0],
+            // z: terrain samples per lighting texel (stream.frag's lighting lookup).
+            spacing: [grid.spacing[0] as f32, grid.spacing[1] as f32, view.lighting.samples_per_texel() as f32, 0.0],
             light: [light.x, light.y, light.z, 0.25],
             texturing: [0.0, 0.0, 0.0, crate::lod::heightfield::sea_level(absolute, world)],
             extent: [grid.width as i32, grid.height as i32, 0, self.layout.k() as i32],
@@ -288,7 +302,10 @@ impl StreamedRenderer {
         self.uniforms.mapped_mut()?[..std::mem::size_of::<FrameUniforms>()].copy_from_slice(bytemuck::bytes_of(&u));
         self.pool.write(
             set,
-            &[(layout::TERRAIN_BINDING_HEIGHTS, atlas.image().view, self.sampler.handle)],
+            &[
+                (layout::TERRAIN_BINDING_HEIGHTS, atlas.image().view, self.sampler.handle),
+                (layout::TERRAIN_BINDING_LIGHTING, view.lighting.map.image.view, view.lighting.map.sampler.handle),
+            ],
             &[(layout::TERRAIN_BINDING_FRAME, self.uniforms.handle, std::mem::size_of::<FrameUniforms>() as u64)],
         );
         Ok(())
@@ -632,9 +649,10 @@ pub struct FrameView<'a> {
     pub heights: HeightRange,
     /// Exponential fog density per world unit.
     pub fog: f32,
-    /// Unit vector towards the sun (`--sun`: its direction; streamed frames have no
-    /// shadows).
+    /// Unit vector towards the sun (`--sun`: its direction).
     pub light: glam::Vec3,
+    /// Sun visibility and ambient occlusion.
+    pub lighting: &'a OwnLighting,
     /// Blocks tinted by their LOD (`--colour-by-lod`, the viewer's L), as in memory.
     pub colour_by_lod: bool,
     /// A plain background instead of the sky (`--background`, linear RGB).
@@ -647,4 +665,28 @@ impl Drop for StreamedRenderer {
         let _ = self.fence.wait(u64::MAX);
         self.commands.free(self.cmd);
     }
+}
+
+/// The heights streamed frames' lighting map is made from, and their stride: the tiles of
+/// the level whose vertices fall one to a texel of the map the same terrain gets in
+/// memory (at most the top level; 64 tiles or fewer whatever the terrain's size), read
+/// from `source` (`name`: the archive, for errors that do not name it already).
+pub fn lighting_heights(source: &dyn TileSource, grid: &Grid, name: &str) -> anyhow::Result<(Heightfield, usize)> {
+    let (n, roots) = crate::lod::heightfield::grid_cover(grid.width, grid.height);
+    let side = roots.iter().map(|r| r * (1 << n) + 1).max().unwrap_or(1);
+    let level = (samples_per_texel(side, MAX_LIGHTING_SIDE).trailing_zeros() as u8).min(grid.top);
+    let terrain = LevelTerrain {
+        name,
+        extent: [grid.width, grid.height],
+        tile_quads: grid.tile_quads,
+        format: if grid.height_bytes == 2 { HeightFormat::Unorm16 } else { HeightFormat::Float32 },
+        spacing: grid.spacing.map(|s| s as f32),
+        height_scale: grid.height_scale as f32,
+    };
+    let hf = level_heightfield(&terrain, level, |tx, tz| match source.read(TileKey { level, tx, tz }) {
+        Ok(Some((tile, _))) => Ok(tile),
+        Ok(None) => Err(HeightfieldError::invalid(name, format!("tile {level}/{tx}/{tz} is missing")).into()),
+        Err(e) => Err(anyhow::anyhow!(e)),
+    })?;
+    Ok((hf, 1 << level))
 }

@@ -63,6 +63,8 @@ pub struct Streamer {
     pub grid: Grid,
     pub cache: HostCache,
     io: Io,
+    /// What the IO thread reads from (also read directly for whole levels: the lighting map).
+    source: Arc<dyn TileSource>,
     pub stats: StreamStats,
     /// Tiles not asked for again before the frame given: they failed to read, or the
     /// cache had no room for them.
@@ -87,11 +89,17 @@ pub struct Streamer {
 }
 
 impl Streamer {
+    /// Where tiles come from.
+    pub fn source(&self) -> &Arc<dyn TileSource> {
+        &self.source
+    }
+
     pub fn new(source: Arc<dyn TileSource>, grid: Grid, cache_bytes: usize) -> Self {
         Streamer {
             grid,
             cache: HostCache::new(grid, cache_bytes),
-            io: Io::spawn(source, grid),
+            io: Io::spawn(source.clone(), grid),
+            source,
             stats: StreamStats { worst_factor: 1.0, ..Default::default() },
             backoff: HashMap::new(),
             seen: HashSet::new(),
