@@ -458,7 +458,9 @@ fn render_draws_an_archive_streamed_within_the_bound() {
     let bytes = std::fs::read(&archive).unwrap();
     let half = dir.path().join("half.pmtiles");
     std::fs::write(&half, &bytes[..bytes.len() * 2 / 3]).unwrap();
-    let o = cli(&["render", "--heightmap", half.to_str().unwrap(), "--stream", "--size", "64x48", "--out", p]);
+    // RUST_LOG unset, as a user runs it (the tests' runner asks for errors only).
+    let args = ["render", "--heightmap", half.to_str().unwrap(), "--stream", "--size", "64x48", "--out", p];
+    let o = common::run_bounded_logging(&args.map(String::from), 300, None);
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{err}");
     let warning = err.lines().find(|l| l.contains("without shadows")).unwrap_or_else(|| panic!("no warning: {err}"));

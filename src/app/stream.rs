@@ -166,13 +166,15 @@ impl GpuFrames {
                     (OwnLighting::everything_lit(&device)?, Some(format!("{e:#}")))
                 }
             };
-        eprintln!(
-            "vkterrain: lighting map {} x {} (shadows, ambient occlusion) from samples {} apart ({:.0} ms)",
-            lighting.map.image.extent.width,
-            lighting.map.image.extent.height,
-            lighting.source().stride,
-            t0.elapsed().as_secs_f64() * 1e3
-        );
+        if no_shadows.is_none() {
+            eprintln!(
+                "vkterrain: lighting map {} x {} (shadows, ambient occlusion) from samples {} apart ({:.0} ms)",
+                lighting.map.image.extent.width,
+                lighting.map.image.extent.height,
+                lighting.source().stride,
+                t0.elapsed().as_secs_f64() * 1e3
+            );
+        }
         Ok(GpuFrames {
             atlas,
             renderer,

@@ -169,6 +169,12 @@ impl StreamedRenderer {
                     (layout::TERRAIN_BINDING_HEIGHTS, vk::DescriptorType::COMBINED_IMAGE_SAMPLER, vertex),
                     (layout::TERRAIN_BINDING_FRAME, vk::DescriptorType::UNIFORM_BUFFER, vertex),
                     (layout::CAPTURE_BINDING_POSITIONS, vk::DescriptorType::STORAGE_BUFFER, vertex),
+                    // Unread here; `bind` writes the same bindings into both sets.
+                    (
+                        layout::TERRAIN_BINDING_LIGHTING,
+                        vk::DescriptorType::COMBINED_IMAGE_SAMPLER,
+                        vk::ShaderStageFlags::FRAGMENT,
+                    ),
                 ],
             )?;
             let pl = PipelineLayout::new(device, &l, push, vertex)?;
@@ -184,7 +190,7 @@ impl StreamedRenderer {
             device,
             2,
             &[
-                (vk::DescriptorType::COMBINED_IMAGE_SAMPLER, 3),
+                (vk::DescriptorType::COMBINED_IMAGE_SAMPLER, 4),
                 (vk::DescriptorType::UNIFORM_BUFFER, 2),
                 (vk::DescriptorType::STORAGE_BUFFER, 1),
             ],
