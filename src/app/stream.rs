@@ -168,7 +168,7 @@ impl GpuFrames {
             };
         if no_shadows.is_none() {
             eprintln!(
-                "vkterrain: lighting map {} x {} (shadows, ambient occlusion) from samples {} apart ({:.0} ms)",
+                "vkterrain: lighting map {} x {} (shadows, ambient occlusion) from samples {} apart (heights read and uploaded in {:.0} ms)",
                 lighting.map.image.extent.width,
                 lighting.map.image.extent.height,
                 lighting.source().stride,
@@ -267,6 +267,9 @@ impl GpuFrames {
         self.light = sun.unwrap_or(Sun::DEFAULT).direction();
         if self.no_shadows.is_none() {
             self.lighting.set_sun(sun)?;
+            if sun.is_some() {
+                eprintln!("vkterrain: lighting map drawn for the sun in {:.0} ms", self.lighting.map.last_ms());
+            }
         }
         Ok(())
     }
