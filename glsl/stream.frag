@@ -1,8 +1,9 @@
 #version 450
 // Streamed frames: lit by the in-memory frame's light, its sun shadows and ambient
-// occlusion from a lighting map made as in memory (lighting.frag) from every
-// spacing.z-th sample (the tiles of a coarser level: draw/streamed.rs), coloured by the in-memory shading's ramp and water (its sea share from the vertices)
-// with its procedural detail, fogged towards the horizon colour; the sky (sky.frag) is
+// occlusion from a lighting map made as in memory (lighting.frag) with one texel every
+// spacing.z samples (from the tiles of one level: draw/streamed.rs), coloured by the
+// in-memory shading's ramp and water (its sea share from the vertices) with its
+// procedural detail, fogged towards the horizon colour; the sky (sky.frag) is
 // drawn after the blocks where none was. Normals: by default from the surface's own
 // derivatives (flat per triangle); with NORMALS_FROM_HEIGHTS (`--shading heights`) as
 // in memory (terrain_shade.glsl: central differences at the four samples around the

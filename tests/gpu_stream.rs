@@ -256,6 +256,8 @@ fn the_stream_command_draws_every_frame_from_the_atlas_under_validation() {
     assert_eq!(gpu["frames_missing_blocks"], 0, "{r}");
     assert_eq!(gpu["validation"], true, "{r}");
     assert_eq!(gpu["validation_messages"], 0, "{r}");
+    // No `--sun` here: the default sun's shadows, as the other commands draw them.
+    assert_eq!(gpu["lighting"]["shadows"], true, "{r}");
     assert!(gpu["tiles_uploaded"].as_u64().unwrap() > 0, "{r}");
     let img = image::open(&png).unwrap().to_rgba8();
     assert_eq!(img.dimensions(), (256, 192));

@@ -840,7 +840,12 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
     settle(&mut streamer, |s| pose(s, 0).0, args.delta);
     let warm_up_s = warm.elapsed().as_secs_f64();
     let mut gpu = match (args.gpu_mb, device) {
-        (Some(mb), Some(device)) => Some(GpuFrames::new(device, &mut streamer, mb, range, args.size, &Trace::off())?),
+        (Some(mb), Some(device)) => {
+            let mut g = GpuFrames::new(device, &mut streamer, mb, range, args.size, &Trace::off())?;
+            // No `--sun` here: the default sun and its shadows, as the other commands draw.
+            g.sun(Some(Sun::DEFAULT))?;
+            Some(g)
+        }
         _ => None,
     };
     let warm_stats = streamer.stats.clone();

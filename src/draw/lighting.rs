@@ -115,10 +115,12 @@ impl<'a> LightingSource<'a> {
     }
 
     /// Texels along x and z and samples per texel: `hf`'s grid taken at the terrain's
-    /// resolution, as [`lighting_size`] takes an in-memory grid.
+    /// resolution, as [`lighting_size`] takes an in-memory grid, with a texel only on
+    /// samples `hf` holds (at least `stride` samples per texel): a texel between them
+    /// would take a neighbour's height for its own and shade itself.
     pub fn size(&self, max_side: usize) -> ([usize; 2], usize) {
         let [gw, gh] = self.hf.grid().map(|g| (g - 1) * self.stride + 1);
-        let step = samples_per_texel(gw.max(gh), max_side);
+        let step = samples_per_texel(gw.max(gh), max_side).max(self.stride);
         ([(gw - 1) / step + 1, (gh - 1) / step + 1], step)
     }
 
@@ -255,10 +257,15 @@ mod tests {
         let half = Heightfield::embed("half", 33, 33, &held, HeightFormat::Float32, [3.0, 1.5], 2.0).unwrap();
         let src = LightingSource::every(&half, 2, [side, side]);
         assert_eq!(src.size(33), lighting_size(&full, 33));
+        // Room for a texel a sample (65): still one every other sample, on the held ones
+        // (a texel between two took a neighbour's height: a lattice of false shadows).
+        assert_eq!(src.size(65), lighting_size(&full, 33));
         for sun in [Sun { azimuth: 70.0, elevation: 20.0 }, Sun { azimuth: 200.0, elevation: 8.0 }] {
             let want = reference(&full, Some(sun), 33);
-            let got = source_reference(&src, Some(sun), 33);
-            assert_eq!(got, want, "{sun:?}");
+            for max_side in [33, 65] {
+                let got = source_reference(&src, Some(sun), max_side);
+                assert_eq!(got, want, "{sun:?}, at most {max_side} texels a side");
+            }
             assert!(want.iter().any(|l| l[0] < 0.5) && want.iter().any(|l| l[1] < 0.9), "{sun:?}: nothing shaded");
         }
     }
