@@ -461,7 +461,8 @@ fn render_draws_an_archive_streamed_within_the_bound() {
     let half = dir.path().join("half.pmtiles");
     std::fs::write(&half, &bytes[..bytes.len() * 2 / 3]).unwrap();
     // RUST_LOG unset, as a user runs it (the tests' runner asks for errors only).
-    let args = ["render", "--heightmap", half.to_str().unwrap(), "--stream", "--size", "64x48", "--out", p];
+    let half_path = half.to_str().unwrap();
+    let args = ["render", "--heightmap", half_path, "--stream", "--validation", "on", "--size", "64x48", "--out", p];
     let o = common::run_bounded_logging(&args.map(String::from), 300, None);
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{err}");
@@ -472,6 +473,7 @@ fn render_draws_an_archive_streamed_within_the_bound() {
     );
     let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!(r["gpu"]["lighting"]["shadows"], false, "{r}");
+    assert_eq!(r["gpu"]["validation_messages"], 0, "{r}");
     assert!(r["gpu"]["lighting"]["unreadable"].as_str().is_some_and(|w| w.contains("half.pmtiles")), "{r}");
     let cut = dir.path().join("cut.pmtiles");
     std::fs::write(&cut, &bytes[..2000]).unwrap();
