@@ -299,7 +299,14 @@ drag() {{
   xdotool mouseup 1
   wait_frames 2
 }}
-wid=$(xdotool search --sync --onlyvisible --name vkterrain | head -1)
+# The window, polled (`xdotool search --sync` waits forever if the viewer never shows one).
+wid=
+t=0
+until wid=$(xdotool search --onlyvisible --name vkterrain 2>/dev/null | head -1) && [ -n "$wid" ]; do
+  kill -0 $pid 2>/dev/null || {{ echo "the viewer exited before its window showed" >&2; exit 1; }}
+  t=$((t + 1)); [ $t -lt 2400 ] || {{ echo "no vkterrain window after 120 s" >&2; exit 1; }}
+  sleep 0.05
+done
 xdotool windowfocus --sync "$wid" || xdotool windowfocus "$wid"
 wait_frames 3
 {steps}
