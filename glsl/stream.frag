@@ -1,26 +1,21 @@
 #version 450
-// Streamed frames: lit by the in-memory frame's light, its sun shadows and ambient
-// occlusion from a lighting map made as in memory (lighting.frag) with one texel every
-// spacing.z samples (from the tiles of one level: draw/streamed.rs), coloured by the
-// in-memory shading's ramp and water (its sea share from the vertices) with its
-// procedural detail, fogged towards the horizon colour; the sky (sky.frag) is
-// drawn after the blocks where none was. Normals: by default from the surface's own
-// derivatives (flat per triangle); with NORMALS_FROM_HEIGHTS (`--shading heights`) as
-// in memory (terrain_shade.glsl: central differences at the four samples around the
+// Streamed frames' blocks shaded as they are drawn (forward: `--pixels forward`, the
+// colour-by-LOD view, `--shading heights`; the default is deferred: stream_depth.vert,
+// then stream_shade.frag) by stream_shade.glsl. Normals: by default from the surface's
+// own derivatives (flat per triangle); with NORMALS_FROM_HEIGHTS (`--shading heights`)
+// as in memory (terrain_shade.glsl: central differences at the four samples around the
 // point, interpolated) from the heights of the tile the block is drawn from (its
 // vertices, every 2^level-th sample, often finer than the block's, and its border):
-// smoother, and nearer the in-memory frame, for four gathers a fragment (a tenth of the
-// fps on an 8193^2 flyover here: streamed frames shade every fragment drawn, with no
-// deferred pass).
+// smoother, and nearer the in-memory frame, for four gathers a fragment.
 #define USE_FrameUniforms
 #define USE_TerrainSpec
 #extension GL_GOOGLE_include_directive : require
 #include "layout.glsl"
 #include "common.glsl"
 #include "ramp.glsl"
+#include "stream_shade.glsl"
 
 layout(set = 0, binding = TERRAIN_BINDING_HEIGHTS) uniform sampler2DArray heights;
-layout(set = 0, binding = TERRAIN_BINDING_LIGHTING) uniform sampler2D lighting;
 
 layout(location = 0) in vec3 v_relative;
 layout(location = 1) in vec2 v_sample;
@@ -67,17 +62,5 @@ void main() {
         n = normalize(cross(dFdy(v_relative), dFdx(v_relative)));
         if (n.y < 0.0) n = -n;
     }
-    vec3 albedo = ground_colour(v_relative.y, 1.0 - n.y, v_sea) * procedural_detail(v_sample);
-    // Colour by LOD (frame.flags.y), mixed as in memory (terrain_shade.glsl).
-    if (frame.flags.y != 0) {
-        vec3 palette[] = LOD_PALETTE;
-        albedo = mix(albedo, palette[v_lod % palette.length()], 0.6);
-    }
-    // Texel i of the lighting map is terrain sample i * frame.spacing.z.
-    vec2 texels = vec2(textureSize(lighting, 0));
-    vec2 sun_ao = texture(lighting, (v_sample / frame.spacing.z + 0.5) / texels).rg;
-    vec3 c = albedo * light_of(n, frame.light, sun_ao);
-    float d = length(v_relative - frame.camera_fog.xyz);
-    float fog = 1.0 - exp(-frame.camera_fog.w * d);
-    out_color = vec4(mix(c, frame.sky_horizon.rgb, clamp(fog, 0.0, 1.0)), 1.0);
+    out_color = vec4(streamed_colour(v_relative, v_sample, n, v_sea, v_lod), 1.0);
 }

@@ -380,8 +380,13 @@ fn render_draws_an_archive_streamed_within_the_bound() {
         "{rings}"
     );
     assert!(rings["triangles"].as_u64().unwrap() < full["triangles"].as_u64().unwrap(), "{rings}");
+    // Deferred by default, forward when asked.
+    assert_eq!(r["pixels"], "deferred", "{r}");
+    let o = render(&["--pixels", "forward"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let forward: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!((&forward["pixels"], &forward["gpu"]["validation_messages"]), (&"forward".into(), &0.into()));
     for (extra, named) in [
-        (vec!["--pixels", "forward"], "--pixels forward"),
         (vec!["--error-mode", "paper"], "--error-mode paper"),
         // The errors activity's pacing, which streamed frames do not run.
         (vec!["--error-pacing", "free"], "--error-pacing"),
@@ -487,13 +492,14 @@ fn render_draws_an_archive_streamed_within_the_bound() {
 /// same camera, from the archive's recorded height range, not its top tiles' coarser
 /// one), at a low view towards the horizon and from under the surface, with the same
 /// ramp, snow line, sea level, light, shadows, sky and culled underside, the frames differ
-/// only by the streamed path's own selection and flat normals, and both show the Sound's
-/// water.
+/// only by the streamed path's own selection and normals (each pixel's from the points
+/// drawn beside it), and both show the Sound's water.
 /// Before the range, the water and the sky were shared (the top tiles' range: the peaks'
 /// snow twice as wide; no water; a flat sky): RMSE 21.3 at the default view (another
 /// camera), 17.1 at the low one; before the underside was culled, 77 from under it.
-/// `--sun` turns the light and its shadows as in memory: lit from 120,30, RMSE 4.84 with
-/// the lighting map, 6.85 without it (build 30da1bd, streamed frames without shadows).
+/// `--sun` turns the light and its shadows as in memory: lit from 120,30, RMSE 4.47 with
+/// the lighting map (4.84 shaded forward, flat), 6.85 without it (build 30da1bd,
+/// streamed frames without shadows).
 #[test]
 fn a_streamed_frame_is_coloured_as_the_terrain_in_memory() {
     let dir = TempDir::new("gpu-stream-colours");
@@ -596,16 +602,21 @@ fn a_streamed_frame_is_coloured_as_the_terrain_in_memory() {
     assert!(tinted < 6.0 && tinted * 4.0 < untinted, "--colour-by-lod: RMSE {tinted:.2}, untinted {untinted:.2}");
     // `--shading heights`: normals from the heights of each block's tile (often finer than
     // the block), interpolated as memory interpolates its samples', not each triangle's
-    // own: nearer the in-memory frame at the default view and lit from the east-south-east
-    // (RMSE 3.48 against 3.91 and 4.08 against 4.84 here), with fewer pixels far off.
+    // own (forward, `--pixels forward`): nearer the in-memory frame at the default view and
+    // lit from the east-south-east (RMSE 3.48 against 3.91 and 4.08 against 4.84 here),
+    // with fewer pixels far off. (The default, deferred, takes each pixel's normal from
+    // the points drawn beside it, which is nearer still: 3.26 and 4.47.)
     let heights = ["--stream", "--shading", "heights"];
+    let forward = ["--stream", "--pixels", "forward"];
     let (_, mem_default) = frame(&[], "mem.png");
+    let (_, flat_default) = frame(&forward, "str-flat.png");
+    let (_, flat_sun) = frame(&[&sun[..], &forward[..]].concat(), "str-flat-sun.png");
     let (_, smooth) = frame(&heights, "str-smooth.png");
     let (_, smooth_sun) = frame(&[&sun[..], &heights[..]].concat(), "str-smooth-sun.png");
-    let ((flat, flat_far), (smooth, smooth_far)) = (rmse(&mem_default, &default_sun), rmse(&mem_default, &smooth));
-    let (smooth_lit, _) = rmse(&mem, &smooth_sun);
+    let ((flat, flat_far), (smooth, smooth_far)) = (rmse(&mem_default, &flat_default), rmse(&mem_default, &smooth));
+    let ((smooth_lit, _), (lit, _)) = (rmse(&mem, &smooth_sun), rmse(&mem, &flat_sun));
     println!(
-        "--shading heights: RMSE {smooth:.2} ({:.2} % far) against {flat:.2} ({:.2} %) flat; lit from 120,30: {smooth_lit:.2} against {lit:.2}",
+        "--shading heights: RMSE {smooth:.2} ({:.2} % far) against {flat:.2} ({:.2} %) flat forward; lit from 120,30: {smooth_lit:.2} against {lit:.2}",
         100.0 * smooth_far,
         100.0 * flat_far
     );
@@ -932,4 +943,121 @@ fn a_stitched_fan_carries_no_unpaid_morph() {
     assert_eq!(r["audit_within_delta"], true, "{r}");
     assert!(r["max_audited_error_px"].as_f64().unwrap() <= 1.0, "{r}");
     assert_eq!(r["gpu"]["validation_messages"], 0, "{r}");
+}
+
+/// Deferred streamed frames (the default: the blocks' depth, then one shading pass whose
+/// normals come from the points drawn at the neighbouring pixels and whose sea share from
+/// the lighting map's heights) against the same frames shaded forward (`--pixels
+/// forward`: every fragment, flat normals, the vertices' sea flags) and the terrain drawn
+/// in memory, at high, low and horizon-level views over Puget Sound (water) and a crafted
+/// field of cliffs, one-sample walls and a lake whose 300 x 200 samples leave a margin in
+/// their block grid (clipped by the depth pass where the forward pass discards: the plain
+/// background shows there in both). Normals taken across triangle edges differ a little
+/// from each triangle's own; the coast, decided from the samples around each point as in
+/// memory rather than from coarse triangles' vertices, is nearer memory's. A frame shaded
+/// wrongly (a normal taken across a silhouette, the sea from the wrong samples, the margin
+/// shown) is further from both.
+#[test]
+fn deferred_streamed_frames_match_forward_ones() {
+    let dir = TempDir::new("gpu-stream-deferred");
+    let ps = dir.path().join("ps.pmtiles");
+    let o = cli(&[
+        "prepare",
+        common::data("puget_sound/ps_height_1k.png").to_str().unwrap(),
+        "--out",
+        ps.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let crafted = common::field(300, 200, [2.0, 2.0], |x, z| {
+        let cliff = if x > 150 { 30.0 } else { 0.0 };
+        let wall = if z % 40 == 20 { 20.0 } else { 0.0 };
+        let lake = (x as f32 - 60.0).hypot(z as f32 - 100.0) < 30.0;
+        if lake {
+            0.0
+        } else {
+            5.0 + cliff + wall + ((x as f32 * 0.11).sin() * (z as f32 * 0.07).cos()) * 8.0
+        }
+    });
+    drop(common::archive_of(&crafted, &dir));
+    let crafted = dir.path().join("t.pmtiles");
+    let png = dir.path().join("f.png");
+    // The frame, and how its pixels were shaded ("memory" when not streamed).
+    let frame = |archive: &std::path::Path, extra: &[&str]| {
+        let mut args = vec!["render", "--heightmap", archive.to_str().unwrap()];
+        args.extend(["--validation", "on", "--size", "320x240", "--background", "1,0,1"]);
+        args.extend(["--out", png.to_str().unwrap()]);
+        args.extend(extra);
+        let o = cli(&args);
+        assert!(o.status.success(), "{extra:?}: {}", String::from_utf8_lossy(&o.stderr));
+        let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+        let streamed = r["streamed"] == true;
+        let messages = if streamed { &r["gpu"]["validation_messages"] } else { &r["validation_messages"] };
+        assert_eq!(messages, 0, "{r}");
+        let pixels = if streamed { r["pixels"].as_str().unwrap() } else { "memory" };
+        (pixels.to_string(), image::open(&png).unwrap().to_rgb8())
+    };
+    let magenta = |img: &image::RgbImage| img.pixels().filter(|p| p[0] > 250 && p[1] < 5 && p[2] > 250).count();
+    let difference = |a: &image::RgbImage, b: &image::RgbImage| {
+        assert_eq!(a.dimensions(), b.dimensions());
+        let (mut sq, mut far) = (0.0f64, 0usize);
+        for (p, q) in a.pixels().zip(b.pixels()) {
+            let d: Vec<f64> = (0..3).map(|c| f64::from(p[c]) - f64::from(q[c])).collect();
+            sq += d.iter().map(|v| v * v).sum::<f64>() / 3.0;
+            far += usize::from(d.iter().any(|v| v.abs() > 16.0));
+        }
+        let n = f64::from(a.width() * a.height());
+        ((sq / n).sqrt(), far as f64 / n)
+    };
+    let views: [(&std::path::Path, [&str; 2]); 8] = [
+        (&ps, ["30000,900,30000", "90000,0,90000"]),
+        (&ps, ["60000,9000,10000", "60000,0,60000"]),
+        // Low, towards the horizon.
+        (&ps, ["20000,700,70000", "120000,300,70000"]),
+        (&ps, ["5000,400,5000", "100000,0,100000"]),
+        // Over the crafted field's far corner: the margin beyond x = 299, z = 199.
+        (&crafted, ["560,200,360", "598,0,398"]),
+        (&crafted, ["-40,60,-30", "300,0,200"]),
+        // Low over the lake, the walls' silhouettes against those behind them.
+        (&crafted, ["60,14,5", "60,5,200"]),
+        (&crafted, ["250,45,100", "0,20,100"]),
+    ];
+    let mut worst = (0.0f64, 0.0f64);
+    for (archive, [camera, look_at]) in views {
+        let pose = ["--camera", camera, "--look-at", look_at];
+        let (pixels, deferred) = frame(archive, &[&pose[..], &["--stream"]].concat());
+        let (forward_pixels, forward) = frame(archive, &[&pose[..], &["--stream", "--pixels", "forward"]].concat());
+        let (memory_pixels, memory) = frame(archive, &pose);
+        assert_eq!((&*pixels, &*forward_pixels, &*memory_pixels), ("deferred", "forward", "memory"), "{camera}");
+        let (rmse, far) = difference(&deferred, &forward);
+        let ((from_memory, _), (forward_from_memory, _)) =
+            (difference(&memory, &deferred), difference(&memory, &forward));
+        let (bd, bf) = (magenta(&deferred), magenta(&forward));
+        println!(
+            "{camera}: deferred against forward: RMSE {rmse:.2}, {:.2} % over 16 levels, background {bd} / {bf}; \
+             against memory: RMSE {from_memory:.2} deferred, {forward_from_memory:.2} forward",
+            100.0 * far
+        );
+        // The background (the margin included) is the same: only pixel centres on the
+        // true extent's edge may fall either way.
+        assert!(bd.abs_diff(bf) * 500 <= (320 * 240), "{camera}: background pixels {bd} deferred, {bf} forward");
+        assert!(
+            from_memory <= forward_from_memory + 0.25,
+            "{camera}: RMSE against memory {from_memory:.2} deferred, {forward_from_memory:.2} forward"
+        );
+        worst = (worst.0.max(rmse), worst.1.max(far));
+    }
+    let (rmse, far) = worst;
+    assert!(
+        rmse < 6.0 && far < 0.03,
+        "deferred against forward: worst RMSE {rmse:.2}, {:.2} % over 16 levels",
+        100.0 * far
+    );
+    // From 2 x 10^5 spacings out, depth no longer gives the points forward shading shades
+    // (as in memory): the frame is shaded forward, and says so.
+    let far_out = ["--stream", "--camera", "400000,100000,200", "--look-at", "300,0,200"];
+    assert_eq!(frame(&crafted, &far_out).0, "forward");
+    // And as asked, or coloured by LOD (which needs the block that drew each pixel), or
+    // with normals from the tiles' heights (which the shading pass does not reach).
+    assert_eq!(frame(&ps, &["--stream", "--colour-by-lod"]).0, "forward");
+    assert_eq!(frame(&ps, &["--stream", "--shading", "heights"]).0, "forward");
 }

@@ -1183,7 +1183,6 @@ impl BenchArgs {
             ("--detail", self.textures.detail.is_some()),
             ("--compare", self.compare),
             ("--popping", self.popping),
-            ("--pixels forward", self.pixels != crate::draw::blocks::PixelPass::Deferred),
             ("--raycast", self.raycast != crate::draw::raycast::Raycast::Off),
             ("--inject-fault", self.inject_fault.is_some()),
         ]
@@ -1263,6 +1262,7 @@ fn bench_streamed(
     let messages = device.instance.messages.clone();
     let mut gpu = GpuFrames::new(device.clone(), &mut streamer, gpu_mb, range, size, &trace)?;
     gpu.set_normals(args.shading);
+    gpu.set_pixels(args.pixels);
     gpu.sun(args.common.sun.0)?;
     // As the in-memory bench: frames are drawn, not read back.
     gpu.read_back = false;
@@ -1328,6 +1328,8 @@ fn bench_streamed(
         "mean_triangles": triangles as f64 / drawn.max(1) as f64,
         "lod": format!("{:?}", args.lod).to_lowercase(),
         "shading": crate::draw::streamed::StreamedRenderer::shading_name(args.shading),
+        "pixels": value_name(args.pixels),
+        "deferred_frames": gpu.deferred_frames,
         "morph": args.common.morph == crate::app::cli::OnOff::On,
         "mean_morphing_blocks": morphing as f64 / drawn.max(1) as f64,
         "traversal_threads": streamer.threads(),

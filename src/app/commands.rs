@@ -80,7 +80,6 @@ impl RenderArgs {
         [
             ("--texture", self.textures.texture.is_some()),
             ("--detail", self.textures.detail.is_some()),
-            ("--pixels forward", self.pixels != PixelPass::Deferred),
             ("--raycast", self.raycast != Raycast::Off),
         ]
         .into_iter()
@@ -388,6 +387,7 @@ fn render_streamed(
         stop,
         lod: args.lod,
         normals: args.shading,
+        pixels: args.pixels,
     })?;
     let mut out = r.report;
     if args.audit {

@@ -120,6 +120,9 @@ pub(crate) struct GpuFrames {
     pub triangles: u64,
     pub hidden_parts: u64,
     pub draw_calls: u64,
+    /// Whether the last frame was shaded deferred, and how many were.
+    pub deferred: bool,
+    pub deferred_frames: u64,
     /// Parts left out over every frame drawn.
     hidden_parts_total: u64,
     drawing: Duration,
@@ -192,6 +195,8 @@ impl GpuFrames {
             triangles: 0,
             hidden_parts: 0,
             draw_calls: 0,
+            deferred: false,
+            deferred_frames: 0,
             hidden_parts_total: 0,
             drawing: Duration::ZERO,
             last: Vec::new(),
@@ -203,6 +208,11 @@ impl GpuFrames {
     /// Where the frames' normals come from (`--shading`), set before the first frame.
     pub fn set_normals(&mut self, normals: crate::draw::blocks::NormalSource) {
         self.renderer.set_normals(normals);
+    }
+
+    /// Deferred (the default) or forward shading (`--pixels`).
+    pub fn set_pixels(&mut self, pixels: crate::draw::blocks::PixelPass) {
+        self.renderer.set_pixels(pixels);
     }
 
     /// Draws the frame (every tile the selection used is in the atlas: the cache takes
@@ -249,6 +259,8 @@ impl GpuFrames {
         self.triangles = stats.triangles;
         self.hidden_parts = stats.hidden_parts;
         self.draw_calls = stats.draw_calls;
+        self.deferred = stats.deferred;
+        self.deferred_frames += u64::from(stats.deferred);
         self.hidden_parts_total += stats.hidden_parts;
         self.drawing += t0.elapsed();
         let args = serde_json::json!({
@@ -572,6 +584,8 @@ pub struct ArchiveFrame<'a> {
     pub lod: LodChoice,
     /// Where the frame's normals come from (`--shading`).
     pub normals: crate::draw::blocks::NormalSource,
+    /// Deferred or forward shading (`--pixels`).
+    pub pixels: crate::draw::blocks::PixelPass,
 }
 
 /// The streamed rule for a `--lod` choice (the in-memory rings' factor).
@@ -637,6 +651,7 @@ pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
     let settle_ms = warm.elapsed().as_secs_f64() * 1e3;
     let mut gpu = GpuFrames::new(f.device.clone(), &mut streamer, f.gpu_mb, range, (w, h), &Trace::off())?;
     gpu.set_normals(f.normals);
+    gpu.set_pixels(f.pixels);
     gpu.fog = f.fog;
     gpu.colour_by_lod = f.colour_by_lod;
     gpu.background = f.background;
@@ -660,6 +675,9 @@ pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
         "stitch_splits": sel.stitch_splits,
         "lod": format!("{:?}", f.lod).to_lowercase(),
         "shading": StreamedRenderer::shading_name(f.normals),
+        // What drew the frame: forward where asked, or where deferred cannot (see
+        // StreamedRenderer::deferred).
+        "pixels": if gpu.deferred { "deferred" } else { "forward" },
         "morph": f.common.morph == OnOff::On,
         "morphing": sel.morphing,
         "traversal_threads": streamer.threads(),

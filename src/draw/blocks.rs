@@ -224,7 +224,13 @@ pub fn depth_precise_enough(hf: &Heightfield, terrain: &TerrainGpu, cam: &Camera
     let (wx, wz) = hf.world_extent();
     let min = glam::Vec3::new(0.0, terrain.raw_range[0] * hf.height_scale, 0.0);
     let max = glam::Vec3::new(wx, terrain.raw_range[1] * hf.height_scale, wz);
-    crate::lod::camera::distance_to_aabb(cam.position, min, max) <= DEFERRED_MAX_SPACINGS * hf.spacing.min()
+    depth_precise_at(crate::lod::camera::distance_to_aabb(cam.position, min, max), hf.spacing.min())
+}
+
+/// Whether a camera `distance` world units from the terrain's box, over samples at least
+/// `spacing` apart, is near enough for deferred shading (both renderers).
+pub fn depth_precise_at(distance: f32, spacing: f32) -> bool {
+    distance <= DEFERRED_MAX_SPACINGS * spacing
 }
 
 /// The sky behind the terrain (`sky.frag`), drawn after the blocks where none was (depth

@@ -247,13 +247,15 @@ impl LightingMap {
 /// terrain that is not in one image (streamed frames), uploaded once into an image of its
 /// own on the draw queue's family.
 pub struct OwnLighting {
-    /// First: its descriptor set reads `_heights` through `_nearest`.
+    /// First: its descriptor set reads `heights` through `_nearest`.
     pub map: LightingMap,
-    _heights: Image,
+    heights: Image,
     _nearest: Sampler,
     hf: Heightfield,
     stride: usize,
     extent: [usize; 2],
+    /// Whether `hf` holds the terrain's heights (not [`Self::everything_lit`]'s).
+    holds_heights: bool,
 }
 
 impl OwnLighting {
@@ -271,7 +273,7 @@ impl OwnLighting {
         let nearest = Sampler::new(device, vk::Filter::NEAREST, vk::SamplerAddressMode::CLAMP_TO_EDGE)?;
         let src = LightingSource::every(&hf, stride, extent);
         let map = LightingMap::of_source(device, &src, (heights.view, nearest.handle), sun, MAX_LIGHTING_SIDE)?;
-        Ok(OwnLighting { map, _heights: heights, _nearest: nearest, hf, stride, extent })
+        Ok(OwnLighting { map, heights, _nearest: nearest, hf, stride, extent, holds_heights: true })
     }
 
     /// A map that lights everything (no shadows, the whole sky open): for frames with
@@ -279,7 +281,19 @@ impl OwnLighting {
     pub fn everything_lit(device: &Arc<Device>) -> VkResult<Self> {
         let flat = Heightfield::embed("flat", 3, 3, &[0.0; 9], HeightFormat::Float32, 1.0, 1.0)
             .map_err(|e| crate::vk::VkError::Setup(e.to_string()))?;
-        Self::new(device, flat, 1, [3, 3], None)
+        Ok(OwnLighting { holds_heights: false, ..Self::new(device, flat, 1, [3, 3], None)? })
+    }
+
+    /// Whether the map was made from the terrain's heights, which
+    /// [`Self::heights_view`] then shows (every `source().stride`-th sample).
+    pub fn holds_heights(&self) -> bool {
+        self.holds_heights
+    }
+
+    /// The map's heights image (R16_UNORM or R32_SFLOAT, raw units), read in
+    /// SHADER_READ_ONLY_OPTIMAL.
+    pub fn heights_view(&self) -> vk::ImageView {
+        self.heights.view
     }
 
     pub fn source(&self) -> LightingSource<'_> {

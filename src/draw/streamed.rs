@@ -6,14 +6,18 @@
 //! derivatives, or with `--shading heights` as in memory from the heights of the block's
 //! tile (streamed tiles bring no gradient map); sun shadows and ambient occlusion from a
 //! lighting map made as in memory from the tiles of a coarser level
-//! ([`lighting_heights`]). Frames go offscreen (read back) or into a window's swapchain
-//! image.
+//! ([`lighting_heights`]). Deferred by default, as in memory: the blocks write depth
+//! only, then one pass shades each pixel once, its normal from the points drawn beside
+//! it and its sea share from the lighting map's heights (`glsl/stream_shade.frag`;
+//! `--pixels forward`, the colour-by-LOD view and `--shading heights` shade every
+//! fragment as it is drawn). Frames go offscreen (read back) or into a window's
+//! swapchain image.
 //!
 //! [`Selection`]: crate::stream::traverse::Selection
 
 use super::blocks::{
-    attachment_barriers, draw_visible_parts, BlockMesh, NormalSource, Target, COLOR_FORMAT, COLOR_RANGE, DEPTH_FORMAT,
-    SKY_HORIZON, SKY_ZENITH,
+    attachment_barriers, depth_precise_at, draw_visible_parts, BlockMesh, NormalSource, PixelPass, Target,
+    COLOR_FORMAT, COLOR_RANGE, DEPTH_FORMAT, SKY_HORIZON, SKY_ZENITH,
 };
 use crate::draw::lighting::{samples_per_texel, MAX_LIGHTING_SIDE};
 use crate::draw::lighting_gpu::OwnLighting;
@@ -49,6 +53,8 @@ pub struct StreamedStats {
     pub triangles: u64,
     /// Indexed draws: one per run of visible parts of a block.
     pub draw_calls: u64,
+    /// Shaded deferred (each pixel once) rather than forward.
+    pub deferred: bool,
 }
 
 pub struct StreamedRenderer {
@@ -75,6 +81,11 @@ pub struct StreamedRenderer {
     window_depth: Option<Image>,
     /// Where the terrain pipelines' normals come from.
     normals: NormalSource,
+    /// Deferred (the default) or forward shading.
+    pixels: PixelPass,
+    /// The blocks' depth pass of deferred frames (None without shaderClipDistance:
+    /// frames are then shaded forward).
+    depth_pipeline: Option<GraphicsPipeline>,
 }
 
 /// A swapchain image to draw a frame into: acquired (`acquired` signalled when it may be
@@ -98,17 +109,46 @@ enum Dest<'a> {
     Window(&'a WindowImage),
 }
 
-/// A streamed frame's pipelines for one colour format: the blocks, then the in-memory
-/// frame's sky where none was drawn (depth still clear: hidden sky is never shaded).
+/// A streamed frame's pipelines for one colour format. Forward: the blocks shaded, then
+/// the in-memory frame's sky where none was drawn (depth still clear: hidden sky is never
+/// shaded). Deferred: the blocks' depth (the renderer's `depth_pipeline`), then `shade`
+/// over the target.
 struct FramePipelines {
     terrain: GraphicsPipeline,
     sky: GraphicsPipeline,
+    shade: GraphicsPipeline,
+}
+
+/// [`FramePipelines`]' handles, for recording.
+#[derive(Clone, Copy)]
+struct PipelineHandles {
+    terrain: vk::Pipeline,
+    sky: vk::Pipeline,
+    shade: vk::Pipeline,
 }
 
 impl FramePipelines {
     fn new(device: &Arc<Device>, layout: &PipelineLayout, format: vk::Format, normals: NormalSource) -> VkResult<Self> {
         let sky = super::blocks::sky_pipeline(device, layout, format)?;
-        Ok(FramePipelines { terrain: terrain_pipeline(device, layout, format, normals)?, sky })
+        // Over the whole target, with the depth attached read-only (as the viewer's
+        // panel, drawn in the same rendering, expects), as in memory.
+        let shade = GraphicsPipeline::new(
+            device,
+            &GraphicsPipelineDesc {
+                vert: shaders::FULLSCREEN_VERT,
+                frag: Some(shaders::STREAM_SHADE_FRAG),
+                rasterizer_discard: false,
+                vertex_attribute: None,
+                color_format: Some(format),
+                depth_format: Some(DEPTH_FORMAT),
+                depth: DepthMode::Off,
+                polygon_mode: vk::PolygonMode::FILL,
+                cull_back: false,
+                layout,
+                specialization: &[],
+            },
+        )?;
+        Ok(FramePipelines { terrain: terrain_pipeline(device, layout, format, normals)?, sky, shade })
     }
 }
 
@@ -141,6 +181,28 @@ fn terrain_pipeline(
     )
 }
 
+/// The depth pass of deferred streamed frames (stream_depth.vert, no fragment shader),
+/// where the device can clip the margin (`shaderClipDistance`).
+fn depth_pipeline(device: &Arc<Device>, layout: &PipelineLayout) -> VkResult<Option<GraphicsPipeline>> {
+    if !device.features.clip_distance {
+        return Ok(None);
+    }
+    let desc = GraphicsPipelineDesc {
+        vert: shaders::STREAM_DEPTH_VERT,
+        frag: None,
+        rasterizer_discard: false,
+        vertex_attribute: Some((2, vk::Format::R8G8_UINT)),
+        color_format: None,
+        depth_format: Some(DEPTH_FORMAT),
+        depth: DepthMode::TestWrite,
+        polygon_mode: vk::PolygonMode::FILL,
+        cull_back: true,
+        layout,
+        specialization: &[],
+    };
+    Ok(Some(GraphicsPipeline::new(device, &desc)?))
+}
+
 impl StreamedRenderer {
     pub fn new(device: &Arc<Device>, layout: BlockLayout, width: u32, height: u32) -> VkResult<Self> {
         let vertex = vk::ShaderStageFlags::VERTEX;
@@ -156,11 +218,23 @@ impl StreamedRenderer {
                     vk::DescriptorType::COMBINED_IMAGE_SAMPLER,
                     vk::ShaderStageFlags::FRAGMENT,
                 ),
+                // The deferred pass's inputs.
+                (
+                    layout::TERRAIN_BINDING_DEPTH,
+                    vk::DescriptorType::COMBINED_IMAGE_SAMPLER,
+                    vk::ShaderStageFlags::FRAGMENT,
+                ),
+                (
+                    layout::STREAM_BINDING_HELD_HEIGHTS,
+                    vk::DescriptorType::COMBINED_IMAGE_SAMPLER,
+                    vk::ShaderStageFlags::FRAGMENT,
+                ),
             ],
         )?;
         let push = std::mem::size_of::<BlockPush>() as u32;
         let pipeline_layout = PipelineLayout::new(device, &set_layout, push, vertex)?;
         let pipelines = FramePipelines::new(device, &pipeline_layout, COLOR_FORMAT, NormalSource::default())?;
+        let depth_pipeline = depth_pipeline(device, &pipeline_layout)?;
         // The capture hook writes from the vertex stage: only where the device allows it.
         let capture = if device.features.vertex_stores {
             let l = DescriptorSetLayout::new(
@@ -172,6 +246,11 @@ impl StreamedRenderer {
                     // Unread here; `bind` writes the same bindings into both sets.
                     (
                         layout::TERRAIN_BINDING_LIGHTING,
+                        vk::DescriptorType::COMBINED_IMAGE_SAMPLER,
+                        vk::ShaderStageFlags::FRAGMENT,
+                    ),
+                    (
+                        layout::STREAM_BINDING_HELD_HEIGHTS,
                         vk::DescriptorType::COMBINED_IMAGE_SAMPLER,
                         vk::ShaderStageFlags::FRAGMENT,
                     ),
@@ -190,7 +269,7 @@ impl StreamedRenderer {
             device,
             2,
             &[
-                (vk::DescriptorType::COMBINED_IMAGE_SAMPLER, 4),
+                (vk::DescriptorType::COMBINED_IMAGE_SAMPLER, 7),
                 (vk::DescriptorType::UNIFORM_BUFFER, 2),
                 (vk::DescriptorType::STORAGE_BUFFER, 1),
             ],
@@ -228,6 +307,8 @@ impl StreamedRenderer {
             target: Target::new(device, width, height)?,
             window_depth: None,
             normals: NormalSource::default(),
+            pixels: PixelPass::default(),
+            depth_pipeline,
         })
     }
 
@@ -245,8 +326,14 @@ impl StreamedRenderer {
             inv_view_proj: vp.as_dmat4().inverse().as_mat4().to_cols_array_2d(),
             camera_fog: [cam.position.x, cam.position.y, cam.position.z, view.fog],
             terrain: [crate::gpu::layout::ramp_top(absolute), grid.height_scale as f32, world[0], world[1]],
-            // z: terrain samples per lighting texel (stream.frag's lighting lookup).
-            spacing: [grid.spacing[0] as f32, grid.spacing[1] as f32, view.lighting.samples_per_texel() as f32, 0.0],
+            // z: terrain samples per lighting texel (the lighting lookup); w: samples
+            // between the lighting map's heights (the deferred pass's sea share).
+            spacing: [
+                grid.spacing[0] as f32,
+                grid.spacing[1] as f32,
+                view.lighting.samples_per_texel() as f32,
+                view.lighting.source().stride as f32,
+            ],
             light: [light.x, light.y, light.z, 0.25],
             texturing: [0.0, 0.0, 0.0, crate::lod::heightfield::sea_level(absolute, world)],
             extent: [grid.width as i32, grid.height as i32, 0, self.layout.k() as i32],
@@ -311,6 +398,7 @@ impl StreamedRenderer {
             &[
                 (layout::TERRAIN_BINDING_HEIGHTS, atlas.image().view, self.sampler.handle),
                 (layout::TERRAIN_BINDING_LIGHTING, view.lighting.map.image.view, view.lighting.map.sampler.handle),
+                (layout::STREAM_BINDING_HELD_HEIGHTS, view.lighting.heights_view(), self.sampler.handle),
             ],
             &[(layout::TERRAIN_BINDING_FRAME, self.uniforms.handle, std::mem::size_of::<FrameUniforms>() as u64)],
         );
@@ -369,16 +457,20 @@ impl StreamedRenderer {
         self.fence.wait(u64::MAX)
     }
 
-    /// The terrain and sky pipelines for colour attachments of `format`, made the first
-    /// time.
-    fn pipeline(&mut self, format: vk::Format) -> VkResult<(vk::Pipeline, vk::Pipeline)> {
+    /// The pipelines for colour attachments of `format`, made the first time.
+    fn pipeline(&mut self, format: vk::Format) -> VkResult<PipelineHandles> {
+        let handles = |p: &FramePipelines| PipelineHandles {
+            terrain: p.terrain.handle,
+            sky: p.sky.handle,
+            shade: p.shade.handle,
+        };
         if let Some((_, p)) = self.pipelines.iter().find(|(f, _)| *f == format) {
-            return Ok((p.terrain.handle, p.sky.handle));
+            return Ok(handles(p));
         }
         let p = FramePipelines::new(&self.device, &self.pipeline_layout, format, self.normals)?;
-        let handles = (p.terrain.handle, p.sky.handle);
+        let h = handles(&p);
         self.pipelines.push((format, p));
-        Ok(handles)
+        Ok(h)
     }
 
     /// How `normals` is drawn in streamed frames, by name (`shading` in the JSON): the
@@ -398,6 +490,36 @@ impl StreamedRenderer {
             self.normals = normals;
             self.pipelines.clear();
         }
+    }
+
+    /// Deferred (the default) or forward shading from now on (`--pixels`).
+    pub fn set_pixels(&mut self, pixels: PixelPass) {
+        self.pixels = pixels;
+    }
+
+    /// Whether the frame seen by `view` is shaded deferred: asked for, with flat normals
+    /// (the tile's heights are out of the deferred pass's reach), not coloured by LOD (the
+    /// block that drew a pixel is not kept), with the lighting map's heights (the sea
+    /// share), and near enough to the terrain for depth to give the points forward
+    /// shading shades (as in memory).
+    fn deferred(&self, view: &FrameView) -> bool {
+        let g = view.grid;
+        let (a, s) = (view.anchor, g.spacing);
+        // The terrain's box relative to the anchor (f64: the anchor may be far out).
+        let rel = |i: i64, n: usize, s: f64| [(-i as f64 * s) as f32, ((n as i64 - 1 - i) as f64 * s) as f32];
+        let (x, z) = (rel(a[0], g.width, s[0]), rel(a[1], g.height, s[1]));
+        let [lo, hi] = view.heights.world;
+        let distance = crate::lod::camera::distance_to_aabb(
+            view.cam.position,
+            glam::Vec3::new(x[0], lo, z[0]),
+            glam::Vec3::new(x[1], hi, z[1]),
+        );
+        self.pixels == PixelPass::Deferred
+            && self.normals == NormalSource::GradientMap
+            && self.depth_pipeline.is_some()
+            && !view.colour_by_lod
+            && view.lighting.holds_heights()
+            && depth_precise_at(distance, s[0].min(s[1]) as f32)
     }
 
     /// Offscreen frames at `width x height` from now on.
@@ -468,36 +590,43 @@ impl StreamedRenderer {
         let (pushes, missing, generation) = self.pushes(atlas, blocks);
         let mut stats = StreamedStats { blocks: pushes.len(), missing, ..StreamedStats::default() };
         let format = window.map_or(COLOR_FORMAT, |w| w.format);
-        let (pipeline, sky) = self.pipeline(format)?;
+        let pipelines = self.pipeline(format)?;
+        let deferred = self.deferred(view);
         let d = self.device.raw.clone();
         let cmd = self.cmd;
         let (color, color_view, depth, extent) = match window {
             Some(w) => (w.image, w.view, self.window_depth.as_ref().expect("made for the window"), w.extent),
             None => {
                 let t = &self.target;
-                let e = vk::Extent2D { width: t.width, height: t.height };
-                (t.color.handle, t.color.view, &t.depth, e)
+                (t.color.handle, t.color.view, &t.depth, vk::Extent2D { width: t.width, height: t.height })
             }
         };
+        // Rewritten every frame, forward ones included (lavapipe reads every descriptor of
+        // a bound set, used or not): the depth image is the destination's.
+        self.pool.write_in_layout(
+            set,
+            &[(layout::TERRAIN_BINDING_DEPTH, depth.view, self.sampler.handle)],
+            vk::ImageLayout::DEPTH_READ_ONLY_OPTIMAL,
+            &[],
+        );
         let area = vk::Rect2D { offset: vk::Offset2D::default(), extent };
         let clear = [SKY_HORIZON[0], SKY_HORIZON[1], SKY_HORIZON[2], 1.0];
         let color_att = [vk::RenderingAttachmentInfo::default()
             .image_view(color_view)
             .image_layout(vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL)
-            .load_op(vk::AttachmentLoadOp::CLEAR)
+            // The deferred shading pass writes every pixel.
+            .load_op(if deferred { vk::AttachmentLoadOp::DONT_CARE } else { vk::AttachmentLoadOp::CLEAR })
             .store_op(vk::AttachmentStoreOp::STORE)
             .clear_value(vk::ClearValue { color: vk::ClearColorValue { float32: clear } })];
         let depth_att = vk::RenderingAttachmentInfo::default()
             .image_view(depth.view)
             .image_layout(vk::ImageLayout::DEPTH_ATTACHMENT_OPTIMAL)
             .load_op(vk::AttachmentLoadOp::CLEAR)
-            .store_op(vk::AttachmentStoreOp::DONT_CARE)
+            .store_op(if deferred { vk::AttachmentStoreOp::STORE } else { vk::AttachmentStoreOp::DONT_CARE })
             .clear_value(vk::ClearValue { depth_stencil: vk::ClearDepthStencilValue { depth: 0.0, stencil: 0 } });
-        let rendering = vk::RenderingInfo::default()
-            .render_area(area)
-            .layer_count(1)
-            .color_attachments(&color_att)
-            .depth_attachment(&depth_att);
+        let rendering = vk::RenderingInfo::default().render_area(area).layer_count(1).depth_attachment(&depth_att);
+        // Deferred: the blocks write depth only.
+        let rendering = if deferred { rendering } else { rendering.color_attachments(&color_att) };
         let viewport = vk::Viewport {
             x: 0.0,
             y: 0.0,
@@ -521,6 +650,10 @@ impl StreamedRenderer {
                 vk::AccessFlags2::TRANSFER_READ | vk::AccessFlags2::COLOR_ATTACHMENT_WRITE,
             ),
         };
+        let blocks_pipeline = match (deferred, &self.depth_pipeline) {
+            (true, Some(p)) => p.handle,
+            _ => pipelines.terrain,
+        };
         // SAFETY: the fence was waited in `bind`, so `cmd` is free; every object bound
         // lives in `self`, `atlas` or the caller's swapchain and outlives the wait in
         // `submit_and_wait`.
@@ -530,7 +663,7 @@ impl StreamedRenderer {
             d.cmd_begin_rendering(cmd, &rendering);
             d.cmd_set_viewport(cmd, 0, &[viewport]);
             d.cmd_set_scissor(cmd, 0, &[area]);
-            d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, pipeline);
+            d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, blocks_pipeline);
             d.cmd_bind_descriptor_sets(
                 cmd,
                 vk::PipelineBindPoint::GRAPHICS,
@@ -555,7 +688,44 @@ impl StreamedRenderer {
                 stats.triangles += triangles;
                 stats.draw_calls += draws;
             }
-            d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, sky);
+            if deferred {
+                d.cmd_end_rendering(cmd);
+                // The blocks' depth, read by the shading pass both as a texture and as a
+                // read-only attachment (the viewer's panel pipeline has a depth format).
+                let tests =
+                    vk::PipelineStageFlags2::EARLY_FRAGMENT_TESTS | vk::PipelineStageFlags2::LATE_FRAGMENT_TESTS;
+                image_barrier(
+                    &d,
+                    cmd,
+                    depth.handle,
+                    depth.range(0, 1),
+                    (
+                        tests,
+                        vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_WRITE,
+                        vk::ImageLayout::DEPTH_ATTACHMENT_OPTIMAL,
+                    ),
+                    (
+                        tests | vk::PipelineStageFlags2::FRAGMENT_SHADER,
+                        vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_READ | vk::AccessFlags2::SHADER_SAMPLED_READ,
+                        vk::ImageLayout::DEPTH_READ_ONLY_OPTIMAL,
+                    ),
+                );
+                let depth_read = vk::RenderingAttachmentInfo::default()
+                    .image_view(depth.view)
+                    .image_layout(vk::ImageLayout::DEPTH_READ_ONLY_OPTIMAL)
+                    .load_op(vk::AttachmentLoadOp::LOAD)
+                    .store_op(vk::AttachmentStoreOp::NONE);
+                let shading_pass = vk::RenderingInfo::default()
+                    .render_area(area)
+                    .layer_count(1)
+                    .color_attachments(&color_att)
+                    .depth_attachment(&depth_read);
+                d.cmd_begin_rendering(cmd, &shading_pass);
+                d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, pipelines.shade);
+            } else {
+                d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, pipelines.sky);
+            }
+            // The shading pass or the sky: one triangle over the target.
             d.cmd_draw(cmd, 3, 1, 0, 0);
             if let Some(draw) = overlay {
                 draw(cmd);
@@ -575,6 +745,7 @@ impl StreamedRenderer {
                 Dest::Offscreen => self.target.set_read_back(false),
             }
         }
+        stats.deferred = deferred;
         self.submit_and_wait(atlas, generation, window.map(|w| (w.acquired, w.done)))?;
         Ok(stats)
     }

@@ -83,6 +83,10 @@ pub const TERRAIN_BINDING_DEPTH: u32 = 7;
 /// mip L-1), the errors activity's [`GIE_BINDING_MINMAX`] image, read-only.
 pub const TERRAIN_BINDING_MINMAX: u32 = 8;
 
+/// Streamed frames' deferred pass (stream_shade.frag): the lighting map's heights (every
+/// stride-th sample of the terrain), for the sea share around each pixel's point.
+pub const STREAM_BINDING_HELD_HEIGHTS: u32 = 9;
+
 /// Lighting pass: the heightfield, texelFetch only.
 pub const LIGHTING_BINDING_HEIGHTS: u32 = 0;
 
@@ -246,6 +250,7 @@ pub const GLSL_CONSTANTS: &[(&str, u32)] = &[
     ("REDUCE_BINDING_GIE", REDUCE_BINDING_GIE),
     ("TERRAIN_BINDING_LIGHTING", TERRAIN_BINDING_LIGHTING),
     ("TERRAIN_BINDING_DEPTH", TERRAIN_BINDING_DEPTH),
+    ("STREAM_BINDING_HELD_HEIGHTS", STREAM_BINDING_HELD_HEIGHTS),
     ("TERRAIN_BINDING_MINMAX", TERRAIN_BINDING_MINMAX),
     ("LIGHTING_BINDING_HEIGHTS", LIGHTING_BINDING_HEIGHTS),
     ("SUN_MAX_STEPS", SUN_MAX_STEPS),

@@ -1,0 +1,28 @@
+// Streamed frames' colour of a surface point, shared by the forward pass (stream.frag)
+// and the deferred one (stream_shade.frag): the in-memory shading's ramp and water (its
+// sea share from the vertices) with its procedural detail, lit by the in-memory frame's
+// light with its sun shadows and ambient occlusion from a lighting map made as in memory
+// (lighting.frag) with one texel every frame.spacing.z samples (from the tiles of one
+// level: draw/streamed.rs), fogged towards the horizon colour. Needs `frame`
+// (USE_FrameUniforms) and ramp.glsl.
+
+layout(set = 0, binding = TERRAIN_BINDING_LIGHTING) uniform sampler2D lighting;
+
+// `relative`: the point from the anchor sample (y: its world height); `at`: the point in
+// samples from the terrain's origin; `n`: its unit normal; `sea`: its share of sea;
+// `lod`: its block's LOD (the colour-by-LOD view, frame.flags.y).
+vec3 streamed_colour(vec3 relative, vec2 at, vec3 n, float sea, int lod) {
+    vec3 albedo = ground_colour(relative.y, 1.0 - n.y, sea) * procedural_detail(at);
+    // Mixed as in memory (terrain_shade.glsl).
+    if (frame.flags.y != 0) {
+        vec3 palette[] = LOD_PALETTE;
+        albedo = mix(albedo, palette[lod % palette.length()], 0.6);
+    }
+    // Texel i of the lighting map is terrain sample i * frame.spacing.z.
+    vec2 texels = vec2(textureSize(lighting, 0));
+    vec2 sun_ao = texture(lighting, (at / frame.spacing.z + 0.5) / texels).rg;
+    vec3 c = albedo * light_of(n, frame.light, sun_ao);
+    float d = length(relative - frame.camera_fog.xyz);
+    float fog = 1.0 - exp(-frame.camera_fog.w * d);
+    return mix(c, frame.sky_horizon.rgb, clamp(fog, 0.0, 1.0));
+}
