@@ -8,6 +8,7 @@ mod common;
 use common::{cli, TempDir};
 use glam::DVec3;
 use std::sync::Arc;
+use vkterrain::app::bench::image_difference;
 use vkterrain::draw::lighting_gpu::OwnLighting;
 use vkterrain::draw::streamed::{FrameView, HeightRange, StreamedRenderer};
 use vkterrain::errors::atlas::HeightAtlas;
@@ -518,25 +519,15 @@ fn a_streamed_frame_is_coloured_as_the_terrain_in_memory() {
         let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
         let messages = if r["streamed"] == true { &r["gpu"]["validation_messages"] } else { &r["validation_messages"] };
         assert_eq!(messages, 0, "{r}");
-        (r["camera"].clone(), image::open(&out).unwrap().to_rgb8())
+        (r["camera"].clone(), image::open(&out).unwrap().to_rgba8())
     };
     // Water: clearly bluer than green and red (the ramp has no such colour).
-    let water = |img: &image::RgbImage| {
+    let water = |img: &image::RgbaImage| {
         img.pixels()
             .filter(|p| i32::from(p[2]) > i32::from(p[1]) + 15 && i32::from(p[2]) > i32::from(p[0]) + 40)
             .count()
     };
-    let rmse = |a: &image::RgbImage, b: &image::RgbImage| {
-        assert_eq!(a.dimensions(), b.dimensions());
-        let (mut sq, mut far) = (0.0f64, 0usize);
-        for (p, q) in a.pixels().zip(b.pixels()) {
-            let d: Vec<f64> = (0..3).map(|c| f64::from(p[c]) - f64::from(q[c])).collect();
-            sq += d.iter().map(|v| v * v).sum::<f64>() / 3.0;
-            far += usize::from(d.iter().any(|v| v.abs() > 16.0));
-        }
-        let n = f64::from(a.width() * a.height());
-        ((sq / n).sqrt(), far as f64 / n)
-    };
+    let rmse = |a: &image::RgbaImage, b: &image::RgbaImage| image_difference(a.as_raw(), b.as_raw());
     let low = ["--camera", "30000,900,30000", "--look-at", "90000,0,90000"];
     // Under the surface both paths see the sky through the terrain's culled underside,
     // and the hillsides that face the camera from below (slivers: larger differences).
@@ -994,20 +985,10 @@ fn deferred_streamed_frames_match_forward_ones() {
         let messages = if streamed { &r["gpu"]["validation_messages"] } else { &r["validation_messages"] };
         assert_eq!(messages, 0, "{r}");
         let pixels = if streamed { r["pixels"].as_str().unwrap() } else { "memory" };
-        (pixels.to_string(), image::open(&png).unwrap().to_rgb8())
+        (pixels.to_string(), image::open(&png).unwrap().to_rgba8())
     };
-    let magenta = |img: &image::RgbImage| img.pixels().filter(|p| p[0] > 250 && p[1] < 5 && p[2] > 250).count();
-    let difference = |a: &image::RgbImage, b: &image::RgbImage| {
-        assert_eq!(a.dimensions(), b.dimensions());
-        let (mut sq, mut far) = (0.0f64, 0usize);
-        for (p, q) in a.pixels().zip(b.pixels()) {
-            let d: Vec<f64> = (0..3).map(|c| f64::from(p[c]) - f64::from(q[c])).collect();
-            sq += d.iter().map(|v| v * v).sum::<f64>() / 3.0;
-            far += usize::from(d.iter().any(|v| v.abs() > 16.0));
-        }
-        let n = f64::from(a.width() * a.height());
-        ((sq / n).sqrt(), far as f64 / n)
-    };
+    let magenta = |img: &image::RgbaImage| img.pixels().filter(|p| p[0] > 250 && p[1] < 5 && p[2] > 250).count();
+    let difference = |a: &image::RgbaImage, b: &image::RgbaImage| image_difference(a.as_raw(), b.as_raw());
     let views: [(&std::path::Path, [&str; 2]); 8] = [
         (&ps, ["30000,900,30000", "90000,0,90000"]),
         (&ps, ["60000,9000,10000", "60000,0,60000"]),

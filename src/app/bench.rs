@@ -825,6 +825,7 @@ pub fn image_difference(a: &[u8], b: &[u8]) -> (f64, f64) {
 
 /// [`image_difference`] over the RGBA pixels that `compared` accepts.
 fn difference(a: &[u8], b: &[u8], compared: impl Fn(&[u8], &[u8]) -> bool) -> (f64, f64) {
+    assert_eq!(a.len(), b.len(), "images of different sizes");
     let (mut se, mut over, mut n) = (0.0f64, 0usize, 0usize);
     for (p, q) in a.chunks(4).zip(b.chunks(4)) {
         if !compared(p, q) {

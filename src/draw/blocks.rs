@@ -255,6 +255,34 @@ pub fn sky_pipeline(device: &Arc<Device>, layout: &PipelineLayout, format: vk::F
     )
 }
 
+/// The depth pass of deferred frames: the blocks placed by vertex shader `vert` (which
+/// clips the margin beyond the true extent), no fragment shader; None where the device
+/// cannot clip (`shaderClipDistance`: frames are then shaded forward).
+pub fn depth_pass_pipeline(
+    device: &Arc<Device>,
+    layout: &PipelineLayout,
+    vert: &'static [u8],
+) -> VkResult<Option<GraphicsPipeline>> {
+    if !device.features.clip_distance {
+        return Ok(None);
+    }
+    let desc = GraphicsPipelineDesc {
+        vert,
+        frag: None,
+        rasterizer_discard: false,
+        vertex_attribute: Some((2, vk::Format::R8G8_UINT)),
+        color_format: None,
+        depth_format: Some(DEPTH_FORMAT),
+        depth: DepthMode::TestWrite,
+        polygon_mode: vk::PolygonMode::FILL,
+        // A heightfield is seen from above only (as the forward pipelines).
+        cull_back: true,
+        layout,
+        specialization: &[],
+    };
+    Ok(Some(GraphicsPipeline::new(device, &desc)?))
+}
+
 /// A depth attachment that the deferred shading pass also samples.
 pub fn depth_target(device: &Arc<Device>, name: &str, extent: vk::Extent2D) -> VkResult<Image> {
     let usage = vk::ImageUsageFlags::DEPTH_STENCIL_ATTACHMENT | vk::ImageUsageFlags::SAMPLED;
@@ -429,28 +457,7 @@ impl BlocksRenderer {
             vk::ShaderStageFlags::VERTEX,
         )?;
         let sky_pipeline = sky_pipeline(device, &pipeline_layout, color_format)?;
-        let depth_pipeline = device
-            .features
-            .clip_distance
-            .then(|| {
-                GraphicsPipeline::new(
-                    device,
-                    &GraphicsPipelineDesc {
-                        vert: shaders::TERRAIN_DEPTH_VERT,
-                        frag: None,
-                        rasterizer_discard: false,
-                        vertex_attribute: Some((2, vk::Format::R8G8_UINT)),
-                        color_format: None,
-                        depth_format: Some(DEPTH_FORMAT),
-                        depth: DepthMode::TestWrite,
-                        polygon_mode: vk::PolygonMode::FILL,
-                        cull_back: true,
-                        layout: &pipeline_layout,
-                        specialization: &[],
-                    },
-                )
-            })
-            .transpose()?;
+        let depth_pipeline = depth_pass_pipeline(device, &pipeline_layout, shaders::TERRAIN_DEPTH_VERT)?;
         let raycast_pipeline = (depth_pipeline.as_ref())
             .map(|_| {
                 GraphicsPipeline::new(
@@ -752,38 +759,7 @@ impl BlocksRenderer {
                 }
             }
             if let Some(shade) = pipelines.shade {
-                d.cmd_end_rendering(cmd);
-                // The blocks' depth, read by the shading pass both as a texture and as a
-                // read-only attachment (the viewer's panel pipeline has a depth format).
-                let tests =
-                    vk::PipelineStageFlags2::EARLY_FRAGMENT_TESTS | vk::PipelineStageFlags2::LATE_FRAGMENT_TESTS;
-                image_barrier(
-                    d,
-                    cmd,
-                    depth.handle,
-                    depth.range(0, 1),
-                    (
-                        tests,
-                        vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_WRITE,
-                        vk::ImageLayout::DEPTH_ATTACHMENT_OPTIMAL,
-                    ),
-                    (
-                        tests | vk::PipelineStageFlags2::FRAGMENT_SHADER,
-                        vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_READ | vk::AccessFlags2::SHADER_SAMPLED_READ,
-                        vk::ImageLayout::DEPTH_READ_ONLY_OPTIMAL,
-                    ),
-                );
-                let depth_read = vk::RenderingAttachmentInfo::default()
-                    .image_view(depth.view)
-                    .image_layout(vk::ImageLayout::DEPTH_READ_ONLY_OPTIMAL)
-                    .load_op(vk::AttachmentLoadOp::LOAD)
-                    .store_op(vk::AttachmentStoreOp::NONE);
-                let shading_pass = vk::RenderingInfo::default()
-                    .render_area(area)
-                    .layer_count(1)
-                    .color_attachments(&color_att)
-                    .depth_attachment(&depth_read);
-                d.cmd_begin_rendering(cmd, &shading_pass);
+                begin_shading_pass(d, cmd, depth, area, &color_att);
                 d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, shade);
                 d.cmd_draw(cmd, 3, 1, 0, 0);
             } else if shading.sky {
@@ -1202,6 +1178,50 @@ fn block_push(layout: &BlockLayout, b: &DrawBlock) -> BlockPush {
             f32::from_bits(bits)
         }),
         tile: [0; 4],
+    }
+}
+
+/// Ends the blocks' rendering (depth only) and begins the deferred shading pass's on
+/// `color_att`: the blocks' depth is read there both as a texture and as a read-only
+/// attachment (the viewer's panel, drawn in the same rendering, has a depth format).
+///
+/// # Safety
+/// `cmd` must be recording inside the blocks' rendering on `depth`, and `depth` and the
+/// colour attachments must stay alive until its submission completes.
+pub(crate) unsafe fn begin_shading_pass(
+    d: &ash::Device,
+    cmd: vk::CommandBuffer,
+    depth: &Image,
+    area: vk::Rect2D,
+    color_att: &[vk::RenderingAttachmentInfo],
+) {
+    let tests = vk::PipelineStageFlags2::EARLY_FRAGMENT_TESTS | vk::PipelineStageFlags2::LATE_FRAGMENT_TESTS;
+    let depth_read = vk::RenderingAttachmentInfo::default()
+        .image_view(depth.view)
+        .image_layout(vk::ImageLayout::DEPTH_READ_ONLY_OPTIMAL)
+        .load_op(vk::AttachmentLoadOp::LOAD)
+        .store_op(vk::AttachmentStoreOp::NONE);
+    let shading_pass = vk::RenderingInfo::default()
+        .render_area(area)
+        .layer_count(1)
+        .color_attachments(color_att)
+        .depth_attachment(&depth_read);
+    // SAFETY: guaranteed by the caller (see above).
+    unsafe {
+        d.cmd_end_rendering(cmd);
+        image_barrier(
+            d,
+            cmd,
+            depth.handle,
+            depth.range(0, 1),
+            (tests, vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_WRITE, vk::ImageLayout::DEPTH_ATTACHMENT_OPTIMAL),
+            (
+                tests | vk::PipelineStageFlags2::FRAGMENT_SHADER,
+                vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_READ | vk::AccessFlags2::SHADER_SAMPLED_READ,
+                vk::ImageLayout::DEPTH_READ_ONLY_OPTIMAL,
+            ),
+        );
+        d.cmd_begin_rendering(cmd, &shading_pass);
     }
 }
 

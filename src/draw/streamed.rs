@@ -16,8 +16,8 @@
 //! [`Selection`]: crate::stream::traverse::Selection
 
 use super::blocks::{
-    attachment_barriers, depth_precise_at, draw_visible_parts, BlockMesh, NormalSource, PixelPass, Target,
-    COLOR_FORMAT, COLOR_RANGE, DEPTH_FORMAT, SKY_HORIZON, SKY_ZENITH,
+    attachment_barriers, begin_shading_pass, depth_pass_pipeline, depth_precise_at, draw_visible_parts, BlockMesh,
+    NormalSource, PixelPass, Target, COLOR_FORMAT, COLOR_RANGE, DEPTH_FORMAT, SKY_HORIZON, SKY_ZENITH,
 };
 use crate::draw::lighting::{samples_per_texel, MAX_LIGHTING_SIDE};
 use crate::draw::lighting_gpu::OwnLighting;
@@ -181,28 +181,6 @@ fn terrain_pipeline(
     )
 }
 
-/// The depth pass of deferred streamed frames (stream_depth.vert, no fragment shader),
-/// where the device can clip the margin (`shaderClipDistance`).
-fn depth_pipeline(device: &Arc<Device>, layout: &PipelineLayout) -> VkResult<Option<GraphicsPipeline>> {
-    if !device.features.clip_distance {
-        return Ok(None);
-    }
-    let desc = GraphicsPipelineDesc {
-        vert: shaders::STREAM_DEPTH_VERT,
-        frag: None,
-        rasterizer_discard: false,
-        vertex_attribute: Some((2, vk::Format::R8G8_UINT)),
-        color_format: None,
-        depth_format: Some(DEPTH_FORMAT),
-        depth: DepthMode::TestWrite,
-        polygon_mode: vk::PolygonMode::FILL,
-        cull_back: true,
-        layout,
-        specialization: &[],
-    };
-    Ok(Some(GraphicsPipeline::new(device, &desc)?))
-}
-
 impl StreamedRenderer {
     pub fn new(device: &Arc<Device>, layout: BlockLayout, width: u32, height: u32) -> VkResult<Self> {
         let vertex = vk::ShaderStageFlags::VERTEX;
@@ -234,7 +212,7 @@ impl StreamedRenderer {
         let push = std::mem::size_of::<BlockPush>() as u32;
         let pipeline_layout = PipelineLayout::new(device, &set_layout, push, vertex)?;
         let pipelines = FramePipelines::new(device, &pipeline_layout, COLOR_FORMAT, NormalSource::default())?;
-        let depth_pipeline = depth_pipeline(device, &pipeline_layout)?;
+        let depth_pipeline = depth_pass_pipeline(device, &pipeline_layout, shaders::STREAM_DEPTH_VERT)?;
         // The capture hook writes from the vertex stage: only where the device allows it.
         let capture = if device.features.vertex_stores {
             let l = DescriptorSetLayout::new(
@@ -689,38 +667,7 @@ impl StreamedRenderer {
                 stats.draw_calls += draws;
             }
             if deferred {
-                d.cmd_end_rendering(cmd);
-                // The blocks' depth, read by the shading pass both as a texture and as a
-                // read-only attachment (the viewer's panel pipeline has a depth format).
-                let tests =
-                    vk::PipelineStageFlags2::EARLY_FRAGMENT_TESTS | vk::PipelineStageFlags2::LATE_FRAGMENT_TESTS;
-                image_barrier(
-                    &d,
-                    cmd,
-                    depth.handle,
-                    depth.range(0, 1),
-                    (
-                        tests,
-                        vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_WRITE,
-                        vk::ImageLayout::DEPTH_ATTACHMENT_OPTIMAL,
-                    ),
-                    (
-                        tests | vk::PipelineStageFlags2::FRAGMENT_SHADER,
-                        vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_READ | vk::AccessFlags2::SHADER_SAMPLED_READ,
-                        vk::ImageLayout::DEPTH_READ_ONLY_OPTIMAL,
-                    ),
-                );
-                let depth_read = vk::RenderingAttachmentInfo::default()
-                    .image_view(depth.view)
-                    .image_layout(vk::ImageLayout::DEPTH_READ_ONLY_OPTIMAL)
-                    .load_op(vk::AttachmentLoadOp::LOAD)
-                    .store_op(vk::AttachmentStoreOp::NONE);
-                let shading_pass = vk::RenderingInfo::default()
-                    .render_area(area)
-                    .layer_count(1)
-                    .color_attachments(&color_att)
-                    .depth_attachment(&depth_read);
-                d.cmd_begin_rendering(cmd, &shading_pass);
+                begin_shading_pass(&d, cmd, depth, area, &color_att);
                 d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, pipelines.shade);
             } else {
                 d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, pipelines.sky);
