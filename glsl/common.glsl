@@ -18,6 +18,23 @@ vec3 normal_of(vec2 g) {
     return normalize(vec3(-g.x, 1.0, -g.y));
 }
 
+// The normal at a point `f` (fractional texels) past texel t of a heightfield whose
+// texels lie `step` world units apart, as terrain_shade.glsl's: the gradients at the
+// four texels around it (central differences over the 4 x 4 texels those need)
+// interpolated bilinearly. `a`..`d`: the world heights of the 2 x 2 texels from t - 1,
+// t + (1, -1), t + (-1, 1) and t + 1 on, each in gather order ((0, 1), (1, 1), (1, 0),
+// (0, 0) from its first texel).
+vec3 normal_from_gathers(vec4 a, vec4 b, vec4 c, vec4 d, vec2 f, vec2 step) {
+    // H(i, j) is texel t + (i - 1, j - 1): a = H(0,1) H(1,1) H(1,0) H(0,0),
+    // b = H(2,1) H(3,1) H(3,0) H(2,0), c = H(0,3) H(1,3) H(1,2) H(0,2),
+    // d = H(2,3) H(3,3) H(3,2) H(2,2).
+    vec2 g00 = central_gradient(b.x, a.x, c.z, a.z, step); // at H(1,1)
+    vec2 g10 = central_gradient(b.y, a.y, d.w, b.w, step); // at H(2,1)
+    vec2 g01 = central_gradient(d.w, c.w, c.y, a.y, step); // at H(1,2)
+    vec2 g11 = central_gradient(d.z, c.z, d.x, b.x, step); // at H(2,2)
+    return normal_of(mix(mix(g00, g10, f.x), mix(g01, g11, f.x), f.y));
+}
+
 // The light on a surface of unit normal `n` (both renderers): the ambient share
 // `light.w` scaled by the open sky `sun_ao.g`, the sun from `light.xyz` by its
 // visibility `sun_ao.r` (the lighting map, lighting.frag).

@@ -34,23 +34,12 @@ vec4 heights_from(ivec2 t) {
     return (frame.flags.x != 0 ? round(texels * 65535.0) : texels) * frame.terrain.y;
 }
 
-// The normal at the point, as terrain_shade.glsl's: the gradients at the four texels
-// around it (central differences over the 4 x 4 texels those need, in four gathers)
-// interpolated bilinearly.
+// The normal at the point, as terrain_shade.glsl's, from the heights of its tile.
 vec3 tile_normal() {
     ivec2 t = ivec2(floor(v_texel));
-    vec2 f = v_texel - vec2(t);
     vec2 step = frame.spacing.xy * float(1 << v_layer_level.y);
-    // H(i, j) is texel t + (i - 1, j - 1).
-    vec4 a = heights_from(t - 1);                // H(0,1) H(1,1) H(1,0) H(0,0)
-    vec4 b = heights_from(t + ivec2(1, -1));     // H(2,1) H(3,1) H(3,0) H(2,0)
-    vec4 c = heights_from(t + ivec2(-1, 1));     // H(0,3) H(1,3) H(1,2) H(0,2)
-    vec4 d = heights_from(t + 1);                // H(2,3) H(3,3) H(3,2) H(2,2)
-    vec2 g00 = central_gradient(b.x, a.x, c.z, a.z, step); // at H(1,1)
-    vec2 g10 = central_gradient(b.y, a.y, d.w, b.w, step); // at H(2,1)
-    vec2 g01 = central_gradient(d.w, c.w, c.y, a.y, step); // at H(1,2)
-    vec2 g11 = central_gradient(d.z, c.z, d.x, b.x, step); // at H(2,2)
-    return normal_of(mix(mix(g00, g10, f.x), mix(g01, g11, f.x), f.y));
+    return normal_from_gathers(heights_from(t - 1), heights_from(t + ivec2(1, -1)), heights_from(t + ivec2(-1, 1)),
+                               heights_from(t + 1), v_texel - vec2(t), step);
 }
 
 void main() {

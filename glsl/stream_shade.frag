@@ -5,11 +5,14 @@
 // where no block was drawn. At four triangles a pixel, shading each fragment drawn
 // (stream.frag) ran the shader about once a triangle.
 //
-// What depth does not give is recovered: the normal is the surface's own, as the
-// forward pass's flat one, from the points drawn at the neighbouring pixels (on each
-// axis the nearer side: across a silhouette the other lies far behind); the sea share
-// is decided from the samples around the point, as memory's, from the lighting map's
-// heights (every frame.spacing.w-th sample: the terrain's own up to 2049^2).
+// What depth does not give comes from the lighting map's heights, every
+// frame.spacing.w-th sample (the terrain's own samples up to 2049^2): the normal and the
+// sea share as memory takes them from its samples (central differences at the four held
+// samples around the point, interpolated; the bilinear share of those at or below sea
+// level). Where those samples are too coarse for the pixel (two held ones more than two
+// pixels apart: close views of terrains over 2049^2) they come from the surface as drawn
+// instead: the normal from the points drawn at the neighbouring pixels, the sea from the
+// drawn height.
 #extension GL_GOOGLE_include_directive : require
 #define USE_FrameUniforms
 #include "layout.glsl"
@@ -30,35 +33,53 @@ vec3 point_at(ivec2 px, float z) {
     return w.xyz / w.w;
 }
 
-// The surface's step from pixel `px` (its point `p`) one pixel along `axis`: to the
-// neighbour after it or from the one before it, whichever point is nearer (a neighbour
-// beyond the target, or showing sky, is not taken). `ok`: false when neither is.
-vec3 step_along(ivec2 px, ivec2 axis, vec3 p, out bool ok) {
+// The surface's step from pixel `px` (its point `p`, `dist` from the camera) one pixel
+// along `axis`: to the neighbour after it or from the one before it, whichever point is
+// nearer, among those on the same surface (drawn, and not across a silhouette: within
+// half of `dist` of p's distance; the terrain behind a ridge lies far beyond it).
+// `ok`: false when neither neighbour is.
+vec3 step_along(ivec2 px, ivec2 axis, vec3 p, float dist, out bool ok) {
     ivec2 size = textureSize(depth, 0);
     ivec2 a = px + axis, b = px - axis;
     bool a_in = all(lessThan(a, size)) && all(greaterThanEqual(a, ivec2(0)));
     bool b_in = all(lessThan(b, size)) && all(greaterThanEqual(b, ivec2(0)));
     float za = a_in ? texelFetch(depth, a, 0).r : 0.0;
     float zb = b_in ? texelFetch(depth, b, 0).r : 0.0;
-    vec3 after = point_at(a, za) - p;
-    vec3 before = p - point_at(b, zb);
-    ok = za > 0.0 || zb > 0.0;
-    if (za > 0.0 && (zb == 0.0 || dot(after, after) <= dot(before, before))) return after;
+    vec3 pa = point_at(a, za), pb = point_at(b, zb);
+    vec3 cam = frame.camera_fog.xyz;
+    bool use_a = za > 0.0 && abs(length(pa - cam) - dist) < 0.5 * dist;
+    bool use_b = zb > 0.0 && abs(length(pb - cam) - dist) < 0.5 * dist;
+    vec3 after = pa - p, before = p - pb;
+    ok = use_a || use_b;
+    if (use_a && (!use_b || dot(after, after) <= dot(before, before))) return after;
     return before;
 }
 
-// The share of sea samples around the point `at` (samples from the origin): bilinear
-// over the four held samples around it, as memory's over the four samples around it.
-float sea_share(vec2 at) {
-    vec2 q = at / frame.spacing.w;
-    ivec2 i = ivec2(floor(q));
-    vec2 f = q - vec2(i);
-    // Texels i and i + 1 on each axis (clamped at the far edges). Gather order: (0,1),
-    // (1,1), (1,0), (0,0).
-    vec4 raw = textureGather(held, (vec2(i) + 1.0) / vec2(textureSize(held, 0)));
-    vec4 world = (frame.flags.x != 0 ? round(raw * 65535.0) : raw) * frame.terrain.y;
-    vec4 sea = vec4(lessThanEqual(world, vec4(frame.texturing.w)));
-    return mix(mix(sea.w, sea.z, f.x), mix(sea.x, sea.y, f.x), f.y);
+// The normal of the surface as drawn at pixel `px` (point `p`): across its neighbours'
+// steps; facing the camera along a missing axis (a feature one pixel wide), or wholly
+// (a lone pixel).
+vec3 drawn_normal(ivec2 px, vec3 p) {
+    vec3 to_camera = frame.camera_fog.xyz - p;
+    float dist = length(to_camera);
+    to_camera /= dist;
+    bool along_x, along_y;
+    vec3 dx = step_along(px, ivec2(1, 0), p, dist, along_x);
+    vec3 dy = step_along(px, ivec2(0, 1), p, dist, along_y);
+    vec3 n = to_camera;
+    if (along_x && along_y) {
+        n = normalize(cross(dy, dx));
+    } else if (along_x || along_y) {
+        vec3 t = normalize(along_x ? dx : dy);
+        n = normalize(to_camera - dot(to_camera, t) * t);
+    }
+    return n.y < 0.0 ? -n : n;
+}
+
+// World heights of the 2 x 2 held texels from texel `t` on, in gather order (clamped at
+// the edges).
+vec4 held_from(ivec2 t) {
+    vec4 raw = textureGather(held, (vec2(t) + 1.0) / vec2(textureSize(held, 0)));
+    return (frame.flags.x != 0 ? round(raw * 65535.0) : raw) * frame.terrain.y;
 }
 
 void main() {
@@ -67,21 +88,42 @@ void main() {
     // One unprojection for both, as shade.frag (llvmpipe runs both sides of a branch
     // whose condition differs across its pixels; at depth 0 this is the sky's ray).
     vec4 w = frame.inv_view_proj * vec4(v_ndc, z, 1.0);
+    vec3 p = point_at(px, z);
+    // Integer anchor added last, as stream.vert's v_sample.
+    vec2 at = p.xz / frame.spacing.xy + vec2(frame.anchor.xy);
+    // Derivatives outside the branches (beside the sky they are not finite: such pixels
+    // take the held samples).
+    float spanned = length(fwidth(at));
+    float rise = fwidth(p.y);
     vec3 colour;
     // Reversed Z, cleared to 0: nothing drawn here.
     if (z == 0.0) {
         colour = frame.sky_zenith.w > 0.5 ? sky_colour_of(w) : frame.sky_horizon.rgb;
     } else {
-        vec3 p = point_at(px, z);
-        bool along_x, along_y;
-        vec3 dx = step_along(px, ivec2(1, 0), p, along_x);
-        vec3 dy = step_along(px, ivec2(0, 1), p, along_y);
-        // A lone pixel between sky: facing up.
-        vec3 n = along_x && along_y ? normalize(cross(dy, dx)) : vec3(0.0, 1.0, 0.0);
-        if (n.y < 0.0) n = -n;
-        // Integer anchor added last, as stream.vert's v_sample.
-        vec2 at = p.xz / frame.spacing.xy + vec2(frame.anchor.xy);
-        colour = streamed_colour(p, at, n, sea_share(at), 0);
+        float stride = frame.spacing.w;
+        // From the held samples, as memory from its own.
+        vec2 q = at / stride;
+        ivec2 t = ivec2(floor(q));
+        vec2 f = q - vec2(t);
+        vec4 h = held_from(t); // (0,1) (1,1) (1,0) (0,0) from t
+        vec3 n = normal_from_gathers(held_from(t - 1), held_from(t + ivec2(1, -1)), held_from(t + ivec2(-1, 1)),
+                                     held_from(t + 1), f, frame.spacing.xy * stride);
+        vec4 flags = vec4(lessThanEqual(h, vec4(frame.texturing.w)));
+        float sea = mix(mix(flags.w, flags.z, f.x), mix(flags.x, flags.y, f.x), f.y);
+        // Where two held samples lie more than two pixels apart (a pixel spans under half
+        // as many samples), from the surface as drawn: its normal, and water up to sea
+        // level (within depth's precision there) fading out over one sample's rise above
+        // it, as the share of the samples around a point fades over a sample.
+        float near = stride > 1.0 ? 1.0 - smoothstep(0.25 * stride, 0.5 * stride, spanned) : 0.0;
+        if (near > 0.0) {
+            float precision_m = 1e-6 * length(p - frame.camera_fog.xyz);
+            float above = p.y - frame.texturing.w - precision_m;
+            float sample_rise = rise / max(spanned, 1e-6);
+            float drawn_sea = clamp(1.0 - above / max(sample_rise, precision_m), 0.0, 1.0);
+            n = normalize(mix(n, drawn_normal(px, p), near));
+            sea = mix(sea, drawn_sea, near);
+        }
+        colour = streamed_colour(p, at, n, sea, 0);
     }
     out_color = vec4(colour, 1.0);
 }
