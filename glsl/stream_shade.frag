@@ -88,7 +88,7 @@ void main() {
     // One unprojection for both, as shade.frag (llvmpipe runs both sides of a branch
     // whose condition differs across its pixels; at depth 0 this is the sky's ray).
     vec4 w = frame.inv_view_proj * vec4(v_ndc, z, 1.0);
-    vec3 p = point_at(px, z);
+    vec3 p = w.xyz / w.w;
     // Integer anchor added last, as stream.vert's v_sample.
     vec2 at = p.xz / frame.spacing.xy + vec2(frame.anchor.xy);
     // Derivatives outside the branches (beside the sky they are not finite: such pixels
