@@ -133,8 +133,8 @@ fn main() -> anyhow::Result<()> {
     println!("first frame (caches cold): {:.2} ms", first.2);
     // The mean, split: the figure to compare builds by (single frames are noisy).
     let n = frames.len().max(1) as f64;
-    let sum = |f: fn(&(f64, f64, f64, usize)) -> f64| frames.iter().map(f).sum::<f64>() / n;
-    println!("    mean: {:.2} ms (select {:.2}, morph {:.2})", sum(|f| f.2), sum(|f| f.0), sum(|f| f.1));
+    let mean = |f: fn(&(f64, f64, f64, usize)) -> f64| frames.iter().map(f).sum::<f64>() / n;
+    println!("    mean: {:.2} ms (select {:.2}, morph {:.2})", mean(|f| f.2), mean(|f| f.0), mean(|f| f.1));
     frames.sort_by(|a, b| a.2.total_cmp(&b.2));
     let at = |q: f64| frames[((frames.len() - 1) as f64 * q).round() as usize];
     for (name, f) in [("median", at(0.5)), ("p99", at(0.99)), ("slowest", at(1.0))] {
