@@ -1,0 +1,133 @@
+//! The command line as a newcomer meets it: the README's run command works from the
+//! user's own folder (relative inputs and outputs mean what was typed), every subcommand
+//! takes its terrain as TERRAIN or as `--heightmap FILE` alike, a misplaced input gets the
+//! right form in its message, and `render`'s JSON says whether rays were cast.
+
+mod common;
+
+use common::{cli, data, TempDir};
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+/// A small 16-bit PNG of hills.
+fn hills(dir: &Path) -> PathBuf {
+    let p = dir.join("hills.png");
+    image::ImageBuffer::<image::Luma<u16>, _>::from_fn(129, 129, |x, z| {
+        let (x, z) = (x as f32, z as f32);
+        image::Luma([(20000.0 + 8000.0 * (x * 0.09).sin() * (z * 0.07).cos()) as u16])
+    })
+    .save(&p)
+    .unwrap();
+    p
+}
+
+fn json(o: &std::process::Output) -> serde_json::Value {
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let text = String::from_utf8_lossy(&o.stdout);
+    serde_json::from_str(&text)
+        .ok()
+        .or_else(|| text.lines().rev().find_map(|l| serde_json::from_str(l).ok()))
+        .unwrap_or_else(|| panic!("no JSON: {text}"))
+}
+
+/// The README's own-DEM command as a user types it: a DEM copied into an empty folder
+/// outside the clone, `bash CLONE/tools/run.sh render mydem.png --out view.png` run from
+/// there; the picture lands in that folder, nothing in the clone.
+#[test]
+fn the_run_command_works_from_the_users_own_folder() {
+    let home = TempDir::new("newcomer");
+    std::fs::copy(data("puget_sound/ps_height_1k.png"), home.path().join("mydem.png")).unwrap();
+    let clone = Path::new(env!("CARGO_MANIFEST_DIR"));
+    // The build the tests run from (target/debug/vkterrain): the script builds nothing new.
+    let target = Path::new(env!("CARGO_BIN_EXE_vkterrain")).parent().and_then(Path::parent).unwrap();
+    let mut child = Command::new("bash")
+        .arg(clone.join("tools/run.sh"))
+        .args(["render", "mydem.png", "--size", "160x90", "--out", "view.png"])
+        .current_dir(home.path())
+        .env("CARGO_TARGET_DIR", target)
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let started = std::time::Instant::now();
+    // Polling the child's state (not a fixed sleep standing in for synchronisation).
+    while child.try_wait().unwrap().is_none() {
+        if started.elapsed().as_secs() > 600 {
+            let _ = child.kill();
+            panic!("tools/run.sh still running after 600 s");
+        }
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    let o = child.wait_with_output().unwrap();
+    let r = json(&o);
+    assert_eq!(r["samples"], serde_json::json!([1025, 1025]), "{r}");
+    assert!(home.path().join("view.png").is_file(), "the picture is not in the user's folder");
+    assert!(!clone.join("view.png").exists(), "the picture landed in the clone");
+}
+
+/// TERRAIN and `--heightmap FILE` mean the same in every subcommand: the same frame from
+/// `render`, the same archive checked and flown; both at once is refused naming both.
+#[test]
+fn every_subcommand_takes_its_terrain_positionally_or_as_heightmap() {
+    let tmp = TempDir::new("forms");
+    let field = hills(tmp.path());
+    let f = field.to_str().unwrap();
+    let render = |form: &[&str], out: &str| {
+        let out = tmp.path().join(out);
+        let args = [&["render"][..], form, &["--size", "96x64", "--validation", "on", "--out", out.to_str().unwrap()]];
+        let r = json(&cli(&args.concat()));
+        (r["triangles"].clone(), r["blocks"].clone(), std::fs::read(out).unwrap())
+    };
+    assert_eq!(render(&[f], "a.png"), render(&["--heightmap", f], "b.png"));
+    let o = cli(&["render", f, "--heightmap", f]);
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{e}");
+    assert!(e.contains("--heightmap") && e.contains("TERRAIN"), "{e}");
+    // prepare, check and stream, with --heightmap as the drawing commands spell it.
+    let archive = tmp.path().join("hills.pmtiles");
+    let a = archive.to_str().unwrap();
+    assert!(cli(&["prepare", "--heightmap", f, "--out", a]).status.success());
+    let checked = [json(&cli(&["check", a])), json(&cli(&["check", "--heightmap", a]))];
+    assert_eq!(checked[0]["tiles_checked"], checked[1]["tiles_checked"]);
+    assert!(checked[0]["tiles_checked"].as_u64().unwrap() > 0, "{}", checked[0]);
+    let flown = |form: &[&str]| json(&cli(&[&["stream"][..], form, &["--frames", "3", "--fps", "300"]].concat()));
+    assert_eq!(flown(&[a])["frames"], 3);
+    assert_eq!(flown(&["--heightmap", a])["frames"], 3);
+}
+
+/// A second terrain where one goes gets the right form in its one-line message (exit 2),
+/// not clap's bare "unexpected argument".
+#[test]
+fn a_misplaced_input_gets_the_right_form() {
+    let tmp = TempDir::new("misplaced");
+    let field = hills(tmp.path());
+    let f = field.to_str().unwrap();
+    for (args, form) in [
+        (vec!["render", f, f], "`vkterrain render FILE` or `vkterrain render --heightmap FILE`"),
+        (vec!["stream", f, f], "`vkterrain stream FILE` or `vkterrain stream --heightmap FILE`"),
+        (vec!["check", f, f], "`vkterrain check FILE` or `vkterrain check --heightmap FILE`"),
+    ] {
+        let o = cli(&args);
+        let e = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{args:?}: {e}");
+        assert_eq!(e.lines().count(), 1, "{args:?}: {e}");
+        assert!(e.contains("did you mean") && e.contains(form), "{args:?}: {e}");
+    }
+}
+
+/// `render --raycast all` says in its JSON that rays were cast, and how many blocks they
+/// drew; the default casts none and says so.
+#[test]
+fn render_says_whether_blocks_were_ray_cast() {
+    let tmp = TempDir::new("raycast");
+    let field = hills(tmp.path());
+    let out = tmp.path().join("r.png");
+    let base =
+        ["render", field.to_str().unwrap(), "--size", "96x64", "--validation", "on", "--out", out.to_str().unwrap()];
+    let plain = json(&cli(&base));
+    assert_eq!(plain["raycast"], "off", "{plain}");
+    assert_eq!(plain["raycast_blocks"], 0, "{plain}");
+    let cast = json(&cli(&[&base[..], &["--raycast", "all"]].concat()));
+    assert_eq!(cast["raycast"], "all", "{cast}");
+    assert!(cast["raycast_blocks"].as_u64().unwrap() > 0, "{cast}");
+}
