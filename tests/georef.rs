@@ -243,6 +243,26 @@ fn tall_geographic_rasters_are_reprojected() {
     assert!(checked >= 3, "only {checked} samples inside the source");
 }
 
+/// The notes say what became of the samples outside a reprojected source: holes in
+/// memory (above), filled and drawn in an archive, which keeps no void mask; `prepare`
+/// says so and never that they are "drawn as holes".
+#[test]
+fn prepare_says_the_samples_outside_a_reprojected_source_are_filled() {
+    let dir = TempDir::new("georef");
+    let path = dir.path().join("tall.tif");
+    let (w, h) = (41u32, 241u32);
+    let s: Vec<f32> = (0..w * h).map(|i| (i / w) as f32).collect();
+    write_geotiff(&path, (w, h), &s, [0.05, 0.05], [10.0, 56.0], &[(1024, 2), (1025, 1), (2048, 4326)], None);
+    let notes = load_default(&path).georef.notes.join("\n");
+    assert!(notes.contains("outside the source: drawn as holes"), "{notes}");
+    let out = dir.path().join("tall.pmtiles");
+    let o = common::cli(&["prepare", path.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{e}");
+    assert!(e.contains("outside the source: filled from the nearest data and drawn"), "{e}");
+    assert!(!e.contains("holes"), "{e}");
+}
+
 /// A georeferenced colour image drapes by its own georeferencing: an RGB GeoTIFF at 5 m
 /// pixels, larger than the terrain and offset from it, with a red square at known UTM
 /// coordinates, is warped onto a 10 m terrain so that the square's texels are where the
@@ -401,4 +421,103 @@ fn broken_georeferencing_is_refused_and_assumptions_said() {
     let hf = load_default(&png);
     assert!((hf.spacing.x - 3.048006).abs() < 1e-5, "10 US survey feet: {:?}", hf.spacing);
     assert_eq!(hf.georef.crs.as_deref(), Some("EPSG:2227"));
+}
+
+/// A float DEM of bathymetry and topography with no georeferencing at all (44 % of its
+/// samples below 0 m): every assumed value is warned with the flag that sets it, its
+/// heights are ASSUMED relative (no water, colours over the range) until `--heights
+/// absolute` declares them metres above sea level; then the sea is at 0 m, in the loader,
+/// in `render`'s JSON and in the picture (water over the 44 % below 0 m).
+#[test]
+fn heights_can_be_declared_absolute_for_a_dem_without_georeferencing() {
+    let dir = TempDir::new("heights");
+    let path = dir.path().join("bathymetry.tif");
+    let (w, h) = (129u32, 129u32);
+    let height = |x: u32| -400.0 + x as f32 * 7.0; // below 0 m for x < 58: 44 %
+    let s: Vec<f32> = (0..w * h).map(|i| height(i % w)).collect();
+    {
+        let file = std::fs::File::create(&path).unwrap();
+        let mut enc = TiffEncoder::new(file).unwrap();
+        enc.write_image::<colortype::Gray32Float>(w, h, &s).unwrap();
+    }
+    let below = s.iter().filter(|&&v| v <= 0.0).count() as f64 / s.len() as f64;
+    assert!((0.43..0.46).contains(&below), "{below}");
+    let hf = load_default(&path);
+    let notes = hf.georef.notes.join("\n");
+    assert!(!hf.georef.absolute_heights);
+    for (assumed, flag) in
+        [("spacing", "--spacing"), ("height unit", "--height-scale"), ("heights", "--heights absolute")]
+    {
+        let line = notes.lines().find(|l| l.contains("WARNING") && l.contains(assumed)).unwrap_or_else(|| {
+            panic!("no WARNING about the assumed {assumed}: {notes}");
+        });
+        assert!(line.contains(flag), "the WARNING about {assumed} does not name {flag}: {line}");
+    }
+    let declared = LoadOptions {
+        spacing: Some(Spacing::from(500.0)),
+        height_scale: Some(1.0),
+        heights: Some(vkterrain::input::georef::Heights::Absolute),
+        ..Default::default()
+    };
+    let hf = load(&path, &declared).unwrap();
+    assert!(hf.georef.absolute_heights);
+    assert_eq!(hf.sea_level([-400.0, 496.0]), 0.0);
+    let notes = hf.georef.notes.join("\n");
+    assert!(notes.contains("metres above sea level (from --heights)"), "{notes}");
+    assert!(!notes.lines().any(|l| l.contains("WARNING") && l.contains("heights")), "{notes}");
+    // Drawn: from above the middle, the whole terrain in view.
+    let water = |p: &image::Rgba<u8>| p[2] as i32 > p[0] as i32 + 40 && p[2] as i32 > p[1] as i32 + 15;
+    let mut wet = Vec::new();
+    for heights in ["absolute", "relative"] {
+        let out = dir.path().join(format!("{heights}.png"));
+        let o = common::cli(&[
+            "render",
+            path.to_str().unwrap(),
+            "--spacing",
+            "500",
+            "--height-scale",
+            "1",
+            "--heights",
+            heights,
+            "--camera",
+            "32000,90000,32100",
+            "--look-at",
+            "32000,0,32000",
+            "--size",
+            "160x120",
+            "--sun",
+            "off",
+            "--validation",
+            "on",
+            "--out",
+            out.to_str().unwrap(),
+        ]);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+        assert_eq!(r["heights"], heights, "{r}");
+        let img = image::open(&out).unwrap().to_rgba8();
+        let share = img.pixels().filter(|p| water(p)).count() as f64 / img.pixels().count() as f64;
+        wet.push(share);
+    }
+    // From 90 km up at 60 degrees the frame spans 104 x 139 km: the 64 km square fills
+    // 28 % of it, and its 44 % below 0 m 12.5 % of the pixels when 0 m is the sea; next to
+    // none when the lowest ground is.
+    assert!((0.10..0.16).contains(&wet[0]), "absolute: water on {:.1} % of the pixels", 100.0 * wet[0]);
+    assert!(wet[1] < 0.02, "relative: water on {:.1} % of the pixels", 100.0 * wet[1]);
+}
+
+/// A GeoTIFF with a geotransform (25 m pixels) and no CRS: its note speaks of the
+/// GeoTIFF's tags (not of a world file or a missing .prj) and names `--spacing`.
+#[test]
+fn a_geotiff_without_a_crs_is_said_in_geotiff_terms() {
+    let dir = TempDir::new("nocrs");
+    let path = dir.path().join("no_crs.tif");
+    write_geotiff(&path, (33, 33), &[870.0; 33 * 33], [25.0, 25.0], [500_000.0, 5_200_000.0], &[], None);
+    let hf = load_default(&path);
+    let notes = hf.georef.notes.join("\n");
+    let line = notes.lines().find(|l| l.contains("ASSUMED to be the metre")).unwrap_or_else(|| panic!("{notes}"));
+    assert!(line.contains("the GeoTIFF tags") && line.contains("--spacing"), "{line}");
+    assert!(!line.contains("world file") && !line.contains(".prj"), "{line}");
+    assert!(!hf.georef.absolute_heights, "no CRS: heights relative unless declared");
+    assert!(notes.contains("--heights absolute"), "{notes}");
 }

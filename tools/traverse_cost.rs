@@ -72,13 +72,7 @@ fn main() -> anyhow::Result<()> {
     let a = Args::parse();
     let (w, h) = a.size.split_once('x').ok_or_else(|| anyhow::anyhow!("--size WxH"))?;
     let (w, h): (u32, u32) = (w.parse()?, h.parse()?);
-    let opts = LoadOptions {
-        spacing: a.spacing.map(Into::into),
-        height_scale: a.height_scale,
-        raw_size: None,
-        max_grid_side: None,
-        voids: Default::default(),
-    };
+    let opts = LoadOptions { spacing: a.spacing.map(Into::into), height_scale: a.height_scale, ..Default::default() };
     let hf = load(&a.heightmap, &opts)?;
     let mm = MinMaxPyramid::build(&hf);
     let layout = BlockLayout::of(&hf, a.block).map_err(anyhow::Error::msg)?;

@@ -153,6 +153,9 @@ pub struct TerrainFacts {
     pub void_samples: usize,
     /// Whether they are drawn ("fill") or cut out ("hole").
     pub voids: crate::input::load::VoidMode,
+    /// Whether heights are metres above sea level ("absolute": water at or below 0 m) or
+    /// only relative (the lowest ground is water).
+    pub heights: crate::input::georef::Heights,
 }
 
 impl TerrainFacts {
@@ -170,6 +173,7 @@ impl TerrainFacts {
             } else {
                 crate::input::load::VoidMode::Fill
             },
+            heights: crate::input::georef::Heights::of(g.absolute_heights),
         }
     }
 
@@ -186,6 +190,7 @@ impl TerrainFacts {
             samples: [m.width, m.height],
             void_samples: m.void_samples,
             voids: crate::input::load::VoidMode::Fill,
+            heights: crate::input::georef::Heights::of(g.absolute_heights),
         }
     }
 

@@ -42,6 +42,9 @@ pub struct Raster {
     pub driver: String,
     /// The geotransform, when the file has one.
     pub transform: Option<[f64; 6]>,
+    /// Where the geotransform came from, for messages ("the GeoTIFF tags", "the world
+    /// file x.pgw", "the file's header").
+    pub transform_from: String,
     /// The CRS, when the file has one (WKT), and its name when it has no code (the local
     /// projection of a reprojected raster, as its PROJ string).
     pub crs_wkt: Option<String>,
@@ -231,6 +234,15 @@ fn open(path: &Path) -> Result<Dataset, HeightfieldError> {
     Ok(ds)
 }
 
+/// The world file beside `path` (as GDAL looks for one), if there is one.
+fn world_file(path: &Path) -> Option<std::path::PathBuf> {
+    let stem = path.with_extension("");
+    ["wld", "pgw", "pngw", "jgw", "jpgw", "tfw", "tifw"]
+        .into_iter()
+        .map(|ext| stem.with_extension(ext))
+        .find(|wf| wf.is_file())
+}
+
 /// Does the file end with a JPEG end-of-image marker (trailing padding allowed)?
 fn jpeg_complete(path: &Path) -> bool {
     use std::io::{Read, Seek, SeekFrom};
@@ -284,14 +296,15 @@ fn header(path: &Path, ds: &Dataset) -> Result<(Raster, Option<SpatialRef>), Hei
                     .into(),
             ));
         }
-        let stem = path.with_extension("");
-        for ext in ["wld", "pgw", "pngw", "jgw", "jpgw", "tfw", "tifw"] {
-            let wf = stem.with_extension(ext);
-            if wf.is_file() {
-                return Err(bad(format!("its world file {} could not be used (a zero pixel size?)", wf.display())));
-            }
+        if let Some(wf) = world_file(path) {
+            return Err(bad(format!("its world file {} could not be used (a zero pixel size?)", wf.display())));
         }
     }
+    let transform_from = match (world_file(path), ds.driver().short_name().as_str()) {
+        (Some(wf), _) => format!("the world file {}", wf.display()),
+        (None, "GTiff" | "COG") => "the GeoTIFF tags".to_string(),
+        (None, _) => "the file's header".to_string(),
+    };
     let unit_name = band.unit();
     let vertical_unit = match metres_per_unit(&unit_name) {
         Some(m) => Some((m, unit_name)),
@@ -315,6 +328,7 @@ fn header(path: &Path, ds: &Dataset) -> Result<(Raster, Option<SpatialRef>), Hei
         vertical_unit,
         driver: ds.driver().short_name(),
         transform,
+        transform_from,
         crs_wkt: srs.as_ref().and_then(|s| s.to_wkt().ok()),
         crs_name: None,
         outside: 0,
@@ -797,6 +811,49 @@ pub fn drape(path: &Path, dem: &Georef, dem_size: (usize, usize)) -> Result<Opti
     Ok(Some((tw as u32, th as u32, rgba)))
 }
 
+/// What the user declared about a terrain (`--spacing`, `--height-scale`, `--heights`),
+/// overriding what the file says or the defaults assumed without it.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Declared {
+    pub spacing: Option<Spacing>,
+    pub height_scale: Option<f32>,
+    pub heights: Option<Heights>,
+}
+
+/// The vertical datum of a terrain's heights.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Heights {
+    /// Metres above sea level: water at or below 0 m, colours by absolute height.
+    Absolute,
+    /// Only relative: the lowest ground is shaded as water, colours span the range.
+    #[default]
+    Relative,
+}
+
+impl Heights {
+    pub fn of(absolute: bool) -> Heights {
+        if absolute {
+            Heights::Absolute
+        } else {
+            Heights::Relative
+        }
+    }
+}
+
+/// Applies `--heights` to a terrain whose datum was decided before (an archive's): the
+/// note to print when it changes what the terrain said.
+pub fn declare_heights(g: &mut crate::lod::heightfield::Georef, heights: Heights) -> Option<String> {
+    let absolute = heights == Heights::Absolute;
+    (g.absolute_heights != absolute).then(|| {
+        g.absolute_heights = absolute;
+        format!(
+            "heights are {} from --heights, not as the archive says",
+            if absolute { "metres above sea level" } else { "relative" }
+        )
+    })
+}
+
 /// What the loader decided, from the file and the options.
 #[derive(Clone, Debug)]
 pub struct Scale {
@@ -811,10 +868,11 @@ pub struct Scale {
 pub fn decide(
     shown: &str,
     raster: &Raster,
-    spacing: Option<Spacing>,
-    height_scale: Option<f32>,
+    declared: &Declared,
     known: Option<&KnownDataset>,
+    outside_holes: bool,
 ) -> Result<Scale, HeightfieldError> {
+    let Declared { spacing, height_scale, heights } = *declared;
     let bad = |m: String| HeightfieldError::invalid(shown, m);
     let mut g = Georef::default();
     let mut notes = Vec::new();
@@ -856,13 +914,21 @@ pub fn decide(
             }
         }
         (Some(t), None) => {
-            // A world file without a .prj: the pixel size is in unknown units. Degrees
+            // A geotransform without a CRS: the pixel size is in unknown units. Degrees
             // look like a small pixel at a place on the globe.
             let on_globe = (-180.0..=360.0).contains(&t[0]) && (-90.0..=90.0).contains(&t[3]);
+            let from = &raster.transform_from;
+            let no_crs = if from.starts_with("the world file") {
+                "no CRS (no .prj beside it)"
+            } else if from == "the GeoTIFF tags" {
+                "no CRS (its GeoKeys name none)"
+            } else {
+                "no CRS"
+            };
             if spacing.is_none() && (t[1].abs() < 0.01 || (on_globe && t[1].abs() < 1.0)) {
                 return Err(bad(format!(
-                    "the world file gives {} units per sample but no CRS (.prj) says what a unit is (degrees?): \
-                     add a .prj or give --spacing",
+                    "{from} give {} units per sample but {no_crs} says what a unit is (degrees?): \
+                     give --spacing (or a .prj naming the CRS)",
                     t[1].abs()
                 )));
             }
@@ -872,7 +938,8 @@ pub fn decide(
             Some((
                 sp,
                 format!(
-                    "{} x {} a sample from the world file; WARNING: no CRS (.prj), so its unit is ASSUMED to be the metre",
+                    "{} x {} a sample from {from}; WARNING: {no_crs}, so its unit is ASSUMED to be the metre; \
+                     give --spacing to set it",
                     t[1].abs(),
                     t[5].abs()
                 ),
@@ -883,8 +950,13 @@ pub fn decide(
     notes.extend(raster.notes.iter().cloned());
     if raster.outside > 0 {
         notes.push(format!(
-            "{} samples of the reprojected grid lie outside the source: drawn as holes (filled only for the LOD bound)",
-            raster.outside
+            "{} samples of the reprojected grid lie outside the source: {}",
+            raster.outside,
+            if outside_holes {
+                "drawn as holes (filled only for the LOD bound)"
+            } else {
+                "filled from the nearest data and drawn (an archive keeps no void mask)"
+            }
         ));
     }
     let spacing = match (spacing, &from_file, known) {
@@ -958,11 +1030,28 @@ pub fn decide(
     if let Some(nd) = if raster.outside_mask.is_some() { raster.reprojected_nodata } else { raster.nodata } {
         notes.push(format!("nodata {nd}"));
     }
-    g.absolute_heights = georeferenced || known.is_some_and(|k| k.absolute);
-    notes.push(if g.absolute_heights {
-        "heights are metres above sea level: water at or below 0 m, colours by absolute height".into()
-    } else {
-        "heights are relative: the lowest ground is shaded as water, colours span the range".into()
+    let (absolute, why) = match heights {
+        Some(h) => (h == Heights::Absolute, " (from --heights)"),
+        None if georeferenced => (true, " (the file names its CRS)"),
+        None => match known {
+            Some(k) => (k.absolute, " (known data set)"),
+            None => (false, ""),
+        },
+    };
+    g.absolute_heights = absolute;
+    notes.push(match (absolute, heights.is_some() || known.is_some()) {
+        (true, _) => {
+            format!("heights are metres above sea level{why}: water at or below 0 m, colours by absolute height")
+        }
+        (false, true) => {
+            format!("heights are relative{why}: the lowest ground is shaded as water, colours span the range")
+        }
+        (false, false) => {
+            "WARNING: heights ASSUMED relative (no CRS says they are metres above sea level): the lowest \
+                           ground is shaded as water, colours span the range; give --heights absolute if they are \
+                           metres above sea level"
+                .into()
+        }
     });
     g.notes = notes;
     Ok(Scale { spacing, height_scale, georef: g })

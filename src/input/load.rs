@@ -12,6 +12,8 @@ pub struct LoadOptions {
     pub spacing: Option<Spacing>,
     /// World units per raw unit; `None` picks the default.
     pub height_scale: Option<f32>,
+    /// The heights' vertical datum; `None` takes the file's (absolute with a CRS).
+    pub heights: Option<georef::Heights>,
     /// Size of a raw `.r16`/`.f32` file.
     pub raw_size: Option<(usize, usize)>,
     /// The device's maxImageDimension2D, when known: checked before the grid is
@@ -19,6 +21,16 @@ pub struct LoadOptions {
     pub max_grid_side: Option<usize>,
     /// What voids (nodata) become.
     pub voids: VoidMode,
+    /// The caller keeps no void mask (an archive): every void and every sample outside a
+    /// reprojected source is filled and drawn, and the notes say so.
+    pub no_holes: bool,
+}
+
+impl LoadOptions {
+    /// What the options declare about the terrain's frame.
+    pub fn declared(&self) -> georef::Declared {
+        georef::Declared { spacing: self.spacing, height_scale: self.height_scale, heights: self.heights }
+    }
 }
 
 /// What the renderer draws where the file has no data.
@@ -90,8 +102,9 @@ pub fn load(path: &Path, opts: &LoadOptions) -> Result<Heightfield, HeightfieldE
     // Only files without georeferencing are looked up among the known data sets (their
     // scale is documented beside them, not in them).
     let known = georef::known_for_file(&shown, path, &raster)?;
-    let scale = georef::decide(&shown, &raster, opts.spacing, opts.height_scale, known)?;
+    let scale = georef::decide(&shown, &raster, &opts.declared(), known, !opts.no_holes)?;
     let (voids, mask) = fill_file_voids(&shown, &mut raster, opts.voids)?;
+    let mask = mask.filter(|_| !opts.no_holes);
     let mut hf = Heightfield::embed(
         &shown,
         raster.width,
@@ -143,6 +156,9 @@ fn load_archive(path: &Path, opts: &LoadOptions) -> Result<Heightfield, Heightfi
     if let Some(h) = opts.height_scale {
         hf.georef.notes.push(format!("height scale {h} from --height-scale, not the archive's {}", hf.height_scale));
         hf.height_scale = h;
+    }
+    if let Some(note) = opts.heights.and_then(|h| georef::declare_heights(&mut hf.georef, h)) {
+        hf.georef.notes.push(note);
     }
     Ok(hf)
 }
@@ -285,6 +301,7 @@ fn decode_raw(
         vertical_unit: None,
         driver: "raw".into(),
         transform: None,
+        transform_from: String::new(),
         crs_wkt: None,
         crs_name: None,
         outside: 0,
