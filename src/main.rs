@@ -1,6 +1,5 @@
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
-use vkterrain::app::cli::InputError;
 use vkterrain::app::commands::{self, ErrorsArgs, RenderArgs};
 use vkterrain::app::viewer::ViewArgs;
 
@@ -53,7 +52,7 @@ fn main() -> ExitCode {
     }
     // Usage errors are one line naming the option, exit code 2; help and version print
     // as usual.
-    let cli = match Cli::try_parse() {
+    let mut cli = match Cli::try_parse() {
         Ok(c) => c,
         Err(e) if !e.use_stderr() => {
             let _ = e.print();
@@ -72,13 +71,25 @@ fn main() -> ExitCode {
             }
             // A value outside a fixed set: name the set on the same line.
             let possible = text.lines().find_map(|l| l.trim().strip_prefix("[possible values: "));
-            match possible {
-                Some(values) => eprintln!("vkterrain: {first} (one of: {})", values.trim_end_matches(']')),
-                None => eprintln!("vkterrain: {first}"),
+            match (possible, misplaced_input_hint(&e)) {
+                (Some(values), _) => eprintln!("vkterrain: {first} (one of: {})", values.trim_end_matches(']')),
+                (None, Some(hint)) => eprintln!("vkterrain: {first}: did you mean {hint}?"),
+                (None, None) => eprintln!("vkterrain: {first}"),
             }
             return ExitCode::from(2);
         }
     };
+    // Each subcommand takes its terrain as TERRAIN or as --heightmap FILE.
+    match &mut cli.command {
+        None => cli.view.common.take_terrain(),
+        Some(Command::View(a)) => a.common.take_terrain(),
+        Some(Command::Render(a)) => a.common.take_terrain(),
+        Some(Command::Errors(a)) => a.common.take_terrain(),
+        Some(Command::Bench(a)) => a.common.take_terrain(),
+        Some(Command::Quality(a)) => a.common.take_terrain(),
+        Some(Command::Prepare(a)) => a.input.extend(a.heightmap.take()),
+        Some(Command::Timeline(_) | Command::Check(_) | Command::Stream(_)) => {}
+    }
     let result = match &cli.command {
         None => vkterrain::app::viewer::view(&cli.view),
         Some(Command::View(a)) => vkterrain::app::viewer::view(a),
@@ -95,13 +106,25 @@ fn main() -> ExitCode {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("vkterrain: {}", error_chain(&e));
-            if e.downcast_ref::<InputError>().is_some() {
-                ExitCode::from(2)
-            } else {
-                ExitCode::from(1)
-            }
+            ExitCode::from(vkterrain::app::cli::exit_code(&e))
         }
     }
+}
+
+/// For a word the parser did not expect where an input goes (a second terrain, or a
+/// file after a flag that takes none): the form that names one terrain.
+fn misplaced_input_hint(e: &clap::Error) -> Option<String> {
+    use clap::error::{ContextKind, ContextValue, ErrorKind};
+    let Some(ContextValue::String(arg)) = e.get(ContextKind::InvalidArg) else { return None };
+    if e.kind() != ErrorKind::UnknownArgument || arg.starts_with('-') {
+        return None;
+    }
+    let sub = std::env::args().skip(1).find(|a| !a.starts_with('-')).filter(|a| *a != *arg);
+    Some(match sub.as_deref() {
+        Some("prepare") => format!("`vkterrain prepare {arg} ... --out FILE` (every input before the options)"),
+        Some(sub) => format!("`vkterrain {sub} FILE` or `vkterrain {sub} --heightmap FILE` (one terrain a run)"),
+        None => "`vkterrain view FILE` or `vkterrain render FILE` (one terrain a run)".to_string(),
+    })
 }
 
 /// The error and its causes on one line, each cause once: an error whose message already

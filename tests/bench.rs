@@ -326,7 +326,7 @@ fn ctrl_c_stops_cleanly_and_keeps_what_was_measured() {
         assert!(start.elapsed() < std::time::Duration::from_secs(60), "bench did not stop after Ctrl-C");
         std::thread::sleep(std::time::Duration::from_millis(100));
     };
-    assert!(status.success(), "exit {status:?}");
+    assert_eq!(status.code(), Some(130), "interrupted by SIGINT: 128 + 2; {status:?}");
     let summary: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
     assert_eq!(summary["interrupted"], true);
@@ -469,7 +469,7 @@ fn ctrl_c_during_set_up_still_writes_a_summary() {
     assert!(Command::new("kill").args(["-INT", &child.id().to_string()]).status().unwrap().success());
     let rest: Vec<String> = lines.map_while(Result::ok).collect();
     let status = child.wait().unwrap();
-    assert!(status.success(), "exit {status:?}: {seen:?} {rest:?}");
+    assert_eq!(status.code(), Some(130), "exit {status:?}: {seen:?} {rest:?}");
     let summary: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
     assert_eq!(summary["interrupted"], true);

@@ -189,8 +189,12 @@ fn http_failures_are_clear_or_degrade() {
     let (flaky, _) = serve(dir.path().to_path_buf(), Mode::FailAfter(12));
     let url = format!("{flaky}/a.pmtiles");
     let o = cli(&["stream", &url, "--cache-mb", "16", "--frames", "40", "--fps", "120"]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let e = String::from_utf8_lossy(&o.stderr);
+    // Finished, with tiles missing: exit 3, degraded in the JSON, said in one line.
+    assert_eq!(o.status.code(), Some(3), "{e}");
+    assert!(e.contains("vkterrain: finished degraded: "), "{e}");
     let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(r["degraded"], true, "{r}");
     let failure = r["first_failure"].as_str().unwrap_or_else(|| panic!("no failure: {r}"));
     assert!(failure.contains(&url) && failure.contains("tile ") && failure.contains("500"), "{failure}");
 }

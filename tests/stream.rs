@@ -727,8 +727,10 @@ fn the_stream_command_flies_within_its_budget_and_degrades_on_a_damaged_archive(
     let fly = |path: &str| {
         let args = ["stream", path, "--cache-mb", "8", "--frames", "360", "--fps", "120", "--speed", "8000", "--cold"];
         let o = common::run_bounded_logging(&args.map(String::from), 600, None);
-        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        // 0 clean, 3 finished degraded (tiles failed): the JSON says which.
         let r = serde_json::from_slice::<serde_json::Value>(&o.stdout).unwrap();
+        let degraded = r["degraded"].as_bool().unwrap_or_else(|| panic!("no degraded fact: {r}"));
+        assert_eq!(o.status.code(), Some(if degraded { 3 } else { 0 }), "{}", String::from_utf8_lossy(&o.stderr));
         // Warnings read as the program's other messages, one line each.
         let err = String::from_utf8_lossy(&o.stderr);
         for line in err.lines().filter(|l| l.contains("streaming:")) {
@@ -770,6 +772,7 @@ fn the_stream_command_flies_within_its_budget_and_degrades_on_a_damaged_archive(
     assert!(stats["peak_cache_bytes"].as_u64().unwrap() <= 8 << 20, "{r}");
     assert!(r["distinct_over_cache"].as_f64().unwrap() > 1.0, "the flight sees more than the cache holds: {r}");
     assert!(r["first_failure"].is_null(), "{r}");
+    assert_eq!(r["degraded"], false);
     let bytes = std::fs::read(&archive).unwrap();
     let cut = dir.path().join("cut.pmtiles");
     std::fs::write(&cut, &bytes[..bytes.len() / 2]).unwrap();
@@ -778,6 +781,7 @@ fn the_stream_command_flies_within_its_budget_and_degrades_on_a_damaged_archive(
     let failure = r["first_failure"].as_str().unwrap_or_else(|| panic!("no failure reported: {r}"));
     assert!(failure.contains("cut.pmtiles") && failure.contains("tile ") && failure.contains("truncated"), "{failure}");
     assert!(r["stats"]["tiles_failed"].as_u64().unwrap() > 0);
+    assert_eq!(r["degraded"], true, "tiles failed: the flight finished degraded (exit 3)");
 }
 
 /// A field made to break stitching (SPEC section 5): the LOD-2 mesh of random vertices

@@ -3,7 +3,7 @@
 //! Figure 8, and a Chrome trace of both activities.
 
 use crate::app::cli::positive;
-use crate::app::cli::{CommonArgs, InputError, TextureArgs};
+use crate::app::cli::{CommonArgs, Degraded, InputError, Interrupted, TextureArgs};
 use crate::app::commands::{draw_thread, Session};
 use crate::app::outputs::{plot_font, write_atomic};
 use crate::app::paths::{path_camera, CameraPath};
@@ -64,12 +64,12 @@ pub struct BenchArgs {
     #[arg(long)]
     pub popping: bool,
     /// Where normals come from: the gradient map (default) or sixteen height fetches per
-    /// pixel (the first wave's shading), to measure the pixel work side by side.
+    /// pixel, to measure the pixel work side by side.
     #[arg(long, value_enum, default_value_t = crate::draw::blocks::NormalSource::GradientMap)]
     pub shading: crate::draw::blocks::NormalSource,
     /// How pixels are shaded: once each after a depth-only pass over the blocks
-    /// (default), or as the blocks are drawn (the earlier shading), to measure the pixel
-    /// work side by side.
+    /// (default), or as the blocks are drawn (forward), to measure the pixel work side by
+    /// side.
     #[arg(long, value_enum, default_value_t = crate::draw::blocks::PixelPass::Deferred)]
     pub pixels: crate::draw::blocks::PixelPass,
     /// Blocks drawn by the ray-caster instead of as triangles (SPEC 10): none, every
@@ -1109,6 +1109,8 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     summary["pixels"] = json!(value_name(args.pixels));
     summary["shading"] = json!(value_name(args.shading));
     summary["validation_counted_after_device_destruction"] = json!(true);
+    // Every sample is in memory: no frame lacks its data.
+    summary["degraded"] = json!(false);
     let text = serde_json::to_string_pretty(&summary)?;
     let path = args.out.join("summary.json");
     write_atomic(&path, |tmp| std::fs::write(tmp, &text).map_err(|e| anyhow::anyhow!("{}: {e}", path.display())))?;
@@ -1123,18 +1125,21 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
             args.out.display()
         );
     }
-    if stop.load(Ordering::SeqCst) {
-        eprintln!("vkterrain: interrupted; partial results in {}", args.out.display());
-    } else if let Some(Fault::ErrorsDeviceLost(g)) = fault {
-        // Reached, it would have failed the run above.
-        return Err(InputError(format!(
-            "--inject-fault errors-device-lost:{g}: never reached, the run started {started_generations} generations"
-        ))
-        .into());
+    if !stop.load(Ordering::SeqCst) {
+        if let Some(Fault::ErrorsDeviceLost(g)) = fault {
+            // Reached, it would have failed the run above.
+            return Err(InputError(format!(
+                "--inject-fault errors-device-lost:{g}: never reached, the run started {started_generations} generations"
+            ))
+            .into());
+        }
     }
     let n = messages.count();
     if n > 0 {
         anyhow::bail!("{n} validation message(s)");
+    }
+    if stop.load(Ordering::SeqCst) {
+        return Err(Interrupted::by(&signals, format!("partial results in {}", args.out.display())).into());
     }
     Ok(())
 }
@@ -1170,7 +1175,7 @@ fn fidelity(bench: &mut Bench, activity: &ErrorsActivity) -> anyhow::Result<Valu
 }
 
 /// The command-line spelling of a value-enum option (`deferred`, `gradient-map`).
-fn value_name(v: impl clap::ValueEnum) -> String {
+pub(crate) fn value_name(v: impl clap::ValueEnum) -> String {
     v.to_possible_value().map(|p| p.get_name().to_string()).unwrap_or_default()
 }
 
@@ -1347,7 +1352,10 @@ fn bench_streamed(
         "validation_messages": device.instance.validation.then(|| device.instance.validation_messages()),
         "peak_resident_mb": crate::app::outputs::peak_resident_mb(),
         "interrupted": signals.requested(),
+        "degraded": streamer.first_failure.is_some(),
+        "first_failure": streamer.first_failure,
     });
+    let streamer_failure = streamer.first_failure.clone();
     crate::app::outputs::TerrainFacts::of_archive(&archive.meta, &args.common).merge_into(&mut summary);
     drop(gpu);
     drop(device);
@@ -1359,7 +1367,10 @@ fn bench_streamed(
     println!("{text}");
     crate::app::cli::check_messages(&messages)?;
     if signals.requested() {
-        std::process::exit(signals.exit_code());
+        return Err(Interrupted::by(signals, format!("partial results in {}", args.out.display())).into());
+    }
+    if let Some(failure) = &streamer_failure {
+        return Err(Degraded(format!("tiles could not be read (first: {failure}); frames drawn coarser")).into());
     }
     Ok(())
 }

@@ -18,6 +18,64 @@ use std::path::PathBuf;
 #[error("{0}")]
 pub struct InputError(pub String);
 
+/// The archive a command reads: positional, or `--heightmap` as the drawing commands
+/// name their terrain.
+#[derive(Args, Clone, Debug)]
+pub struct ArchiveInput {
+    /// The archive (written by `vkterrain prepare`): a path or an http(s):// URL.
+    #[arg(value_name = "ARCHIVE", required_unless_present = "heightmap", conflicts_with = "heightmap")]
+    archive: Option<PathBuf>,
+    /// The same as ARCHIVE, as an option.
+    #[arg(long, value_name = "FILE")]
+    heightmap: Option<PathBuf>,
+}
+
+impl ArchiveInput {
+    pub fn path(&self) -> &std::path::Path {
+        // clap requires one of the two.
+        self.archive.as_deref().or(self.heightmap.as_deref()).unwrap_or(std::path::Path::new(""))
+    }
+}
+
+/// A run that finished and wrote what it was asked for, but degraded: tiles that could
+/// not be read, frames drawn without their data (exit code 3). Its JSON says
+/// `"degraded": true`.
+#[derive(Debug, thiserror::Error)]
+#[error("finished degraded: {0}")]
+pub struct Degraded(pub String);
+
+/// A run stopped by a signal after writing its partial outputs (exit code 128 + the
+/// signal, as a shell reports a process the signal ended). Its JSON, where it writes
+/// one, says `"interrupted": true`.
+#[derive(Debug, thiserror::Error)]
+#[error("interrupted: {what}")]
+pub struct Interrupted {
+    /// 128 + the signal.
+    pub code: u8,
+    /// What was written before stopping.
+    pub what: String,
+}
+
+impl Interrupted {
+    pub fn by(stop: &crate::app::signals::Stop, what: impl Into<String>) -> Interrupted {
+        Interrupted { code: stop.exit_code().clamp(129, 255) as u8, what: what.into() }
+    }
+}
+
+/// The exit code for a run's error: 2 bad input, 3 finished degraded, 128 + a signal when
+/// interrupted, 1 anything else (an internal or device error).
+pub fn exit_code(e: &anyhow::Error) -> u8 {
+    if e.downcast_ref::<InputError>().is_some() {
+        2
+    } else if e.downcast_ref::<Degraded>().is_some() {
+        3
+    } else if let Some(i) = e.downcast_ref::<Interrupted>() {
+        i.code
+    } else {
+        1
+    }
+}
+
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
 pub enum OnOff {
     On,
@@ -117,8 +175,12 @@ pub fn parse_spacing(s: &str) -> Result<Spacing, String> {
 /// Options the drawing subcommands share.
 #[derive(Args, Clone, Debug)]
 pub struct CommonArgs {
-    /// Heightfield file (.png, .jpg, .tif/.tiff, .r16, .f32, .hgt). Default: the built-in
-    /// procedural terrain (2049 x 2049, 30 m spacing).
+    /// The terrain: a heightfield file (GeoTIFF, .hgt, PNG, JPEG, .r16, .f32, anything
+    /// GDAL reads), an archive written by `vkterrain prepare`, or an archive's http(s)://
+    /// URL. Default: the built-in procedural terrain (2049 x 2049, 30 m spacing).
+    #[arg(value_name = "TERRAIN", conflicts_with = "heightmap")]
+    pub terrain: Option<PathBuf>,
+    /// The same as TERRAIN, as an option.
     #[arg(long, value_name = "FILE")]
     pub heightmap: Option<PathBuf>,
     /// Size of a raw .r16/.f32 heightfield.
@@ -135,6 +197,11 @@ pub struct CommonArgs {
     /// Metres per height unit. Default: what the file says (printed at load).
     #[arg(long, value_name = "M", value_parser = positive)]
     pub height_scale: Option<f32>,
+    /// Whether heights are metres above sea level (absolute: water at or below 0 m,
+    /// colours by height in metres) or only relative (the lowest ground is water, colours
+    /// span the range). Default: absolute when the file names its CRS, else relative.
+    #[arg(long, value_enum, value_name = "absolute|relative")]
+    pub heights: Option<crate::input::georef::Heights>,
     /// Viewport size in pixels.
     #[arg(long, value_name = "WxH", value_parser = parse_size)]
     pub size: Option<(u32, u32)>,
@@ -176,7 +243,8 @@ pub struct CommonArgs {
     /// second generation may queue behind the first, both slots written).
     #[arg(long, value_enum, default_value_t = crate::errors::activity::Pacing::Auto)]
     pub error_pacing: crate::errors::activity::Pacing,
-    /// Screen-space error bound: strict (guaranteed) or paper (seed 000 eqs. 2-4).
+    /// Screen-space error bound: strict (guaranteed for every camera) or paper (the
+    /// published method's per-vertex estimate, eqs. 2-4 of Yusuf et al.).
     #[arg(long = "error-mode", alias = "mode", value_enum, default_value_t = ErrorMode::Strict)]
     pub error_mode: ErrorMode,
     /// Geomorphing: blocks move continuously between LODs instead of popping, with the
@@ -225,6 +293,13 @@ fn parse_sun(s: &str) -> Result<SunArg, String> {
 }
 
 impl CommonArgs {
+    /// The terrain given as TERRAIN becomes `heightmap`, the one field the commands read.
+    pub fn take_terrain(&mut self) {
+        if let Some(t) = self.terrain.take() {
+            self.heightmap = Some(t);
+        }
+    }
+
     pub fn validation(&self) -> bool {
         match self.validation {
             Some(OnOff::On) => true,
@@ -242,9 +317,11 @@ impl CommonArgs {
                 let opts = LoadOptions {
                     spacing: self.spacing,
                     height_scale: self.height_scale,
+                    heights: self.heights,
                     raw_size: self.raw_size.map(|(w, h)| (w as usize, h as usize)),
                     max_grid_side,
                     voids: self.voids,
+                    no_holes: false,
                 };
                 let hf = load::load(path, &opts).map_err(|e| InputError(e.to_string()))?;
                 for line in crate::input::describe(&hf) {
@@ -360,19 +437,19 @@ pub fn check_scale(hf: &Heightfield) -> Result<(), InputError> {
     Ok(())
 }
 
-/// Texturing (seed 000 eqs. 9-11), for every command that draws: `view`, `render`, `bench`.
+/// Texturing (Yusuf et al., eqs. 9-11), for every command that draws: `view`, `render`, `bench`.
 #[derive(Args, Debug, Clone)]
 pub struct TextureArgs {
-    /// Base colour texture, stretched over the whole terrain (seed 000 eq. 9).
+    /// Base colour texture, stretched over the whole terrain.
     #[arg(long, value_name = "FILE")]
     pub texture: Option<PathBuf>,
-    /// Detail texture, tiled (eq. 10).
+    /// Detail texture, repeated over the terrain DTF times across the base texture.
     #[arg(long, value_name = "FILE")]
     pub detail: Option<PathBuf>,
     /// Detail tiling factor DTF: detail coordinates are DTF times the base coordinates.
     #[arg(long, value_name = "DTF", default_value = "64", value_parser = positive)]
     pub detail_tiling: f32,
-    /// Weight alpha of the base colour in eq. 11 (1 ignores the detail texture).
+    /// Weight alpha of the base colour against the detail (1 ignores the detail texture).
     #[arg(long, value_name = "ALPHA", default_value = "0.7")]
     pub detail_weight: f32,
 }

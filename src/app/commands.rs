@@ -1,7 +1,9 @@
 //! The subcommands: `render` (one headless frame) and `errors` (one error generation).
 
 use crate::app::cli::OnOff;
-use crate::app::cli::{check_messages, option_error, positive, CommonArgs, InputError, StreamedOptions, TextureArgs};
+use crate::app::cli::{
+    check_messages, option_error, positive, CommonArgs, Degraded, InputError, StreamedOptions, TextureArgs,
+};
 use crate::app::outputs::{check_outputs, save_png, write_atomic};
 use crate::draw::blocks::{BlocksRenderer, NormalSource, PixelPass, Shading, Target};
 use crate::draw::frame::{traversal_threads, DrawThread, FrameRequest, LodChoice, LodTerrain};
@@ -54,12 +56,12 @@ pub struct RenderArgs {
     /// Exponential fog density per world unit (0 disables).
     #[arg(long, value_name = "DENSITY", default_value = "0", value_parser = crate::app::cli::non_negative, allow_negative_numbers = true)]
     pub fog: f32,
-    /// Where normals come from: a gradient map made at load (default), or the first
-    /// wave's sixteen height fetches per pixel (same image up to rounding).
+    /// Where normals come from: a gradient map made at load (default), or sixteen height
+    /// fetches per pixel (the same image up to rounding, no map to make).
     #[arg(long, value_enum, default_value_t = NormalSource::GradientMap)]
     pub shading: NormalSource,
     /// How pixels are shaded: once each after a depth-only pass over the blocks
-    /// (default), or as the blocks are drawn (the earlier shading, for comparison).
+    /// (default), or as the blocks are drawn (forward: every covered fragment shaded).
     #[arg(long, value_enum, default_value_t = PixelPass::Deferred)]
     pub pixels: PixelPass,
     /// Blocks drawn by a fragment-shader ray-caster instead of as triangles (SPEC 10):
@@ -303,6 +305,8 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
         "hidden_parts": stats.hidden_parts,
         "hidden_triangles": stats.hidden_parts * s.layout.triangles_per_part(),
         "draw_calls": stats.draw_calls,
+        "raycast": crate::app::bench::value_name(args.raycast),
+        "raycast_blocks": stats.raycast_blocks,
         "blocks": trav.blocks.len(),
         "occlusion": trav.occlusion,
         "error_generation": generation,
@@ -422,19 +426,24 @@ fn render_streamed(
     out["queue_mode"] = json!(queue_mode);
     out["error_mode"] = json!(args.common.error_mode.as_str());
     crate::app::outputs::TerrainFacts::of_archive(&archive.meta, &args.common).merge_into(&mut out);
+    let failure = out["first_failure"].as_str().map(str::to_string);
+    out["degraded"] = json!(failure.is_some());
     println!("{out}");
     // Every Vulkan object is gone now: messages from their destruction count too.
     check_messages(&messages)?;
+    if let Some(failure) = failure {
+        return Err(Degraded(format!(
+            "tiles could not be read (first: {failure}); the frame was drawn coarser (worst {:.2}x delta)",
+            out["worst_factor"]
+        ))
+        .into());
+    }
     if !out["within_bound"].as_bool().unwrap_or(false) {
-        let why = if let Some(failure) = out["first_failure"].as_str() {
-            format!("tiles could not be read (first: {failure}); drawn coarser")
-        } else {
-            format!(
-                "the budgets (--cache-mb {}, --gpu-mb {}) cannot hold the tiles this view needs",
-                args.streamed.cache_mb(),
-                args.streamed.gpu_mb()
-            )
-        };
+        let why = format!(
+            "the budgets (--cache-mb {}, --gpu-mb {}) cannot hold the tiles this view needs",
+            args.streamed.cache_mb(),
+            args.streamed.gpu_mb()
+        );
         eprintln!(
             "vkterrain: WARNING: the frame is over the bound ({} blocks, worst {:.2}x delta): {why}",
             out["blocks_over_bound"], out["worst_factor"]

@@ -15,8 +15,11 @@ pub struct PrepareArgs {
     /// The terrain to prepare: any file the viewer opens (GeoTIFF, .hgt, PNG, raw, a GDAL
     /// .vrt, an archive or its URL); or many files or directories of tiles (SRTM .hgt,
     /// GeoTIFF tiles), mosaicked by their georeferencing. Not with --synthetic.
-    #[arg(required_unless_present = "synthetic", conflicts_with = "synthetic", num_args = 1..)]
+    #[arg(value_name = "INPUT", required_unless_present_any = ["synthetic", "heightmap"], conflicts_with = "synthetic", num_args = 1..)]
     pub input: Vec<PathBuf>,
+    /// One more input, named as the drawing commands name their terrain.
+    #[arg(long, value_name = "FILE", conflicts_with = "synthetic")]
+    pub heightmap: Option<PathBuf>,
     /// The archive to write (PMTiles v3). It appears only when complete.
     #[arg(long, short)]
     pub out: PathBuf,
@@ -30,6 +33,10 @@ pub struct PrepareArgs {
     /// World units per raw height unit; default: the file's vertical units.
     #[arg(long, value_parser = crate::app::cli::positive)]
     pub height_scale: Option<f32>,
+    /// Whether heights are metres above sea level (absolute) or only relative, recorded in
+    /// the archive. Default: absolute when the file names its CRS, else relative.
+    #[arg(long, value_enum, value_name = "absolute|relative")]
+    pub heights: Option<crate::input::georef::Heights>,
     /// Size of a raw .r16/.f32 input, as WIDTHxHEIGHT.
     #[arg(long, value_parser = crate::app::cli::parse_size)]
     pub raw_size: Option<(u32, u32)>,
@@ -205,11 +212,13 @@ pub(crate) fn prepare_on_the_fly(
     eprintln!("vkterrain: note: {}: prepared into a temporary archive, to be drawn streamed", path.display());
     let args = PrepareArgs {
         input: vec![path.to_path_buf()],
+        heightmap: None,
         out: dir.join("terrain.pmtiles"),
         synthetic: None,
         // The file's frame as the options give it, as the loader would read it.
         spacing: common.spacing,
         height_scale: common.height_scale,
+        heights: common.heights,
         raw_size: common.raw_size,
         windows: false,
     };
@@ -296,10 +305,14 @@ fn prepare_archive(args: &PrepareArgs, before_exit: &dyn Fn()) -> anyhow::Result
         (Some(path), None) if crate::input::archive::Archive::sniff(path) => {
             archive = crate::input::archive::Archive::open(path).map_err(|e| named(e.to_string()))?;
             let m = &archive.meta;
+            let mut georef = m.georef.clone();
+            if let Some(note) = args.heights.and_then(|h| georef::declare_heights(&mut georef, h)) {
+                eprintln!("vkterrain: note: {}: {note}", path.display());
+            }
             let frame = Frame {
                 spacing: args.spacing.map_or(m.spacing, |s| [s.x, s.z]),
                 height_scale: args.height_scale.unwrap_or(m.height_scale),
-                georef: m.georef.clone(),
+                georef,
                 void_samples: m.void_samples,
             };
             eprintln!(
@@ -320,7 +333,10 @@ fn prepare_archive(args: &PrepareArgs, before_exit: &dyn Fn()) -> anyhow::Result
                     args.spacing.map_or(Synthetic::SPACING, |s| s.z),
                 ],
                 height_scale: args.height_scale.unwrap_or(Synthetic::HEIGHT_SCALE),
-                georef: Georef::default(),
+                georef: Georef {
+                    absolute_heights: args.heights == Some(georef::Heights::Absolute),
+                    ..Georef::default()
+                },
                 void_samples: 0,
             };
             (&synthetic, frame)
@@ -331,8 +347,10 @@ fn prepare_archive(args: &PrepareArgs, before_exit: &dyn Fn()) -> anyhow::Result
             // The same known-data-set lookup as the whole read: read window by window, a
             // file keeps the scale its publisher documents.
             let known = georef::known_for_file(&shown, path, &reader.raster).map_err(|e| named(e.to_string()))?;
-            let scale = georef::decide(&shown, &reader.raster, args.spacing, args.height_scale, known)
-                .map_err(|e| named(e.to_string()))?;
+            let declared =
+                georef::Declared { spacing: args.spacing, height_scale: args.height_scale, heights: args.heights };
+            let scale =
+                georef::decide(&shown, &reader.raster, &declared, known, false).map_err(|e| named(e.to_string()))?;
             let (w, h) = (reader.raster.width, reader.raster.height);
             for line in crate::input::describe_frame(&shown, w, h, &scale.georef, scale.spacing, scale.height_scale) {
                 eprintln!("vkterrain: note: {line}");
@@ -351,9 +369,11 @@ fn prepare_archive(args: &PrepareArgs, before_exit: &dyn Fn()) -> anyhow::Result
             let opts = LoadOptions {
                 spacing: args.spacing,
                 height_scale: args.height_scale,
+                heights: args.heights,
                 raw_size: args.raw_size.map(|(w, h)| (w as usize, h as usize)),
                 max_grid_side: None,
                 voids: VoidMode::Fill,
+                no_holes: true,
             };
             loaded = load::load(path, &opts).map_err(|e| named(e.to_string()))?;
             for line in crate::input::describe(&loaded) {
@@ -443,15 +463,16 @@ fn prepare_archive(args: &PrepareArgs, before_exit: &dyn Fn()) -> anyhow::Result
 
 #[derive(clap::Args, Debug)]
 pub struct CheckArgs {
-    /// The archive to check (written by `vkterrain prepare`).
-    pub archive: PathBuf,
+    /// The archive to check.
+    #[command(flatten)]
+    pub input: crate::app::cli::ArchiveInput,
 }
 
 /// `vkterrain check`: reads every tile of an archive (directories, sizes, layout,
 /// checksums) and prints what it holds and how fast it read, as JSON.
 pub fn check(args: &CheckArgs) -> anyhow::Result<()> {
     let started = std::time::Instant::now();
-    let archive = crate::input::archive::Archive::open(&args.archive).map_err(|e| InputError(e.to_string()))?;
+    let archive = crate::input::archive::Archive::open(args.input.path()).map_err(|e| InputError(e.to_string()))?;
     archive.check_layout().map_err(|e| InputError(e.to_string()))?;
     let m = &archive.meta;
     let bar = indicatif::ProgressBar::new(m.tiles().count() as u64);
@@ -464,7 +485,7 @@ pub fn check(args: &CheckArgs) -> anyhow::Result<()> {
     bar.finish_and_clear();
     let seconds = started.elapsed().as_secs_f64();
     let json = serde_json::json!({
-        "archive": crate::input::archive::bytes::shown(&args.archive),
+        "archive": crate::input::archive::bytes::shown(args.input.path()),
         "width": m.width,
         "height": m.height,
         "levels": u32::from(m.top_level) + 1,
@@ -479,7 +500,7 @@ pub fn check(args: &CheckArgs) -> anyhow::Result<()> {
     println!("{}", serde_json::to_string_pretty(&json)?);
     eprintln!(
         "vkterrain: {}: {tiles} tiles, every one intact ({seconds:.1} s)",
-        crate::input::archive::bytes::shown(&args.archive)
+        crate::input::archive::bytes::shown(args.input.path())
     );
     Ok(())
 }

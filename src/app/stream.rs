@@ -3,7 +3,7 @@
 //! held and drew as JSON. With `--gpu-mb` every frame is also drawn on the GPU from the
 //! heightfield atlas ([`crate::draw::streamed`]); without it, frames are selections.
 
-use crate::app::cli::{CommonArgs, InputError, OnOff};
+use crate::app::cli::{CommonArgs, Degraded, InputError, Interrupted, OnOff};
 use crate::app::signals::Stop;
 use crate::draw::frame::{traversal_threads, LodChoice};
 use crate::draw::lighting::Sun;
@@ -11,6 +11,7 @@ use crate::draw::lighting_gpu::OwnLighting;
 use crate::draw::streamed::{FrameView, HeightRange, Overlay, StreamedRenderer, WindowImage};
 use crate::errors::atlas::HeightAtlas;
 use crate::input::archive::{Archive, Meta};
+use crate::input::georef;
 use crate::lod::morph::MorphRule;
 use crate::lod::traversal::DISTANCE_FACTOR;
 use crate::lod::view::{near_plane_for, view_of_box};
@@ -27,8 +28,9 @@ use std::time::{Duration, Instant};
 
 #[derive(clap::Args, Debug)]
 pub struct StreamArgs {
-    /// The archive to fly over (written by `vkterrain prepare`).
-    pub archive: PathBuf,
+    /// The archive to fly over.
+    #[command(flatten)]
+    pub input: crate::app::cli::ArchiveInput,
     /// Host cache budget for decoded tiles, MB.
     #[arg(long, default_value_t = 64, value_parser = clap::value_parser!(u32).range(1..=1_000_000))]
     pub cache_mb: u32,
@@ -554,9 +556,12 @@ pub fn streamed_archive(
         ))
         .into());
     }
-    let archive = Archive::open(path).map_err(|e| InputError(e.to_string()))?;
+    let mut archive = Archive::open(path).map_err(|e| InputError(e.to_string()))?;
     if !stream && (archive.grid_side() <= 4096 || archive.grid_side() <= max_side()) {
         return Ok(None);
+    }
+    if let Some(note) = common.heights.and_then(|h| georef::declare_heights(&mut archive.meta.georef, h)) {
+        eprintln!("vkterrain: note: {}: {note}", path.display());
     }
     Ok(Some((Arc::new(archive), None)))
 }
@@ -771,15 +776,15 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
         if out.extension().and_then(|e| e.to_str()).map(|e| e.to_lowercase()) != Some("png".into()) {
             return Err(InputError(format!("--out {}: the output must be a .png file", out.display())).into());
         }
-        crate::app::outputs::check_outputs(&[("--out", Some(out))], &[("archive", Some(&args.archive))])?;
+        crate::app::outputs::check_outputs(&[("--out", Some(out))], &[("archive", Some(args.input.path()))])?;
     }
-    let archive = Arc::new(Archive::open(&args.archive).map_err(|e| InputError(e.to_string()))?);
+    let archive = Arc::new(Archive::open(args.input.path()).map_err(|e| InputError(e.to_string()))?);
     let grid = Grid::from_meta(&archive.meta);
-    let shown = crate::input::archive::bytes::shown(&args.archive);
-    if args.cold && crate::input::archive::bytes::is_url(&args.archive) {
+    let shown = crate::input::archive::bytes::shown(args.input.path());
+    if args.cold && crate::input::archive::bytes::is_url(args.input.path()) {
         eprintln!("vkterrain: note: --cold: {shown} is a URL, with no local page cache to drop");
     } else if args.cold {
-        drop_from_page_cache(&args.archive)
+        drop_from_page_cache(args.input.path())
             .map_err(|e| InputError(format!("{shown}: dropping it from the page cache: {e}")))?;
     }
     let (w, h) = args.size;
@@ -807,6 +812,9 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
             if turns == 1 { "once".to_string() } else { format!("{turns} times") }
         );
     }
+    // Ctrl-C or SIGTERM ends the flight after the frame in hand; what was flown is
+    // reported.
+    let signals = Stop::install();
     let read_before = disk_bytes_read();
     eprintln!(
         "vkterrain: streaming {} ({} x {} samples, {} tile levels): {} frames at {fps} fps, {speed:.0} units/s, {} above the ground, cache {} MB",
@@ -874,6 +882,9 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
     let mut selecting = Duration::ZERO;
     let mut altitude = 0.0;
     for f in 0..args.frames {
+        if signals.requested() {
+            break;
+        }
         let (view, heading) = pose(&streamer, f);
         altitude = view.position.y;
         let ahead = View { position: view.position + heading * speed * 0.5, ..view };
@@ -921,6 +932,8 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
         "seconds": seconds,
         "last_altitude": altitude,
         "first_failure": streamer.first_failure,
+        "degraded": streamer.first_failure.is_some(),
+        "interrupted": signals.requested(),
         "gpu": gpu.as_ref().map(GpuFrames::report),
     });
     if let (Some(g), Some(out)) = (gpu.as_ref(), args.out.as_ref()) {
@@ -945,6 +958,18 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
         flight.tiles_evicted,
         flight.bytes_read as f64 / 1e6,
     );
+    if signals.requested() {
+        return Err(
+            Interrupted::by(&signals, format!("{frames} of {} frames flown, reported above", args.frames)).into()
+        );
+    }
+    if let Some(failure) = &streamer.first_failure {
+        return Err(Degraded(format!(
+            "{} tile reads failed (first: {failure}); those frames were drawn coarser",
+            flight.tiles_failed
+        ))
+        .into());
+    }
     Ok(())
 }
 

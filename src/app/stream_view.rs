@@ -10,7 +10,7 @@
 //! (the in-memory colours without textures or shadows; blocks morph), and the window title
 //! carries the main figures too.
 
-use crate::app::cli::{check_messages, CommonArgs};
+use crate::app::cli::{check_messages, CommonArgs, Degraded, Interrupted};
 use crate::app::controls::{delta_key, flyover_time, Controller, Ground};
 use crate::app::hud::{Hud, Legend};
 use crate::app::outputs::save_png;
@@ -120,6 +120,10 @@ struct Run {
     queue_mode: String,
     validation_messages: Option<u64>,
     first_failure: Option<String>,
+    /// Tiles failed to read: frames were drawn coarser than their data (exit code 3).
+    degraded: bool,
+    /// Ended by a signal (Ctrl-C, SIGTERM), not by the window or --frames.
+    interrupted: bool,
     /// Where the terrain is and its scale, as the in-memory viewer's exit line says.
     #[serde(flatten)]
     terrain: crate::app::outputs::TerrainFacts,
@@ -233,7 +237,8 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
     }
     let [wx, wz] = grid.world_extent();
     let l = wx.max(wz) as f32;
-    let interrupted = super::signals::Stop::install().flag().clone();
+    let stop = super::signals::Stop::install();
+    let interrupted = stop.flag().clone();
     let event_loop = EventLoop::new().map_err(|e| {
         anyhow::anyhow!("cannot open a window ({e}); is DISPLAY set? Use `vkterrain render` for headless output")
     })?;
@@ -294,6 +299,8 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
     run.exaggeration = app.exaggeration;
     run.stream = Some(app.streamer.stats.clone());
     run.first_failure = app.streamer.first_failure.clone();
+    run.degraded = run.first_failure.is_some();
+    run.interrupted = stop.requested();
     let messages = app.gpu.as_ref().map(|g| g.frames.device.instance.messages.clone());
     if let Some(g) = &app.gpu {
         run.hud_visible = g.hud.visible;
@@ -311,6 +318,12 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
     println!("{}", serde_json::to_string(&run)?);
     if let Some(m) = messages {
         check_messages(&m)?;
+    }
+    if stop.requested() {
+        return Err(Interrupted::by(&stop, "the session's figures printed above").into());
+    }
+    if let Some(failure) = &run.first_failure {
+        return Err(Degraded(format!("tiles could not be read (first: {failure}); frames drawn coarser")).into());
     }
     Ok(())
 }

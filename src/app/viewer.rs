@@ -2,7 +2,7 @@
 //! activity (traversal and drawing on the draw queue), with the errors activity live on
 //! its own thread and queue.
 
-use crate::app::cli::{CommonArgs, InputError, TextureArgs, Textures};
+use crate::app::cli::{CommonArgs, InputError, Interrupted, TextureArgs, Textures};
 use crate::app::commands::Session;
 use crate::app::controls::{delta_key, flyover_time, Controller};
 use crate::app::hud::{Controls, Hud, Ranges, Readout};
@@ -202,6 +202,10 @@ struct RunStats {
     hud_frames: u64,
     /// The sun of the lighting map at exit (azimuth, elevation), if any.
     final_sun: Option<[f32; 2]>,
+    /// Ended by a signal (Ctrl-C, SIGTERM), not by the window or --frames.
+    interrupted: bool,
+    /// Frames drawn without their data (never, in memory).
+    degraded: bool,
 }
 
 struct App {
@@ -383,7 +387,8 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
         None => Trace::off(),
     };
     // Ctrl-C (or SIGTERM) ends the session cleanly: the trace stays valid JSON.
-    let interrupted = super::signals::Stop::install().flag().clone();
+    let stop = super::signals::Stop::install();
+    let interrupted = stop.flag().clone();
     let Textures { base, detail } = args.textures.load(&hf)?;
     let mm = MinMaxPyramid::build(&hf);
     let (w, h) = args.common.size.unwrap_or((1280, 720));
@@ -490,9 +495,13 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
     app.stats.final_delta = app.delta;
     app.stats.final_morph = app.draw.morph;
     app.stats.start_position = app.home.0.to_array();
+    app.stats.interrupted = stop.requested();
     println!("{}", serde_json::to_string(&app.stats)?);
     if let Some(n) = validation.filter(|&n| n > 0) {
         anyhow::bail!("{n} validation message(s); first: {}", first_message.unwrap_or_default());
+    }
+    if stop.requested() {
+        return Err(Interrupted::by(&stop, "the session's figures printed above").into());
     }
     Ok(())
 }

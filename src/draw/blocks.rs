@@ -107,7 +107,7 @@ pub enum NormalSource {
     /// A per-sample gradient map computed at load: four fetches per pixel.
     #[default]
     GradientMap,
-    /// Sixteen height fetches per pixel (the first wave's shading), for comparison.
+    /// Sixteen height fetches per pixel: no map to make at load, more work a pixel.
     Heights,
 }
 

@@ -295,3 +295,84 @@ pub fn surface_motion(hf: &Heightfield, cam: &vkterrain::lod::camera::Camera, be
     }
     energy
 }
+
+/// What a run stopped by a signal left: its exit status and everything it printed.
+pub struct Stopped {
+    pub status: std::process::ExitStatus,
+    pub stdout: String,
+    pub stderr: String,
+}
+
+/// Runs `vkterrain ARGS`, sends it `SIG{signal}` (`INT`, `TERM`) once `ready` says so, and
+/// returns how it ended. `ready` sees each line printed (on either stream), and `None`
+/// every 50 ms between lines (to poll a file). Fails the test if it is not ready within
+/// 300 s, or if the run has not ended 120 s after the signal.
+pub fn stop_with_signal(args: &[&str], ready: impl Fn(Option<&str>) -> bool, signal: &str) -> Stopped {
+    use std::io::BufRead;
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_vkterrain"))
+        .args(args)
+        .env("RUST_LOG", "error")
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("run vkterrain");
+    let (tx, rx) = std::sync::mpsc::channel::<String>();
+    let reader = |pipe: Box<dyn std::io::Read + Send>, tx: std::sync::mpsc::Sender<String>| {
+        std::thread::spawn(move || {
+            let mut all = String::new();
+            for line in std::io::BufReader::new(pipe).lines().map_while(Result::ok) {
+                let _ = tx.send(line.clone());
+                all += &line;
+                all.push('\n');
+            }
+            all
+        })
+    };
+    let out = reader(Box::new(child.stdout.take().unwrap()), tx.clone());
+    let err = reader(Box::new(child.stderr.take().unwrap()), tx);
+    let limit = std::time::Instant::now() + std::time::Duration::from_secs(300);
+    let mut seen = Vec::new();
+    loop {
+        let line = match rx.recv_timeout(std::time::Duration::from_millis(50)) {
+            Ok(line) => Some(line),
+            Err(std::sync::mpsc::RecvTimeoutError::Timeout) => None,
+            Err(std::sync::mpsc::RecvTimeoutError::Disconnected) => {
+                let status = child.wait().unwrap();
+                panic!("{args:?}: ended ({status}) before it was ready: {seen:#?}");
+            }
+        };
+        if ready(line.as_deref()) {
+            break;
+        }
+        seen.extend(line);
+        if std::time::Instant::now() > limit {
+            let _ = child.kill();
+            panic!("{args:?}: not ready in 300 s: {seen:#?}");
+        }
+    }
+    let sent = std::process::Command::new("kill").args([&format!("-{signal}"), &child.id().to_string()]).status();
+    assert!(sent.is_ok_and(|s| s.success()), "kill -{signal}");
+    let started = std::time::Instant::now();
+    // Polling the child's state (not a fixed sleep standing in for synchronisation).
+    let status = loop {
+        if let Some(s) = child.try_wait().unwrap() {
+            break s;
+        }
+        if started.elapsed() > std::time::Duration::from_secs(120) {
+            let _ = child.kill();
+            panic!("{args:?}: still running 120 s after SIG{signal}");
+        }
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    };
+    Stopped { status, stdout: out.join().unwrap(), stderr: err.join().unwrap() }
+}
+
+/// The exit code a shell reports for a run ended by `SIG{signal}`: 128 + the signal.
+pub fn signal_code(signal: &str) -> i32 {
+    128 + match signal {
+        "INT" => 2,
+        "TERM" => 15,
+        "HUP" => 1,
+        other => panic!("no code for SIG{other}"),
+    }
+}
