@@ -5,29 +5,13 @@
 
 mod common;
 
-use common::{cli, data, TempDir};
-use std::path::{Path, PathBuf};
+use common::{cli, data, hills_png, json_in, TempDir};
+use std::path::Path;
 use std::process::Command;
-
-/// A small 16-bit PNG of hills.
-fn hills(dir: &Path) -> PathBuf {
-    let p = dir.join("hills.png");
-    image::ImageBuffer::<image::Luma<u16>, _>::from_fn(129, 129, |x, z| {
-        let (x, z) = (x as f32, z as f32);
-        image::Luma([(20000.0 + 8000.0 * (x * 0.09).sin() * (z * 0.07).cos()) as u16])
-    })
-    .save(&p)
-    .unwrap();
-    p
-}
 
 fn json(o: &std::process::Output) -> serde_json::Value {
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let text = String::from_utf8_lossy(&o.stdout);
-    serde_json::from_str(&text)
-        .ok()
-        .or_else(|| text.lines().rev().find_map(|l| serde_json::from_str(l).ok()))
-        .unwrap_or_else(|| panic!("no JSON: {text}"))
+    json_in(&String::from_utf8_lossy(&o.stdout))
 }
 
 /// The README's own-DEM command as a user types it: a DEM copied into an empty folder
@@ -70,7 +54,7 @@ fn the_run_command_works_from_the_users_own_folder() {
 #[test]
 fn every_subcommand_takes_its_terrain_positionally_or_as_heightmap() {
     let tmp = TempDir::new("forms");
-    let field = hills(tmp.path());
+    let field = hills_png(tmp.path(), 129);
     let f = field.to_str().unwrap();
     let render = |form: &[&str], out: &str| {
         let out = tmp.path().join(out);
@@ -100,7 +84,7 @@ fn every_subcommand_takes_its_terrain_positionally_or_as_heightmap() {
 #[test]
 fn a_misplaced_input_gets_the_right_form() {
     let tmp = TempDir::new("misplaced");
-    let field = hills(tmp.path());
+    let field = hills_png(tmp.path(), 129);
     let f = field.to_str().unwrap();
     for (args, form) in [
         (vec!["render", f, f], "`vkterrain render FILE` or `vkterrain render --heightmap FILE`"),
@@ -120,7 +104,7 @@ fn a_misplaced_input_gets_the_right_form() {
 #[test]
 fn render_says_whether_blocks_were_ray_cast() {
     let tmp = TempDir::new("raycast");
-    let field = hills(tmp.path());
+    let field = hills_png(tmp.path(), 129);
     let out = tmp.path().join("r.png");
     let base =
         ["render", field.to_str().unwrap(), "--size", "96x64", "--validation", "on", "--out", out.to_str().unwrap()];

@@ -6,34 +6,13 @@
 
 mod common;
 
-use common::{cli, signal_code, stop_with_signal, TempDir};
-use std::path::{Path, PathBuf};
-
-/// A small 16-bit PNG of hills, quick to load and draw.
-fn hills(dir: &Path) -> PathBuf {
-    let p = dir.join("hills.png");
-    image::ImageBuffer::<image::Luma<u16>, _>::from_fn(257, 257, |x, z| {
-        let (x, z) = (x as f32, z as f32);
-        image::Luma([(20000.0 + 8000.0 * (x * 0.05).sin() * (z * 0.04).cos()) as u16])
-    })
-    .save(&p)
-    .unwrap();
-    p
-}
-
-fn json_of(text: &str) -> serde_json::Value {
-    // The JSON is the last line that parses as one (pretty-printed output: the whole).
-    serde_json::from_str(text)
-        .ok()
-        .or_else(|| text.lines().rev().find_map(|l| serde_json::from_str(l).ok()))
-        .unwrap_or_else(|| panic!("no JSON in: {text}"))
-}
+use common::{cli, hills_png, json_in, signal_code, stop_with_signal, TempDir};
 
 #[test]
 fn bench_stopped_by_a_signal_writes_its_partial_results_and_exits_128_plus_the_signal() {
     for signal in ["INT", "TERM"] {
         let tmp = TempDir::new("bench-signal");
-        let field = hills(tmp.path());
+        let field = hills_png(tmp.path(), 257);
         let out = tmp.path().join("out");
         let args = [
             "bench",
@@ -49,7 +28,7 @@ fn bench_stopped_by_a_signal_writes_its_partial_results_and_exits_128_plus_the_s
         let s = stop_with_signal(&args, |l| l.is_some_and(|l| l.contains("queue mode")), signal);
         assert_eq!(s.status.code(), Some(signal_code(signal)), "SIG{signal}: {}", s.stderr);
         assert!(s.stderr.contains("vkterrain: interrupted: partial results in"), "{}", s.stderr);
-        let summary = json_of(&std::fs::read_to_string(out.join("summary.json")).unwrap());
+        let summary = json_in(&std::fs::read_to_string(out.join("summary.json")).unwrap());
         assert_eq!(summary["interrupted"], true, "{summary}");
         assert_eq!(summary["degraded"], false, "{summary}");
         assert!(summary["frames"].as_u64().unwrap() < 1_000_000);
@@ -68,7 +47,7 @@ fn stream_stopped_by_a_signal_reports_the_frames_flown_and_exits_128_plus_the_si
         let args = ["stream", archive.to_str().unwrap(), "--frames", "18000", "--cache-mb", "16"];
         let s = stop_with_signal(&args, |l| l.is_some_and(|l| l.contains("vkterrain: streaming")), signal);
         assert_eq!(s.status.code(), Some(signal_code(signal)), "SIG{signal}: {}", s.stderr);
-        let r = json_of(&s.stdout);
+        let r = json_in(&s.stdout);
         assert_eq!(r["interrupted"], true, "{r}");
         assert_eq!(r["degraded"], false, "{r}");
         assert!(r["frames"].as_u64().unwrap() < 18000, "{r}");
@@ -80,7 +59,7 @@ fn stream_stopped_by_a_signal_reports_the_frames_flown_and_exits_128_plus_the_si
 fn view_stopped_by_a_signal_prints_its_figures_and_exits_128_plus_the_signal() {
     assert!(std::env::var_os("DISPLAY").is_some(), "needs a display: run under xvfb-run (tools/test.sh does)");
     let tmp = TempDir::new("view-signal");
-    let field = hills(tmp.path());
+    let field = hills_png(tmp.path(), 257);
     // In memory, and the same terrain prepared and drawn from its archive.
     let archive = tmp.path().join("hills.pmtiles");
     let o = cli(&["prepare", field.to_str().unwrap(), "--out", archive.to_str().unwrap()]);
@@ -98,7 +77,7 @@ fn view_stopped_by_a_signal_prints_its_figures_and_exits_128_plus_the_signal() {
             let drawn = || std::fs::read_to_string(&counter).ok().and_then(|t| t.trim().parse::<u64>().ok());
             let s = stop_with_signal(&args, |_| drawn().is_some_and(|n| n >= 3), signal);
             assert_eq!(s.status.code(), Some(signal_code(signal)), "{terrain:?} SIG{signal}: {}", s.stderr);
-            let r = json_of(&s.stdout);
+            let r = json_in(&s.stdout);
             assert_eq!(r["interrupted"], true, "{r}");
             assert_eq!(r["degraded"], false, "{r}");
             assert_eq!(r["validation_messages"], 0, "{r}");

@@ -3,7 +3,7 @@
 //! Figure 8, and a Chrome trace of both activities.
 
 use crate::app::cli::positive;
-use crate::app::cli::{CommonArgs, Degraded, InputError, Interrupted, TextureArgs};
+use crate::app::cli::{value_name, CommonArgs, Degraded, InputError, Interrupted, TextureArgs};
 use crate::app::commands::{draw_thread, Session};
 use crate::app::outputs::{plot_font, write_atomic};
 use crate::app::paths::{path_camera, CameraPath};
@@ -1172,11 +1172,6 @@ fn fidelity(bench: &mut Bench, activity: &ErrorsActivity) -> anyhow::Result<Valu
         }
     }
     Ok(Value::Array(out))
-}
-
-/// The command-line spelling of a value-enum option (`deferred`, `gradient-map`).
-pub(crate) fn value_name(v: impl clap::ValueEnum) -> String {
-    v.to_possible_value().map(|p| p.get_name().to_string()).unwrap_or_default()
 }
 
 impl BenchArgs {

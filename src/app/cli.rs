@@ -82,6 +82,11 @@ pub enum OnOff {
     Off,
 }
 
+/// The command-line spelling of a value-enum option (`deferred`, `gradient-map`).
+pub fn value_name(v: impl clap::ValueEnum) -> String {
+    v.to_possible_value().map(|p| p.get_name().to_string()).unwrap_or_default()
+}
+
 pub fn parse_size(s: &str) -> Result<(u32, u32), String> {
     let (w, h) = s.split_once(['x', 'X']).ok_or_else(|| format!("'{s}': expected WIDTHxHEIGHT, e.g. 1280x720"))?;
     let side = |v: &str, what: &str| -> Result<u32, String> {

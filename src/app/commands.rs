@@ -305,7 +305,7 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
         "hidden_parts": stats.hidden_parts,
         "hidden_triangles": stats.hidden_parts * s.layout.triangles_per_part(),
         "draw_calls": stats.draw_calls,
-        "raycast": crate::app::bench::value_name(args.raycast),
+        "raycast": crate::app::cli::value_name(args.raycast),
         "raycast_blocks": stats.raycast_blocks,
         "blocks": trav.blocks.len(),
         "occlusion": trav.occlusion,

@@ -376,3 +376,24 @@ pub fn signal_code(signal: &str) -> i32 {
         other => panic!("no code for SIG{other}"),
     }
 }
+
+/// A small 16-bit PNG of hills, `side` samples a side: quick to load and draw.
+pub fn hills_png(dir: &std::path::Path, side: u32) -> PathBuf {
+    let p = dir.join("hills.png");
+    image::ImageBuffer::<image::Luma<u16>, _>::from_fn(side, side, |x, z| {
+        let (x, z) = (x as f32, z as f32);
+        image::Luma([(20000.0 + 8000.0 * (x * 0.07).sin() * (z * 0.05).cos()) as u16])
+    })
+    .save(&p)
+    .unwrap();
+    p
+}
+
+/// The JSON a command printed: all of `text` (pretty-printed), else its last line that
+/// parses as JSON.
+pub fn json_in(text: &str) -> serde_json::Value {
+    serde_json::from_str(text)
+        .ok()
+        .or_else(|| text.lines().rev().find_map(|l| serde_json::from_str(l).ok()))
+        .unwrap_or_else(|| panic!("no JSON in: {text}"))
+}
