@@ -115,6 +115,13 @@ fn main() -> ExitCode {
 /// file after a flag that takes none): the form that names one terrain.
 fn misplaced_input_hint(e: &clap::Error) -> Option<String> {
     use clap::error::{ContextKind, ContextValue, ErrorKind};
+    let one_terrain = "`vkterrain view FILE` or `vkterrain render FILE` (one terrain a run)".to_string();
+    // Two words with no subcommand: clap took the second for a subcommand.
+    if let (ErrorKind::ArgumentConflict, Some(ContextValue::String(word))) =
+        (e.kind(), e.get(ContextKind::InvalidSubcommand))
+    {
+        return (!word.starts_with('-')).then_some(one_terrain);
+    }
     let Some(ContextValue::String(arg)) = e.get(ContextKind::InvalidArg) else { return None };
     if e.kind() != ErrorKind::UnknownArgument || arg.starts_with('-') {
         return None;
@@ -122,8 +129,9 @@ fn misplaced_input_hint(e: &clap::Error) -> Option<String> {
     let sub = std::env::args().skip(1).find(|a| !a.starts_with('-')).filter(|a| *a != *arg);
     Some(match sub.as_deref() {
         Some("prepare") => format!("`vkterrain prepare {arg} ... --out FILE` (every input before the options)"),
+        Some("timeline") => "`vkterrain timeline --trace FILE --out FILE.png`".to_string(),
         Some(sub) => format!("`vkterrain {sub} FILE` or `vkterrain {sub} --heightmap FILE` (one terrain a run)"),
-        None => "`vkterrain view FILE` or `vkterrain render FILE` (one terrain a run)".to_string(),
+        None => one_terrain,
     })
 }
 

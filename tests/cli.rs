@@ -90,6 +90,8 @@ fn a_misplaced_input_gets_the_right_form() {
         (vec!["render", f, f], "`vkterrain render FILE` or `vkterrain render --heightmap FILE`"),
         (vec!["stream", f, f], "`vkterrain stream FILE` or `vkterrain stream --heightmap FILE`"),
         (vec!["check", f, f], "`vkterrain check FILE` or `vkterrain check --heightmap FILE`"),
+        (vec![f, f], "`vkterrain view FILE` or `vkterrain render FILE`"),
+        (vec!["timeline", f], "`vkterrain timeline --trace FILE --out FILE.png`"),
     ] {
         let o = cli(&args);
         let e = String::from_utf8_lossy(&o.stderr);
@@ -114,4 +116,52 @@ fn render_says_whether_blocks_were_ray_cast() {
     let cast = json(&cli(&[&base[..], &["--raycast", "all"]].concat()));
     assert_eq!(cast["raycast"], "all", "{cast}");
     assert!(cast["raycast_blocks"].as_u64().unwrap() > 0, "{cast}");
+    // A view where every block morphs or meets a coarser one casts none, and says why.
+    let ps = data("puget_sound/ps_height_1k.png");
+    let o =
+        cli(&["render", ps.to_str().unwrap(), "--size", "320x180", "--raycast", "all", "--out", out.to_str().unwrap()]);
+    let none = json(&o);
+    assert_eq!(none["raycast_blocks"], 0, "{none}");
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(e.contains("--raycast all: no block of this view could be ray-cast"), "{e}");
+}
+
+/// A negative value where a positive one goes names its option and the rule (clap would
+/// take `-10` for an unknown flag).
+#[test]
+fn a_negative_value_is_refused_naming_its_option() {
+    for (flag, value) in [("--fovy", "-10"), ("--spacing", "-5"), ("--height-scale", "-1"), ("--refresh-at", "-1")] {
+        let o = cli(&["render", "--size", "32x32", flag, value, "--out", "never.png"]);
+        let e = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{flag} {value}: {e}");
+        assert_eq!(e.lines().count(), 1, "{e}");
+        assert!(e.contains(flag) && e.contains(value) && !e.contains("unexpected argument"), "{e}");
+    }
+}
+
+/// Standard output that cannot be written (a reader that went away, a full disk) ends
+/// the run with exit code 1 and one line saying so, never a panic (101).
+#[test]
+fn an_unwritable_standard_output_is_an_error_not_a_panic() {
+    let tmp = TempDir::new("stdout");
+    let archive = tmp.path().join("a.pmtiles");
+    assert!(cli(&["prepare", "--synthetic", "129", "--out", archive.to_str().unwrap()]).status.success());
+    let run = |stdout: std::process::Stdio| {
+        let mut child = Command::new(env!("CARGO_BIN_EXE_vkterrain"))
+            .args(["check", archive.to_str().unwrap()])
+            .stdout(stdout)
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        // A pipe whose reading end is closed before anything is written: EPIPE.
+        drop(child.stdout.take());
+        child.wait_with_output().unwrap()
+    };
+    let full = std::fs::OpenOptions::new().write(true).open("/dev/full").unwrap();
+    for (what, o) in [("closed pipe", run(std::process::Stdio::piped())), ("full disk", run(full.into()))] {
+        let e = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(1), "{what}: {e}");
+        assert!(e.contains("vkterrain: writing to standard output: "), "{what}: {e}");
+        assert!(!e.contains("panicked"), "{what}: {e}");
+    }
 }

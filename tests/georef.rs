@@ -504,6 +504,37 @@ fn heights_can_be_declared_absolute_for_a_dem_without_georeferencing() {
     // none when the lowest ground is.
     assert!((0.10..0.16).contains(&wet[0]), "absolute: water on {:.1} % of the pixels", 100.0 * wet[0]);
     assert!(wet[1] < 0.02, "relative: water on {:.1} % of the pixels", 100.0 * wet[1]);
+    // Prepared into an archive, it says what was assumed wherever it is opened, streamed
+    // too; what the options now set is no longer said to be assumed.
+    let archive = dir.path().join("bathymetry.pmtiles");
+    let a = archive.to_str().unwrap();
+    let o = common::cli(&["prepare", path.to_str().unwrap(), "--out", a]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let o = common::cli(&["stream", a, "--frames", "2", "--fps", "300"]);
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{e}");
+    assert!(e.lines().any(|l| l.contains("WARNING") && l.contains("--heights absolute")), "{e}");
+    assert!(e.lines().any(|l| l.contains("WARNING") && l.contains("--spacing")), "{e}");
+    let out = dir.path().join("archive.png");
+    let o = common::cli(&[
+        "render",
+        a,
+        "--spacing",
+        "500",
+        "--height-scale",
+        "1",
+        "--heights",
+        "absolute",
+        "--size",
+        "64x48",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{e}");
+    assert!(!e.contains("ASSUMED"), "declared, yet said to be assumed: {e}");
+    let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(r["heights"], "absolute", "{r}");
 }
 
 /// A GeoTIFF with a geotransform (25 m pixels) and no CRS: its note speaks of the

@@ -462,7 +462,7 @@ fn render_draws_an_archive_streamed_within_the_bound() {
     assert_eq!(o.status.code(), Some(2), "{}", String::from_utf8_lossy(&o.stderr));
     // The finest tiles (the lighting map's here) cut off, the top ones whole (the archive
     // stores the coarsest first): the frame is drawn without shadows, with a warning
-    // naming the file and the tile, not refused.
+    // naming the file and the tile, not refused; it finished degraded (exit 3).
     let bytes = std::fs::read(&archive).unwrap();
     let half = dir.path().join("half.pmtiles");
     std::fs::write(&half, &bytes[..bytes.len() * 2 / 3]).unwrap();
@@ -471,7 +471,7 @@ fn render_draws_an_archive_streamed_within_the_bound() {
     let args = ["render", "--heightmap", half_path, "--stream", "--validation", "on", "--size", "64x48", "--out", p];
     let o = common::run_bounded_logging(&args.map(String::from), 300, None);
     let err = String::from_utf8_lossy(&o.stderr);
-    assert!(o.status.success(), "{err}");
+    assert_eq!(o.status.code(), Some(3), "{err}");
     let warning = err.lines().find(|l| l.contains("without shadows")).unwrap_or_else(|| panic!("no warning: {err}"));
     assert!(
         warning.starts_with("vkterrain: warning: ") && warning.contains("half.pmtiles") && warning.contains("tile"),
@@ -481,6 +481,7 @@ fn render_draws_an_archive_streamed_within_the_bound() {
     assert_eq!(r["gpu"]["lighting"]["shadows"], false, "{r}");
     assert_eq!(r["gpu"]["validation_messages"], 0, "{r}");
     assert!(r["gpu"]["lighting"]["unreadable"].as_str().is_some_and(|w| w.contains("half.pmtiles")), "{r}");
+    assert_eq!(r["degraded"], true, "{r}");
     let cut = dir.path().join("cut.pmtiles");
     std::fs::write(&cut, &bytes[..2000]).unwrap();
     let o = cli(&["render", "--heightmap", cut.to_str().unwrap(), "--stream", "--size", "64x64", "--out", p]);

@@ -25,6 +25,9 @@ enum Mode {
     Encoded,
     /// Ranges, with a total length far past the file's end.
     HugeTotal,
+    /// Ranges for the first `n` requests, then no answer at all: each later connection is
+    /// held open, unanswered, until the test's process ends (a stalled server).
+    StallAfter(usize),
 }
 
 /// A one-thread-per-connection HTTP/1.1 server over `root` on 127.0.0.1 (any free
@@ -61,6 +64,12 @@ fn serve(root: PathBuf, mode: Mode) -> (String, Arc<AtomicUsize>) {
                     return;
                 };
                 match (mode, range) {
+                    (Mode::StallAfter(limit), _) if n >= limit => {
+                        let _held = out;
+                        loop {
+                            std::thread::park();
+                        }
+                    }
                     (Mode::FailAfter(limit), _) if n >= limit => {
                         let _ = write!(
                             out,
@@ -197,4 +206,26 @@ fn http_failures_are_clear_or_degrade() {
     assert_eq!(r["degraded"], true, "{r}");
     let failure = r["first_failure"].as_str().unwrap_or_else(|| panic!("no failure: {r}"));
     assert!(failure.contains(&url) && failure.contains("tile ") && failure.contains("500"), "{failure}");
+}
+
+/// A server that stops answering while the flight warms up (its reads hang until their
+/// time-out, a minute each): Ctrl-C still ends the run at once, 130, with its JSON.
+#[test]
+fn a_stalled_server_does_not_hold_up_a_stop() {
+    let dir = TempDir::new("stall");
+    prepared(&dir);
+    // The header, the root directory and a few tiles, then silence.
+    let (base, served) = serve(dir.path().to_path_buf(), Mode::StallAfter(6));
+    let url = format!("{base}/a.pmtiles");
+    let args = ["stream", url.as_str(), "--frames", "600", "--cache-mb", "16"];
+    // Stopped once a read hangs: more requests were made than are answered.
+    let s = common::stop_with_signal(&args, |_| served.load(Ordering::SeqCst) > 6, "INT");
+    let err = &s.stderr;
+    assert_eq!(s.status.code(), Some(130), "{err}");
+    assert!(
+        s.after_signal < std::time::Duration::from_secs(10),
+        "stopped {:?} after the signal: {err}",
+        s.after_signal
+    );
+    assert!(err.contains("vkterrain: interrupted: "), "{err}");
 }

@@ -79,7 +79,7 @@ pub struct BenchArgs {
     #[arg(long, value_enum, default_value_t = crate::draw::raycast::Raycast::Off)]
     pub raycast: crate::draw::raycast::Raycast,
     /// Fail the run when a thread makes no progress for this many seconds.
-    #[arg(long, value_name = "SECS", default_value = "10", value_parser = positive)]
+    #[arg(long, value_name = "SECS", default_value = "10", value_parser = positive, allow_negative_numbers = true)]
     pub watchdog: f32,
     #[command(flatten)]
     pub streamed: crate::app::cli::StreamedOptions,
@@ -167,7 +167,7 @@ pub fn record_poses(path: &std::path::Path, flight: &[(Vec3, Vec3)]) -> anyhow::
     crate::app::outputs::write_atomic(path, |tmp| {
         std::fs::write(tmp, &text).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))
     })?;
-    println!("vkterrain: recorded {} poses to {}", flight.len(), path.display());
+    crate::out!("vkterrain: recorded {} poses to {}", flight.len(), path.display())?;
     Ok(())
 }
 
@@ -874,6 +874,7 @@ fn parse_fault(arg: &str, frames: u64, full_run: bool) -> Result<Fault, InputErr
 }
 
 pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
+    args.common.check_terrain()?;
     if args.frames == 0 {
         return Err(InputError("--frames must be at least 1".into()).into());
     }
@@ -1114,7 +1115,7 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     let text = serde_json::to_string_pretty(&summary)?;
     let path = args.out.join("summary.json");
     write_atomic(&path, |tmp| std::fs::write(tmp, &text).map_err(|e| anyhow::anyhow!("{}: {e}", path.display())))?;
-    println!("{}", serde_json::to_string(&summary)?);
+    crate::out!("{}", serde_json::to_string(&summary)?)?;
     if summary["generations_strictly_increasing"] == json!(false) {
         anyhow::bail!("generations observed out of order (see {})", path.display());
     }
@@ -1236,7 +1237,13 @@ fn bench_streamed(
     streamer.morph = crate::app::stream::morph_rule(args.common.morph);
     streamer.lod = crate::app::stream::streamed_lod(args.lod);
     crate::app::stream::streamer_threads(&mut streamer, args.common.traversal_threads, Some(&device))?;
-    let range = top_tiles(&mut streamer, &archive.meta)?;
+    streamer.stop = Some(signals.flag().clone());
+    let range = match top_tiles(&mut streamer, &archive.meta) {
+        Err(_) if signals.requested() => {
+            return Err(Interrupted::by(signals, "while the top tiles were read: nothing measured").into())
+        }
+        r => r?,
+    };
     let [wx, wz] = grid.world_extent().map(|e| e as f32);
     let near = crate::lod::view::near_plane_for(grid.spacing[0].min(grid.spacing[1]) as f32);
     let ground = streamer.ground(f64::from(wx) * 0.5, f64::from(wz) * 0.5).unwrap_or(0.0) as f32;
@@ -1359,13 +1366,15 @@ fn bench_streamed(
     write_atomic(&args.out.join("frames.csv"), |tmp| Ok(std::fs::write(tmp, &csv)?))?;
     let text = serde_json::to_string_pretty(&summary)?;
     write_atomic(&args.out.join("summary.json"), |tmp| Ok(std::fs::write(tmp, &text)?))?;
-    println!("{text}");
+    crate::out!("{text}")?;
     crate::app::cli::check_messages(&messages)?;
     if signals.requested() {
         return Err(Interrupted::by(signals, format!("partial results in {}", args.out.display())).into());
     }
     if let Some(failure) = &streamer_failure {
-        return Err(Degraded(format!("tiles could not be read (first: {failure}); frames drawn coarser")).into());
+        return Err(
+            Degraded(format!("tiles could not be read (first: {failure}); frames drawn without their data")).into()
+        );
     }
     Ok(())
 }

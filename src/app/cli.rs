@@ -193,14 +193,14 @@ pub struct CommonArgs {
     pub raw_size: Option<(u32, u32)>,
     /// Metres between samples, or X,Z for different spacings along columns (x) and rows
     /// (z). Default: what the file's georeferencing says (printed at load).
-    #[arg(long, value_name = "M[,Z]", value_parser = parse_spacing)]
+    #[arg(long, value_name = "M[,Z]", value_parser = parse_spacing, allow_negative_numbers = true)]
     pub spacing: Option<Spacing>,
     /// What voids (nodata samples) become: filled smoothly and drawn, or holes in the
     /// picture (still filled for the LOD bound; shading is then forward).
     #[arg(long, value_enum, default_value_t = VoidMode::Fill)]
     pub voids: VoidMode,
     /// Metres per height unit. Default: what the file says (printed at load).
-    #[arg(long, value_name = "M", value_parser = positive)]
+    #[arg(long, value_name = "M", value_parser = positive, allow_negative_numbers = true)]
     pub height_scale: Option<f32>,
     /// Whether heights are metres above sea level (absolute: water at or below 0 m,
     /// colours by height in metres) or only relative (the lowest ground is water, colours
@@ -218,7 +218,7 @@ pub struct CommonArgs {
     #[arg(long, value_name = "X,Y,Z", value_parser = parse_vec3, allow_hyphen_values = true)]
     pub look_at: Option<Vec3>,
     /// Vertical field of view in degrees.
-    #[arg(long, value_name = "DEG", default_value = "60", value_parser = parse_fovy)]
+    #[arg(long, value_name = "DEG", default_value = "60", value_parser = parse_fovy, allow_negative_numbers = true)]
     pub fovy: f32,
     /// Block side k = 2^m + 1 vertices.
     #[arg(long = "block", value_name = "K", default_value_t = 33)]
@@ -236,11 +236,11 @@ pub struct CommonArgs {
     /// distance to the nearest drawn terrain since the last request and the last frame
     /// split blocks only because its data was stale (0: every frame it moves, stale
     /// splits or not). Stale data keeps the bound; this only trades updates for triangles.
-    #[arg(long, value_name = "F", default_value = "0.05", value_parser = parse_fraction)]
+    #[arg(long, value_name = "F", default_value = "0.05", value_parser = parse_fraction, allow_negative_numbers = true)]
     pub refresh_at: f32,
     /// Largest share of wall time spent on error updates (1: no cap). After an update of
     /// u ms the next request waits u (1/share - 1) ms; stale data keeps the bound.
-    #[arg(long, value_name = "SHARE", default_value = "0.05", value_parser = parse_share)]
+    #[arg(long, value_name = "SHARE", default_value = "0.05", value_parser = parse_share, allow_negative_numbers = true)]
     pub update_share: f32,
     /// How the errors thread submits a generation's parts: auto (paced on a shared queue,
     /// free with separate queues), paced (each part waits for the one before, so draws
@@ -302,6 +302,17 @@ impl CommonArgs {
     pub fn take_terrain(&mut self) {
         if let Some(t) = self.terrain.take() {
             self.heightmap = Some(t);
+        }
+    }
+
+    /// The terrain file, checked before anything else opens (a device, a window): one
+    /// line naming it when it is missing or not a regular file (a URL is checked when read).
+    pub fn check_terrain(&self) -> Result<(), InputError> {
+        match self.heightmap.as_deref() {
+            Some(path) if !crate::input::archive::bytes::is_url(path) => {
+                crate::input::regular_file(path).map(|_| ()).map_err(InputError)
+            }
+            _ => Ok(()),
         }
     }
 
@@ -452,10 +463,10 @@ pub struct TextureArgs {
     #[arg(long, value_name = "FILE")]
     pub detail: Option<PathBuf>,
     /// Detail tiling factor DTF: detail coordinates are DTF times the base coordinates.
-    #[arg(long, value_name = "DTF", default_value = "64", value_parser = positive)]
+    #[arg(long, value_name = "DTF", default_value = "64", value_parser = positive, allow_negative_numbers = true)]
     pub detail_tiling: f32,
     /// Weight alpha of the base colour against the detail (1 ignores the detail texture).
-    #[arg(long, value_name = "ALPHA", default_value = "0.7")]
+    #[arg(long, value_name = "ALPHA", default_value = "0.7", allow_negative_numbers = true)]
     pub detail_weight: f32,
 }
 

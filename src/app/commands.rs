@@ -209,6 +209,7 @@ fn parse_background(s: &str) -> Result<[f32; 3], InputError> {
 }
 
 pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
+    args.common.check_terrain()?;
     if args.out.extension().and_then(|e| e.to_str()).map(|e| e.to_lowercase()) != Some("png".into()) {
         return Err(InputError(format!("--out {}: the output must be a .png file", args.out.display())).into());
     }
@@ -274,6 +275,14 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
         Ok((drawn, t.elapsed().as_secs_f64() * 1e3))
     })?;
     let ((pixels, stats), frame_ms) = frame.submitted;
+    if args.raycast != Raycast::Off && stats.raycast_blocks == 0 {
+        eprintln!(
+            "vkterrain: note: --raycast {}: no block of this view could be ray-cast (a block is cast only when it is \
+             not morphing, meets no coarser neighbour and lies inside the terrain's extent; --morph off leaves more \
+             blocks to cast)",
+            crate::app::cli::value_name(args.raycast)
+        );
+    }
     let trav = frame.traversal.expect("render traverses");
     let generation = frame.taken.unwrap_or_default();
     let errors_ms = activity.is_some().then_some(frame.feed_ms);
@@ -333,7 +342,7 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
     if let Some(a) = audited {
         audit_into(&mut out, &a, args.delta);
     }
-    println!("{out}");
+    crate::out!("{out}")?;
     finish(s)
 }
 
@@ -428,12 +437,12 @@ fn render_streamed(
     crate::app::outputs::TerrainFacts::of_archive(&archive.meta, &args.common).merge_into(&mut out);
     let failure = out["first_failure"].as_str().map(str::to_string);
     out["degraded"] = json!(failure.is_some());
-    println!("{out}");
+    crate::out!("{out}")?;
     // Every Vulkan object is gone now: messages from their destruction count too.
     check_messages(&messages)?;
     if let Some(failure) = failure {
         return Err(Degraded(format!(
-            "tiles could not be read (first: {failure}); the frame was drawn coarser (worst {:.2}x delta)",
+            "tiles could not be read (first: {failure}); the frame was drawn without their data (worst {:.2}x delta)",
             out["worst_factor"]
         ))
         .into());
@@ -470,6 +479,7 @@ fn finish(s: Session) -> anyhow::Result<()> {
 pub fn errors(args: &ErrorsArgs) -> anyhow::Result<()> {
     // Checked before the device and the generations: a dump that cannot be written
     // would otherwise fail at the end.
+    args.common.check_terrain()?;
     check_outputs(&[("--dump", args.dump.as_deref())], &[("--heightmap", args.common.heightmap.as_deref())])?;
     let s = Session::open(&args.common, None)?;
     let cam = args.common.camera(&s.hf, (1280, 720))?;
@@ -526,6 +536,6 @@ pub fn errors(args: &ErrorsArgs) -> anyhow::Result<()> {
         "validation_messages": s.validation_messages(),
     });
     crate::app::outputs::TerrainFacts::of(&s.hf).merge_into(&mut out);
-    println!("{out}");
+    crate::out!("{out}")?;
     finish(s)
 }

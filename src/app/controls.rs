@@ -244,9 +244,9 @@ pub(crate) fn open_window(
     let device =
         Device::new(instance, &DeviceOptions { gpu: common.gpu.clone(), queues: common.queues, swapchain: true })
             .map_err(crate::app::cli::option_error)?;
-    println!("vkterrain: device {}, queue mode {}", device.name, device.queue_mode.as_str());
+    crate::out!("vkterrain: device {}, queue mode {}", device.name, device.queue_mode.as_str())?;
     for note in device.notes() {
-        println!("vkterrain: note: {note}");
+        crate::out!("vkterrain: note: {note}")?;
     }
     for (opt, w, h) in sizes {
         crate::app::cli::check_image_size(&device, opt, (*w, *h))?;

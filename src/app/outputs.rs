@@ -159,38 +159,52 @@ pub struct TerrainFacts {
 }
 
 impl TerrainFacts {
-    pub fn of(hf: &crate::lod::heightfield::Heightfield) -> Self {
-        let g = &hf.georef;
+    /// The facts of a terrain in this frame, its voids filled and drawn.
+    pub fn of_frame(
+        g: &crate::lod::heightfield::Georef,
+        spacing_m: [f32; 2],
+        height_scale_m: f32,
+        samples: [usize; 2],
+        void_samples: usize,
+    ) -> Self {
         TerrainFacts {
             crs: g.crs.clone(),
-            spacing_m: [hf.spacing.x, hf.spacing.z],
-            height_scale_m: hf.height_scale,
+            spacing_m,
+            height_scale_m,
             origin: (g.step != [0.0; 2]).then_some(g.origin),
-            samples: [hf.width, hf.height],
-            void_samples: hf.void_samples,
-            voids: if hf.void_mask.is_some() {
-                crate::input::load::VoidMode::Hole
-            } else {
-                crate::input::load::VoidMode::Fill
-            },
+            samples,
+            void_samples,
+            voids: crate::input::load::VoidMode::Fill,
             heights: crate::input::georef::Heights::of(g.absolute_heights),
         }
     }
 
-    /// The facts an archive's metadata records (voids were filled by `prepare`), with
-    /// `--spacing` and `--height-scale` where `common` gives them (the streamed terrain is
-    /// drawn at those).
+    pub fn of(hf: &crate::lod::heightfield::Heightfield) -> Self {
+        let facts = Self::of_frame(
+            &hf.georef,
+            [hf.spacing.x, hf.spacing.z],
+            hf.height_scale,
+            [hf.width, hf.height],
+            hf.void_samples,
+        );
+        match hf.void_mask {
+            Some(_) => TerrainFacts { voids: crate::input::load::VoidMode::Hole, ..facts },
+            None => facts,
+        }
+    }
+
+    /// The facts an archive's metadata records (voids were filled by `prepare`).
+    pub fn of_meta(m: &crate::input::archive::Meta) -> Self {
+        Self::of_frame(&m.georef, m.spacing, m.height_scale, [m.width, m.height], m.void_samples)
+    }
+
+    /// [`TerrainFacts::of_meta`] with `--spacing` and `--height-scale` where `common`
+    /// gives them (the streamed terrain is drawn at those).
     pub fn of_archive(m: &crate::input::archive::Meta, common: &crate::app::cli::CommonArgs) -> Self {
-        let g = &m.georef;
         TerrainFacts {
-            crs: g.crs.clone(),
             spacing_m: common.spacing.map_or(m.spacing, |s| [s.x, s.z]),
             height_scale_m: common.height_scale.unwrap_or(m.height_scale),
-            origin: (g.step != [0.0; 2]).then_some(g.origin),
-            samples: [m.width, m.height],
-            void_samples: m.void_samples,
-            voids: crate::input::load::VoidMode::Fill,
-            heights: crate::input::georef::Heights::of(g.absolute_heights),
+            ..Self::of_meta(m)
         }
     }
 
@@ -219,4 +233,25 @@ pub fn next_free_screenshot() -> std::path::PathBuf {
         .map(|n| std::path::PathBuf::from(format!("vkterrain-{n}.png")))
         .find(|p| std::fs::symlink_metadata(p).is_err())
         .expect("a free name")
+}
+
+/// `println!` for the front-ends' output: `crate::out!(...)?` ends the run with an error
+/// where standard output cannot be written (see [`write_stdout`]).
+#[macro_export]
+macro_rules! out {
+    ($($arg:tt)*) => {
+        $crate::app::outputs::write_stdout(format_args!($($arg)*))
+    };
+}
+
+/// Writes one line to standard output: an error where it cannot be written (a closed pipe,
+/// a full disk), which ends the run with exit code 1 and one line, not a panic as
+/// `println!` would. Used through [`crate::out!`].
+pub fn write_stdout(args: std::fmt::Arguments) -> anyhow::Result<()> {
+    use std::io::Write;
+    let mut o = std::io::stdout().lock();
+    o.write_fmt(args)
+        .and_then(|_| o.write_all(b"\n"))
+        .and_then(|_| o.flush())
+        .map_err(|e| anyhow::anyhow!("writing to standard output: {e}"))
 }

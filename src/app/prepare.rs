@@ -28,10 +28,10 @@ pub struct PrepareArgs {
     #[arg(long, value_name = "SIDE", value_parser = clap::value_parser!(u32).range(3..=1_048_577))]
     pub synthetic: Option<u32>,
     /// Metres between samples (x, z); default: the file's georeferencing.
-    #[arg(long, value_parser = crate::app::cli::parse_spacing)]
+    #[arg(long, value_parser = crate::app::cli::parse_spacing, allow_negative_numbers = true)]
     pub spacing: Option<Spacing>,
     /// World units per raw height unit; default: the file's vertical units.
-    #[arg(long, value_parser = crate::app::cli::positive)]
+    #[arg(long, value_parser = crate::app::cli::positive, allow_negative_numbers = true)]
     pub height_scale: Option<f32>,
     /// Whether heights are metres above sea level (absolute) or only relative, recorded in
     /// the archive. Default: absolute when the file names its CRS, else relative.
@@ -182,7 +182,7 @@ impl Drop for MosaicDir {
 
 pub fn prepare(args: &PrepareArgs) -> anyhow::Result<()> {
     let (json, _) = prepare_archive(args, &|| {})?;
-    println!("{}", serde_json::to_string_pretty(&json)?);
+    crate::out!("{}", serde_json::to_string_pretty(&json)?)?;
     Ok(())
 }
 
@@ -441,11 +441,19 @@ fn prepare_archive(args: &PrepareArgs, before_exit: &dyn Fn()) -> anyhow::Result
         Err(e @ PrepareError::Write { .. }) => return Err(InputError(e.to_string()).into()),
     };
     let peak = crate::app::outputs::peak_resident_mb();
-    let json = serde_json::json!({
+    let mut json = serde_json::json!({
         "archive": args.out.display().to_string(),
         "report": report,
         "peak_resident_mb": peak,
     });
+    crate::app::outputs::TerrainFacts::of_frame(
+        &frame.georef,
+        frame.spacing,
+        frame.height_scale,
+        [w, h],
+        frame.void_samples,
+    )
+    .merge_into(&mut json);
     eprintln!(
         "vkterrain: wrote {}: {} tiles ({} distinct) in {} levels, {:.1} MB ({:.0}% of {:.1} MB uncompressed), {:.1} s, peak resident {}",
         args.out.display(),
@@ -484,20 +492,18 @@ pub fn check(args: &CheckArgs) -> anyhow::Result<()> {
     }
     bar.finish_and_clear();
     let seconds = started.elapsed().as_secs_f64();
-    let json = serde_json::json!({
+    let mut json = serde_json::json!({
         "archive": crate::input::archive::bytes::shown(args.input.path()),
         "width": m.width,
         "height": m.height,
         "levels": u32::from(m.top_level) + 1,
         "tiles_checked": tiles,
         "source": m.source,
-        "crs": m.georef.crs,
-        "spacing_m": m.spacing,
-        "height_scale_m": m.height_scale,
         "seconds": seconds,
         "ms_per_tile": 1e3 * seconds / tiles.max(1) as f64,
     });
-    println!("{}", serde_json::to_string_pretty(&json)?);
+    crate::app::outputs::TerrainFacts::of_meta(m).merge_into(&mut json);
+    crate::out!("{}", serde_json::to_string_pretty(&json)?)?;
     eprintln!(
         "vkterrain: {}: {tiles} tiles, every one intact ({seconds:.1} s)",
         crate::input::archive::bytes::shown(args.input.path())

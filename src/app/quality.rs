@@ -124,7 +124,7 @@ pub fn quality(args: &QualityArgs) -> anyhow::Result<()> {
             })
             .collect()
     };
-    let summary = json!({
+    let mut summary = json!({
         "heightmap": hf.source,
         "poses": args.poses,
         "size": [size.0, size.1],
@@ -133,6 +133,7 @@ pub fn quality(args: &QualityArgs) -> anyhow::Result<()> {
         "strict_over_paper_at_equal_error": ratio("paper"),
         "strict_over_distance_at_equal_error": ratio("distance"),
     });
+    crate::app::outputs::TerrainFacts::of(&hf).merge_into(&mut summary);
     let json_path = args.out.join("quality.json");
     let text = serde_json::to_string_pretty(&summary)?;
     write_atomic(&json_path, |tmp| {
@@ -140,9 +141,9 @@ pub fn quality(args: &QualityArgs) -> anyhow::Result<()> {
     })?;
     let name = std::path::Path::new(&hf.source).file_name().map_or(hf.source.clone(), |n| n.to_string_lossy().into());
     plot(&args.out.join("quality.png"), &points, &name)?;
-    print!("{table}");
-    println!("{}", serde_json::to_string(&summary["strict_over_paper_at_equal_error"])?);
-    println!("{}", serde_json::to_string(&summary["strict_over_distance_at_equal_error"])?);
+    crate::out!("{}", table.trim_end())?;
+    crate::out!("{}", serde_json::to_string(&summary["strict_over_paper_at_equal_error"])?)?;
+    crate::out!("{}", serde_json::to_string(&summary["strict_over_distance_at_equal_error"])?)?;
     Ok(())
 }
 

@@ -168,6 +168,10 @@ impl GpuFrames {
                 Ok((hf, stride)) => (OwnLighting::new(&device, hf, stride, [grid.width, grid.height], None)?, None),
                 Err(e) => {
                     tracing::warn!("streamed frames without shadows: {e:#}");
+                    // Frames drawn without their data: the run finishes degraded.
+                    if streamer.first_failure.is_none() {
+                        streamer.first_failure = Some(format!("the lighting map's heights: {e:#}"));
+                    }
                     (OwnLighting::everything_lit(&device)?, Some(format!("{e:#}")))
                 }
             };
@@ -485,7 +489,7 @@ pub(crate) fn settle(streamer: &mut Streamer, at: impl Fn(&Streamer) -> View, de
     let mut view = at(streamer);
     let mut sel = streamer.frame(&view, None, delta, 1.0);
     for _ in 1..rounds {
-        if sel.within_bound() {
+        if sel.within_bound() || streamer.stopped() {
             break;
         }
         streamer.settle();
@@ -493,6 +497,17 @@ pub(crate) fn settle(streamer: &mut Streamer, at: impl Fn(&Streamer) -> View, de
         sel = streamer.frame(&view, None, delta, 1.0);
     }
     (view, sel)
+}
+
+/// Prints what `prepare` recorded about an archive's frame (how its spacing, height unit
+/// and datum were decided, what was assumed), less what `declared` now sets, as a file's
+/// load prints it.
+fn archive_notes(shown: &str, archive: &Archive, declared: &georef::Declared) {
+    let mut notes = archive.meta.georef.notes.clone();
+    georef::drop_overridden(&mut notes, declared);
+    for n in notes {
+        eprintln!("vkterrain: note: {shown}: {n}");
+    }
 }
 
 /// How the terrain drawn streamed is named to the user: the file or URL they gave (an
@@ -560,6 +575,9 @@ pub fn streamed_archive(
     if !stream && (archive.grid_side() <= 4096 || archive.grid_side() <= max_side()) {
         return Ok(None);
     }
+    let declared =
+        georef::Declared { spacing: common.spacing, height_scale: common.height_scale, heights: common.heights };
+    archive_notes(&crate::input::archive::bytes::shown(path), &archive, &declared);
     if let Some(note) = common.heights.and_then(|h| georef::declare_heights(&mut archive.meta.georef, h)) {
         eprintln!("vkterrain: note: {}: {note}", path.display());
     }
@@ -779,6 +797,7 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
         crate::app::outputs::check_outputs(&[("--out", Some(out))], &[("archive", Some(args.input.path()))])?;
     }
     let archive = Arc::new(Archive::open(args.input.path()).map_err(|e| InputError(e.to_string()))?);
+    archive_notes(&crate::input::archive::bytes::shown(args.input.path()), &archive, &georef::Declared::default());
     let grid = Grid::from_meta(&archive.meta);
     let shown = crate::input::archive::bytes::shown(args.input.path());
     if args.cold && crate::input::archive::bytes::is_url(args.input.path()) {
@@ -845,6 +864,7 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
         _ => Streamer::new(archive.clone(), grid, args.cache_mb as usize * (1 << 20)),
     };
     streamer.morph = morph_rule(args.morph);
+    streamer.stop = Some(signals.flag().clone());
     streamer_threads(&mut streamer, args.traversal_threads, device.as_deref())?;
     // The view at frame `f`, and the way it heads.
     let pose = |streamer: &Streamer, f: u32| {
@@ -862,7 +882,12 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
     // `render` refuses them, rather than a flight of empty frames), then the first
     // view's, are read before the flight starts.
     let warm = Instant::now();
-    let range = top_tiles(&mut streamer, &archive.meta)?;
+    let range = match top_tiles(&mut streamer, &archive.meta) {
+        Err(_) if signals.requested() => {
+            return Err(Interrupted::by(&signals, "while the top tiles were read: nothing flown").into())
+        }
+        r => r?,
+    };
     settle(&mut streamer, |s| pose(s, 0).0, args.delta);
     let warm_up_s = warm.elapsed().as_secs_f64();
     let mut gpu = match (args.gpu_mb, device) {
@@ -909,7 +934,7 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
     flight.frames_over_bound -= warm_stats.frames_over_bound;
     let StreamStats { frames, frames_over_bound, .. } = flight;
     let distinct_mb = flight.distinct_bytes as f64 / f64::from(1u32 << 20);
-    let json = serde_json::json!({
+    let mut json = serde_json::json!({
         "archive": &shown,
         "frames": frames,
         "frames_over_bound": frames_over_bound,
@@ -936,12 +961,13 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
         "interrupted": signals.requested(),
         "gpu": gpu.as_ref().map(GpuFrames::report),
     });
+    crate::app::outputs::TerrainFacts::of_meta(&archive.meta).merge_into(&mut json);
     if let (Some(g), Some(out)) = (gpu.as_ref(), args.out.as_ref()) {
         let (w, h) = args.size;
         crate::app::outputs::save_png(out, w, h, &g.last)?;
         eprintln!("vkterrain: last frame written to {}", out.display());
     }
-    println!("{}", serde_json::to_string_pretty(&json)?);
+    crate::out!("{}", serde_json::to_string_pretty(&json)?)?;
     if let Some(g) = gpu {
         // Every Vulkan object goes first: messages from their destruction count too.
         let messages = g.device.instance.messages.clone();
@@ -965,7 +991,7 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
     }
     if let Some(failure) = &streamer.first_failure {
         return Err(Degraded(format!(
-            "{} tile reads failed (first: {failure}); those frames were drawn coarser",
+            "{} tile reads failed (first: {failure}); frames were drawn without their data",
             flight.tiles_failed
         ))
         .into());

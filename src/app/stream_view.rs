@@ -202,7 +202,7 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
     // Only the drawn heights scale: the bound (`D * height_scale`) follows.
     grid.height_scale *= f64::from(args.exaggeration);
     let m = &archive.meta;
-    println!("{}", crate::app::stream::streamed_banner(&shown, m, args.cache_mb, args.gpu_mb));
+    crate::out!("{}", crate::app::stream::streamed_banner(&shown, m, args.cache_mb, args.gpu_mb))?;
     let trace = match &args.trace {
         Some(p) => {
             Trace::to_file(p).map_err(|e| crate::app::cli::InputError(format!("--trace {}: {e}", p.display())))?
@@ -243,10 +243,10 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
         anyhow::anyhow!("cannot open a window ({e}); is DISPLAY set? Use `vkterrain render` for headless output")
     })?;
     event_loop.set_control_flow(ControlFlow::Poll);
-    println!(
+    crate::out!(
         "keys: W/S A/D Q/E move, drag to look, Shift faster, wheel speed, G walk, Home start, [ ] delta, Z/X \
          exaggeration, L LOD colours, P screenshot, H panel, F1 help, Esc quit"
-    );
+    )?;
     let ctl = Controller::new(position, f, l / 60.0, args.walk);
     let home = (ctl.position, ctl.yaw, ctl.pitch);
     let now = Instant::now();
@@ -313,9 +313,9 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
     drop(app);
     if let Some(p) = &args.trace {
         trace.finish().map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))?;
-        println!("vkterrain: trace {}", p.display());
+        crate::out!("vkterrain: trace {}", p.display())?;
     }
-    println!("{}", serde_json::to_string(&run)?);
+    crate::out!("{}", serde_json::to_string(&run)?)?;
     if let Some(m) = messages {
         check_messages(&m)?;
     }
@@ -323,7 +323,9 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
         return Err(Interrupted::by(&stop, "the session's figures printed above").into());
     }
     if let Some(failure) = &run.first_failure {
-        return Err(Degraded(format!("tiles could not be read (first: {failure}); frames drawn coarser")).into());
+        return Err(
+            Degraded(format!("tiles could not be read (first: {failure}); frames drawn without their data")).into()
+        );
     }
     Ok(())
 }
@@ -478,7 +480,7 @@ impl App {
             gpu.frames.resize(w, h)?;
             gpu.frames.draw(&self.streamer, &self.grid, &view, &sel, None)?;
             save_png(&path, w, h, &gpu.frames.last)?;
-            println!("vkterrain: screenshot {}", path.display());
+            crate::out!("vkterrain: screenshot {}", path.display())?;
             self.run.screenshot = Some(path.display().to_string());
         }
         self.trace.complete(DRAW_TID, "frame", now, Instant::now(), frame);

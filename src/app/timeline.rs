@@ -73,7 +73,7 @@ pub fn timeline(args: &TimelineArgs) -> anyhow::Result<()> {
     let (from, to) = args.window.unwrap_or((0.0, spans.iter().map(|s| s.end_ms).fold(0.0, f64::max)));
     let order: Vec<u32> = lanes.keys().copied().collect();
     draw(&args.out, &order, &lanes, &spans, (from, to))?;
-    println!("vkterrain: timeline {} ({} spans, {:.0}..{:.0} ms)", args.out.display(), spans.len(), from, to);
+    crate::out!("vkterrain: timeline {} ({} spans, {:.0}..{:.0} ms)", args.out.display(), spans.len(), from, to)?;
     Ok(())
 }
 

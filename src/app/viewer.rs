@@ -363,6 +363,7 @@ fn view_archive(args: &ViewArgs, resizes: &[(u64, u32, u32)]) -> anyhow::Result<
 }
 
 pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
+    args.common.check_terrain()?;
     // Output paths are checked before the run, not when it ends: distinct files that
     // are not inputs.
     crate::app::outputs::check_outputs(
@@ -462,9 +463,9 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
         app.go_to(lat, lon).map_err(|e| InputError(format!("--go-to {e}")))?;
     }
     // Once the options are accepted. The same table as the panel's key help (F1).
-    println!("keys:");
+    crate::out!("keys:")?;
     for (k, what) in crate::app::hud::KEYS {
-        println!("  {k:<13} {what}");
+        crate::out!("  {k:<13} {what}")?;
     }
     let mut windowed = Windowed(app);
     event_loop.run_app(&mut windowed)?;
@@ -475,7 +476,7 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
     drop(app.gpu.take());
     if let Some(p) = &args.trace {
         app.trace.finish().map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))?;
-        println!("vkterrain: trace {}", p.display());
+        crate::out!("vkterrain: trace {}", p.display())?;
     }
     let validation = counter.as_ref().map(|c| c.count());
     let first_message = counter.as_ref().and_then(|c| c.messages().first().cloned());
@@ -496,7 +497,7 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
     app.stats.final_morph = app.draw.morph;
     app.stats.start_position = app.home.0.to_array();
     app.stats.interrupted = stop.requested();
-    println!("{}", serde_json::to_string(&app.stats)?);
+    crate::out!("{}", serde_json::to_string(&app.stats)?)?;
     if let Some(n) = validation.filter(|&n| n > 0) {
         anyhow::bail!("{n} validation message(s); first: {}", first_message.unwrap_or_default());
     }
@@ -530,19 +531,19 @@ impl App {
             self.args.common.sun.0,
         )?;
         if let Some(sun) = renderer.lighting().sun() {
-            println!(
+            crate::out!(
                 "vkterrain: sun at azimuth {}, elevation {}: shadow and occlusion map in {:.0} ms",
                 sun.azimuth,
                 sun.elevation,
                 renderer.lighting().last_ms()
-            );
+            )?;
         }
         let mut hud = Hud::new(&device, &window, swapchain.format, DEPTH_FORMAT, FRAMES_IN_FLIGHT)?;
         hud.visible = !self.args.no_hud;
         if self.trace.enabled() {
             match crate::vk::QueryPool::calibrate(&device)? {
                 Some(clock) => self.trace.set_gpu_clock(clock, device.queue_mode == crate::vk::QueueMode::Shared),
-                None => println!("vkterrain: note: no timestamp queries: the trace has no GPU tracks"),
+                None => crate::out!("vkterrain: note: no timestamp queries: the trace has no GPU tracks")?,
             }
         }
         let activity = ErrorsActivity::start_with(
@@ -780,7 +781,7 @@ impl App {
                 px.chunks_mut(4).for_each(|p| p.swap(0, 2));
             }
             save_png(&path, extent.width, extent.height, &px)?;
-            println!("vkterrain: screenshot {}", path.display());
+            crate::out!("vkterrain: screenshot {}", path.display())?;
             self.stats.screenshot = Some(path.display().to_string());
         }
         self.last_stats = stats;
@@ -1098,7 +1099,7 @@ impl App {
             KeyCode::KeyF => {
                 self.shading.wireframe = !self.shading.wireframe;
                 if self.gpu.as_ref().is_some_and(|g| !g.device.features.wireframe) {
-                    println!("vkterrain: this device has no wireframe (fillModeNonSolid)");
+                    eprintln!("vkterrain: note: this device has no wireframe (fillModeNonSolid)");
                 }
             }
             KeyCode::KeyL => self.shading.colour_by_lod = !self.shading.colour_by_lod,

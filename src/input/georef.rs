@@ -841,6 +841,19 @@ impl Heights {
     }
 }
 
+/// Drops from the notes of a terrain whose frame was decided before (an archive's, by
+/// `prepare`) those about what `declared` now sets: a spacing, height unit or datum the
+/// options give is no longer assumed, nor what the archive said. The notes are the ones
+/// [`decide`] writes, each naming the flag that sets what it is about.
+pub fn drop_overridden(notes: &mut Vec<String>, declared: &Declared) {
+    let set = [
+        (declared.spacing.is_some(), "--spacing"),
+        (declared.height_scale.is_some(), "--height-scale"),
+        (declared.heights.is_some(), "--heights"),
+    ];
+    notes.retain(|n| !set.iter().any(|&(given, flag)| given && n.contains(flag)));
+}
+
 /// Applies `--heights` to a terrain whose datum was decided before (an archive's): the
 /// note to print when it changes what the terrain said.
 pub fn declare_heights(g: &mut crate::lod::heightfield::Georef, heights: Heights) -> Option<String> {
@@ -991,10 +1004,11 @@ pub fn decide(
     let georeferenced = g.crs.is_some();
     let file_height: Option<(f64, String)> = match &raster.vertical_unit {
         Some((m, name)) => Some((file_scale * m, format!("{file_scale} {name} a unit"))),
-        None if raster.scale.is_some() => {
-            Some((file_scale, format!("scale {file_scale} a unit, unit not given: metres assumed")))
-        }
-        None if georeferenced => Some((1.0, "unit not given: metres assumed".into())),
+        None if raster.scale.is_some() => Some((
+            file_scale,
+            format!("scale {file_scale} a unit, unit not given: metres assumed (--height-scale sets it)"),
+        )),
+        None if georeferenced => Some((1.0, "unit not given: metres assumed (--height-scale sets it)".into())),
         None => None,
     };
     let height_scale = match (height_scale, &file_height, known) {

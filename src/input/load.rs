@@ -146,6 +146,7 @@ fn load_archive(path: &Path, opts: &LoadOptions) -> Result<Heightfield, Heightfi
         }
     }
     let mut hf = archive.heightfield()?;
+    georef::drop_overridden(&mut hf.georef.notes, &opts.declared());
     if let Some(s) = opts.spacing {
         hf.georef.notes.push(format!(
             "spacing {} x {} m from --spacing, not the archive's {} x {}",

@@ -8,6 +8,7 @@ use super::{Grid, TileKey};
 use crate::input::archive::tile::Tile;
 use crate::input::archive::Archive;
 use std::collections::{HashSet, VecDeque};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Condvar, Mutex};
 
 /// Where tiles come from: an archive on disk, or a test's source.
@@ -106,22 +107,42 @@ impl Io {
     }
 
     /// Blocks until at least one result is ready or nothing is outstanding, then takes
-    /// the results (for runs that wait for their tiles, and tests).
-    pub fn wait(&self) -> Vec<Loaded> {
+    /// the results (for runs that wait for their tiles, and tests). With `stop`, it also
+    /// returns (with what is ready, perhaps nothing) once `stop` is set: a read that hangs
+    /// on a stalled server does not hold a stop request up. `stop` is looked at every
+    /// 100 ms while nothing arrives (a signal handler cannot notify a condition variable).
+    pub fn wait(&self, stop: Option<&AtomicBool>) -> Vec<Loaded> {
+        let stopped = || stop.is_some_and(|s| s.load(Ordering::SeqCst));
         let mut s = self.shared.state.lock().expect("io state");
-        while s.done.is_empty() && (s.busy.is_some() || !s.queue.is_empty()) {
-            s = self.shared.ready.wait(s).expect("io state");
+        while s.done.is_empty() && (s.busy.is_some() || !s.queue.is_empty()) && !stopped() {
+            s = self.shared.ready.wait_timeout(s, STOP_POLL).expect("io state").0;
         }
         std::mem::take(&mut s.done)
     }
 }
+
+/// How often a wait for tiles looks at its stop flag.
+const STOP_POLL: std::time::Duration = std::time::Duration::from_millis(100);
+
+/// How long dropping the IO thread waits for its read in hand to end before leaving the
+/// thread to end with the process (a read from a stalled server times out only after a
+/// minute).
+const JOIN_WITHIN: std::time::Duration = std::time::Duration::from_secs(2);
 
 impl Drop for Io {
     fn drop(&mut self) {
         self.shared.state.lock().expect("io state").stop = true;
         self.shared.work.notify_all();
         if let Some(t) = self.thread.take() {
-            let _ = t.join();
+            let deadline = std::time::Instant::now() + JOIN_WITHIN;
+            // Polled (a JoinHandle has no timed join): the thread sees `stop` as soon as
+            // its read ends.
+            while !t.is_finished() && std::time::Instant::now() < deadline {
+                std::thread::sleep(std::time::Duration::from_millis(5));
+            }
+            if t.is_finished() {
+                let _ = t.join();
+            }
         }
     }
 }

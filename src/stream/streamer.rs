@@ -10,6 +10,7 @@ use super::{Grid, TileKey};
 use crate::lod::block::TraversalPool;
 use crate::lod::morph::MorphRule;
 use foldhash::{HashMap, HashMapExt, HashSet, HashSetExt};
+use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 
 /// Frames after which a tile that failed to read is asked for again (a file that comes
@@ -86,6 +87,9 @@ pub struct Streamer {
     gated: HashSet<TileKey>,
     /// Threads for the per-block morph terms (`--traversal-threads`; none: the caller's).
     pool: TraversalPool,
+    /// A stop request (a signal's flag): [`Streamer::settle`] returns when it is set,
+    /// whatever tiles are still being read.
+    pub stop: Option<Arc<AtomicBool>>,
 }
 
 impl Streamer {
@@ -113,6 +117,7 @@ impl Streamer {
             gate: None,
             gated: HashSet::new(),
             pool: TraversalPool::default(),
+            stop: None,
         }
     }
 
@@ -305,15 +310,21 @@ impl Streamer {
         })
     }
 
+    /// Whether a stop was asked for ([`Streamer::stop`]).
+    pub fn stopped(&self) -> bool {
+        self.stop.as_ref().is_some_and(|s| s.load(std::sync::atomic::Ordering::SeqCst))
+    }
+
     /// Waits until the IO thread has read everything asked for (and the gate has passed
-    /// it) and takes it (runs that measure a settled frame, and tests).
+    /// it) and takes it (runs that measure a settled frame, and tests), or until a stop
+    /// is asked for.
     pub fn settle(&mut self) {
         loop {
-            let got = self.io.wait();
+            let got = self.io.wait(self.stop.as_deref());
             let idle = got.is_empty() && self.io.outstanding() == 0;
             let got = self.through_gate(got, true);
             self.take(got);
-            if idle {
+            if idle || self.stopped() {
                 return;
             }
         }

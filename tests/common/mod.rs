@@ -299,6 +299,8 @@ pub fn surface_motion(hf: &Heightfield, cam: &vkterrain::lod::camera::Camera, be
 /// What a run stopped by a signal left: its exit status and everything it printed.
 pub struct Stopped {
     pub status: std::process::ExitStatus,
+    /// From the signal to the run's end.
+    pub after_signal: std::time::Duration,
     pub stdout: String,
     pub stderr: String,
 }
@@ -364,7 +366,8 @@ pub fn stop_with_signal(args: &[&str], ready: impl Fn(Option<&str>) -> bool, sig
         }
         std::thread::sleep(std::time::Duration::from_millis(20));
     };
-    Stopped { status, stdout: out.join().unwrap(), stderr: err.join().unwrap() }
+    let after_signal = started.elapsed();
+    Stopped { status, after_signal, stdout: out.join().unwrap(), stderr: err.join().unwrap() }
 }
 
 /// The exit code a shell reports for a run ended by `SIG{signal}`: 128 + the signal.
