@@ -35,8 +35,8 @@ pub struct StreamArgs {
     #[arg(long, default_value_t = 64, value_parser = clap::value_parser!(u32).range(1..=1_000_000))]
     pub cache_mb: u32,
     /// Frames to fly.
-    #[arg(long, default_value_t = 1800, value_parser = clap::value_parser!(u32).range(1..))]
-    pub frames: u32,
+    #[arg(long, value_name = "N", default_value_t = 1800, value_parser = crate::app::cli::at_least_one, allow_negative_numbers = true)]
+    pub frames: u64,
     /// Frame rate the flight is paced at (the IO thread has 1/FPS s a frame).
     #[arg(long, default_value_t = 30.0, value_parser = parse_fps, allow_negative_numbers = true)]
     pub fps: f32,
@@ -815,7 +815,7 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
     let line = along.length();
     let fps = f64::from(args.fps);
     let speed = f64::from(args.speed);
-    let distance = speed * f64::from(args.frames) / fps;
+    let distance = speed * args.frames as f64 / fps;
     if speed / fps > line {
         return Err(InputError(format!(
             "--speed {}: {} units a frame at {fps} fps, longer than the flight's line across {shown} ({line:.0} units)",
@@ -867,8 +867,8 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
     streamer.stop = Some(signals.flag().clone());
     streamer_threads(&mut streamer, args.traversal_threads, device.as_deref())?;
     // The view at frame `f`, and the way it heads.
-    let pose = |streamer: &Streamer, f: u32| {
-        let (offset, way) = along_line(speed * f64::from(f) / fps, line);
+    let pose = |streamer: &Streamer, f: u64| {
+        let (offset, way) = along_line(speed * f as f64 / fps, line);
         let (at, heading) = (start + dir * offset, dir * way);
         let ground = |p: DVec3| streamer.ground(p.x, p.z).unwrap_or(0.0);
         // Above the highest of the ground here and a little ahead (from the tiles held).
@@ -922,7 +922,7 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
             g.draw(&streamer, &grid, &view, &sel, None)?;
         }
         // Pacing the flight to its frame rate (not synchronisation: nothing waits on it).
-        let next = period * (f + 1);
+        let next = period.mul_f64((f + 1) as f64);
         if let Some(rest) = next.checked_sub(started.elapsed()) {
             std::thread::sleep(rest);
         }
