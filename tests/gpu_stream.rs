@@ -241,8 +241,20 @@ fn the_stream_command_draws_every_frame_from_the_atlas_under_validation() {
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let png = dir.path().join("last.png");
     let fly = |gpu_mb: &str, out: Option<&str>| {
-        let mut args =
-            vec!["stream", a, "--frames", "24", "--fps", "240", "--speed", "4000", "--size", "256x192", "--validate"];
+        let mut args = vec![
+            "stream",
+            a,
+            "--frames",
+            "24",
+            "--fps",
+            "240",
+            "--speed",
+            "4000",
+            "--size",
+            "256x192",
+            "--validation",
+            "on",
+        ];
         args.extend(["--gpu-mb", gpu_mb]);
         if let Some(out) = out {
             args.extend(["--out", out]);

@@ -82,6 +82,15 @@ pub enum OnOff {
     Off,
 }
 
+/// `--validation on|off`, the same for every command: on in debug builds unless given.
+pub fn validation_on(v: Option<OnOff>) -> bool {
+    match v {
+        Some(OnOff::On) => true,
+        Some(OnOff::Off) => false,
+        None => cfg!(debug_assertions),
+    }
+}
+
 /// The command-line spelling of a value-enum option (`deferred`, `gradient-map`).
 pub fn value_name(v: impl clap::ValueEnum) -> String {
     v.to_possible_value().map(|p| p.get_name().to_string()).unwrap_or_default()
@@ -317,11 +326,7 @@ impl CommonArgs {
     }
 
     pub fn validation(&self) -> bool {
-        match self.validation {
-            Some(OnOff::On) => true,
-            Some(OnOff::Off) => false,
-            None => cfg!(debug_assertions),
-        }
+        validation_on(self.validation)
     }
 
     /// Loads `--heightmap` (or the built-in terrain); `max_grid_side` is the device's

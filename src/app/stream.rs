@@ -63,10 +63,10 @@ pub struct StreamArgs {
     /// With --gpu-mb: write the last frame drawn here.
     #[arg(long, value_name = "FILE.png", requires = "gpu_mb")]
     pub out: Option<PathBuf>,
-    /// With --gpu-mb: run under the Vulkan validation layers (with synchronization
-    /// validation) and report their messages.
-    #[arg(long, requires = "gpu_mb")]
-    pub validate: bool,
+    /// With --gpu-mb: Vulkan validation (with synchronization validation), its messages
+    /// reported. Default: on in debug builds, as for every command that draws.
+    #[arg(long, value_enum, requires = "gpu_mb")]
+    pub validation: Option<OnOff>,
     /// Geomorphing, paid for inside the bound from the tiles' summaries (as the other
     /// commands' `--morph`).
     #[arg(long, value_enum, default_value_t = OnOff::On)]
@@ -848,7 +848,10 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
     let device = match args.gpu_mb {
         Some(_) => {
             use crate::vk::{DeviceOptions, Instance, InstanceOptions, QueueRequest};
-            let instance = Instance::new(&InstanceOptions { validation: args.validate, extensions: Vec::new() })?;
+            let instance = Instance::new(&InstanceOptions {
+                validation: crate::app::cli::validation_on(args.validation),
+                extensions: Vec::new(),
+            })?;
             let options = DeviceOptions { gpu: None, queues: QueueRequest::Auto, swapchain: false };
             let device = Device::new(instance, &options).map_err(crate::app::cli::option_error)?;
             crate::app::cli::check_image_size(&device, "--size", args.size)?;
