@@ -31,8 +31,8 @@ pub struct StreamArgs {
     /// The archive to fly over.
     #[command(flatten)]
     pub input: crate::app::cli::ArchiveInput,
-    /// Host cache budget for decoded tiles, MB.
-    #[arg(long, default_value_t = 64, value_parser = clap::value_parser!(u32).range(1..=1_000_000))]
+    /// Host cache budget for decoded tiles, MB (as the other commands').
+    #[arg(long, value_name = "MB", default_value_t = 256, value_parser = clap::value_parser!(u32).range(1..=1_000_000))]
     pub cache_mb: u32,
     /// Frames to fly.
     #[arg(long, value_name = "N", default_value_t = 1800, value_parser = crate::app::cli::at_least_one, allow_negative_numbers = true)]
