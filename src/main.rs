@@ -40,6 +40,22 @@ enum Command {
 }
 
 fn main() -> ExitCode {
+    // A message that cannot be written (standard error or output closed, a full disk)
+    // ends the run with exit code 1, not a panic's 101 and its backtrace (which could
+    // not be written either). `print!` and `eprint!` panic so.
+    let default_hook = std::panic::take_hook();
+    std::panic::set_hook(Box::new(move |info| {
+        let text = info
+            .payload()
+            .downcast_ref::<String>()
+            .map(String::as_str)
+            .or_else(|| info.payload().downcast_ref::<&str>().copied())
+            .unwrap_or("");
+        if text.starts_with("failed printing to std") {
+            std::process::exit(1);
+        }
+        default_hook(info);
+    }));
     let logging = tracing_subscriber::fmt()
         .with_writer(std::io::stderr)
         // Colour codes only on a terminal: a log file or CI gets plain text.
@@ -72,9 +88,9 @@ fn main() -> ExitCode {
             // A value outside a fixed set: name the set on the same line.
             let possible = text.lines().find_map(|l| l.trim().strip_prefix("[possible values: "));
             match (possible, misplaced_input_hint(&e)) {
-                (Some(values), _) => eprintln!("vkterrain: {first} (one of: {})", values.trim_end_matches(']')),
-                (None, Some(hint)) => eprintln!("vkterrain: {first}: did you mean {hint}?"),
-                (None, None) => eprintln!("vkterrain: {first}"),
+                (Some(values), _) => say(&format!("{first} (one of: {})", values.trim_end_matches(']'))),
+                (None, Some(hint)) => say(&format!("{first}: did you mean {hint}?")),
+                (None, None) => say(&first),
             }
             return ExitCode::from(2);
         }
@@ -105,10 +121,17 @@ fn main() -> ExitCode {
     match result {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("vkterrain: {}", error_chain(&e));
+            say(&error_chain(&e));
             ExitCode::from(vkterrain::app::cli::exit_code(&e))
         }
     }
+}
+
+/// The line that ends a run, on standard error; where it cannot be written the exit code
+/// still says what happened.
+fn say(line: &str) {
+    use std::io::Write;
+    let _ = writeln!(std::io::stderr(), "vkterrain: {line}");
 }
 
 /// For a word the parser did not expect where an input goes (a second terrain, or a

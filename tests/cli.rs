@@ -123,15 +123,23 @@ fn render_says_whether_blocks_were_ray_cast() {
     let none = json(&o);
     assert_eq!(none["raycast_blocks"], 0, "{none}");
     let e = String::from_utf8_lossy(&o.stderr);
-    assert!(e.contains("--raycast all: no block of this view could be ray-cast"), "{e}");
+    assert!(e.contains("--raycast all: no block of this view was ray-cast: a block is cast only when"), "{e}");
 }
 
 /// A negative value where a positive one goes names its option and the rule (clap would
 /// take `-10` for an unknown flag).
 #[test]
 fn a_negative_value_is_refused_naming_its_option() {
-    for (flag, value) in [("--fovy", "-10"), ("--spacing", "-5"), ("--height-scale", "-1"), ("--refresh-at", "-1")] {
-        let o = cli(&["render", "--size", "32x32", flag, value, "--out", "never.png"]);
+    for (flag, value) in [
+        ("--fovy", "-10"),
+        ("--spacing", "-5"),
+        ("--height-scale", "-1"),
+        ("--refresh-at", "-1"),
+        ("--size", "-160x120"),
+        ("--block", "-33"),
+        ("--cache-mb", "-1"),
+    ] {
+        let o = cli(&["render", flag, value, "--out", "never.png"]);
         let e = String::from_utf8_lossy(&o.stderr);
         assert_eq!(o.status.code(), Some(2), "{flag} {value}: {e}");
         assert_eq!(e.lines().count(), 1, "{e}");
@@ -157,11 +165,33 @@ fn an_unwritable_standard_output_is_an_error_not_a_panic() {
         drop(child.stdout.take());
         child.wait_with_output().unwrap()
     };
-    let full = std::fs::OpenOptions::new().write(true).open("/dev/full").unwrap();
-    for (what, o) in [("closed pipe", run(std::process::Stdio::piped())), ("full disk", run(full.into()))] {
+    let full = || std::fs::OpenOptions::new().write(true).open("/dev/full").unwrap();
+    for (what, o) in [("closed pipe", run(std::process::Stdio::piped())), ("full disk", run(full().into()))] {
         let e = String::from_utf8_lossy(&o.stderr);
         assert_eq!(o.status.code(), Some(1), "{what}: {e}");
         assert!(e.contains("vkterrain: writing to standard output: "), "{what}: {e}");
         assert!(!e.contains("panicked"), "{what}: {e}");
+    }
+    // Standard error on a full disk: no message can be written, the code still says what
+    // happened (1: the notes could not be written; 2: a bad input), never 101.
+    let quiet = |args: &[&str]| {
+        let o = Command::new(env!("CARGO_BIN_EXE_vkterrain")).args(args).stderr(full()).output().unwrap();
+        o.status.code()
+    };
+    assert_eq!(quiet(&["check", archive.to_str().unwrap()]), Some(1));
+    assert_eq!(quiet(&["render", "missing.png", "--out", "never.png"]), Some(2));
+}
+
+/// An output the timeline cannot write is a bad option (exit 2), named before any work.
+#[test]
+fn timeline_refuses_an_output_it_cannot_write() {
+    let tmp = TempDir::new("timeline");
+    let trace = tmp.path().join("t.json");
+    std::fs::write(&trace, r#"{"traceEvents":[]}"#).unwrap();
+    for out in [tmp.path().join("missing/t.png"), tmp.path().to_path_buf()] {
+        let o = cli(&["timeline", "--trace", trace.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+        let e = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{e}");
+        assert!(e.starts_with("vkterrain: --out ") && e.lines().count() == 1, "{e}");
     }
 }

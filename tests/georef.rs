@@ -535,6 +535,23 @@ fn heights_can_be_declared_absolute_for_a_dem_without_georeferencing() {
     assert!(!e.contains("ASSUMED"), "declared, yet said to be assumed: {e}");
     let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!(r["heights"], "absolute", "{r}");
+    // The flight takes the same declarations; an archive prepared again with them records
+    // them, and no longer says they were assumed.
+    let declared = ["--spacing", "500", "--height-scale", "1", "--heights", "absolute"];
+    let o = common::cli(&[&["stream", a, "--frames", "2", "--fps", "300"][..], &declared].concat());
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{e}");
+    assert!(!e.contains("ASSUMED"), "declared, yet said to be assumed: {e}");
+    let r = common::json_in(&String::from_utf8_lossy(&o.stdout));
+    assert_eq!((r["heights"].as_str(), r["spacing_m"].clone()), (Some("absolute"), serde_json::json!([500.0, 500.0])));
+    let again = dir.path().join("again.pmtiles");
+    let o = common::cli(&[&["prepare", a, "--out", again.to_str().unwrap()][..], &declared].concat());
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let o = common::cli(&["stream", again.to_str().unwrap(), "--frames", "2", "--fps", "300"]);
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{e}");
+    assert!(!e.contains("ASSUMED"), "prepared with the declarations, yet said to be assumed: {e}");
+    assert_eq!(common::json_in(&String::from_utf8_lossy(&o.stdout))["heights"], "absolute");
 }
 
 /// A GeoTIFF with a geotransform (25 m pixels) and no CRS: its note speaks of the

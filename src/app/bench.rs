@@ -1227,7 +1227,7 @@ fn bench_streamed(
     // the atlas's uploads (CPU tracks only: streamed frames take no timestamps).
     let trace_path = args.out.join("trace.json");
     let trace = Trace::to_file(&trace_path).map_err(|e| anyhow::anyhow!("{}: {e}", trace_path.display()))?;
-    let grid = streamed_grid(&archive, &args.common);
+    let grid = streamed_grid(&archive, &args.common.frame);
     let (cache_mb, gpu_mb) = (args.streamed.cache_mb(), args.streamed.gpu_mb());
     let layers = device.properties.limits.max_image_array_layers;
     let mut streamer = atlas_bound_streamer(archive.clone(), grid, cache_mb, gpu_mb, layers, &trace)?;
@@ -1355,7 +1355,7 @@ fn bench_streamed(
         "first_failure": streamer.first_failure,
     });
     let streamer_failure = streamer.first_failure.clone();
-    crate::app::outputs::TerrainFacts::of_archive(&archive.meta, &args.common).merge_into(&mut summary);
+    crate::app::outputs::TerrainFacts::of_archive(&archive.meta, &args.common.frame).merge_into(&mut summary);
     drop(gpu);
     drop(device);
     drop(streamer); // joins the IO thread: its last read is in the trace

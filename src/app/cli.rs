@@ -186,6 +186,30 @@ pub fn parse_spacing(s: &str) -> Result<Spacing, String> {
     }
 }
 
+/// What the user declares about a terrain's frame, over what the file (or archive) says:
+/// the same three flags wherever a terrain is opened or prepared.
+#[derive(Args, Clone, Copy, Debug, Default)]
+pub struct FrameArgs {
+    /// Metres between samples, or X,Z for different spacings along columns (x) and rows
+    /// (z). Default: what the file's georeferencing says (printed at load).
+    #[arg(long, value_name = "M[,Z]", value_parser = parse_spacing, allow_negative_numbers = true)]
+    pub spacing: Option<Spacing>,
+    /// Metres per height unit. Default: what the file says (printed at load).
+    #[arg(long, value_name = "M", value_parser = positive, allow_negative_numbers = true)]
+    pub height_scale: Option<f32>,
+    /// Whether heights are metres above sea level (absolute: water at or below 0 m,
+    /// colours by height in metres) or only relative (the lowest ground is water, colours
+    /// span the range). Default: absolute when the file names its CRS, else relative.
+    #[arg(long, value_enum, value_name = "absolute|relative")]
+    pub heights: Option<crate::input::georef::Heights>,
+}
+
+impl FrameArgs {
+    pub fn declared(&self) -> crate::input::georef::Declared {
+        crate::input::georef::Declared { spacing: self.spacing, height_scale: self.height_scale, heights: self.heights }
+    }
+}
+
 /// Options the drawing subcommands share.
 #[derive(Args, Clone, Debug)]
 pub struct CommonArgs {
@@ -198,26 +222,17 @@ pub struct CommonArgs {
     #[arg(long, value_name = "FILE")]
     pub heightmap: Option<PathBuf>,
     /// Size of a raw .r16/.f32 heightfield.
-    #[arg(long, value_name = "WxH", value_parser = parse_size)]
+    #[arg(long, value_name = "WxH", value_parser = parse_size, allow_hyphen_values = true)]
     pub raw_size: Option<(u32, u32)>,
-    /// Metres between samples, or X,Z for different spacings along columns (x) and rows
-    /// (z). Default: what the file's georeferencing says (printed at load).
-    #[arg(long, value_name = "M[,Z]", value_parser = parse_spacing, allow_negative_numbers = true)]
-    pub spacing: Option<Spacing>,
+    /// What the user declares about the terrain's frame.
+    #[command(flatten)]
+    pub frame: FrameArgs,
     /// What voids (nodata samples) become: filled smoothly and drawn, or holes in the
     /// picture (still filled for the LOD bound; shading is then forward).
     #[arg(long, value_enum, default_value_t = VoidMode::Fill)]
     pub voids: VoidMode,
-    /// Metres per height unit. Default: what the file says (printed at load).
-    #[arg(long, value_name = "M", value_parser = positive, allow_negative_numbers = true)]
-    pub height_scale: Option<f32>,
-    /// Whether heights are metres above sea level (absolute: water at or below 0 m,
-    /// colours by height in metres) or only relative (the lowest ground is water, colours
-    /// span the range). Default: absolute when the file names its CRS, else relative.
-    #[arg(long, value_enum, value_name = "absolute|relative")]
-    pub heights: Option<crate::input::georef::Heights>,
     /// Viewport size in pixels.
-    #[arg(long, value_name = "WxH", value_parser = parse_size)]
+    #[arg(long, value_name = "WxH", value_parser = parse_size, allow_hyphen_values = true)]
     pub size: Option<(u32, u32)>,
     /// Camera position in world units (x east, y up, z south). Default: above one edge,
     /// seeing the whole terrain.
@@ -230,7 +245,7 @@ pub struct CommonArgs {
     #[arg(long, value_name = "DEG", default_value = "60", value_parser = parse_fovy, allow_negative_numbers = true)]
     pub fovy: f32,
     /// Block side k = 2^m + 1 vertices.
-    #[arg(long = "block", value_name = "K", default_value_t = 33)]
+    #[arg(long = "block", value_name = "K", default_value_t = 33, allow_negative_numbers = true)]
     pub block: u32,
     /// Vulkan validation (with synchronization validation). Default: on in debug builds.
     #[arg(long, value_enum)]
@@ -278,7 +293,7 @@ pub struct CommonArgs {
     pub traversal_threads: Option<u16>,
     /// Sun for the precomputed shadows and ambient occlusion: compass azimuth and
     /// elevation in degrees (azimuth 0 is north, the top of the heightmap), or `off`.
-    #[arg(long, value_name = "AZ,EL|off", default_value = "301,54", value_parser = parse_sun)]
+    #[arg(long, value_name = "AZ,EL|off", default_value = "301,54", value_parser = parse_sun, allow_negative_numbers = true)]
     pub sun: SunArg,
 }
 
@@ -336,9 +351,9 @@ impl CommonArgs {
             None => Ok(crate::input::procedural::procedural()),
             Some(path) => {
                 let opts = LoadOptions {
-                    spacing: self.spacing,
-                    height_scale: self.height_scale,
-                    heights: self.heights,
+                    spacing: self.frame.spacing,
+                    height_scale: self.frame.height_scale,
+                    heights: self.frame.heights,
                     raw_size: self.raw_size.map(|(w, h)| (w as usize, h as usize)),
                     max_grid_side,
                     voids: self.voids,
@@ -391,11 +406,11 @@ pub struct StreamedOptions {
     #[arg(long)]
     pub stream: bool,
     /// Streamed archives: host cache budget for decoded tiles, MB [default: 256].
-    #[arg(long = "cache-mb", value_name = "MB", value_parser = clap::value_parser!(u32).range(1..=1_000_000))]
+    #[arg(long = "cache-mb", value_name = "MB", value_parser = clap::value_parser!(u32).range(1..=1_000_000), allow_negative_numbers = true)]
     pub cache_mb_given: Option<u32>,
     /// Streamed archives: GPU atlas budget, MB (one layer a tile, at most 2048 layers)
     /// [default: 256].
-    #[arg(long = "gpu-mb", value_name = "MB", value_parser = clap::value_parser!(u32).range(1..=1_000_000))]
+    #[arg(long = "gpu-mb", value_name = "MB", value_parser = clap::value_parser!(u32).range(1..=1_000_000), allow_negative_numbers = true)]
     pub gpu_mb_given: Option<u32>,
 }
 

@@ -275,11 +275,20 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
         Ok((drawn, t.elapsed().as_secs_f64() * 1e3))
     })?;
     let ((pixels, stats), frame_ms) = frame.submitted;
-    if args.raycast != Raycast::Off && stats.raycast_blocks == 0 {
+    if args.raycast != Raycast::Off && stats.raycast_blocks == 0 && stats.draw_calls > 0 {
+        let forward = args.pixels == crate::draw::blocks::PixelPass::Forward
+            || args.colour_by_lod
+            || args.common.voids == crate::input::load::VoidMode::Hole;
+        let why = if forward {
+            "blocks are ray-cast in frames shaded deferred only, and --pixels forward, --colour-by-lod and \
+             --voids hole shade forward"
+        } else {
+            "a block is cast only when it is not morphing, meets no coarser neighbour and lies inside the \
+             terrain's extent, in a frame shaded deferred (a camera too far for the depth pass shades forward); \
+             --morph off leaves more blocks to cast"
+        };
         eprintln!(
-            "vkterrain: note: --raycast {}: no block of this view could be ray-cast (a block is cast only when it is \
-             not morphing, meets no coarser neighbour and lies inside the terrain's extent; --morph off leaves more \
-             blocks to cast)",
+            "vkterrain: note: --raycast {}: no block of this view was ray-cast: {why}",
             crate::app::cli::value_name(args.raycast)
         );
     }
@@ -428,13 +437,13 @@ fn render_streamed(
     crate::app::stream::exit_if_stopped(stop);
     save_png(&args.out, r.width, r.height, &r.pixels)?;
     if let (Some(path), Some(m)) = (&args.export_mesh, &r.mesh) {
-        let facts = crate::app::outputs::TerrainFacts::of_archive(&archive.meta, &args.common);
+        let facts = crate::app::outputs::TerrainFacts::of_archive(&archive.meta, &args.common.frame);
         crate::app::export::write_glb(path, m, &facts)?;
         mesh_into(&mut out, m);
     }
     out["queue_mode"] = json!(queue_mode);
     out["error_mode"] = json!(args.common.error_mode.as_str());
-    crate::app::outputs::TerrainFacts::of_archive(&archive.meta, &args.common).merge_into(&mut out);
+    crate::app::outputs::TerrainFacts::of_archive(&archive.meta, &args.common.frame).merge_into(&mut out);
     let failure = out["first_failure"].as_str().map(str::to_string);
     out["degraded"] = json!(failure.is_some());
     crate::out!("{out}")?;

@@ -198,12 +198,12 @@ impl TerrainFacts {
         Self::of_frame(&m.georef, m.spacing, m.height_scale, [m.width, m.height], m.void_samples)
     }
 
-    /// [`TerrainFacts::of_meta`] with `--spacing` and `--height-scale` where `common`
+    /// [`TerrainFacts::of_meta`] with `--spacing` and `--height-scale` where `frame`
     /// gives them (the streamed terrain is drawn at those).
-    pub fn of_archive(m: &crate::input::archive::Meta, common: &crate::app::cli::CommonArgs) -> Self {
+    pub fn of_archive(m: &crate::input::archive::Meta, frame: &crate::app::cli::FrameArgs) -> Self {
         TerrainFacts {
-            spacing_m: common.spacing.map_or(m.spacing, |s| [s.x, s.z]),
-            height_scale_m: common.height_scale.unwrap_or(m.height_scale),
+            spacing_m: frame.spacing.map_or(m.spacing, |s| [s.x, s.z]),
+            height_scale_m: frame.height_scale.unwrap_or(m.height_scale),
             ..Self::of_meta(m)
         }
     }

@@ -5,7 +5,7 @@ use crate::app::cli::InputError;
 use crate::app::signals::Stop;
 use crate::input::georef::{self, WindowReader};
 use crate::input::load::{self, LoadOptions, VoidMode};
-use crate::lod::heightfield::{Georef, Spacing};
+use crate::lod::heightfield::Georef;
 use crate::prepare::source::{FromArchive, InMemory, Synthetic, Windowed};
 use crate::prepare::{Frame, PrepareError, Source};
 use std::path::{Path, PathBuf};
@@ -25,20 +25,13 @@ pub struct PrepareArgs {
     pub out: PathBuf,
     /// Instead of a file: non-periodic fBm of SIDE x SIDE samples (30 m apart, 16-bit
     /// heights of 0.1 m), made window by window (any size).
-    #[arg(long, value_name = "SIDE", value_parser = clap::value_parser!(u32).range(3..=1_048_577))]
+    #[arg(long, value_name = "SIDE", value_parser = clap::value_parser!(u32).range(3..=1_048_577), allow_negative_numbers = true)]
     pub synthetic: Option<u32>,
-    /// Metres between samples (x, z); default: the file's georeferencing.
-    #[arg(long, value_parser = crate::app::cli::parse_spacing, allow_negative_numbers = true)]
-    pub spacing: Option<Spacing>,
-    /// World units per raw height unit; default: the file's vertical units.
-    #[arg(long, value_parser = crate::app::cli::positive, allow_negative_numbers = true)]
-    pub height_scale: Option<f32>,
-    /// Whether heights are metres above sea level (absolute) or only relative, recorded in
-    /// the archive. Default: absolute when the file names its CRS, else relative.
-    #[arg(long, value_enum, value_name = "absolute|relative")]
-    pub heights: Option<crate::input::georef::Heights>,
+    /// What the archive records of the terrain's frame, over what the input says.
+    #[command(flatten)]
+    pub frame: crate::app::cli::FrameArgs,
     /// Size of a raw .r16/.f32 input, as WIDTHxHEIGHT.
-    #[arg(long, value_parser = crate::app::cli::parse_size)]
+    #[arg(long, value_parser = crate::app::cli::parse_size, allow_hyphen_values = true)]
     pub raw_size: Option<(u32, u32)>,
     /// Read the input window by window even when it would fit in memory (inputs over
     /// 8193^2 samples always are). Voids are then refused, not filled.
@@ -216,9 +209,7 @@ pub(crate) fn prepare_on_the_fly(
         out: dir.join("terrain.pmtiles"),
         synthetic: None,
         // The file's frame as the options give it, as the loader would read it.
-        spacing: common.spacing,
-        height_scale: common.height_scale,
-        heights: common.heights,
+        frame: common.frame,
         raw_size: common.raw_size,
         windows: false,
     };
@@ -306,12 +297,22 @@ fn prepare_archive(args: &PrepareArgs, before_exit: &dyn Fn()) -> anyhow::Result
             archive = crate::input::archive::Archive::open(path).map_err(|e| named(e.to_string()))?;
             let m = &archive.meta;
             let mut georef = m.georef.clone();
-            if let Some(note) = args.heights.and_then(|h| georef::declare_heights(&mut georef, h)) {
+            // What this run declares is no longer assumed, nor what the archive said.
+            let declared = args.frame.declared();
+            georef::drop_overridden(&mut georef.notes, &declared);
+            if let Some(s) = args.frame.spacing {
+                georef.notes.push(format!("spacing {} x {} m from --spacing, not the archive's", s.x, s.z));
+            }
+            if let Some(h) = args.frame.height_scale {
+                georef.notes.push(format!("height scale {h} m a unit from --height-scale, not the archive's"));
+            }
+            if let Some(note) = args.frame.heights.and_then(|h| georef::declare_heights(&mut georef, h)) {
+                georef.notes.push(note.clone());
                 eprintln!("vkterrain: note: {}: {note}", path.display());
             }
             let frame = Frame {
-                spacing: args.spacing.map_or(m.spacing, |s| [s.x, s.z]),
-                height_scale: args.height_scale.unwrap_or(m.height_scale),
+                spacing: args.frame.spacing.map_or(m.spacing, |s| [s.x, s.z]),
+                height_scale: args.frame.height_scale.unwrap_or(m.height_scale),
                 georef,
                 void_samples: m.void_samples,
             };
@@ -329,12 +330,12 @@ fn prepare_archive(args: &PrepareArgs, before_exit: &dyn Fn()) -> anyhow::Result
             synthetic = Synthetic { side: side as usize };
             let frame = Frame {
                 spacing: [
-                    args.spacing.map_or(Synthetic::SPACING, |s| s.x),
-                    args.spacing.map_or(Synthetic::SPACING, |s| s.z),
+                    args.frame.spacing.map_or(Synthetic::SPACING, |s| s.x),
+                    args.frame.spacing.map_or(Synthetic::SPACING, |s| s.z),
                 ],
-                height_scale: args.height_scale.unwrap_or(Synthetic::HEIGHT_SCALE),
+                height_scale: args.frame.height_scale.unwrap_or(Synthetic::HEIGHT_SCALE),
                 georef: Georef {
-                    absolute_heights: args.heights == Some(georef::Heights::Absolute),
+                    absolute_heights: args.frame.heights == Some(georef::Heights::Absolute),
                     ..Georef::default()
                 },
                 void_samples: 0,
@@ -347,8 +348,7 @@ fn prepare_archive(args: &PrepareArgs, before_exit: &dyn Fn()) -> anyhow::Result
             // The same known-data-set lookup as the whole read: read window by window, a
             // file keeps the scale its publisher documents.
             let known = georef::known_for_file(&shown, path, &reader.raster).map_err(|e| named(e.to_string()))?;
-            let declared =
-                georef::Declared { spacing: args.spacing, height_scale: args.height_scale, heights: args.heights };
+            let declared = args.frame.declared();
             let scale =
                 georef::decide(&shown, &reader.raster, &declared, known, false).map_err(|e| named(e.to_string()))?;
             let (w, h) = (reader.raster.width, reader.raster.height);
@@ -367,9 +367,9 @@ fn prepare_archive(args: &PrepareArgs, before_exit: &dyn Fn()) -> anyhow::Result
         }
         (Some(path), None) => {
             let opts = LoadOptions {
-                spacing: args.spacing,
-                height_scale: args.height_scale,
-                heights: args.heights,
+                spacing: args.frame.spacing,
+                height_scale: args.frame.height_scale,
+                heights: args.frame.heights,
                 raw_size: args.raw_size.map(|(w, h)| (w as usize, h as usize)),
                 max_grid_side: None,
                 voids: VoidMode::Fill,

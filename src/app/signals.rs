@@ -1,6 +1,7 @@
 //! Stop requests from signals: Ctrl-C (SIGINT), SIGTERM (a `timeout`, a service manager)
 //! and SIGHUP (a closed terminal). A long run polls [`Stop::flag`] and cleans up; a run
 //! that exits on one exits with the code a shell expects, 128 + the signal (130, 143, 129).
+//! A second signal ends the run at once with that code.
 
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::Arc;
@@ -19,7 +20,11 @@ impl Stop {
     pub fn install() -> Stop {
         let stop = Stop { requested: Arc::new(AtomicBool::new(false)), signal: Arc::new(AtomicUsize::new(0)) };
         for sig in SIGNALS {
-            let installed = signal_hook::flag::register_usize(sig, stop.signal.clone(), sig as usize)
+            // A second signal ends the process at once (128 + the signal): a stop that
+            // waits on something stuck (a read from a stalled server) never traps the
+            // user. Registered first, so that the first signal finds the flag unset.
+            let installed = signal_hook::flag::register_conditional_shutdown(sig, 128 + sig, stop.requested.clone())
+                .and_then(|_| signal_hook::flag::register_usize(sig, stop.signal.clone(), sig as usize))
                 .and_then(|_| signal_hook::flag::register(sig, stop.requested.clone()));
             if let Err(e) = installed {
                 eprintln!("vkterrain: note: signal {sig} keeps its default action ({e})");

@@ -31,8 +31,11 @@ pub struct StreamArgs {
     /// The archive to fly over.
     #[command(flatten)]
     pub input: crate::app::cli::ArchiveInput,
+    /// What to take of the terrain's frame over what the archive says.
+    #[command(flatten)]
+    pub frame: crate::app::cli::FrameArgs,
     /// Host cache budget for decoded tiles, MB (as the other commands').
-    #[arg(long, value_name = "MB", default_value_t = 256, value_parser = clap::value_parser!(u32).range(1..=1_000_000))]
+    #[arg(long, value_name = "MB", default_value_t = 256, value_parser = clap::value_parser!(u32).range(1..=1_000_000), allow_negative_numbers = true)]
     pub cache_mb: u32,
     /// Frames to fly.
     #[arg(long, value_name = "N", default_value_t = 1800, value_parser = crate::app::cli::at_least_one, allow_negative_numbers = true)]
@@ -50,7 +53,7 @@ pub struct StreamArgs {
     #[arg(long, default_value_t = 1.0, value_parser = crate::app::cli::positive, allow_negative_numbers = true)]
     pub delta: f32,
     /// Viewport, WIDTHxHEIGHT.
-    #[arg(long, default_value = "640x480", value_parser = crate::app::cli::parse_size)]
+    #[arg(long, default_value = "640x480", value_parser = crate::app::cli::parse_size, allow_hyphen_values = true)]
     pub size: (u32, u32),
     /// Drop the archive from the page cache first (posix_fadvise DONTNEED), so that the
     /// flight reads from the disk.
@@ -58,7 +61,7 @@ pub struct StreamArgs {
     pub cold: bool,
     /// Draw every frame on the GPU, from a heightfield atlas of this many MB (one layer a
     /// tile, at most 2048 layers). Without it the flight is the host side only.
-    #[arg(long, value_name = "MB", value_parser = clap::value_parser!(u32).range(1..=1_000_000))]
+    #[arg(long, value_name = "MB", value_parser = clap::value_parser!(u32).range(1..=1_000_000), allow_negative_numbers = true)]
     pub gpu_mb: Option<u32>,
     /// With --gpu-mb: write the last frame drawn here.
     #[arg(long, value_name = "FILE.png", requires = "gpu_mb")]
@@ -163,18 +166,24 @@ impl GpuFrames {
         streamer.attach(Box::new(atlas.feed()), HeightAtlas::cache_tiles(atlas.layer_count()));
         let renderer = StreamedRenderer::new(&device, crate::stream::draw::layout(grid), size.0, size.1)?;
         let t0 = Instant::now();
-        let (lighting, no_shadows) =
-            match crate::draw::streamed::lighting_heights(streamer.source().as_ref(), grid, "the archive") {
-                Ok((hf, stride)) => (OwnLighting::new(&device, hf, stride, [grid.width, grid.height], None)?, None),
-                Err(e) => {
-                    tracing::warn!("streamed frames without shadows: {e:#}");
-                    // Frames drawn without their data: the run finishes degraded.
-                    if streamer.first_failure.is_none() {
-                        streamer.first_failure = Some(format!("the lighting map's heights: {e:#}"));
-                    }
-                    (OwnLighting::everything_lit(&device)?, Some(format!("{e:#}")))
+        let (lighting, no_shadows) = match crate::draw::streamed::lighting_heights(
+            streamer.source().as_ref(),
+            grid,
+            "the archive",
+            streamer.stop.as_deref(),
+        ) {
+            Ok((hf, stride)) => (OwnLighting::new(&device, hf, stride, [grid.width, grid.height], None)?, None),
+            // Stopped: the run ends before any frame needs the map.
+            Err(_) if streamer.stopped() => (OwnLighting::everything_lit(&device)?, Some("stopped".into())),
+            Err(e) => {
+                tracing::warn!("streamed frames without shadows: {e:#}");
+                // Frames drawn without their data: the run finishes degraded.
+                if streamer.first_failure.is_none() {
+                    streamer.first_failure = Some(format!("the lighting map's heights: {e:#}"));
                 }
-            };
+                (OwnLighting::everything_lit(&device)?, Some(format!("{e:#}")))
+            }
+        };
         if no_shadows.is_none() {
             eprintln!(
                 "vkterrain: lighting map {} x {} (shadows, ambient occlusion) from samples {} apart (heights read and uploaded in {:.0} ms)",
@@ -399,17 +408,17 @@ pub(crate) fn top_tiles(streamer: &mut Streamer, meta: &Meta) -> anyhow::Result<
 
 /// The grid of an archive as the options frame it: `--spacing` and `--height-scale`
 /// override the archive's own, and say so (as the loader does for files).
-pub(crate) fn streamed_grid(archive: &Archive, common: &CommonArgs) -> Grid {
+pub(crate) fn streamed_grid(archive: &Archive, frame: &crate::app::cli::FrameArgs) -> Grid {
     let mut grid = Grid::from_meta(&archive.meta);
     // (A file prepared on the fly already has them: nothing to say.)
-    if let Some(s) = common.spacing.filter(|s| [f64::from(s.x), f64::from(s.z)] != grid.spacing) {
+    if let Some(s) = frame.spacing.filter(|s| [f64::from(s.x), f64::from(s.z)] != grid.spacing) {
         eprintln!(
             "vkterrain: note: spacing {} x {} m from --spacing, not the archive's {} x {}",
             s.x, s.z, grid.spacing[0], grid.spacing[1]
         );
         grid.spacing = [f64::from(s.x), f64::from(s.z)];
     }
-    if let Some(h) = common.height_scale.filter(|h| f64::from(*h) != grid.height_scale) {
+    if let Some(h) = frame.height_scale.filter(|h| f64::from(*h) != grid.height_scale) {
         eprintln!("vkterrain: note: height scale {h} from --height-scale, not the archive's {}", grid.height_scale);
         grid.height_scale = f64::from(h);
     }
@@ -575,10 +584,9 @@ pub fn streamed_archive(
     if !stream && (archive.grid_side() <= 4096 || archive.grid_side() <= max_side()) {
         return Ok(None);
     }
-    let declared =
-        georef::Declared { spacing: common.spacing, height_scale: common.height_scale, heights: common.heights };
+    let declared = common.frame.declared();
     archive_notes(&crate::input::archive::bytes::shown(path), &archive, &declared);
-    if let Some(note) = common.heights.and_then(|h| georef::declare_heights(&mut archive.meta.georef, h)) {
+    if let Some(note) = common.frame.heights.and_then(|h| georef::declare_heights(&mut archive.meta.georef, h)) {
         eprintln!("vkterrain: note: {}: {note}", path.display());
     }
     Ok(Some((Arc::new(archive), None)))
@@ -648,7 +656,7 @@ pub struct ArchiveRender {
 /// drawn from it (plain shading). The frame waits for its tiles, as a viewer's first frame
 /// does; where the cache cannot hold them it is drawn over the bound and says so.
 pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
-    let grid = streamed_grid(&f.archive, f.common);
+    let grid = streamed_grid(&f.archive, &f.common.frame);
     let (w, h) = f.common.size.unwrap_or((1280, 720));
     crate::app::cli::check_image_size(&f.device, "--size", (w, h))?;
     let layers = f.device.properties.limits.max_image_array_layers;
@@ -796,10 +804,14 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
         }
         crate::app::outputs::check_outputs(&[("--out", Some(out))], &[("archive", Some(args.input.path()))])?;
     }
-    let archive = Arc::new(Archive::open(args.input.path()).map_err(|e| InputError(e.to_string()))?);
-    archive_notes(&crate::input::archive::bytes::shown(args.input.path()), &archive, &georef::Declared::default());
-    let grid = Grid::from_meta(&archive.meta);
     let shown = crate::input::archive::bytes::shown(args.input.path());
+    let mut archive = Archive::open(args.input.path()).map_err(|e| InputError(e.to_string()))?;
+    archive_notes(&shown, &archive, &args.frame.declared());
+    if let Some(note) = args.frame.heights.and_then(|h| georef::declare_heights(&mut archive.meta.georef, h)) {
+        eprintln!("vkterrain: note: {shown}: {note}");
+    }
+    let archive = Arc::new(archive);
+    let grid = streamed_grid(&archive, &args.frame);
     if args.cold && crate::input::archive::bytes::is_url(args.input.path()) {
         eprintln!("vkterrain: note: --cold: {shown} is a URL, with no local page cache to drop");
     } else if args.cold {
@@ -964,7 +976,7 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
         "interrupted": signals.requested(),
         "gpu": gpu.as_ref().map(GpuFrames::report),
     });
-    crate::app::outputs::TerrainFacts::of_meta(&archive.meta).merge_into(&mut json);
+    crate::app::outputs::TerrainFacts::of_archive(&archive.meta, &args.frame).merge_into(&mut json);
     if let (Some(g), Some(out)) = (gpu.as_ref(), args.out.as_ref()) {
         let (w, h) = args.size;
         crate::app::outputs::save_png(out, w, h, &g.last)?;
@@ -993,11 +1005,11 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
         );
     }
     if let Some(failure) = &streamer.first_failure {
-        return Err(Degraded(format!(
-            "{} tile reads failed (first: {failure}); frames were drawn without their data",
-            flight.tiles_failed
-        ))
-        .into());
+        let what = match flight.tiles_failed {
+            0 => format!("tiles could not be read ({failure})"),
+            n => format!("{n} tile reads failed (first: {failure})"),
+        };
+        return Err(Degraded(format!("{what}; frames were drawn without their data")).into());
     }
     Ok(())
 }

@@ -197,7 +197,7 @@ fn go_to(
 /// `vkterrain view` over an archive drawn streamed.
 pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow::Result<()> {
     let shown = crate::app::stream::terrain_name(&args.common);
-    let mut grid = crate::app::stream::streamed_grid(&archive, &args.common);
+    let mut grid = crate::app::stream::streamed_grid(&archive, &args.common.frame);
     let true_height_scale = grid.height_scale;
     // Only the drawn heights scale: the bound (`D * height_scale`) follows.
     grid.height_scale *= f64::from(args.exaggeration);
@@ -277,7 +277,7 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
             worst_factor: 1.0,
             start_position: position.to_array(),
             exaggeration: args.exaggeration,
-            terrain: crate::app::outputs::TerrainFacts::of_archive(&archive.meta, &args.common),
+            terrain: crate::app::outputs::TerrainFacts::of_archive(&archive.meta, &args.common.frame),
             ..Default::default()
         },
     };

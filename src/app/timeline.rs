@@ -44,6 +44,8 @@ struct Span {
 
 pub fn timeline(args: &TimelineArgs) -> anyhow::Result<()> {
     crate::input::regular_file(&args.trace).map_err(|e| InputError(format!("--trace {e}")))?;
+    // Before the work: an output that cannot be written is a bad option (exit 2).
+    crate::app::outputs::check_outputs(&[("--out", Some(&args.out))], &[("--trace", Some(&args.trace))])?;
     let text = std::fs::read_to_string(&args.trace)
         .map_err(|e| InputError(format!("--trace {}: {e}", args.trace.display())))?;
     let trace: Value = serde_json::from_str(&text)

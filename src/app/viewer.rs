@@ -94,7 +94,7 @@ pub struct ViewArgs {
     #[arg(long)]
     pub no_hud: bool,
     /// Resize the window at a frame, e.g. 20:800x600 (repeatable; for tests).
-    #[arg(long, value_name = "FRAME:WxH")]
+    #[arg(long, value_name = "FRAME:WxH", allow_hyphen_values = true)]
     pub resize_at: Vec<String>,
     /// After every frame, write the number of frames drawn so far to this file (replaced
     /// atomically): scripts that drive the viewer with synthetic input wait on it for

@@ -795,7 +795,13 @@ impl Drop for StreamedRenderer {
 /// the level whose vertices fall one to a texel of the map the same terrain gets in
 /// memory (at most the top level; 64 tiles or fewer whatever the terrain's size), read
 /// from `source` (`name`: the archive, for errors that do not name it already).
-pub fn lighting_heights(source: &dyn TileSource, grid: &Grid, name: &str) -> anyhow::Result<(Heightfield, usize)> {
+/// Stops between tiles once `stop` is set (a stop request): an error then.
+pub fn lighting_heights(
+    source: &dyn TileSource,
+    grid: &Grid,
+    name: &str,
+    stop: Option<&std::sync::atomic::AtomicBool>,
+) -> anyhow::Result<(Heightfield, usize)> {
     let (n, roots) = crate::lod::heightfield::grid_cover(grid.width, grid.height);
     let side = roots.iter().map(|r| r * (1 << n) + 1).max().unwrap_or(1);
     let level = (samples_per_texel(side, MAX_LIGHTING_SIDE).trailing_zeros() as u8).min(grid.top);
@@ -807,10 +813,16 @@ pub fn lighting_heights(source: &dyn TileSource, grid: &Grid, name: &str) -> any
         spacing: grid.spacing.map(|s| s as f32),
         height_scale: grid.height_scale as f32,
     };
-    let hf = level_heightfield(&terrain, level, |tx, tz| match source.read(TileKey { level, tx, tz }) {
-        Ok(Some((tile, _))) => Ok(tile),
-        Ok(None) => Err(HeightfieldError::invalid(name, format!("tile {level}/{tx}/{tz} is missing")).into()),
-        Err(e) => Err(anyhow::anyhow!(e)),
+    let stopped = || stop.is_some_and(|s| s.load(std::sync::atomic::Ordering::SeqCst));
+    let hf = level_heightfield(&terrain, level, |tx, tz| {
+        if stopped() {
+            return Err(anyhow::anyhow!("stopped"));
+        }
+        match source.read(TileKey { level, tx, tz }) {
+            Ok(Some((tile, _))) => Ok(tile),
+            Ok(None) => Err(HeightfieldError::invalid(name, format!("tile {level}/{tx}/{tz} is missing")).into()),
+            Err(e) => Err(anyhow::anyhow!(e)),
+        }
     })?;
     Ok((hf, 1 << level))
 }

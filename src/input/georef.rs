@@ -1008,7 +1008,7 @@ pub fn decide(
             file_scale,
             format!("scale {file_scale} a unit, unit not given: metres assumed (--height-scale sets it)"),
         )),
-        None if georeferenced => Some((1.0, "unit not given: metres assumed (--height-scale sets it)".into())),
+        None if georeferenced => Some((1.0, "unit not given: metres assumed".into())),
         None => None,
     };
     let height_scale = match (height_scale, &file_height, known) {
@@ -1021,7 +1021,9 @@ pub fn decide(
             v
         }
         (None, Some((v, words)), _) => {
-            notes.push(format!("heights: {words} -> {v} m a unit"));
+            // What was assumed names the flag that sets it.
+            let sets = if words.contains("assumed") { " (--height-scale sets it)" } else { "" };
+            notes.push(format!("heights: {words} -> {v} m a unit{sets}"));
             *v as f32
         }
         (None, None, Some(k)) => {
