@@ -230,6 +230,7 @@ fn bad_options() {
     fails_cleanly(&["view", "--fog", "nan"], &["--fog", "finite"]);
     fails_cleanly(&["view", "--frames", "0"], &["--frames", "1 or more"]);
     fails_cleanly(&["bench", "--frames", "0"], &["--frames", "1 or more"]);
+    fails_cleanly(&["view", "--screenshot", "shot.txt"], &["--screenshot shot.txt", ".png"]);
     fails_cleanly(&["stream", "--frames", "0"], &["--frames", "1 or more"]);
     fails_cleanly(&["view", "--resize-at", "2:0x0"], &["--resize-at 2:0x0", "at least 1x1"]);
     // A number is a device index, never part of a name ("LLVM 15.0.6" holds a 5).

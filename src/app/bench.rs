@@ -273,8 +273,14 @@ pub(crate) struct Progress {
 }
 
 impl Progress {
+    /// A run's progress, named as the option that chose it ("error" alone would read as a
+    /// failure).
     fn new(label: &str, total: u64) -> Self {
-        Progress::counting(label, total, "frames")
+        let shown = match label {
+            "error" | "full" | "distance" => format!("--lod {label}"),
+            other => other.to_string(),
+        };
+        Progress::counting(&shown, total, "frames")
     }
 
     pub(crate) fn counting(label: &str, total: u64, unit: &'static str) -> Self {
@@ -305,7 +311,7 @@ impl Progress {
             let width = 30;
             let filled = (done * width / self.total.max(1)) as usize;
             eprint!(
-                "\r{:>10} [{}{}] {done}/{} {}, {rate:.1} {per_s} ",
+                "\r{:>14} [{}{}] {done}/{} {}, {rate:.1} {per_s} ",
                 self.label,
                 "#".repeat(filled),
                 ".".repeat(width as usize - filled),

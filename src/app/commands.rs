@@ -210,7 +210,7 @@ fn parse_background(s: &str) -> Result<[f32; 3], InputError> {
 
 pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
     args.common.check_terrain()?;
-    if args.out.extension().and_then(|e| e.to_str()).map(|e| e.to_lowercase()) != Some("png".into()) {
+    if !crate::app::outputs::is_png(&args.out) {
         return Err(InputError(format!("--out {}: the output must be a .png file", args.out.display())).into());
     }
     if let Some(p) = &args.export_mesh {

@@ -218,6 +218,11 @@ impl TerrainFacts {
     }
 }
 
+/// Whether `path` names a PNG file by its extension (any case).
+pub fn is_png(path: &Path) -> bool {
+    path.extension().and_then(|e| e.to_str()).is_some_and(|e| e.eq_ignore_ascii_case("png"))
+}
+
 /// This process's peak resident memory (VmHWM) in MB, where /proc says it (Linux).
 pub fn peak_resident_mb() -> Option<f64> {
     let status = std::fs::read_to_string("/proc/self/status").ok()?;

@@ -799,7 +799,7 @@ fn along_line(d: f64, length: f64) -> (f64, f64) {
 
 pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
     if let Some(out) = &args.out {
-        if out.extension().and_then(|e| e.to_str()).map(|e| e.to_lowercase()) != Some("png".into()) {
+        if !crate::app::outputs::is_png(out) {
             return Err(InputError(format!("--out {}: the output must be a .png file", out.display())).into());
         }
         crate::app::outputs::check_outputs(&[("--out", Some(out))], &[("archive", Some(args.input.path()))])?;

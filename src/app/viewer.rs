@@ -364,6 +364,11 @@ fn view_archive(args: &ViewArgs, resizes: &[(u64, u32, u32)]) -> anyhow::Result<
 
 pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
     args.common.check_terrain()?;
+    if let Some(p) = args.screenshot.as_ref().filter(|p| !crate::app::outputs::is_png(p)) {
+        return Err(
+            InputError(format!("--screenshot {}: the screenshot is written as a .png file", p.display())).into()
+        );
+    }
     // Output paths are checked before the run, not when it ends: distinct files that
     // are not inputs.
     crate::app::outputs::check_outputs(
