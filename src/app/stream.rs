@@ -899,7 +899,18 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
     let warm = Instant::now();
     let range = match top_tiles(&mut streamer, &archive.meta) {
         Err(_) if signals.requested() => {
-            return Err(Interrupted::by(&signals, "while the top tiles were read: nothing flown").into())
+            // Stopped before the flight: what there is to say, as a flight's JSON says it.
+            let mut json = serde_json::json!({
+                "archive": &shown,
+                "frames": 0,
+                "warm_up": { "seconds": warm.elapsed().as_secs_f64(), "tiles_loaded": streamer.stats.tiles_loaded },
+                "first_failure": streamer.first_failure,
+                "degraded": false,
+                "interrupted": true,
+            });
+            crate::app::outputs::TerrainFacts::of_archive(&archive.meta, &args.frame).merge_into(&mut json);
+            crate::out!("{}", serde_json::to_string_pretty(&json)?)?;
+            return Err(Interrupted::by(&signals, "while the top tiles were read: nothing flown").into());
         }
         r => r?,
     };
