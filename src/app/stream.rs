@@ -509,11 +509,12 @@ pub(crate) fn settle(streamer: &mut Streamer, at: impl Fn(&Streamer) -> View, de
 }
 
 /// Prints what `prepare` recorded about an archive's frame (how its spacing, height unit
-/// and datum were decided, what was assumed), less what `declared` now sets, as a file's
-/// load prints it.
-fn archive_notes(shown: &str, archive: &Archive, declared: &georef::Declared) {
+/// and datum were decided, what was assumed), less what `frame` now sets, as a file's
+/// load prints it; then applies `--heights` (spacing and height scale: [`streamed_grid`]).
+fn declare_frame(shown: &str, archive: &mut Archive, frame: &crate::app::cli::FrameArgs) {
     let mut notes = archive.meta.georef.notes.clone();
-    georef::drop_overridden(&mut notes, declared);
+    georef::drop_overridden(&mut notes, &frame.declared());
+    notes.extend(frame.heights.and_then(|h| georef::declare_heights(&mut archive.meta.georef, h)));
     for n in notes {
         eprintln!("vkterrain: note: {shown}: {n}");
     }
@@ -584,11 +585,7 @@ pub fn streamed_archive(
     if !stream && (archive.grid_side() <= 4096 || archive.grid_side() <= max_side()) {
         return Ok(None);
     }
-    let declared = common.frame.declared();
-    archive_notes(&crate::input::archive::bytes::shown(path), &archive, &declared);
-    if let Some(note) = common.frame.heights.and_then(|h| georef::declare_heights(&mut archive.meta.georef, h)) {
-        eprintln!("vkterrain: note: {}: {note}", path.display());
-    }
+    declare_frame(&crate::input::archive::bytes::shown(path), &mut archive, &common.frame);
     Ok(Some((Arc::new(archive), None)))
 }
 
@@ -806,10 +803,7 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
     }
     let shown = crate::input::archive::bytes::shown(args.input.path());
     let mut archive = Archive::open(args.input.path()).map_err(|e| InputError(e.to_string()))?;
-    archive_notes(&shown, &archive, &args.frame.declared());
-    if let Some(note) = args.frame.heights.and_then(|h| georef::declare_heights(&mut archive.meta.georef, h)) {
-        eprintln!("vkterrain: note: {shown}: {note}");
-    }
+    declare_frame(&shown, &mut archive, &args.frame);
     let archive = Arc::new(archive);
     let grid = streamed_grid(&archive, &args.frame);
     if args.cold && crate::input::archive::bytes::is_url(args.input.path()) {
