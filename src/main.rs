@@ -34,7 +34,7 @@ enum Command {
     Prepare(vkterrain::app::prepare::PrepareArgs),
     /// Read every tile of an archive and check it (sizes, layout, checksums).
     Check(vkterrain::app::prepare::CheckArgs),
-    /// Fly low over an archive headless, streaming its tiles through a bounded cache, and
+    /// Fly low over a terrain headless, its tiles streamed through a bounded cache, and
     /// report what was read, held and drawn over the bound, as JSON.
     Stream(vkterrain::app::stream::StreamArgs),
 }
@@ -97,14 +97,15 @@ fn main() -> ExitCode {
     };
     // Each subcommand takes its terrain as TERRAIN or as --heightmap FILE.
     match &mut cli.command {
-        None => cli.view.common.take_terrain(),
-        Some(Command::View(a)) => a.common.take_terrain(),
-        Some(Command::Render(a)) => a.common.take_terrain(),
-        Some(Command::Errors(a)) => a.common.take_terrain(),
-        Some(Command::Bench(a)) => a.common.take_terrain(),
-        Some(Command::Quality(a)) => a.common.take_terrain(),
+        None => cli.view.common.terrain.take_terrain(),
+        Some(Command::View(a)) => a.common.terrain.take_terrain(),
+        Some(Command::Render(a)) => a.common.terrain.take_terrain(),
+        Some(Command::Errors(a)) => a.common.terrain.take_terrain(),
+        Some(Command::Bench(a)) => a.common.terrain.take_terrain(),
+        Some(Command::Quality(a)) => a.common.terrain.take_terrain(),
+        Some(Command::Stream(a)) => a.terrain.take_terrain(),
         Some(Command::Prepare(a)) => a.input.extend(a.heightmap.take()),
-        Some(Command::Timeline(_) | Command::Check(_) | Command::Stream(_)) => {}
+        Some(Command::Timeline(_) | Command::Check(_)) => {}
     }
     let result = match &cli.command {
         None => vkterrain::app::viewer::view(&cli.view),

@@ -77,6 +77,9 @@ fn every_subcommand_takes_its_terrain_positionally_or_as_heightmap() {
     let flown = |form: &[&str]| json(&cli(&[&["stream"][..], form, &["--frames", "3", "--fps", "300"]].concat()));
     assert_eq!(flown(&[a])["frames"], 3);
     assert_eq!(flown(&["--heightmap", a])["frames"], 3);
+    // Any terrain flies: the file itself and the built-in terrain, cut into tiles.
+    assert_eq!(flown(&[f])["blocks_per_frame"], flown(&[a])["blocks_per_frame"]);
+    assert_eq!(flown(&[])["frames"], 3);
 }
 
 /// A second terrain where one goes gets the right form in its one-line message (exit 2),

@@ -410,8 +410,11 @@ fn render_draws_an_archive_streamed_within_the_bound() {
         assert_eq!(o.status.code(), Some(2), "{extra:?}: {err}");
         assert!(err.contains(named) && err.contains("s.pmtiles") && err.contains("streamed"), "{err}");
     }
-    let o = cli(&["render", "--stream", "--out", p]);
-    assert_eq!(o.status.code(), Some(2), "--stream without an archive: {}", String::from_utf8_lossy(&o.stderr));
+    // Without a terrain: the built-in one, cut into tiles.
+    let o = cli(&["render", "--stream", "--size", "64x48", "--validation", "on", "--out", p]);
+    assert!(o.status.success(), "--stream on the built-in terrain: {}", String::from_utf8_lossy(&o.stderr));
+    let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!((r["streamed"].clone(), r["validation_messages"].clone()), (true.into(), 0.into()), "{r}");
 
     // An atlas of seven layers: the cache holds no more tiles than that, so the frame is
     // drawn coarser and over the bound, with no block missing from the picture.
@@ -429,8 +432,8 @@ fn render_draws_an_archive_streamed_within_the_bound() {
         (serde_json::json!([10.0, 10.0]), serde_json::json!(2.0))
     );
     assert!(String::from_utf8_lossy(&o.stderr).contains("from --spacing"));
-    // A terrain file is prepared on the fly (into a temporary archive, removed) and drawn
-    // streamed: the same frame as its archive prepared beforehand, byte for byte.
+    // A terrain file is cut into tiles in memory (nothing written) and drawn streamed: the
+    // same frame as its archive prepared beforehand, byte for byte.
     let ps = common::data("puget_sound/ps_height_1k.png");
     let pre = dir.path().join("ps.pmtiles");
     let o = cli(&["prepare", ps.to_str().unwrap(), "--out", pre.to_str().unwrap()]);
@@ -445,10 +448,8 @@ fn render_draws_an_archive_streamed_within_the_bound() {
         assert_eq!(r["within_bound"], true, "{r}");
         std::fs::read(out).unwrap()
     };
-    let stale_before = on_the_fly_dirs();
     let on_the_fly = frame(&ps, &dir.path().join("fly.png"));
     assert_eq!(on_the_fly, frame(&pre, &dir.path().join("pre.png")), "the same frame from either");
-    assert_eq!(on_the_fly_dirs(), stale_before, "the temporary archive is removed");
     // A raw file streamed: prepared on the fly with --raw-size and --spacing (as the
     // loader reads it; no spacing assumed), drawn at that spacing. An archive knows its
     // own size: --raw-size with one is refused, naming it.
@@ -637,18 +638,6 @@ fn a_streamed_frame_is_coloured_as_the_terrain_in_memory() {
         smooth < 0.95 * flat && smooth_far < flat_far && smooth_lit < 0.95 * lit,
         "--shading heights: RMSE {smooth:.2} against {flat:.2} flat, lit {smooth_lit:.2} against {lit:.2}"
     );
-}
-
-/// The temporary directories of terrains prepared on the fly, in the temporary directory.
-fn on_the_fly_dirs() -> Vec<std::path::PathBuf> {
-    let mut dirs: Vec<_> = std::fs::read_dir(std::env::temp_dir())
-        .unwrap()
-        .flatten()
-        .map(|e| e.path())
-        .filter(|p| p.file_name().is_some_and(|n| n.to_string_lossy().starts_with("vkterrain-streamed-")))
-        .collect();
-    dirs.sort();
-    dirs
 }
 
 /// `bench --stream` runs a path over an archive drawn streamed, under validation: every
@@ -846,62 +835,46 @@ fn spawn_streamed_render(
         .env("TMPDIR", tmp.path())
         .env("RUST_LOG", "error")
         .stdout(std::process::Stdio::null())
-        .stderr(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
         .spawn()
         .unwrap()
 }
 
-/// A stop signal while a terrain file is prepared on the fly for `render --stream` ends
-/// the run with 128 + the signal and leaves nothing behind: not the partial archive, not
-/// its private directory (an adversarial review found the directory left until the next
-/// streamed run removed it).
+/// A stop signal while a terrain file is cut into tiles for `render --stream` ends the
+/// run with 128 + the signal and leaves nothing behind (no output, nothing in the
+/// temporary directory); so does one once the tiles are cut, while the frame is drawn
+/// and audited (the cutting's handlers are obeyed: the run used to draw on and exit 0).
 #[test]
-fn a_stream_prepared_on_the_fly_and_stopped_leaves_nothing() {
+fn a_stream_cut_from_a_file_and_stopped_leaves_nothing() {
     let ps = common::data("puget_sound/ps_height_4k.jpg");
-    for (signal, code) in [("TERM", 143), ("INT", 130)] {
+    // (signal, exit code, the stderr line after which it is sent, extra options)
+    let cases = [
+        ("TERM", 143, "into tiles in memory", &["--size", "64x48"][..]),
+        ("INT", 130, "into tiles in memory", &["--size", "64x48"][..]),
+        ("TERM", 143, "drawn streamed", &["--audit", "--size", "640x480"][..]),
+    ];
+    for (signal, code, after, extra) in cases {
         let tmp = TempDir::new("gpu-stream-stop");
         let out = tmp.path().join("out");
         std::fs::create_dir(&out).unwrap();
-        let mut child = spawn_streamed_render(&ps, &tmp, &out, &["--size", "64x48"]);
-        let private = tmp.path().join(format!("vkterrain-streamed-{}", child.id()));
-        let partial = private.join(format!(".terrain.pmtiles.partial-{}", child.id()));
-        // Wait (polling the condition, not a fixed sleep) for the partial archive.
-        let started = std::time::Instant::now();
-        while !partial.exists() {
-            assert!(child.try_wait().unwrap().is_none(), "SIG{signal}: the run ended before it was stopped");
-            assert!(started.elapsed().as_secs() < 120, "SIG{signal}: no partial archive after 120 s");
-            std::thread::sleep(std::time::Duration::from_millis(5));
-        }
+        let mut child = spawn_streamed_render(&ps, &tmp, &out, extra);
+        // Wait for the line (reading it, not a fixed sleep), then stop the run.
+        let mut lines = std::io::BufRead::lines(std::io::BufReader::new(child.stderr.take().unwrap()));
+        let seen = lines.by_ref().map_while(Result::ok).any(|l| l.contains(after));
+        assert!(seen, "SIG{signal}: the run ended before '{after}'");
         let kill =
             std::process::Command::new("kill").args([&format!("-{signal}"), &child.id().to_string()]).status().unwrap();
         assert!(kill.success());
+        lines.for_each(drop);
         let status = child.wait().unwrap();
-        assert_eq!(status.code(), Some(code), "SIG{signal}: {status:?}");
-        assert!(!private.exists(), "SIG{signal}: {} left behind", private.display());
-        assert!(std::fs::read_dir(&out).unwrap().next().is_none(), "SIG{signal}: an output was written");
+        assert_eq!(status.code(), Some(code), "SIG{signal} after '{after}': {status:?}");
+        assert!(
+            std::fs::read_dir(&out).unwrap().next().is_none(),
+            "SIG{signal} after '{after}': an output was written"
+        );
+        let left: Vec<_> = std::fs::read_dir(tmp.path()).unwrap().flatten().map(|e| e.file_name()).collect();
+        assert_eq!(left, ["out"], "SIG{signal} after '{after}': left in the temporary directory");
     }
-    // Stopped once the archive is open (its directory gone), while the frame is drawn and
-    // audited: the preparation's handlers are obeyed, so the run ends as the signal asks
-    // (it used to draw on and exit 0), writing nothing.
-    let tmp = TempDir::new("gpu-stream-stop-after");
-    let out = tmp.path().join("out");
-    std::fs::create_dir(&out).unwrap();
-    let mut child = spawn_streamed_render(&ps, &tmp, &out, &["--audit", "--size", "640x480"]);
-    let private = tmp.path().join(format!("vkterrain-streamed-{}", child.id()));
-    let started = std::time::Instant::now();
-    let (mut seen, mut gone) = (false, false);
-    while !gone {
-        assert!(child.try_wait().unwrap().is_none(), "the run ended before it was stopped");
-        assert!(started.elapsed().as_secs() < 240, "the preparation did not end in 240 s");
-        seen |= private.exists();
-        gone = seen && !private.exists();
-        std::thread::sleep(std::time::Duration::from_millis(5));
-    }
-    let kill = std::process::Command::new("kill").args(["-TERM", &child.id().to_string()]).status().unwrap();
-    assert!(kill.success());
-    let status = child.wait().unwrap();
-    assert_eq!(status.code(), Some(143), "stopped after the preparation: {status:?}");
-    assert!(std::fs::read_dir(&out).unwrap().next().is_none(), "stopped after the preparation: an output was written");
 }
 
 /// An adversarial review's field (flat 16-bit ground with one LOD-1 vertex raised 6

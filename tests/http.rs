@@ -229,3 +229,45 @@ fn a_stalled_server_does_not_hold_up_a_stop() {
     );
     assert!(err.contains("vkterrain: interrupted: "), "{err}");
 }
+
+/// One terrain opened three ways (the file, cut into tiles in memory; its archive; that
+/// archive over HTTP) is one terrain drawn from tiles: the same blocks, the same
+/// triangles, the same frame byte for byte, and the same flight.
+#[test]
+fn a_file_its_archive_and_its_url_draw_the_same() {
+    let dir = TempDir::new("http-three-ways");
+    let file = common::data("puget_sound/ps_height_1k.png");
+    let archive = dir.path().join("ps.pmtiles");
+    let o = cli(&["prepare", file.to_str().unwrap(), "--out", archive.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let (base, _) = serve(dir.path().to_path_buf(), Mode::Ranges);
+    let url = format!("{base}/ps.pmtiles");
+    let json = |o: std::process::Output| -> serde_json::Value {
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        serde_json::from_slice(&o.stdout).unwrap()
+    };
+    let view = ["--stream", "--validation", "on", "--size", "160x120", "--camera", "20000,9000,150000"];
+    let mut drawn = Vec::new();
+    for (i, source) in [file.to_str().unwrap(), archive.to_str().unwrap(), url.as_str()].into_iter().enumerate() {
+        let png = dir.path().join(format!("{i}.png"));
+        let mut args = vec!["render", source, "--look-at", "80000,0,80000", "--out", png.to_str().unwrap()];
+        args.extend(view);
+        let r = json(cli(&args));
+        assert_eq!(
+            (r["validation_messages"].clone(), r["within_bound"].clone()),
+            (0.into(), true.into()),
+            "{source}: {r}"
+        );
+        assert!(r["blocks"].as_u64().unwrap() > 10, "{source}: {r}");
+        let mut facts: Vec<serde_json::Value> =
+            ["blocks", "triangles", "morphing", "hidden_parts"].iter().map(|k| r[k].clone()).collect();
+        facts.push(r["gpu"]["tiles_uploaded"].clone());
+        let flight = json(cli(&["stream", source, "--frames", "30", "--fps", "120"]));
+        facts.extend(["blocks_per_frame", "morphing_per_frame", "frames_over_bound"].map(|k| flight[k].clone()));
+        drawn.push((source, facts, std::fs::read(&png).unwrap()));
+    }
+    for (source, facts, png) in &drawn[1..] {
+        assert_eq!(facts, &drawn[0].1, "{source} against {}", drawn[0].0);
+        assert!(png == &drawn[0].2, "{source}: a different frame from {}", drawn[0].0);
+    }
+}

@@ -880,7 +880,7 @@ fn parse_fault(arg: &str, frames: u64, full_run: bool) -> Result<Fault, InputErr
 }
 
 pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
-    args.common.check_terrain()?;
+    args.common.terrain.check_terrain()?;
     // Ctrl-C (or SIGTERM) stops the run cleanly; what was measured so far is written.
     // Installed first, so that a Ctrl-C during set-up still ends with a summary.
     let signals = super::signals::Stop::install();
@@ -906,7 +906,9 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     let device = crate::app::commands::open_device(&args.common)?;
     let max_side = || device.max_image_dimension_2d() as usize;
     // The bench polls its own stop handlers (`signals`), not a preparation's.
-    if let Some((archive, _)) = crate::app::stream::streamed_archive(&args.common, args.streamed.stream, max_side)? {
+    if let Some((archive, _)) =
+        crate::app::stream::streamed_archive(&args.common.terrain, args.streamed.stream, max_side)?
+    {
         return bench_streamed(args, device, archive, poses, frames, &signals);
     }
     args.streamed.note_unused();
@@ -1210,13 +1212,13 @@ fn bench_streamed(
     frames: u64,
     signals: &super::signals::Stop,
 ) -> anyhow::Result<()> {
-    use crate::app::stream::{atlas_bound_streamer, streamed_grid, terrain_name, top_tiles, GpuFrames};
+    use crate::app::stream::{atlas_bound_streamer, streamed_grid, top_tiles, GpuFrames};
     use crate::stream::traverse::View;
     let refused = args.not_streamed();
     if !refused.is_empty() {
         return Err(InputError(format!(
             "{} is drawn streamed (tiles through a bounded cache), which does not take {} yet",
-            terrain_name(&args.common),
+            args.common.terrain.name(),
             refused.join(", ")
         ))
         .into());
@@ -1233,7 +1235,7 @@ fn bench_streamed(
     // the atlas's uploads (CPU tracks only: streamed frames take no timestamps).
     let trace_path = args.out.join("trace.json");
     let trace = Trace::to_file(&trace_path).map_err(|e| anyhow::anyhow!("{}: {e}", trace_path.display()))?;
-    let grid = streamed_grid(&archive, &args.common.frame);
+    let grid = streamed_grid(&archive, &args.common.terrain.frame);
     let (cache_mb, gpu_mb) = (args.streamed.cache_mb(), args.streamed.gpu_mb());
     let layers = device.properties.limits.max_image_array_layers;
     let mut streamer = atlas_bound_streamer(archive.clone(), grid, cache_mb, gpu_mb, layers, &trace)?;
@@ -1329,7 +1331,7 @@ fn bench_streamed(
     let stats = streamer.stats.clone();
     let mut summary = json!({
         "streamed": true,
-        "terrain": terrain_name(&args.common),
+        "terrain": args.common.terrain.name(),
         "frames": drawn,
         "seconds": seconds,
         "avg_fps": drawn as f64 / seconds.max(1e-9),
@@ -1361,7 +1363,7 @@ fn bench_streamed(
         "first_failure": streamer.first_failure,
     });
     let streamer_failure = streamer.first_failure.clone();
-    crate::app::outputs::TerrainFacts::of_archive(&archive.meta, &args.common.frame).merge_into(&mut summary);
+    crate::app::outputs::TerrainFacts::of_archive(&archive.meta, &args.common.terrain.frame).merge_into(&mut summary);
     drop(gpu);
     drop(device);
     drop(streamer); // joins the IO thread: its last read is in the trace

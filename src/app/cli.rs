@@ -210,14 +210,15 @@ impl FrameArgs {
     }
 }
 
-/// Options the drawing subcommands share.
+/// The terrain a command draws or flies over, and how to read it: the same options
+/// wherever a terrain is opened.
 #[derive(Args, Clone, Debug)]
-pub struct CommonArgs {
+pub struct TerrainArgs {
     /// The terrain: a heightfield file (GeoTIFF, .hgt, PNG, JPEG, .r16, .f32, anything
     /// GDAL reads), an archive written by `vkterrain prepare`, or an archive's http(s)://
     /// URL. Default: the built-in procedural terrain (2049 x 2049, 30 m spacing).
     #[arg(value_name = "TERRAIN", conflicts_with = "heightmap")]
-    pub terrain: Option<PathBuf>,
+    pub file: Option<PathBuf>,
     /// The same as TERRAIN, as an option.
     #[arg(long, value_name = "FILE")]
     pub heightmap: Option<PathBuf>,
@@ -231,6 +232,13 @@ pub struct CommonArgs {
     /// picture (still filled for the LOD bound; shading is then forward).
     #[arg(long, value_enum, default_value_t = VoidMode::Fill)]
     pub voids: VoidMode,
+}
+
+/// Options the drawing subcommands share.
+#[derive(Args, Clone, Debug)]
+pub struct CommonArgs {
+    #[command(flatten)]
+    pub terrain: TerrainArgs,
     /// Viewport size in pixels.
     #[arg(long, value_name = "WxH", value_parser = parse_size, allow_hyphen_values = true)]
     pub size: Option<(u32, u32)>,
@@ -313,18 +321,10 @@ impl CommonArgs {
     }
 }
 
-/// The `--sun` option: a sun, or none (no shadows or occlusion).
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct SunArg(pub Option<crate::draw::lighting::Sun>);
-
-fn parse_sun(s: &str) -> Result<SunArg, String> {
-    crate::draw::lighting::Sun::parse(s).map(SunArg)
-}
-
-impl CommonArgs {
+impl TerrainArgs {
     /// The terrain given as TERRAIN becomes `heightmap`, the one field the commands read.
     pub fn take_terrain(&mut self) {
-        if let Some(t) = self.terrain.take() {
+        if let Some(t) = self.file.take() {
             self.heightmap = Some(t);
         }
     }
@@ -338,10 +338,6 @@ impl CommonArgs {
             }
             _ => Ok(()),
         }
-    }
-
-    pub fn validation(&self) -> bool {
-        validation_on(self.validation)
     }
 
     /// Loads `--heightmap` (or the built-in terrain); `max_grid_side` is the device's
@@ -367,6 +363,25 @@ impl CommonArgs {
                 Ok(hf)
             }
         }
+    }
+
+    /// How the terrain is named to the user: the file or URL given, or the built-in one.
+    pub fn name(&self) -> String {
+        self.heightmap.as_deref().map_or_else(|| "the built-in terrain".into(), crate::input::archive::bytes::shown)
+    }
+}
+
+/// The `--sun` option: a sun, or none (no shadows or occlusion).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SunArg(pub Option<crate::draw::lighting::Sun>);
+
+fn parse_sun(s: &str) -> Result<SunArg, String> {
+    crate::draw::lighting::Sun::parse(s).map(SunArg)
+}
+
+impl CommonArgs {
+    pub fn validation(&self) -> bool {
+        validation_on(self.validation)
     }
 
     pub fn camera(&self, hf: &Heightfield, default_size: (u32, u32)) -> Result<Camera, InputError> {

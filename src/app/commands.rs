@@ -133,7 +133,7 @@ impl Session {
         common: &CommonArgs,
         textures: Option<&TextureArgs>,
     ) -> anyhow::Result<Self> {
-        let hf = common.load_heightfield(Some(device.max_image_dimension_2d() as usize))?;
+        let hf = common.terrain.load_heightfield(Some(device.max_image_dimension_2d() as usize))?;
         Session::check_size(&device, &hf)?;
         let layout = BlockLayout::of(&hf, common.block).map_err(InputError)?;
         if layout.k() != common.block {
@@ -209,7 +209,7 @@ fn parse_background(s: &str) -> Result<[f32; 3], InputError> {
 }
 
 pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
-    args.common.check_terrain()?;
+    args.common.terrain.check_terrain()?;
     if !crate::app::outputs::is_png(&args.out) {
         return Err(InputError(format!("--out {}: the output must be a .png file", args.out.display())).into());
     }
@@ -225,7 +225,7 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
     let [texture, detail] = args.textures.inputs();
     check_outputs(
         &[("--out", Some(&args.out)), ("--export-mesh", args.export_mesh.as_deref())],
-        &[("--heightmap", args.common.heightmap.as_deref()), texture, detail],
+        &[("--heightmap", args.common.terrain.heightmap.as_deref()), texture, detail],
     )?;
     let mut shading = Shading {
         fog_density: args.fog,
@@ -242,7 +242,9 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
     let shading = args.textures.shade(shading);
     let device = open_device(&args.common)?;
     let max_side = || device.max_image_dimension_2d() as usize;
-    if let Some((archive, stop)) = crate::app::stream::streamed_archive(&args.common, args.streamed.stream, max_side)? {
+    if let Some((archive, stop)) =
+        crate::app::stream::streamed_archive(&args.common.terrain, args.streamed.stream, max_side)?
+    {
         return render_streamed(args, device, archive, stop.as_ref());
     }
     args.streamed.note_unused();
@@ -278,7 +280,7 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
     if args.raycast != Raycast::Off && stats.raycast_blocks == 0 && stats.draw_calls > 0 {
         let forward = args.pixels == crate::draw::blocks::PixelPass::Forward
             || args.colour_by_lod
-            || args.common.voids == crate::input::load::VoidMode::Hole;
+            || args.common.terrain.voids == crate::input::load::VoidMode::Hole;
         let why = if forward {
             "blocks are ray-cast in frames shaded deferred only, and --pixels forward, --colour-by-lod and \
              --voids hole shade forward"
@@ -382,7 +384,7 @@ fn render_streamed(
     archive: Arc<Archive>,
     stop: Option<&crate::app::signals::Stop>,
 ) -> anyhow::Result<()> {
-    let shown = crate::app::stream::terrain_name(&args.common);
+    let shown = args.common.terrain.name();
     let refused = args.not_streamed();
     if !refused.is_empty() {
         return Err(InputError(format!(
@@ -417,6 +419,7 @@ fn render_streamed(
         // streamed path itself never holds.
         let hf = args
             .common
+            .terrain
             .load_heightfield(None)
             .map_err(|e| InputError(format!("--audit compares the frame with every sample, in memory: {e:#}")))?;
         let v = &r.view;
@@ -437,13 +440,13 @@ fn render_streamed(
     crate::app::stream::exit_if_stopped(stop);
     save_png(&args.out, r.width, r.height, &r.pixels)?;
     if let (Some(path), Some(m)) = (&args.export_mesh, &r.mesh) {
-        let facts = crate::app::outputs::TerrainFacts::of_archive(&archive.meta, &args.common.frame);
+        let facts = crate::app::outputs::TerrainFacts::of_archive(&archive.meta, &args.common.terrain.frame);
         crate::app::export::write_glb(path, m, &facts)?;
         mesh_into(&mut out, m);
     }
     out["queue_mode"] = json!(queue_mode);
     out["error_mode"] = json!(args.common.error_mode.as_str());
-    crate::app::outputs::TerrainFacts::of_archive(&archive.meta, &args.common.frame).merge_into(&mut out);
+    crate::app::outputs::TerrainFacts::of_archive(&archive.meta, &args.common.terrain.frame).merge_into(&mut out);
     let failure = out["first_failure"].as_str().map(str::to_string);
     out["degraded"] = json!(failure.is_some());
     crate::out!("{out}")?;
@@ -488,8 +491,8 @@ fn finish(s: Session) -> anyhow::Result<()> {
 pub fn errors(args: &ErrorsArgs) -> anyhow::Result<()> {
     // Checked before the device and the generations: a dump that cannot be written
     // would otherwise fail at the end.
-    args.common.check_terrain()?;
-    check_outputs(&[("--dump", args.dump.as_deref())], &[("--heightmap", args.common.heightmap.as_deref())])?;
+    args.common.terrain.check_terrain()?;
+    check_outputs(&[("--dump", args.dump.as_deref())], &[("--heightmap", args.common.terrain.heightmap.as_deref())])?;
     let s = Session::open(&args.common, None)?;
     let cam = args.common.camera(&s.hf, (1280, 720))?;
     let activity = ErrorsActivity::start(&s.device, s.terrain.clone(), s.hf.clone(), s.layout)?;

@@ -174,12 +174,10 @@ impl Drop for MosaicDir {
 }
 
 pub fn prepare(args: &PrepareArgs) -> anyhow::Result<()> {
-    let (json, _) = prepare_archive(args, &|| {})?;
+    let (json, _, _) = prepare_archive(args, Output::File, &|| {})?;
     crate::out!("{}", serde_json::to_string_pretty(&json)?)?;
     Ok(())
 }
-
-const ON_THE_FLY_PREFIX: &str = "vkterrain-streamed-";
 
 /// The samples of a raster GDAL reads (its header only); `None` for what it does not
 /// read (raw files).
@@ -187,49 +185,58 @@ pub(crate) fn raster_size(path: &Path) -> Option<(usize, usize)> {
     WindowReader::open(path).ok().map(|r| (r.raster.width, r.raster.height))
 }
 
-/// A terrain file prepared on the fly into an archive, to be drawn streamed: written into
-/// a private temporary directory and opened, then the directory is removed (the open
-/// handle keeps the file readable until the archive is dropped), so nothing is left
-/// behind; a directory a killed run left is removed by the next. With the archive, the
-/// stop signals' handlers the preparation installed (SIGINT, SIGTERM and SIGHUP no longer
-/// end the process by themselves): a caller that installs none of its own polls these.
-pub(crate) fn prepare_on_the_fly(
+/// A terrain file cut into tiles in memory (nothing written), to be drawn from them as an
+/// archive is; with the stop signals' handlers the cutting installed (SIGINT, SIGTERM and
+/// SIGHUP no longer end the process by themselves): a caller that installs none of its
+/// own polls these. What memory holds is the compressed tiles, about what the archive
+/// `vkterrain prepare` writes would take on disk.
+pub(crate) fn tiles_of_file(
     path: &Path,
-    common: &crate::app::cli::CommonArgs,
+    terrain: &crate::app::cli::TerrainArgs,
 ) -> anyhow::Result<(crate::input::archive::Archive, Stop)> {
-    for stale in crate::input::left_by_dead_runs(&std::env::temp_dir(), ON_THE_FLY_PREFIX) {
-        let _ = std::fs::remove_dir_all(stale);
-    }
-    let dir = std::env::temp_dir().join(format!("{ON_THE_FLY_PREFIX}{}", std::process::id()));
-    std::fs::create_dir_all(&dir).map_err(|e| InputError(format!("{}: {e}", dir.display())))?;
-    eprintln!("vkterrain: note: {}: prepared into a temporary archive, to be drawn streamed", path.display());
     let args = PrepareArgs {
         input: vec![path.to_path_buf()],
         heightmap: None,
-        out: dir.join("terrain.pmtiles"),
+        out: PathBuf::new(),
         synthetic: None,
         // The file's frame as the options give it, as the loader would read it.
-        frame: common.frame,
-        raw_size: common.raw_size,
+        frame: terrain.frame,
+        raw_size: terrain.raw_size,
         windows: false,
     };
-    // An interrupted prepare exits the process: the directory goes first.
-    let remove_dir = || {
-        let _ = std::fs::remove_dir_all(&dir);
-    };
-    let opened = prepare_archive(&args, &remove_dir).and_then(|(_, stop)| {
-        let archive = crate::input::archive::Archive::open(&args.out).map_err(|e| InputError(e.to_string()))?;
-        Ok((archive, stop))
-    });
-    let _ = std::fs::remove_dir_all(&dir);
-    opened
+    let (_, archive, stop) = prepare_archive(&args, Output::Memory, &|| {})?;
+    Ok((archive.expect("cut in memory"), stop))
 }
 
-/// [`prepare`] without printing its report: the report. A stop signal ends the process
-/// (128 + the signal) once the partial output is gone, after `before_exit` (the caller's
-/// own cleaning: exit() runs no destructors).
-fn prepare_archive(args: &PrepareArgs, before_exit: &dyn Fn()) -> anyhow::Result<(serde_json::Value, Stop)> {
-    if args.out.is_dir() {
+/// The built-in terrain cut into tiles in memory, framed as the options say.
+pub(crate) fn tiles_of_builtin(
+    terrain: &crate::app::cli::TerrainArgs,
+) -> anyhow::Result<crate::input::archive::Archive> {
+    let hf = terrain.load_heightfield(None)?;
+    let never = std::sync::atomic::AtomicBool::new(false);
+    let (_, archive) = crate::prepare::cut(&InMemory(&hf), &Frame::of(&hf), &|_, _| {}, &never)
+        .map_err(|e| InputError(e.to_string()))?;
+    Ok(archive)
+}
+
+/// Where [`prepare_archive`] puts the tiles: the file `--out` names, or memory (the
+/// archive is returned).
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Output {
+    File,
+    Memory,
+}
+
+/// [`prepare`] without printing its report: the report, and the archive when it is held
+/// in memory. A stop signal ends the process (128 + the signal) once the partial output
+/// is gone, after `before_exit` (the caller's own cleaning: exit() runs no destructors).
+fn prepare_archive(
+    args: &PrepareArgs,
+    output: Output,
+    before_exit: &dyn Fn(),
+) -> anyhow::Result<(serde_json::Value, Option<crate::input::archive::Archive>, Stop)> {
+    let to_file = output == Output::File;
+    if to_file && args.out.is_dir() {
         return Err(InputError(format!(
             "--out {}: is a directory; name the archive file to write",
             args.out.display()
@@ -246,11 +253,13 @@ fn prepare_archive(args: &PrepareArgs, before_exit: &dyn Fn()) -> anyhow::Result
         if !crate::input::archive::bytes::is_url(input) {
             crate::input::regular_file(input).map_err(InputError)?;
         }
-        out_is_not_input(input, &args.out)?;
+        if to_file {
+            out_is_not_input(input, &args.out)?;
+        }
     }
     // Every command that opens archives knows them by their contents, but a name that
     // says another format (`x.png`) would mislead every other program.
-    if !args.out.extension().is_some_and(|e| e.eq_ignore_ascii_case("pmtiles")) {
+    if to_file && !args.out.extension().is_some_and(|e| e.eq_ignore_ascii_case("pmtiles")) {
         return Err(
             InputError(format!("--out {}: an archive is written as a .pmtiles file", args.out.display())).into()
         );
@@ -258,7 +267,7 @@ fn prepare_archive(args: &PrepareArgs, before_exit: &dyn Fn()) -> anyhow::Result
     // A missing directory or a pipe fails now, not after the run.
     let inputs: Vec<(&str, Option<&std::path::Path>)> =
         files.iter().map(|f| ("the input", Some(f.as_path()))).collect();
-    crate::app::outputs::check_outputs(&[("--out", Some(&args.out))], &inputs)?;
+    crate::app::outputs::check_outputs(&[("--out", to_file.then_some(args.out.as_path()))], &inputs)?;
     // Many files: one GDAL VRT over them, then read like any raster.
     let mut mosaic_dir: Option<MosaicDir> = None;
     let mut mosaic_name: Option<String> = None;
@@ -379,13 +388,7 @@ fn prepare_archive(args: &PrepareArgs, before_exit: &dyn Fn()) -> anyhow::Result
             for line in crate::input::describe(&loaded) {
                 eprintln!("vkterrain: note: {line}");
             }
-            let frame = Frame {
-                spacing: [loaded.spacing.x, loaded.spacing.z],
-                height_scale: loaded.height_scale,
-                georef: loaded.georef.clone(),
-                void_samples: loaded.void_samples,
-            };
-            (&InMemory(&loaded), frame)
+            (&InMemory(&loaded), Frame::of(&loaded))
         }
         (None, None) => unreachable!("clap requires an input or --synthetic"),
     };
@@ -400,13 +403,14 @@ fn prepare_archive(args: &PrepareArgs, before_exit: &dyn Fn()) -> anyhow::Result
     };
     if stop.requested() {
         drop(mosaic_dir.take());
-        eprintln!("vkterrain: interrupted: no archive written");
+        eprintln!("vkterrain: interrupted: {}", if to_file { "no archive written" } else { "nothing written" });
         before_exit();
         std::process::exit(stop.exit_code());
     }
     let (w, h) = source.size();
     crate::prepare::check_frame(&source.name(), &frame, w, h).map_err(|e| InputError(e.to_string()))?;
-    eprintln!("vkterrain: preparing {} ({w} x {h} samples) into {}", source.name(), args.out.display());
+    let into = if to_file { args.out.display().to_string() } else { "tiles in memory".into() };
+    eprintln!("vkterrain: preparing {} ({w} x {h} samples) into {into}", source.name());
     let bar = indicatif::ProgressBar::new(0).with_style(
         indicatif::ProgressStyle::with_template("{elapsed_precise} [{bar:40}] {pos}/{len} windows, ETA {eta}")
             .expect("progress template")
@@ -425,13 +429,16 @@ fn prepare_archive(args: &PrepareArgs, before_exit: &dyn Fn()) -> anyhow::Result
             eprintln!("vkterrain: prepare: {done} of {total} windows, {elapsed:.0} s, about {eta:.0} s to go");
         }
     };
-    let result = crate::prepare::prepare(source, &frame, &args.out, &progress, stop.flag());
+    let result = match output {
+        Output::File => crate::prepare::prepare(source, &frame, &args.out, &progress, stop.flag()).map(|r| (r, None)),
+        Output::Memory => crate::prepare::cut(source, &frame, &progress, stop.flag()).map(|(r, a)| (r, Some(a))),
+    };
     bar.finish_and_clear();
-    let report = match result {
+    let (report, archive) = match result {
         Ok(r) => r,
         Err(PrepareError::Source(m)) => return Err(InputError(m).into()),
         Err(PrepareError::Interrupted) => {
-            eprintln!("vkterrain: interrupted: no archive written");
+            eprintln!("vkterrain: interrupted: {}", if to_file { "no archive written" } else { "nothing written" });
             drop(mosaic_dir.take()); // exit() runs no destructors
             before_exit();
             std::process::exit(stop.exit_code());
@@ -442,7 +449,7 @@ fn prepare_archive(args: &PrepareArgs, before_exit: &dyn Fn()) -> anyhow::Result
     };
     let peak = crate::app::outputs::peak_resident_mb();
     let mut json = serde_json::json!({
-        "archive": args.out.display().to_string(),
+        "archive": to_file.then(|| args.out.display().to_string()),
         "report": report,
         "peak_resident_mb": peak,
     });
@@ -455,8 +462,8 @@ fn prepare_archive(args: &PrepareArgs, before_exit: &dyn Fn()) -> anyhow::Result
     )
     .merge_into(&mut json);
     eprintln!(
-        "vkterrain: wrote {}: {} tiles ({} distinct) in {} levels, {:.1} MB ({:.0}% of {:.1} MB uncompressed), {:.1} s, peak resident {}",
-        args.out.display(),
+        "vkterrain: {}: {} tiles ({} distinct) in {} levels, {:.1} MB ({:.0}% of {:.1} MB uncompressed), {:.1} s, peak resident {}",
+        if to_file { format!("wrote {}", args.out.display()) } else { format!("cut {}", source.name()) },
         report.tiles,
         report.distinct_tiles,
         report.levels,
@@ -466,7 +473,7 @@ fn prepare_archive(args: &PrepareArgs, before_exit: &dyn Fn()) -> anyhow::Result
         report.seconds,
         peak.map_or("unknown".into(), |mb| format!("{mb:.0} MB")),
     );
-    Ok((json, stop))
+    Ok((json, archive, stop))
 }
 
 #[derive(clap::Args, Debug)]

@@ -58,7 +58,7 @@ const FACTORS: [f32; 9] = [32.0, 22.6, 16.0, 11.3, 8.0, 5.66, 4.0, 2.83, 2.0];
 
 pub fn quality(args: &QualityArgs) -> anyhow::Result<()> {
     crate::app::outputs::output_dir("--out", &args.out)?;
-    let hf = args.common.load_heightfield(None)?;
+    let hf = args.common.terrain.load_heightfield(None)?;
     let layout = BlockLayout::of(&hf, args.common.block).map_err(InputError)?;
     let mm = MinMaxPyramid::build(&hf);
     let size = args.common.size.unwrap_or((640, 480));

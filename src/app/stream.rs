@@ -3,13 +3,14 @@
 //! held and drew as JSON. With `--gpu-mb` every frame is also drawn on the GPU from the
 //! heightfield atlas ([`crate::draw::streamed`]); without it, frames are selections.
 
-use crate::app::cli::{CommonArgs, Degraded, InputError, Interrupted, OnOff};
+use crate::app::cli::{CommonArgs, Degraded, InputError, Interrupted, OnOff, TerrainArgs};
 use crate::app::signals::Stop;
 use crate::draw::frame::{traversal_threads, LodChoice};
 use crate::draw::lighting::Sun;
 use crate::draw::lighting_gpu::OwnLighting;
 use crate::draw::streamed::{FrameView, HeightRange, Overlay, StreamedRenderer, WindowImage};
 use crate::errors::atlas::HeightAtlas;
+use crate::input::archive::bytes::is_url;
 use crate::input::archive::{Archive, Meta};
 use crate::input::georef;
 use crate::lod::morph::MorphRule;
@@ -28,12 +29,10 @@ use std::time::{Duration, Instant};
 
 #[derive(clap::Args, Debug)]
 pub struct StreamArgs {
-    /// The archive to fly over.
+    /// The terrain to fly over (an archive is read tile by tile; a file, or the built-in
+    /// terrain, is cut into tiles in memory first).
     #[command(flatten)]
-    pub input: crate::app::cli::ArchiveInput,
-    /// What to take of the terrain's frame over what the archive says.
-    #[command(flatten)]
-    pub frame: crate::app::cli::FrameArgs,
+    pub terrain: TerrainArgs,
     /// Host cache budget for decoded tiles, MB (as the other commands').
     #[arg(long, value_name = "MB", default_value_t = 256, value_parser = clap::value_parser!(u32).range(1..=1_000_000), allow_negative_numbers = true)]
     pub cache_mb: u32,
@@ -520,27 +519,25 @@ fn declare_frame(shown: &str, archive: &mut Archive, frame: &crate::app::cli::Fr
     }
 }
 
-/// How the terrain drawn streamed is named to the user: the file or URL they gave (an
-/// archive prepared on the fly lives in a temporary file, removed).
-pub fn terrain_name(common: &CommonArgs) -> String {
-    common.heightmap.as_deref().map_or_else(|| "the built-in terrain".into(), crate::input::archive::bytes::shown)
-}
-
-/// The archive `common.heightmap` names when a command draws it streamed: with
-/// `--stream`, or when its grid is larger than one image (`max_side()`, the device's).
-/// A file prepared on the fly comes with the stop signals' handlers its preparation
-/// installed ([`crate::app::prepare::prepare_on_the_fly`]), for a caller with none of its
-/// own to poll.
+/// The tiles of the terrain `terrain` names when a command draws it streamed: with
+/// `stream`, or when its grid is larger than one image (`max_side()`, the device's). A
+/// terrain file, or the built-in terrain, is cut into tiles in memory; a file cut so
+/// comes with the stop signals' handlers its cutting installed
+/// ([`crate::app::prepare::tiles_of_file`]), for a caller with none of its own to poll.
 pub fn streamed_archive(
-    common: &CommonArgs,
+    terrain: &TerrainArgs,
     stream: bool,
     max_side: impl FnOnce() -> usize,
 ) -> anyhow::Result<Option<(Arc<Archive>, Option<Stop>)>> {
-    let Some(path) = common.heightmap.as_deref() else {
-        if stream {
-            return Err(InputError("--stream draws a terrain file or archive: give one with --heightmap".into()).into());
+    let hole = terrain.voids == crate::input::load::VoidMode::Hole;
+    let Some(path) = terrain.heightmap.as_deref() else {
+        if !stream {
+            return Ok(None);
         }
-        return Ok(None);
+        if hole {
+            return Err(InputError("--voids hole: the built-in terrain has no voids".into()).into());
+        }
+        return Ok(Some((Arc::new(crate::app::prepare::tiles_of_builtin(terrain)?), None)));
     };
     // Before anything opens it (sniffing the archive, reading a raster's header): a FIFO
     // would block in open().
@@ -548,8 +545,8 @@ pub fn streamed_archive(
         crate::input::regular_file(path).map_err(InputError)?;
     }
     if !Archive::is_archive(path) {
-        // A file larger than one image (or any, with --stream) is prepared into an
-        // archive on the fly: one path for every size.
+        // A file larger than one image (or any, with `stream`) is cut into tiles: one
+        // path for every size.
         let too_big = || {
             crate::app::prepare::raster_size(path).is_some_and(|(w, h)| {
                 let (n, roots) = crate::lod::heightfield::grid_cover(w, h);
@@ -561,20 +558,20 @@ pub fn streamed_archive(
         if !(stream || too_big()) {
             return Ok(None);
         }
-        if common.voids == crate::input::load::VoidMode::Hole {
+        if hole {
             return Err(InputError(format!(
-                "{}: --voids hole: a terrain drawn streamed has its voids filled (prepare keeps no void mask)",
+                "{}: --voids hole: a terrain drawn from tiles has its voids filled (tiles keep no void mask)",
                 path.display()
             ))
             .into());
         }
-        let (archive, stop) = crate::app::prepare::prepare_on_the_fly(path, common)?;
+        let (archive, stop) = crate::app::prepare::tiles_of_file(path, terrain)?;
         return Ok(Some((Arc::new(archive), Some(stop))));
     }
-    if common.voids == crate::input::load::VoidMode::Hole {
+    if hole {
         return Ok(None); // refused by the loader, naming the archive
     }
-    if common.raw_size.is_some() {
+    if terrain.raw_size.is_some() {
         return Err(InputError(format!(
             "{}: --raw-size is for raw height files; an archive knows its own size",
             path.display()
@@ -585,7 +582,7 @@ pub fn streamed_archive(
     if !stream && (archive.grid_side() <= 4096 || archive.grid_side() <= max_side()) {
         return Ok(None);
     }
-    declare_frame(&crate::input::archive::bytes::shown(path), &mut archive, &common.frame);
+    declare_frame(&crate::input::archive::bytes::shown(path), &mut archive, &terrain.frame);
     Ok(Some((Arc::new(archive), None)))
 }
 
@@ -653,7 +650,7 @@ pub struct ArchiveRender {
 /// drawn from it (plain shading). The frame waits for its tiles, as a viewer's first frame
 /// does; where the cache cannot hold them it is drawn over the bound and says so.
 pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
-    let grid = streamed_grid(&f.archive, &f.common.frame);
+    let grid = streamed_grid(&f.archive, &f.common.terrain.frame);
     let (w, h) = f.common.size.unwrap_or((1280, 720));
     crate::app::cli::check_image_size(&f.device, "--size", (w, h))?;
     let layers = f.device.properties.limits.max_image_array_layers;
@@ -799,18 +796,23 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
         if !crate::app::outputs::is_png(out) {
             return Err(InputError(format!("--out {}: the output must be a .png file", out.display())).into());
         }
-        crate::app::outputs::check_outputs(&[("--out", Some(out))], &[("archive", Some(args.input.path()))])?;
+        crate::app::outputs::check_outputs(
+            &[("--out", Some(out))],
+            &[("the terrain", args.terrain.heightmap.as_deref())],
+        )?;
     }
-    let shown = crate::input::archive::bytes::shown(args.input.path());
-    let mut archive = Archive::open(args.input.path()).map_err(|e| InputError(e.to_string()))?;
-    declare_frame(&shown, &mut archive, &args.frame);
-    let archive = Arc::new(archive);
-    let grid = streamed_grid(&archive, &args.frame);
-    if args.cold && crate::input::archive::bytes::is_url(args.input.path()) {
-        eprintln!("vkterrain: note: --cold: {shown} is a URL, with no local page cache to drop");
-    } else if args.cold {
-        drop_from_page_cache(args.input.path())
-            .map_err(|e| InputError(format!("{shown}: dropping it from the page cache: {e}")))?;
+    let shown = args.terrain.name();
+    let (archive, _) = streamed_archive(&args.terrain, true, || usize::MAX)?.expect("a terrain drawn from tiles");
+    let grid = streamed_grid(&archive, &args.terrain.frame);
+    let local_archive = args.terrain.heightmap.as_deref().filter(|p| !archive.held_in_memory() && !is_url(p));
+    match (args.cold, local_archive) {
+        (false, _) => {}
+        (true, Some(path)) => drop_from_page_cache(path)
+            .map_err(|e| InputError(format!("{shown}: dropping it from the page cache: {e}")))?,
+        (true, None) if args.terrain.heightmap.as_deref().is_some_and(is_url) => {
+            eprintln!("vkterrain: note: --cold: {shown} is a URL, with no local page cache to drop")
+        }
+        (true, None) => eprintln!("vkterrain: note: --cold: {shown} is cut into tiles in memory, not read from disk"),
     }
     let (w, h) = args.size;
     let extent = grid.world_extent();
@@ -902,7 +904,7 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
                 "degraded": false,
                 "interrupted": true,
             });
-            crate::app::outputs::TerrainFacts::of_archive(&archive.meta, &args.frame).merge_into(&mut json);
+            crate::app::outputs::TerrainFacts::of_archive(&archive.meta, &args.terrain.frame).merge_into(&mut json);
             crate::out!("{}", serde_json::to_string_pretty(&json)?)?;
             return Err(Interrupted::by(&signals, "while the top tiles were read: nothing flown").into());
         }
@@ -981,7 +983,7 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
         "interrupted": signals.requested(),
         "gpu": gpu.as_ref().map(GpuFrames::report),
     });
-    crate::app::outputs::TerrainFacts::of_archive(&archive.meta, &args.frame).merge_into(&mut json);
+    crate::app::outputs::TerrainFacts::of_archive(&archive.meta, &args.terrain.frame).merge_into(&mut json);
     if let (Some(g), Some(out)) = (gpu.as_ref(), args.out.as_ref()) {
         let (w, h) = args.size;
         crate::app::outputs::save_png(out, w, h, &g.last)?;

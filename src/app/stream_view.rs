@@ -196,8 +196,8 @@ fn go_to(
 
 /// `vkterrain view` over an archive drawn streamed.
 pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow::Result<()> {
-    let shown = crate::app::stream::terrain_name(&args.common);
-    let mut grid = crate::app::stream::streamed_grid(&archive, &args.common.frame);
+    let shown = args.common.terrain.name();
+    let mut grid = crate::app::stream::streamed_grid(&archive, &args.common.terrain.frame);
     let true_height_scale = grid.height_scale;
     // Only the drawn heights scale: the bound (`D * height_scale`) follows.
     grid.height_scale *= f64::from(args.exaggeration);
@@ -277,7 +277,7 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
             worst_factor: 1.0,
             start_position: position.to_array(),
             exaggeration: args.exaggeration,
-            terrain: crate::app::outputs::TerrainFacts::of_archive(&archive.meta, &args.common.frame),
+            terrain: crate::app::outputs::TerrainFacts::of_archive(&archive.meta, &args.common.terrain.frame),
             ..Default::default()
         },
     };
@@ -333,7 +333,7 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
 impl App {
     fn open(&mut self, event_loop: &ActiveEventLoop) -> anyhow::Result<()> {
         let (w, h) = self.args.common.size.unwrap_or((1280, 720));
-        let title = format!("vkterrain: {} (streamed)", crate::app::stream::terrain_name(&self.args.common));
+        let title = format!("vkterrain: {} (streamed)", self.args.common.terrain.name());
         let resizes = self.win.resizes.iter().map(|&(f, w, h)| (format!("--resize-at {f}"), w, h));
         let sizes: Vec<(String, u32, u32)> = std::iter::once(("--size".to_string(), w, h)).chain(resizes).collect();
         let (window, surface, device) =

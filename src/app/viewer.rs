@@ -324,8 +324,9 @@ fn view_archive(args: &ViewArgs, resizes: &[(u64, u32, u32)]) -> anyhow::Result<
     };
     // Without a device the in-memory path says why, as before. The viewer installs its
     // own stop handlers (a preparation's are not needed).
-    let Some((archive, _)) =
-        crate::app::stream::streamed_archive(&args.common, args.streamed.stream, || max_side().unwrap_or(usize::MAX))?
+    let Some((archive, _)) = crate::app::stream::streamed_archive(&args.common.terrain, args.streamed.stream, || {
+        max_side().unwrap_or(usize::MAX)
+    })?
     else {
         args.streamed.note_unused();
         return Ok(false);
@@ -334,7 +335,7 @@ fn view_archive(args: &ViewArgs, resizes: &[(u64, u32, u32)]) -> anyhow::Result<
     if !refused.is_empty() {
         return Err(InputError(format!(
             "{} is drawn streamed (tiles through a bounded cache), which does not take {} yet",
-            crate::app::stream::terrain_name(&args.common),
+            args.common.terrain.name(),
             refused.join(", ")
         ))
         .into());
@@ -363,7 +364,7 @@ fn view_archive(args: &ViewArgs, resizes: &[(u64, u32, u32)]) -> anyhow::Result<
 }
 
 pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
-    args.common.check_terrain()?;
+    args.common.terrain.check_terrain()?;
     if let Some(p) = args.screenshot.as_ref().filter(|p| !crate::app::outputs::is_png(p)) {
         return Err(
             InputError(format!("--screenshot {}: the screenshot is written as a .png file", p.display())).into()
@@ -378,13 +379,17 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
             ("--screenshot", args.screenshot.as_deref()),
             ("--trace", args.trace.as_deref()),
         ],
-        &[("--heightmap", args.common.heightmap.as_deref()), args.textures.inputs()[0], args.textures.inputs()[1]],
+        &[
+            ("--heightmap", args.common.terrain.heightmap.as_deref()),
+            args.textures.inputs()[0],
+            args.textures.inputs()[1],
+        ],
     )?;
     let resizes = args.window_resizes()?;
     if view_archive(args, &resizes)? {
         return Ok(());
     }
-    let mut hf = args.common.load_heightfield(None)?;
+    let mut hf = args.common.terrain.load_heightfield(None)?;
     let true_height_scale = hf.height_scale;
     hf.height_scale *= args.exaggeration;
     let layout = BlockLayout::of(&hf, args.common.block).map_err(InputError)?;

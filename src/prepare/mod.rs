@@ -14,7 +14,7 @@
 pub mod source;
 
 use crate::input::archive::tile::{self, Samples, Tile};
-use crate::input::archive::{pmtiles, ArchiveWriter, Meta, ARCHIVE_VERSION, TILE_QUADS};
+use crate::input::archive::{pmtiles, Archive, ArchiveWriter, Meta, ARCHIVE_VERSION, TILE_QUADS};
 use crate::lod::deviation::square_deviation;
 use crate::lod::heightfield::Georef;
 pub use source::Source;
@@ -30,6 +30,18 @@ pub struct Frame {
     pub height_scale: f32,
     pub georef: Georef,
     pub void_samples: usize,
+}
+
+impl Frame {
+    /// The frame of a heightfield already loaded (its voids filled, its frame decided).
+    pub fn of(hf: &crate::lod::heightfield::Heightfield) -> Frame {
+        Frame {
+            spacing: [hf.spacing.x, hf.spacing.z],
+            height_scale: hf.height_scale,
+            georef: hf.georef.clone(),
+            void_samples: hf.void_samples,
+        }
+    }
 }
 
 /// What a run made, for the report.
@@ -78,7 +90,8 @@ struct Run<'a> {
     /// Window corners: sample `(i T, j T)` at `i + j (2^top + 1)`.
     lattice: Vec<f32>,
     writer: Mutex<ArchiveWriter>,
-    out: &'a Path,
+    /// The archive's name in messages.
+    out: &'a str,
     seen: Mutex<HashSet<u64>>,
     raw_bytes: AtomicU64,
     leaves_done: AtomicU64,
@@ -125,6 +138,46 @@ pub fn prepare(
     stop: &AtomicBool,
 ) -> Result<Prepared, PrepareError> {
     let started = std::time::Instant::now();
+    let io = |source| PrepareError::Write { path: out.display().to_string(), source };
+    let writer = ArchiveWriter::create(out).map_err(io)?;
+    let (mut prepared, mut meta, writer) =
+        write_tiles(source, frame, writer, &out.display().to_string(), progress, stop)?;
+    prepared.archive_bytes = writer.finish(&mut meta).map_err(io)?;
+    prepared.seconds = started.elapsed().as_secs_f64();
+    Ok(prepared)
+}
+
+/// Cuts `source` into an archive held in memory (nothing is written): how a terrain file
+/// is drawn from tiles like any archive. `progress` and `stop` as for [`prepare`].
+pub fn cut(
+    source: &dyn Source,
+    frame: &Frame,
+    progress: &(dyn Fn(u64, u64) + Sync),
+    stop: &AtomicBool,
+) -> Result<(Prepared, Archive), PrepareError> {
+    let started = std::time::Instant::now();
+    let io = |source| PrepareError::Write { path: "memory".into(), source };
+    let (mut prepared, mut meta, writer) =
+        write_tiles(source, frame, ArchiveWriter::memory(), "memory", progress, stop)?;
+    let bytes = writer.finish_in_memory(&mut meta).map_err(io)?;
+    prepared.archive_bytes = bytes.len() as u64;
+    prepared.seconds = started.elapsed().as_secs_f64();
+    let archive = Archive::in_memory(Path::new(&source.name()), bytes).map_err(|e| {
+        PrepareError::Source(format!("{}: the tiles cut in memory do not read back: {e}", source.name()))
+    })?;
+    Ok((prepared, archive))
+}
+
+/// Every tile of `source` into `writer` (named `out` in messages); the report (less the
+/// archive's size), the metadata, and the writer to finish.
+fn write_tiles(
+    source: &dyn Source,
+    frame: &Frame,
+    writer: ArchiveWriter,
+    out: &str,
+    progress: &(dyn Fn(u64, u64) + Sync),
+    stop: &AtomicBool,
+) -> Result<(Prepared, Meta, ArchiveWriter), PrepareError> {
     let (width, height) = source.size();
     if width < 3 || height < 3 {
         return Err(PrepareError::Source(format!(
@@ -138,8 +191,6 @@ pub fn prepare(
     let corners = (1usize << top) + 1;
     let mut lattice = Vec::new();
     source.read(0, 0, corners, corners, TILE_QUADS, &mut lattice).map_err(PrepareError::Source)?;
-    let io = |source| PrepareError::Write { path: out.display().to_string(), source };
-    let writer = ArchiveWriter::create(out).map_err(io)?;
     let span0 = TILE_QUADS;
     let leaves_total = ((width - 1).div_ceil(span0) * (height - 1).div_ceil(span0)) as u64;
     let run = Run {
@@ -162,7 +213,7 @@ pub fn prepare(
         range: Mutex::new([f32::INFINITY, f32::NEG_INFINITY]),
     };
     run.build(top, 0, 0)?;
-    let mut meta = Meta {
+    let meta = Meta {
         kind: "vkterrain terrain archive".into(),
         version: ARCHIVE_VERSION,
         width,
@@ -182,18 +233,17 @@ pub fn prepare(
         tiles: 0,
         raw_range: Some(run.range.into_inner().expect("range lock")),
     };
-    let writer = run.writer.into_inner().expect("writer lock");
-    let archive_bytes = writer.finish(&mut meta).map_err(io)?;
-    Ok(Prepared {
+    let prepared = Prepared {
         width,
         height,
         levels: u32::from(top) + 1,
-        tiles: meta.tiles,
+        tiles: meta.tiles().count() as u64,
         distinct_tiles: run.seen.into_inner().expect("seen lock").len() as u64,
-        archive_bytes,
+        archive_bytes: 0,
         raw_bytes: run.raw_bytes.into_inner(),
-        seconds: started.elapsed().as_secs_f64(),
-    })
+        seconds: 0.0,
+    };
+    Ok((prepared, meta, run.writer.into_inner().expect("writer lock")))
 }
 
 impl Run<'_> {
@@ -368,7 +418,7 @@ impl Run<'_> {
             h.finish()
         };
         self.seen.lock().expect("seen lock").insert(key);
-        let io = |source| PrepareError::Write { path: self.out.display().to_string(), source };
+        let io = |source| PrepareError::Write { path: self.out.to_string(), source };
         self.writer.lock().expect("writer lock").add(self.top, level, tx, tz, &compressed).map_err(io)?;
         Ok(())
     }

@@ -31,6 +31,8 @@ pub fn shown(path: &Path) -> String {
 pub enum Bytes {
     File(File),
     Http(Http),
+    /// An archive made in memory: a terrain file cut into tiles at load.
+    Memory(Vec<u8>),
 }
 
 pub struct Http {
@@ -57,6 +59,11 @@ impl Bytes {
         match self {
             Bytes::File(f) => f.read_exact_at(buf, offset).map_err(|e| e.to_string()),
             Bytes::Http(h) => h.read_at(buf, offset),
+            Bytes::Memory(m) => {
+                let start = usize::try_from(offset).map_err(|e| e.to_string())?;
+                buf.copy_from_slice(&m[start..start + buf.len()]);
+                Ok(())
+            }
         }
     }
 }

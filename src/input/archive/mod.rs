@@ -155,6 +155,18 @@ impl Archive {
             }
         }
         let (file, len) = bytes::Bytes::open(path).map_err(|e| bad(path, e))?;
+        Archive::read(path, file, len)
+    }
+
+    /// An archive held in memory (written by [`ArchiveWriter::memory`]); `name` is what
+    /// its messages call it (the file it was cut from).
+    pub fn in_memory(name: &Path, archive: Vec<u8>) -> Result<Archive, HeightfieldError> {
+        let len = archive.len() as u64;
+        Archive::read(name, bytes::Bytes::Memory(archive), len)
+    }
+
+    /// Reads and checks the header, metadata and root directory of the archive in `file`.
+    fn read(path: &Path, file: bytes::Bytes, len: u64) -> Result<Archive, HeightfieldError> {
         let read = |offset: u64, length: u64, what: &str| -> Result<Vec<u8>, HeightfieldError> {
             if offset.checked_add(length).is_none_or(|end| end > len) {
                 return Err(bad(
@@ -245,6 +257,11 @@ impl Archive {
             ));
         }
         Ok(Archive { path: path.to_path_buf(), file, len, header, root, leaves: Mutex::new(HashMap::new()), meta })
+    }
+
+    /// Is this archive held in memory (a terrain file cut into tiles at load)?
+    pub fn held_in_memory(&self) -> bool {
+        matches!(self.file, bytes::Bytes::Memory(_))
     }
 
     pub fn path(&self) -> &Path {
@@ -467,15 +484,26 @@ fn remove_stale_partials(out: &Path, name: &str) {
 }
 
 /// Writes an archive: tiles streamed into the data section as they are made (any
-/// order), directories and metadata at the end, the header last. The file appears under
-/// its name only when [`ArchiveWriter::finish`] succeeds; until then it is a hidden
-/// temporary beside it, removed on drop (an error or an interrupted run leaves nothing).
+/// order), directories and metadata at the end, the header last. Into a file, which
+/// appears under its name only when [`ArchiveWriter::finish`] succeeds (until then it is
+/// a hidden temporary beside it, removed on drop: an error or an interrupted run leaves
+/// nothing); or into memory ([`ArchiveWriter::memory`]), for a terrain file cut into
+/// tiles at load, with nothing written.
 pub struct ArchiveWriter {
-    out: PathBuf,
-    tmp: PathBuf,
-    file: Option<std::io::BufWriter<File>>,
+    sink: Sink,
     entries: Vec<Entry>,
     data_len: u64,
+}
+
+/// Where an [`ArchiveWriter`]'s bytes go.
+enum Sink {
+    /// A hidden temporary beside `out`, renamed to it when finished.
+    File {
+        out: PathBuf,
+        tmp: PathBuf,
+        file: Option<std::io::BufWriter<File>>,
+    },
+    Memory(std::io::Cursor<Vec<u8>>),
 }
 
 impl ArchiveWriter {
@@ -486,14 +514,28 @@ impl ArchiveWriter {
         let mut file = std::io::BufWriter::with_capacity(1 << 20, File::create(&tmp)?);
         // The header and root directory go in the first 16 KiB once the tiles are known.
         file.write_all(&vec![0u8; pmtiles::ROOT_LIMIT])?;
-        Ok(ArchiveWriter { out: out.to_path_buf(), tmp, file: Some(file), entries: Vec::new(), data_len: 0 })
+        let sink = Sink::File { out: out.to_path_buf(), tmp, file: Some(file) };
+        Ok(ArchiveWriter { sink, entries: Vec::new(), data_len: 0 })
+    }
+
+    /// A writer whose archive stays in memory ([`ArchiveWriter::finish_in_memory`]).
+    pub fn memory() -> ArchiveWriter {
+        let mut cursor = std::io::Cursor::new(vec![0u8; pmtiles::ROOT_LIMIT]);
+        cursor.set_position(pmtiles::ROOT_LIMIT as u64);
+        ArchiveWriter { sink: Sink::Memory(cursor), entries: Vec::new(), data_len: 0 }
+    }
+
+    fn write_all(&mut self, bytes: &[u8]) -> std::io::Result<()> {
+        match &mut self.sink {
+            Sink::File { file, .. } => file.as_mut().expect("not finished").write_all(bytes),
+            Sink::Memory(cursor) => cursor.write_all(bytes),
+        }
     }
 
     /// Appends tile `(level, tx, tz)` (its payload compressed, [`pmtiles::zstd`]); `top` is
     /// the archive's top level. Returns the compressed size.
     pub fn add(&mut self, top: u8, level: u8, tx: u32, tz: u32, compressed: &[u8]) -> std::io::Result<usize> {
-        let file = self.file.as_mut().expect("not finished");
-        file.write_all(compressed)?;
+        self.write_all(compressed)?;
         self.entries.push(Entry {
             tile_id: pmtiles::tile_id(top - level, tx, tz),
             offset: self.data_len,
@@ -513,11 +555,27 @@ impl ArchiveWriter {
         if self.entries.windows(2).all(|w| w[0].offset < w[1].offset) {
             return Ok(());
         }
+        let (tmp, file) = match &mut self.sink {
+            Sink::File { tmp, file, .. } => (tmp, file),
+            Sink::Memory(cursor) => {
+                let old = std::mem::take(cursor.get_mut());
+                let mut ordered = Vec::with_capacity(old.len());
+                ordered.extend_from_slice(&old[..pmtiles::ROOT_LIMIT]);
+                for e in &mut self.entries {
+                    let start = pmtiles::ROOT_LIMIT + e.offset as usize;
+                    e.offset = (ordered.len() - pmtiles::ROOT_LIMIT) as u64;
+                    ordered.extend_from_slice(&old[start..start + e.length as usize]);
+                }
+                *cursor = std::io::Cursor::new(ordered);
+                cursor.seek(SeekFrom::End(0))?;
+                return Ok(());
+            }
+        };
         // Flushed and closed (it was opened write-only), then read back.
-        drop(self.file.take().expect("not finished").into_inner().map_err(|e| e.into_error())?);
-        let old = File::open(&self.tmp)?;
-        let ordered = PathBuf::from(format!("{}-ordered", self.tmp.display()));
-        // Removed on every path out of here but success (then it becomes `self.tmp`).
+        drop(file.take().expect("not finished").into_inner().map_err(|e| e.into_error())?);
+        let old = File::open(&*tmp)?;
+        let ordered = PathBuf::from(format!("{}-ordered", tmp.display()));
+        // Removed on every path out of here but success (then it becomes `tmp`).
         struct Guard(Option<PathBuf>);
         impl Drop for Guard {
             fn drop(&mut self) {
@@ -539,15 +597,36 @@ impl ArchiveWriter {
             offset += u64::from(e.length);
         }
         drop(old);
-        std::fs::remove_file(&self.tmp)?;
-        self.tmp = guard.0.take().expect("set above");
-        self.file = Some(out);
+        std::fs::remove_file(&*tmp)?;
+        *tmp = guard.0.take().expect("set above");
+        *file = Some(out);
         Ok(())
     }
 
     /// Orders the tiles, writes directories, metadata and header, syncs, and moves the
-    /// file into place.
+    /// file into place. Returns the archive's size.
     pub fn finish(mut self, meta: &mut Meta) -> std::io::Result<u64> {
+        let len = self.close(meta)?;
+        if let Sink::File { out, tmp, file } = &mut self.sink {
+            let file = file.take().expect("not finished").into_inner().map_err(|e| e.into_error())?;
+            file.sync_all()?;
+            std::fs::rename(&*tmp, &*out)?;
+        }
+        Ok(len)
+    }
+
+    /// [`ArchiveWriter::finish`] for a writer made by [`ArchiveWriter::memory`]: the
+    /// archive's bytes.
+    pub fn finish_in_memory(mut self, meta: &mut Meta) -> std::io::Result<Vec<u8>> {
+        self.close(meta)?;
+        match &mut self.sink {
+            Sink::Memory(cursor) => Ok(std::mem::take(cursor.get_mut())),
+            Sink::File { .. } => Err(std::io::Error::other("an archive written to a file is not held in memory")),
+        }
+    }
+
+    /// Everything after the tiles, and the header and root in front; the archive's size.
+    fn close(&mut self, meta: &mut Meta) -> std::io::Result<u64> {
         self.order_tiles()?;
         meta.tiles = self.entries.len() as u64;
         let (root, leaves) = pmtiles::directories(&self.entries);
@@ -578,28 +657,35 @@ impl ArchiveWriter {
             min_zoom: 0,
             max_zoom: meta.top_level,
         };
-        let mut file = self.file.take().expect("not finished");
         if !front {
-            file.write_all(&json)?;
+            self.write_all(&json)?;
         }
-        file.write_all(&leaves)?;
-        let mut file = file.into_inner().map_err(|e| e.into_error())?;
-        file.seek(SeekFrom::Start(0))?;
-        file.write_all(&header.encode())?;
-        file.write_all(&root)?;
+        self.write_all(&leaves)?;
+        let mut front_part = header.encode().to_vec();
+        front_part.extend_from_slice(&root);
         if front {
-            file.write_all(&json)?;
+            front_part.extend_from_slice(&json);
         }
-        file.sync_all()?;
-        std::fs::rename(&self.tmp, &self.out)?;
+        match &mut self.sink {
+            Sink::File { file, .. } => {
+                let file = file.as_mut().expect("not finished");
+                file.flush()?;
+                let inner = file.get_mut();
+                inner.seek(SeekFrom::Start(0))?;
+                inner.write_all(&front_part)?;
+            }
+            Sink::Memory(cursor) => cursor.get_mut()[..front_part.len()].copy_from_slice(&front_part),
+        }
         Ok(data_offset + self.data_len + if front { 0 } else { json.len() as u64 } + leaves.len() as u64)
     }
 }
 
 impl Drop for ArchiveWriter {
     fn drop(&mut self) {
-        if self.file.take().is_some() || self.tmp.exists() {
-            let _ = std::fs::remove_file(&self.tmp);
+        if let Sink::File { tmp, file, .. } = &mut self.sink {
+            if file.take().is_some() || tmp.exists() {
+                let _ = std::fs::remove_file(&*tmp);
+            }
         }
     }
 }
