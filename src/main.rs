@@ -100,9 +100,9 @@ fn main() -> ExitCode {
         None => cli.view.common.terrain.take_terrain(),
         Some(Command::View(a)) => a.common.terrain.take_terrain(),
         Some(Command::Render(a)) => a.common.terrain.take_terrain(),
-        Some(Command::Errors(a)) => a.common.terrain.take_terrain(),
+        Some(Command::Errors(a)) => a.terrain.take_terrain(),
         Some(Command::Bench(a)) => a.common.terrain.take_terrain(),
-        Some(Command::Quality(a)) => a.common.terrain.take_terrain(),
+        Some(Command::Quality(a)) => a.terrain.take_terrain(),
         Some(Command::Stream(a)) => a.terrain.take_terrain(),
         Some(Command::Prepare(a)) => a.input.extend(a.heightmap.take()),
         Some(Command::Timeline(_) | Command::Check(_)) => {}

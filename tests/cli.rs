@@ -198,3 +198,56 @@ fn timeline_refuses_an_output_it_cannot_write() {
         assert!(e.starts_with("vkterrain: --out ") && e.lines().count() == 1, "{e}");
     }
 }
+
+/// A flag has one meaning everywhere: its help reads the same in every subcommand that
+/// takes it; and a subcommand does not take a flag that means nothing to it (exit 2,
+/// naming the flag).
+#[test]
+fn a_flag_means_one_thing_and_only_where_it_means_something() {
+    let help = |sub: &str| {
+        let o = cli(&[sub, "--help"]);
+        assert!(o.status.success(), "{sub} --help");
+        String::from_utf8(o.stdout).unwrap()
+    };
+    // The flag's paragraph: from its line to the next flag's.
+    let paragraph = |text: &str, flag: &str| -> Option<String> {
+        let start = text.lines().position(|l| l.trim_start().starts_with(&format!("{flag} ")))?;
+        let rest: Vec<&str> = text.lines().skip(start + 1).take_while(|l| !l.trim_start().starts_with('-')).collect();
+        Some(rest.join("\n"))
+    };
+    let takes = [
+        ("--delta", &["render", "view", "bench", "stream"][..]),
+        ("--morph", &["render", "view", "bench", "stream", "quality"]),
+        ("--traversal-threads", &["render", "view", "bench", "stream"]),
+        ("--validation", &["render", "view", "bench", "errors"]),
+        ("--block", &["render", "view", "bench", "errors", "quality"]),
+        ("--size", &["render", "view", "bench", "errors", "quality"]),
+        ("--spacing", &["render", "view", "bench", "errors", "quality", "stream", "prepare"]),
+    ];
+    for (flag, subs) in takes {
+        let texts: Vec<(&str, String)> = subs
+            .iter()
+            .map(|s| (*s, paragraph(&help(s), flag).unwrap_or_else(|| panic!("{s} does not take {flag}"))))
+            .collect();
+        for (sub, text) in &texts[1..] {
+            assert_eq!(text, &texts[0].1, "{flag}: {sub}'s help differs from {}'s", texts[0].0);
+        }
+    }
+    for (sub, flags) in [
+        (
+            "errors",
+            &["--sun", "off", "--occlusion", "off", "--morph", "off", "--delta", "2", "--refresh-at", "0.1"][..],
+        ),
+        (
+            "quality",
+            &["--validation", "on", "--camera", "1,2,3", "--error-mode", "paper", "--delta", "2", "--sun", "off"],
+        ),
+    ] {
+        for pair in flags.chunks(2) {
+            let o = cli(&[&[sub][..], pair].concat());
+            let e = String::from_utf8_lossy(&o.stderr);
+            assert_eq!(o.status.code(), Some(2), "{sub} {pair:?}: {e}");
+            assert!(e.contains(pair[0]) && e.contains("unexpected"), "{sub} {pair:?}: {e}");
+        }
+    }
+}

@@ -44,9 +44,6 @@ pub struct BenchArgs {
     /// drawn in memory).
     #[arg(long, value_name = "DIR")]
     pub out: PathBuf,
-    /// Screen-space error threshold in pixels.
-    #[arg(long, value_name = "PX", default_value = "1", value_parser = positive, allow_negative_numbers = true)]
-    pub delta: f32,
     /// LOD selection of the main run.
     #[arg(long, value_enum, default_value_t = LodChoice::Error)]
     pub lod: LodChoice,
@@ -445,7 +442,14 @@ impl Bench<'_> {
             Some(p) => {
                 let (pos, look) = p[i as usize];
                 (
-                    Camera::look_at(pos, look, self.args.common.fovy, self.size.0, self.size.1, near_plane(&self.s.hf)),
+                    Camera::look_at(
+                        pos,
+                        look,
+                        self.args.common.view.frustum.fovy,
+                        self.size.0,
+                        self.size.1,
+                        near_plane(&self.s.hf),
+                    ),
                     i as f64 / 30.0,
                 )
             }
@@ -454,7 +458,7 @@ impl Bench<'_> {
                     PathArg::Builtin(p) => p,
                     PathArg::File(_) => CameraPath::PaperFlyover,
                 };
-                path_camera(&self.s.hf, &self.s.mm, path, i, self.frames, self.args.common.fovy, self.size)
+                path_camera(&self.s.hf, &self.s.mm, path, i, self.frames, self.args.common.view.frustum.fovy, self.size)
             }
         }
     }
@@ -549,7 +553,7 @@ impl Bench<'_> {
             // Frames in flight, as in the viewer: this frame goes into the next slot, and
             // what comes back is the slot's previous frame, finished.
             let slot = i as usize % self.targets.len();
-            let request = FrameRequest { frame: i, cam: &cam, lod, delta: self.args.delta, blocks: replay };
+            let request = FrameRequest { frame: i, cam: &cam, lod, delta: self.args.common.lod.delta, blocks: replay };
             let (renderer, targets, s, rows) = (&mut self.renderer, &self.targets, &self.s, &mut run.rows);
             let frame =
                 draw.step(if replay.is_some() { None } else { activity }, s.lod_terrain(), request, |blocks| {
@@ -903,7 +907,7 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
         Some(f) => Some(parse_fault(f, frames, args.compare || args.popping)?),
         None => None,
     };
-    let device = crate::app::commands::open_device(&args.common)?;
+    let device = crate::app::commands::open_device(&args.common.device, args.common.block)?;
     let max_side = || device.max_image_dimension_2d() as usize;
     // The bench polls its own stop handlers (`signals`), not a preparation's.
     if let Some((archive, _)) =
@@ -912,9 +916,9 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
         return bench_streamed(args, device, archive, poses, frames, &signals);
     }
     args.streamed.note_unused();
-    let s = Session::with_device(device, &args.common, Some(&args.textures))?;
+    let s = Session::with_device(device, &args.common.terrain, args.common.block, Some(&args.textures))?;
     crate::app::outputs::output_dir("--out", &args.out)?;
-    let size = args.common.size.unwrap_or((640, 480));
+    let size = args.common.view.frustum.size.unwrap_or((640, 480));
     s.check_viewport(size)?;
     let trace_path = args.out.join("trace.json");
     let trace = Trace::to_file(&trace_path).map_err(|e| anyhow::anyhow!("{}: {e}", trace_path.display()))?;
@@ -1027,7 +1031,7 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
             }
             if let (true, Some(full)) = (args.popping, &full) {
                 summary["popping"] = popping(&mut main.rows, &full.rows);
-                summary["popping"]["morph"] = json!(args.common.morph == crate::app::cli::OnOff::On);
+                summary["popping"]["morph"] = json!(args.common.lod.morph.on());
             }
             write_csv(&args.out.join("frames.csv"), &main.rows)?;
             if let (true, Some(full)) = (args.compare, full) {
@@ -1093,7 +1097,7 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     summary["rss_end_mib"] = json!(rss_mib());
     summary["path"] = json!(args.path.to_string());
     summary["lod"] = json!(format!("{:?}", args.lod).to_lowercase());
-    summary["delta"] = json!(args.delta);
+    summary["delta"] = json!(args.common.lod.delta);
     summary["size"] = json!([size.0, size.1]);
     summary["heightmap"] = json!(s.hf.source);
     summary["readback_bytes_per_update"] =
@@ -1109,7 +1113,7 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     let messages = s.device.instance.messages.clone();
     drop(s);
     summary["validation_messages"] = json!(messages.count());
-    summary["morph"] = json!(args.common.morph == crate::app::cli::OnOff::On);
+    summary["morph"] = json!(args.common.lod.morph.on());
     // What was asked for: colour-by-LOD, wireframe, a device without clip distances and
     // cameras beyond `DEFERRED_MAX_SPACINGS` are shaded forward whatever this says.
     summary["pixels"] = json!(value_name(args.pixels));
@@ -1163,10 +1167,11 @@ fn fidelity(bench: &mut Bench, activity: &ErrorsActivity) -> anyhow::Result<Valu
         let full_blocks = traverse(&s.hf, &s.mm, &caches, &s.layout, &cam, LodSelect::Full).blocks;
         let (full, _) =
             bench.renderer.render_offscreen(&s.hf, &s.terrain, &bench.targets[0], &cam, &full_blocks, &shading)?;
-        let g = activity.wait_for(ErrorParams::new(&cam, bench.args.common.error_mode), Duration::from_secs(600))?;
+        let g =
+            activity.wait_for(ErrorParams::new(&cam, bench.args.common.error_mode.mode), Duration::from_secs(600))?;
         for delta in [0.5f32, 1.0, 2.0, 5.0] {
             let sel = LodSelect::errors(&g.errors, g.params.camera, delta, g.params.mode)
-                .with_morph(bench.args.common.morph == crate::app::cli::OnOff::On);
+                .with_morph(bench.args.common.lod.morph.on());
             let blocks = traverse(&s.hf, &s.mm, &caches, &s.layout, &cam, sel).blocks;
             let (img, stats) =
                 bench.renderer.render_offscreen(&s.hf, &s.terrain, &bench.targets[0], &cam, &blocks, &shading)?;
@@ -1223,7 +1228,7 @@ fn bench_streamed(
         ))
         .into());
     }
-    let size = args.common.size.unwrap_or((640, 480));
+    let size = args.common.view.frustum.size.unwrap_or((640, 480));
     crate::app::cli::check_image_size(&device, "--size", size)?;
     crate::app::outputs::output_dir("--out", &args.out)?;
     if !args.no_fidelity {
@@ -1239,9 +1244,9 @@ fn bench_streamed(
     let (cache_mb, gpu_mb) = (args.streamed.cache_mb(), args.streamed.gpu_mb());
     let layers = device.properties.limits.max_image_array_layers;
     let mut streamer = atlas_bound_streamer(archive.clone(), grid, cache_mb, gpu_mb, layers, &trace)?;
-    streamer.morph = crate::app::stream::morph_rule(args.common.morph);
+    streamer.morph = crate::app::stream::morph_rule(args.common.lod.morph.setting);
     streamer.lod = crate::app::stream::streamed_lod(args.lod);
-    crate::app::stream::streamer_threads(&mut streamer, args.common.traversal_threads, Some(&device))?;
+    crate::app::stream::streamer_threads(&mut streamer, args.common.lod.traversal_threads, Some(&device))?;
     streamer.stop = Some(signals.flag().clone());
     let range = match top_tiles(&mut streamer, &archive.meta) {
         Err(_) if signals.requested() => {
@@ -1254,7 +1259,7 @@ fn bench_streamed(
     let ground = streamer.ground(f64::from(wx) * 0.5, f64::from(wz) * 0.5).unwrap_or(0.0) as f32;
     let terrain =
         crate::app::paths::PathTerrain { extent: (wx, wz), heights: range.world, centre_ground: ground, near };
-    let fovy = args.common.fovy;
+    let fovy = args.common.view.frustum.fovy;
     let camera = |i: u64| -> (Vec3, Vec3, f64) {
         match &poses {
             Some(p) => (p[i as usize].0, p[i as usize].1, i as f64 / 30.0),
@@ -1280,7 +1285,7 @@ fn bench_streamed(
     // As the in-memory bench: frames are drawn, not read back.
     gpu.read_back = false;
     // As a viewer would: the first view's tiles are read before the run.
-    crate::app::stream::settle(&mut streamer, |_| view(0), args.delta);
+    crate::app::stream::settle(&mut streamer, |_| view(0), args.common.lod.delta);
     // The path's own figures from here; what the first view read is `warm_up`.
     let warm_up = std::mem::replace(
         &mut streamer.stats,
@@ -1300,7 +1305,7 @@ fn bench_streamed(
         let v = view(i);
         // The camera half a second ahead along the path: its tiles are asked for next.
         let ahead = view((i + 15).min(frames - 1));
-        let sel = streamer.frame(&v, Some(&ahead), args.delta, 0.5);
+        let sel = streamer.frame(&v, Some(&ahead), args.common.lod.delta, 0.5);
         let t1 = Instant::now();
         let select_ms = (t1 - t0).as_secs_f64() * 1e3;
         trace.complete(DRAW_TID, "select (traversal over held tiles)", t0, t1, json!({"frame": i}));
@@ -1343,12 +1348,12 @@ fn bench_streamed(
         "shading": crate::draw::streamed::StreamedRenderer::shading_name(args.shading),
         "pixels": value_name(args.pixels),
         "deferred_frames": gpu.deferred_frames,
-        "morph": args.common.morph == crate::app::cli::OnOff::On,
+        "morph": args.common.lod.morph.on(),
         "mean_morphing_blocks": morphing as f64 / drawn.max(1) as f64,
         "traversal_threads": streamer.threads(),
         "frames_over_bound": stats.frames_over_bound,
         "worst_factor": stats.worst_factor,
-        "delta": args.delta,
+        "delta": args.common.lod.delta,
         "size": [size.0, size.1],
         "cache_mb": cache_mb,
         "stream": stats,

@@ -234,27 +234,34 @@ pub struct TerrainArgs {
     pub voids: VoidMode,
 }
 
-/// Options the drawing subcommands share.
-#[derive(Args, Clone, Debug)]
-pub struct CommonArgs {
-    #[command(flatten)]
-    pub terrain: TerrainArgs,
+/// What the camera sees: the viewport and the field of view.
+#[derive(Args, Clone, Copy, Debug)]
+pub struct FrustumArgs {
     /// Viewport size in pixels.
     #[arg(long, value_name = "WxH", value_parser = parse_size, allow_hyphen_values = true)]
     pub size: Option<(u32, u32)>,
-    /// Camera position in world units (x east, y up, z south). Default: above one edge,
-    /// seeing the whole terrain.
-    #[arg(long, value_name = "X,Y,Z", value_parser = parse_vec3, allow_hyphen_values = true)]
-    pub camera: Option<Vec3>,
-    /// Point the camera looks at. Default: the terrain's centre.
-    #[arg(long, value_name = "X,Y,Z", value_parser = parse_vec3, allow_hyphen_values = true)]
-    pub look_at: Option<Vec3>,
     /// Vertical field of view in degrees.
     #[arg(long, value_name = "DEG", default_value = "60", value_parser = parse_fovy, allow_negative_numbers = true)]
     pub fovy: f32,
-    /// Block side k = 2^m + 1 vertices.
-    #[arg(long = "block", value_name = "K", default_value_t = 33, allow_negative_numbers = true)]
-    pub block: u32,
+}
+
+/// Where the camera stands and what it looks at.
+#[derive(Args, Clone, Copy, Debug)]
+pub struct CameraArgs {
+    #[command(flatten)]
+    pub frustum: FrustumArgs,
+    /// Camera position in world units (x east, y up, z south). Default: above one edge,
+    /// seeing the whole terrain.
+    #[arg(long = "camera", value_name = "X,Y,Z", value_parser = parse_vec3, allow_hyphen_values = true)]
+    pub position: Option<Vec3>,
+    /// Point the camera looks at. Default: the terrain's centre.
+    #[arg(long, value_name = "X,Y,Z", value_parser = parse_vec3, allow_hyphen_values = true)]
+    pub look_at: Option<Vec3>,
+}
+
+/// The Vulkan device a command runs on, and how it is checked.
+#[derive(Args, Clone, Debug)]
+pub struct DeviceArgs {
     /// Vulkan validation (with synchronization validation). Default: on in debug builds.
     #[arg(long, value_enum)]
     pub validation: Option<OnOff>,
@@ -264,6 +271,74 @@ pub struct CommonArgs {
     /// Queue arrangement for the two activities.
     #[arg(long, value_enum, default_value_t = QueueRequest::Auto)]
     pub queues: QueueRequest,
+}
+
+impl DeviceArgs {
+    pub fn validation(&self) -> bool {
+        validation_on(self.validation)
+    }
+}
+
+/// `--block`: the side of the blocks every LOD is drawn with.
+#[derive(Args, Clone, Copy, Debug)]
+pub struct BlockArg {
+    /// Block side k = 2^m + 1 vertices.
+    #[arg(long = "block", value_name = "K", default_value_t = 33, allow_negative_numbers = true)]
+    pub k: u32,
+}
+
+/// `--error-mode`: which screen-space error bounds the blocks.
+#[derive(Args, Clone, Copy, Debug)]
+pub struct ErrorModeArg {
+    /// Screen-space error bound: strict (guaranteed for every camera) or paper (the
+    /// published method's per-vertex estimate, from the heights of each group).
+    #[arg(long = "error-mode", alias = "mode", value_enum, default_value_t = ErrorMode::Strict)]
+    pub mode: ErrorMode,
+}
+
+/// `--morph`: geomorphing.
+#[derive(Args, Clone, Copy, Debug)]
+pub struct MorphArg {
+    /// Geomorphing: blocks move continuously between LODs instead of popping, with the
+    /// morph paid for inside the error bound.
+    #[arg(long = "morph", value_name = "MORPH", value_enum, default_value_t = OnOff::On)]
+    pub setting: OnOff,
+}
+
+impl MorphArg {
+    pub fn on(&self) -> bool {
+        self.setting == OnOff::On
+    }
+}
+
+/// How a frame's blocks are chosen: the threshold, the morph, the traversal's threads.
+#[derive(Args, Clone, Copy, Debug)]
+pub struct LodArgs {
+    /// Screen-space error threshold delta, in pixels: a block is split while its error
+    /// exceeds it. Smaller draws more triangles and a surface closer to every sample.
+    #[arg(long, value_name = "PX", default_value = "1", value_parser = positive, allow_negative_numbers = true)]
+    pub delta: f32,
+    #[command(flatten)]
+    pub morph: MorphArg,
+    /// Threads for the traversal's per-block work (the morph's bounds). Default: 1 on a
+    /// CPU device such as lavapipe, where a pool's workers beside the rasterizer's threads
+    /// made the traversal slower; every core on a GPU, where the frame waits for the
+    /// traversal.
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u16).range(1..=256), allow_negative_numbers = true)]
+    pub traversal_threads: Option<u16>,
+}
+
+/// Options the drawing subcommands share.
+#[derive(Args, Clone, Debug)]
+pub struct CommonArgs {
+    #[command(flatten)]
+    pub terrain: TerrainArgs,
+    #[command(flatten)]
+    pub view: CameraArgs,
+    #[command(flatten)]
+    pub block: BlockArg,
+    #[command(flatten)]
+    pub device: DeviceArgs,
     /// New error data is requested when the camera has moved this fraction of the
     /// distance to the nearest drawn terrain since the last request and the last frame
     /// split blocks only because its data was stale (0: every frame it moves, stale
@@ -280,25 +355,15 @@ pub struct CommonArgs {
     /// second generation may queue behind the first, both slots written).
     #[arg(long, value_enum, default_value_t = crate::errors::activity::Pacing::Auto)]
     pub error_pacing: crate::errors::activity::Pacing,
-    /// Screen-space error bound: strict (guaranteed for every camera) or paper (the
-    /// published method's per-vertex estimate, eqs. 2-4 of Yusuf et al.).
-    #[arg(long = "error-mode", alias = "mode", value_enum, default_value_t = ErrorMode::Strict)]
-    pub error_mode: ErrorMode,
-    /// Geomorphing: blocks move continuously between LODs instead of popping, with the
-    /// morph paid for inside the error bound.
-    #[arg(long, value_enum, default_value_t = OnOff::On)]
-    pub morph: OnOff,
+    #[command(flatten)]
+    pub error_mode: ErrorModeArg,
+    #[command(flatten)]
+    pub lod: LodArgs,
     /// Occlusion culling: blocks, and 4 x 4 parts of blocks, hidden behind nearer terrain
     /// are not drawn (provably conservative; skipped, with the reason in the stats, where
     /// the proof does not hold).
     #[arg(long, value_enum, default_value_t = OnOff::On)]
     pub occlusion: OnOff,
-    /// Threads for the traversal's per-block work (the morph's bounds). Default: 1 on a
-    /// CPU device such as lavapipe, where a pool's workers beside the rasterizer's threads
-    /// made the traversal slower; every core on a GPU, where the frame waits for the
-    /// traversal.
-    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u16).range(1..=256), allow_negative_numbers = true)]
-    pub traversal_threads: Option<u16>,
     /// Sun for the precomputed shadows and ambient occlusion: compass azimuth and
     /// elevation in degrees (azimuth 0 is north, the top of the heightmap), or `off`.
     #[arg(long, value_name = "AZ,EL|off", default_value = "301,54", value_parser = parse_sun, allow_negative_numbers = true)]
@@ -311,8 +376,8 @@ impl CommonArgs {
     pub fn not_streamed(&self) -> [(&'static str, bool); 5] {
         let default_share = 0.05; // --refresh-at's and --update-share's, parsed the same way
         [
-            ("--error-mode paper", self.error_mode != crate::lod::gie::ErrorMode::Strict),
-            ("--block (an archive fixes k = 33)", self.block != 33),
+            ("--error-mode paper", self.error_mode.mode != crate::lod::gie::ErrorMode::Strict),
+            ("--block (an archive fixes k = 33)", self.block.k != 33),
             // The errors activity's pacing: streamed frames bound their blocks on the CPU.
             ("--refresh-at", self.refresh_at != default_share),
             ("--update-share", self.update_share != default_share),
@@ -379,25 +444,21 @@ fn parse_sun(s: &str) -> Result<SunArg, String> {
     crate::draw::lighting::Sun::parse(s).map(SunArg)
 }
 
-impl CommonArgs {
-    pub fn validation(&self) -> bool {
-        validation_on(self.validation)
-    }
-
+impl CameraArgs {
     pub fn camera(&self, hf: &Heightfield, default_size: (u32, u32)) -> Result<Camera, InputError> {
-        let (w, h) = self.size.unwrap_or(default_size);
-        let (position, look_at) = self.view_points(|| default_view(hf, self.fovy, w, h))?;
-        Ok(Camera::look_at(position, look_at, self.fovy, w, h, near_plane(hf)))
+        let (w, h) = self.frustum.size.unwrap_or(default_size);
+        let (position, look_at) = self.view_points(|| default_view(hf, self.frustum.fovy, w, h))?;
+        Ok(Camera::look_at(position, look_at, self.frustum.fovy, w, h, near_plane(hf)))
     }
 
     /// `--camera` and `--look-at`, each from `default` (camera, target) when not given,
     /// checked: distinct, and within [`MAX_WORLD`].
     pub fn view_points(&self, default: impl FnOnce() -> (Vec3, Vec3)) -> Result<(Vec3, Vec3), InputError> {
-        let (pos, target) = match (self.camera, self.look_at) {
+        let (pos, target) = match (self.position, self.look_at) {
             (Some(c), Some(l)) => (c, l),
             _ => default(),
         };
-        let position = self.camera.unwrap_or(pos);
+        let position = self.position.unwrap_or(pos);
         let look_at = self.look_at.unwrap_or(target);
         if (look_at - position).length() < 1e-6 {
             return Err(InputError("--look-at must differ from --camera".into()));

@@ -2,7 +2,8 @@
 
 use crate::app::cli::OnOff;
 use crate::app::cli::{
-    check_messages, option_error, positive, CommonArgs, Degraded, InputError, StreamedOptions, TextureArgs,
+    check_messages, option_error, BlockArg, CameraArgs, CommonArgs, Degraded, DeviceArgs, ErrorModeArg, InputError,
+    StreamedOptions, TerrainArgs, TextureArgs,
 };
 use crate::app::outputs::{check_outputs, save_png, write_atomic};
 use crate::draw::blocks::{BlocksRenderer, NormalSource, PixelPass, Shading, Target};
@@ -34,9 +35,6 @@ pub struct RenderArgs {
     /// LOD selection.
     #[arg(long, value_enum, default_value_t = LodChoice::Error)]
     pub lod: LodChoice,
-    /// Screen-space error threshold in pixels.
-    #[arg(long, value_name = "PX", default_value = "1", value_parser = positive, allow_negative_numbers = true)]
-    pub delta: f32,
     /// Output PNG.
     #[arg(long, value_name = "FILE.png")]
     pub out: PathBuf,
@@ -94,7 +92,15 @@ impl RenderArgs {
 #[derive(Args, Debug)]
 pub struct ErrorsArgs {
     #[command(flatten)]
-    pub common: CommonArgs,
+    pub terrain: TerrainArgs,
+    #[command(flatten)]
+    pub view: CameraArgs,
+    #[command(flatten)]
+    pub block: BlockArg,
+    #[command(flatten)]
+    pub device: DeviceArgs,
+    #[command(flatten)]
+    pub error_mode: ErrorModeArg,
     /// Generations to compute (the median update time is reported).
     #[arg(long, value_name = "N", default_value_t = 1, value_parser = crate::app::cli::at_least_one, allow_negative_numbers = true)]
     pub repeat: u64,
@@ -123,21 +129,27 @@ impl Session {
 
     /// Opens the device, loads the heightfield and `textures` (none for `errors`), and
     /// uploads them.
-    pub fn open(common: &CommonArgs, textures: Option<&TextureArgs>) -> anyhow::Result<Self> {
-        Session::with_device(open_device(common)?, common, textures)
+    pub fn open(
+        terrain: &TerrainArgs,
+        block: BlockArg,
+        device: &DeviceArgs,
+        textures: Option<&TextureArgs>,
+    ) -> anyhow::Result<Self> {
+        Session::with_device(open_device(device, block)?, terrain, block, textures)
     }
 
     /// [`Session::open`] on a device already open.
     pub fn with_device(
         device: Arc<Device>,
-        common: &CommonArgs,
+        terrain: &TerrainArgs,
+        block: BlockArg,
         textures: Option<&TextureArgs>,
     ) -> anyhow::Result<Self> {
-        let hf = common.terrain.load_heightfield(Some(device.max_image_dimension_2d() as usize))?;
+        let hf = terrain.load_heightfield(Some(device.max_image_dimension_2d() as usize))?;
         Session::check_size(&device, &hf)?;
-        let layout = BlockLayout::of(&hf, common.block).map_err(InputError)?;
-        if layout.k() != common.block {
-            tracing::info!("block {} is larger than the terrain; using k = {}", common.block, layout.k());
+        let layout = BlockLayout::of(&hf, block.k).map_err(InputError)?;
+        if layout.k() != block.k {
+            tracing::info!("block {} is larger than the terrain; using k = {}", block.k, layout.k());
         }
         let t = Instant::now();
         let mm = MinMaxPyramid::build(&hf);
@@ -173,12 +185,11 @@ impl Session {
 
 /// The headless device the options ask for, its queue mode and notes printed. The block
 /// option is checked first, so that a bad value fails before anything starts.
-pub fn open_device(common: &CommonArgs) -> anyhow::Result<Arc<Device>> {
-    BlockLayout::check(common.block).map_err(InputError)?;
-    let instance = Instance::new(&InstanceOptions { validation: common.validation(), extensions: Vec::new() })?;
-    let device =
-        Device::new(instance, &DeviceOptions { gpu: common.gpu.clone(), queues: common.queues, swapchain: false })
-            .map_err(option_error)?;
+pub fn open_device(args: &DeviceArgs, block: BlockArg) -> anyhow::Result<Arc<Device>> {
+    BlockLayout::check(block.k).map_err(InputError)?;
+    let instance = Instance::new(&InstanceOptions { validation: args.validation(), extensions: Vec::new() })?;
+    let device = Device::new(instance, &DeviceOptions { gpu: args.gpu.clone(), queues: args.queues, swapchain: false })
+        .map_err(option_error)?;
     eprintln!("vkterrain: device {}, queue mode {}", device.name, device.queue_mode.as_str());
     for note in device.notes() {
         eprintln!("vkterrain: note: {note}");
@@ -192,10 +203,10 @@ pub fn open_device(common: &CommonArgs) -> anyhow::Result<Arc<Device>> {
 /// its device later and sets them then).
 pub fn draw_thread(common: &CommonArgs, trace: Trace, device: Option<&Device>) -> anyhow::Result<DrawThread> {
     let policy = RefreshPolicy { moved_fraction: common.refresh_at, max_share: common.update_share };
-    let mut draw = DrawThread::new(ErrorFeed::new(common.error_mode, policy), common.morph == OnOff::On, trace)
+    let mut draw = DrawThread::new(ErrorFeed::new(common.error_mode.mode, policy), common.lod.morph.on(), trace)
         .with_occlusion(common.occlusion == OnOff::On);
     if let Some(device) = device {
-        draw.set_threads(traversal_threads(common.traversal_threads, device.properties.device_type))?;
+        draw.set_threads(traversal_threads(common.lod.traversal_threads, device.properties.device_type))?;
     }
     Ok(draw)
 }
@@ -240,7 +251,7 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
         shading.background = parse_background(bg)?;
     }
     let shading = args.textures.shade(shading);
-    let device = open_device(&args.common)?;
+    let device = open_device(&args.common.device, args.common.block)?;
     let max_side = || device.max_image_dimension_2d() as usize;
     if let Some((archive, stop)) =
         crate::app::stream::streamed_archive(&args.common.terrain, args.streamed.stream, max_side)?
@@ -248,8 +259,8 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
         return render_streamed(args, device, archive, stop.as_ref());
     }
     args.streamed.note_unused();
-    let s = Session::with_device(device, &args.common, Some(&args.textures))?;
-    let cam = args.common.camera(&s.hf, (1280, 720))?;
+    let s = Session::with_device(device, &args.common.terrain, args.common.block, Some(&args.textures))?;
+    let cam = args.common.view.camera(&s.hf, (1280, 720))?;
     s.check_viewport((cam.width, cam.height))?;
     let mut renderer = BlocksRenderer::new(
         &s.device,
@@ -270,7 +281,7 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
     // `render` is the draw thread's first frame: it waits for the generation computed at
     // its own camera, so its output is deterministic.
     let mut draw = draw_thread(&args.common, Trace::off(), Some(&s.device))?;
-    let request = FrameRequest { frame: 0, cam: &cam, lod: args.lod, delta: args.delta, blocks: None };
+    let request = FrameRequest { frame: 0, cam: &cam, lod: args.lod, delta: args.common.lod.delta, blocks: None };
     let frame = draw.step(activity.as_ref(), s.lod_terrain(), request, |blocks| {
         let t = Instant::now();
         let drawn = renderer.render_offscreen(&s.hf, &s.terrain, &target, &cam, blocks, &shading)?;
@@ -317,8 +328,8 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
         "width": cam.width,
         "height": cam.height,
         "lod": format!("{:?}", args.lod).to_lowercase(),
-        "error_mode": args.common.error_mode.as_str(),
-        "delta": args.delta,
+        "error_mode": args.common.error_mode.mode.as_str(),
+        "delta": args.common.lod.delta,
         "triangles": stats.triangles,
         // Parts of drawn blocks left out (occluded or outside the frustum): the
         // exported mesh keeps them, so that it has no holes where the view had none.
@@ -351,7 +362,7 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
         out["error_update_ms"] = json!(ms);
     }
     if let Some(a) = audited {
-        audit_into(&mut out, &a, args.delta);
+        audit_into(&mut out, &a, args.common.lod.delta);
     }
     crate::out!("{out}")?;
     finish(s)
@@ -401,7 +412,7 @@ fn render_streamed(
         archive: archive.clone(),
         device,
         common: &args.common,
-        delta: args.delta,
+        delta: args.common.lod.delta,
         fog: args.fog,
         cache_mb: args.streamed.cache_mb(),
         gpu_mb: args.streamed.gpu_mb(),
@@ -434,7 +445,7 @@ fn render_streamed(
         // In the archive's block layout (one square of 2^n + 1 samples a side), which is
         // not the in-memory one for every size: the samples beyond the true extent repeat
         // its edge in both.
-        audit_into(&mut out, &audit::audit_blocks(&hf, &r.layout, &r.drawn, &cam), args.delta);
+        audit_into(&mut out, &audit::audit_blocks(&hf, &r.layout, &r.drawn, &cam), args.common.lod.delta);
     }
     // Outputs last, so that a stop asked for before leaves none.
     crate::app::stream::exit_if_stopped(stop);
@@ -445,7 +456,7 @@ fn render_streamed(
         mesh_into(&mut out, m);
     }
     out["queue_mode"] = json!(queue_mode);
-    out["error_mode"] = json!(args.common.error_mode.as_str());
+    out["error_mode"] = json!(args.common.error_mode.mode.as_str());
     crate::app::outputs::TerrainFacts::of_archive(&archive.meta, &args.common.terrain.frame).merge_into(&mut out);
     let failure = out["first_failure"].as_str().map(str::to_string);
     out["degraded"] = json!(failure.is_some());
@@ -491,12 +502,12 @@ fn finish(s: Session) -> anyhow::Result<()> {
 pub fn errors(args: &ErrorsArgs) -> anyhow::Result<()> {
     // Checked before the device and the generations: a dump that cannot be written
     // would otherwise fail at the end.
-    args.common.terrain.check_terrain()?;
-    check_outputs(&[("--dump", args.dump.as_deref())], &[("--heightmap", args.common.terrain.heightmap.as_deref())])?;
-    let s = Session::open(&args.common, None)?;
-    let cam = args.common.camera(&s.hf, (1280, 720))?;
+    args.terrain.check_terrain()?;
+    check_outputs(&[("--dump", args.dump.as_deref())], &[("--heightmap", args.terrain.heightmap.as_deref())])?;
+    let s = Session::open(&args.terrain, args.block, &args.device, None)?;
+    let cam = args.view.camera(&s.hf, (1280, 720))?;
     let activity = ErrorsActivity::start(&s.device, s.terrain.clone(), s.hf.clone(), s.layout)?;
-    let base = ErrorParams::new(&cam, args.common.error_mode);
+    let base = ErrorParams::new(&cam, args.error_mode.mode);
     let mut times = Vec::new();
     let mut gpu_times = Vec::new();
     let mut last = None;
@@ -530,7 +541,7 @@ pub fn errors(args: &ErrorsArgs) -> anyhow::Result<()> {
         "levels": cost.levels,
         "block": s.layout.k(),
         "block_levels": s.layout.root_lod(),
-        "error_mode": args.common.error_mode.as_str(),
+        "error_mode": args.error_mode.mode.as_str(),
         "fragments_shaded": cost.fragments_shaded,
         "naive_fragments_n_4n": n * ((s.hf.grid()[0] - 1) * (s.hf.grid()[1] - 1)) as u64,
         "readback_bytes": cost.readback_bytes,

@@ -225,7 +225,7 @@ pub(crate) fn open_window(
 ) -> anyhow::Result<(std::sync::Arc<winit::window::Window>, crate::vk::Surface, std::sync::Arc<crate::vk::Device>)> {
     use crate::vk::{Device, DeviceOptions, Instance, InstanceOptions, Surface, VkResultExt};
     use raw_window_handle::{HasDisplayHandle, HasWindowHandle};
-    let (w, h) = common.size.unwrap_or((1280, 720));
+    let (w, h) = common.view.frustum.size.unwrap_or((1280, 720));
     let attrs = winit::window::Window::default_attributes()
         .with_title(title)
         .with_inner_size(winit::dpi::PhysicalSize::new(w, h));
@@ -237,13 +237,15 @@ pub(crate) fn open_window(
         // SAFETY: ash-window returns pointers to static NUL-terminated extension names.
         .map(|&p| unsafe { std::ffi::CStr::from_ptr(p) })
         .collect();
-    let instance = Instance::new(&InstanceOptions { validation: common.validation(), extensions: exts })?;
+    let instance = Instance::new(&InstanceOptions { validation: common.device.validation(), extensions: exts })?;
     // SAFETY: the window outlives the surface: each viewer drops its GPU state (holding
     // the surface) before its window.
     let surface = unsafe { Surface::new(&instance, display, window.window_handle()?.as_raw())? };
-    let device =
-        Device::new(instance, &DeviceOptions { gpu: common.gpu.clone(), queues: common.queues, swapchain: true })
-            .map_err(crate::app::cli::option_error)?;
+    let device = Device::new(
+        instance,
+        &DeviceOptions { gpu: common.device.gpu.clone(), queues: common.device.queues, swapchain: true },
+    )
+    .map_err(crate::app::cli::option_error)?;
     crate::out!("vkterrain: device {}, queue mode {}", device.name, device.queue_mode.as_str())?;
     for note in device.notes() {
         crate::out!("vkterrain: note: {note}")?;

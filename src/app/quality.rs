@@ -4,7 +4,7 @@
 //! section 7). Plain Rust on the CPU: the error data comes from the reference that the
 //! GPU matches texel for texel (tests/gpu_errors.rs), the audit from `audit`.
 
-use crate::app::cli::{CommonArgs, InputError};
+use crate::app::cli::{BlockArg, FrustumArgs, InputError, MorphArg, TerrainArgs};
 use crate::app::outputs::{plot_font, write_atomic};
 use crate::app::paths::{path_camera, CameraPath};
 use crate::lod::audit::audit;
@@ -19,7 +19,13 @@ use std::path::{Path, PathBuf};
 #[derive(Args, Debug)]
 pub struct QualityArgs {
     #[command(flatten)]
-    pub common: CommonArgs,
+    pub terrain: TerrainArgs,
+    #[command(flatten)]
+    pub frustum: FrustumArgs,
+    #[command(flatten)]
+    pub block: BlockArg,
+    #[command(flatten)]
+    pub morph: MorphArg,
     /// Camera path whose poses are measured.
     #[arg(long, value_enum, default_value_t = CameraPath::PaperFlyover)]
     pub path: CameraPath,
@@ -58,12 +64,12 @@ const FACTORS: [f32; 9] = [32.0, 22.6, 16.0, 11.3, 8.0, 5.66, 4.0, 2.83, 2.0];
 
 pub fn quality(args: &QualityArgs) -> anyhow::Result<()> {
     crate::app::outputs::output_dir("--out", &args.out)?;
-    let hf = args.common.terrain.load_heightfield(None)?;
-    let layout = BlockLayout::of(&hf, args.common.block).map_err(InputError)?;
+    let hf = args.terrain.load_heightfield(None)?;
+    let layout = BlockLayout::of(&hf, args.block.k).map_err(InputError)?;
     let mm = MinMaxPyramid::build(&hf);
-    let size = args.common.size.unwrap_or((640, 480));
+    let size = args.frustum.size.unwrap_or((640, 480));
     let cams: Vec<_> = (0..args.poses)
-        .map(|i| path_camera(&hf, &mm, args.path, i, args.poses.max(2) * 2, args.common.fovy, size).0)
+        .map(|i| path_camera(&hf, &mm, args.path, i, args.poses.max(2) * 2, args.frustum.fovy, size).0)
         .collect();
     let tpb = layout.triangles_per_block() as f64;
     let caches = BlockCaches::default();
@@ -83,8 +89,7 @@ pub fn quality(args: &QualityArgs) -> anyhow::Result<()> {
                 _ => {
                     let mode = if method == "strict" { ErrorMode::Strict } else { ErrorMode::Paper };
                     let errors = block_errors(&group_errors(&hf, &mm, &ErrorParams::new(cam, mode)), layout.m);
-                    let select = LodSelect::errors(&errors, cam.position, parameter, mode)
-                        .with_morph(args.common.morph == crate::app::cli::OnOff::On);
+                    let select = LodSelect::errors(&errors, cam.position, parameter, mode).with_morph(args.morph.on());
                     traverse(&hf, &mm, &caches, &layout, cam, select)
                 }
             };

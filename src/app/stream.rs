@@ -48,9 +48,6 @@ pub struct StreamArgs {
     /// Ground speed, world units a second (a low-flying jet: 300 m/s).
     #[arg(long, default_value_t = 300.0, value_parser = crate::app::cli::positive, allow_negative_numbers = true)]
     pub speed: f32,
-    /// Screen-space error threshold, pixels.
-    #[arg(long, default_value_t = 1.0, value_parser = crate::app::cli::positive, allow_negative_numbers = true)]
-    pub delta: f32,
     /// Viewport, WIDTHxHEIGHT.
     #[arg(long, default_value = "640x480", value_parser = crate::app::cli::parse_size, allow_hyphen_values = true)]
     pub size: (u32, u32),
@@ -69,14 +66,10 @@ pub struct StreamArgs {
     /// reported. Default: on in debug builds, as for every command that draws.
     #[arg(long, value_enum, requires = "gpu_mb")]
     pub validation: Option<OnOff>,
-    /// Geomorphing, paid for inside the bound from the tiles' summaries (as the other
-    /// commands' `--morph`).
-    #[arg(long, value_enum, default_value_t = OnOff::On)]
-    pub morph: OnOff,
-    /// Threads for the per-block morph terms of each frame. Default: as `render`'s
-    /// (1 on a CPU device such as lavapipe, every core on a GPU), 1 without `--gpu-mb`.
-    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u16).range(1..=256), allow_negative_numbers = true)]
-    pub traversal_threads: Option<u16>,
+    /// The threshold, the morph (paid for inside the bound from the tiles' summaries)
+    /// and the traversal's threads (1 without `--gpu-mb`).
+    #[command(flatten)]
+    pub lod: crate::app::cli::LodArgs,
 }
 
 /// How a streamer's drawn blocks morph for `--morph`.
@@ -651,21 +644,23 @@ pub struct ArchiveRender {
 /// does; where the cache cannot hold them it is drawn over the bound and says so.
 pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
     let grid = streamed_grid(&f.archive, &f.common.terrain.frame);
-    let (w, h) = f.common.size.unwrap_or((1280, 720));
+    let (w, h) = f.common.view.frustum.size.unwrap_or((1280, 720));
     crate::app::cli::check_image_size(&f.device, "--size", (w, h))?;
     let layers = f.device.properties.limits.max_image_array_layers;
     let mut streamer = atlas_bound_streamer(f.archive.clone(), grid, f.cache_mb, f.gpu_mb, layers, &Trace::off())?;
-    streamer.morph = morph_rule(f.common.morph);
+    streamer.morph = morph_rule(f.common.lod.morph.setting);
     streamer.lod = streamed_lod(f.lod);
-    streamer_threads(&mut streamer, f.common.traversal_threads, Some(&f.device))?;
+    streamer_threads(&mut streamer, f.common.lod.traversal_threads, Some(&f.device))?;
     let near = near_plane_for(grid.spacing[0].min(grid.spacing[1]) as f32);
     let extent = grid.world_extent();
     // The top tiles first: the default view frames the terrain's height range.
     let range = top_tiles(&mut streamer, &f.archive.meta)?;
     exit_if_stopped(f.stop);
-    let (position, look_at) =
-        f.common.view_points(|| view_of_box(extent.map(|e| e as f32), range.world, f.common.fovy, w, h, near))?;
-    let view = View::look_at(position.as_dvec3(), look_at.as_dvec3(), f.common.fovy, w, h, near);
+    let (position, look_at) = f
+        .common
+        .view
+        .view_points(|| view_of_box(extent.map(|e| e as f32), range.world, f.common.view.frustum.fovy, w, h, near))?;
+    let view = View::look_at(position.as_dvec3(), look_at.as_dvec3(), f.common.view.frustum.fovy, w, h, near);
     let warm = Instant::now();
     // The stats keep the top tiles' reads (this frame's too); frames and the worst factor
     // count from here.
@@ -703,7 +698,7 @@ pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
         // What drew the frame: forward where asked, or where deferred cannot (see
         // StreamedRenderer::deferred).
         "pixels": if gpu.deferred { "deferred" } else { "forward" },
-        "morph": f.common.morph == OnOff::On,
+        "morph": f.common.lod.morph.on(),
         "morphing": sel.morphing,
         "traversal_threads": streamer.threads(),
         "blocks_missing_a_layer": missing,
@@ -874,9 +869,9 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
         }
         _ => Streamer::new(archive.clone(), grid, args.cache_mb as usize * (1 << 20)),
     };
-    streamer.morph = morph_rule(args.morph);
+    streamer.morph = morph_rule(args.lod.morph.setting);
     streamer.stop = Some(signals.flag().clone());
-    streamer_threads(&mut streamer, args.traversal_threads, device.as_deref())?;
+    streamer_threads(&mut streamer, args.lod.traversal_threads, device.as_deref())?;
     // The view at frame `f`, and the way it heads.
     let pose = |streamer: &Streamer, f: u64| {
         let (offset, way) = along_line(speed * f as f64 / fps, line);
@@ -910,7 +905,7 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
         }
         r => r?,
     };
-    settle(&mut streamer, |s| pose(s, 0).0, args.delta);
+    settle(&mut streamer, |s| pose(s, 0).0, args.lod.delta);
     let warm_up_s = warm.elapsed().as_secs_f64();
     let mut gpu = match (args.gpu_mb, device) {
         (Some(mb), Some(device)) => {
@@ -936,7 +931,7 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
         altitude = view.position.y;
         let ahead = View { position: view.position + heading * speed * 0.5, ..view };
         let t0 = Instant::now();
-        let sel = streamer.frame(&view, Some(&ahead), args.delta, 0.5);
+        let sel = streamer.frame(&view, Some(&ahead), args.lod.delta, 0.5);
         selecting += t0.elapsed();
         blocks += sel.blocks.len() as u64;
         morphing += sel.morphing as u64;
@@ -972,7 +967,7 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
         "disk_bytes_read": match (read_before, disk_bytes_read()) { (Some(a), Some(b)) => Some(b - a), _ => None },
         "peak_resident_mb": crate::app::outputs::peak_resident_mb(),
         "blocks_per_frame": blocks as f64 / frames as f64,
-        "morph": args.morph == OnOff::On,
+        "morph": args.lod.morph.on(),
         "morphing_per_frame": morphing as f64 / frames as f64,
         "select_ms_per_frame": 1e3 * selecting.as_secs_f64() / frames as f64,
         "traversal_threads": streamer.threads(),

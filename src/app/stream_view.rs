@@ -52,7 +52,6 @@ impl Ground for HeldGround<'_> {
 #[derive(Clone, Debug)]
 pub struct StreamViewOptions {
     pub common: CommonArgs,
-    pub delta: f32,
     pub fog: Option<f32>,
     pub present: vk::PresentModeKHR,
     pub frames: Option<u64>,
@@ -213,10 +212,11 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
     let layers = crate::errors::atlas::MAX_LAYERS;
     let mut streamer =
         crate::app::stream::atlas_bound_streamer(archive.clone(), grid, args.cache_mb, args.gpu_mb, layers, &trace)?;
-    streamer.morph = crate::app::stream::morph_rule(args.common.morph);
+    streamer.morph = crate::app::stream::morph_rule(args.common.lod.morph.setting);
     let range = top_tiles(&mut streamer, &archive.meta)?;
     let near = near_plane_for(grid.spacing[0].min(grid.spacing[1]) as f32);
-    let (position, target) = args.common.view_points(|| start_view(&grid, range.world)).map_err(anyhow::Error::from)?;
+    let (position, target) =
+        args.common.view.view_points(|| start_view(&grid, range.world)).map_err(anyhow::Error::from)?;
     let f = (target - position).normalize();
     let position = match args.go_to {
         Some([lat, lon]) => go_to(&archive.meta, &grid, &streamer, position, lat, lon)?,
@@ -224,11 +224,12 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
     };
     // As `render` does: the first view's tiles are read before its first frame (in walk
     // mode, once the camera stands on the ground they bring).
-    let (w, h) = args.common.size.unwrap_or((1280, 720));
+    let (w, h) = args.common.view.frustum.size.unwrap_or((1280, 720));
     let mut position = position;
     for _ in 0..1 + usize::from(args.walk) {
-        let first = View::look_at(position.as_dvec3(), (position + f).as_dvec3(), args.common.fovy, w, h, near);
-        crate::app::stream::settle(&mut streamer, |_| first, args.delta);
+        let first =
+            View::look_at(position.as_dvec3(), (position + f).as_dvec3(), args.common.view.frustum.fovy, w, h, near);
+        crate::app::stream::settle(&mut streamer, |_| first, args.common.lod.delta);
         if args.walk {
             let mut ctl = Controller::new(position, f, 0.0, true);
             ctl.clamp_to_ground(&HeldGround(&streamer));
@@ -259,7 +260,7 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
         fog: args.fog.unwrap_or(crate::lod::view::default_fog(l)),
         ctl,
         home,
-        delta: args.delta,
+        delta: args.common.lod.delta,
         exaggeration: args.exaggeration,
         true_height_scale,
         flight: Vec::new(),
@@ -332,7 +333,7 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
 
 impl App {
     fn open(&mut self, event_loop: &ActiveEventLoop) -> anyhow::Result<()> {
-        let (w, h) = self.args.common.size.unwrap_or((1280, 720));
+        let (w, h) = self.args.common.view.frustum.size.unwrap_or((1280, 720));
         let title = format!("vkterrain: {} (streamed)", self.args.common.terrain.name());
         let resizes = self.win.resizes.iter().map(|&(f, w, h)| (format!("--resize-at {f}"), w, h));
         let sizes: Vec<(String, u32, u32)> = std::iter::once(("--size".to_string(), w, h)).chain(resizes).collect();
@@ -346,7 +347,7 @@ impl App {
         // One frame in flight: each streamed frame is waited for before the next.
         let mut hud = Hud::new(&device, &window, swapchain.format, crate::draw::blocks::DEPTH_FORMAT, 1)?;
         hud.visible = !self.args.no_hud;
-        let threads = self.args.common.traversal_threads;
+        let threads = self.args.common.lod.traversal_threads;
         crate::app::stream::streamer_threads(&mut self.streamer, threads, Some(&device))?;
         let mut frames = GpuFrames::new(device, &mut self.streamer, self.args.gpu_mb, self.range, (w, h), &self.trace)?;
         frames.fog = self.fog;
@@ -376,7 +377,14 @@ impl App {
     /// The view the camera gives at `extent` (the swapchain's size).
     fn view(&self, width: u32, height: u32) -> View {
         let p = self.ctl.position.as_dvec3();
-        View::look_at(p, p + self.ctl.forward().as_dvec3(), self.args.common.fovy, width, height, self.near)
+        View::look_at(
+            p,
+            p + self.ctl.forward().as_dvec3(),
+            self.args.common.view.frustum.fovy,
+            width,
+            height,
+            self.near,
+        )
     }
 
     /// One frame ([`WindowApp::draw`]: the window is open and shown).

@@ -48,9 +48,6 @@ pub enum PresentMode {
 pub struct ViewArgs {
     #[command(flatten)]
     pub common: CommonArgs,
-    /// Screen-space error threshold in pixels (keys [ and ] halve and double it).
-    #[arg(long, value_name = "PX", default_value = "1", value_parser = crate::app::cli::positive, allow_negative_numbers = true)]
-    pub delta: f32,
     #[command(flatten)]
     pub textures: TextureArgs,
     #[command(flatten)]
@@ -302,7 +299,7 @@ impl ViewArgs {
         }
         // Window systems take 16-bit signed sizes (winit panics beyond); the device's
         // image limit is checked once it exists.
-        let sizes = self.common.size.iter().map(|&(w, h)| ("--size".to_string(), w, h));
+        let sizes = self.common.view.frustum.size.iter().map(|&(w, h)| ("--size".to_string(), w, h));
         for (opt, w, h) in sizes.chain(resizes.iter().map(|&(f, w, h)| (format!("--resize-at {f}"), w, h))) {
             if w > MAX_WINDOW_SIDE || h > MAX_WINDOW_SIDE {
                 return Err(InputError(format!(
@@ -319,7 +316,8 @@ impl ViewArgs {
 fn view_archive(args: &ViewArgs, resizes: &[(u64, u32, u32)]) -> anyhow::Result<bool> {
     let max_side = || {
         let instance = Instance::new(&InstanceOptions { validation: false, extensions: Vec::new() }).ok()?;
-        let options = DeviceOptions { gpu: args.common.gpu.clone(), queues: args.common.queues, swapchain: false };
+        let options =
+            DeviceOptions { gpu: args.common.device.gpu.clone(), queues: args.common.device.queues, swapchain: false };
         Device::new(instance, &options).ok().map(|d| d.max_image_dimension_2d() as usize)
     };
     // Without a device the in-memory path says why, as before. The viewer installs its
@@ -342,7 +340,6 @@ fn view_archive(args: &ViewArgs, resizes: &[(u64, u32, u32)]) -> anyhow::Result<
     }
     let options = crate::app::stream_view::StreamViewOptions {
         common: args.common.clone(),
-        delta: args.delta,
         fog: args.fog,
         present: args.present_mode.vk(),
         frames: args.frames,
@@ -392,7 +389,7 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
     let mut hf = args.common.terrain.load_heightfield(None)?;
     let true_height_scale = hf.height_scale;
     hf.height_scale *= args.exaggeration;
-    let layout = BlockLayout::of(&hf, args.common.block).map_err(InputError)?;
+    let layout = BlockLayout::of(&hf, args.common.block.k).map_err(InputError)?;
     let trace = match &args.trace {
         Some(p) => Trace::to_file(p).map_err(|e| InputError(format!("--trace {}: {e}", p.display())))?,
         None => Trace::off(),
@@ -402,14 +399,14 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
     let interrupted = stop.flag().clone();
     let Textures { base, detail } = args.textures.load(&hf)?;
     let mm = MinMaxPyramid::build(&hf);
-    let (w, h) = args.common.size.unwrap_or((1280, 720));
-    let cam = if args.common.camera.is_none() && args.common.look_at.is_none() {
+    let (w, h) = args.common.view.frustum.size.unwrap_or((1280, 720));
+    let cam = if args.common.view.position.is_none() && args.common.view.look_at.is_none() {
         // Inside the terrain's extent, above its highest point, looking over it: walk
         // mode (G) lands on ground from here.
         let (position, target) = start_view(&hf, &mm);
-        Camera::look_at(position, target, args.common.fovy, w, h, near_plane(&hf))
+        Camera::look_at(position, target, args.common.view.frustum.fovy, w, h, near_plane(&hf))
     } else {
-        args.common.camera(&hf, (w, h))?
+        args.common.view.camera(&hf, (w, h))?
     };
     let f = cam.forward;
     let (wx, wz) = hf.world_extent();
@@ -438,8 +435,8 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
         ground_speed: 0.0,
         ctl,
         shading: args.textures.shade(Shading { fog_density: fog, ..Shading::default() }),
-        delta: args.delta,
-        mode: args.common.error_mode,
+        delta: args.common.lod.delta,
+        mode: args.common.error_mode.mode,
         sun: args.common.sun.0,
         frozen: None,
         draw: crate::app::commands::draw_thread(&args.common, trace.clone(), None)?,
@@ -519,7 +516,7 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
 
 impl App {
     fn open(&mut self, event_loop: &ActiveEventLoop) -> anyhow::Result<()> {
-        let requested = self.args.common.size.iter().map(|&(w, h)| ("--size".to_string(), w, h));
+        let requested = self.args.common.view.frustum.size.iter().map(|&(w, h)| ("--size".to_string(), w, h));
         let resizes = self.win.resizes.iter().map(|&(f, w, h)| (format!("--resize-at {f}"), w, h));
         let sizes: Vec<(String, u32, u32)> = requested.chain(resizes).collect();
         let title = format!("vkterrain: {}", self.hf.source);
@@ -569,7 +566,7 @@ impl App {
         self.stats.geometry_bytes = crate::app::commands::renderer_geometry_bytes(self.layout.k());
         self.stats.terrain = crate::app::outputs::TerrainFacts::of(&self.hf);
         self.stats.device = device.name.clone();
-        let threads = traversal_threads(self.args.common.traversal_threads, device.properties.device_type);
+        let threads = traversal_threads(self.args.common.lod.traversal_threads, device.properties.device_type);
         self.draw.set_threads(threads)?;
         self.gpu =
             Some(Gpu { hud, acquired, depth, swapchain, renderer, activity: Some(activity), terrain, surface, device });
@@ -616,7 +613,7 @@ impl App {
         Camera::look_at(
             self.ctl.position,
             target,
-            self.args.common.fovy,
+            self.args.common.view.frustum.fovy,
             extent.width,
             extent.height,
             near_plane(&self.hf),
@@ -845,7 +842,7 @@ impl App {
         }
         // The drawn camera's own basis, so that the ray meets what is under the cursor.
         let (right, up) = Camera::look_at(Vec3::ZERO, fwd, 60.0, 1, 1, 1.0).basis();
-        let t = (self.args.common.fovy.to_radians() * 0.5).tan();
+        let t = (self.args.common.view.frustum.fovy.to_radians() * 0.5).tan();
         let (nx, ny) = (2.0 * x / size.width as f32 - 1.0, 1.0 - 2.0 * y / size.height as f32);
         (fwd + right * (nx * t * size.width as f32 / size.height as f32) + up * (ny * t)).normalize()
     }
@@ -963,7 +960,8 @@ impl App {
         let p = self.ctl.position;
         let centre = ground_hit(&self.hf, p, self.ctl.forward());
         let height = self.win.window.as_ref().map_or(1, |w| w.inner_size().height.max(1)) as f32;
-        let metres_per_pixel = (centre - p).length() * 2.0 * (self.args.common.fovy.to_radians() * 0.5).tan() / height;
+        let metres_per_pixel =
+            (centre - p).length() * 2.0 * (self.args.common.view.frustum.fovy.to_radians() * 0.5).tan() / height;
         let f = self.ctl.forward();
         let (up, right) = (glam::Vec2::new(f.x, f.z), glam::Vec2::new(-f.z, f.x));
         let n = glam::Vec2::from(geo.north());
