@@ -15,6 +15,7 @@
 // drawn height.
 #extension GL_GOOGLE_include_directive : require
 #define USE_FrameUniforms
+#define USE_TerrainSpec
 #include "layout.glsl"
 #include "common.glsl"
 #include "sky.glsl"

@@ -3,16 +3,28 @@
 // sea share from the vertices) with its procedural detail, lit by the in-memory frame's
 // light with its sun shadows and ambient occlusion from a lighting map made as in memory
 // (lighting.frag) with one texel every frame.spacing.z samples (from the tiles of one
-// level: draw/streamed.rs), fogged towards the horizon colour. Needs `frame`
-// (USE_FrameUniforms) and ramp.glsl.
+// level: draw/streamed.rs), fogged towards the horizon colour; with a base texture
+// (stretched over the terrain) and a detail texture (repeated frame.texturing.x times
+// across it, weighted frame.texturing.y against it) as in memory (terrain_shade.glsl).
+// Needs `frame` (USE_FrameUniforms), the TerrainSpec constants (USE_TerrainSpec) and
+// ramp.glsl.
 
 layout(set = 0, binding = TERRAIN_BINDING_LIGHTING) uniform sampler2D lighting;
+layout(set = 0, binding = TERRAIN_BINDING_BASE) uniform sampler2D base_tex;
+layout(set = 0, binding = TERRAIN_BINDING_DETAIL) uniform sampler2D detail_tex;
 
 // `relative`: the point from the anchor sample (y: its world height); `at`: the point in
 // samples from the terrain's origin; `n`: its unit normal; `sea`: its share of sea;
 // `lod`: its block's LOD (the colour-by-LOD view, frame.flags.y).
 vec3 streamed_colour(vec3 relative, vec2 at, vec3 n, float sea, int lod) {
-    vec3 albedo = ground_colour(relative.y, 1.0 - n.y, sea) * procedural_detail(at);
+    vec2 uv = at / max(vec2(frame.extent.xy - 1), vec2(1.0));
+    vec3 albedo = BASE_TEXTURE ? texture(base_tex, uv).rgb : ground_colour(relative.y, 1.0 - n.y, sea);
+    if (DETAIL_TEXTURE) {
+        float alpha = frame.texturing.y;
+        albedo = alpha * albedo + (1.0 - alpha) * texture(detail_tex, uv * frame.texturing.x).rgb;
+    } else {
+        albedo *= procedural_detail(at);
+    }
     // Mixed as in memory (terrain_shade.glsl).
     if (frame.flags.y != 0) {
         vec3 palette[] = LOD_PALETTE;

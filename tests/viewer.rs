@@ -568,7 +568,7 @@ fn the_viewer_flies_over_an_archive_drawn_streamed() {
         .output()
         .unwrap();
     let refused =
-        viewer(&["--heightmap", archive.to_str().unwrap(), "--stream", "--texture", "x.png", "--frames", "1"]);
+        viewer(&["--heightmap", archive.to_str().unwrap(), "--stream", "--error-mode", "paper", "--frames", "1"]);
     let view = format!("--heightmap '{}' --stream --size 480x360 --validation on --cache-mb 64", archive.display());
     // The drag starts right of the panel (top left), which would take it.
     let steps = r#"xdotool key bracketright
@@ -679,7 +679,7 @@ xdotool key Escape
     }
     let err = String::from_utf8_lossy(&refused.stderr);
     assert_eq!(refused.status.code(), Some(2), "{err}");
-    assert!(err.contains("--texture") && err.contains("streamed"), "{err}");
+    assert!(err.contains("--error-mode paper") && err.contains("streamed"), "{err}");
 }
 
 /// `--exaggeration` over an archive drawn streamed draws what the in-memory viewer draws

@@ -1191,8 +1191,6 @@ impl BenchArgs {
     fn not_streamed(&self) -> Vec<&'static str> {
         let c = &self.common;
         [
-            ("--texture", self.textures.texture.is_some()),
-            ("--detail", self.textures.detail.is_some()),
             ("--compare", self.compare),
             ("--popping", self.popping),
             ("--raycast", self.raycast != crate::draw::raycast::Raycast::Off),
@@ -1281,6 +1279,8 @@ fn bench_streamed(
     let mut gpu = GpuFrames::new(device.clone(), &mut streamer, gpu_mb, range, size, &trace)?;
     gpu.set_normals(args.shading);
     gpu.set_pixels(args.pixels);
+    let m = &archive.meta;
+    gpu.set_textures(&args.textures.load_over(&m.georef, (m.width, m.height))?, &args.textures)?;
     gpu.sun(args.common.sun.0)?;
     // As the in-memory bench: frames are drawn, not read back.
     gpu.read_back = false;

@@ -584,6 +584,16 @@ impl TextureArgs {
     /// georeferencing ([`crate::input::georef::drape`]); any other is stretched over the
     /// terrain's extent.
     pub fn load(&self, hf: &Heightfield) -> Result<Textures, InputError> {
+        self.load_over(&hf.georef, (hf.width, hf.height))
+    }
+
+    /// [`TextureArgs::load`] over a terrain of `size` samples placed by `georef` (an
+    /// archive's, whose samples are not all in memory).
+    pub fn load_over(
+        &self,
+        georef: &crate::lod::heightfield::Georef,
+        size: (usize, usize),
+    ) -> Result<Textures, InputError> {
         if !(0.0..=1.0).contains(&self.detail_weight) {
             return Err(InputError(format!("--detail-weight {}: must be within 0..1", self.detail_weight)));
         }
@@ -596,9 +606,7 @@ impl TextureArgs {
         };
         let base = |path: &PathBuf| -> Result<Texture, InputError> {
             crate::input::regular_file(path).map_err(|e| InputError(format!("--texture {e}")))?;
-            match crate::input::georef::drape(path, &hf.georef, (hf.width, hf.height))
-                .map_err(|e| InputError(format!("--texture {e}")))?
-            {
+            match crate::input::georef::drape(path, georef, size).map_err(|e| InputError(format!("--texture {e}")))? {
                 Some((width, height, rgba)) => {
                     eprintln!(
                         "vkterrain: note: --texture {}: georeferenced, warped onto the terrain ({width} x {height} texels)",
@@ -608,7 +616,7 @@ impl TextureArgs {
                 }
                 None => {
                     // Stretched: say so when one side has coordinates the other lacks.
-                    let terrain_placed = hf.georef.step != [0.0; 2];
+                    let terrain_placed = georef.step != [0.0; 2];
                     eprintln!(
                         "vkterrain: note: --texture {}: stretched over the terrain's whole extent{}",
                         path.display(),

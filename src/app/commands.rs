@@ -77,15 +77,11 @@ impl RenderArgs {
     /// default (drawing anyway would ignore them silently).
     fn not_streamed(&self) -> Vec<&'static str> {
         let c = &self.common;
-        [
-            ("--texture", self.textures.texture.is_some()),
-            ("--detail", self.textures.detail.is_some()),
-            ("--raycast", self.raycast != Raycast::Off),
-        ]
-        .into_iter()
-        .chain(c.not_streamed())
-        .filter_map(|(name, set)| set.then_some(name))
-        .collect()
+        [("--raycast", self.raycast != Raycast::Off)]
+            .into_iter()
+            .chain(c.not_streamed())
+            .filter_map(|(name, set)| set.then_some(name))
+            .collect()
     }
 }
 
@@ -423,6 +419,7 @@ fn render_streamed(
         lod: args.lod,
         normals: args.shading,
         pixels: args.pixels,
+        textures: &args.textures,
     })?;
     let mut out = r.report;
     if args.audit {

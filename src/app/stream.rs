@@ -81,7 +81,7 @@ pub(crate) fn morph_rule(morph: OnOff) -> Option<MorphRule> {
 pub(crate) fn streamed_banner(shown: &str, m: &Meta, cache_mb: u32, gpu_mb: u32) -> String {
     format!(
         "vkterrain: {shown}: {} x {} samples, {} tile levels, drawn streamed (cache {cache_mb} MB, atlas {gpu_mb} MB); \
-         no textures or occlusion culling yet",
+         no occlusion culling yet",
         m.width,
         m.height,
         m.top_level + 1,
@@ -220,6 +220,21 @@ impl GpuFrames {
     /// Deferred (the default) or forward shading (`--pixels`).
     pub fn set_pixels(&mut self, pixels: crate::draw::blocks::PixelPass) {
         self.renderer.set_pixels(pixels);
+    }
+
+    /// The textures `args` named, read over the terrain (`TextureArgs::load_over`), set
+    /// before the first frame: the detail weighted as `args` says.
+    pub fn set_textures(
+        &mut self,
+        t: &crate::app::cli::Textures,
+        args: &crate::app::cli::TextureArgs,
+    ) -> anyhow::Result<()> {
+        if t.base.is_none() && t.detail.is_none() {
+            return Ok(());
+        }
+        let weight = if t.detail.is_some() { args.detail_weight } else { 1.0 };
+        self.renderer.set_textures(t.base.as_ref(), t.detail.as_ref(), args.detail_tiling, weight)?;
+        Ok(())
     }
 
     /// Draws the frame (every tile the selection used is in the atlas: the cache takes
@@ -604,6 +619,8 @@ pub struct ArchiveFrame<'a> {
     pub normals: crate::draw::blocks::NormalSource,
     /// Deferred or forward shading (`--pixels`).
     pub pixels: crate::draw::blocks::PixelPass,
+    /// Base and detail textures (`--texture`, `--detail`).
+    pub textures: &'a crate::app::cli::TextureArgs,
 }
 
 /// The streamed rule for a `--lod` choice (the in-memory rings' factor).
@@ -672,6 +689,8 @@ pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
     let mut gpu = GpuFrames::new(f.device.clone(), &mut streamer, f.gpu_mb, range, (w, h), &Trace::off())?;
     gpu.set_normals(f.normals);
     gpu.set_pixels(f.pixels);
+    let m = &f.archive.meta;
+    gpu.set_textures(&f.textures.load_over(&m.georef, (m.width, m.height))?, f.textures)?;
     gpu.fog = f.fog;
     gpu.colour_by_lod = f.colour_by_lod;
     gpu.background = f.background;

@@ -52,6 +52,7 @@ impl Ground for HeldGround<'_> {
 #[derive(Clone, Debug)]
 pub struct StreamViewOptions {
     pub common: CommonArgs,
+    pub textures: crate::app::cli::TextureArgs,
     pub fog: Option<f32>,
     pub present: vk::PresentModeKHR,
     pub frames: Option<u64>,
@@ -130,6 +131,8 @@ struct Run {
 
 struct App {
     args: StreamViewOptions,
+    /// `--texture` and `--detail`, read at start (a bad file fails before the window).
+    textures: crate::app::cli::Textures,
     streamer: Streamer,
     grid: Grid,
     range: crate::draw::streamed::HeightRange,
@@ -202,6 +205,7 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
     grid.height_scale *= f64::from(args.exaggeration);
     let m = &archive.meta;
     crate::out!("{}", crate::app::stream::streamed_banner(&shown, m, args.cache_mb, args.gpu_mb))?;
+    let textures = args.textures.load_over(&m.georef, (m.width, m.height))?;
     let trace = match &args.trace {
         Some(p) => {
             Trace::to_file(p).map_err(|e| crate::app::cli::InputError(format!("--trace {}: {e}", p.display())))?
@@ -253,6 +257,7 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
     let now = Instant::now();
     let app = App {
         args: args.clone(),
+        textures,
         streamer,
         grid,
         range,
@@ -351,6 +356,7 @@ impl App {
         crate::app::stream::streamer_threads(&mut self.streamer, threads, Some(&device))?;
         let mut frames = GpuFrames::new(device, &mut self.streamer, self.args.gpu_mb, self.range, (w, h), &self.trace)?;
         frames.fog = self.fog;
+        frames.set_textures(&self.textures, &self.args.textures)?;
         frames.sun(self.args.common.sun.0)?;
         self.gpu = Some(WindowGpu { hud, acquired, swapchain, frames, surface });
         self.win.window = Some(window);

@@ -275,11 +275,7 @@ impl ViewArgs {
     /// The options the streamed viewer cannot honour yet, given a value other than their
     /// default (drawing anyway would ignore them silently).
     fn not_streamed(&self) -> Vec<&'static str> {
-        [("--texture", self.textures.texture.is_some()), ("--detail", self.textures.detail.is_some())]
-            .into_iter()
-            .chain(self.common.not_streamed())
-            .filter_map(|(name, set)| set.then_some(name))
-            .collect()
+        self.common.not_streamed().into_iter().filter_map(|(name, set)| set.then_some(name)).collect()
     }
 
     /// `--resize-at`'s resizes (frame, width, height), once `--size` and each of them is
@@ -340,6 +336,7 @@ fn view_archive(args: &ViewArgs, resizes: &[(u64, u32, u32)]) -> anyhow::Result<
     }
     let options = crate::app::stream_view::StreamViewOptions {
         common: args.common.clone(),
+        textures: args.textures.clone(),
         fog: args.fog,
         present: args.present_mode.vk(),
         frames: args.frames,

@@ -497,8 +497,8 @@ impl BlocksRenderer {
                 set,
                 &[
                     (layout::TERRAIN_BINDING_HEIGHTS, terrain.heights.view, terrain.nearest.handle),
-                    (layout::TERRAIN_BINDING_BASE, terrain.base.view, terrain.linear.handle),
-                    (layout::TERRAIN_BINDING_DETAIL, terrain.detail.view, terrain.linear.handle),
+                    (layout::TERRAIN_BINDING_BASE, terrain.textures.base.view, terrain.linear.handle),
+                    (layout::TERRAIN_BINDING_DETAIL, terrain.textures.detail.view, terrain.linear.handle),
                     (layout::TERRAIN_BINDING_GRADIENTS, terrain.gradients.view, terrain.nearest.handle),
                     (layout::TERRAIN_BINDING_LIGHTING, lighting.image.view, lighting.sampler.handle),
                     // A placeholder until the first frame writes its depth image here
@@ -529,7 +529,7 @@ impl BlocksRenderer {
             set_layout,
             pipeline_layout,
             color_format,
-            textures: (terrain.has_base, terrain.has_detail),
+            textures: (terrain.textures.has_base, terrain.textures.has_detail),
             holes: hf.void_mask.is_some(),
             terrain_pipelines: Vec::new(),
             depth_pipeline,

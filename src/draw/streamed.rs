@@ -24,6 +24,7 @@ use crate::draw::lighting_gpu::OwnLighting;
 use crate::errors::atlas::HeightAtlas;
 use crate::gpu::layout::{self, BlockPush, FrameUniforms};
 use crate::gpu::shaders;
+use crate::gpu::terrain::{Texture, TextureImages};
 use crate::input::archive::{level_heightfield, LevelTerrain};
 use crate::lod::block::{morph_value, BlockLayout, CORNER_UNRESOLVED};
 use crate::lod::camera::Camera;
@@ -86,6 +87,12 @@ pub struct StreamedRenderer {
     /// The blocks' depth pass of deferred frames (None without shaderClipDistance:
     /// frames are then shaded forward).
     depth_pipeline: Option<GraphicsPipeline>,
+    /// The base and detail textures (`--texture`, `--detail`), stretched over the terrain
+    /// as in memory, their sampler, and the detail's tiling and weight.
+    textures: TextureImages,
+    texture_sampler: Sampler,
+    detail_tiling: f32,
+    detail_weight: f32,
 }
 
 /// A swapchain image to draw a frame into: acquired (`acquired` signalled when it may be
@@ -128,8 +135,15 @@ struct PipelineHandles {
 }
 
 impl FramePipelines {
-    fn new(device: &Arc<Device>, layout: &PipelineLayout, format: vk::Format, normals: NormalSource) -> VkResult<Self> {
+    fn new(
+        device: &Arc<Device>,
+        layout: &PipelineLayout,
+        format: vk::Format,
+        normals: NormalSource,
+        (base, detail): (bool, bool),
+    ) -> VkResult<Self> {
         let sky = super::blocks::sky_pipeline(device, layout, format)?;
+        let textures = [(layout::SPEC_BASE_TEXTURE, base), (layout::SPEC_DETAIL_TEXTURE, detail)];
         // Over the whole target, with the depth attached read-only (as the viewer's
         // panel, drawn in the same rendering, expects), as in memory.
         let shade = GraphicsPipeline::new(
@@ -145,10 +159,10 @@ impl FramePipelines {
                 polygon_mode: vk::PolygonMode::FILL,
                 cull_back: false,
                 layout,
-                specialization: &[],
+                specialization: &textures,
             },
         )?;
-        Ok(FramePipelines { terrain: terrain_pipeline(device, layout, format, normals)?, sky, shade })
+        Ok(FramePipelines { terrain: terrain_pipeline(device, layout, format, normals, textures)?, sky, shade })
     }
 }
 
@@ -160,6 +174,7 @@ fn terrain_pipeline(
     layout: &PipelineLayout,
     format: vk::Format,
     normals: NormalSource,
+    [base, detail]: [(u32, bool); 2],
 ) -> VkResult<GraphicsPipeline> {
     GraphicsPipeline::new(
         device,
@@ -176,7 +191,7 @@ fn terrain_pipeline(
             // through it, not its underside (the same mesh, the same winding).
             cull_back: true,
             layout,
-            specialization: &[(layout::SPEC_NORMALS_FROM_HEIGHTS, normals == NormalSource::Heights)],
+            specialization: &[(layout::SPEC_NORMALS_FROM_HEIGHTS, normals == NormalSource::Heights), base, detail],
         },
     )
 }
@@ -207,11 +222,22 @@ impl StreamedRenderer {
                     vk::DescriptorType::COMBINED_IMAGE_SAMPLER,
                     vk::ShaderStageFlags::FRAGMENT,
                 ),
+                (
+                    layout::TERRAIN_BINDING_BASE,
+                    vk::DescriptorType::COMBINED_IMAGE_SAMPLER,
+                    vk::ShaderStageFlags::FRAGMENT,
+                ),
+                (
+                    layout::TERRAIN_BINDING_DETAIL,
+                    vk::DescriptorType::COMBINED_IMAGE_SAMPLER,
+                    vk::ShaderStageFlags::FRAGMENT,
+                ),
             ],
         )?;
         let push = std::mem::size_of::<BlockPush>() as u32;
         let pipeline_layout = PipelineLayout::new(device, &set_layout, push, vertex)?;
-        let pipelines = FramePipelines::new(device, &pipeline_layout, COLOR_FORMAT, NormalSource::default())?;
+        let pipelines =
+            FramePipelines::new(device, &pipeline_layout, COLOR_FORMAT, NormalSource::default(), (false, false))?;
         let depth_pipeline = depth_pass_pipeline(device, &pipeline_layout, shaders::STREAM_DEPTH_VERT)?;
         // The capture hook writes from the vertex stage: only where the device allows it.
         let capture = if device.features.vertex_stores {
@@ -232,6 +258,16 @@ impl StreamedRenderer {
                         vk::DescriptorType::COMBINED_IMAGE_SAMPLER,
                         vk::ShaderStageFlags::FRAGMENT,
                     ),
+                    (
+                        layout::TERRAIN_BINDING_BASE,
+                        vk::DescriptorType::COMBINED_IMAGE_SAMPLER,
+                        vk::ShaderStageFlags::FRAGMENT,
+                    ),
+                    (
+                        layout::TERRAIN_BINDING_DETAIL,
+                        vk::DescriptorType::COMBINED_IMAGE_SAMPLER,
+                        vk::ShaderStageFlags::FRAGMENT,
+                    ),
                 ],
             )?;
             let pl = PipelineLayout::new(device, &l, push, vertex)?;
@@ -247,7 +283,7 @@ impl StreamedRenderer {
             device,
             2,
             &[
-                (vk::DescriptorType::COMBINED_IMAGE_SAMPLER, 7),
+                (vk::DescriptorType::COMBINED_IMAGE_SAMPLER, 11),
                 (vk::DescriptorType::UNIFORM_BUFFER, 2),
                 (vk::DescriptorType::STORAGE_BUFFER, 1),
             ],
@@ -266,6 +302,7 @@ impl StreamedRenderer {
         )?;
         let commands = CommandPool::new(device, device.draw_queue.family)?;
         let cmd = commands.allocate()?;
+        let textures = TextureImages::new(device, &commands, None, None)?;
         Ok(StreamedRenderer {
             device: device.clone(),
             layout,
@@ -287,7 +324,28 @@ impl StreamedRenderer {
             normals: NormalSource::default(),
             pixels: PixelPass::default(),
             depth_pipeline,
+            textures,
+            texture_sampler: Sampler::new(device, vk::Filter::LINEAR, vk::SamplerAddressMode::REPEAT)?,
+            detail_tiling: 0.0,
+            detail_weight: 1.0,
         })
+    }
+
+    /// Draws `base` stretched over the terrain and `detail` repeated `tiling` times across
+    /// it, weighted `weight` against it (`--texture`, `--detail`), as in memory; before
+    /// the first frame (the pipelines are made again).
+    pub fn set_textures(
+        &mut self,
+        base: Option<&Texture>,
+        detail: Option<&Texture>,
+        tiling: f32,
+        weight: f32,
+    ) -> VkResult<()> {
+        self.fence.wait(u64::MAX)?;
+        self.textures = TextureImages::new(&self.device, &self.commands, base, detail)?;
+        (self.detail_tiling, self.detail_weight) = (tiling, weight);
+        self.pipelines.clear();
+        Ok(())
     }
 
     /// The frame uniforms of a camera relative to the anchor sample: the in-memory
@@ -313,7 +371,12 @@ impl StreamedRenderer {
                 view.lighting.source().stride as f32,
             ],
             light: [light.x, light.y, light.z, 0.25],
-            texturing: [0.0, 0.0, 0.0, crate::lod::heightfield::sea_level(absolute, world)],
+            texturing: [
+                self.detail_tiling,
+                self.detail_weight,
+                0.0,
+                crate::lod::heightfield::sea_level(absolute, world),
+            ],
             extent: [grid.width as i32, grid.height as i32, 0, self.layout.k() as i32],
             flags: [atlas.unorm16() as i32, i32::from(view.colour_by_lod), 0, 0],
             // As in memory: a plain background is the horizon's colour (the fog's too).
@@ -377,6 +440,8 @@ impl StreamedRenderer {
                 (layout::TERRAIN_BINDING_HEIGHTS, atlas.image().view, self.sampler.handle),
                 (layout::TERRAIN_BINDING_LIGHTING, view.lighting.map.image.view, view.lighting.map.sampler.handle),
                 (layout::STREAM_BINDING_HELD_HEIGHTS, view.lighting.heights_view(), self.sampler.handle),
+                (layout::TERRAIN_BINDING_BASE, self.textures.base.view, self.texture_sampler.handle),
+                (layout::TERRAIN_BINDING_DETAIL, self.textures.detail.view, self.texture_sampler.handle),
             ],
             &[(layout::TERRAIN_BINDING_FRAME, self.uniforms.handle, std::mem::size_of::<FrameUniforms>() as u64)],
         );
@@ -445,7 +510,8 @@ impl StreamedRenderer {
         if let Some((_, p)) = self.pipelines.iter().find(|(f, _)| *f == format) {
             return Ok(handles(p));
         }
-        let p = FramePipelines::new(&self.device, &self.pipeline_layout, format, self.normals)?;
+        let textures = (self.textures.has_base, self.textures.has_detail);
+        let p = FramePipelines::new(&self.device, &self.pipeline_layout, format, self.normals, textures)?;
         let h = handles(&p);
         self.pipelines.push((format, p));
         Ok(h)

@@ -22,10 +22,7 @@ pub struct TerrainGpu {
     pub sea_level_per_unit: f32,
     pub nearest: Sampler,
     pub linear: Sampler,
-    pub base: Image,
-    pub detail: Image,
-    pub has_base: bool,
-    pub has_detail: bool,
+    pub textures: TextureImages,
     /// Raw height range (min, max) of the whole grid.
     pub raw_range: [f32; 2],
     pub bytes: u64,
@@ -36,6 +33,39 @@ pub struct Texture {
     pub width: u32,
     pub height: u32,
     pub rgba: Vec<u8>,
+}
+
+/// The base and detail textures as sampled images: each given one, or one white texel
+/// (the shaders read neither then: their specialization says so).
+pub struct TextureImages {
+    pub base: Image,
+    pub detail: Image,
+    pub has_base: bool,
+    pub has_detail: bool,
+}
+
+impl TextureImages {
+    pub fn new(
+        device: &Arc<Device>,
+        pool: &CommandPool,
+        base: Option<&Texture>,
+        detail: Option<&Texture>,
+    ) -> VkResult<TextureImages> {
+        let white = Texture { width: 1, height: 1, rgba: vec![255; 4] };
+        let usage = vk::ImageUsageFlags::SAMPLED | vk::ImageUsageFlags::TRANSFER_DST;
+        let tex = |name: &str, t: &Texture| -> VkResult<Image> {
+            let extent = vk::Extent2D { width: t.width, height: t.height };
+            let img = Image::new(device, name, extent, vk::Format::R8G8B8A8_SRGB, 1, usage, false)?;
+            upload(device, pool, &img, &[&t.rgba])?;
+            Ok(img)
+        };
+        Ok(TextureImages {
+            base: tex("base texture", base.unwrap_or(&white))?,
+            detail: tex("detail texture", detail.unwrap_or(&white))?,
+            has_base: base.is_some(),
+            has_detail: detail.is_some(),
+        })
+    }
 }
 
 impl TerrainGpu {
@@ -86,14 +116,7 @@ impl TerrainGpu {
         let gradients = Image::new(device, "gradient map", extent(gw, gh), vk::Format::R32_UINT, 1, usage, false)?;
         upload(device, &pool, &gradients, &[bytemuck::cast_slice(&grads)])?;
 
-        let white = Texture { width: 1, height: 1, rgba: vec![255; 4] };
-        let tex = |name: &str, t: &Texture| -> VkResult<Image> {
-            let img = Image::new(device, name, extent(t.width, t.height), vk::Format::R8G8B8A8_SRGB, 1, usage, false)?;
-            upload(device, &pool, &img, &[&t.rgba])?;
-            Ok(img)
-        };
-        let base_img = tex("base texture", base.unwrap_or(&white))?;
-        let detail_img = tex("detail texture", detail.unwrap_or(&white))?;
+        let textures = TextureImages::new(device, &pool, base, detail)?;
         let total = height_bytes
             + mips.iter().map(|m| m.len()).sum::<usize>()
             + mm.dev.iter().map(|l| l.len() * 4).sum::<usize>()
@@ -107,10 +130,7 @@ impl TerrainGpu {
             sea_level_per_unit: sea_level / hf.height_scale,
             nearest: Sampler::new(device, vk::Filter::NEAREST, vk::SamplerAddressMode::CLAMP_TO_EDGE)?,
             linear: Sampler::new(device, vk::Filter::LINEAR, vk::SamplerAddressMode::REPEAT)?,
-            base: base_img,
-            detail: detail_img,
-            has_base: base.is_some(),
-            has_detail: detail.is_some(),
+            textures,
             raw_range: mm.range(),
             bytes: total as u64,
         })
