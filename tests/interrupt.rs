@@ -55,6 +55,28 @@ fn stream_stopped_by_a_signal_reports_the_frames_flown_and_exits_128_plus_the_si
     }
 }
 
+/// A flight drawn on the GPU with `--out`, over a file cut into tiles, stopped before its
+/// first frame (while the lighting map is made): its JSON and 128 + the signal, and no
+/// picture, partial or whole (it used to panic writing an empty one, leaving a partial
+/// file).
+#[test]
+fn stream_stopped_before_its_first_frame_writes_no_picture() {
+    let tmp = TempDir::new("stream-signal-out");
+    let field = hills_png(tmp.path(), 1025);
+    let out = tmp.path().join("out");
+    std::fs::create_dir(&out).unwrap();
+    let png = out.join("last.png");
+    let args = ["stream", field.to_str().unwrap(), "--frames", "18000", "--gpu-mb", "16", "--size", "64x48"];
+    let args = [&args[..], &["--validation", "on", "--out", png.to_str().unwrap()]].concat();
+    let s = stop_with_signal(&args, |l| l.is_some_and(|l| l.contains("vkterrain: atlas of")), "TERM");
+    assert_eq!(s.status.code(), Some(143), "{}", s.stderr);
+    let r = json_in(&s.stdout);
+    assert_eq!(r["interrupted"], true, "{r}");
+    assert!(!s.stderr.contains("panicked"), "{}", s.stderr);
+    let left: Vec<_> = std::fs::read_dir(&out).unwrap().flatten().map(|e| e.file_name()).collect();
+    assert!(left.is_empty(), "left in --out's folder: {left:?}");
+}
+
 #[test]
 fn view_stopped_by_a_signal_prints_its_figures_and_exits_128_plus_the_signal() {
     assert!(std::env::var_os("DISPLAY").is_some(), "needs a display: run under xvfb-run (tools/test.sh does)");

@@ -584,6 +584,14 @@ xdotool key x
 wait_frames 2
 xdotool key p
 wait_file vkterrain-1.png
+xdotool key n
+wait_frames 2
+xdotool key space
+wait_frames 2
+xdotool key o
+wait_frames 2
+xdotool key m
+wait_frames 2
 xdotool key Escape
 "#;
     let mut checked = false;
@@ -605,6 +613,10 @@ xdotool key Escape
         assert_eq!(json["exaggeration"], 1.5, "X: {json}");
         assert!(json["samples"].is_array() && json["spacing_m"].is_array(), "the terrain's facts: {json}");
         assert_eq!(json["gpu"]["frames_missing_blocks"], 0, "{json}");
+        // N stopped the morph, Space froze the selection, O orbits; M says why it does nothing.
+        let keys = [&json["final_morph"], &json["frozen"], &json["orbiting"]].map(serde_json::Value::as_bool);
+        assert_eq!(keys, [Some(false), Some(true), Some(true)], "N, Space, O: {json}");
+        assert!(stderr.contains("M (the paper's error mode) is not drawn yet"), "M: {stderr}");
         let img = image::open(tmp.join("vkterrain-1.png")).unwrap().to_rgba8();
         assert_eq!(img.dimensions(), (480, 360));
         let terrain = common::terrain_pixels(&img);

@@ -69,7 +69,7 @@ pub struct BenchArgs {
     /// side.
     #[arg(long, value_enum, default_value_t = crate::draw::blocks::PixelPass::Deferred)]
     pub pixels: crate::draw::blocks::PixelPass,
-    /// Blocks drawn by the ray-caster instead of as triangles (SPEC 10): none, every
+    /// Blocks drawn by the ray-caster instead of as triangles: none, every
     /// other eligible block, every eligible one, or those estimated to cost less than
     /// their triangles (auto), to measure its cost beside the rasterizer's
     /// (`raycast_blocks` and `raycast_pixels` in frames.csv).

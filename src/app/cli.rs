@@ -476,16 +476,16 @@ impl CameraArgs {
 /// How an archive is drawn streamed (`render`, `view`): forced, and the budgets.
 #[derive(Args, Debug, Clone, Copy)]
 pub struct StreamedOptions {
-    /// Draw an archive streamed (its tiles through a host cache and a GPU atlas, in
-    /// bounded memory) even when it fits in one image. Archives larger than one image are
-    /// always drawn so.
+    /// Draw the terrain from its tiles (through a host cache and a GPU atlas, in bounded
+    /// memory) even when it fits in one image: a file, or the built-in terrain, is cut
+    /// into tiles in memory first. Terrains larger than one image are always drawn so.
     #[arg(long)]
     pub stream: bool,
-    /// Streamed archives: host cache budget for decoded tiles, MB [default: 256].
+    /// Terrains drawn from tiles: host cache budget for decoded tiles, MB [default: 256].
     #[arg(long = "cache-mb", value_name = "MB", value_parser = clap::value_parser!(u32).range(1..=1_000_000), allow_negative_numbers = true)]
     pub cache_mb_given: Option<u32>,
-    /// Streamed archives: GPU atlas budget, MB (one layer a tile, at most 2048 layers)
-    /// [default: 256].
+    /// Terrains drawn from tiles: GPU atlas budget, MB (one layer a tile, at most 2048
+    /// layers) [default: 256].
     #[arg(long = "gpu-mb", value_name = "MB", value_parser = clap::value_parser!(u32).range(1..=1_000_000), allow_negative_numbers = true)]
     pub gpu_mb_given: Option<u32>,
 }
@@ -574,6 +574,30 @@ pub struct Textures {
 }
 
 impl TextureArgs {
+    /// Each texture read for these options fits in one image on `device` (exit 2 naming
+    /// the option and the file, not a failure when the image is made).
+    pub fn check_fits(
+        &self,
+        base: Option<&Texture>,
+        detail: Option<&Texture>,
+        device: &crate::vk::Device,
+    ) -> Result<(), InputError> {
+        let max = device.max_image_dimension_2d();
+        for (texture, option, path) in [(base, "--texture", &self.texture), (detail, "--detail", &self.detail)] {
+            if let (Some(t), Some(path)) = (texture, path) {
+                if t.width > max || t.height > max {
+                    return Err(InputError(format!(
+                        "{option} {}: {} x {} texels is larger than the device's maxImageDimension2D ({max})",
+                        path.display(),
+                        t.width,
+                        t.height
+                    )));
+                }
+            }
+        }
+        Ok(())
+    }
+
     /// Input paths, for the commands' output checks.
     pub fn inputs(&self) -> [(&'static str, Option<&std::path::Path>); 2] {
         [("--texture", self.texture.as_deref()), ("--detail", self.detail.as_deref())]

@@ -62,7 +62,7 @@ pub struct RenderArgs {
     /// (default), or as the blocks are drawn (forward: every covered fragment shaded).
     #[arg(long, value_enum, default_value_t = PixelPass::Deferred)]
     pub pixels: PixelPass,
-    /// Blocks drawn by a fragment-shader ray-caster instead of as triangles (SPEC 10):
+    /// Blocks drawn by a fragment-shader ray-caster instead of as triangles:
     /// none, every other eligible block (the crack check), every eligible one (a block
     /// that neither morphs nor follows a coarser neighbour's edge), or those whose rays
     /// are estimated to cost less than their triangles (auto). Deferred frames only.
@@ -152,6 +152,9 @@ impl Session {
         let pyramid_ms = t.elapsed().as_secs_f64() * 1e3;
         tracing::info!("group pyramid (min/max and exact deviation, {} levels) in {pyramid_ms:.0} ms", hf.n);
         let tex = textures.map(|t| t.load(&hf)).transpose()?.unwrap_or_default();
+        if let Some(args) = textures {
+            args.check_fits(tex.base.as_ref(), tex.detail.as_ref(), &device)?;
+        }
         let terrain = Arc::new(TerrainGpu::new(&device, &hf, &mm, tex.base.as_ref(), tex.detail.as_ref())?);
         Ok(Session { hf: Arc::new(hf), mm, layout, device, terrain, pyramid_ms })
     }

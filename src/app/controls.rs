@@ -17,6 +17,24 @@ pub trait Ground {
     fn spacing(&self) -> f32;
 }
 
+/// The first point of the ground along the ray from `from` in direction `dir` (marched
+/// in steps over twice the terrain's extent), or a point on the ground a quarter of the
+/// extent ahead when the ray meets none.
+pub fn ground_hit(ground: &dyn Ground, from: Vec3, dir: Vec3) -> Vec3 {
+    let (wx, wz) = ground.extent();
+    let l = wx.max(wz);
+    let height = |p: Vec3| ground.height(p.x.clamp(0.0, wx), p.z.clamp(0.0, wz));
+    let steps = (2.0 * l / ground.spacing()).min(20_000.0) as usize;
+    for i in 1..=steps {
+        let p = from + dir * (i as f32 * 2.0 * l / steps as f32);
+        if p.y <= height(p) && (0.0..=wx).contains(&p.x) && (0.0..=wz).contains(&p.z) {
+            return p;
+        }
+    }
+    let p = from + dir * 0.25 * l;
+    Vec3::new(p.x, height(p), p.z)
+}
+
 impl Ground for Heightfield {
     fn extent(&self) -> (f32, f32) {
         self.world_extent()
@@ -61,6 +79,41 @@ impl Controller {
 
     pub fn forward(&self) -> Vec3 {
         Vec3::new(self.yaw.cos() * self.pitch.cos(), self.pitch.sin(), self.yaw.sin() * self.pitch.cos())
+    }
+
+    /// O: orbit around the ground point along `ray` (the cursor's), turning to face it,
+    /// or stop orbiting. Returns how far the camera turned to face it (radians).
+    pub fn toggle_orbit(&mut self, ground: &dyn Ground, ray: Vec3) -> f32 {
+        if self.orbit.take().is_some() {
+            return 0.0;
+        }
+        let pivot = ground_hit(ground, self.position, ray);
+        let to = pivot - self.position;
+        let mut turned = 0.0;
+        if to.length() > 0.0 {
+            let d = to.normalize();
+            let yaw = d.z.atan2(d.x);
+            turned = (yaw - self.yaw).abs();
+            (self.yaw, self.pitch) = (yaw, d.y.clamp(-1.0, 1.0).asin());
+        }
+        self.walk = false;
+        self.orbit = Some((pivot, to.length().max(ground.spacing())));
+        turned
+    }
+
+    /// The ray through the window pixel `cursor` (ahead when there is none or the window
+    /// is empty), for a camera of vertical field of view `fovy_deg` in a window of `size`.
+    pub fn cursor_ray(&self, cursor: Option<(f32, f32)>, size: (u32, u32), fovy_deg: f32) -> Vec3 {
+        let fwd = self.forward();
+        let (Some((x, y)), (w, h)) = (cursor, size) else { return fwd };
+        if w == 0 || h == 0 {
+            return fwd;
+        }
+        // The drawn camera's own basis, so that the ray meets what is under the cursor.
+        let (right, up) = crate::lod::camera::Camera::look_at(Vec3::ZERO, fwd, 60.0, 1, 1, 1.0).basis();
+        let t = (fovy_deg.to_radians() * 0.5).tan();
+        let (nx, ny) = (2.0 * x / w as f32 - 1.0, 1.0 - 2.0 * y / h as f32);
+        (fwd + right * (nx * t * w as f32 / h as f32) + up * (ny * t)).normalize()
     }
 
     pub fn update(&mut self, ground: &dyn Ground, dt: f32) {
@@ -246,9 +299,9 @@ pub(crate) fn open_window(
         &DeviceOptions { gpu: common.device.gpu.clone(), queues: common.device.queues, swapchain: true },
     )
     .map_err(crate::app::cli::option_error)?;
-    crate::out!("vkterrain: device {}, queue mode {}", device.name, device.queue_mode.as_str())?;
+    eprintln!("vkterrain: device {}, queue mode {}", device.name, device.queue_mode.as_str());
     for note in device.notes() {
-        crate::out!("vkterrain: note: {note}")?;
+        eprintln!("vkterrain: note: {note}");
     }
     for (opt, w, h) in sizes {
         crate::app::cli::check_image_size(&device, opt, (*w, *h))?;

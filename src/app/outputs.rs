@@ -102,6 +102,10 @@ pub fn output_target(path: &Path) -> Result<std::path::PathBuf, String> {
 }
 
 pub fn save_png(path: &Path, width: u32, height: u32, rgba: &[u8]) -> anyhow::Result<()> {
+    // Checked here: the encoder panics on a buffer of another size, leaving its file.
+    if rgba.len() as u64 != 4 * u64::from(width) * u64::from(height) {
+        anyhow::bail!("{}: no {width} x {height} picture to write ({} bytes drawn)", path.display(), rgba.len());
+    }
     write_atomic(path, |tmp| {
         image::save_buffer_with_format(
             tmp,

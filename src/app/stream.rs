@@ -232,6 +232,7 @@ impl GpuFrames {
         if t.base.is_none() && t.detail.is_none() {
             return Ok(());
         }
+        args.check_fits(t.base.as_ref(), t.detail.as_ref(), &self.device)?;
         let weight = if t.detail.is_some() { args.detail_weight } else { 1.0 };
         self.renderer.set_textures(t.base.as_ref(), t.detail.as_ref(), args.detail_tiling, weight)?;
         Ok(())
@@ -531,7 +532,7 @@ fn declare_frame(shown: &str, archive: &mut Archive, frame: &crate::app::cli::Fr
 /// `stream`, or when its grid is larger than one image (`max_side()`, the device's). A
 /// terrain file, or the built-in terrain, is cut into tiles in memory; a file cut so
 /// comes with the stop signals' handlers its cutting installed
-/// ([`crate::app::prepare::tiles_of_file`]), for a caller with none of its own to poll.
+/// (`tiles_of_file` in `app::prepare`), for a caller with none of its own to poll.
 pub fn streamed_archive(
     terrain: &TerrainArgs,
     stream: bool,
@@ -998,10 +999,16 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
         "gpu": gpu.as_ref().map(GpuFrames::report),
     });
     crate::app::outputs::TerrainFacts::of_archive(&archive.meta, &args.terrain.frame).merge_into(&mut json);
-    if let (Some(g), Some(out)) = (gpu.as_ref(), args.out.as_ref()) {
-        let (w, h) = args.size;
-        crate::app::outputs::save_png(out, w, h, &g.last)?;
-        eprintln!("vkterrain: last frame written to {}", out.display());
+    match (gpu.as_ref(), args.out.as_ref()) {
+        (Some(g), Some(out)) if g.last.is_empty() => {
+            eprintln!("vkterrain: note: no frame was drawn: {} not written", out.display())
+        }
+        (Some(g), Some(out)) => {
+            let (w, h) = args.size;
+            crate::app::outputs::save_png(out, w, h, &g.last)?;
+            eprintln!("vkterrain: last frame written to {}", out.display());
+        }
+        _ => {}
     }
     crate::out!("{}", serde_json::to_string_pretty(&json)?)?;
     if let Some(g) = gpu {

@@ -104,6 +104,12 @@ struct Run {
     final_yaw: f32,
     final_pitch: f32,
     final_delta: f32,
+    /// Whether blocks morphed at exit (N turns it off and on).
+    final_morph: bool,
+    /// Whether a frozen selection was drawn at exit (Space).
+    frozen: bool,
+    /// Whether the camera orbited a ground point at exit (O).
+    orbiting: bool,
     /// Vertical exaggeration at exit.
     exaggeration: f32,
     /// Swapchains made again after the window's size changed.
@@ -156,6 +162,10 @@ struct App {
     title_at: Instant,
     fps_frames: u64,
     screenshots_asked: u64,
+    /// The selection Space froze: drawn as the camera moves on (Space again thaws it).
+    frozen: Option<crate::stream::traverse::Selection>,
+    /// Space was pressed: the next frame's selection is frozen.
+    freeze_next: bool,
     trace: Trace,
     run: Run,
 }
@@ -204,7 +214,7 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
     // Only the drawn heights scale: the bound (`D * height_scale`) follows.
     grid.height_scale *= f64::from(args.exaggeration);
     let m = &archive.meta;
-    crate::out!("{}", crate::app::stream::streamed_banner(&shown, m, args.cache_mb, args.gpu_mb))?;
+    eprintln!("{}", crate::app::stream::streamed_banner(&shown, m, args.cache_mb, args.gpu_mb));
     let textures = args.textures.load_over(&m.georef, (m.width, m.height))?;
     let trace = match &args.trace {
         Some(p) => {
@@ -248,10 +258,10 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
         anyhow::anyhow!("cannot open a window ({e}); is DISPLAY set? Use `vkterrain render` for headless output")
     })?;
     event_loop.set_control_flow(ControlFlow::Poll);
-    crate::out!(
+    eprintln!(
         "keys: W/S A/D Q/E move, drag to look, Shift faster, wheel speed, G walk, Home start, [ ] delta, Z/X \
-         exaggeration, L LOD colours, P screenshot, H panel, F1 help, Esc quit"
-    )?;
+         exaggeration, N morph, O orbit, Space freeze, L LOD colours, P screenshot, H panel, F1 help, Esc quit"
+    );
     let ctl = Controller::new(position, f, l / 60.0, args.walk);
     let home = (ctl.position, ctl.yaw, ctl.pitch);
     let now = Instant::now();
@@ -277,6 +287,8 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
         title_at: now,
         fps_frames: 0,
         screenshots_asked: 0,
+        frozen: None,
+        freeze_next: false,
         trace: trace.clone(),
         run: Run {
             streamed: true,
@@ -302,6 +314,8 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
     run.avg_fps = run.frames as f64 / secs.max(1e-9);
     run.final_position = app.ctl.position.to_array();
     (run.final_yaw, run.final_pitch, run.final_delta) = (app.ctl.yaw, app.ctl.pitch, app.delta);
+    (run.final_morph, run.frozen, run.orbiting) =
+        (app.streamer.morph.is_some(), app.frozen.is_some(), app.ctl.orbit.is_some());
     run.exaggeration = app.exaggeration;
     run.stream = Some(app.streamer.stats.clone());
     run.first_failure = app.streamer.first_failure.clone();
@@ -319,7 +333,7 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
     drop(app);
     if let Some(p) = &args.trace {
         trace.finish().map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))?;
-        crate::out!("vkterrain: trace {}", p.display())?;
+        eprintln!("vkterrain: trace {}", p.display());
     }
     crate::out!("{}", serde_json::to_string(&run)?)?;
     if let Some(m) = messages {
@@ -419,6 +433,9 @@ impl App {
         let ahead = View { position: view.position + velocity.as_dvec3() * 0.5, ..view };
         let selecting = Instant::now();
         let sel = self.streamer.frame(&view, Some(&ahead), self.delta, 0.5);
+        if std::mem::take(&mut self.freeze_next) {
+            self.frozen = Some(sel.clone());
+        }
         let frame = serde_json::json!({"frame": self.run.frames});
         self.trace.complete(DRAW_TID, "select (traversal over held tiles)", selecting, Instant::now(), frame.clone());
         if !sel.within_bound() {
@@ -465,7 +482,8 @@ impl App {
             }
         };
         let overlay: Option<crate::draw::streamed::Overlay> = if panel { Some(&mut draw_hud) } else { None };
-        gpu.frames.draw(&self.streamer, &self.grid, &view, &sel, Some((&target, overlay)))?;
+        let drawn = self.frozen.as_ref().unwrap_or(&sel);
+        gpu.frames.draw(&self.streamer, &self.grid, &view, drawn, Some((&target, overlay)))?;
         if let Some(e) = hud_error {
             return Err(e);
         }
@@ -494,7 +512,7 @@ impl App {
             gpu.frames.resize(w, h)?;
             gpu.frames.draw(&self.streamer, &self.grid, &view, &sel, None)?;
             save_png(&path, w, h, &gpu.frames.last)?;
-            crate::out!("vkterrain: screenshot {}", path.display())?;
+            eprintln!("vkterrain: screenshot {}", path.display());
             self.run.screenshot = Some(path.display().to_string());
         }
         self.trace.complete(DRAW_TID, "frame", now, Instant::now(), frame);
@@ -670,6 +688,31 @@ impl App {
                 self.screenshots_asked += 1;
                 self.win.screenshot_next = Some(crate::app::outputs::next_free_screenshot());
             }
+            KeyCode::KeyN => {
+                self.streamer.morph = match self.streamer.morph {
+                    Some(_) => None,
+                    None => crate::app::stream::morph_rule(crate::app::cli::OnOff::On),
+                }
+            }
+            KeyCode::KeyO => {
+                // Around the ground point under the cursor (ahead when the cursor is
+                // outside the window), from the tiles held.
+                let size = self.win.window.as_ref().map_or((0, 0), |w| (w.inner_size().width, w.inner_size().height));
+                let ray = self.ctl.cursor_ray(self.win.cursor, size, self.args.common.view.frustum.fovy);
+                self.ctl.toggle_orbit(&HeldGround(&self.streamer), ray);
+            }
+            KeyCode::Space => {
+                self.freeze_next = self.frozen.is_none();
+                self.frozen = None;
+            }
+            KeyCode::KeyM | KeyCode::KeyC | KeyCode::KeyF => eprintln!(
+                "vkterrain: note: {} is not drawn yet for a terrain drawn from tiles",
+                match code {
+                    KeyCode::KeyM => "M (the paper's error mode)",
+                    KeyCode::KeyC => "C (occlusion culling)",
+                    _ => "F (wireframe)",
+                }
+            ),
             _ => {}
         }
     }

@@ -4,7 +4,7 @@
 
 use crate::app::cli::{CommonArgs, InputError, Interrupted, TextureArgs, Textures};
 use crate::app::commands::Session;
-use crate::app::controls::{delta_key, flyover_time, Controller};
+use crate::app::controls::{delta_key, flyover_time, ground_hit, Controller};
 use crate::app::hud::{Controls, Hud, Ranges, Readout};
 use crate::app::outputs::save_png;
 use crate::app::window_loop::{WindowApp, WindowState, Windowed};
@@ -107,24 +107,6 @@ fn start_view(hf: &Heightfield, mm: &MinMaxPyramid) -> (Vec3, Vec3) {
     let [lo, hi] = mm.range().map(|r| r * hf.height_scale);
     let l = wx.max(wz);
     (Vec3::new(wx * 0.5, hi + 0.08 * l, wz * 0.92), Vec3::new(wx * 0.5, lo, wz * 0.35))
-}
-
-/// The first point of the terrain along the ray from `from` in direction `dir` (marched in
-/// steps of a sample spacing up to twice the terrain's size), or the point a quarter of
-/// the terrain's size ahead, on the ground.
-fn ground_hit(hf: &Heightfield, from: Vec3, dir: Vec3) -> Vec3 {
-    let (wx, wz) = hf.world_extent();
-    let l = wx.max(wz);
-    let ground = |p: Vec3| hf.surface_height(p.x.clamp(0.0, wx), p.z.clamp(0.0, wz));
-    let steps = (2.0 * l / hf.spacing.min()).min(20_000.0) as usize;
-    for i in 1..=steps {
-        let p = from + dir * (i as f32 * 2.0 * l / steps as f32);
-        if p.y <= ground(p) && (0.0..=wx).contains(&p.x) && (0.0..=wz).contains(&p.z) {
-            return p;
-        }
-    }
-    let p = from + dir * 0.25 * l;
-    Vec3::new(p.x, ground(p), p.z)
 }
 
 /// Everything that lives while the window is open, in drop order.
@@ -467,9 +449,9 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
         app.go_to(lat, lon).map_err(|e| InputError(format!("--go-to {e}")))?;
     }
     // Once the options are accepted. The same table as the panel's key help (F1).
-    crate::out!("keys:")?;
+    eprintln!("keys:");
     for (k, what) in crate::app::hud::KEYS {
-        crate::out!("  {k:<13} {what}")?;
+        eprintln!("  {k:<13} {what}");
     }
     let mut windowed = Windowed(app);
     event_loop.run_app(&mut windowed)?;
@@ -480,7 +462,7 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
     drop(app.gpu.take());
     if let Some(p) = &args.trace {
         app.trace.finish().map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))?;
-        crate::out!("vkterrain: trace {}", p.display())?;
+        eprintln!("vkterrain: trace {}", p.display());
     }
     let validation = counter.as_ref().map(|c| c.count());
     let first_message = counter.as_ref().and_then(|c| c.messages().first().cloned());
@@ -520,6 +502,7 @@ impl App {
         let (window, surface, device) =
             crate::app::controls::open_window(event_loop, &self.args.common, title, &sizes)?;
         Session::check_size(&device, &self.hf)?;
+        self.args.textures.check_fits(self.base.as_ref(), self.detail.as_ref(), &device)?;
         let terrain = Arc::new(TerrainGpu::new(&device, &self.hf, &self.mm, self.base.as_ref(), self.detail.as_ref())?);
         let size = window.inner_size();
         let present = self.args.present_mode.vk();
@@ -535,19 +518,19 @@ impl App {
             self.args.common.sun.0,
         )?;
         if let Some(sun) = renderer.lighting().sun() {
-            crate::out!(
+            eprintln!(
                 "vkterrain: sun at azimuth {}, elevation {}: shadow and occlusion map in {:.0} ms",
                 sun.azimuth,
                 sun.elevation,
                 renderer.lighting().last_ms()
-            )?;
+            );
         }
         let mut hud = Hud::new(&device, &window, swapchain.format, DEPTH_FORMAT, FRAMES_IN_FLIGHT)?;
         hud.visible = !self.args.no_hud;
         if self.trace.enabled() {
             match crate::vk::QueryPool::calibrate(&device)? {
                 Some(clock) => self.trace.set_gpu_clock(clock, device.queue_mode == crate::vk::QueueMode::Shared),
-                None => crate::out!("vkterrain: note: no timestamp queries: the trace has no GPU tracks")?,
+                None => eprintln!("vkterrain: note: no timestamp queries: the trace has no GPU tracks"),
             }
         }
         let activity = ErrorsActivity::start_with(
@@ -785,7 +768,7 @@ impl App {
                 px.chunks_mut(4).for_each(|p| p.swap(0, 2));
             }
             save_png(&path, extent.width, extent.height, &px)?;
-            crate::out!("vkterrain: screenshot {}", path.display())?;
+            eprintln!("vkterrain: screenshot {}", path.display());
             self.stats.screenshot = Some(path.display().to_string());
         }
         self.last_stats = stats;
@@ -831,17 +814,8 @@ impl App {
     /// The direction through the cursor, or the view's centre when the cursor is not in
     /// the window.
     fn cursor_ray(&self) -> Vec3 {
-        let fwd = self.ctl.forward();
-        let (Some((x, y)), Some(window)) = (self.win.cursor, &self.win.window) else { return fwd };
-        let size = window.inner_size();
-        if size.width == 0 || size.height == 0 {
-            return fwd;
-        }
-        // The drawn camera's own basis, so that the ray meets what is under the cursor.
-        let (right, up) = Camera::look_at(Vec3::ZERO, fwd, 60.0, 1, 1, 1.0).basis();
-        let t = (self.args.common.view.frustum.fovy.to_radians() * 0.5).tan();
-        let (nx, ny) = (2.0 * x / size.width as f32 - 1.0, 1.0 - 2.0 * y / size.height as f32);
-        (fwd + right * (nx * t * size.width as f32 / size.height as f32) + up * (ny * t)).normalize()
+        let size = self.win.window.as_ref().map_or((0, 0), |w| (w.inner_size().width, w.inner_size().height));
+        self.ctl.cursor_ray(self.win.cursor, size, self.args.common.view.frustum.fovy)
     }
 
     fn go_home(&mut self) {
@@ -947,7 +921,7 @@ impl App {
     fn cursor_ground(&self) -> Option<Vec3> {
         let (wx, wz) = self.hf.world_extent();
         let inside = |q: &Vec3| (0.0..=wx).contains(&q.x) && (0.0..=wz).contains(&q.z);
-        self.win.cursor.map(|_| ground_hit(&self.hf, self.ctl.position, self.cursor_ray())).filter(inside)
+        self.win.cursor.map(|_| ground_hit(&*self.hf, self.ctl.position, self.cursor_ray())).filter(inside)
     }
 
     /// The panel's map section: the camera and `cursor` (the terrain point under the
@@ -955,7 +929,7 @@ impl App {
     fn place(&self, cursor: Option<Vec3>) -> Option<crate::app::hud::Place> {
         let geo = self.geo.as_ref()?;
         let p = self.ctl.position;
-        let centre = ground_hit(&self.hf, p, self.ctl.forward());
+        let centre = ground_hit(&*self.hf, p, self.ctl.forward());
         let height = self.win.window.as_ref().map_or(1, |w| w.inner_size().height.max(1)) as f32;
         let metres_per_pixel =
             (centre - p).length() * 2.0 * (self.args.common.view.frustum.fovy.to_radians() * 0.5).tan() / height;
@@ -1120,23 +1094,13 @@ impl App {
             }
             KeyCode::Home => self.go_home(),
             KeyCode::KeyO => {
-                self.ctl.orbit = match self.ctl.orbit {
-                    Some(_) => None,
-                    None => {
-                        // Around the terrain point under the cursor (ahead when the cursor
-                        // is outside the window), turning to face it.
-                        let pivot = ground_hit(&self.hf, self.ctl.position, self.cursor_ray());
-                        let to = pivot - self.ctl.position;
-                        if to.length() > 0.0 {
-                            let d = to.normalize();
-                            let yaw = d.z.atan2(d.x);
-                            self.stats.orbit_aim_turn = (yaw - self.ctl.yaw).abs();
-                            (self.ctl.yaw, self.ctl.pitch) = (yaw, d.y.clamp(-1.0, 1.0).asin());
-                        }
-                        self.ctl.walk = false;
-                        Some((pivot, to.length().max(self.hf.spacing.min())))
-                    }
-                };
+                // Around the terrain point under the cursor (ahead when the cursor is
+                // outside the window), turning to face it.
+                let ray = self.cursor_ray();
+                let turned = self.ctl.toggle_orbit(&*self.hf, ray);
+                if self.ctl.orbit.is_some() {
+                    self.stats.orbit_aim_turn = turned;
+                }
             }
             // One screenshot per frame, however fast P is pressed.
             KeyCode::KeyP => self.screenshots_asked += 1,

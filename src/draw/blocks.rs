@@ -89,7 +89,7 @@ pub enum PixelPass {
     #[default]
     Deferred,
     /// Each block's fragments are shaded as it is drawn, partly covered 2x2 quads
-    /// included (the shading before deferred; colour-by-LOD and wireframe always use it).
+    /// included (colour-by-LOD and wireframe always use it).
     Forward,
 }
 

@@ -18,12 +18,13 @@ pub enum Raycast {
     /// None: every block is rasterized.
     #[default]
     Off,
-    /// Every other eligible block, as on a checkerboard (the crack check of SPEC 10).
+    /// Every other eligible block, as on a checkerboard: cast blocks beside drawn ones
+    /// show any crack between the two.
     Checkerboard,
     /// Every eligible block (to measure the ray-caster's cost against the rasterizer's).
     All,
     /// Eligible blocks whose rays are estimated to cost less than the triangles they
-    /// replace ([`RAY_NS_PER_PIXEL`] against [`RASTER_NS_PER_TRIANGLE`]).
+    /// replace (measured costs of a ray a pixel against a triangle rasterized).
     Auto,
 }
 

@@ -115,7 +115,7 @@ pub enum Pacing {
     /// a second generation only queues once the first is done.
     Paced,
     /// Submissions go as soon as they are recorded: two generations in flight on the
-    /// errors queue (the separate-queue behaviour; tests force it on a shared queue).
+    /// errors queue (the separate-queue behaviour, asked for on a shared queue).
     Free,
 }
 
