@@ -153,7 +153,9 @@ impl Trace {
         }
     }
 
-    /// Closes the event list and moves the file into place.
+    /// Closes the event list and moves the file into place. A trace never finished (a
+    /// run that failed or was stopped before it could say what it did) leaves no file:
+    /// its partial file goes with its last handle.
     pub fn finish(&self) -> std::io::Result<()> {
         let Some(s) = &self.sink else { return Ok(()) };
         let mut s = s.lock().unwrap_or_else(|e| e.into_inner());
@@ -163,5 +165,12 @@ impl Trace {
         s.out.write_all(b"\n]}\n")?;
         s.out.flush()?;
         std::fs::rename(&s.partial, &s.path)
+    }
+}
+
+impl Drop for Sink {
+    fn drop(&mut self) {
+        // Gone already once finished (moved into place).
+        let _ = std::fs::remove_file(&self.partial);
     }
 }

@@ -559,10 +559,10 @@ pub struct TextureArgs {
     #[arg(long, value_name = "FILE")]
     pub detail: Option<PathBuf>,
     /// Detail tiling factor DTF: detail coordinates are DTF times the base coordinates.
-    #[arg(long, value_name = "DTF", default_value = "64", value_parser = positive, allow_negative_numbers = true)]
+    #[arg(long, value_name = "DTF", default_value = "64", value_parser = positive, allow_negative_numbers = true, requires = "detail")]
     pub detail_tiling: f32,
     /// Weight alpha of the base colour against the detail (1 ignores the detail texture).
-    #[arg(long, value_name = "ALPHA", default_value = "0.7", allow_negative_numbers = true)]
+    #[arg(long, value_name = "ALPHA", default_value = "0.7", allow_negative_numbers = true, requires = "detail")]
     pub detail_weight: f32,
 }
 

@@ -41,10 +41,15 @@ impl View {
     }
 
     /// The sample nearest the camera (the origin of the relative frame) and the camera
-    /// relative to it.
+    /// relative to it. A camera off the terrain takes the terrain's sample nearest it:
+    /// the frame's offsets stay within the terrain's samples (i32 on the GPU), however far
+    /// the camera (a spacing of 1e-9 put the default camera 1.8e11 samples away).
     pub fn relative(&self, grid: &Grid) -> ([i64; 2], Camera) {
         let [sx, sz] = grid.sample_of(self.position.x, self.position.z);
-        let anchor = [sx.round() as i64, sz.round() as i64];
+        let anchor = [
+            sx.round().clamp(0.0, (grid.width - 1) as f64) as i64,
+            sz.round().clamp(0.0, (grid.height - 1) as f64) as i64,
+        ];
         let [wx, wz] = grid.world_xz(anchor[0] as f64, anchor[1] as f64);
         let position = Vec3::new((self.position.x - wx) as f32, self.position.y as f32, (self.position.z - wz) as f32);
         let cam = Camera {
