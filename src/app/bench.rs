@@ -1185,24 +1185,6 @@ fn fidelity(bench: &mut Bench, activity: &ErrorsActivity) -> anyhow::Result<Valu
     Ok(Value::Array(out))
 }
 
-impl BenchArgs {
-    /// The options a streamed run cannot honour yet, given a value other than their
-    /// default.
-    fn not_streamed(&self) -> Vec<&'static str> {
-        let c = &self.common;
-        [
-            ("--compare", self.compare),
-            ("--popping", self.popping),
-            ("--raycast", self.raycast != crate::draw::raycast::Raycast::Off),
-            ("--inject-fault", self.inject_fault.is_some()),
-        ]
-        .into_iter()
-        .chain(c.not_streamed())
-        .filter_map(|(name, set)| set.then_some(name))
-        .collect()
-    }
-}
-
 /// `bench` over a terrain drawn streamed (SPEC section 8): the path's frames as a viewer
 /// draws them, tiles read by the IO thread while the camera moves (a frame does not wait
 /// for its tiles; those whose tiles had not arrived are counted over the bound), each
@@ -1217,15 +1199,12 @@ fn bench_streamed(
 ) -> anyhow::Result<()> {
     use crate::app::stream::{atlas_bound_streamer, streamed_grid, top_tiles, GpuFrames};
     use crate::stream::traverse::View;
-    let refused = args.not_streamed();
-    if !refused.is_empty() {
-        return Err(InputError(format!(
-            "{} is drawn streamed (tiles through a bounded cache), which does not take {} yet",
-            args.common.terrain.name(),
-            refused.join(", ")
-        ))
-        .into());
-    }
+    args.common.refuse_untiled(&[
+        ("--compare", args.compare),
+        ("--popping", args.popping),
+        ("--raycast", args.raycast != crate::draw::raycast::Raycast::Off),
+        ("--inject-fault", args.inject_fault.is_some()),
+    ])?;
     let size = args.common.view.frustum.size.unwrap_or((640, 480));
     crate::app::cli::check_image_size(&device, "--size", size)?;
     crate::app::outputs::output_dir("--out", &args.out)?;

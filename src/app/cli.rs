@@ -371,18 +371,29 @@ pub struct CommonArgs {
 }
 
 impl CommonArgs {
-    /// The shared options a streamed terrain cannot honour yet, each with whether it was
-    /// given a value other than its default (drawing anyway would ignore it silently).
-    pub fn not_streamed(&self) -> [(&'static str, bool); 5] {
+    /// Refuses, naming them, the options a terrain drawn from tiles cannot honour yet that
+    /// were given a value other than their default (drawing anyway would ignore them
+    /// silently): the shared ones and the command's own `more` (each with whether it was
+    /// given).
+    pub fn refuse_untiled(&self, more: &[(&'static str, bool)]) -> Result<(), InputError> {
         let default_share = 0.05; // --refresh-at's and --update-share's, parsed the same way
-        [
+        let shared = [
             ("--error-mode paper", self.error_mode.mode != crate::lod::gie::ErrorMode::Strict),
-            ("--block (an archive fixes k = 33)", self.block.k != 33),
-            // The errors activity's pacing: streamed frames bound their blocks on the CPU.
+            ("--block (tiles fix k = 33)", self.block.k != 33),
+            // The errors activity's pacing: frames from tiles bound their blocks on the CPU.
             ("--refresh-at", self.refresh_at != default_share),
             ("--update-share", self.update_share != default_share),
             ("--error-pacing", self.error_pacing != crate::errors::activity::Pacing::Auto),
-        ]
+        ];
+        let refused: Vec<&str> = more.iter().chain(&shared).filter_map(|&(name, set)| set.then_some(name)).collect();
+        if refused.is_empty() {
+            return Ok(());
+        }
+        Err(InputError(format!(
+            "{} is drawn streamed (tiles through a bounded cache), which does not take {} yet",
+            self.terrain.name(),
+            refused.join(", ")
+        )))
     }
 }
 

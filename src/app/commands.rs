@@ -72,19 +72,6 @@ pub struct RenderArgs {
     pub streamed: StreamedOptions,
 }
 
-impl RenderArgs {
-    /// The options a streamed frame cannot honour yet, given a value other than their
-    /// default (drawing anyway would ignore them silently).
-    fn not_streamed(&self) -> Vec<&'static str> {
-        let c = &self.common;
-        [("--raycast", self.raycast != Raycast::Off)]
-            .into_iter()
-            .chain(c.not_streamed())
-            .filter_map(|(name, set)| set.then_some(name))
-            .collect()
-    }
-}
-
 #[derive(Args, Debug)]
 pub struct ErrorsArgs {
     #[command(flatten)]
@@ -395,14 +382,7 @@ fn render_streamed(
     stop: Option<&crate::app::signals::Stop>,
 ) -> anyhow::Result<()> {
     let shown = args.common.terrain.name();
-    let refused = args.not_streamed();
-    if !refused.is_empty() {
-        return Err(InputError(format!(
-            "{shown} is drawn streamed (tiles through a bounded cache), which does not take {} yet",
-            refused.join(", ")
-        ))
-        .into());
-    }
+    args.common.refuse_untiled(&[("--raycast", args.raycast != Raycast::Off)])?;
     let m = &archive.meta;
     eprintln!("{}", crate::app::stream::streamed_banner(&shown, m, args.streamed.cache_mb(), args.streamed.gpu_mb()));
     let queue_mode = device.queue_mode.as_str();

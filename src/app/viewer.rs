@@ -254,12 +254,6 @@ impl PresentMode {
 }
 
 impl ViewArgs {
-    /// The options the streamed viewer cannot honour yet, given a value other than their
-    /// default (drawing anyway would ignore them silently).
-    fn not_streamed(&self) -> Vec<&'static str> {
-        self.common.not_streamed().into_iter().filter_map(|(name, set)| set.then_some(name)).collect()
-    }
-
     /// `--resize-at`'s resizes (frame, width, height), once `--size` and each of them is
     /// checked against what a window can be: refused before anything is loaded.
     fn window_resizes(&self) -> Result<Vec<(u64, u32, u32)>, InputError> {
@@ -307,15 +301,7 @@ fn view_archive(args: &ViewArgs, resizes: &[(u64, u32, u32)]) -> anyhow::Result<
         args.streamed.note_unused();
         return Ok(false);
     };
-    let refused = args.not_streamed();
-    if !refused.is_empty() {
-        return Err(InputError(format!(
-            "{} is drawn streamed (tiles through a bounded cache), which does not take {} yet",
-            args.common.terrain.name(),
-            refused.join(", ")
-        ))
-        .into());
-    }
+    args.common.refuse_untiled(&[])?;
     let options = crate::app::stream_view::StreamViewOptions {
         common: args.common.clone(),
         textures: args.textures.clone(),
