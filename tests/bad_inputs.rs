@@ -232,6 +232,7 @@ fn bad_options() {
     fails_cleanly(&["bench", "--frames", "0"], &["--frames", "1 or more"]);
     fails_cleanly(&["view", "--screenshot", "shot.txt"], &["--screenshot shot.txt", ".png"]);
     fails_cleanly(&["stream", "--frames", "0"], &["--frames", "1 or more"]);
+    fails_cleanly(&["stream", "--validation", "on", "--frames", "1"], &["--validation", "--gpu-mb"]);
     fails_cleanly(&["view", "--resize-at", "2:0x0"], &["--resize-at 2:0x0", "at least 1x1"]);
     // A number is a device index, never part of a name ("LLVM 15.0.6" holds a 5).
     fails_cleanly(&["render", "--gpu", "5"], &["--gpu 5", "no such device"]);

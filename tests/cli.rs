@@ -219,7 +219,7 @@ fn a_flag_means_one_thing_and_only_where_it_means_something() {
         ("--delta", &["render", "view", "bench", "stream"][..]),
         ("--morph", &["render", "view", "bench", "stream", "quality"]),
         ("--traversal-threads", &["render", "view", "bench", "stream"]),
-        ("--validation", &["render", "view", "bench", "errors"]),
+        ("--validation", &["render", "view", "bench", "errors", "stream"]),
         ("--block", &["render", "view", "bench", "errors", "quality"]),
         ("--size", &["render", "view", "bench", "errors", "quality"]),
         ("--spacing", &["render", "view", "bench", "errors", "quality", "stream", "prepare"]),

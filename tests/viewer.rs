@@ -146,9 +146,13 @@ fn the_streamed_viewer_resizes_and_writes_a_screenshot() {
 
 #[test]
 fn viewer_rejects_bad_options_without_opening_a_window() {
-    let out = viewer(&["--detail-weight", "2"]);
+    let out = viewer(&["--detail", "missing.png", "--detail-weight", "2"]);
     assert_eq!(out.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&out.stderr).contains("--detail-weight 2"));
+    // A detail weight with no detail texture to weigh means nothing: refused, naming it.
+    let out = viewer(&["--detail-weight", "0.5"]);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--detail"));
 }
 
 /// A flight recorded with `--record-path` replays as a benchmark with `bench --path`:

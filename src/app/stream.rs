@@ -62,10 +62,9 @@ pub struct StreamArgs {
     /// With --gpu-mb: write the last frame drawn here.
     #[arg(long, value_name = "FILE.png", requires = "gpu_mb")]
     pub out: Option<PathBuf>,
-    /// With --gpu-mb: Vulkan validation (with synchronization validation), its messages
-    /// reported. Default: on in debug builds, as for every command that draws.
-    #[arg(long, value_enum, requires = "gpu_mb")]
-    pub validation: Option<OnOff>,
+    /// With --gpu-mb: the device that draws the frames, and its validation.
+    #[command(flatten)]
+    pub device: crate::app::cli::DeviceArgs,
     /// The threshold, the morph (paid for inside the bound from the tiles' summaries)
     /// and the traversal's threads (1 without `--gpu-mb`).
     #[command(flatten)]
@@ -807,6 +806,14 @@ fn along_line(d: f64, length: f64) -> (f64, f64) {
 }
 
 pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
+    let d = &args.device;
+    if args.gpu_mb.is_none() && (d.validation.is_some() || d.gpu.is_some() || d.queues != crate::vk::QueueRequest::Auto)
+    {
+        return Err(InputError(
+            "--validation, --gpu and --queues are for frames drawn on the GPU: give --gpu-mb too".into(),
+        )
+        .into());
+    }
     if let Some(out) = &args.out {
         if !crate::app::outputs::is_png(out) {
             return Err(InputError(format!("--out {}: the output must be a .png file", out.display())).into());
@@ -870,12 +877,10 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
     );
     let device = match args.gpu_mb {
         Some(_) => {
-            use crate::vk::{DeviceOptions, Instance, InstanceOptions, QueueRequest};
-            let instance = Instance::new(&InstanceOptions {
-                validation: crate::app::cli::validation_on(args.validation),
-                extensions: Vec::new(),
-            })?;
-            let options = DeviceOptions { gpu: None, queues: QueueRequest::Auto, swapchain: false };
+            use crate::vk::{DeviceOptions, Instance, InstanceOptions};
+            let instance =
+                Instance::new(&InstanceOptions { validation: args.device.validation(), extensions: Vec::new() })?;
+            let options = DeviceOptions { gpu: args.device.gpu.clone(), queues: args.device.queues, swapchain: false };
             let device = Device::new(instance, &options).map_err(crate::app::cli::option_error)?;
             crate::app::cli::check_image_size(&device, "--size", args.size)?;
             Some(device)
