@@ -199,40 +199,28 @@ fn terrain_pipeline(
 impl StreamedRenderer {
     pub fn new(device: &Arc<Device>, layout: BlockLayout, width: u32, height: u32) -> VkResult<Self> {
         let vertex = vk::ShaderStageFlags::VERTEX;
-        let both = vertex | vk::ShaderStageFlags::FRAGMENT;
+        let fragment = vk::ShaderStageFlags::FRAGMENT;
+        let sampled = vk::DescriptorType::COMBINED_IMAGE_SAMPLER;
+        // What the shading reads beside the heights and the frame: `bind` writes them into
+        // both sets (the capture set's unread), as lavapipe reads every bound descriptor.
+        let shading = [
+            (layout::TERRAIN_BINDING_LIGHTING, sampled, fragment),
+            (layout::STREAM_BINDING_HELD_HEIGHTS, sampled, fragment),
+            (layout::TERRAIN_BINDING_BASE, sampled, fragment),
+            (layout::TERRAIN_BINDING_DETAIL, sampled, fragment),
+        ];
         let set_layout = DescriptorSetLayout::new(
             device,
             &[
                 // The fragment stage reads the block's tile for its normals.
-                (layout::TERRAIN_BINDING_HEIGHTS, vk::DescriptorType::COMBINED_IMAGE_SAMPLER, both),
-                (layout::TERRAIN_BINDING_FRAME, vk::DescriptorType::UNIFORM_BUFFER, both),
-                (
-                    layout::TERRAIN_BINDING_LIGHTING,
-                    vk::DescriptorType::COMBINED_IMAGE_SAMPLER,
-                    vk::ShaderStageFlags::FRAGMENT,
-                ),
-                // The deferred pass's inputs.
-                (
-                    layout::TERRAIN_BINDING_DEPTH,
-                    vk::DescriptorType::COMBINED_IMAGE_SAMPLER,
-                    vk::ShaderStageFlags::FRAGMENT,
-                ),
-                (
-                    layout::STREAM_BINDING_HELD_HEIGHTS,
-                    vk::DescriptorType::COMBINED_IMAGE_SAMPLER,
-                    vk::ShaderStageFlags::FRAGMENT,
-                ),
-                (
-                    layout::TERRAIN_BINDING_BASE,
-                    vk::DescriptorType::COMBINED_IMAGE_SAMPLER,
-                    vk::ShaderStageFlags::FRAGMENT,
-                ),
-                (
-                    layout::TERRAIN_BINDING_DETAIL,
-                    vk::DescriptorType::COMBINED_IMAGE_SAMPLER,
-                    vk::ShaderStageFlags::FRAGMENT,
-                ),
-            ],
+                (layout::TERRAIN_BINDING_HEIGHTS, sampled, vertex | fragment),
+                (layout::TERRAIN_BINDING_FRAME, vk::DescriptorType::UNIFORM_BUFFER, vertex | fragment),
+                // The deferred pass's input.
+                (layout::TERRAIN_BINDING_DEPTH, sampled, fragment),
+            ]
+            .into_iter()
+            .chain(shading)
+            .collect::<Vec<_>>(),
         )?;
         let push = std::mem::size_of::<BlockPush>() as u32;
         let pipeline_layout = PipelineLayout::new(device, &set_layout, push, vertex)?;
@@ -244,31 +232,13 @@ impl StreamedRenderer {
             let l = DescriptorSetLayout::new(
                 device,
                 &[
-                    (layout::TERRAIN_BINDING_HEIGHTS, vk::DescriptorType::COMBINED_IMAGE_SAMPLER, vertex),
+                    (layout::TERRAIN_BINDING_HEIGHTS, sampled, vertex),
                     (layout::TERRAIN_BINDING_FRAME, vk::DescriptorType::UNIFORM_BUFFER, vertex),
                     (layout::CAPTURE_BINDING_POSITIONS, vk::DescriptorType::STORAGE_BUFFER, vertex),
-                    // Unread here; `bind` writes the same bindings into both sets.
-                    (
-                        layout::TERRAIN_BINDING_LIGHTING,
-                        vk::DescriptorType::COMBINED_IMAGE_SAMPLER,
-                        vk::ShaderStageFlags::FRAGMENT,
-                    ),
-                    (
-                        layout::STREAM_BINDING_HELD_HEIGHTS,
-                        vk::DescriptorType::COMBINED_IMAGE_SAMPLER,
-                        vk::ShaderStageFlags::FRAGMENT,
-                    ),
-                    (
-                        layout::TERRAIN_BINDING_BASE,
-                        vk::DescriptorType::COMBINED_IMAGE_SAMPLER,
-                        vk::ShaderStageFlags::FRAGMENT,
-                    ),
-                    (
-                        layout::TERRAIN_BINDING_DETAIL,
-                        vk::DescriptorType::COMBINED_IMAGE_SAMPLER,
-                        vk::ShaderStageFlags::FRAGMENT,
-                    ),
-                ],
+                ]
+                .into_iter()
+                .chain(shading)
+                .collect::<Vec<_>>(),
             )?;
             let pl = PipelineLayout::new(device, &l, push, vertex)?;
             let p = GraphicsPipeline::new(
