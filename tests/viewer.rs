@@ -449,7 +449,8 @@ xdotool key Escape
 /// a sample: data/README.md) at that point's sample position, to a millionth of a degree.
 /// `--go-to` (the panel's go-to) puts the camera over Rainier's summit. X (vertical
 /// exaggeration) redraws the terrain at 1.5 times its heights, errors and lighting
-/// recomputed, with no validation message.
+/// recomputed, with no validation message. The same in memory and drawn from the file's
+/// tiles (`--stream`).
 #[test]
 fn the_panel_reads_latitude_and_longitude_under_the_cursor() {
     let dem = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/srtm3/mt_rainier_90m.tif");
@@ -462,43 +463,48 @@ wait_frames 4
 xdotool key Escape
 "#;
     let dem = dem.display();
-    let view = format!(
-        "--heightmap \"{dem}\" --size 640x480 --validation on --camera 40000,9000,50000 --look-at 40000,0,50000.5"
-    );
-    // Then a second run, started over Rainier's summit.
-    let bin = env!("CARGO_BIN_EXE_vkterrain");
-    let go_to = format!(
-        "\"{bin}\" view --heightmap \"{dem}\" --size 320x240 --frames 3 --validation on --go-to \"46.8529 N 121.7604 W\" >>out.txt 2>>err.txt"
-    );
-    xdotool_session("geo", &view, steps, &go_to, |_, ok, stdout, stderr| {
-        assert!(ok, "{stderr}\n{stdout}");
-        let runs: Vec<serde_json::Value> = stdout.lines().filter_map(|l| serde_json::from_str(l).ok()).collect();
-        assert_eq!(runs.len(), 2, "{stdout}");
-        let j = &runs[0];
-        assert_eq!(j["validation_messages"], 0, "{stderr}");
-        assert_eq!(j["crs"], "EPSG:4326");
-        let c = &j["cursor_place"];
-        let f = |v: &serde_json::Value| v.as_f64().unwrap_or_else(|| panic!("{j}"));
-        let (sx, sz) = (f(&j["spacing_m"][0]), f(&j["spacing_m"][1]));
-        let (wx, wz) = (f(&c["world"][0]), f(&c["world"][2]));
-        // Straight down from (40000, 50000): the point under the centre is below the camera.
-        assert!((wx - 40000.0).abs() < 2.0 * sx && (wz - 50000.0).abs() < 2.0 * sz, "{c}");
-        let d = 3.0 / 3600.0;
-        let lon = -122.000417 + (wx / sx + 0.5) * d;
-        let lat = 47.000417 - (wz / sz + 0.5) * d;
-        assert!((f(&c["lon"]) - lon).abs() < 1e-6 && (f(&c["lat"]) - lat).abs() < 1e-6, "{c}: want {lat}, {lon}");
-        // X twice: 1.5^2 = 2.25 times the heights, the errors recomputed (validation clean);
-        // the map still reads metres.
-        assert!((f(&j["exaggeration"]) - 2.25).abs() < 1e-6 && (f(&j["height_scale_m"]) - 2.25).abs() < 1e-6, "{j}");
-        assert!((f(&c["ground_m"]) * 2.25 - f(&c["world"][1])).abs() < 0.01, "{c}");
-        // The camera is over the same place.
-        assert!((f(&j["camera_lat_lon"][0]) - 47.000417 + (50000.0 / sz + 0.5) * d).abs() < 1e-5, "{j}");
-        // --go-to: the camera starts over the summit.
-        let g = &runs[1];
-        assert_eq!(g["validation_messages"], 0, "{stderr}");
-        let (glat, glon) = (f(&g["camera_lat_lon"][0]), f(&g["camera_lat_lon"][1]));
-        assert!((glat - 46.8529).abs() < 1e-4 && (glon + 121.7604).abs() < 1e-4, "{g}");
-    });
+    // In memory, and drawn from its tiles (the file cut into tiles at load).
+    for stream in ["", " --stream"] {
+        let view = format!(
+            "--heightmap \"{dem}\" --size 640x480 --validation on --camera 40000,9000,50000 --look-at 40000,0,50000.5{stream}"
+        );
+        // Then a second run, started over Rainier's summit.
+        let bin = env!("CARGO_BIN_EXE_vkterrain");
+        let go_to = format!(
+            "\"{bin}\" view --heightmap \"{dem}\" --size 320x240 --frames 3 --validation on --go-to \"46.8529 N 121.7604 W\"{stream} >>out.txt 2>>err.txt"
+        );
+        xdotool_session("geo", &view, steps, &go_to, |_, ok, stdout, stderr| {
+            assert!(ok, "{stream}: {stderr}\n{stdout}");
+            let runs: Vec<serde_json::Value> = stdout.lines().filter_map(|l| serde_json::from_str(l).ok()).collect();
+            assert_eq!(runs.len(), 2, "{stream}: {stdout}");
+            let j = &runs[0];
+            assert_eq!(j["validation_messages"], 0, "{stderr}");
+            assert_eq!(j["crs"], "EPSG:4326");
+            let c = &j["cursor_place"];
+            let f = |v: &serde_json::Value| v.as_f64().unwrap_or_else(|| panic!("{stream}: {j}"));
+            let (sx, sz) = (f(&j["spacing_m"][0]), f(&j["spacing_m"][1]));
+            let (wx, wz) = (f(&c["world"][0]), f(&c["world"][2]));
+            // Straight down from (40000, 50000): the point under the centre is below the camera.
+            assert!((wx - 40000.0).abs() < 2.0 * sx && (wz - 50000.0).abs() < 2.0 * sz, "{stream}: {c}");
+            let d = 3.0 / 3600.0;
+            let lon = -122.000417 + (wx / sx + 0.5) * d;
+            let lat = 47.000417 - (wz / sz + 0.5) * d;
+            let near = (f(&c["lon"]) - lon).abs() < 1e-6 && (f(&c["lat"]) - lat).abs() < 1e-6;
+            assert!(near, "{stream}: {c}: want {lat}, {lon}");
+            // X twice: 1.5^2 = 2.25 times the heights (validation clean); the map still
+            // reads metres.
+            let scaled = (f(&j["exaggeration"]) - 2.25).abs() < 1e-6 && (f(&j["height_scale_m"]) - 2.25).abs() < 1e-6;
+            assert!(scaled, "{stream}: {j}");
+            assert!((f(&c["ground_m"]) * 2.25 - f(&c["world"][1])).abs() < 0.01, "{stream}: {c}");
+            // The camera is over the same place.
+            assert!((f(&j["camera_lat_lon"][0]) - 47.000417 + (50000.0 / sz + 0.5) * d).abs() < 1e-5, "{j}");
+            // --go-to: the camera starts over the summit.
+            let g = &runs[1];
+            assert_eq!(g["validation_messages"], 0, "{stderr}");
+            let (glat, glon) = (f(&g["camera_lat_lon"][0]), f(&g["camera_lat_lon"][1]));
+            assert!((glat - 46.8529).abs() < 1e-4 && (glon + 121.7604).abs() < 1e-4, "{stream}: {g}");
+        });
+    }
 }
 
 /// `--go-to` puts the streamed viewer where the in-memory one goes: the same latitude and

@@ -124,6 +124,37 @@ pub struct Place {
     pub north: f32,
 }
 
+impl Place {
+    /// The map section for a camera `ctl` over `ground` placed by `geo`: the camera and
+    /// `cursor` (the ground point under the cursor) on the map, the scale at the view's
+    /// centre for a window `height` pixels high and a field of view of `fovy_deg`, and
+    /// where north is on screen; heights in metres (world heights are `exaggeration`
+    /// times them).
+    pub fn of(
+        geo: &crate::app::geo::Geo,
+        ctl: &crate::app::controls::Controller,
+        ground: &dyn crate::app::controls::Ground,
+        cursor: Option<glam::Vec3>,
+        (height, fovy_deg): (u32, f32),
+        exaggeration: f32,
+    ) -> Place {
+        let p = ctl.position;
+        let centre = crate::app::controls::ground_hit(ground, p, ctl.forward());
+        let metres_per_pixel = (centre - p).length() * 2.0 * (fovy_deg.to_radians() * 0.5).tan() / height.max(1) as f32;
+        let f = ctl.forward();
+        let (up, right) = (glam::Vec2::new(f.x, f.z), glam::Vec2::new(-f.z, f.x));
+        let n = glam::Vec2::from(geo.north());
+        Place {
+            crs: geo.crs().to_string(),
+            camera: geo.describe(p.x, p.z),
+            camera_elevation_m: p.y / exaggeration,
+            cursor: cursor.map(|q| (geo.describe(q.x, q.z), q.y / exaggeration)),
+            metres_per_pixel,
+            north: n.dot(right).atan2(n.dot(up)),
+        }
+    }
+}
+
 /// What the ground colours mean: absolute heights (metres above sea level, water at or
 /// below 0 m) or the terrain's own range.
 #[derive(Debug, Clone, Copy, Default)]
@@ -279,7 +310,7 @@ fn panel(ui: &mut egui::Ui, r: &Readout, history: &FrameHistory, now: f64, c: &m
         row("ground speed", format!("{:.0}/s", r.ground_speed));
     });
     if let Some(p) = &r.place {
-        map_section(ui, p, c);
+        map_section(ui, p, &mut c.go_to);
     }
     if let Some(l) = &r.legend {
         legend(ui, l);
@@ -509,7 +540,7 @@ pub fn panel_at(ctx: &egui::Context, pos: Pos2) -> bool {
 
 /// A line plot of (time, value) over the last [`PLOT_SECONDS`], scaled to its largest value.
 /// Map coordinates of the camera and the cursor, a scale bar, a north arrow and a go-to.
-fn map_section(ui: &mut egui::Ui, p: &Place, c: &mut Controls) {
+pub fn map_section(ui: &mut egui::Ui, p: &Place, go_to: &mut Option<[f64; 2]>) {
     ui.separator();
     egui::Grid::new("map").num_columns(2).show(ui, |ui| {
         let mut row = |k: &str, v: String| {
@@ -562,7 +593,7 @@ fn map_section(ui: &mut egui::Ui, p: &Place, c: &mut Controls) {
         if go {
             match crate::app::geo::parse_lat_lon(&text) {
                 Ok(ll) => {
-                    c.go_to = Some(ll);
+                    *go_to = Some(ll);
                     ui.data_mut(|d| d.remove::<String>(id.with("error")));
                 }
                 Err(e) => ui.data_mut(|d| {

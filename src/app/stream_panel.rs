@@ -5,8 +5,8 @@
 //! tiles held, read, evicted and uploaded, and the bytes read.
 
 use crate::app::hud::{
-    delta_slider, exaggeration_slider, fog_slider, keys_window, legend, lod_legend, panel_window, plot, speed_slider,
-    FrameHistory, Legend,
+    delta_slider, exaggeration_slider, fog_slider, keys_window, legend, lod_legend, map_section, panel_window, plot,
+    speed_slider, FrameHistory, Legend, Place,
 };
 use egui::Color32;
 use glam::Vec3;
@@ -40,6 +40,8 @@ pub struct StreamReadout {
     /// CPU time the panel took last frame.
     pub panel_ms: f32,
     pub legend: Option<Legend>,
+    /// Where the camera and the cursor are on the map (georeferenced terrains only).
+    pub place: Option<Place>,
     /// The fog slider's unit (the default density) and the speed slider's range.
     pub fog_default: f32,
     pub speed_range: (f32, f32),
@@ -57,6 +59,8 @@ pub struct StreamControls {
     pub colour_by_lod: bool,
     /// Set for one frame by the "Home" button.
     pub go_home: bool,
+    /// Set for one frame by the map section's go-to: a latitude and longitude.
+    pub go_to: Option<[f64; 2]>,
 }
 
 pub const STREAM_KEYS: &[(&str, &str)] = &[
@@ -69,6 +73,9 @@ pub const STREAM_KEYS: &[(&str, &str)] = &[
     ("Home", "back to the start view"),
     ("[ and ]", "halve / double delta"),
     ("Z / X", "less / more vertical exaggeration"),
+    ("N", "geomorphing on / off"),
+    ("O", "orbit the ground point under the cursor / fly"),
+    ("Space", "freeze the drawn blocks / follow the camera"),
     ("L", "colour blocks by LOD"),
     ("P", "screenshot (next free vkterrain-N.png)"),
     ("H", "hide / show this panel"),
@@ -129,6 +136,9 @@ fn panel(ui: &mut egui::Ui, r: &StreamReadout, history: &FrameHistory, now: f64,
         row("position", format!("{:.0}, {:.0}, {:.0}", r.position.x, r.position.y, r.position.z));
         row("above ground", format!("{:.0}", r.above_ground));
     });
+    if let Some(p) = &r.place {
+        map_section(ui, p, &mut c.go_to);
+    }
     if let Some(l) = &r.legend {
         legend(ui, l);
     }

@@ -11,8 +11,8 @@
 //! carries the main figures too.
 
 use crate::app::cli::{check_messages, CommonArgs, Degraded, Interrupted};
-use crate::app::controls::{delta_key, flyover_time, Controller, Ground};
-use crate::app::hud::{Hud, Legend};
+use crate::app::controls::{delta_key, flyover_time, ground_hit, Controller, Ground};
+use crate::app::hud::{Hud, Legend, Place};
 use crate::app::outputs::save_png;
 use crate::app::stream::{top_tiles, GpuFrames};
 use crate::app::stream_panel::{build_stream_ui, StreamControls, StreamReadout};
@@ -110,6 +110,11 @@ struct Run {
     frozen: bool,
     /// Whether the camera orbited a ground point at exit (O).
     orbiting: bool,
+    /// The camera's latitude and longitude at exit, and the ground point under the
+    /// cursor (latitude, longitude, ground height in metres, world position), when the
+    /// terrain is georeferenced: as the in-memory viewer's.
+    camera_lat_lon: Option<[f64; 2]>,
+    cursor_place: Option<serde_json::Value>,
     /// Vertical exaggeration at exit.
     exaggeration: f32,
     /// Swapchains made again after the window's size changed.
@@ -137,6 +142,8 @@ struct Run {
 
 struct App {
     args: StreamViewOptions,
+    /// Where the terrain is on the map (georeferenced terrains only).
+    geo: Option<crate::app::geo::Geo>,
     /// `--texture` and `--detail`, read at start (a bad file fails before the window).
     textures: crate::app::cli::Textures,
     streamer: Streamer,
@@ -178,29 +185,14 @@ fn start_view(grid: &Grid, [lo, hi]: [f32; 2]) -> (Vec3, Vec3) {
     (Vec3::new(wx * 0.5, hi + 0.08 * l, wz * 0.92), Vec3::new(wx * 0.5, lo, wz * 0.35))
 }
 
-/// `--go-to` as the in-memory viewer's: `from` moved over a latitude and longitude, as
-/// high above the ground there as it is above the ground under it (at least a fiftieth
-/// of the terrain's size), the ground from the tiles held.
-fn go_to(
-    meta: &crate::input::archive::Meta,
-    grid: &Grid,
-    streamer: &Streamer,
-    from: Vec3,
-    lat: f64,
-    lon: f64,
-) -> anyhow::Result<Vec3> {
-    let spacing = crate::lod::heightfield::Spacing { x: grid.spacing[0] as f32, z: grid.spacing[1] as f32 };
-    let Some(geo) = crate::app::geo::Geo::new(&meta.georef, spacing) else {
-        return Err(crate::app::cli::InputError(format!(
-            "--go-to: {} says nothing about where it is (no CRS or geotransform)",
-            meta.source
-        ))
-        .into());
-    };
+/// Where the camera goes for a latitude and longitude (`--go-to`, the panel's go-to), as
+/// the in-memory viewer's: `from` moved over it, as high above the ground there as it is
+/// above the ground under it (at least a fiftieth of the terrain's size), the ground
+/// from the tiles held.
+fn go_to(geo: &crate::app::geo::Geo, streamer: &Streamer, from: Vec3, lat: f64, lon: f64) -> Result<Vec3, String> {
     let ground = HeldGround(streamer);
     let (wx, wz) = ground.extent();
-    let (x, z) =
-        geo.world_on_terrain(lat, lon, (wx, wz)).map_err(|e| crate::app::cli::InputError(format!("--go-to {e}")))?;
+    let (x, z) = geo.world_on_terrain(lat, lon, (wx, wz))?;
     let at = |x: f32, z: f32| ground.height(x.clamp(0.0, wx), z.clamp(0.0, wz));
     let above = (from.y - at(from.x, from.z)).max(0.02 * wx.max(wz));
     Ok(Vec3::new(x, at(x, z) + above, z))
@@ -232,9 +224,19 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
     let (position, target) =
         args.common.view.view_points(|| start_view(&grid, range.world)).map_err(anyhow::Error::from)?;
     let f = (target - position).normalize();
-    let position = match args.go_to {
-        Some([lat, lon]) => go_to(&archive.meta, &grid, &streamer, position, lat, lon)?,
-        None => position,
+    let spacing = crate::lod::heightfield::Spacing { x: grid.spacing[0] as f32, z: grid.spacing[1] as f32 };
+    let geo = crate::app::geo::Geo::new(&m.georef, spacing);
+    let position = match (args.go_to, &geo) {
+        (Some([lat, lon]), Some(geo)) => go_to(geo, &streamer, position, lat, lon)
+            .map_err(|e| crate::app::cli::InputError(format!("--go-to {e}")))?,
+        (Some(_), None) => {
+            return Err(crate::app::cli::InputError(format!(
+                "--go-to: {} says nothing about where it is (no CRS or geotransform)",
+                m.source
+            ))
+            .into())
+        }
+        (None, _) => position,
     };
     // As `render` does: the first view's tiles are read before its first frame (in walk
     // mode, once the camera stands on the ground they bring).
@@ -267,6 +269,7 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
     let now = Instant::now();
     let app = App {
         args: args.clone(),
+        geo,
         textures,
         streamer,
         grid,
@@ -316,6 +319,8 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
     (run.final_yaw, run.final_pitch, run.final_delta) = (app.ctl.yaw, app.ctl.pitch, app.delta);
     (run.final_morph, run.frozen, run.orbiting) =
         (app.streamer.morph.is_some(), app.frozen.is_some(), app.ctl.orbit.is_some());
+    // As the in-memory viewer's: the height scale drawn at exit (exaggerated).
+    run.terrain.height_scale_m = app.grid.height_scale as f32;
     run.exaggeration = app.exaggeration;
     run.stream = Some(app.streamer.stats.clone());
     run.first_failure = app.streamer.first_failure.clone();
@@ -570,9 +575,28 @@ impl App {
             above_ground: p.y - HeldGround(&self.streamer).height(p.x, p.z),
             panel_ms: gpu.hud.last_ms,
             legend: Some(Legend { absolute: self.range.absolute, range_m: self.range.world }),
+            place: None,
             fog_default: crate::lod::view::default_fog(l),
             speed_range: (l / 6000.0, l / 6.0),
         };
+        let mut readout = readout;
+        if let Some(geo) = &self.geo {
+            // One march along the cursor's ray a frame, for the panel and the exit figures.
+            let ground = HeldGround(&self.streamer);
+            let size = (window.inner_size().width, window.inner_size().height);
+            let fovy = self.args.common.view.frustum.fovy;
+            let ray = self.ctl.cursor_ray(self.win.cursor, size, fovy);
+            let inside = |q: &Vec3| (0.0..=wx).contains(&q.x) && (0.0..=wz).contains(&q.z);
+            let cursor = self.win.cursor.map(|_| ground_hit(&ground, p, ray)).filter(inside);
+            let place = Place::of(geo, &self.ctl, &ground, cursor, (size.1, fovy), self.exaggeration);
+            readout.place = Some(place);
+            self.run.camera_lat_lon = geo.lat_lon(p.x, p.z);
+            self.run.cursor_place = cursor.and_then(|q| {
+                let [lat, lon] = geo.lat_lon(q.x, q.z)?;
+                let ground_m = q.y / self.exaggeration;
+                Some(serde_json::json!({ "lat": lat, "lon": lon, "ground_m": ground_m, "world": [q.x, q.y, q.z] }))
+            });
+        }
         if let Some(ms) = interval_ms {
             let t = gpu.hud.now();
             gpu.hud.history.push(t, ms);
@@ -584,6 +608,7 @@ impl App {
             exaggeration: self.exaggeration,
             colour_by_lod: gpu.frames.colour_by_lod,
             go_home: false,
+            go_to: None,
         };
         let mut after = before;
         gpu.hud.prepare_with(&window, |ctx, visible, help, history, now| {
@@ -599,6 +624,13 @@ impl App {
             }
             if after.go_home {
                 self.go_home();
+            }
+            if let (Some([lat, lon]), Some(geo)) = (after.go_to, &self.geo) {
+                // The camera stays where it is; the panel's box keeps what was typed.
+                match go_to(geo, &self.streamer, self.ctl.position, lat, lon) {
+                    Ok(at) => (self.ctl.position, self.ctl.orbit) = (at, None),
+                    Err(e) => eprintln!("vkterrain: note: go-to {e}"),
+                }
             }
         }
         Ok(())

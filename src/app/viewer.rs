@@ -910,27 +910,11 @@ impl App {
         self.win.cursor.map(|_| ground_hit(&*self.hf, self.ctl.position, self.cursor_ray())).filter(inside)
     }
 
-    /// The panel's map section: the camera and `cursor` (the terrain point under the
-    /// cursor) on the map, the scale at the view's centre and where north is on screen.
+    /// The panel's map section ([`crate::app::hud::Place::of`]).
     fn place(&self, cursor: Option<Vec3>) -> Option<crate::app::hud::Place> {
-        let geo = self.geo.as_ref()?;
-        let p = self.ctl.position;
-        let centre = ground_hit(&*self.hf, p, self.ctl.forward());
-        let height = self.win.window.as_ref().map_or(1, |w| w.inner_size().height.max(1)) as f32;
-        let metres_per_pixel =
-            (centre - p).length() * 2.0 * (self.args.common.view.frustum.fovy.to_radians() * 0.5).tan() / height;
-        let f = self.ctl.forward();
-        let (up, right) = (glam::Vec2::new(f.x, f.z), glam::Vec2::new(-f.z, f.x));
-        let n = glam::Vec2::from(geo.north());
-        Some(crate::app::hud::Place {
-            crs: geo.crs().to_string(),
-            camera: geo.describe(p.x, p.z),
-            // World heights are exaggerated; the map shows metres.
-            camera_elevation_m: p.y / self.exaggeration,
-            cursor: cursor.map(|q| (geo.describe(q.x, q.z), q.y / self.exaggeration)),
-            metres_per_pixel,
-            north: n.dot(right).atan2(n.dot(up)),
-        })
+        let height = self.win.window.as_ref().map_or(1, |w| w.inner_size().height);
+        let view = (height, self.args.common.view.frustum.fovy);
+        Some(crate::app::hud::Place::of(self.geo.as_ref()?, &self.ctl, &*self.hf, cursor, view, self.exaggeration))
     }
 
     /// This frame's panel: the last frame's figures shown, its controls applied.
