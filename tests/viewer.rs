@@ -602,6 +602,8 @@ xdotool key o
 wait_frames 2
 xdotool key m
 wait_frames 2
+xdotool key f
+wait_frames 2
 xdotool key Escape
 "#;
     let mut checked = false;
@@ -623,9 +625,10 @@ xdotool key Escape
         assert_eq!(json["exaggeration"], 1.5, "X: {json}");
         assert!(json["samples"].is_array() && json["spacing_m"].is_array(), "the terrain's facts: {json}");
         assert_eq!(json["gpu"]["frames_missing_blocks"], 0, "{json}");
-        // N stopped the morph, Space froze the selection, O orbits; M says why it does nothing.
-        let keys = [&json["final_morph"], &json["frozen"], &json["orbiting"]].map(serde_json::Value::as_bool);
-        assert_eq!(keys, [Some(false), Some(true), Some(true)], "N, Space, O: {json}");
+        // N stopped the morph, Space froze the selection, O orbits, F draws edges; M says
+        // why it does nothing.
+        let keys = ["final_morph", "frozen", "orbiting", "wireframe"].map(|k| json[k].as_bool());
+        assert_eq!(keys, [Some(false), Some(true), Some(true), Some(true)], "N, Space, O, F: {json}");
         assert!(stderr.contains("M (the paper's error mode) is not drawn yet"), "M: {stderr}");
         let img = image::open(tmp.join("vkterrain-1.png")).unwrap().to_rgba8();
         assert_eq!(img.dimensions(), (480, 360));

@@ -105,6 +105,8 @@ pub(crate) struct GpuFrames {
     light: glam::Vec3,
     /// Blocks tinted by their LOD.
     pub colour_by_lod: bool,
+    /// Edges only (the viewer's F).
+    pub wireframe: bool,
     /// A plain background instead of the sky.
     pub background: Option<[f32; 3]>,
     frames: u64,
@@ -194,6 +196,7 @@ impl GpuFrames {
             fog: 0.0,
             light: Sun::DEFAULT.direction(),
             colour_by_lod: false,
+            wireframe: false,
             background: None,
             frames: 0,
             frames_missing_blocks: 0,
@@ -264,6 +267,7 @@ impl GpuFrames {
             light: self.light,
             lighting: &self.lighting,
             colour_by_lod: self.colour_by_lod,
+            wireframe: self.wireframe,
             background: self.background,
         };
         let stats = match window {

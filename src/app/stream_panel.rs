@@ -76,6 +76,7 @@ pub const STREAM_KEYS: &[(&str, &str)] = &[
     ("N", "geomorphing on / off"),
     ("O", "orbit the ground point under the cursor / fly"),
     ("Space", "freeze the drawn blocks / follow the camera"),
+    ("F", "wireframe"),
     ("L", "colour blocks by LOD"),
     ("P", "screenshot (next free vkterrain-N.png)"),
     ("H", "hide / show this panel"),

@@ -110,6 +110,8 @@ struct Run {
     frozen: bool,
     /// Whether the camera orbited a ground point at exit (O).
     orbiting: bool,
+    /// Whether the frames were drawn as edges at exit (F).
+    wireframe: bool,
     /// The camera's latitude and longitude at exit, and the ground point under the
     /// cursor (latitude, longitude, ground height in metres, world position), when the
     /// terrain is georeferenced: as the in-memory viewer's.
@@ -262,7 +264,7 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
     event_loop.set_control_flow(ControlFlow::Poll);
     eprintln!(
         "keys: W/S A/D Q/E move, drag to look, Shift faster, wheel speed, G walk, Home start, [ ] delta, Z/X \
-         exaggeration, N morph, O orbit, Space freeze, L LOD colours, P screenshot, H panel, F1 help, Esc quit"
+         exaggeration, N morph, O orbit, Space freeze, F wireframe, L LOD colours, P screenshot, H panel, F1 help, Esc quit"
     );
     let ctl = Controller::new(position, f, l / 60.0, args.walk);
     let home = (ctl.position, ctl.yaw, ctl.pitch);
@@ -319,6 +321,7 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
     (run.final_yaw, run.final_pitch, run.final_delta) = (app.ctl.yaw, app.ctl.pitch, app.delta);
     (run.final_morph, run.frozen, run.orbiting) =
         (app.streamer.morph.is_some(), app.frozen.is_some(), app.ctl.orbit.is_some());
+    run.wireframe = app.gpu.as_ref().is_some_and(|g| g.frames.wireframe);
     // As the in-memory viewer's: the height scale drawn at exit (exaggerated).
     run.terrain.height_scale_m = app.grid.height_scale as f32;
     run.exaggeration = app.exaggeration;
@@ -737,13 +740,17 @@ impl App {
                 self.freeze_next = self.frozen.is_none();
                 self.frozen = None;
             }
-            KeyCode::KeyM | KeyCode::KeyC | KeyCode::KeyF => eprintln!(
-                "vkterrain: note: {} is not drawn yet for a terrain drawn from tiles",
-                match code {
-                    KeyCode::KeyM => "M (the paper's error mode)",
-                    KeyCode::KeyC => "C (occlusion culling)",
-                    _ => "F (wireframe)",
+            KeyCode::KeyF => {
+                if let Some(g) = self.gpu.as_mut() {
+                    g.frames.wireframe = !g.frames.wireframe;
+                    if !g.frames.device.features.wireframe {
+                        eprintln!("vkterrain: note: this device has no wireframe (fillModeNonSolid)");
+                    }
                 }
+            }
+            KeyCode::KeyM | KeyCode::KeyC => eprintln!(
+                "vkterrain: note: {} is not drawn yet for a terrain drawn from tiles",
+                if code == KeyCode::KeyM { "M (the paper's error mode)" } else { "C (occlusion culling)" }
             ),
             _ => {}
         }

@@ -124,6 +124,8 @@ struct FramePipelines {
     terrain: GraphicsPipeline,
     sky: GraphicsPipeline,
     shade: GraphicsPipeline,
+    /// The viewer's F: edges only, shaded forward (where the device draws lines).
+    wireframe: Option<GraphicsPipeline>,
 }
 
 /// [`FramePipelines`]' handles, for recording.
@@ -132,6 +134,8 @@ struct PipelineHandles {
     terrain: vk::Pipeline,
     sky: vk::Pipeline,
     shade: vk::Pipeline,
+    /// The terrain pipeline drawing edges only (null without fillModeNonSolid).
+    wireframe: vk::Pipeline,
 }
 
 impl FramePipelines {
@@ -162,7 +166,13 @@ impl FramePipelines {
                 specialization: &textures,
             },
         )?;
-        Ok(FramePipelines { terrain: terrain_pipeline(device, layout, format, normals, textures)?, sky, shade })
+        let terrain = terrain_pipeline(device, layout, format, normals, textures, vk::PolygonMode::FILL)?;
+        let wireframe = device
+            .features
+            .wireframe
+            .then(|| terrain_pipeline(device, layout, format, normals, textures, vk::PolygonMode::LINE))
+            .transpose()?;
+        Ok(FramePipelines { terrain, sky, shade, wireframe })
     }
 }
 
@@ -175,6 +185,7 @@ fn terrain_pipeline(
     format: vk::Format,
     normals: NormalSource,
     [base, detail]: [(u32, bool); 2],
+    polygon_mode: vk::PolygonMode,
 ) -> VkResult<GraphicsPipeline> {
     GraphicsPipeline::new(
         device,
@@ -186,7 +197,7 @@ fn terrain_pipeline(
             color_format: Some(format),
             depth_format: Some(DEPTH_FORMAT),
             depth: DepthMode::TestWrite,
-            polygon_mode: vk::PolygonMode::FILL,
+            polygon_mode,
             // Seen from above only, as in memory: a camera under the surface sees the sky
             // through it, not its underside (the same mesh, the same winding).
             cull_back: true,
@@ -476,6 +487,7 @@ impl StreamedRenderer {
             terrain: p.terrain.handle,
             sky: p.sky.handle,
             shade: p.shade.handle,
+            wireframe: p.wireframe.as_ref().map_or(vk::Pipeline::null(), |w| w.handle),
         };
         if let Some((_, p)) = self.pipelines.iter().find(|(f, _)| *f == format) {
             return Ok(handles(p));
@@ -532,6 +544,7 @@ impl StreamedRenderer {
             && self.normals == NormalSource::GradientMap
             && self.depth_pipeline.is_some()
             && !view.colour_by_lod
+            && !view.wireframe
             && view.lighting.holds_heights()
             && depth_precise_at(distance, s[0].min(s[1]) as f32)
     }
@@ -666,6 +679,7 @@ impl StreamedRenderer {
         };
         let blocks_pipeline = match (deferred, &self.depth_pipeline) {
             (true, Some(p)) => p.handle,
+            _ if view.wireframe && pipelines.wireframe != vk::Pipeline::null() => pipelines.wireframe,
             _ => pipelines.terrain,
         };
         // SAFETY: the fence was waited in `bind`, so `cmd` is free; every object bound
@@ -815,6 +829,8 @@ pub struct FrameView<'a> {
     pub lighting: &'a OwnLighting,
     /// Blocks tinted by their LOD (`--colour-by-lod`, the viewer's L), as in memory.
     pub colour_by_lod: bool,
+    /// Edges only (the viewer's F), where the device draws lines, as in memory.
+    pub wireframe: bool,
     /// A plain background instead of the sky (`--background`, linear RGB).
     pub background: Option<[f32; 3]>,
 }
