@@ -91,6 +91,7 @@ fn main() -> anyhow::Result<()> {
                 light: glam::Vec3::Y,
                 lighting: &lit,
                 colour_by_lod: false,
+                wireframe: false,
                 background: None,
             };
             // Alternating which goes first, so that neither always follows the other.
