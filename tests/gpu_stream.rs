@@ -149,7 +149,18 @@ fn frame_view<'a>(grid: &'a Grid, view: &View, lighting: &'a OwnLighting) -> Fra
     let (anchor, cam) = view.relative(grid);
     let heights = HeightRange { world: [0.0, 1000.0], absolute: false };
     let light = glam::Vec3::Y;
-    FrameView { grid, anchor, cam, heights, fog: 0.0, light, lighting, colour_by_lod: false, background: None }
+    FrameView {
+        grid,
+        anchor,
+        cam,
+        heights,
+        fog: 0.0,
+        light,
+        lighting,
+        colour_by_lod: false,
+        wireframe: false,
+        background: None,
+    }
 }
 
 /// The atlas's thread rewrites a layer only when the host cache has let its tile go and
