@@ -80,6 +80,14 @@ fn every_subcommand_takes_its_terrain_positionally_or_as_heightmap() {
     // Any terrain flies: the file itself and the built-in terrain, cut into tiles.
     assert_eq!(flown(&[f])["blocks_per_frame"], flown(&[a])["blocks_per_frame"]);
     assert_eq!(flown(&[])["frames"], 3);
+    // An archive's frame declared beyond what single precision draws is refused as a
+    // file's is (it drew frames of NaN), naming the options.
+    for declared in [["--spacing", "1e30"], ["--height-scale", "1e12"]] {
+        let o = cli(&[&["stream", a, "--frames", "1"][..], &declared].concat());
+        let e = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{declared:?}: {e}");
+        assert!(e.contains(declared[0]) && e.contains("1e12"), "{declared:?}: {e}");
+    }
 }
 
 /// A second terrain where one goes gets the right form in its one-line message (exit 2),

@@ -164,7 +164,7 @@ pub fn record_poses(path: &std::path::Path, flight: &[(Vec3, Vec3)]) -> anyhow::
     crate::app::outputs::write_atomic(path, |tmp| {
         std::fs::write(tmp, &text).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))
     })?;
-    crate::out!("vkterrain: recorded {} poses to {}", flight.len(), path.display())?;
+    eprintln!("vkterrain: recorded {} poses to {}", flight.len(), path.display());
     Ok(())
 }
 

@@ -522,6 +522,29 @@ pub(crate) fn settle(streamer: &mut Streamer, at: impl Fn(&Streamer) -> View, de
 /// Prints what `prepare` recorded about an archive's frame (how its spacing, height unit
 /// and datum were decided, what was assumed), less what `frame` now sets, as a file's
 /// load prints it; then applies `--heights` (spacing and height scale: [`streamed_grid`]).
+/// The archive's frame with `--spacing` and `--height-scale` over it must stay within
+/// [`crate::lod::heightfield::MAX_WORLD`], its extent and its heights, as a file's must
+/// (exit 2 naming the options, not frames of NaN).
+fn check_declared_frame(shown: &str, m: &Meta, frame: &crate::app::cli::FrameArgs) -> Result<(), InputError> {
+    let declared = crate::prepare::Frame {
+        spacing: frame.spacing.map_or(m.spacing, |s| [s.x, s.z]),
+        height_scale: frame.height_scale.unwrap_or(m.height_scale),
+        georef: crate::lod::heightfield::Georef::default(),
+        void_samples: 0,
+    };
+    let given = "(check --spacing and --height-scale)";
+    crate::prepare::check_frame(shown, &declared, m.width, m.height).map_err(|e| InputError(format!("{e} {given}")))?;
+    let top = m.raw_range.map_or(0.0, |[lo, hi]| lo.abs().max(hi.abs())) * declared.height_scale;
+    if top.is_nan() || top > crate::lod::heightfield::MAX_WORLD {
+        return Err(InputError(format!(
+            "{shown}: heights reach {top:e} world units at height scale {:e}: beyond {:e} {given}",
+            declared.height_scale,
+            crate::lod::heightfield::MAX_WORLD
+        )));
+    }
+    Ok(())
+}
+
 fn declare_frame(shown: &str, archive: &mut Archive, frame: &crate::app::cli::FrameArgs) {
     let mut notes = archive.meta.georef.notes.clone();
     georef::drop_overridden(&mut notes, &frame.declared());
@@ -594,7 +617,9 @@ pub fn streamed_archive(
     if !stream && (archive.grid_side() <= 4096 || archive.grid_side() <= max_side()) {
         return Ok(None);
     }
-    declare_frame(&crate::input::archive::bytes::shown(path), &mut archive, &terrain.frame);
+    let shown = crate::input::archive::bytes::shown(path);
+    check_declared_frame(&shown, &archive.meta, &terrain.frame)?;
+    declare_frame(&shown, &mut archive, &terrain.frame);
     Ok(Some((Arc::new(archive), None)))
 }
 

@@ -518,7 +518,8 @@ impl App {
             // The same frame again, offscreen at the window's size, read back.
             let (w, h) = (extent.width, extent.height);
             gpu.frames.resize(w, h)?;
-            gpu.frames.draw(&self.streamer, &self.grid, &view, &sel, None)?;
+            let drawn = self.frozen.as_ref().unwrap_or(&sel);
+            gpu.frames.draw(&self.streamer, &self.grid, &view, drawn, None)?;
             save_png(&path, w, h, &gpu.frames.last)?;
             eprintln!("vkterrain: screenshot {}", path.display());
             self.run.screenshot = Some(path.display().to_string());

@@ -315,7 +315,9 @@ impl Run<'_> {
         let world = |h: f32| f64::from(h) * f64::from(self.height_scale);
         // NaN is out of range too.
         if let Some(i) = window.iter().position(|h| world(*h).is_nan() || world(*h).abs() > MAX_WORLD) {
-            let (x, z) = (x0 - 1 + (i % w) as i64, z0 - 1 + (i / w) as i64);
+            // The window's border beyond the extent repeats the edge sample: that one's place.
+            let x = (x0 - 1 + (i % w) as i64).clamp(0, self.width as i64 - 1);
+            let z = (z0 - 1 + (i / w) as i64).clamp(0, self.height as i64 - 1);
             return Err(PrepareError::Source(format!(
                 "{}: the sample at column {x}, row {z} is {} ({:e} world units with height scale {:e}): heights must stay within {:e}",
                 self.source.name(),
