@@ -77,11 +77,14 @@ fn short_bench_writes_every_file_with_documented_fields() {
     assert_eq!(
         lines.next().unwrap(),
         "time_s,frame_ms,traverse_ms,gpu_ms,triangles,draw_calls,blocks,error_generation,error_age_frames,\
-         error_update_ms,queue_wait_ms,morphing,temporal_rmse,popping,lod_change_rmse,lod_change_over16,occluded,raycast_blocks,raycast_pixels,hidden_parts"
+         error_update_ms,queue_wait_ms,morphing,temporal_rmse,popping,lod_change_rmse,lod_change_over16,occluded,raycast_blocks,raycast_pixels,hidden_parts,\
+         over_bound,worst_factor,tiles_held"
     );
     let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
     assert_eq!(rows.len(), 24);
-    assert!(rows.iter().all(|r| r.len() == 20));
+    assert!(rows.iter().all(|r| r.len() == 23));
+    // The whole terrain in one image: never over the bound, no tiles.
+    assert!(rows.iter().all(|r| r[20..] == ["0", "", ""]));
     // The ray-caster is off by default: no block drawn by it, no ray cast.
     assert!(rows.iter().all(|r| r[17] == "0" && r[18] == "0"));
     assert_eq!(s["mean_raycast_blocks"], 0.0);

@@ -710,8 +710,23 @@ fn bench_runs_a_path_over_an_archive_drawn_streamed() {
         (serde_json::json!([30.0, 30.0]), Some(0.1f32 as f64)),
         "{summary}"
     );
+    // frames.csv in the in-memory bench's columns: no error generations or GPU times,
+    // the tiles held and the worst factor filled in.
     let csv = std::fs::read_to_string(out.join("frames.csv")).unwrap();
     assert_eq!(csv.lines().count(), 13, "{csv}");
+    let mut lines = csv.lines();
+    let header: Vec<&str> = lines.next().unwrap().split(',').collect();
+    assert_eq!(
+        (header[2], header[7], &header[20..]),
+        ("traverse_ms", "error_generation", &["over_bound", "worst_factor", "tiles_held"][..])
+    );
+    for row in lines.map(|l| l.split(',').collect::<Vec<_>>()) {
+        assert_eq!(row.len(), header.len(), "{csv}");
+        assert!(
+            row[3].is_empty() && row[7] == "0" && !row[21].is_empty() && row[22].parse::<u32>().unwrap() > 0,
+            "{csv}"
+        );
+    }
     assert_eq!((summary["lod"].as_str(), summary["traversal_threads"].as_u64()), (Some("error"), Some(1)));
     // The baselines stream too: full resolution draws more triangles than the bound's
     // blocks, the distance rings another selection; neither morphs.

@@ -211,11 +211,19 @@ struct Row {
     /// Parts left out of the blocks drawn as triangles: hidden by occlusion culling or
     /// outside the frustum (`DrawBlock::hidden_parts`).
     hidden_parts: u64,
+    /// A block was drawn coarser than its error asks, its finer tile not held yet (never
+    /// with the whole terrain in one image).
+    over_bound: bool,
+    /// The largest error / delta of a block drawn (terrains drawn from tiles).
+    worst_factor: Option<f32>,
+    /// Tiles the host cache held after the frame (terrains drawn from tiles).
+    tiles_held: Option<usize>,
 }
 
 const CSV_HEADER: &str = "time_s,frame_ms,traverse_ms,gpu_ms,triangles,draw_calls,blocks,error_generation,\
                           error_age_frames,error_update_ms,queue_wait_ms,morphing,temporal_rmse,popping,lod_change_rmse,\
-                          lod_change_over16,occluded,raycast_blocks,raycast_pixels,hidden_parts";
+                          lod_change_over16,occluded,raycast_blocks,raycast_pixels,hidden_parts,over_bound,\
+                          worst_factor,tiles_held";
 
 fn opt<T: std::fmt::Display>(v: Option<T>) -> String {
     v.map_or(String::new(), |v| v.to_string())
@@ -224,7 +232,7 @@ fn opt<T: std::fmt::Display>(v: Option<T>) -> String {
 impl Row {
     fn csv(&self) -> String {
         format!(
-            "{:.4},{:.3},{:.3},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{:.0},{}",
+            "{:.4},{:.3},{:.3},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{:.0},{},{},{},{}",
             self.time_s,
             self.frame_ms,
             self.traverse_ms,
@@ -244,7 +252,10 @@ impl Row {
             opt(self.occluded),
             self.raycast_blocks,
             self.raycast_pixels,
-            self.hidden_parts
+            self.hidden_parts,
+            u8::from(self.over_bound),
+            opt(self.worst_factor.map(|v| format!("{v:.4}"))),
+            opt(self.tiles_held)
         )
     }
 }
@@ -1271,9 +1282,9 @@ fn bench_streamed(
         crate::stream::streamer::StreamStats { worst_factor: 1.0, ..Default::default() },
     );
     let mut progress = Progress::new("streamed", frames);
-    let mut csv = String::from(
-        "time_s,frame_ms,select_ms,draw_ms,blocks,triangles,hidden_parts,morphing,over_bound,worst_factor,tiles_held\n",
-    );
+    // frames.csv in the one schema every bench writes (what frames from tiles do not
+    // have, such as error generations and GPU timestamps, left empty or 0).
+    let mut rows = Vec::new();
     let (mut frame_ms, mut triangles, mut morphing) = (Vec::new(), 0u64, 0u64);
     let started = Instant::now();
     for i in 0..frames {
@@ -1289,24 +1300,26 @@ fn bench_streamed(
         let select_ms = (t1 - t0).as_secs_f64() * 1e3;
         trace.complete(DRAW_TID, "select (traversal over held tiles)", t0, t1, json!({"frame": i}));
         gpu.draw(&streamer, &grid, &v, &sel, None)?;
-        let draw_ms = t1.elapsed().as_secs_f64() * 1e3;
         let ms = t0.elapsed().as_secs_f64() * 1e3;
         trace.complete(DRAW_TID, "frame", t0, Instant::now(), json!({"frame": i, "over_bound": sel.over_bound}));
         trace.counter("tiles held", streamer.cache.len() as u64);
         frame_ms.push(ms);
         triangles += gpu.triangles;
         morphing += sel.morphing as u64;
-        csv += &format!(
-            "{:.4},{ms:.3},{select_ms:.3},{draw_ms:.3},{},{},{},{},{},{:.4},{}\n",
-            camera(i).2,
-            gpu.blocks,
-            gpu.triangles,
-            gpu.hidden_parts,
-            sel.morphing,
-            sel.over_bound,
-            sel.worst_factor,
-            streamer.cache.len()
-        );
+        rows.push(Row {
+            time_s: camera(i).2,
+            frame_ms: ms,
+            traverse_ms: select_ms,
+            triangles: gpu.triangles,
+            draw_calls: gpu.draw_calls,
+            blocks: gpu.blocks,
+            morphing: sel.morphing,
+            hidden_parts: gpu.hidden_parts,
+            over_bound: sel.over_bound > 0,
+            worst_factor: Some(sel.worst_factor),
+            tiles_held: Some(streamer.cache.len()),
+            ..Row::default()
+        });
         progress.tick(i + 1);
     }
     let seconds = started.elapsed().as_secs_f64();
@@ -1352,7 +1365,7 @@ fn bench_streamed(
     drop(device);
     drop(streamer); // joins the IO thread: its last read is in the trace
     trace.finish().map_err(|e| anyhow::anyhow!("{}: {e}", trace_path.display()))?;
-    write_atomic(&args.out.join("frames.csv"), |tmp| Ok(std::fs::write(tmp, &csv)?))?;
+    write_csv(&args.out.join("frames.csv"), &rows)?;
     let text = serde_json::to_string_pretty(&summary)?;
     write_atomic(&args.out.join("summary.json"), |tmp| Ok(std::fs::write(tmp, &text)?))?;
     crate::out!("{text}")?;
