@@ -703,6 +703,11 @@ fn bench_runs_a_path_over_an_archive_drawn_streamed() {
     assert_eq!(summary["gpu"]["frames_missing_blocks"], 0, "{summary}");
     assert!(summary["avg_fps"].as_f64().unwrap() > 0.0 && summary["mean_triangles"].as_f64().unwrap() > 1000.0);
     assert_eq!(summary["frames_over_bound"], summary["stream"]["frames_over_bound"]);
+    // The in-memory bench's summary fields: no error generations here (the blocks are
+    // bounded on the CPU), the selection's time as the traversal's; and its plot.
+    assert_eq!((summary["error_updates"].as_u64(), summary["median_error_update_ms"].is_null()), (Some(0), true));
+    assert!(summary["median_traverse_ms"].as_f64().is_some_and(|t| t > 0.0), "{summary}");
+    assert!(out.join("plot.png").exists());
     // The terrain's facts, as every bench summary has them (synthetic: 30 m, 0.1 m a unit).
     assert_eq!(summary["samples"], serde_json::json!([1025, 1025]), "{summary}");
     assert_eq!(

@@ -1220,9 +1220,7 @@ fn bench_streamed(
     crate::app::cli::check_image_size(&device, "--size", size)?;
     crate::app::outputs::output_dir("--out", &args.out)?;
     if !args.no_fidelity {
-        eprintln!(
-            "vkterrain: note: a streamed bench measures no fidelity against --lod full and writes no plot.png yet"
-        );
+        eprintln!("vkterrain: note: a streamed bench measures no fidelity against --lod full yet");
     }
     // The three threads' work: each frame's selection and drawing, the IO thread's reads,
     // the atlas's uploads (CPU tracks only: streamed frames take no timestamps).
@@ -1285,7 +1283,7 @@ fn bench_streamed(
     // frames.csv in the one schema every bench writes (what frames from tiles do not
     // have, such as error generations and GPU timestamps, left empty or 0).
     let mut rows = Vec::new();
-    let (mut frame_ms, mut triangles, mut morphing) = (Vec::new(), 0u64, 0u64);
+    let (mut frame_ms, mut morphing) = (Vec::new(), 0u64);
     let started = Instant::now();
     for i in 0..frames {
         if signals.requested() {
@@ -1304,7 +1302,6 @@ fn bench_streamed(
         trace.complete(DRAW_TID, "frame", t0, Instant::now(), json!({"frame": i, "over_bound": sel.over_bound}));
         trace.counter("tiles held", streamer.cache.len() as u64);
         frame_ms.push(ms);
-        triangles += gpu.triangles;
         morphing += sel.morphing as u64;
         rows.push(Row {
             time_s: camera(i).2,
@@ -1324,18 +1321,26 @@ fn bench_streamed(
     }
     let seconds = started.elapsed().as_secs_f64();
     let drawn = frame_ms.len() as u64;
-    let (sorted, mean) = sorted_with_mean(frame_ms.iter().copied());
+    let (_, mean) = sorted_with_mean(frame_ms.iter().copied());
     let stats = streamer.stats.clone();
-    let mut summary = json!({
+    let run = Run {
+        rows,
+        blocks: Vec::new(),
+        // No error generations: frames from tiles bound their blocks on the CPU.
+        generations: Vec::new(),
+        update_gpu_ms: Vec::new(),
+        interrupted: signals.requested(),
+        warmup_ms: None,
+        rss: Vec::new(),
+        wall_ms: Some(seconds * 1e3),
+    };
+    // The in-memory bench's summary, then what frames from tiles add.
+    let mut summary = summarize(&run);
+    let streamed = json!({
         "streamed": true,
         "terrain": args.common.terrain.name(),
-        "frames": drawn,
         "seconds": seconds,
-        "avg_fps": drawn as f64 / seconds.max(1e-9),
-        "median_frame_ms": median(&sorted),
         "mean_frame_ms": mean,
-        "p99_frame_ms": (!sorted.is_empty()).then(|| percentile(&sorted, 0.99)),
-        "mean_triangles": triangles as f64 / drawn.max(1) as f64,
         "lod": format!("{:?}", args.lod).to_lowercase(),
         "shading": crate::draw::streamed::StreamedRenderer::shading_name(args.shading),
         "pixels": value_name(args.pixels),
@@ -1359,13 +1364,17 @@ fn bench_streamed(
         "degraded": streamer.first_failure.is_some(),
         "first_failure": streamer.first_failure,
     });
+    if let (Some(all), Value::Object(more)) = (summary.as_object_mut(), streamed) {
+        all.extend(more);
+    }
     let streamer_failure = streamer.first_failure.clone();
     crate::app::outputs::TerrainFacts::of_archive(&archive.meta, &args.common.terrain.frame).merge_into(&mut summary);
     drop(gpu);
     drop(device);
     drop(streamer); // joins the IO thread: its last read is in the trace
     trace.finish().map_err(|e| anyhow::anyhow!("{}: {e}", trace_path.display()))?;
-    write_csv(&args.out.join("frames.csv"), &rows)?;
+    write_csv(&args.out.join("frames.csv"), &run.rows)?;
+    plot(&args.out.join("plot.png"), &run.rows, &args.path.to_string())?;
     let text = serde_json::to_string_pretty(&summary)?;
     write_atomic(&args.out.join("summary.json"), |tmp| Ok(std::fs::write(tmp, &text)?))?;
     crate::out!("{text}")?;
