@@ -779,6 +779,37 @@ fn summarize(run: &Run) -> Value {
     })
 }
 
+/// `--compare`'s figures: each run's summary, the error run's frame rate and triangles
+/// against full resolution's and the distance rings', and its frame times against the
+/// ceiling's (the same blocks drawn with no selection), `again` being the ceiling run
+/// twice: how far two identical runs drift apart on this machine.
+fn compare_summary(main: &Run, full: &Run, distance: &Run, ceiling: &Run, again: &Run) -> Value {
+    let (sm, sf, sd, sc) = (summarize(main), summarize(full), summarize(distance), summarize(ceiling));
+    let ratio = |a: &Value, b: &Value, k: &str| a[k].as_f64().zip(b[k].as_f64()).map(|(x, y)| x / y.max(1e-12));
+    let mut compare = json!({
+        "fps_error_over_full": ratio(&sm, &sf, "avg_fps"),
+        "fps_error_over_distance": ratio(&sm, &sd, "avg_fps"),
+        "triangles_full_over_error": ratio(&sf, &sm, "mean_triangles"),
+        "triangles_distance_over_error": ratio(&sd, &sm, "mean_triangles"),
+        "share_of_ceiling_fps": ratio(&sm, &sc, "avg_fps"),
+    });
+    let ms = |run: &Run| run.rows.iter().map(|r| r.frame_ms).collect::<Vec<_>>();
+    if let Some((median, p99)) = frame_time_excess(&ms(main), &ms(ceiling)) {
+        compare["median_excess_over_ceiling_ms"] = json!(median);
+        compare["p99_excess_over_ceiling_ms"] = json!(p99);
+        let gap = frame_time_excess(&ms(again), &ms(ceiling)).map(|g| g.1);
+        compare["p99_ceiling_gap_ms"] = json!(gap);
+        // The stall target: a quarter of the ceiling's median frame, or 1.5x the gap
+        // between two ceiling runs, the larger.
+        let quarter = sc["median_frame_ms"].as_f64().map(|m| 0.25 * m);
+        let target = quarter.zip(gap).map(|(q, g)| q.max(1.5 * g));
+        compare["stall_target_ms"] = json!(target);
+        compare["stall_target_met"] = json!(target.map(|t| p99 <= t));
+    }
+    (compare["error"], compare["full"], compare["distance"], compare["ceiling"]) = (sm, sf, sd, sc);
+    compare
+}
+
 fn write_csv(path: &Path, rows: &[Row]) -> anyhow::Result<()> {
     let mut text = String::from(CSV_HEADER);
     text.push('\n');
@@ -1054,31 +1085,7 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
                 // Frame by frame beside frames.csv: where the excess over the ceiling lies.
                 write_csv(&args.out.join("ceiling.csv"), &ceiling.rows)?;
                 if !distance.interrupted && !ceiling.interrupted && !again.interrupted {
-                    let (sm, sf, sd, sc) =
-                        (summarize(&main), summarize(&full), summarize(&distance), summarize(&ceiling));
-                    let ratio =
-                        |a: &Value, b: &Value, k: &str| a[k].as_f64().zip(b[k].as_f64()).map(|(x, y)| x / y.max(1e-12));
-                    summary["compare"] = json!({
-                        "error": sm, "full": sf, "distance": sd, "ceiling": sc,
-                        "fps_error_over_full": ratio(&sm, &sf, "avg_fps"),
-                        "fps_error_over_distance": ratio(&sm, &sd, "avg_fps"),
-                        "triangles_full_over_error": ratio(&sf, &sm, "mean_triangles"),
-                        "triangles_distance_over_error": ratio(&sd, &sm, "mean_triangles"),
-                        "share_of_ceiling_fps": ratio(&sm, &sc, "avg_fps"),
-                    });
-                    let ms = |run: &Run| run.rows.iter().map(|r| r.frame_ms).collect::<Vec<_>>();
-                    if let Some((median, p99)) = frame_time_excess(&ms(&main), &ms(&ceiling)) {
-                        summary["compare"]["median_excess_over_ceiling_ms"] = json!(median);
-                        summary["compare"]["p99_excess_over_ceiling_ms"] = json!(p99);
-                        let gap = frame_time_excess(&ms(&again), &ms(&ceiling)).map(|g| g.1);
-                        summary["compare"]["p99_ceiling_gap_ms"] = json!(gap);
-                        // The stall target (issue 26): a quarter of the ceiling's median
-                        // frame, or 1.5x the gap between two ceiling runs, the larger.
-                        let quarter = sc["median_frame_ms"].as_f64().map(|m| 0.25 * m);
-                        let target = quarter.zip(gap).map(|(q, g)| q.max(1.5 * g));
-                        summary["compare"]["stall_target_ms"] = json!(target);
-                        summary["compare"]["stall_target_met"] = json!(target.map(|t| p99 <= t));
-                    }
+                    summary["compare"] = compare_summary(&main, &full, &distance, &ceiling, &again);
                 }
             }
             if !args.no_fidelity && !stop.load(Ordering::SeqCst) {
@@ -1211,7 +1218,6 @@ fn bench_streamed(
     use crate::app::stream::{atlas_bound_streamer, streamed_grid, top_tiles, GpuFrames};
     use crate::stream::traverse::View;
     args.common.refuse_untiled(&[
-        ("--compare", args.compare),
         ("--popping", args.popping),
         ("--raycast", args.raycast != crate::draw::raycast::Raycast::Off),
         ("--inject-fault", args.inject_fault.is_some()),
@@ -1279,60 +1285,90 @@ fn bench_streamed(
         &mut streamer.stats,
         crate::stream::streamer::StreamStats { worst_factor: 1.0, ..Default::default() },
     );
-    let mut progress = Progress::new("streamed", frames);
-    // frames.csv in the one schema every bench writes (what frames from tiles do not
-    // have, such as error generations and GPU timestamps, left empty or 0).
-    let mut rows = Vec::new();
-    let (mut frame_ms, mut morphing) = (Vec::new(), 0u64);
-    let started = Instant::now();
-    for i in 0..frames {
-        if signals.requested() {
-            break;
+    // One run along the path with the blocks `lod` chooses, or `replay`'s selections drawn
+    // again with none made (the ceiling); its frames, rows in the one frames.csv schema
+    // every bench writes (what frames from tiles do not have, such as error generations
+    // and GPU timestamps, left empty or 0), and its selections when `keep`.
+    let delta = args.common.lod.delta;
+    let fly = |streamer: &mut crate::stream::streamer::Streamer,
+               gpu: &mut GpuFrames,
+               (lod, replay, keep): (LodChoice, Option<&[crate::stream::traverse::Selection]>, bool),
+               name: &str|
+     -> anyhow::Result<(Run, Vec<crate::stream::traverse::Selection>)> {
+        streamer.lod = crate::app::stream::streamed_lod(lod);
+        let mut progress = Progress::new(name, frames);
+        let (mut rows, mut kept) = (Vec::new(), Vec::new());
+        let started = Instant::now();
+        for i in 0..frames {
+            if signals.requested() {
+                break;
+            }
+            let t0 = Instant::now();
+            let v = view(i);
+            let sel = match replay {
+                Some(r) => r[i as usize].clone(),
+                None => {
+                    // The camera half a second ahead along the path: its tiles are asked
+                    // for next.
+                    let ahead = view((i + 15).min(frames - 1));
+                    streamer.frame(&v, Some(&ahead), delta, 0.5)
+                }
+            };
+            let t1 = Instant::now();
+            trace.complete(DRAW_TID, "select (traversal over held tiles)", t0, t1, json!({"frame": i}));
+            gpu.draw(streamer, &grid, &v, &sel, None)?;
+            trace.complete(DRAW_TID, "frame", t0, Instant::now(), json!({"frame": i, "over_bound": sel.over_bound}));
+            trace.counter("tiles held", streamer.cache.len() as u64);
+            rows.push(Row {
+                time_s: camera(i).2,
+                frame_ms: t0.elapsed().as_secs_f64() * 1e3,
+                traverse_ms: (t1 - t0).as_secs_f64() * 1e3,
+                triangles: gpu.triangles,
+                draw_calls: gpu.draw_calls,
+                blocks: gpu.blocks,
+                morphing: sel.morphing,
+                hidden_parts: gpu.hidden_parts,
+                over_bound: sel.over_bound > 0,
+                worst_factor: Some(sel.worst_factor),
+                tiles_held: Some(streamer.cache.len()),
+                ..Row::default()
+            });
+            if keep {
+                kept.push(sel);
+            }
+            progress.tick(i + 1);
         }
-        let t0 = Instant::now();
-        let v = view(i);
-        // The camera half a second ahead along the path: its tiles are asked for next.
-        let ahead = view((i + 15).min(frames - 1));
-        let sel = streamer.frame(&v, Some(&ahead), args.common.lod.delta, 0.5);
-        let t1 = Instant::now();
-        let select_ms = (t1 - t0).as_secs_f64() * 1e3;
-        trace.complete(DRAW_TID, "select (traversal over held tiles)", t0, t1, json!({"frame": i}));
-        gpu.draw(&streamer, &grid, &v, &sel, None)?;
-        let ms = t0.elapsed().as_secs_f64() * 1e3;
-        trace.complete(DRAW_TID, "frame", t0, Instant::now(), json!({"frame": i, "over_bound": sel.over_bound}));
-        trace.counter("tiles held", streamer.cache.len() as u64);
-        frame_ms.push(ms);
-        morphing += sel.morphing as u64;
-        rows.push(Row {
-            time_s: camera(i).2,
-            frame_ms: ms,
-            traverse_ms: select_ms,
-            triangles: gpu.triangles,
-            draw_calls: gpu.draw_calls,
-            blocks: gpu.blocks,
-            morphing: sel.morphing,
-            hidden_parts: gpu.hidden_parts,
-            over_bound: sel.over_bound > 0,
-            worst_factor: Some(sel.worst_factor),
-            tiles_held: Some(streamer.cache.len()),
-            ..Row::default()
-        });
-        progress.tick(i + 1);
-    }
-    let seconds = started.elapsed().as_secs_f64();
-    let drawn = frame_ms.len() as u64;
-    let (_, mean) = sorted_with_mean(frame_ms.iter().copied());
+        let run = Run {
+            rows,
+            blocks: Vec::new(),
+            // No error generations: frames from tiles bound their blocks on the CPU.
+            generations: Vec::new(),
+            update_gpu_ms: Vec::new(),
+            interrupted: signals.requested(),
+            warmup_ms: None,
+            rss: Vec::new(),
+            wall_ms: Some(started.elapsed().as_secs_f64() * 1e3),
+        };
+        Ok((run, kept))
+    };
+    let (run, selections) = fly(&mut streamer, &mut gpu, (args.lod, None, args.compare), "streamed")?;
+    let seconds = run.wall_ms.unwrap_or(0.0) / 1e3;
+    let drawn = run.rows.len() as u64;
+    let (_, mean) = sorted_with_mean(run.rows.iter().map(|r| r.frame_ms));
+    let morphing: u64 = run.rows.iter().map(|r| r.morphing as u64).sum();
     let stats = streamer.stats.clone();
-    let run = Run {
-        rows,
-        blocks: Vec::new(),
-        // No error generations: frames from tiles bound their blocks on the CPU.
-        generations: Vec::new(),
-        update_gpu_ms: Vec::new(),
-        interrupted: signals.requested(),
-        warmup_ms: None,
-        rss: Vec::new(),
-        wall_ms: Some(seconds * 1e3),
+    let compare = match args.compare && !run.interrupted {
+        true => {
+            let (full, _) = fly(&mut streamer, &mut gpu, (LodChoice::Full, None, false), "full")?;
+            let (distance, _) = fly(&mut streamer, &mut gpu, (LodChoice::Distance, None, false), "distance")?;
+            let replay = (LodChoice::Error, Some(&selections[..]), false);
+            let (ceiling, _) = fly(&mut streamer, &mut gpu, replay, "ceiling")?;
+            let (again, _) = fly(&mut streamer, &mut gpu, replay, "ceiling again")?;
+            write_csv(&args.out.join("ceiling.csv"), &ceiling.rows)?;
+            let whole = [&full, &distance, &ceiling, &again].iter().all(|r| !r.interrupted);
+            whole.then(|| compare_summary(&run, &full, &distance, &ceiling, &again))
+        }
+        false => None,
     };
     // The in-memory bench's summary, then what frames from tiles add.
     let mut summary = summarize(&run);
@@ -1366,6 +1402,9 @@ fn bench_streamed(
     });
     if let (Some(all), Value::Object(more)) = (summary.as_object_mut(), streamed) {
         all.extend(more);
+    }
+    if let Some(c) = compare {
+        summary["compare"] = c;
     }
     let streamer_failure = streamer.first_failure.clone();
     crate::app::outputs::TerrainFacts::of_archive(&archive.meta, &args.common.terrain.frame).merge_into(&mut summary);
