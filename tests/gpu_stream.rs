@@ -678,7 +678,8 @@ fn a_streamed_frame_is_coloured_as_the_terrain_in_memory() {
 /// `bench --stream` runs a path over an archive drawn streamed, under validation: every
 /// frame drawn from the atlas and written to frames.csv, the summary with the frame
 /// times, triangles, frames over the bound and 0 validation messages; what a streamed run
-/// cannot do yet (`--popping`) is refused by name; `--compare` runs as in memory.
+/// cannot do yet (`--raycast`) is refused by name; `--compare` and `--popping` run as in
+/// memory.
 #[test]
 fn bench_runs_a_path_over_an_archive_drawn_streamed() {
     let dir = TempDir::new("gpu-stream-bench");
@@ -766,11 +767,23 @@ fn bench_runs_a_path_over_an_archive_drawn_streamed() {
     assert_eq!(s["validation_messages"], 0, "{s}");
     let ceiling = std::fs::read_to_string(out.join("ceiling.csv")).unwrap();
     assert_eq!(ceiling.lines().count(), 13, "{ceiling}");
-    // What frames from tiles cannot do yet is refused by name.
+    // --popping as in memory: each frame against the one before, less the full run's
+    // change; and the change due to the LOD selection alone, on a keyed background.
     let r = run(&["--popping"]);
+    assert!(r.status.success(), "--popping: {}", String::from_utf8_lossy(&r.stderr));
+    let s: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap()).unwrap();
+    let p = &s["popping"];
+    assert_eq!((p["frame_pairs"].as_u64(), p["morph"].as_bool()), (Some(11), Some(true)), "{p}");
+    assert!(p["p99_excess"].is_number() && p["max_lod_change_rmse"].as_f64().is_some_and(|m| m >= 0.0), "{p}");
+    assert_eq!(s["validation_messages"], 0, "{s}");
+    let csv = std::fs::read_to_string(out.join("frames.csv")).unwrap();
+    let rows: Vec<Vec<&str>> = csv.lines().skip(2).map(|l| l.split(',').collect()).collect();
+    assert!(rows.iter().all(|r| !r[12].is_empty() && !r[13].is_empty() && !r[14].is_empty()), "{csv}");
+    // What frames from tiles cannot do yet is refused by name.
+    let r = run(&["--raycast", "all"]);
     let err = String::from_utf8_lossy(&r.stderr);
     assert_eq!(r.status.code(), Some(2), "{err}");
-    assert!(err.contains("--popping") && err.contains("streamed"), "{err}");
+    assert!(err.contains("--raycast") && err.contains("streamed"), "{err}");
 }
 
 /// `render --stream --audit` audits in the archive's block layout (one square of

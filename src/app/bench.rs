@@ -1218,7 +1218,6 @@ fn bench_streamed(
     use crate::app::stream::{atlas_bound_streamer, streamed_grid, top_tiles, GpuFrames};
     use crate::stream::traverse::View;
     args.common.refuse_untiled(&[
-        ("--popping", args.popping),
         ("--raycast", args.raycast != crate::draw::raycast::Raycast::Off),
         ("--inject-fault", args.inject_fault.is_some()),
     ])?;
@@ -1288,16 +1287,22 @@ fn bench_streamed(
     // One run along the path with the blocks `lod` chooses, or `replay`'s selections drawn
     // again with none made (the ceiling); its frames, rows in the one frames.csv schema
     // every bench writes (what frames from tiles do not have, such as error generations
-    // and GPU timestamps, left empty or 0), and its selections when `keep`.
+    // and GPU timestamps, left empty or 0), and its selections when `keep`. With `pop`,
+    // as in memory: each frame read back and compared with the one before
+    // (`temporal_rmse`), and, with `keep`, the frame's blocks against the previous
+    // frame's drawn from this frame's camera on a keyed background (`lod_change_rmse`).
     let delta = args.common.lod.delta;
     let fly = |streamer: &mut crate::stream::streamer::Streamer,
                gpu: &mut GpuFrames,
-               (lod, replay, keep): (LodChoice, Option<&[crate::stream::traverse::Selection]>, bool),
+               (lod, replay, keep, pop): (LodChoice, Option<&[crate::stream::traverse::Selection]>, bool, bool),
                name: &str|
      -> anyhow::Result<(Run, Vec<crate::stream::traverse::Selection>)> {
         streamer.lod = crate::app::stream::streamed_lod(lod);
+        gpu.read_back = pop;
         let mut progress = Progress::new(name, frames);
         let (mut rows, mut kept) = (Vec::new(), Vec::new());
+        let (mut previous_pixels, mut previous_sel): (Option<Vec<u8>>, Option<crate::stream::traverse::Selection>) =
+            (None, None);
         let started = Instant::now();
         for i in 0..frames {
             if signals.requested() {
@@ -1319,7 +1324,7 @@ fn bench_streamed(
             gpu.draw(streamer, &grid, &v, &sel, None)?;
             trace.complete(DRAW_TID, "frame", t0, Instant::now(), json!({"frame": i, "over_bound": sel.over_bound}));
             trace.counter("tiles held", streamer.cache.len() as u64);
-            rows.push(Row {
+            let mut row = Row {
                 time_s: camera(i).2,
                 frame_ms: t0.elapsed().as_secs_f64() * 1e3,
                 traverse_ms: (t1 - t0).as_secs_f64() * 1e3,
@@ -1332,7 +1337,23 @@ fn bench_streamed(
                 worst_factor: Some(sel.worst_factor),
                 tiles_held: Some(streamer.cache.len()),
                 ..Row::default()
-            });
+            };
+            if pop {
+                let pixels = std::mem::take(&mut gpu.last);
+                row.temporal_rmse = previous_pixels.as_ref().map(|p| image_difference(p, &pixels).0);
+                previous_pixels = Some(pixels);
+                if let Some(before) = previous_sel.as_ref().filter(|_| keep) {
+                    let background = gpu.background.replace(KEY_COLOUR);
+                    gpu.draw(streamer, &grid, &v, &sel, None)?;
+                    let now = std::mem::take(&mut gpu.last);
+                    gpu.draw(streamer, &grid, &v, before, None)?;
+                    gpu.background = background;
+                    let (rmse, over16) = keyed_difference(&now, &gpu.last);
+                    (row.lod_change_rmse, row.lod_change_over16) = (Some(rmse), Some(over16));
+                }
+                previous_sel = keep.then(|| sel.clone());
+            }
+            rows.push(row);
             if keep {
                 kept.push(sel);
             }
@@ -1351,24 +1372,38 @@ fn bench_streamed(
         };
         Ok((run, kept))
     };
-    let (run, selections) = fly(&mut streamer, &mut gpu, (args.lod, None, args.compare), "streamed")?;
+    let keep = args.compare || args.popping;
+    let (mut run, selections) = fly(&mut streamer, &mut gpu, (args.lod, None, keep, args.popping), "streamed")?;
     let seconds = run.wall_ms.unwrap_or(0.0) / 1e3;
     let drawn = run.rows.len() as u64;
     let (_, mean) = sorted_with_mean(run.rows.iter().map(|r| r.frame_ms));
     let morphing: u64 = run.rows.iter().map(|r| r.morphing as u64).sum();
     let stats = streamer.stats.clone();
-    let compare = match args.compare && !run.interrupted {
-        true => {
-            let (full, _) = fly(&mut streamer, &mut gpu, (LodChoice::Full, None, false), "full")?;
-            let (distance, _) = fly(&mut streamer, &mut gpu, (LodChoice::Distance, None, false), "distance")?;
-            let replay = (LodChoice::Error, Some(&selections[..]), false);
+    // Comparisons only from runs that went the whole path, as in memory.
+    let full = match keep && !run.interrupted {
+        true => Some(fly(&mut streamer, &mut gpu, (LodChoice::Full, None, false, args.popping), "full")?.0),
+        false => None,
+    }
+    .filter(|r| !r.interrupted);
+    let popped = match (args.popping, &full) {
+        (true, Some(full)) => {
+            let mut p = popping(&mut run.rows, &full.rows);
+            p["morph"] = json!(args.common.lod.morph.on());
+            Some(p)
+        }
+        _ => None,
+    };
+    let compare = match (args.compare, full) {
+        (true, Some(full)) => {
+            let (distance, _) = fly(&mut streamer, &mut gpu, (LodChoice::Distance, None, false, false), "distance")?;
+            let replay = (LodChoice::Error, Some(&selections[..]), false, false);
             let (ceiling, _) = fly(&mut streamer, &mut gpu, replay, "ceiling")?;
             let (again, _) = fly(&mut streamer, &mut gpu, replay, "ceiling again")?;
             write_csv(&args.out.join("ceiling.csv"), &ceiling.rows)?;
             let whole = [&full, &distance, &ceiling, &again].iter().all(|r| !r.interrupted);
             whole.then(|| compare_summary(&run, &full, &distance, &ceiling, &again))
         }
-        false => None,
+        _ => None,
     };
     // The in-memory bench's summary, then what frames from tiles add.
     let mut summary = summarize(&run);
@@ -1405,6 +1440,9 @@ fn bench_streamed(
     }
     if let Some(c) = compare {
         summary["compare"] = c;
+    }
+    if let Some(p) = popped {
+        summary["popping"] = p;
     }
     let streamer_failure = streamer.first_failure.clone();
     crate::app::outputs::TerrainFacts::of_archive(&archive.meta, &args.common.terrain.frame).merge_into(&mut summary);
