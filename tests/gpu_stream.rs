@@ -415,12 +415,15 @@ fn render_draws_an_archive_streamed_within_the_bound() {
         // The errors activity's pacing, which streamed frames do not run.
         (vec!["--error-pacing", "free"], "--error-pacing"),
         (vec!["--refresh-at", "0.2"], "--refresh-at"),
+        // Occlusion culling asked for by name: not done on frames from tiles (off is).
+        (vec!["--occlusion", "on"], "--occlusion on"),
     ] {
         let o = render(&extra);
         let err = String::from_utf8_lossy(&o.stderr);
         assert_eq!(o.status.code(), Some(2), "{extra:?}: {err}");
         assert!(err.contains(named) && err.contains("s.pmtiles") && err.contains("streamed"), "{err}");
     }
+    assert!(render(&["--occlusion", "off"]).status.success());
     // Without a terrain: the built-in one, cut into tiles.
     let o = cli(&["render", "--stream", "--size", "64x48", "--validation", "on", "--out", p]);
     assert!(o.status.success(), "--stream on the built-in terrain: {}", String::from_utf8_lossy(&o.stderr));

@@ -361,9 +361,9 @@ pub struct CommonArgs {
     pub lod: LodArgs,
     /// Occlusion culling: blocks, and 4 x 4 parts of blocks, hidden behind nearer terrain
     /// are not drawn (provably conservative; skipped, with the reason in the stats, where
-    /// the proof does not hold).
-    #[arg(long, value_enum, default_value_t = OnOff::On)]
-    pub occlusion: OnOff,
+    /// the proof does not hold). Default: on.
+    #[arg(long, value_enum)]
+    pub occlusion: Option<OnOff>,
     /// Sun for the precomputed shadows and ambient occlusion: compass azimuth and
     /// elevation in degrees (azimuth 0 is north, the top of the heightmap), or `off`.
     #[arg(long, value_name = "AZ,EL|off", default_value = "301,54", value_parser = parse_sun, allow_negative_numbers = true)]
@@ -380,6 +380,8 @@ impl CommonArgs {
         let shared = [
             ("--error-mode paper", self.error_mode.mode != crate::lod::gie::ErrorMode::Strict),
             ("--block (tiles fix k = 33)", self.block.k != 33),
+            // Asked for by name: frames from tiles draw every block the frustum keeps.
+            ("--occlusion on", self.occlusion == Some(OnOff::On)),
             // The errors activity's pacing: frames from tiles bound their blocks on the CPU.
             ("--refresh-at", self.refresh_at != default_share),
             ("--update-share", self.update_share != default_share),

@@ -190,7 +190,7 @@ pub fn open_device(args: &DeviceArgs, block: BlockArg) -> anyhow::Result<Arc<Dev
 pub fn draw_thread(common: &CommonArgs, trace: Trace, device: Option<&Device>) -> anyhow::Result<DrawThread> {
     let policy = RefreshPolicy { moved_fraction: common.refresh_at, max_share: common.update_share };
     let mut draw = DrawThread::new(ErrorFeed::new(common.error_mode.mode, policy), common.lod.morph.on(), trace)
-        .with_occlusion(common.occlusion == OnOff::On);
+        .with_occlusion(common.occlusion != Some(OnOff::Off));
     if let Some(device) = device {
         draw.set_threads(traversal_threads(common.lod.traversal_threads, device.properties.device_type))?;
     }
