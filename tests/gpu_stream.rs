@@ -703,7 +703,9 @@ fn bench_runs_a_path_over_an_archive_drawn_streamed() {
     let summary: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap()).unwrap();
     assert_eq!((summary["streamed"].as_bool(), summary["frames"].as_u64()), (Some(true), Some(12)), "{summary}");
     assert_eq!(summary["validation_messages"], 0, "{summary}");
-    assert_eq!(summary["gpu"]["frames_drawn"], 12, "{summary}");
+    // The 12 timed frames and the untimed warm-up frame every run begins with.
+    assert_eq!(summary["gpu"]["frames_drawn"], 13, "{summary}");
+    assert!(summary["warmup_ms"].as_f64().is_some_and(|w| w > 0.0), "{summary}");
     assert_eq!(summary["gpu"]["frames_missing_blocks"], 0, "{summary}");
     assert!(summary["avg_fps"].as_f64().unwrap() > 0.0 && summary["mean_triangles"].as_f64().unwrap() > 1000.0);
     assert_eq!(summary["frames_over_bound"], summary["stream"]["frames_over_bound"]);
@@ -765,6 +767,11 @@ fn bench_runs_a_path_over_an_archive_drawn_streamed() {
         assert_eq!(c[run]["frames"], 12, "{run}: {c}");
     }
     assert_eq!(c["error"]["mean_triangles"], c["ceiling"]["mean_triangles"], "the ceiling draws the same blocks: {c}");
+    // Its full run is `--lod full` alone (its first view's tiles read first: without that,
+    // a review measured 437,664 triangles a frame against 538,549 alone on Puget Sound
+    // 1k; frames do not wait for tiles, so the two may differ by a frame drawn coarser).
+    let compared_full = c["full"]["mean_triangles"].as_f64().unwrap();
+    assert!(compared_full > 0.95 * full, "full {compared_full} in --compare against {full} alone: {c}");
     assert!(c["triangles_full_over_error"].as_f64().unwrap() > 2.0, "{c}");
     assert!(c["p99_excess_over_ceiling_ms"].is_number() && c["stall_target_ms"].is_number(), "{c}");
     assert_eq!(s["validation_messages"], 0, "{s}");

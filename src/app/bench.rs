@@ -1277,13 +1277,7 @@ fn bench_streamed(
     gpu.sun(args.common.sun.0)?;
     // As the in-memory bench: frames are drawn, not read back.
     gpu.read_back = false;
-    // As a viewer would: the first view's tiles are read before the run.
-    crate::app::stream::settle(&mut streamer, |_| view(0), args.common.lod.delta);
-    // The path's own figures from here; what the first view read is `warm_up`.
-    let warm_up = std::mem::replace(
-        &mut streamer.stats,
-        crate::stream::streamer::StreamStats { worst_factor: 1.0, ..Default::default() },
-    );
+    let started_all = Instant::now();
     // One run along the path with the blocks `lod` chooses, or `replay`'s selections drawn
     // again with none made (the ceiling); its frames, rows in the one frames.csv schema
     // every bench writes (what frames from tiles do not have, such as error generations
@@ -1296,9 +1290,25 @@ fn bench_streamed(
                gpu: &mut GpuFrames,
                (lod, replay, keep, pop): (LodChoice, Option<&[crate::stream::traverse::Selection]>, bool, bool),
                name: &str|
-     -> anyhow::Result<(Run, Vec<crate::stream::traverse::Selection>)> {
+     -> anyhow::Result<(
+        Run,
+        Vec<crate::stream::traverse::Selection>,
+        crate::stream::streamer::StreamStats,
+    )> {
         streamer.lod = crate::app::stream::streamed_lod(lod);
         gpu.read_back = pop;
+        // As a viewer would: the first view's tiles are read before the run (for every
+        // run: `--lod full` needs other tiles than the bound's); the run's own figures
+        // from here, what the first view read returned apart.
+        let (_, first) = crate::app::stream::settle(streamer, |_| view(0), delta);
+        let warm_up = std::mem::replace(
+            &mut streamer.stats,
+            crate::stream::streamer::StreamStats { worst_factor: 1.0, ..Default::default() },
+        );
+        // One untimed frame first, as every in-memory run begins (`warmup_ms`).
+        let warming = Instant::now();
+        gpu.draw(streamer, &grid, &view(0), replay.map_or(&first, |r| &r[0]), None)?;
+        let warmup_ms = Some(warming.elapsed().as_secs_f64() * 1e3);
         let mut progress = Progress::new(name, frames);
         let (mut rows, mut kept) = (Vec::new(), Vec::new());
         let (mut previous_pixels, mut previous_sel): (Option<Vec<u8>>, Option<crate::stream::traverse::Selection>) =
@@ -1366,14 +1376,17 @@ fn bench_streamed(
             generations: Vec::new(),
             update_gpu_ms: Vec::new(),
             interrupted: signals.requested(),
-            warmup_ms: None,
+            warmup_ms,
             rss: Vec::new(),
             wall_ms: Some(started.elapsed().as_secs_f64() * 1e3),
         };
-        Ok((run, kept))
+        Ok((run, kept, warm_up))
     };
     let keep = args.compare || args.popping;
-    let (mut run, selections) = fly(&mut streamer, &mut gpu, (args.lod, None, keep, args.popping), "streamed")?;
+    let (mut run, selections, warm_up) =
+        fly(&mut streamer, &mut gpu, (args.lod, None, keep, args.popping), "streamed")?;
+    // The main run's drawing (the comparison runs draw on the same renderer).
+    let (gpu_report, deferred_frames) = (gpu.report(), gpu.deferred_frames);
     let seconds = run.wall_ms.unwrap_or(0.0) / 1e3;
     let drawn = run.rows.len() as u64;
     let (_, mean) = sorted_with_mean(run.rows.iter().map(|r| r.frame_ms));
@@ -1395,10 +1408,10 @@ fn bench_streamed(
     };
     let compare = match (args.compare, full) {
         (true, Some(full)) => {
-            let (distance, _) = fly(&mut streamer, &mut gpu, (LodChoice::Distance, None, false, false), "distance")?;
+            let (distance, _, _) = fly(&mut streamer, &mut gpu, (LodChoice::Distance, None, false, false), "distance")?;
             let replay = (LodChoice::Error, Some(&selections[..]), false, false);
-            let (ceiling, _) = fly(&mut streamer, &mut gpu, replay, "ceiling")?;
-            let (again, _) = fly(&mut streamer, &mut gpu, replay, "ceiling again")?;
+            let (ceiling, _, _) = fly(&mut streamer, &mut gpu, replay, "ceiling")?;
+            let (again, _, _) = fly(&mut streamer, &mut gpu, replay, "ceiling again")?;
             write_csv(&args.out.join("ceiling.csv"), &ceiling.rows)?;
             let whole = [&full, &distance, &ceiling, &again].iter().all(|r| !r.interrupted);
             whole.then(|| compare_summary(&run, &full, &distance, &ceiling, &again))
@@ -1415,7 +1428,7 @@ fn bench_streamed(
         "lod": format!("{:?}", args.lod).to_lowercase(),
         "shading": crate::draw::streamed::StreamedRenderer::shading_name(args.shading),
         "pixels": value_name(args.pixels),
-        "deferred_frames": gpu.deferred_frames,
+        "deferred_frames": deferred_frames,
         "morph": args.common.lod.morph.on(),
         "mean_morphing_blocks": morphing as f64 / drawn.max(1) as f64,
         "traversal_threads": streamer.threads(),
@@ -1426,10 +1439,14 @@ fn bench_streamed(
         "cache_mb": cache_mb,
         "stream": stats,
         "warm_up": { "frames": warm_up.frames, "tiles_loaded": warm_up.tiles_loaded, "bytes_read": warm_up.bytes_read },
-        "gpu": gpu.report(),
+        "gpu": gpu_report,
         "device": device.name,
         "queue_mode": device.queue_mode.as_str(),
-        "validation_messages": device.instance.validation.then(|| device.instance.validation_messages()),
+        "validation": device.instance.validation,
+        "validation_messages": device.instance.validation_messages(),
+        "path": args.path.to_string(),
+        "heightmap": args.common.terrain.heightmap,
+        "duration_s": started_all.elapsed().as_secs_f64(),
         "peak_resident_mb": crate::app::outputs::peak_resident_mb(),
         "interrupted": signals.requested(),
         "degraded": streamer.first_failure.is_some(),
