@@ -1278,109 +1278,17 @@ fn bench_streamed(
     // As the in-memory bench: frames are drawn, not read back.
     gpu.read_back = false;
     let started_all = Instant::now();
-    // One run along the path with the blocks `lod` chooses, or `replay`'s selections drawn
-    // again with none made (the ceiling); its frames, rows in the one frames.csv schema
-    // every bench writes (what frames from tiles do not have, such as error generations
-    // and GPU timestamps, left empty or 0), and its selections when `keep`. With `pop`,
-    // as in memory: each frame read back and compared with the one before
-    // (`temporal_rmse`), and, with `keep`, the frame's blocks against the previous
-    // frame's drawn from this frame's camera on a keyed background (`lod_change_rmse`).
-    let delta = args.common.lod.delta;
-    let fly = |streamer: &mut crate::stream::streamer::Streamer,
-               gpu: &mut GpuFrames,
-               (lod, replay, keep, pop): (LodChoice, Option<&[crate::stream::traverse::Selection]>, bool, bool),
-               name: &str|
-     -> anyhow::Result<(
-        Run,
-        Vec<crate::stream::traverse::Selection>,
-        crate::stream::streamer::StreamStats,
-    )> {
-        streamer.lod = crate::app::stream::streamed_lod(lod);
-        gpu.read_back = pop;
-        // As a viewer would: the first view's tiles are read before the run (for every
-        // run: `--lod full` needs other tiles than the bound's); the run's own figures
-        // from here, what the first view read returned apart.
-        let (_, first) = crate::app::stream::settle(streamer, |_| view(0), delta);
-        let warm_up = std::mem::replace(
-            &mut streamer.stats,
-            crate::stream::streamer::StreamStats { worst_factor: 1.0, ..Default::default() },
-        );
-        // One untimed frame first, as every in-memory run begins (`warmup_ms`).
-        let warming = Instant::now();
-        gpu.draw(streamer, &grid, &view(0), replay.map_or(&first, |r| &r[0]), None)?;
-        let warmup_ms = Some(warming.elapsed().as_secs_f64() * 1e3);
-        let mut progress = Progress::new(name, frames);
-        let (mut rows, mut kept) = (Vec::new(), Vec::new());
-        let (mut previous_pixels, mut previous_sel): (Option<Vec<u8>>, Option<crate::stream::traverse::Selection>) =
-            (None, None);
-        let started = Instant::now();
-        for i in 0..frames {
-            if signals.requested() {
-                break;
-            }
-            let t0 = Instant::now();
-            let v = view(i);
-            let sel = match replay {
-                Some(r) => r[i as usize].clone(),
-                None => {
-                    // The camera half a second ahead along the path: its tiles are asked
-                    // for next.
-                    let ahead = view((i + 15).min(frames - 1));
-                    streamer.frame(&v, Some(&ahead), delta, 0.5)
-                }
-            };
-            let t1 = Instant::now();
-            trace.complete(DRAW_TID, "select (traversal over held tiles)", t0, t1, json!({"frame": i}));
-            gpu.draw(streamer, &grid, &v, &sel, None)?;
-            trace.complete(DRAW_TID, "frame", t0, Instant::now(), json!({"frame": i, "over_bound": sel.over_bound}));
-            trace.counter("tiles held", streamer.cache.len() as u64);
-            let mut row = Row {
-                time_s: camera(i).2,
-                frame_ms: t0.elapsed().as_secs_f64() * 1e3,
-                traverse_ms: (t1 - t0).as_secs_f64() * 1e3,
-                triangles: gpu.triangles,
-                draw_calls: gpu.draw_calls,
-                blocks: gpu.blocks,
-                morphing: sel.morphing,
-                hidden_parts: gpu.hidden_parts,
-                over_bound: sel.over_bound > 0,
-                worst_factor: Some(sel.worst_factor),
-                tiles_held: Some(streamer.cache.len()),
-                ..Row::default()
-            };
-            if pop {
-                let pixels = std::mem::take(&mut gpu.last);
-                row.temporal_rmse = previous_pixels.as_ref().map(|p| image_difference(p, &pixels).0);
-                previous_pixels = Some(pixels);
-                if let Some(before) = previous_sel.as_ref().filter(|_| keep) {
-                    let background = gpu.background.replace(KEY_COLOUR);
-                    gpu.draw(streamer, &grid, &v, &sel, None)?;
-                    let now = std::mem::take(&mut gpu.last);
-                    gpu.draw(streamer, &grid, &v, before, None)?;
-                    gpu.background = background;
-                    let (rmse, over16) = keyed_difference(&now, &gpu.last);
-                    (row.lod_change_rmse, row.lod_change_over16) = (Some(rmse), Some(over16));
-                }
-                previous_sel = keep.then(|| sel.clone());
-            }
-            rows.push(row);
-            if keep {
-                kept.push(sel);
-            }
-            progress.tick(i + 1);
-        }
-        let run = Run {
-            rows,
-            blocks: Vec::new(),
-            // No error generations: frames from tiles bound their blocks on the CPU.
-            generations: Vec::new(),
-            update_gpu_ms: Vec::new(),
-            interrupted: signals.requested(),
-            warmup_ms,
-            rss: Vec::new(),
-            wall_ms: Some(started.elapsed().as_secs_f64() * 1e3),
-        };
-        Ok((run, kept, warm_up))
+    let path = StreamedPath {
+        frames,
+        grid: &grid,
+        delta: args.common.lod.delta,
+        view: &view,
+        camera: &camera,
+        trace: &trace,
+        signals,
+    };
+    let fly = |streamer: &mut crate::stream::streamer::Streamer, gpu: &mut GpuFrames, how, name: &str| {
+        path.fly(streamer, gpu, how, name)
     };
     let keep = args.compare || args.popping;
     let (mut run, selections, warm_up) =
@@ -1482,6 +1390,132 @@ fn bench_streamed(
         );
     }
     Ok(())
+}
+
+/// A bench's path over a terrain drawn from tiles: what each of its runs flies.
+struct StreamedPath<'a> {
+    frames: u64,
+    grid: &'a crate::stream::Grid,
+    delta: f32,
+    view: &'a dyn Fn(u64) -> crate::stream::traverse::View,
+    camera: &'a dyn Fn(u64) -> (Vec3, Vec3, f64),
+    trace: &'a Trace,
+    signals: &'a crate::app::signals::Stop,
+}
+
+/// How a [`StreamedPath`] run chooses its blocks: the LOD rule, or selections to draw
+/// again with none made; whether it keeps its selections; whether it measures popping.
+type FlyHow<'a> = (LodChoice, Option<&'a [crate::stream::traverse::Selection]>, bool, bool);
+
+impl StreamedPath<'_> {
+    /// One run along the path with the blocks `lod` chooses, or `replay`'s selections
+    /// drawn again with none made (the ceiling); its frames, rows in the one frames.csv
+    /// schema every bench writes (what frames from tiles do not have, such as error
+    /// generations and GPU timestamps, left empty or 0), its selections when `keep`, and
+    /// what its first view read. With `pop`, as in memory: each frame read back and
+    /// compared with the one before (`temporal_rmse`), and, with `keep`, the frame's
+    /// blocks against the previous frame's drawn from this frame's camera on a keyed
+    /// background (`lod_change_rmse`).
+    fn fly(
+        &self,
+        streamer: &mut crate::stream::streamer::Streamer,
+        gpu: &mut crate::app::stream::GpuFrames,
+        (lod, replay, keep, pop): FlyHow<'_>,
+        name: &str,
+    ) -> anyhow::Result<(Run, Vec<crate::stream::traverse::Selection>, crate::stream::streamer::StreamStats)> {
+        streamer.lod = crate::app::stream::streamed_lod(lod);
+        gpu.read_back = pop;
+        // As a viewer would: the first view's tiles are read before the run (for every
+        // run: `--lod full` needs other tiles than the bound's); the run's own figures
+        // from here, what the first view read returned apart.
+        let (_, first) = crate::app::stream::settle(streamer, |_| (self.view)(0), self.delta);
+        let warm_up = std::mem::replace(
+            &mut streamer.stats,
+            crate::stream::streamer::StreamStats { worst_factor: 1.0, ..Default::default() },
+        );
+        // One untimed frame first, as every in-memory run begins (`warmup_ms`).
+        let warming = Instant::now();
+        gpu.draw(streamer, self.grid, &(self.view)(0), replay.map_or(&first, |r| &r[0]), None)?;
+        let warmup_ms = Some(warming.elapsed().as_secs_f64() * 1e3);
+        let mut progress = Progress::new(name, self.frames);
+        let (mut rows, mut kept) = (Vec::new(), Vec::new());
+        let (mut previous_pixels, mut previous_sel): (Option<Vec<u8>>, Option<crate::stream::traverse::Selection>) =
+            (None, None);
+        let started = Instant::now();
+        for i in 0..self.frames {
+            if self.signals.requested() {
+                break;
+            }
+            let t0 = Instant::now();
+            let v = (self.view)(i);
+            let sel = match replay {
+                Some(r) => r[i as usize].clone(),
+                None => {
+                    // The camera half a second ahead along the path: its tiles are asked
+                    // for next.
+                    let ahead = (self.view)((i + 15).min(self.frames - 1));
+                    streamer.frame(&v, Some(&ahead), self.delta, 0.5)
+                }
+            };
+            let t1 = Instant::now();
+            self.trace.complete(DRAW_TID, "select (traversal over held tiles)", t0, t1, json!({"frame": i}));
+            gpu.draw(streamer, self.grid, &v, &sel, None)?;
+            self.trace.complete(
+                DRAW_TID,
+                "frame",
+                t0,
+                Instant::now(),
+                json!({"frame": i, "over_bound": sel.over_bound}),
+            );
+            self.trace.counter("tiles held", streamer.cache.len() as u64);
+            let mut row = Row {
+                time_s: (self.camera)(i).2,
+                frame_ms: t0.elapsed().as_secs_f64() * 1e3,
+                traverse_ms: (t1 - t0).as_secs_f64() * 1e3,
+                triangles: gpu.triangles,
+                draw_calls: gpu.draw_calls,
+                blocks: gpu.blocks,
+                morphing: sel.morphing,
+                hidden_parts: gpu.hidden_parts,
+                over_bound: sel.over_bound > 0,
+                worst_factor: Some(sel.worst_factor),
+                tiles_held: Some(streamer.cache.len()),
+                ..Row::default()
+            };
+            if pop {
+                let pixels = std::mem::take(&mut gpu.last);
+                row.temporal_rmse = previous_pixels.as_ref().map(|p| image_difference(p, &pixels).0);
+                previous_pixels = Some(pixels);
+                if let Some(before) = previous_sel.as_ref().filter(|_| keep) {
+                    let background = gpu.background.replace(KEY_COLOUR);
+                    gpu.draw(streamer, self.grid, &v, &sel, None)?;
+                    let now = std::mem::take(&mut gpu.last);
+                    gpu.draw(streamer, self.grid, &v, before, None)?;
+                    gpu.background = background;
+                    let (rmse, over16) = keyed_difference(&now, &gpu.last);
+                    (row.lod_change_rmse, row.lod_change_over16) = (Some(rmse), Some(over16));
+                }
+                previous_sel = keep.then(|| sel.clone());
+            }
+            rows.push(row);
+            if keep {
+                kept.push(sel);
+            }
+            progress.tick(i + 1);
+        }
+        let run = Run {
+            rows,
+            blocks: Vec::new(),
+            // No error generations: frames from tiles bound their blocks on the CPU.
+            generations: Vec::new(),
+            update_gpu_ms: Vec::new(),
+            interrupted: self.signals.requested(),
+            warmup_ms,
+            rss: Vec::new(),
+            wall_ms: Some(started.elapsed().as_secs_f64() * 1e3),
+        };
+        Ok((run, kept, warm_up))
+    }
 }
 
 #[cfg(test)]
