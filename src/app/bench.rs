@@ -715,7 +715,7 @@ fn percentile(sorted: &[f64], p: f64) -> f64 {
     sorted[((sorted.len() - 1) as f64 * p).round() as usize]
 }
 
-fn median(v: &[f64]) -> Option<f64> {
+pub(crate) fn median(v: &[f64]) -> Option<f64> {
     let mut s = v.to_vec();
     s.sort_by(|a, b| a.partial_cmp(b).unwrap());
     (!s.is_empty()).then(|| percentile(&s, 0.5))
@@ -1442,6 +1442,10 @@ impl StreamedPath<'_> {
         let (mut previous_pixels, mut previous_sel): (Option<Vec<u8>>, Option<crate::stream::traverse::Selection>) =
             (None, None);
         let started = Instant::now();
+        // The errors activity's generations the frames took, each with the frame that
+        // first took it; and its GPU times from here.
+        let (mut generations, mut taken_at) = (Vec::new(), 0u64);
+        let shaded_before = gpu.errors_shaded().gpu_ms.len();
         for i in 0..self.frames {
             if self.signals.requested() {
                 break;
@@ -1480,8 +1484,16 @@ impl StreamedPath<'_> {
                 over_bound: sel.over_bound > 0,
                 worst_factor: Some(sel.worst_factor),
                 tiles_held: Some(streamer.cache.len()),
+                error_generation: sel.errors_generation,
                 ..Row::default()
             };
+            if sel.errors_generation > 0 {
+                if generations.last() != Some(&sel.errors_generation) {
+                    generations.push(sel.errors_generation);
+                    taken_at = i;
+                }
+                row.error_age_frames = Some(i - taken_at);
+            }
             if pop {
                 let pixels = std::mem::take(&mut gpu.last);
                 row.temporal_rmse = previous_pixels.as_ref().map(|p| image_difference(p, &pixels).0);
@@ -1503,12 +1515,13 @@ impl StreamedPath<'_> {
             }
             progress.tick(i + 1);
         }
+        let mut update_gpu_ms = gpu.errors_shaded().gpu_ms;
+        let update_gpu_ms = update_gpu_ms.split_off(shaded_before.min(update_gpu_ms.len()));
         let run = Run {
             rows,
             blocks: Vec::new(),
-            // No error generations: frames from tiles bound their blocks on the CPU.
-            generations: Vec::new(),
-            update_gpu_ms: Vec::new(),
+            generations,
+            update_gpu_ms,
             interrupted: self.signals.requested(),
             warmup_ms,
             rss: Vec::new(),

@@ -327,6 +327,24 @@ impl GpuFrames {
         Ok(())
     }
 
+    /// What the errors activity shaded over the atlas: generations, tiles, groups, bytes
+    /// read back, and the median GPU time of a generation.
+    pub fn errors_report(&self) -> serde_json::Value {
+        let e = self.atlas.shaded();
+        serde_json::json!({
+            "generations": e.generations,
+            "tiles_shaded": e.tiles,
+            "groups_shaded": e.groups,
+            "bytes_read_back": e.bytes_read_back,
+            "median_gpu_ms": crate::app::bench::median(&e.gpu_ms),
+        })
+    }
+
+    /// What the errors generations shaded so far.
+    pub fn errors_shaded(&self) -> crate::errors::atlas::ErrorsShaded {
+        self.atlas.shaded()
+    }
+
     pub fn report(&self) -> serde_json::Value {
         let validation = self.device.instance.validation;
         let up = self.atlas.uploaded();
@@ -341,6 +359,7 @@ impl GpuFrames {
             "frames_missing_blocks": self.frames_missing_blocks,
             "hidden_parts_per_frame": self.hidden_parts_total as f64 / self.frames.max(1) as f64,
             "draw_ms_per_frame": 1e3 * self.drawing.as_secs_f64() / self.frames.max(1) as f64,
+            "errors": self.errors_report(),
             "lighting": {
                 "texels": [self.lighting.map.image.extent.width, self.lighting.map.image.extent.height],
                 "samples_per_texel": self.lighting.samples_per_texel(),
@@ -500,8 +519,9 @@ pub(crate) fn streamer_threads(
 }
 
 /// Frames at the view `at` gives (it may depend on the tiles held: a camera kept above
-/// the ground) until the selection is within the bound, the IO thread settled after
-/// each: the frame a viewer shows once the tiles of its first view are read. At most
+/// the ground) until the selection is within the bound and, with an errors activity,
+/// takes every block's error from it, the IO thread and the errors activity settled
+/// after each: the frame a viewer shows once the tiles of its first view are read. At most
 /// enough rounds for one level a round (plus a few), so that a cache too small for the
 /// view ends with the frame over the bound, counted, not in a loop.
 pub(crate) fn settle(streamer: &mut Streamer, at: impl Fn(&Streamer) -> View, delta: f32) -> (View, Selection) {
@@ -509,7 +529,9 @@ pub(crate) fn settle(streamer: &mut Streamer, at: impl Fn(&Streamer) -> View, de
     let mut view = at(streamer);
     let mut sel = streamer.frame(&view, None, delta, 1.0);
     for _ in 1..rounds {
-        if sel.within_bound() || streamer.stopped() {
+        // With an errors activity, settled also means every block's error came from it.
+        let errors_missing = streamer.has_errors_activity() && sel.errors_from_tiles > 0;
+        if (sel.within_bound() && !errors_missing) || streamer.stopped() {
             break;
         }
         streamer.settle();
@@ -712,10 +734,13 @@ pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
     // count from here.
     let frames_before = streamer.stats.frames;
     streamer.stats.worst_factor = 1.0;
+    settle(&mut streamer, |_| view, f.delta);
+    exit_if_stopped(f.stop);
+    let mut gpu = GpuFrames::new(f.device.clone(), &mut streamer, f.gpu_mb, range, (w, h), &Trace::off())?;
+    // Again with the atlas attached: the blocks' errors from the errors activity.
     let (_, sel) = settle(&mut streamer, |_| view, f.delta);
     exit_if_stopped(f.stop);
     let settle_ms = warm.elapsed().as_secs_f64() * 1e3;
-    let mut gpu = GpuFrames::new(f.device.clone(), &mut streamer, f.gpu_mb, range, (w, h), &Trace::off())?;
     gpu.set_normals(f.normals);
     gpu.set_pixels(f.pixels);
     let m = &f.archive.meta;
@@ -741,6 +766,9 @@ pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
         "blocks_over_bound": sel.over_bound,
         "worst_factor": sel.worst_factor,
         "stitch_splits": sel.stitch_splits,
+        "blocks_bounded_by_errors": sel.errors_from_gpu,
+        "blocks_bounded_by_tiles": sel.errors_from_tiles,
+        "errors_generation": sel.errors_generation,
         "lod": format!("{:?}", f.lod).to_lowercase(),
         "shading": StreamedRenderer::shading_name(f.normals),
         // What drew the frame: forward where asked, or where deferred cannot (see
@@ -966,6 +994,8 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
             let mut g = GpuFrames::new(device, &mut streamer, mb, range, args.size, &Trace::off())?;
             // No `--sun` here: the default sun and its shadows, as the other commands draw.
             g.sun(Some(Sun::DEFAULT))?;
+            // The first view's errors from the errors activity, now attached.
+            settle(&mut streamer, |s| pose(s, 0).0, args.lod.delta);
             Some(g)
         }
         _ => None,

@@ -7,12 +7,17 @@
 //! the draw thread can draw. Layers are handed out and reused under [`AtlasLayers`]'
 //! rules: a layer is rewritten only once every frame that drew from it has completed (the
 //! draw queue's timeline, read, never waited on) and the host cache has let its tile go.
-//! Streamed tiles bring their block errors from the archive (computed by `prepare`), so
-//! a generation's GPU work is the copy alone.
+//! Tiles bring their groups' deviations `D` from the archive (computed by `prepare`),
+//! uploaded beside the heights; on request the same thread shades the blocks' errors
+//! from them over the atlas ([`AtlasPasses`]) and publishes each finished generation
+//! ([`TileErrors`]) for the traversal.
 
+use crate::errors::atlas_passes::{AtlasPasses, Shaded};
 use crate::errors::handoff::AtlasLayers;
 use crate::stream::cache::{Heights, TileData};
-use crate::stream::streamer::TileGate;
+use crate::stream::errors::TileErrors;
+use crate::stream::streamer::{ErrorsRequest, TileGate};
+use crate::stream::traverse::View;
 use crate::stream::{Grid, TileKey};
 use crate::trace::{Trace, ERRORS_TID};
 use crate::vk::{
@@ -48,6 +53,37 @@ struct State {
     stop: bool,
     failure: Option<String>,
     uploaded: Uploaded,
+    /// The newest request for block errors not started yet, and the number of the last
+    /// one made and of the last one answered (shaded, or found nothing to shade).
+    request: Option<ErrorsRequest>,
+    requested: u64,
+    answered: u64,
+    /// The newest generation of block errors.
+    errors: Option<Arc<TileErrors>>,
+    shaded: ErrorsShaded,
+    /// Every block error read back is multiplied by this (1; tests corrupt it).
+    scale_errors: f32,
+}
+
+/// What the errors generations over the atlas shaded, in all.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct ErrorsShaded {
+    pub generations: u64,
+    pub tiles: u64,
+    pub groups: u64,
+    pub bytes_read_back: u64,
+    /// Each generation's GPU time (empty without timestamps).
+    pub gpu_ms: Vec<f64>,
+}
+
+impl ErrorsShaded {
+    fn add(&mut self, s: &Shaded) {
+        self.generations += 1;
+        self.tiles += s.tiles;
+        self.groups += s.groups;
+        self.bytes_read_back += s.bytes_read_back;
+        self.gpu_ms.extend(s.gpu_ms);
+    }
 }
 
 /// What the errors thread uploaded.
@@ -61,8 +97,12 @@ pub struct Uploaded {
 }
 
 struct Shared {
-    /// Declared first: dropped after the thread that writes it has been joined.
+    /// Declared first: dropped after the thread that writes them has been joined.
     image: Image,
+    /// The tiles' group deviations `D` (R16_SFLOAT, rounded up), one tile a layer as in
+    /// `image`; tiles of level 0 have none (their blocks never split).
+    deviation: Image,
+    grid: Grid,
     side: u32,
     unorm16: bool,
     state: Mutex<State>,
@@ -97,10 +137,12 @@ pub struct AtlasFeed {
 }
 
 impl HeightAtlas {
-    /// Bytes of one layer: a tile with its one-sample border.
+    /// Bytes of one layer: a tile's heights with their one-sample border, and its
+    /// groups' deviations (half floats).
     pub fn layer_bytes(grid: &Grid) -> u64 {
         let side = (grid.tile_quads + 3) as u64;
-        side * side * grid.height_bytes as u64
+        let groups = grid.tile_quads as u64;
+        side * side * grid.height_bytes as u64 + groups * groups * 2
     }
 
     /// The layers an atlas of `budget_bytes` has on a device allowing `device_limit`
@@ -142,6 +184,9 @@ impl HeightAtlas {
         let extent = vk::Extent2D { width: side, height: side };
         // Shared: written on the errors queue, sampled on the draw queue.
         let image = Image::array(device, "heightfield atlas", extent, format, layers, usage, true)?;
+        let groups = vk::Extent2D { width: grid.tile_quads as u32, height: grid.tile_quads as u32 };
+        let usage = vk::ImageUsageFlags::SAMPLED | vk::ImageUsageFlags::TRANSFER_DST;
+        let deviation = Image::array(device, "deviation atlas", groups, vk::Format::R16_SFLOAT, layers, usage, true)?;
         {
             // Every layer starts readable (a draw's descriptor covers all of them), before
             // either activity uses the image.
@@ -149,12 +194,17 @@ impl HeightAtlas {
             let range = image.range(0, 1);
             device.one_shot(&pool, |cmd| {
                 let undefined = (vk::PipelineStageFlags2::NONE, vk::AccessFlags2::NONE, vk::ImageLayout::UNDEFINED);
-                // SAFETY: `cmd` is recording; the image outlives one_shot's wait.
-                unsafe { image_barrier(&device.raw, cmd, image.handle, range, undefined, SAMPLED) };
+                // SAFETY: `cmd` is recording; the images outlive one_shot's wait.
+                unsafe {
+                    image_barrier(&device.raw, cmd, image.handle, range, undefined, SAMPLED);
+                    image_barrier(&device.raw, cmd, deviation.handle, deviation.range(0, 1), undefined, SAMPLED);
+                }
             })?;
         }
         let shared = Arc::new(Shared {
             image,
+            deviation,
+            grid: *grid,
             side,
             unorm16,
             state: Mutex::new(State {
@@ -168,6 +218,12 @@ impl HeightAtlas {
                 stop: false,
                 failure: None,
                 uploaded: Uploaded::default(),
+                request: None,
+                requested: 0,
+                answered: 0,
+                errors: None,
+                shaded: ErrorsShaded::default(),
+                scale_errors: 1.0,
             }),
             work: Condvar::new(),
             progress: Condvar::new(),
@@ -179,7 +235,7 @@ impl HeightAtlas {
             .spawn({
                 let (device, shared) = (device.clone(), shared.clone());
                 move || {
-                    if let Err(e) = uploads(&device, &shared, &trace) {
+                    if let Err(e) = run(&device, &shared, &trace) {
                         let mut s = shared.lock();
                         s.failure = Some(format!("atlas uploads: {e}"));
                         s.busy = 0;
@@ -246,6 +302,18 @@ impl HeightAtlas {
         self.shared.lock().uploaded
     }
 
+    /// What the errors generations shaded so far.
+    pub fn shaded(&self) -> ErrorsShaded {
+        self.shared.lock().shaded.clone()
+    }
+
+    /// Multiplies every block error read back from now on by `factor`: a corrupted
+    /// readback, for tests that show the selection comes from these errors.
+    #[doc(hidden)]
+    pub fn corrupt_errors(&self, factor: f32) {
+        self.shared.lock().scale_errors = factor;
+    }
+
     /// Why the errors thread stopped, if it failed: frames drawn from then on fail.
     pub fn failure(&self) -> Option<String> {
         self.shared.lock().failure.clone()
@@ -294,45 +362,101 @@ impl TileGate for AtlasFeed {
             s = self.shared.progress.wait(s).unwrap_or_else(|e| e.into_inner());
         }
     }
+
+    fn request_errors(&self, view: View, tiles: Vec<TileKey>) {
+        let mut s = self.shared.lock();
+        if s.stop || s.failure.is_some() {
+            return;
+        }
+        s.requested += 1;
+        s.request = Some(ErrorsRequest { number: s.requested, view, tiles });
+        drop(s);
+        self.shared.work.notify_all();
+    }
+
+    fn errors(&self) -> Option<Arc<TileErrors>> {
+        self.shared.lock().errors.clone()
+    }
+
+    fn wait_errors(&self) {
+        let mut s = self.shared.lock();
+        while s.answered < s.requested && s.failure.is_none() && !s.stop {
+            s = self.shared.progress.wait(s).unwrap_or_else(|e| e.into_inner());
+        }
+    }
 }
 
-/// The layer state sampled by draws (and left so by every upload).
+/// The layer state sampled by draws and by the errors passes (and left so by every
+/// upload).
 const SAMPLED: (vk::PipelineStageFlags2, vk::AccessFlags2, vk::ImageLayout) = (
-    vk::PipelineStageFlags2::VERTEX_SHADER,
+    vk::PipelineStageFlags2::from_raw(
+        vk::PipelineStageFlags2::VERTEX_SHADER.as_raw() | vk::PipelineStageFlags2::FRAGMENT_SHADER.as_raw(),
+    ),
     vk::AccessFlags2::SHADER_SAMPLED_READ,
     vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
 );
 
-/// The errors activity's loop for a streamed terrain: each batch of tiles handed over is
-/// one generation (layers claimed under the lock, the heights copied on the errors queue,
-/// the generation's timeline value waited for on this thread), then handed back.
-fn uploads(device: &Arc<Device>, shared: &Shared, trace: &Trace) -> VkResult<()> {
+/// The errors activity's thread for tiles: each batch of tiles handed over is uploaded
+/// as one generation (layers claimed under the lock, heights and deviations copied on
+/// the errors queue, the generation's timeline value waited for on this thread), then
+/// handed back; each request for errors is shaded as one generation over the tiles it
+/// names that are resident ([`AtlasPasses`]), read back and published.
+struct Activity<'a> {
+    device: &'a Arc<Device>,
+    shared: &'a Shared,
+    trace: &'a Trace,
+    cmd: vk::CommandBuffer,
+    staging: Option<Buffer>,
+    passes: AtlasPasses,
+    generation: u64,
+}
+
+/// The thread's loop: uploads first (the traversal waits for its tiles), then errors.
+fn run(device: &Arc<Device>, shared: &Shared, trace: &Trace) -> VkResult<()> {
     let pool = CommandPool::new(device, device.errors_queue.family)?;
-    let cmd = pool.allocate()?;
-    let texel = if shared.unorm16 { 2 } else { 4 };
-    let layer_bytes = (shared.side * shared.side) as usize * texel;
-    let mut staging: Option<Buffer> = None;
-    let mut generation = 0u64;
+    let passes = AtlasPasses::new(device, &shared.grid, &shared.image, &shared.deviation)?;
+    let mut a = Activity { device, shared, trace, cmd: pool.allocate()?, staging: None, passes, generation: 0 };
     let result = loop {
-        let batch = {
+        let (batch, request) = {
             let mut s = shared.lock();
-            while s.todo.is_empty() && !s.stop {
+            while s.todo.is_empty() && s.request.is_none() && !s.stop {
                 s = shared.work.wait(s).unwrap_or_else(|e| e.into_inner());
             }
             if s.stop {
                 break Ok(());
             }
-            std::mem::take(&mut s.todo)
+            (std::mem::take(&mut s.todo), s.request.take())
         };
+        if !batch.is_empty() {
+            if let Err(e) = a.upload_batch(batch) {
+                break Err(e);
+            }
+        }
+        if let Some(request) = request {
+            let number = request.number;
+            let shaded = a.shade(request);
+            shared.lock().answered = number;
+            shared.progress.notify_all();
+            if let Err(e) = shaded {
+                break Err(e);
+            }
+        }
+    };
+    // The last generation was waited for: the pool and staging may go.
+    pool.free(a.cmd);
+    result
+}
+
+impl Activity<'_> {
+    /// Places, uploads and hands back one batch of tiles read.
+    fn upload_batch(&mut self, batch: Vec<Read>) -> VkResult<()> {
+        let shared = self.shared;
         let count = batch.len();
         let started = std::time::Instant::now();
-        let g = generation + 1;
+        let g = self.generation + 1;
         // Frames that drew from a layer must have completed before it is rewritten: the
         // draw queue's timeline, read now (a stale value only protects more).
-        let completed = match shared.frames.value() {
-            Ok(v) => v,
-            Err(e) => break Err(e),
-        };
+        let completed = shared.frames.value()?;
         let (mut back, mut placed, mut dropped) = (Vec::new(), Vec::new(), Vec::new());
         {
             let mut s = shared.lock();
@@ -356,28 +480,27 @@ fn uploads(device: &Arc<Device>, shared: &Shared, trace: &Trace) -> VkResult<()>
                 released.retain(|k| layers.find(*k).is_some());
             }
         }
+        let layer_bytes = HeightAtlas::layer_bytes(&shared.grid) as usize;
         if !placed.is_empty() {
             let need = (layer_bytes * placed.len()) as u64;
-            if staging.as_ref().is_none_or(|b| b.size < need) {
-                drop(staging.take()); // the old one first: it was waited for
-                staging = Some(Buffer::new(
-                    device,
+            if self.staging.as_ref().is_none_or(|b| b.size < need) {
+                drop(self.staging.take()); // the old one first: it was waited for
+                self.staging = Some(Buffer::new(
+                    self.device,
                     "atlas staging",
                     need,
                     vk::BufferUsageFlags::TRANSFER_SRC,
                     gpu_allocator::MemoryLocation::CpuToGpu,
                 )?);
             }
-            let staging = staging.as_mut().expect("made above");
-            if let Err(e) = upload(device, shared, cmd, staging, &placed, layer_bytes, g) {
-                break Err(e);
-            }
-            generation = g;
+            let staging = self.staging.as_mut().expect("made above");
+            upload(self.device, shared, self.cmd, staging, &placed, g)?;
+            self.generation = g;
         }
         // Outside the state's lock: the trace has its own.
         let args = serde_json::json!({"generation": g, "tiles": count, "uploaded": placed.len(), "without_a_layer": dropped.len()});
         let name = if placed.is_empty() { "tiles back (none to upload)" } else { "upload tiles" };
-        trace.complete(ERRORS_TID, name, started, std::time::Instant::now(), args);
+        self.trace.complete(ERRORS_TID, name, started, std::time::Instant::now(), args);
         {
             let mut s = shared.lock();
             if !placed.is_empty() {
@@ -393,67 +516,63 @@ fn uploads(device: &Arc<Device>, shared: &Shared, trace: &Trace) -> VkResult<()>
             s.busy = s.busy.saturating_sub(count);
         }
         shared.progress.notify_all();
-    };
-    // The last generation was waited for: the pool and staging may go.
-    pool.free(cmd);
-    result
+        Ok(())
+    }
+
+    /// Shades the block errors `request` asks for as one generation, over the tiles it
+    /// names that are resident and not let go (their layers cannot be rewritten before
+    /// this thread's next upload, which comes after this generation has finished), and
+    /// publishes them.
+    fn shade(&mut self, request: ErrorsRequest) -> VkResult<()> {
+        let shared = self.shared;
+        let started = std::time::Instant::now();
+        let tiles: Vec<(TileKey, u32)> = {
+            let s = shared.lock();
+            let resident = |k: &TileKey| {
+                let i = s.layers.find(*k)?;
+                let held = matches!(s.layers.layer(i), crate::errors::handoff::Layer::Resident { .. });
+                (held && !s.released.contains(k)).then_some((*k, i as u32))
+            };
+            request.tiles.iter().filter(|k| k.level > 0).filter_map(resident).take(AtlasPasses::capacity()).collect()
+        };
+        if tiles.is_empty() {
+            return Ok(());
+        }
+        let g = self.generation + 1;
+        let (anchor, cam) = request.view.relative(&shared.grid);
+        let d = &self.device.raw;
+        // SAFETY: `cmd` belongs to this thread's pool and its last submission was waited
+        // for (begin resets it).
+        unsafe { crate::vk::begin_one_time(d, self.cmd)? };
+        self.passes.record(self.cmd, &shared.grid, &tiles, (anchor, &cam), shared.unorm16);
+        // SAFETY: recording, as above.
+        unsafe { d.end_command_buffer(self.cmd).vk("vkEndCommandBuffer")? };
+        submit_and_wait(self.device, shared, self.cmd, g)?;
+        self.generation = g;
+        let (blocks, shaded) = self.passes.read(&shared.grid, &tiles)?;
+        let mut s = shared.lock();
+        let scale = s.scale_errors;
+        let errors = TileErrors {
+            generation: g,
+            position: request.view.position,
+            kappa: cam.kappa(),
+            tiles: blocks.into_iter().map(|(k, b)| (k, b.into_iter().map(|e| e * scale).collect())).collect(),
+        };
+        s.layers.finish(g);
+        s.finished = g;
+        s.errors = Some(Arc::new(errors));
+        s.shaded.add(&shaded);
+        drop(s);
+        let args = serde_json::json!({"generation": g, "tiles": shaded.tiles, "groups": shaded.groups,
+            "bytes_read_back": shaded.bytes_read_back, "gpu_ms": shaded.gpu_ms});
+        self.trace.complete(ERRORS_TID, "block errors", started, std::time::Instant::now(), args);
+        Ok(())
+    }
 }
 
-/// Copies `placed` tiles into their layers as generation `g` on the errors queue, and
-/// waits for the generation on this thread.
-fn upload(
-    device: &Arc<Device>,
-    shared: &Shared,
-    cmd: vk::CommandBuffer,
-    staging: &mut Buffer,
-    placed: &[(Arc<TileData>, usize)],
-    layer_bytes: usize,
-    g: u64,
-) -> VkResult<()> {
-    let mut regions = Vec::with_capacity(placed.len());
-    {
-        let dst = staging.mapped_mut()?;
-        for (i, (tile, layer)) in placed.iter().enumerate() {
-            texels(&tile.heights, shared.unorm16, &mut dst[i * layer_bytes..][..layer_bytes])
-                .map_err(|e| VkError::Setup(format!("tile {:?}: {e}", tile.key)))?;
-            regions.push(
-                vk::BufferImageCopy::default()
-                    .buffer_offset((i * layer_bytes) as u64)
-                    .image_subresource(vk::ImageSubresourceLayers {
-                        aspect_mask: vk::ImageAspectFlags::COLOR,
-                        mip_level: 0,
-                        base_array_layer: *layer as u32,
-                        layer_count: 1,
-                    })
-                    .image_extent(vk::Extent3D { width: shared.side, height: shared.side, depth: 1 }),
-            );
-        }
-    }
-    let image = &shared.image;
-    let d = &device.raw;
-    // The layer's old tile is discarded: the frames that drew it have completed (their
-    // timeline value was read before the layer was claimed).
-    let reused = (vk::PipelineStageFlags2::VERTEX_SHADER, vk::AccessFlags2::NONE, vk::ImageLayout::UNDEFINED);
-    let written =
-        (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_WRITE, vk::ImageLayout::TRANSFER_DST_OPTIMAL);
-    // SAFETY: `cmd` belongs to this thread's pool and its last submission was waited for
-    // (begin resets it); staging and image outlive the wait below; every region lies
-    // inside its layer.
-    unsafe {
-        crate::vk::begin_one_time(d, cmd)?;
-        for (_, layer) in placed {
-            let range =
-                vk::ImageSubresourceRange { base_array_layer: *layer as u32, layer_count: 1, ..image.range(0, 1) };
-            image_barrier(d, cmd, image.handle, range, reused, written);
-        }
-        d.cmd_copy_buffer_to_image(cmd, staging.handle, image.handle, vk::ImageLayout::TRANSFER_DST_OPTIMAL, &regions);
-        for (_, layer) in placed {
-            let range =
-                vk::ImageSubresourceRange { base_array_layer: *layer as u32, layer_count: 1, ..image.range(0, 1) };
-            image_barrier(d, cmd, image.handle, range, written, SAMPLED);
-        }
-        d.end_command_buffer(cmd).vk("vkEndCommandBuffer")?;
-    }
+/// Submits `cmd` (recorded) as generation `g` on the errors queue and waits for it on
+/// this thread.
+fn submit_and_wait(device: &Arc<Device>, shared: &Shared, cmd: vk::CommandBuffer, g: u64) -> VkResult<()> {
     let cmds = [vk::CommandBufferSubmitInfo::default().command_buffer(cmd)];
     let signal = [vk::SemaphoreSubmitInfo::default()
         .semaphore(shared.generations.handle)
@@ -463,6 +582,133 @@ fn upload(
     device.errors_queue.submit(device, &[submit], vk::Fence::null())?;
     shared.generations.wait(g, u64::MAX)?;
     Ok(())
+}
+
+/// Copies `placed` tiles (heights, and the deviations of tiles above level 0) into their
+/// layers as generation `g` on the errors queue, and waits for the generation on this
+/// thread.
+fn upload(
+    device: &Arc<Device>,
+    shared: &Shared,
+    cmd: vk::CommandBuffer,
+    staging: &mut Buffer,
+    placed: &[(Arc<TileData>, usize)],
+    g: u64,
+) -> VkResult<()> {
+    let texel = if shared.unorm16 { 2 } else { 4 };
+    let height_bytes = (shared.side * shared.side) as usize * texel;
+    let groups = shared.grid.tile_quads as u32;
+    let layer_bytes = HeightAtlas::layer_bytes(&shared.grid) as usize;
+    let layer_of = |base_array_layer: u32| vk::ImageSubresourceLayers {
+        aspect_mask: vk::ImageAspectFlags::COLOR,
+        mip_level: 0,
+        base_array_layer,
+        layer_count: 1,
+    };
+    let (mut heights, mut deviations) = (Vec::with_capacity(placed.len()), Vec::new());
+    {
+        let dst = staging.mapped_mut()?;
+        for (i, (tile, layer)) in placed.iter().enumerate() {
+            let at = &mut dst[i * layer_bytes..][..layer_bytes];
+            let (h, dev) = at.split_at_mut(height_bytes);
+            texels(&tile.heights, shared.unorm16, h)
+                .map_err(|e| VkError::Setup(format!("tile {:?}: {e}", tile.key)))?;
+            heights.push(
+                vk::BufferImageCopy::default()
+                    .buffer_offset((i * layer_bytes) as u64)
+                    .image_subresource(layer_of(*layer as u32))
+                    .image_extent(vk::Extent3D { width: shared.side, height: shared.side, depth: 1 }),
+            );
+            if tile.key.level > 0 {
+                deviation_texels(&tile.deviation[..(groups * groups) as usize], dev);
+                deviations.push(
+                    vk::BufferImageCopy::default()
+                        .buffer_offset((i * layer_bytes + height_bytes) as u64)
+                        .image_subresource(layer_of(*layer as u32))
+                        .image_extent(vk::Extent3D { width: groups, height: groups, depth: 1 }),
+                );
+            }
+        }
+    }
+    let d = &device.raw;
+    // The layer's old tile is discarded: the frames that drew it have completed (their
+    // timeline value was read before the layer was claimed), and so have the errors
+    // passes that read it (this thread waited for them).
+    let reused = (SAMPLED.0, vk::AccessFlags2::NONE, vk::ImageLayout::UNDEFINED);
+    let written =
+        (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_WRITE, vk::ImageLayout::TRANSFER_DST_OPTIMAL);
+    // SAFETY: `cmd` belongs to this thread's pool and its last submission was waited for
+    // (begin resets it); staging and images outlive the wait below; every region lies
+    // inside its layer.
+    unsafe {
+        crate::vk::begin_one_time(d, cmd)?;
+        for image in [&shared.image, &shared.deviation] {
+            for (_, layer) in placed {
+                let range =
+                    vk::ImageSubresourceRange { base_array_layer: *layer as u32, layer_count: 1, ..image.range(0, 1) };
+                image_barrier(d, cmd, image.handle, range, reused, written);
+            }
+        }
+        let dst = vk::ImageLayout::TRANSFER_DST_OPTIMAL;
+        d.cmd_copy_buffer_to_image(cmd, staging.handle, shared.image.handle, dst, &heights);
+        if !deviations.is_empty() {
+            d.cmd_copy_buffer_to_image(cmd, staging.handle, shared.deviation.handle, dst, &deviations);
+        }
+        for image in [&shared.image, &shared.deviation] {
+            for (_, layer) in placed {
+                let range =
+                    vk::ImageSubresourceRange { base_array_layer: *layer as u32, layer_count: 1, ..image.range(0, 1) };
+                image_barrier(d, cmd, image.handle, range, written, SAMPLED);
+            }
+        }
+        d.end_command_buffer(cmd).vk("vkEndCommandBuffer")?;
+    }
+    submit_and_wait(device, shared, cmd, g)
+}
+
+/// A tile's group deviations as the atlas's R16_SFLOAT texels, each rounded up (the
+/// nearest half-float at or above it): a bound from them is never below the exact one.
+fn deviation_texels(d: &[f32], dst: &mut [u8]) {
+    for (i, &v) in d.iter().enumerate() {
+        dst[2 * i..2 * i + 2].copy_from_slice(&f16_at_or_above(v).to_ne_bytes());
+    }
+}
+
+/// The bits of the least half-float at or above `v` (`v >= 0`; NaN and values past
+/// 65504 give infinity, which bounds nothing: the tile's own bound is used instead).
+pub fn f16_at_or_above(v: f32) -> u16 {
+    if v.is_nan() || v > 65504.0 {
+        return 0x7c00;
+    }
+    if v <= 0.0 {
+        return 0;
+    }
+    const SUBNORMAL_STEP: f32 = 1.0 / 16_777_216.0; // 2^-24
+    if v < 6.103_515_6e-5 {
+        // Subnormal: multiples of 2^-24 (exact in f32); 1024 steps is the least normal.
+        return (v / SUBNORMAL_STEP).ceil() as u16;
+    }
+    let bits = v.to_bits();
+    let exp = ((bits >> 23) & 0xff) as i32 - 127 + 15;
+    let mant = bits & 0x7f_ffff;
+    let h = ((exp as u32) << 10 | mant >> 13) as u16;
+    // Dropped bits: one step up (a carry into the exponent is the next binade, or
+    // infinity past 65504).
+    if mant & 0x1fff != 0 {
+        h + 1
+    } else {
+        h
+    }
+}
+
+/// The value of half-float bits `h` (for checks).
+pub fn f16_value(h: u16) -> f32 {
+    let (exp, mant) = (i32::from((h >> 10) & 0x1f), f32::from(h & 0x3ff));
+    match exp {
+        0 => mant / 16_777_216.0,
+        31 => f32::INFINITY,
+        e => (1.0 + mant / 1024.0) * 2f32.powi(e - 15),
+    }
 }
 
 /// A tile's heights as the atlas's texels: 16-bit integers for R16_UNORM (exact: the
@@ -488,4 +734,36 @@ pub fn texels(heights: &Heights, unorm16: bool, dst: &mut [u8]) -> Result<(), St
         }
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The half float stored for a deviation is never below it and is the least such:
+    /// the one below it (where there is one) is below the value. Across the normal and
+    /// subnormal ranges, exact values, and past the largest half float.
+    #[test]
+    fn deviations_round_up_to_the_least_half_float_at_or_above() {
+        let mut v = 1e-9f32;
+        let mut checked = 0;
+        while v < 1e6 {
+            for x in [v, v * 1.000_01, f32::from_bits(v.to_bits() + 1)] {
+                let h = f16_at_or_above(x);
+                let up = f16_value(h);
+                assert!(up >= x, "{x}: {up}");
+                if h > 0 && up.is_finite() {
+                    assert!(f16_value(h - 1) < x, "{x}: {} is at or above it too", f16_value(h - 1));
+                }
+                checked += 1;
+            }
+            v *= 1.37;
+        }
+        assert!(checked > 150);
+        for exact in [0.0f32, 1.0, 0.5, 1024.0, 65504.0, 6.103_515_6e-5, 5.960_464_5e-8] {
+            assert_eq!(f16_value(f16_at_or_above(exact)), exact);
+        }
+        assert_eq!(f16_at_or_above(65505.0), 0x7c00);
+        assert_eq!(f16_at_or_above(f32::NAN), 0x7c00);
+    }
 }

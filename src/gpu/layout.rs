@@ -105,6 +105,11 @@ pub const GIE_BINDING_DEVIATION: u32 = 3;
 /// Block reduction pass: the whole GIE mip chain.
 pub const REDUCE_BINDING_GIE: u32 = 0;
 
+/// Block errors over the atlas: the heightfield atlas (one tile a layer).
+pub const TILE_ERRORS_BINDING_HEIGHTS: u32 = 0;
+/// Block errors over the atlas: the tiles' group deviations `D` (one tile a layer).
+pub const TILE_ERRORS_BINDING_DEVIATION: u32 = 1;
+
 gpu_block! {
     /// Per-draw constants of the terrain block pipeline (paper eq. 5/6: `t` and `s`).
     push_constant BlockPush as block_pc {
@@ -170,6 +175,22 @@ gpu_block! {
         /// true extent in samples (x, z), groups per side at this LOD, unused.
         extent: [i32; 4] => "ivec4",
         /// xyz: camera position, w: kappa (pixels per unit of tangent).
+        camera: [f32; 4] => "vec4",
+        /// spacing x, height_scale, near, spacing z.
+        params: [f32; 4] => "vec4",
+    }
+}
+
+gpu_block! {
+    /// Constants of one tile's block errors over the atlas (`tile_errors.frag`).
+    push_constant TileErrorsPush as tile_errors_pc {
+        /// atlas layer, the tile's level (its vertices are `2^level` samples apart), the
+        /// heights are unorm16 (1) or float (0), blocks a side of the tile.
+        tile: [i32; 4] => "ivec4",
+        /// the tile's first vertex in samples from the camera's anchor (x, z), the cell's
+        /// first texel in the target (x, y).
+        origin: [i32; 4] => "ivec4",
+        /// xyz: camera position relative to the anchor, w: kappa (pixels per unit of tangent).
         camera: [f32; 4] => "vec4",
         /// spacing x, height_scale, near, spacing z.
         params: [f32; 4] => "vec4",
@@ -248,6 +269,8 @@ pub const GLSL_CONSTANTS: &[(&str, u32)] = &[
     ("GIE_BINDING_MINMAX", GIE_BINDING_MINMAX),
     ("GIE_BINDING_DEVIATION", GIE_BINDING_DEVIATION),
     ("REDUCE_BINDING_GIE", REDUCE_BINDING_GIE),
+    ("TILE_ERRORS_BINDING_HEIGHTS", TILE_ERRORS_BINDING_HEIGHTS),
+    ("TILE_ERRORS_BINDING_DEVIATION", TILE_ERRORS_BINDING_DEVIATION),
     ("TERRAIN_BINDING_LIGHTING", TERRAIN_BINDING_LIGHTING),
     ("TERRAIN_BINDING_DEPTH", TERRAIN_BINDING_DEPTH),
     ("STREAM_BINDING_HELD_HEIGHTS", STREAM_BINDING_HELD_HEIGHTS),
@@ -310,6 +333,7 @@ pub fn all_blocks() -> Vec<BlockInfo> {
         BlockInfo::of::<FrameUniforms>(),
         BlockInfo::of::<GiePush>(),
         BlockInfo::of::<ReducePush>(),
+        BlockInfo::of::<TileErrorsPush>(),
         BlockInfo::of::<LightingPush>(),
     ]
 }

@@ -17,6 +17,7 @@
 
 pub mod cache;
 pub mod draw;
+pub mod errors;
 pub mod io;
 pub mod morph;
 pub mod streamer;

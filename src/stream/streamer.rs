@@ -3,6 +3,7 @@
 //! protect what the selection used, ask for what it wants (most wanted first).
 
 use super::cache::{tile_bytes_estimate, HostCache, Refused, TileData};
+use super::errors::TileErrors;
 use super::io::{Io, Loaded, TileSource};
 use super::morph;
 use super::traverse::{select_by, Selection, StreamedLod, StripCache, View};
@@ -18,6 +19,9 @@ use std::sync::Arc;
 pub const RETRY_FRAMES: u64 = 64;
 /// Frames before a tile the full cache refused is asked for again.
 pub const FULL_BACKOFF_FRAMES: u64 = 8;
+/// How much the correction for the camera's move may grow a block's error before new
+/// errors are asked for (a move of about 5 % of the distance to the nearest block).
+pub const REFRESH_FACTOR: f32 = 1.05;
 
 /// What a streamed run did, for summary.json and the panel.
 #[derive(Clone, Debug, Default, PartialEq, serde::Serialize)]
@@ -58,6 +62,23 @@ pub trait TileGate: Send {
     fn release(&self, keys: Vec<TileKey>);
     /// Waits until every tile sent is drawable or refused (or the gate has failed).
     fn wait(&self);
+    /// Asks the errors activity for the block errors of `tiles` at `view` (replacing a
+    /// request not started yet). A gate without an errors activity ignores it.
+    fn request_errors(&self, _view: View, _tiles: Vec<TileKey>) {}
+    /// The newest finished generation of block errors, if any.
+    fn errors(&self) -> Option<Arc<TileErrors>> {
+        None
+    }
+    /// Waits until every request for errors made so far is answered.
+    fn wait_errors(&self) {}
+}
+
+/// A request for block errors ([`TileGate::request_errors`]), numbered in order.
+#[derive(Clone, Debug)]
+pub struct ErrorsRequest {
+    pub number: u64,
+    pub view: View,
+    pub tiles: Vec<TileKey>,
 }
 
 pub struct Streamer {
@@ -90,6 +111,8 @@ pub struct Streamer {
     /// A stop request (a signal's flag): [`Streamer::settle`] returns when it is set,
     /// whatever tiles are still being read.
     pub stop: Option<Arc<AtomicBool>>,
+    /// The last request for errors: the camera, the tiles, the tiles held then.
+    errors_asked: Option<(glam::DVec3, Vec<TileKey>, usize)>,
 }
 
 impl Streamer {
@@ -118,6 +141,7 @@ impl Streamer {
             gated: HashSet::new(),
             pool: TraversalPool::default(),
             stop: None,
+            errors_asked: None,
         }
     }
 
@@ -232,7 +256,16 @@ impl Streamer {
         self.take(arrived);
         self.cache.begin_frame();
         self.stats.frames += 1;
-        let mut sel = select_by(&self.grid, &self.cache, view, (self.lod, delta), prefetch, Some(&self.strips));
+        let errors = self.gate.as_ref().and_then(|g| g.errors());
+        let mut sel = select_by(
+            &self.grid,
+            &self.cache,
+            view,
+            (self.lod, delta),
+            prefetch,
+            Some(&self.strips),
+            errors.as_deref(),
+        );
         if let Some(rule) = self.morph.filter(|_| self.lod == StreamedLod::Error) {
             let (grid, cache, strips) = (&self.grid, &self.cache, &self.strips);
             sel.morphing = self.pool.install(|| morph::assign(grid, cache, strips, view, delta, &mut sel, rule));
@@ -241,12 +274,13 @@ impl Streamer {
         self.cache.mark_kept(sel.kept.iter().copied());
         let mut wanted = sel.wanted.clone();
         if let Some(a) = ahead {
-            let next = select_by(&self.grid, &self.cache, a, (self.lod, delta), prefetch, None);
+            let next = select_by(&self.grid, &self.cache, a, (self.lod, delta), prefetch, None, errors.as_deref());
             self.cache.mark_kept(next.used.iter().chain(&next.kept).copied());
             // Below every tile the current frame needs.
             wanted.extend(next.wanted.iter().map(|&(k, p)| (k, p.min(1.0) * 0.5)));
         }
         self.request(wanted);
+        self.request_errors(view, &sel, errors.as_deref());
         if !sel.within_bound() {
             self.stats.frames_over_bound += 1;
         }
@@ -254,6 +288,36 @@ impl Streamer {
             self.stats.worst_factor = self.stats.worst_factor.max(sel.worst_factor);
         }
         sel
+    }
+
+    /// Asks the errors activity for a new generation when the selection needs one: some
+    /// block of LOD 1 or up had no error from it, or the camera has moved far enough
+    /// that the correction for its move grew some block's error by more than
+    /// [`REFRESH_FACTOR`]. The tiles: those the selection visited, and the finer tiles
+    /// of its drawn blocks that are held (where it splits next).
+    fn request_errors(&mut self, view: &View, sel: &Selection, errors: Option<&TileErrors>) {
+        let Some(gate) = self.gate.as_ref().filter(|_| self.lod == StreamedLod::Error) else { return };
+        let needed = errors.is_none() || sel.errors_from_tiles > 0 || sel.errors_stale_worst > REFRESH_FACTOR;
+        if !needed {
+            return;
+        }
+        let mut tiles: HashSet<TileKey> = sel.used.iter().copied().filter(|k| k.level > 0).collect();
+        for b in sel.blocks.iter().filter(|b| b.lod > 1) {
+            let finer = super::cache::serving_tile(&self.grid, b.lod - 1, 2 * b.bx, 2 * b.bz);
+            if self.cache.contains(finer) {
+                tiles.insert(finer);
+            }
+        }
+        let mut tiles: Vec<TileKey> = tiles.into_iter().collect();
+        tiles.sort();
+        // The same request again would get the same answer (a tile not resident when it
+        // was shaded may be now: the tiles held are part of it).
+        let asked = (view.position, tiles.clone(), self.cache.len());
+        if self.errors_asked.as_ref() == Some(&asked) {
+            return;
+        }
+        self.errors_asked = Some(asked);
+        gate.request_errors(*view, tiles);
     }
 
     fn request(&mut self, mut wanted: Vec<(TileKey, f32)>) {
@@ -283,6 +347,11 @@ impl Streamer {
             self.priority.insert(k, p);
         }
         self.io.request(&keys);
+    }
+
+    /// Whether block errors come from an errors activity (a GPU atlas is attached).
+    pub fn has_errors_activity(&self) -> bool {
+        self.gate.is_some()
     }
 
     /// Holds at most `tiles` tiles (the GPU atlas's layers): [`HostCache::limit_tiles`].
@@ -316,8 +385,8 @@ impl Streamer {
     }
 
     /// Waits until the IO thread has read everything asked for (and the gate has passed
-    /// it) and takes it (runs that measure a settled frame, and tests), or until a stop
-    /// is asked for.
+    /// it) and takes it, and until the errors asked for are shaded (runs that measure a
+    /// settled frame, and tests), or until a stop is asked for.
     pub fn settle(&mut self) {
         loop {
             let got = self.io.wait(self.stop.as_deref());
@@ -325,6 +394,9 @@ impl Streamer {
             let got = self.through_gate(got, true);
             self.take(got);
             if idle || self.stopped() {
+                if let Some(gate) = &self.gate {
+                    gate.wait_errors();
+                }
                 return;
             }
         }

@@ -12,6 +12,7 @@
 //! priority, so that it is there before it is needed.
 
 use super::cache::{layout, root_lod, serving_tile, BlockSummary, HostCache, Resident, BLOCK_QUADS, SUB};
+use super::errors::{stale_factor, TileErrors};
 use super::{Grid, TileKey};
 use crate::lod::block::DrawBlock;
 use crate::lod::block_cache::BoundedCache;
@@ -125,6 +126,17 @@ pub struct Selection {
     pub stitch_splits: usize,
     /// Drawn blocks that morph ([`super::morph`]; 0 before it runs).
     pub morphing: usize,
+    /// Blocks visited whose error came from the errors activity's newest generation
+    /// ([`TileErrors`]), and blocks that could have had one but took their tile
+    /// summary's alone (no generation shaded their tile, or the camera may have moved
+    /// inside their distance since). The top tile's blocks coarser than its level are
+    /// in neither: their bound is always the summary's.
+    pub errors_from_gpu: usize,
+    pub errors_from_tiles: usize,
+    /// The generation those errors came from (0: none), and the largest correction for
+    /// the camera's move since that the selection applied (1: none).
+    pub errors_generation: u64,
+    pub errors_stale_worst: f32,
 }
 
 impl Selection {
@@ -252,7 +264,7 @@ pub fn select(
     prefetch: f32,
     strips: Option<&StripCache>,
 ) -> Selection {
-    select_by(grid, cache, view, (StreamedLod::Error, delta), prefetch, strips)
+    select_by(grid, cache, view, (StreamedLod::Error, delta), prefetch, strips, None)
 }
 
 /// [`select`] with the LOD chosen by `lod`. Under [`StreamedLod::Full`] and
@@ -260,6 +272,11 @@ pub fn select(
 /// that should split but whose finer tile is not held is drawn as it is and counted over,
 /// and stitched strips split neighbours only to avoid T-junctions: as in memory, those
 /// selections are not bounded by delta.
+///
+/// With `errors`, a block's error is the smaller of two sound bounds: its tile summary's
+/// ([`block_error_px`]) and the errors activity's, computed for an earlier camera, corrected
+/// for the camera's move ([`stale_factor`]) and its `kappa`, times the block's own angular
+/// factor.
 pub fn select_by(
     grid: &Grid,
     cache: &HostCache,
@@ -267,6 +284,7 @@ pub fn select_by(
     (lod, delta): (StreamedLod, f32),
     prefetch: f32,
     strips: Option<&StripCache>,
+    errors: Option<&TileErrors>,
 ) -> Selection {
     let root = root_lod(grid);
     let top = serving_tile(grid, root, 0, 0);
@@ -277,6 +295,14 @@ pub fn select_by(
     }
     let mut t = Traverser::new(grid, cache, view, delta, prefetch);
     t.lod = lod;
+    if let Some(e) = errors {
+        let [ax, az] = grid.world_xz(t.anchor[0] as f64, t.anchor[1] as f64);
+        let old = e.position - DVec3::new(ax, 0.0, az);
+        // Rounded up: a move a little larger only weakens the claim.
+        let moved = ((view.position - e.position).length() as f32) * (1.0 + 1e-6);
+        t.errors = Some((e, old.as_vec3(), moved));
+        t.out.errors_generation = e.generation;
+    }
     t.visit(vec![(root, 0, 0)]);
     if let Some(strips) = strips {
         t.stitch(strips);
@@ -294,6 +320,9 @@ struct Traverser<'a> {
     anchor: [i64; 2],
     cam: Camera,
     frustum: crate::lod::camera::Frustum,
+    /// The errors activity's newest generation, its camera relative to the anchor, and
+    /// how far the camera has moved since.
+    errors: Option<(&'a TileErrors, Vec3, f32)>,
     /// Blocks that split whatever their error, for a finer neighbour's stitching.
     forced: HashSet<(u32, u32, u32)>,
     used: HashSet<TileKey>,
@@ -313,10 +342,11 @@ impl<'a> Traverser<'a> {
             anchor,
             frustum: cam.frustum(),
             cam,
+            errors: None,
             forced: HashSet::new(),
             used: HashSet::new(),
             kept: HashSet::new(),
-            out: Selection { worst_factor: 1.0, complete: true, ..Default::default() },
+            out: Selection { worst_factor: 1.0, complete: true, errors_stale_worst: 1.0, ..Default::default() },
         }
     }
 
@@ -338,7 +368,15 @@ impl<'a> Traverser<'a> {
                 self.out.culled += 1;
                 continue;
             }
-            let error_px = block_error_px(grid.height_scale, &self.cam, &s, (min, max), delta);
+            let mut error_px = block_error_px(grid.height_scale, &self.cam, &s, (min, max), delta);
+            match self.gpu_error_px(key, (lod, bx, bz), (min, max)) {
+                Some(gpu) => {
+                    error_px = error_px.min(gpu);
+                    self.out.errors_from_gpu += 1;
+                }
+                None if lod > 0 && lod == u32::from(key.level) => self.out.errors_from_tiles += 1,
+                None => {}
+            }
             let should_split = lod > 0
                 && match self.lod {
                     StreamedLod::Error => error_px > delta,
@@ -385,6 +423,23 @@ impl<'a> Traverser<'a> {
                 hi: s.hi,
             });
         }
+    }
+
+    /// Block `(lod, bx, bz)`'s error from the errors activity's generation, at this
+    /// camera: `None` if the generation did not shade its tile (or the block is one of
+    /// the top tile's coarser ones), or the camera may have come inside its distance.
+    fn gpu_error_px(&mut self, key: TileKey, (lod, bx, bz): (u32, u32, u32), bbox: (Vec3, Vec3)) -> Option<f32> {
+        let (errors, old, moved) = self.errors?;
+        if lod != u32::from(key.level) || lod == 0 {
+            return None;
+        }
+        let per_side = self.grid.tile_quads / BLOCK_QUADS;
+        let (lx, lz) = (bx as usize - key.tx as usize * per_side, bz as usize - key.tz as usize * per_side);
+        let raw = errors.block(key, lz * per_side + lx)?;
+        let stale = stale_factor(old, moved, bbox)?;
+        self.out.errors_stale_worst = self.out.errors_stale_worst.max(stale);
+        let kappa = self.cam.kappa() / errors.kappa;
+        Some(raw * stale * kappa * angular_factor(&self.cam, bbox.0, bbox.1, self.delta))
     }
 
     /// Stitches the selection as drawn and splits the coarser neighbours of blocks whose

@@ -1,0 +1,277 @@
+//! The errors activity's passes over the atlas (SPEC 4 and 8, "Residency"): per
+//! generation, one fragment pass a tile shades the errors of its blocks
+//! (`glsl/tile_errors.frag`: every group's `D * height_scale * kappa / distance`, the
+//! largest a block) into its cell of an R32F target, and only the cells shaded are copied
+//! to a host-visible buffer: 4 bytes a block, 256 a tile. Owned and recorded by the
+//! errors thread ([`crate::errors::atlas`]), which waits for each generation before the
+//! next, so one target and one readback buffer serve every generation.
+//!
+//! Why one fragment a block, not one a group then a reduction as in memory: a group
+//! image over the atlas would take 256 KB a tile shaded (R32F, 256 x 256 groups), as much
+//! again as the tile's heights and deviations; the block's maximum is taken in the
+//! fragment that computes its groups' errors instead.
+
+use crate::gpu::layout::{self as layout, TileErrorsPush};
+use crate::gpu::shaders;
+use crate::lod::camera::Camera;
+use crate::stream::{Grid, TileKey};
+use crate::vk::{
+    host_read_barrier, image_barrier, vk, Buffer, DescriptorPool, DescriptorSetLayout, Device, GraphicsPipeline,
+    GraphicsPipelineDesc, Image, ImageUse, PipelineLayout, QueryPool, Sampler, VkResult, COPY_SOURCE,
+};
+use std::sync::Arc;
+
+/// Cells of the target along x and y: one a tile shaded, as many as the atlas has layers
+/// at most ([`super::atlas::MAX_LAYERS`]).
+const CELLS: [u32; 2] = [64, 32];
+
+const WRITTEN: ImageUse = (
+    vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT,
+    vk::AccessFlags2::COLOR_ATTACHMENT_WRITE,
+    vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL,
+);
+
+/// A tile and its blocks' errors, row-major.
+pub(crate) type TileBlocks = (TileKey, Vec<f32>);
+
+/// What one generation shaded.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Shaded {
+    pub tiles: u64,
+    pub groups: u64,
+    pub bytes_read_back: u64,
+    /// Its GPU time, when the device has timestamps.
+    pub gpu_ms: Option<f64>,
+}
+
+pub(crate) struct AtlasPasses {
+    device: Arc<Device>,
+    pipeline: GraphicsPipeline,
+    layout: PipelineLayout,
+    _set_layout: DescriptorSetLayout,
+    _pool: DescriptorPool,
+    set: vk::DescriptorSet,
+    _sampler: Sampler,
+    target: Image,
+    readback: Buffer,
+    queries: Option<(QueryPool, Buffer)>,
+    /// Blocks a tile side (`tile_quads / 32`): a cell's side in texels.
+    per_side: u32,
+}
+
+impl AtlasPasses {
+    /// The passes over `heights` and `deviation` (the atlas's two array images, one tile
+    /// a layer) for tiles of `grid`.
+    pub(crate) fn new(device: &Arc<Device>, grid: &Grid, heights: &Image, deviation: &Image) -> VkResult<Self> {
+        let frag = vk::ShaderStageFlags::FRAGMENT;
+        let sampled = vk::DescriptorType::COMBINED_IMAGE_SAMPLER;
+        let set_layout = DescriptorSetLayout::new(
+            device,
+            &[
+                (layout::TILE_ERRORS_BINDING_HEIGHTS, sampled, frag),
+                (layout::TILE_ERRORS_BINDING_DEVIATION, sampled, frag),
+            ],
+        )?;
+        let pl = PipelineLayout::new(device, &set_layout, std::mem::size_of::<TileErrorsPush>() as u32, frag)?;
+        let pipeline = GraphicsPipeline::new(
+            device,
+            &GraphicsPipelineDesc::fullscreen_pass(
+                shaders::PASS_VERT,
+                shaders::TILE_ERRORS_FRAG,
+                vk::Format::R32_SFLOAT,
+                &pl,
+            ),
+        )?;
+        let pool = DescriptorPool::new(device, 1, &[(sampled, 2)])?;
+        let set = pool.allocate(&set_layout)?;
+        let sampler = Sampler::new(device, vk::Filter::NEAREST, vk::SamplerAddressMode::CLAMP_TO_EDGE)?;
+        pool.write(
+            set,
+            &[
+                (layout::TILE_ERRORS_BINDING_HEIGHTS, heights.view, sampler.handle),
+                (layout::TILE_ERRORS_BINDING_DEVIATION, deviation.view, sampler.handle),
+            ],
+            &[],
+        );
+        let per_side = (grid.tile_quads / crate::stream::cache::BLOCK_QUADS) as u32;
+        let extent = vk::Extent2D { width: CELLS[0] * per_side, height: CELLS[1] * per_side };
+        let usage = vk::ImageUsageFlags::COLOR_ATTACHMENT | vk::ImageUsageFlags::TRANSFER_SRC;
+        let target =
+            Image::new(device, "block errors over the atlas", extent, vk::Format::R32_SFLOAT, 1, usage, false)?;
+        let readback = Buffer::new(
+            device,
+            "block errors readback",
+            u64::from(extent.width) * u64::from(extent.height) * 4,
+            vk::BufferUsageFlags::TRANSFER_DST,
+            gpu_allocator::MemoryLocation::GpuToCpu,
+        )?;
+        let queries = match QueryPool::timestamps(device, 2)? {
+            Some(q) => Some((
+                q,
+                Buffer::new(
+                    device,
+                    "block errors timestamps",
+                    16,
+                    vk::BufferUsageFlags::TRANSFER_DST,
+                    gpu_allocator::MemoryLocation::GpuToCpu,
+                )?,
+            )),
+            None => None,
+        };
+        Ok(AtlasPasses {
+            device: device.clone(),
+            pipeline,
+            layout: pl,
+            _set_layout: set_layout,
+            _pool: pool,
+            set,
+            _sampler: sampler,
+            target,
+            readback,
+            queries,
+            per_side,
+        })
+    }
+
+    /// The most tiles one generation shades.
+    pub(crate) fn capacity() -> usize {
+        (CELLS[0] * CELLS[1]) as usize
+    }
+
+    /// Records the shading of `tiles` (each with its layer, at most [`Self::capacity`])
+    /// for the camera `cam`, relative to sample `anchor`, into `cmd` (recording), and the
+    /// copy of their cells to the readback buffer.
+    pub(crate) fn record(
+        &self,
+        cmd: vk::CommandBuffer,
+        grid: &Grid,
+        tiles: &[(TileKey, u32)],
+        (anchor, cam): ([i64; 2], &Camera),
+        unorm16: bool,
+    ) {
+        assert!(!tiles.is_empty() && tiles.len() <= Self::capacity(), "{} tiles to shade", tiles.len());
+        let d = &self.device.raw;
+        let n = self.per_side;
+        let rows = (tiles.len() as u32).div_ceil(CELLS[0]) * n;
+        let width = self.target.extent.width;
+        let area = vk::Rect2D { offset: vk::Offset2D::default(), extent: vk::Extent2D { width, height: rows } };
+        let att = [vk::RenderingAttachmentInfo::default()
+            .image_view(self.target.view)
+            .image_layout(vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL)
+            .load_op(vk::AttachmentLoadOp::DONT_CARE)
+            .store_op(vk::AttachmentStoreOp::STORE)];
+        let info = vk::RenderingInfo::default().render_area(area).layer_count(1).color_attachments(&att);
+        let range = self.target.range(0, 1);
+        let discarded = (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::NONE, vk::ImageLayout::UNDEFINED);
+        // SAFETY: `cmd` is recording on the errors thread, which waits for each
+        // generation before recording the next (so the target and readback are idle);
+        // every object outlives the submission; each cell lies inside the target.
+        unsafe {
+            if let Some((q, _)) = &self.queries {
+                d.cmd_reset_query_pool(cmd, q.handle, 0, 2);
+                d.cmd_write_timestamp2(cmd, vk::PipelineStageFlags2::TOP_OF_PIPE, q.handle, 0);
+            }
+            image_barrier(d, cmd, self.target.handle, range, discarded, WRITTEN);
+            d.cmd_begin_rendering(cmd, &info);
+            d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, self.pipeline.handle);
+            d.cmd_bind_descriptor_sets(cmd, vk::PipelineBindPoint::GRAPHICS, self.layout.handle, 0, &[self.set], &[]);
+            for (i, &(key, layer)) in tiles.iter().enumerate() {
+                let cell = [(i as u32 % CELLS[0]) * n, (i as u32 / CELLS[0]) * n];
+                let span = grid.tile_span(key.level) as i64;
+                let push = TileErrorsPush {
+                    tile: [layer as i32, i32::from(key.level), i32::from(unorm16), n as i32],
+                    origin: [
+                        (i64::from(key.tx) * span - anchor[0]) as i32,
+                        (i64::from(key.tz) * span - anchor[1]) as i32,
+                        cell[0] as i32,
+                        cell[1] as i32,
+                    ],
+                    camera: [cam.position.x, cam.position.y, cam.position.z, cam.kappa()],
+                    params: [grid.spacing[0] as f32, grid.height_scale as f32, cam.near, grid.spacing[1] as f32],
+                };
+                let rect = vk::Rect2D {
+                    offset: vk::Offset2D { x: cell[0] as i32, y: cell[1] as i32 },
+                    extent: vk::Extent2D { width: n, height: n },
+                };
+                let viewport = vk::Viewport {
+                    x: cell[0] as f32,
+                    y: cell[1] as f32,
+                    width: n as f32,
+                    height: n as f32,
+                    min_depth: 0.0,
+                    max_depth: 1.0,
+                };
+                d.cmd_set_viewport(cmd, 0, &[viewport]);
+                d.cmd_set_scissor(cmd, 0, &[rect]);
+                d.cmd_push_constants(
+                    cmd,
+                    self.layout.handle,
+                    vk::ShaderStageFlags::FRAGMENT,
+                    0,
+                    bytemuck::bytes_of(&push),
+                );
+                d.cmd_draw(cmd, 3, 1, 0, 0);
+            }
+            d.cmd_end_rendering(cmd);
+            image_barrier(d, cmd, self.target.handle, range, WRITTEN, COPY_SOURCE);
+            let region = vk::BufferImageCopy::default()
+                .image_subresource(vk::ImageSubresourceLayers {
+                    aspect_mask: vk::ImageAspectFlags::COLOR,
+                    mip_level: 0,
+                    base_array_layer: 0,
+                    layer_count: 1,
+                })
+                .image_extent(vk::Extent3D { width, height: rows, depth: 1 });
+            d.cmd_copy_image_to_buffer(
+                cmd,
+                self.target.handle,
+                vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
+                self.readback.handle,
+                &[region],
+            );
+            host_read_barrier(
+                d,
+                cmd,
+                self.readback.handle,
+                (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_WRITE),
+            );
+            if let Some((q, buffer)) = &self.queries {
+                d.cmd_write_timestamp2(cmd, vk::PipelineStageFlags2::BOTTOM_OF_PIPE, q.handle, 1);
+                q.record_copy(cmd, 0, 2, buffer.handle, 0);
+            }
+        }
+    }
+
+    /// The block errors of `tiles` (as recorded), once the generation has finished: per
+    /// tile, its cell row-major; and what the generation shaded.
+    pub(crate) fn read(&self, grid: &Grid, tiles: &[(TileKey, u32)]) -> VkResult<(Vec<TileBlocks>, Shaded)> {
+        let n = self.per_side as usize;
+        let width = self.target.extent.width as usize;
+        let bytes = self.readback.mapped()?;
+        let at = |x: usize, y: usize| {
+            let i = (y * width + x) * 4;
+            f32::from_le_bytes([bytes[i], bytes[i + 1], bytes[i + 2], bytes[i + 3]])
+        };
+        let mut out = Vec::with_capacity(tiles.len());
+        for (i, &(key, _)) in tiles.iter().enumerate() {
+            let (cx, cy) = ((i % CELLS[0] as usize) * n, (i / CELLS[0] as usize) * n);
+            out.push((key, (0..n * n).map(|b| at(cx + b % n, cy + b / n)).collect()));
+        }
+        let gpu_ms = match &self.queries {
+            Some((q, buffer)) => {
+                let t = buffer.mapped()?;
+                let tick = |i: usize| u64::from_le_bytes(t[i * 8..i * 8 + 8].try_into().expect("8 bytes"));
+                Some(q.ms([tick(0), tick(1)]))
+            }
+            None => None,
+        };
+        let rows = tiles.len().div_ceil(CELLS[0] as usize) * n;
+        let shaded = Shaded {
+            tiles: tiles.len() as u64,
+            groups: (tiles.len() * grid.tile_quads * grid.tile_quads) as u64,
+            bytes_read_back: (rows * width * 4) as u64,
+            gpu_ms,
+        };
+        Ok((out, shaded))
+    }
+}
