@@ -412,9 +412,8 @@ fn render_draws_an_archive_streamed_within_the_bound() {
     assert_eq!((&forward["pixels"], &forward["gpu"]["validation_messages"]), (&"forward".into(), &0.into()));
     for (extra, named) in [
         (vec!["--error-mode", "paper"], "--error-mode paper"),
-        // The errors activity's pacing, which streamed frames do not run.
-        (vec!["--error-pacing", "free"], "--error-pacing"),
-        (vec!["--refresh-at", "0.2"], "--refresh-at"),
+        // Over tiles the errors activity runs one generation at a time.
+        (vec!["--error-pacing", "free"], "--error-pacing free"),
         // Occlusion culling asked for by name: not done on frames from tiles (off is).
         (vec!["--occlusion", "on"], "--occlusion on"),
     ] {
@@ -424,13 +423,16 @@ fn render_draws_an_archive_streamed_within_the_bound() {
         assert!(err.contains(named) && err.contains("s.pmtiles") && err.contains("streamed"), "{err}");
     }
     assert!(render(&["--occlusion", "off"]).status.success());
+    // The errors activity's refresh and share of the wall time apply to tiles too.
+    let o = render(&["--refresh-at", "0.2", "--update-share", "0.5", "--error-pacing", "paced"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     // Without a terrain: the built-in one, cut into tiles.
     let o = cli(&["render", "--stream", "--size", "64x48", "--validation", "on", "--out", p]);
     assert!(o.status.success(), "--stream on the built-in terrain: {}", String::from_utf8_lossy(&o.stderr));
     let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!((r["streamed"].clone(), r["validation_messages"].clone()), (true.into(), 0.into()), "{r}");
 
-    // An atlas of seven layers: the cache holds no more tiles than that, so the frame is
+    // An atlas of three layers: the cache holds no more tiles than that, so the frame is
     // drawn coarser and over the bound, with no block missing from the picture.
     let o = render(&["--gpu-mb", "1"]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));

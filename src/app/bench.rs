@@ -1236,6 +1236,7 @@ fn bench_streamed(
     let layers = device.properties.limits.max_image_array_layers;
     let mut streamer = atlas_bound_streamer(archive.clone(), grid, cache_mb, gpu_mb, layers, &trace)?;
     streamer.morph = crate::app::stream::morph_rule(args.common.lod.morph.setting);
+    streamer.refresh_at = args.common.refresh_at;
     streamer.lod = crate::app::stream::streamed_lod(args.lod);
     crate::app::stream::streamer_threads(&mut streamer, args.common.lod.traversal_threads, Some(&device))?;
     streamer.stop = Some(signals.flag().clone());
@@ -1270,6 +1271,7 @@ fn bench_streamed(
     };
     let messages = device.instance.messages.clone();
     let mut gpu = GpuFrames::new(device.clone(), &mut streamer, gpu_mb, range, size, &trace)?;
+    gpu.set_update_share(args.common.update_share);
     gpu.set_normals(args.shading);
     gpu.set_pixels(args.pixels);
     let m = &archive.meta;

@@ -376,16 +376,13 @@ impl CommonArgs {
     /// silently): the shared ones and the command's own `more` (each with whether it was
     /// given).
     pub fn refuse_untiled(&self, more: &[(&'static str, bool)]) -> Result<(), InputError> {
-        let default_share = 0.05; // --refresh-at's and --update-share's, parsed the same way
         let shared = [
             ("--error-mode paper", self.error_mode.mode != crate::lod::gie::ErrorMode::Strict),
             ("--block (tiles fix k = 33)", self.block.k != 33),
             // Asked for by name: frames from tiles draw every block the frustum keeps.
             ("--occlusion on", self.occlusion == Some(OnOff::On)),
-            // The errors activity's pacing: frames from tiles bound their blocks on the CPU.
-            ("--refresh-at", self.refresh_at != default_share),
-            ("--update-share", self.update_share != default_share),
-            ("--error-pacing", self.error_pacing != crate::errors::activity::Pacing::Auto),
+            // Over tiles the errors thread waits for each generation before the next.
+            ("--error-pacing free", self.error_pacing == crate::errors::activity::Pacing::Free),
         ];
         let refused: Vec<&str> = more.iter().chain(&shared).filter_map(|&(name, set)| set.then_some(name)).collect();
         if refused.is_empty() {

@@ -340,6 +340,11 @@ impl GpuFrames {
         })
     }
 
+    /// The largest share of wall time the errors generations take (`--update-share`).
+    pub fn set_update_share(&self, share: f32) {
+        self.atlas.set_update_share(share);
+    }
+
     /// What the errors generations shaded so far.
     pub fn errors_shaded(&self) -> crate::errors::atlas::ErrorsShaded {
         self.atlas.shaded()
@@ -717,6 +722,7 @@ pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
     let layers = f.device.properties.limits.max_image_array_layers;
     let mut streamer = atlas_bound_streamer(f.archive.clone(), grid, f.cache_mb, f.gpu_mb, layers, &Trace::off())?;
     streamer.morph = morph_rule(f.common.lod.morph.setting);
+    streamer.refresh_at = f.common.refresh_at;
     streamer.lod = streamed_lod(f.lod);
     streamer_threads(&mut streamer, f.common.lod.traversal_threads, Some(&f.device))?;
     let near = near_plane_for(grid.spacing[0].min(grid.spacing[1]) as f32);

@@ -221,6 +221,7 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
     let mut streamer =
         crate::app::stream::atlas_bound_streamer(archive.clone(), grid, args.cache_mb, args.gpu_mb, layers, &trace)?;
     streamer.morph = crate::app::stream::morph_rule(args.common.lod.morph.setting);
+    streamer.refresh_at = args.common.refresh_at;
     let range = top_tiles(&mut streamer, &archive.meta)?;
     let near = near_plane_for(grid.spacing[0].min(grid.spacing[1]) as f32);
     let (position, target) =
@@ -377,6 +378,7 @@ impl App {
         let threads = self.args.common.lod.traversal_threads;
         crate::app::stream::streamer_threads(&mut self.streamer, threads, Some(&device))?;
         let mut frames = GpuFrames::new(device, &mut self.streamer, self.args.gpu_mb, self.range, (w, h), &self.trace)?;
+        frames.set_update_share(self.args.common.update_share);
         frames.fog = self.fog;
         frames.set_textures(&self.textures, &self.args.textures)?;
         frames.sun(self.args.common.sun.0)?;

@@ -26,9 +26,13 @@ use crate::vk::{
 use std::collections::HashSet;
 use std::sync::{Arc, Condvar, Mutex};
 use std::thread::JoinHandle;
+use std::time::Instant;
 
 /// The most layers an atlas takes, whatever the budget (llvmpipe's limit).
 pub const MAX_LAYERS: u32 = 2048;
+/// The share of wall time the errors generations take at most unless told
+/// (`--update-share`'s default).
+pub const DEFAULT_UPDATE_SHARE: f32 = 0.05;
 
 /// A tile read by the IO thread and the bytes read for it.
 pub type Read = (Arc<TileData>, u64);
@@ -63,6 +67,12 @@ struct State {
     shaded: ErrorsShaded,
     /// Every block error read back is multiplied by this (1; tests corrupt it).
     scale_errors: f32,
+    /// The largest share of wall time the errors generations take (`--update-share`),
+    /// when the next may start, and whether a settle waits for the request (it starts
+    /// at once then).
+    update_share: f32,
+    next_errors_at: Option<Instant>,
+    hurry: bool,
 }
 
 /// What the errors generations over the atlas shaded, in all.
@@ -224,6 +234,9 @@ impl HeightAtlas {
                 errors: None,
                 shaded: ErrorsShaded::default(),
                 scale_errors: 1.0,
+                update_share: DEFAULT_UPDATE_SHARE,
+                next_errors_at: None,
+                hurry: false,
             }),
             work: Condvar::new(),
             progress: Condvar::new(),
@@ -307,6 +320,12 @@ impl HeightAtlas {
         self.shared.lock().shaded.clone()
     }
 
+    /// The largest share of wall time the errors generations may take (`--update-share`,
+    /// above 0 and at most 1): after one of `u` ms the next waits `u (1 / share - 1)` ms.
+    pub fn set_update_share(&self, share: f32) {
+        self.shared.lock().update_share = share.clamp(1e-3, 1.0);
+    }
+
     /// Multiplies every block error read back from now on by `factor`: a corrupted
     /// readback, for tests that show the selection comes from these errors.
     #[doc(hidden)]
@@ -380,6 +399,10 @@ impl TileGate for AtlasFeed {
 
     fn wait_errors(&self) {
         let mut s = self.shared.lock();
+        if s.answered < s.requested {
+            s.hurry = true;
+            self.shared.work.notify_all();
+        }
         while s.answered < s.requested && s.failure.is_none() && !s.stop {
             s = self.shared.progress.wait(s).unwrap_or_else(|e| e.into_inner());
         }
@@ -419,13 +442,24 @@ fn run(device: &Arc<Device>, shared: &Shared, trace: &Trace) -> VkResult<()> {
     let result = loop {
         let (batch, request) = {
             let mut s = shared.lock();
-            while s.todo.is_empty() && s.request.is_none() && !s.stop {
-                s = shared.work.wait(s).unwrap_or_else(|e| e.into_inner());
+            // A request is due once the share of wall time the errors may take allows it
+            // (at once when a settle waits for it); tiles to upload are always due.
+            let due =
+                |s: &State| s.request.is_some() && (s.hurry || s.next_errors_at.is_none_or(|t| Instant::now() >= t));
+            while s.todo.is_empty() && !due(&s) && !s.stop {
+                s = match s.next_errors_at.filter(|_| s.request.is_some()) {
+                    Some(t) => {
+                        let wait = t.saturating_duration_since(Instant::now());
+                        shared.work.wait_timeout(s, wait).unwrap_or_else(|e| e.into_inner()).0
+                    }
+                    None => shared.work.wait(s).unwrap_or_else(|e| e.into_inner()),
+                };
             }
             if s.stop {
                 break Ok(());
             }
-            (std::mem::take(&mut s.todo), s.request.take())
+            let request = if due(&s) { s.request.take() } else { None };
+            (std::mem::take(&mut s.todo), request)
         };
         if !batch.is_empty() {
             if let Err(e) = a.upload_batch(batch) {
@@ -434,8 +468,16 @@ fn run(device: &Arc<Device>, shared: &Shared, trace: &Trace) -> VkResult<()> {
         }
         if let Some(request) = request {
             let number = request.number;
+            let started = Instant::now();
             let shaded = a.shade(request);
-            shared.lock().answered = number;
+            let mut s = shared.lock();
+            s.answered = number;
+            s.hurry &= s.answered < s.requested;
+            // After an update of u, the next waits u (1 / share - 1): the errors take at
+            // most `share` of the wall time.
+            let share = f64::from(s.update_share);
+            s.next_errors_at = Some(Instant::now() + started.elapsed().mul_f64(1.0 / share - 1.0));
+            drop(s);
             shared.progress.notify_all();
             if let Err(e) = shaded {
                 break Err(e);
@@ -452,7 +494,7 @@ impl Activity<'_> {
     fn upload_batch(&mut self, batch: Vec<Read>) -> VkResult<()> {
         let shared = self.shared;
         let count = batch.len();
-        let started = std::time::Instant::now();
+        let started = Instant::now();
         let g = self.generation + 1;
         // Frames that drew from a layer must have completed before it is rewritten: the
         // draw queue's timeline, read now (a stale value only protects more).
@@ -500,7 +542,7 @@ impl Activity<'_> {
         // Outside the state's lock: the trace has its own.
         let args = serde_json::json!({"generation": g, "tiles": count, "uploaded": placed.len(), "without_a_layer": dropped.len()});
         let name = if placed.is_empty() { "tiles back (none to upload)" } else { "upload tiles" };
-        self.trace.complete(ERRORS_TID, name, started, std::time::Instant::now(), args);
+        self.trace.complete(ERRORS_TID, name, started, Instant::now(), args);
         {
             let mut s = shared.lock();
             if !placed.is_empty() {
@@ -525,7 +567,7 @@ impl Activity<'_> {
     /// publishes them.
     fn shade(&mut self, request: ErrorsRequest) -> VkResult<()> {
         let shared = self.shared;
-        let started = std::time::Instant::now();
+        let started = Instant::now();
         let tiles: Vec<(TileKey, u32)> = {
             let s = shared.lock();
             let resident = |k: &TileKey| {
@@ -565,7 +607,7 @@ impl Activity<'_> {
         drop(s);
         let args = serde_json::json!({"generation": g, "tiles": shaded.tiles, "groups": shaded.groups,
             "bytes_read_back": shaded.bytes_read_back, "gpu_ms": shaded.gpu_ms});
-        self.trace.complete(ERRORS_TID, "block errors", started, std::time::Instant::now(), args);
+        self.trace.complete(ERRORS_TID, "block errors", started, Instant::now(), args);
         Ok(())
     }
 }

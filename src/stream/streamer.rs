@@ -19,9 +19,9 @@ use std::sync::Arc;
 pub const RETRY_FRAMES: u64 = 64;
 /// Frames before a tile the full cache refused is asked for again.
 pub const FULL_BACKOFF_FRAMES: u64 = 8;
-/// How much the correction for the camera's move may grow a block's error before new
-/// errors are asked for (a move of about 5 % of the distance to the nearest block).
-pub const REFRESH_FACTOR: f32 = 1.05;
+/// `--refresh-at`'s default: new errors are asked for once the camera has moved this
+/// fraction of the distance to the nearest block since they were computed.
+pub const DEFAULT_REFRESH_AT: f32 = 0.05;
 
 /// What a streamed run did, for summary.json and the panel.
 #[derive(Clone, Debug, Default, PartialEq, serde::Serialize)]
@@ -111,6 +111,9 @@ pub struct Streamer {
     /// A stop request (a signal's flag): [`Streamer::settle`] returns when it is set,
     /// whatever tiles are still being read.
     pub stop: Option<Arc<AtomicBool>>,
+    /// New errors are asked for once the camera has moved this fraction of the distance
+    /// to the nearest block since they were computed (`--refresh-at`).
+    pub refresh_at: f32,
     /// The last request for errors: the camera, the tiles, the tiles held then.
     errors_asked: Option<(glam::DVec3, Vec<TileKey>, usize)>,
 }
@@ -141,6 +144,7 @@ impl Streamer {
             gated: HashSet::new(),
             pool: TraversalPool::default(),
             stop: None,
+            refresh_at: DEFAULT_REFRESH_AT,
             errors_asked: None,
         }
     }
@@ -291,13 +295,14 @@ impl Streamer {
     }
 
     /// Asks the errors activity for a new generation when the selection needs one: some
-    /// block of LOD 1 or up had no error from it, or the camera has moved far enough
-    /// that the correction for its move grew some block's error by more than
-    /// [`REFRESH_FACTOR`]. The tiles: those the selection visited, and the finer tiles
+    /// block that could have had an error from it had none, or the camera has moved more
+    /// than [`Streamer::refresh_at`] of some block's distance since. The tiles: those the selection visited, and the finer tiles
     /// of its drawn blocks that are held (where it splits next).
     fn request_errors(&mut self, view: &View, sel: &Selection, errors: Option<&TileErrors>) {
         let Some(gate) = self.gate.as_ref().filter(|_| self.lod == StreamedLod::Error) else { return };
-        let needed = errors.is_none() || sel.errors_from_tiles > 0 || sel.errors_stale_worst > REFRESH_FACTOR;
+        // A move of `refresh_at` of a block's distance grows its error by 1 / (1 - it).
+        let refresh = 1.0 / (1.0 - self.refresh_at.clamp(0.0, 0.99));
+        let needed = errors.is_none() || sel.errors_from_tiles > 0 || sel.errors_stale_worst > refresh;
         if !needed {
             return;
         }
