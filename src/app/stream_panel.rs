@@ -31,6 +31,10 @@ pub struct StreamReadout {
     pub read_mb: f64,
     pub atlas_layers: u32,
     pub uploaded_tiles: u64,
+    /// The errors activity: its last generation over the atlas, and this frame's blocks
+    /// whose error came from it.
+    pub errors: Option<crate::errors::atlas_passes::Shaded>,
+    pub blocks_bounded_by_errors: usize,
     pub device: String,
     pub queue_mode: String,
     /// "flyover", "walk" or "fly".
@@ -130,6 +134,19 @@ fn panel(ui: &mut egui::Ui, r: &StreamReadout, history: &FrameHistory, now: f64,
         row("evicted", r.tiles_evicted.to_string());
         row("failed reads", r.tiles_failed.to_string());
         row("atlas", format!("{} layers, {} uploads", r.atlas_layers, r.uploaded_tiles));
+        if let Some(e) = &r.errors {
+            let gpu = e.gpu_ms.map_or(String::new(), |ms| format!(", {ms:.1} ms GPU"));
+            row(
+                "errors",
+                format!(
+                    "{} tiles, {:.2} M groups, {:.1} KB back{gpu}; {} blocks",
+                    e.tiles,
+                    e.groups as f64 / 1e6,
+                    e.bytes_read_back as f64 / 1024.0,
+                    r.blocks_bounded_by_errors
+                ),
+            );
+        }
         // The name without the driver's details in brackets (it fits the panel).
         row("device", r.device.split(" (").next().unwrap_or_default().chars().take(24).collect());
         row("queues", r.queue_mode.clone());

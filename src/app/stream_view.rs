@@ -568,6 +568,8 @@ impl App {
             read_mb: s.bytes_read as f64 / f64::from(1u32 << 20),
             atlas_layers: report["atlas_layers"].as_u64().unwrap_or(0) as u32,
             uploaded_tiles: report["tiles_uploaded"].as_u64().unwrap_or(0),
+            errors: gpu.frames.errors_shaded().last,
+            blocks_bounded_by_errors: sel.errors_from_gpu,
             device: gpu.frames.device.name.clone(),
             queue_mode: gpu.frames.device.queue_mode.as_str().into(),
             camera: if self.args.flyover {

@@ -84,6 +84,8 @@ pub struct ErrorsShaded {
     pub bytes_read_back: u64,
     /// Each generation's GPU time (empty without timestamps).
     pub gpu_ms: Vec<f64>,
+    /// The last generation's figures.
+    pub last: Option<Shaded>,
 }
 
 impl ErrorsShaded {
@@ -93,6 +95,7 @@ impl ErrorsShaded {
         self.groups += s.groups;
         self.bytes_read_back += s.bytes_read_back;
         self.gpu_ms.extend(s.gpu_ms);
+        self.last = Some(*s);
     }
 }
 
