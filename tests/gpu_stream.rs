@@ -324,6 +324,20 @@ fn render_draws_an_archive_streamed_within_the_bound() {
     assert_eq!(r["gpu"]["frames_missing_blocks"], 0, "{r}");
     assert_eq!(r["gpu"]["validation_messages"], 0, "{r}");
     assert!(r["blocks"].as_u64().unwrap() > 10, "{r}");
+    // The blocks' errors came from the errors activity's generation over the atlas.
+    assert!(r["blocks_bounded_by_errors"].as_u64().unwrap() > 10, "{r}");
+    assert_eq!(r["blocks_bounded_by_tiles"], 0, "{r}");
+    assert!(r["gpu"]["errors"]["generations"].as_u64().unwrap() >= 1, "{r}");
+    // `errors` over the same tiles: generations over the atlas and their cost.
+    let o = cli(&["errors", a, "--stream", "--repeat", "2", "--validation", "on", "--size", "320x240"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let e: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!((e["streamed"].as_bool(), e["validation_messages"].as_u64()), (Some(true), Some(0)), "{e}");
+    assert!(e["tiles_shaded"].as_u64().unwrap() > 0 && e["readback_bytes"].as_u64().unwrap() > 0, "{e}");
+    assert!(e["generations"].as_u64().unwrap() >= 3 && e["update_ms"].as_f64().unwrap() > 0.0, "{e}");
+    let o = cli(&["errors", a, "--stream", "--dump", p]);
+    assert_eq!(o.status.code(), Some(2), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("--dump"));
     // Shadows from a lighting map of the terrain's own size, made from the finest tiles.
     let lighting = &r["gpu"]["lighting"];
     assert_eq!(

@@ -1444,10 +1444,10 @@ impl StreamedPath<'_> {
         let (mut previous_pixels, mut previous_sel): (Option<Vec<u8>>, Option<crate::stream::traverse::Selection>) =
             (None, None);
         let started = Instant::now();
-        // The errors activity's generations the frames took, each with the frame that
-        // first took it; and its GPU times from here.
-        let (mut generations, mut taken_at) = (Vec::new(), 0u64);
-        let shaded_before = gpu.errors_shaded().gpu_ms.len();
+        // The errors activity's generations shaded during the run and their GPU times;
+        // the one each frame took and the frame that first took it.
+        let shaded_before = gpu.errors_shaded();
+        let (mut taken, mut taken_at) = (0u64, 0u64);
         for i in 0..self.frames {
             if self.signals.requested() {
                 break;
@@ -1487,12 +1487,12 @@ impl StreamedPath<'_> {
                 worst_factor: Some(sel.worst_factor),
                 tiles_held: Some(streamer.cache.len()),
                 error_generation: sel.errors_generation,
+                error_update_ms: sel.errors_gpu_ms,
                 ..Row::default()
             };
             if sel.errors_generation > 0 {
-                if generations.last() != Some(&sel.errors_generation) {
-                    generations.push(sel.errors_generation);
-                    taken_at = i;
+                if taken != sel.errors_generation {
+                    (taken, taken_at) = (sel.errors_generation, i);
                 }
                 row.error_age_frames = Some(i - taken_at);
             }
@@ -1517,12 +1517,14 @@ impl StreamedPath<'_> {
             }
             progress.tick(i + 1);
         }
-        let mut update_gpu_ms = gpu.errors_shaded().gpu_ms;
-        let update_gpu_ms = update_gpu_ms.split_off(shaded_before.min(update_gpu_ms.len()));
+        let shaded = gpu.errors_shaded();
+        let mut update_gpu_ms = shaded.gpu_ms;
+        let update_gpu_ms = update_gpu_ms.split_off(shaded_before.gpu_ms.len().min(update_gpu_ms.len()));
         let run = Run {
             rows,
             blocks: Vec::new(),
-            generations,
+            // Counted as generations: `error_updates` is how many the run shaded.
+            generations: (shaded_before.generations..shaded.generations).collect(),
             update_gpu_ms,
             interrupted: self.signals.requested(),
             warmup_ms,

@@ -91,6 +91,50 @@ pub struct ErrorsArgs {
     /// "Block-error dump layout").
     #[arg(long, value_name = "FILE")]
     pub dump: Option<PathBuf>,
+    #[command(flatten)]
+    pub streamed: crate::app::cli::StreamedOptions,
+}
+
+/// `errors` on a terrain drawn from tiles: the errors activity's generations over the
+/// atlas for the tiles the default (or given) view's selection reaches, `--repeat`
+/// times, each for a camera moved a hundredth of a sample further (so that each is a new
+/// generation), and their cost as JSON.
+fn errors_over_tiles(args: &ErrorsArgs, device: Arc<Device>, archive: Arc<Archive>) -> anyhow::Result<()> {
+    let refused = [
+        ("--error-mode paper", args.error_mode.mode != crate::lod::gie::ErrorMode::Strict),
+        ("--block (tiles fix k = 33)", args.block.k != 33),
+        ("--dump (the block-error pyramid of a terrain in one image)", args.dump.is_some()),
+    ];
+    let refused: Vec<&str> = refused.iter().filter_map(|&(name, set)| set.then_some(name)).collect();
+    if !refused.is_empty() {
+        return Err(InputError(format!(
+            "{} is drawn streamed (tiles through a bounded cache), which does not take {} yet",
+            args.terrain.name(),
+            refused.join(", ")
+        ))
+        .into());
+    }
+    let (cache_mb, gpu_mb) = (args.streamed.cache_mb(), args.streamed.gpu_mb());
+    eprintln!("{}", crate::app::stream::streamed_banner(&args.terrain.name(), &archive.meta, cache_mb, gpu_mb));
+    let r = crate::app::stream::errors_over_atlas(
+        &archive,
+        &device,
+        &args.terrain.frame,
+        &args.view,
+        args.repeat,
+        (cache_mb, gpu_mb),
+    )?;
+    let mut out = r;
+    out["validation"] = json!(device.instance.validation);
+    out["validation_messages"] = json!(device.instance.validation.then(|| device.instance.validation_messages()));
+    out["queue_mode"] = json!(device.queue_mode.as_str());
+    out["device"] = json!(device.name);
+    crate::app::outputs::TerrainFacts::of_archive(&archive.meta, &args.terrain.frame).merge_into(&mut out);
+    crate::out!("{out}")?;
+    if device.instance.validation && device.instance.validation_messages() > 0 {
+        return Err(anyhow::anyhow!("{} validation messages", device.instance.validation_messages()));
+    }
+    Ok(())
 }
 
 /// Everything a command needs on the GPU.
@@ -484,7 +528,13 @@ pub fn errors(args: &ErrorsArgs) -> anyhow::Result<()> {
     // would otherwise fail at the end.
     args.terrain.check_terrain()?;
     check_outputs(&[("--dump", args.dump.as_deref())], &[("--heightmap", args.terrain.heightmap.as_deref())])?;
-    let s = Session::open(&args.terrain, args.block, &args.device, None)?;
+    let device = open_device(&args.device, args.block)?;
+    let max_side = || device.max_image_dimension_2d() as usize;
+    if let Some((archive, _)) = crate::app::stream::streamed_archive(&args.terrain, args.streamed.stream, max_side)? {
+        return errors_over_tiles(args, device, archive);
+    }
+    args.streamed.note_unused();
+    let s = Session::with_device(device, &args.terrain, args.block, None)?;
     let cam = args.view.camera(&s.hf, (1280, 720))?;
     let activity = ErrorsActivity::start(&s.device, s.terrain.clone(), s.hf.clone(), s.layout)?;
     let base = ErrorParams::new(&cam, args.error_mode.mode);

@@ -610,7 +610,9 @@ pub fn streamed_archive(
         // A file larger than one image (or any, with `stream`) is cut into tiles: one
         // path for every size.
         let too_big = || {
-            crate::app::prepare::raster_size(path).is_some_and(|(w, h)| {
+            // A raw file's size is the one given (GDAL cannot read its header).
+            let size = terrain.raw_size.map(|(w, h)| (w as usize, h as usize));
+            size.or_else(|| crate::app::prepare::raster_size(path)).is_some_and(|(w, h)| {
                 let (n, roots) = crate::lod::heightfield::grid_cover(w, h);
                 let side = roots.into_iter().max().unwrap_or(1) * (1 << n) + 1;
                 // Every Vulkan device takes 4096 (the spec's minimum): no device is asked.
@@ -648,6 +650,69 @@ pub fn streamed_archive(
     check_declared_frame(&shown, &archive.meta, &terrain.frame)?;
     declare_frame(&shown, &mut archive, &terrain.frame);
     Ok(Some((Arc::new(archive), None)))
+}
+
+/// `errors` over the atlas: the first view's tiles read and uploaded, then `repeat`
+/// generations of block errors, each for a camera a hundredth of a sample further along
+/// x than the one before (a new generation each), waited for; their wall and GPU times
+/// and what the last one shaded, as JSON.
+pub(crate) fn errors_over_atlas(
+    archive: &Arc<Archive>,
+    device: &Arc<Device>,
+    frame: &crate::app::cli::FrameArgs,
+    camera: &crate::app::cli::CameraArgs,
+    repeat: u64,
+    (cache_mb, gpu_mb): (u32, u32),
+) -> anyhow::Result<serde_json::Value> {
+    let grid = streamed_grid(archive, frame);
+    let layers = device.properties.limits.max_image_array_layers;
+    let mut streamer = atlas_bound_streamer(archive.clone(), grid, cache_mb, gpu_mb, layers, &Trace::off())?;
+    let range = top_tiles(&mut streamer, &archive.meta)?;
+    let atlas = HeightAtlas::new(device, &grid, u64::from(gpu_mb) << 20).map_err(|e| InputError(e.to_string()))?;
+    streamer.attach(Box::new(atlas.feed()), HeightAtlas::cache_tiles(atlas.layer_count()));
+    // Every move asks: each repeat is a generation.
+    streamer.refresh_at = 0.0;
+    let (w, h) = camera.frustum.size.unwrap_or((1280, 720));
+    crate::app::cli::check_image_size(device, "--size", (w, h))?;
+    let near = near_plane_for(grid.spacing[0].min(grid.spacing[1]) as f32);
+    let extent = grid.world_extent().map(|e| e as f32);
+    let (position, look_at) =
+        camera.view_points(|| view_of_box(extent, range.world, camera.frustum.fovy, w, h, near))?;
+    let view = |i: u64| {
+        let p = position.as_dvec3() + DVec3::X * (i as f64 * grid.spacing[0] * 0.01);
+        View::look_at(p, look_at.as_dvec3(), camera.frustum.fovy, w, h, near)
+    };
+    let (_, first) = settle(&mut streamer, |_| view(0), 1.0);
+    let mut times = vec![];
+    for i in 1..=repeat {
+        let t = Instant::now();
+        streamer.frame(&view(i), None, 1.0, 1.0);
+        streamer.settle();
+        times.push(t.elapsed().as_secs_f64() * 1e3);
+    }
+    if let Some(e) = atlas.failure() {
+        return Err(anyhow::anyhow!("the errors activity stopped: {e}"));
+    }
+    times.sort_by(f64::total_cmp);
+    let shaded = atlas.shaded();
+    let last = shaded.last.unwrap_or_default();
+    Ok(serde_json::json!({
+        "streamed": true,
+        "grid": [grid.width, grid.height],
+        "block": 33,
+        "error_mode": "strict",
+        "atlas_layers": atlas.layer_count(),
+        "tiles_held": streamer.cache.len(),
+        "blocks_bounded_by_errors": first.errors_from_gpu,
+        "generations": shaded.generations,
+        "tiles_shaded": last.tiles,
+        "groups_shaded": last.groups,
+        "readback_bytes": last.bytes_read_back,
+        "update_ms": times.get(times.len() / 2),
+        "update_ms_min": times.first(),
+        "update_gpu_ms": crate::app::bench::median(&shaded.gpu_ms),
+        "repeat": repeat,
+    }))
 }
 
 /// One frame of an archive drawn streamed (`render` over an archive larger than one

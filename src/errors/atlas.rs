@@ -601,6 +601,7 @@ impl Activity<'_> {
             generation: g,
             position: request.view.position,
             kappa: cam.kappa(),
+            gpu_ms: shaded.gpu_ms,
             tiles: blocks.into_iter().map(|(k, b)| (k, b.into_iter().map(|e| e * scale).collect())).collect(),
         };
         s.layers.finish(g);

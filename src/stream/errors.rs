@@ -22,6 +22,8 @@ pub struct TileErrors {
     pub position: DVec3,
     /// The `kappa` (pixels per unit of tangent) they were computed with.
     pub kappa: f32,
+    /// The generation's GPU time, when the device has timestamps.
+    pub gpu_ms: Option<f64>,
     /// Per tile shaded: the errors of the blocks of its own level, row-major,
     /// `(tile_quads / 32)^2` of them.
     pub tiles: HashMap<TileKey, Vec<f32>>,

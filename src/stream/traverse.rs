@@ -137,6 +137,8 @@ pub struct Selection {
     /// the camera's move since that the selection applied (1: none).
     pub errors_generation: u64,
     pub errors_stale_worst: f32,
+    /// That generation's GPU time, when the device has timestamps.
+    pub errors_gpu_ms: Option<f64>,
 }
 
 impl Selection {
@@ -302,6 +304,7 @@ pub fn select_by(
         let moved = ((view.position - e.position).length() as f32) * (1.0 + 1e-6);
         t.errors = Some((e, old.as_vec3(), moved));
         t.out.errors_generation = e.generation;
+        t.out.errors_gpu_ms = e.gpu_ms;
     }
     t.visit(vec![(root, 0, 0)]);
     if let Some(strips) = strips {
@@ -435,7 +438,8 @@ impl<'a> Traverser<'a> {
         }
         let per_side = self.grid.tile_quads / BLOCK_QUADS;
         let (lx, lz) = (bx as usize - key.tx as usize * per_side, bz as usize - key.tz as usize * per_side);
-        let raw = errors.block(key, lz * per_side + lx)?;
+        // Infinite where a group's D is past the half floats' range: no bound then.
+        let raw = errors.block(key, lz * per_side + lx).filter(|e| e.is_finite())?;
         let stale = stale_factor(old, moved, bbox)?;
         self.out.errors_stale_worst = self.out.errors_stale_worst.max(stale);
         let kappa = self.cam.kappa() / errors.kappa;
