@@ -1291,3 +1291,36 @@ fn block_errors_over_the_atlas_are_the_cpu_bound_and_the_selection_comes_from_th
     assert!(over > 0, "a corrupted readback passes the audit at every pose");
     assert_eq!(atlas.failure(), None);
 }
+
+/// A raw file larger than one image (lavapipe's 16384 side) is drawn from its tiles
+/// without being asked to: its size is the one `--raw-size` gives (GDAL cannot read a
+/// raw file's header), not unknown.
+#[test]
+fn a_raw_file_larger_than_one_image_is_drawn_from_tiles() {
+    let dir = TempDir::new("gpu-stream-raw-strip");
+    let (w, h) = (16641usize, 300usize);
+    let path = dir.path().join("strip.f32");
+    let bytes: Vec<u8> =
+        (0..w * h).flat_map(|i| (((i % w) as f32 * 0.01).sin() * 50.0 + (i / w) as f32 * 0.1).to_le_bytes()).collect();
+    std::fs::write(&path, bytes).unwrap();
+    let png = dir.path().join("o.png");
+    let o = cli(&[
+        "render",
+        path.to_str().unwrap(),
+        "--raw-size",
+        "16641x300",
+        "--spacing",
+        "10",
+        "--height-scale",
+        "1",
+        "--size",
+        "64x48",
+        "--validation",
+        "on",
+        "--out",
+        png.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!((r["streamed"].as_bool(), r["validation_messages"].as_u64()), (Some(true), Some(0)), "{r}");
+}

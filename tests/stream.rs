@@ -953,3 +953,66 @@ fn streamed_part_boxes_hold_their_triangles() {
     assert!(variants > 500 && listed > 10_000, "{variants} blocks, {listed} parts listed");
     assert!(escaped_when_unstitched > 0, "mutation: boxes blind to coarser neighbours went unnoticed");
 }
+
+/// How the traversal takes the errors activity's block errors ([`TileErrors`]): the
+/// smaller of them and the tile's own bound. Errors above the tile's bound change
+/// nothing; zero errors at the camera stop every split; infinite ones (a `D` past the
+/// half floats' range) and errors from a camera that may have come inside a block's
+/// distance bound nothing, and are counted as the tile's.
+#[test]
+fn the_traversal_takes_the_smaller_of_the_gpu_errors_and_the_tiles_bound() {
+    use vkterrain::stream::errors::TileErrors;
+    use vkterrain::stream::traverse::{select_by, StreamedLod};
+    let Fixture { archive, grid, _dir, .. } = fixture("stream-gpu-errors");
+    let mut s = Streamer::new(archive, grid, 1 << 30);
+    let view = poses()[0];
+    let cpu = settled(&mut s, &view, 12);
+    let per_tile = (grid.tile_quads / BLOCK_QUADS).pow(2);
+    let errors_of = |value: f32, position: DVec3| TileErrors {
+        generation: 7,
+        position,
+        kappa: camera(&view).kappa(),
+        gpu_ms: None,
+        tiles: s.cache.tiles().iter().filter(|t| t.key.level > 0).map(|t| (t.key, vec![value; per_tile])).collect(),
+    };
+    let with = |e: &TileErrors| select_by(&grid, &s.cache, &view, (StreamedLod::Error, DELTA), 1.0, None, Some(e));
+    let lods = |sel: &Selection| sel.blocks.iter().map(|b| (b.lod, b.bx, b.bz)).collect::<Vec<_>>();
+    let plain = select_by(&grid, &s.cache, &view, (StreamedLod::Error, DELTA), 1.0, None, None);
+    assert_eq!((plain.errors_from_gpu, plain.errors_generation), (0, 0));
+    // Larger than every tile bound: the same blocks, each taken from the generation.
+    let large = with(&errors_of(1e30, view.position));
+    assert_eq!(lods(&large), lods(&plain));
+    assert!(
+        large.errors_from_gpu > 10 && large.errors_from_tiles == 0,
+        "{} {}",
+        large.errors_from_gpu,
+        large.errors_from_tiles
+    );
+    assert_eq!(large.errors_generation, 7);
+    // Zero at this camera: no block of a shaded tile splits.
+    let zero = with(&errors_of(0.0, view.position));
+    assert!(
+        zero.blocks.len() < plain.blocks.len() && zero.errors_from_gpu > 0,
+        "{} {}",
+        zero.blocks.len(),
+        plain.blocks.len()
+    );
+    // Infinite: no bound, the tile's.
+    let inf = with(&errors_of(f32::INFINITY, view.position));
+    assert_eq!(lods(&inf), lods(&plain));
+    assert_eq!(inf.errors_from_gpu, 0);
+    assert_eq!(inf.errors_from_tiles, large.errors_from_gpu);
+    // Zero, but for a camera 1 km away: the move may bring it inside the distance of the
+    // blocks near it, whose bound is then the tile's (they split again).
+    let far = with(&errors_of(0.0, view.position + DVec3::new(1000.0, 0.0, 0.0)));
+    assert!(
+        far.errors_from_tiles > 0 && far.blocks.len() > zero.blocks.len(),
+        "{} {}",
+        far.errors_from_tiles,
+        far.blocks.len()
+    );
+    // Zero for a camera a metre away: taken, corrected, still zero.
+    let near = with(&errors_of(0.0, view.position + DVec3::new(1.0, 0.0, 0.0)));
+    assert!(near.errors_from_gpu > 0 && near.errors_stale_worst > 1.0);
+    drop(cpu);
+}
