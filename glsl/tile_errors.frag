@@ -24,7 +24,7 @@ float raw_at(ivec2 v) {
 }
 
 void main() {
-    int layer = tile_errors_pc.tile.x;
+    int slot = tile_errors_pc.tile.w;
     int stride = 1 << tile_errors_pc.tile.y;
     ivec2 first = (ivec2(gl_FragCoord.xy) - tile_errors_pc.origin.zw) * QUADS;
     vec2 spacing = tile_errors_pc.params.xw;
@@ -44,7 +44,7 @@ void main() {
         ivec2 s0 = tile_errors_pc.origin.xy + (first + ivec2(0, j)) * stride;
         for (int i = 0; i < QUADS; i++) {
             float east = raw_at(first + ivec2(i + 1, j + 1));
-            float d = texelFetch(deviation, ivec3(first + ivec2(i, j), layer), 0).r;
+            float d = texelFetch(deviation, ivec3(first + ivec2(i, j), slot), 0).r;
             float lo = min(min(row[i], row[i + 1]), min(west, east)) - d;
             float hi = max(max(row[i], row[i + 1]), max(west, east)) + d;
             int sx = s0.x + i * stride;

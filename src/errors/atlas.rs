@@ -30,6 +30,11 @@ use std::time::Instant;
 
 /// The most layers an atlas takes, whatever the budget (llvmpipe's limit).
 pub const MAX_LAYERS: u32 = 2048;
+/// Layers of heights per slot of deviations: tiles above level 0, the only ones with a
+/// `D`, are about a quarter of a quadtree's and a third of what a flight holds. A tile
+/// that finds no slot is drawn, its blocks bounded by its summary alone.
+pub const DEVIATION_SHARE: u32 = 2;
+
 /// The share of wall time the errors generations take at most unless told
 /// (`--update-share`'s default).
 pub const DEFAULT_UPDATE_SHARE: f32 = 0.05;
@@ -57,6 +62,9 @@ struct State {
     stop: bool,
     failure: Option<String>,
     uploaded: Uploaded,
+    /// The deviation slot of the tile each layer holds, and the slots no layer holds.
+    deviation_slot: Vec<Option<u32>>,
+    free_slots: Vec<u32>,
     /// The newest request for block errors not started yet, and the number of the last
     /// one made and of the last one answered (shaded, or found nothing to shade).
     request: Option<ErrorsRequest>,
@@ -112,8 +120,9 @@ pub struct Uploaded {
 struct Shared {
     /// Declared first: dropped after the thread that writes them has been joined.
     image: Image,
-    /// The tiles' group deviations `D` (R16_SFLOAT, rounded up), one tile a layer as in
-    /// `image`; tiles of level 0 have none (their blocks never split).
+    /// The tiles' group deviations `D` (R16_SFLOAT, rounded up), one tile a layer: a slot
+    /// for every [`DEVIATION_SHARE`] layers of `image`, held by tiles above level 0
+    /// while their layer holds them (level 0's blocks never split).
     deviation: Image,
     grid: Grid,
     side: u32,
@@ -150,12 +159,22 @@ pub struct AtlasFeed {
 }
 
 impl HeightAtlas {
-    /// Bytes of one layer: a tile's heights with their one-sample border, and its
-    /// groups' deviations (half floats).
-    pub fn layer_bytes(grid: &Grid) -> u64 {
+    /// Bytes of one layer of heights: a tile's heights with their one-sample border.
+    fn height_layer_bytes(grid: &Grid) -> u64 {
         let side = (grid.tile_quads + 3) as u64;
+        side * side * grid.height_bytes as u64
+    }
+
+    /// Bytes of one slot of deviations: a tile's groups' `D` (half floats).
+    fn deviation_slot_bytes(grid: &Grid) -> u64 {
         let groups = grid.tile_quads as u64;
-        side * side * grid.height_bytes as u64 + groups * groups * 2
+        groups * groups * 2
+    }
+
+    /// What one layer costs of the budget: its heights and its share of a slot of
+    /// deviations ([`DEVIATION_SHARE`]).
+    pub fn layer_bytes(grid: &Grid) -> u64 {
+        Self::height_layer_bytes(grid) + Self::deviation_slot_bytes(grid).div_ceil(u64::from(DEVIATION_SHARE))
     }
 
     /// The layers an atlas of `budget_bytes` has on a device allowing `device_limit`
@@ -199,7 +218,8 @@ impl HeightAtlas {
         let image = Image::array(device, "heightfield atlas", extent, format, layers, usage, true)?;
         let groups = vk::Extent2D { width: grid.tile_quads as u32, height: grid.tile_quads as u32 };
         let usage = vk::ImageUsageFlags::SAMPLED | vk::ImageUsageFlags::TRANSFER_DST;
-        let deviation = Image::array(device, "deviation atlas", groups, vk::Format::R16_SFLOAT, layers, usage, true)?;
+        let slots = layers.div_ceil(DEVIATION_SHARE);
+        let deviation = Image::array(device, "deviation atlas", groups, vk::Format::R16_SFLOAT, slots, usage, true)?;
         {
             // Every layer starts readable (a draw's descriptor covers all of them), before
             // either activity uses the image.
@@ -231,6 +251,8 @@ impl HeightAtlas {
                 stop: false,
                 failure: None,
                 uploaded: Uploaded::default(),
+                deviation_slot: vec![None; layers as usize],
+                free_slots: (0..slots).rev().collect(),
                 request: None,
                 requested: 0,
                 answered: 0,
@@ -505,7 +527,7 @@ impl Activity<'_> {
         let (mut back, mut placed, mut dropped) = (Vec::new(), Vec::new(), Vec::new());
         {
             let mut s = shared.lock();
-            let State { layers, released, .. } = &mut *s;
+            let State { layers, released, deviation_slot, free_slots, .. } = &mut *s;
             for (tile, bytes) in batch {
                 let key = tile.key;
                 if layers.find(key).is_some() {
@@ -515,7 +537,15 @@ impl Activity<'_> {
                 } else if let Some(layer) = layers.claim(key, g, completed, |t| !released.contains(&t)) {
                     // Let go once, read again into another layer: held from now on.
                     released.remove(&key);
-                    placed.push((tile.clone(), layer));
+                    // The layer's old tile leaves its slot; a tile with a D takes one if
+                    // one is free (the errors passes that read the old one were waited for).
+                    if let Some(old) = deviation_slot[layer].take() {
+                        free_slots.push(old);
+                    }
+                    if key.level > 0 {
+                        deviation_slot[layer] = free_slots.pop();
+                    }
+                    placed.push((tile.clone(), layer, deviation_slot[layer]));
                     back.push((tile, bytes));
                 } else {
                     dropped.push(key);
@@ -525,7 +555,8 @@ impl Activity<'_> {
                 released.retain(|k| layers.find(*k).is_some());
             }
         }
-        let layer_bytes = HeightAtlas::layer_bytes(&shared.grid) as usize;
+        let layer_bytes =
+            (HeightAtlas::height_layer_bytes(&shared.grid) + HeightAtlas::deviation_slot_bytes(&shared.grid)) as usize;
         if !placed.is_empty() {
             let need = (layer_bytes * placed.len()) as u64;
             if self.staging.as_ref().is_none_or(|b| b.size < need) {
@@ -553,7 +584,9 @@ impl Activity<'_> {
                 s.finished = g;
                 s.uploaded.generations += 1;
                 s.uploaded.tiles += placed.len() as u64;
-                s.uploaded.bytes += (layer_bytes * placed.len()) as u64;
+                let (h, d) =
+                    (HeightAtlas::height_layer_bytes(&shared.grid), HeightAtlas::deviation_slot_bytes(&shared.grid));
+                s.uploaded.bytes += placed.iter().map(|(_, _, slot)| h + slot.map_or(0, |_| d)).sum::<u64>();
             }
             s.uploaded.dropped += dropped.len() as u64;
             s.done.extend(back);
@@ -571,12 +604,13 @@ impl Activity<'_> {
     fn shade(&mut self, request: ErrorsRequest) -> VkResult<()> {
         let shared = self.shared;
         let started = Instant::now();
-        let tiles: Vec<(TileKey, u32)> = {
+        let tiles: Vec<(TileKey, u32, u32)> = {
             let s = shared.lock();
             let resident = |k: &TileKey| {
                 let i = s.layers.find(*k)?;
                 let held = matches!(s.layers.layer(i), crate::errors::handoff::Layer::Resident { .. });
-                (held && !s.released.contains(k)).then_some((*k, i as u32))
+                let slot = s.deviation_slot[i]?;
+                (held && !s.released.contains(k)).then_some((*k, i as u32, slot))
             };
             request.tiles.iter().filter(|k| k.level > 0).filter_map(resident).take(AtlasPasses::capacity()).collect()
         };
@@ -638,13 +672,14 @@ fn upload(
     shared: &Shared,
     cmd: vk::CommandBuffer,
     staging: &mut Buffer,
-    placed: &[(Arc<TileData>, usize)],
+    placed: &[(Arc<TileData>, usize, Option<u32>)],
     g: u64,
 ) -> VkResult<()> {
     let texel = if shared.unorm16 { 2 } else { 4 };
     let height_bytes = (shared.side * shared.side) as usize * texel;
     let groups = shared.grid.tile_quads as u32;
-    let layer_bytes = HeightAtlas::layer_bytes(&shared.grid) as usize;
+    let layer_bytes =
+        (HeightAtlas::height_layer_bytes(&shared.grid) + HeightAtlas::deviation_slot_bytes(&shared.grid)) as usize;
     let layer_of = |base_array_layer: u32| vk::ImageSubresourceLayers {
         aspect_mask: vk::ImageAspectFlags::COLOR,
         mip_level: 0,
@@ -654,7 +689,7 @@ fn upload(
     let (mut heights, mut deviations) = (Vec::with_capacity(placed.len()), Vec::new());
     {
         let dst = staging.mapped_mut()?;
-        for (i, (tile, layer)) in placed.iter().enumerate() {
+        for (i, (tile, layer, slot)) in placed.iter().enumerate() {
             let at = &mut dst[i * layer_bytes..][..layer_bytes];
             let (h, dev) = at.split_at_mut(height_bytes);
             texels(&tile.heights, shared.unorm16, h)
@@ -665,12 +700,12 @@ fn upload(
                     .image_subresource(layer_of(*layer as u32))
                     .image_extent(vk::Extent3D { width: shared.side, height: shared.side, depth: 1 }),
             );
-            if tile.key.level > 0 {
+            if let Some(slot) = slot {
                 deviation_texels(&tile.deviation[..(groups * groups) as usize], dev);
                 deviations.push(
                     vk::BufferImageCopy::default()
                         .buffer_offset((i * layer_bytes + height_bytes) as u64)
-                        .image_subresource(layer_of(*layer as u32))
+                        .image_subresource(layer_of(*slot))
                         .image_extent(vk::Extent3D { width: groups, height: groups, depth: 1 }),
                 );
             }
@@ -688,28 +723,33 @@ fn upload(
     // inside its layer.
     unsafe {
         crate::vk::begin_one_time(d, cmd)?;
-        for image in [&shared.image, &shared.deviation] {
-            for (_, layer) in placed {
-                let range =
-                    vk::ImageSubresourceRange { base_array_layer: *layer as u32, layer_count: 1, ..image.range(0, 1) };
-                image_barrier(d, cmd, image.handle, range, reused, written);
-            }
+        for (image, layer) in written_layers(shared, placed) {
+            let range = vk::ImageSubresourceRange { base_array_layer: layer, layer_count: 1, ..image.range(0, 1) };
+            image_barrier(d, cmd, image.handle, range, reused, written);
         }
         let dst = vk::ImageLayout::TRANSFER_DST_OPTIMAL;
         d.cmd_copy_buffer_to_image(cmd, staging.handle, shared.image.handle, dst, &heights);
         if !deviations.is_empty() {
             d.cmd_copy_buffer_to_image(cmd, staging.handle, shared.deviation.handle, dst, &deviations);
         }
-        for image in [&shared.image, &shared.deviation] {
-            for (_, layer) in placed {
-                let range =
-                    vk::ImageSubresourceRange { base_array_layer: *layer as u32, layer_count: 1, ..image.range(0, 1) };
-                image_barrier(d, cmd, image.handle, range, written, SAMPLED);
-            }
+        for (image, layer) in written_layers(shared, placed) {
+            let range = vk::ImageSubresourceRange { base_array_layer: layer, layer_count: 1, ..image.range(0, 1) };
+            image_barrier(d, cmd, image.handle, range, written, SAMPLED);
         }
         d.end_command_buffer(cmd).vk("vkEndCommandBuffer")?;
     }
     submit_and_wait(device, shared, cmd, g)
+}
+
+/// The layers an upload of `placed` writes: each tile's layer of heights and its slot
+/// of deviations, if it has one.
+fn written_layers<'a>(
+    shared: &'a Shared,
+    placed: &'a [(Arc<TileData>, usize, Option<u32>)],
+) -> impl Iterator<Item = (&'a Image, u32)> + 'a {
+    placed.iter().flat_map(move |(_, layer, slot)| {
+        std::iter::once((&shared.image, *layer as u32)).chain(slot.map(|s| (&shared.deviation, s)))
+    })
 }
 
 /// A tile's group deviations as the atlas's R16_SFLOAT texels, each rounded up (the

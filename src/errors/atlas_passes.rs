@@ -138,14 +138,15 @@ impl AtlasPasses {
         (CELLS[0] * CELLS[1]) as usize
     }
 
-    /// Records the shading of `tiles` (each with its layer, at most [`Self::capacity`])
+    /// Records the shading of `tiles` (each with its layer of heights and its slot of
+    /// deviations, at most [`Self::capacity`])
     /// for the camera `cam`, relative to sample `anchor`, into `cmd` (recording), and the
     /// copy of their cells to the readback buffer.
     pub(crate) fn record(
         &self,
         cmd: vk::CommandBuffer,
         grid: &Grid,
-        tiles: &[(TileKey, u32)],
+        tiles: &[(TileKey, u32, u32)],
         (anchor, cam): ([i64; 2], &Camera),
         unorm16: bool,
     ) {
@@ -175,11 +176,11 @@ impl AtlasPasses {
             d.cmd_begin_rendering(cmd, &info);
             d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, self.pipeline.handle);
             d.cmd_bind_descriptor_sets(cmd, vk::PipelineBindPoint::GRAPHICS, self.layout.handle, 0, &[self.set], &[]);
-            for (i, &(key, layer)) in tiles.iter().enumerate() {
+            for (i, &(key, layer, slot)) in tiles.iter().enumerate() {
                 let cell = [(i as u32 % CELLS[0]) * n, (i as u32 / CELLS[0]) * n];
                 let span = grid.tile_span(key.level) as i64;
                 let push = TileErrorsPush {
-                    tile: [layer as i32, i32::from(key.level), i32::from(unorm16), n as i32],
+                    tile: [layer as i32, i32::from(key.level), i32::from(unorm16), slot as i32],
                     origin: [
                         (i64::from(key.tx) * span - anchor[0]) as i32,
                         (i64::from(key.tz) * span - anchor[1]) as i32,
@@ -244,7 +245,7 @@ impl AtlasPasses {
 
     /// The block errors of `tiles` (as recorded), once the generation has finished: per
     /// tile, its cell row-major; and what the generation shaded.
-    pub(crate) fn read(&self, grid: &Grid, tiles: &[(TileKey, u32)]) -> VkResult<(Vec<TileBlocks>, Shaded)> {
+    pub(crate) fn read(&self, grid: &Grid, tiles: &[(TileKey, u32, u32)]) -> VkResult<(Vec<TileBlocks>, Shaded)> {
         let n = self.per_side as usize;
         let width = self.target.extent.width as usize;
         let bytes = self.readback.mapped()?;
@@ -253,7 +254,7 @@ impl AtlasPasses {
             f32::from_le_bytes([bytes[i], bytes[i + 1], bytes[i + 2], bytes[i + 3]])
         };
         let mut out = Vec::with_capacity(tiles.len());
-        for (i, &(key, _)) in tiles.iter().enumerate() {
+        for (i, &(key, _, _)) in tiles.iter().enumerate() {
             let (cx, cy) = ((i % CELLS[0] as usize) * n, (i / CELLS[0] as usize) * n);
             out.push((key, (0..n * n).map(|b| at(cx + b % n, cy + b / n)).collect()));
         }
