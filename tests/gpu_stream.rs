@@ -1277,6 +1277,31 @@ fn block_errors_over_the_atlas_are_the_cpu_bound_and_the_selection_comes_from_th
     }
     assert!(compared >= 64 && from_gpu >= 50, "{compared} block errors compared, {from_gpu} blocks bounded by them");
 
+    // A descent with one generation, computed at its start: the errors thread may take
+    // no more than a thousandth of the wall time, so none follows during the flight, and
+    // every frame takes that one, corrected for how far the camera has come (the tiles
+    // of the whole descent are read first). Every frame audits within delta.
+    atlas.set_update_share(1e-3);
+    let look = |p: DVec3| View::look_at(p, p + DVec3::new(400.0, -60.0, 900.0), 45.0, 320, 240, 1.0);
+    let (start, end) = (DVec3::new(1000.0, 400.0, 1000.0), DVec3::new(1600.0, 150.0, 2400.0));
+    for i in 1..=16 {
+        settled(&mut s, &look(start.lerp(end, f64::from(i) / 16.0)));
+    }
+    let first = settled_with_errors(&mut s, &look(start));
+    let (mut audited, mut corrected) = (0, 0);
+    for i in 1..=16 {
+        let view = look(start.lerp(end, f64::from(i) / 16.0));
+        let sel = s.frame(&view, None, 1.0, 1.0);
+        assert!(sel.within_bound(), "step {i}: every tile is held");
+        assert_eq!(sel.errors_generation, first.errors_generation, "step {i}: one generation for the flight");
+        let worst = worst_audit(&sel, &view);
+        assert!(worst <= 1.001, "step {i}: a block audits at {worst} px");
+        audited += 1;
+        corrected += usize::from(sel.errors_from_gpu > 0 && sel.errors_stale_worst > 1.5);
+    }
+    assert!(corrected >= 8, "{corrected} of {audited} frames took errors corrected by more than 1.5x");
+    atlas.set_update_share(0.05);
+
     // The same poses with every error read back a quarter of what it is: fewer blocks,
     // over the bound (the poses follow each other far apart: each asks anew).
     atlas.corrupt_errors(0.25);
