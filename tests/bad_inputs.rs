@@ -170,12 +170,24 @@ fn raw_without_size() {
     fails_cleanly(&["render", "--heightmap", &p], &["wrong_size.r16", "--raw-size"]);
 }
 #[test]
-fn larger_than_max_image_dimension() {
+fn larger_than_max_image_dimension_is_drawn_from_tiles() {
+    // A strip longer than the device's largest image (lavapipe: 16384) and 3 samples wide
+    // is cut into tiles and drawn from them, not refused and not degraded; without
+    // shadows, said so: no lighting map both fits one image and keeps 3 samples across.
     let p = corpus("too_big_for_device.r16");
-    fails_cleanly(
-        &["render", "--heightmap", &p, "--raw-size", "16385x3"],
-        &["too_big_for_device.r16", "maxImageDimension2D ("],
-    );
+    let scratch = Scratch::new();
+    let png = scratch.path("out.png");
+    let args =
+        ["render", "--heightmap", &p, "--raw-size", "16385x3", "--size", "64x48", "--out", &png.display().to_string()]
+            .map(String::from);
+    let out = common::run_bounded(&args, 120);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(0), "{stderr}");
+    let r: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!((r["streamed"].as_bool(), r["degraded"].as_bool()), (Some(true), Some(false)), "{r}");
+    assert_eq!(r["gpu"]["lighting"]["shadows"], false, "{r}");
+    assert!(stderr.contains("too long and narrow for one lighting map"), "{stderr}");
+    assert!(png.exists());
 }
 #[test]
 fn hgt_of_wrong_length() {

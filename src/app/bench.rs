@@ -5,7 +5,7 @@
 use crate::app::cli::positive;
 use crate::app::cli::{value_name, CommonArgs, Degraded, InputError, Interrupted, TextureArgs};
 use crate::app::commands::{draw_thread, Session};
-use crate::app::outputs::{plot_font, write_atomic};
+use crate::app::outputs::{median, percentile, plot_font, write_atomic};
 use crate::app::paths::{path_camera, CameraPath};
 use crate::draw::blocks::{BlocksRenderer, DrawStats, Shading, Target};
 use crate::draw::frame::{FrameRequest, LodChoice};
@@ -706,19 +706,6 @@ fn finish_temporal(
     diff.frames.retain(|&k, _| k + 2 >= r);
     diff.push(r, pixels, rows);
     Ok(())
-}
-
-fn percentile(sorted: &[f64], p: f64) -> f64 {
-    if sorted.is_empty() {
-        return 0.0;
-    }
-    sorted[((sorted.len() - 1) as f64 * p).round() as usize]
-}
-
-pub(crate) fn median(v: &[f64]) -> Option<f64> {
-    let mut s = v.to_vec();
-    s.sort_by(|a, b| a.partial_cmp(b).unwrap());
-    (!s.is_empty()).then(|| percentile(&s, 0.5))
 }
 
 /// Median and 99th percentile of each frame's time minus the same frame's time in

@@ -264,3 +264,18 @@ pub fn write_stdout(args: std::fmt::Arguments) -> anyhow::Result<()> {
         .and_then(|_| o.flush())
         .map_err(|e| anyhow::anyhow!("writing to standard output: {e}"))
 }
+
+/// The value at fraction `p` (0 to 1) of `sorted` (ascending), nearest rank; 0 when empty.
+pub fn percentile(sorted: &[f64], p: f64) -> f64 {
+    if sorted.is_empty() {
+        return 0.0;
+    }
+    sorted[((sorted.len() - 1) as f64 * p).round() as usize]
+}
+
+/// The median of `v` (any order), `None` when empty.
+pub fn median(v: &[f64]) -> Option<f64> {
+    let mut s = v.to_vec();
+    s.sort_by(f64::total_cmp);
+    (!s.is_empty()).then(|| percentile(&s, 0.5))
+}

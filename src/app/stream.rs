@@ -165,7 +165,15 @@ impl GpuFrames {
             "the archive",
             streamer.stop.as_deref(),
         ) {
-            Ok((hf, stride)) => (OwnLighting::new(&device, hf, stride, [grid.width, grid.height], None)?, None),
+            Ok(Some((hf, stride))) => (OwnLighting::new(&device, hf, stride, [grid.width, grid.height], None)?, None),
+            Ok(None) => {
+                let why = format!(
+                    "a {} x {} terrain is too long and narrow for one lighting map: frames without shadows",
+                    grid.width, grid.height
+                );
+                eprintln!("vkterrain: note: {why}");
+                (OwnLighting::everything_lit(&device)?, Some(why))
+            }
             // Stopped: the run ends before any frame needs the map.
             Err(_) if streamer.stopped() => (OwnLighting::everything_lit(&device)?, Some("stopped".into())),
             Err(e) => {
@@ -336,7 +344,7 @@ impl GpuFrames {
             "tiles_shaded": e.tiles,
             "groups_shaded": e.groups,
             "bytes_read_back": e.bytes_read_back,
-            "median_gpu_ms": crate::app::bench::median(&e.gpu_ms),
+            "median_gpu_ms": crate::app::outputs::median(&e.gpu_ms),
         })
     }
 
@@ -710,7 +718,7 @@ pub(crate) fn errors_over_atlas(
         "readback_bytes": last.bytes_read_back,
         "update_ms": times.get(times.len() / 2),
         "update_ms_min": times.first(),
-        "update_gpu_ms": crate::app::bench::median(&shaded.gpu_ms),
+        "update_gpu_ms": crate::app::outputs::median(&shaded.gpu_ms),
         "repeat": repeat,
     }))
 }

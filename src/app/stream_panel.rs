@@ -134,18 +134,12 @@ fn panel(ui: &mut egui::Ui, r: &StreamReadout, history: &FrameHistory, now: f64,
         row("evicted", r.tiles_evicted.to_string());
         row("failed reads", r.tiles_failed.to_string());
         row("atlas", format!("{} layers, {} uploads", r.atlas_layers, r.uploaded_tiles));
+        // Short rows: the panel's width is what a drag beside it must leave free.
         if let Some(e) = &r.errors {
-            let gpu = e.gpu_ms.map_or(String::new(), |ms| format!(", {ms:.1} ms GPU"));
-            row(
-                "errors",
-                format!(
-                    "{} tiles, {:.2} M groups, {:.1} KB back{gpu}; {} blocks",
-                    e.tiles,
-                    e.groups as f64 / 1e6,
-                    e.bytes_read_back as f64 / 1024.0,
-                    r.blocks_bounded_by_errors
-                ),
-            );
+            row("errors", format!("{} tiles, {:.2} M groups", e.tiles, e.groups as f64 / 1e6));
+            let gpu = e.gpu_ms.map_or(String::new(), |ms| format!(", {ms:.1} ms"));
+            row("read back", format!("{:.1} KB{gpu}", e.bytes_read_back as f64 / 1024.0));
+            row("by errors", format!("{} blocks", r.blocks_bounded_by_errors));
         }
         // The name without the driver's details in brackets (it fits the panel).
         row("device", r.device.split(" (").next().unwrap_or_default().chars().take(24).collect());

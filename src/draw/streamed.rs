@@ -846,17 +846,26 @@ impl Drop for StreamedRenderer {
 /// The heights streamed frames' lighting map is made from, and their stride: the tiles of
 /// the level whose vertices fall one to a texel of the map the same terrain gets in
 /// memory (at most the top level; 64 tiles or fewer whatever the terrain's size), read
-/// from `source` (`name`: the archive, for errors that do not name it already).
-/// Stops between tiles once `stop` is set (a stop request): an error then.
+/// from `source` (`name`: the archive, for errors that do not name it already); `None`
+/// for a strip too long and narrow for any (3 samples across in at most
+/// `MAX_LIGHTING_SIDE` a side). Stops between tiles once `stop` is set (a stop request):
+/// an error then.
 pub fn lighting_heights(
     source: &dyn TileSource,
     grid: &Grid,
     name: &str,
     stop: Option<&std::sync::atomic::AtomicBool>,
-) -> anyhow::Result<(Heightfield, usize)> {
+) -> anyhow::Result<Option<(Heightfield, usize)>> {
     let (n, roots) = crate::lod::heightfield::grid_cover(grid.width, grid.height);
     let side = roots.iter().map(|r| r * (1 << n) + 1).max().unwrap_or(1);
+    // At most `MAX_LIGHTING_SIDE` texels a side, and at least 3 samples along the
+    // narrower side (a heightfield's least): a strip too long and narrow for both has no
+    // map.
     let level = (samples_per_texel(side, MAX_LIGHTING_SIDE).trailing_zeros() as u8).min(grid.top);
+    let narrow = grid.width.min(grid.height).saturating_sub(1).max(2);
+    if (narrow >> level) < 2 {
+        return Ok(None);
+    }
     let terrain = LevelTerrain {
         name,
         extent: [grid.width, grid.height],
@@ -876,5 +885,5 @@ pub fn lighting_heights(
             Err(e) => Err(anyhow::anyhow!(e)),
         }
     })?;
-    Ok((hf, 1 << level))
+    Ok(Some((hf, 1 << level)))
 }
