@@ -70,14 +70,7 @@ fn poses() -> Vec<View> {
 
 /// The view as the in-memory code sees it (sample (0, 0) at the world's origin).
 fn camera(view: &View) -> Camera {
-    Camera {
-        position: view.position.as_vec3(),
-        forward: view.forward,
-        fovy: view.fovy,
-        width: view.width,
-        height: view.height,
-        near: view.near,
-    }
+    view.absolute()
 }
 
 /// Frames at `view` until every tile the selection wants is held (or `limit` frames).
@@ -957,8 +950,9 @@ fn streamed_part_boxes_hold_their_triangles() {
 /// How the traversal takes the errors activity's block errors ([`TileErrors`]): the
 /// smaller of them and the tile's own bound. Errors above the tile's bound change
 /// nothing; zero errors at the camera stop every split; infinite ones (a `D` past the
-/// half floats' range) and errors from a camera that may have come inside a block's
-/// distance bound nothing, and are counted as the tile's.
+/// half floats' range), errors from a camera that may have come inside a block's
+/// distance and errors for another height scale bound nothing, and are counted as the
+/// tile's.
 #[test]
 fn the_traversal_takes_the_smaller_of_the_gpu_errors_and_the_tiles_bound() {
     use vkterrain::stream::errors::TileErrors;
@@ -972,6 +966,7 @@ fn the_traversal_takes_the_smaller_of_the_gpu_errors_and_the_tiles_bound() {
         generation: 7,
         position,
         kappa: camera(&view).kappa(),
+        height_scale: grid.height_scale,
         gpu_ms: None,
         tiles: s.cache.tiles().iter().filter(|t| t.key.level > 0).map(|t| (t.key, vec![value; per_tile])).collect(),
     };
@@ -1011,6 +1006,10 @@ fn the_traversal_takes_the_smaller_of_the_gpu_errors_and_the_tiles_bound() {
         far.errors_from_tiles,
         far.blocks.len()
     );
+    // Zero, but for other heights (the viewer's exaggeration since): bounds nothing.
+    let rescaled = with(&TileErrors { height_scale: grid.height_scale * 2.0, ..errors_of(0.0, view.position) });
+    assert_eq!(lods(&rescaled), lods(&plain));
+    assert_eq!(rescaled.errors_from_gpu, 0);
     // Zero for a camera a metre away: taken, corrected, still zero.
     let near = with(&errors_of(0.0, view.position + DVec3::new(1.0, 0.0, 0.0)));
     assert!(near.errors_from_gpu > 0 && near.errors_stale_worst > 1.0);

@@ -164,11 +164,14 @@ fn parse_fraction(s: &str) -> Result<f32, String> {
 }
 
 fn parse_share(s: &str) -> Result<f32, String> {
-    let v: f32 = s.parse().map_err(|_| format!("'{s}' is not a number"))?;
+    let v: f64 = s.parse().map_err(|_| format!("'{s}' is not a number"))?;
     if !(v > 0.0 && v <= 1.0) {
         return Err(format!("'{s}': must be above 0 and at most 1"));
     }
-    Ok(v)
+    if (v as f32) < f32::MIN_POSITIVE {
+        return Err(format!("'{s}': too small (at least {:e})", f32::MIN_POSITIVE));
+    }
+    Ok(v as f32)
 }
 
 fn parse_fovy(s: &str) -> Result<f32, String> {
@@ -384,16 +387,22 @@ impl CommonArgs {
             // Over tiles the errors thread waits for each generation before the next.
             ("--error-pacing free", self.error_pacing == crate::errors::activity::Pacing::Free),
         ];
-        let refused: Vec<&str> = more.iter().chain(&shared).filter_map(|&(name, set)| set.then_some(name)).collect();
-        if refused.is_empty() {
-            return Ok(());
-        }
-        Err(InputError(format!(
-            "{} is drawn streamed (tiles through a bounded cache), which does not take {} yet",
-            self.terrain.name(),
-            refused.join(", ")
-        )))
+        let options: Vec<(&str, bool)> = more.iter().chain(&shared).copied().collect();
+        refuse_on_tiles(&self.terrain.name(), &options)
     }
+}
+
+/// Refuses, naming them, the options of `options` that were given (each with whether
+/// it was) which a terrain drawn from tiles cannot honour yet.
+pub fn refuse_on_tiles(terrain: &str, options: &[(&str, bool)]) -> Result<(), InputError> {
+    let refused: Vec<&str> = options.iter().filter_map(|&(name, set)| set.then_some(name)).collect();
+    if refused.is_empty() {
+        return Ok(());
+    }
+    Err(InputError(format!(
+        "{terrain} is drawn streamed (tiles through a bounded cache), which does not take {} yet",
+        refused.join(", ")
+    )))
 }
 
 impl TerrainArgs {

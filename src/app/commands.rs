@@ -105,15 +105,7 @@ fn errors_over_tiles(args: &ErrorsArgs, device: Arc<Device>, archive: Arc<Archiv
         ("--block (tiles fix k = 33)", args.block.k != 33),
         ("--dump (the block-error pyramid of a terrain in one image)", args.dump.is_some()),
     ];
-    let refused: Vec<&str> = refused.iter().filter_map(|&(name, set)| set.then_some(name)).collect();
-    if !refused.is_empty() {
-        return Err(InputError(format!(
-            "{} is drawn streamed (tiles through a bounded cache), which does not take {} yet",
-            args.terrain.name(),
-            refused.join(", ")
-        ))
-        .into());
-    }
+    crate::app::cli::refuse_on_tiles(&args.terrain.name(), &refused)?;
     let (cache_mb, gpu_mb) = (args.streamed.cache_mb(), args.streamed.gpu_mb());
     eprintln!("{}", crate::app::stream::streamed_banner(&args.terrain.name(), &archive.meta, cache_mb, gpu_mb));
     let r = crate::app::stream::errors_over_atlas(
@@ -457,15 +449,7 @@ fn render_streamed(
             .terrain
             .load_heightfield(None)
             .map_err(|e| InputError(format!("--audit compares the frame with every sample, in memory: {e:#}")))?;
-        let v = &r.view;
-        let cam = crate::lod::camera::Camera {
-            position: v.position.as_vec3(),
-            forward: v.forward,
-            fovy: v.fovy,
-            width: v.width,
-            height: v.height,
-            near: v.near,
-        };
+        let cam = r.view.absolute();
         // In the archive's block layout (one square of 2^n + 1 samples a side), which is
         // not the in-memory one for every size: the samples beyond the true extent repeat
         // its edge in both.

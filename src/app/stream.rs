@@ -662,8 +662,9 @@ pub fn streamed_archive(
 
 /// `errors` over the atlas: the first view's tiles read and uploaded, then `repeat`
 /// generations of block errors, each for a camera a hundredth of a sample further along
-/// x than the one before (a new generation each), waited for; their wall and GPU times
-/// and what the last one shaded, as JSON.
+/// x than the one before (a new generation each, unless the view holds no terrain),
+/// waited for; their count, wall and GPU times and what the last one shaded (per
+/// generation, as the in-memory `errors` reports), as JSON.
 pub(crate) fn errors_over_atlas(
     archive: &Arc<Archive>,
     device: &Arc<Device>,
@@ -691,19 +692,25 @@ pub(crate) fn errors_over_atlas(
         View::look_at(p, look_at.as_dvec3(), camera.frustum.fovy, w, h, near)
     };
     let (_, first) = settle(&mut streamer, |_| view(0), 1.0);
+    // From here: the repeats' own generations (a view of no terrain asks for none).
+    let before = atlas.shaded();
     let mut times = vec![];
     for i in 1..=repeat {
-        let t = Instant::now();
+        let (g, t) = (atlas.shaded().generations, Instant::now());
         streamer.frame(&view(i), None, 1.0, 1.0);
         streamer.settle();
-        times.push(t.elapsed().as_secs_f64() * 1e3);
+        if atlas.shaded().generations > g {
+            times.push(t.elapsed().as_secs_f64() * 1e3);
+        }
     }
     if let Some(e) = atlas.failure() {
         return Err(anyhow::anyhow!("the errors activity stopped: {e}"));
     }
     times.sort_by(f64::total_cmp);
     let shaded = atlas.shaded();
-    let last = shaded.last.unwrap_or_default();
+    let generations = shaded.generations - before.generations;
+    // The last generation's figures, if a repeat shaded one.
+    let last = shaded.last.filter(|_| generations > 0);
     Ok(serde_json::json!({
         "streamed": true,
         "grid": [grid.width, grid.height],
@@ -711,14 +718,14 @@ pub(crate) fn errors_over_atlas(
         "error_mode": "strict",
         "atlas_layers": atlas.layer_count(),
         "tiles_held": streamer.cache.len(),
-        "blocks_bounded_by_errors": first.errors_from_gpu,
-        "generations": shaded.generations,
-        "tiles_shaded": last.tiles,
-        "groups_shaded": last.groups,
-        "readback_bytes": last.bytes_read_back,
+        "blocks_bounded_by_errors": first.drawn_bounded_by().0,
+        "generations": generations,
+        "tiles_shaded": last.map(|l| l.tiles),
+        "groups_shaded": last.map(|l| l.groups),
+        "readback_bytes": last.map(|l| l.bytes_read_back),
         "update_ms": times.get(times.len() / 2),
         "update_ms_min": times.first(),
-        "update_gpu_ms": crate::app::outputs::median(&shaded.gpu_ms),
+        "update_gpu_ms": crate::app::outputs::median(&shaded.gpu_ms[before.gpu_ms.len()..]),
         "repeat": repeat,
     }))
 }
@@ -845,8 +852,9 @@ pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
         "blocks_over_bound": sel.over_bound,
         "worst_factor": sel.worst_factor,
         "stitch_splits": sel.stitch_splits,
-        "blocks_bounded_by_errors": sel.errors_from_gpu,
-        "blocks_bounded_by_tiles": sel.errors_from_tiles,
+        // Of the blocks drawn (the rest: LOD 0, or the top tile's coarser blocks).
+        "blocks_bounded_by_errors": sel.drawn_bounded_by().0,
+        "blocks_bounded_by_tiles": sel.drawn_bounded_by().1,
         "errors_generation": sel.errors_generation,
         "lod": format!("{:?}", f.lod).to_lowercase(),
         "shading": StreamedRenderer::shading_name(f.normals),

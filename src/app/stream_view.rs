@@ -569,7 +569,7 @@ impl App {
             atlas_layers: report["atlas_layers"].as_u64().unwrap_or(0) as u32,
             uploaded_tiles: report["tiles_uploaded"].as_u64().unwrap_or(0),
             errors: gpu.frames.errors_shaded().last,
-            blocks_bounded_by_errors: sel.errors_from_gpu,
+            blocks_bounded_by_errors: sel.drawn_bounded_by().0,
             device: gpu.frames.device.name.clone(),
             queue_mode: gpu.frames.device.queue_mode.as_str().into(),
             camera: if self.args.flyover {

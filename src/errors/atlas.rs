@@ -348,7 +348,7 @@ impl HeightAtlas {
     /// The largest share of wall time the errors generations may take (`--update-share`,
     /// above 0 and at most 1): after one of `u` ms the next waits `u (1 / share - 1)` ms.
     pub fn set_update_share(&self, share: f32) {
-        self.shared.lock().update_share = share.clamp(1e-3, 1.0);
+        self.shared.lock().update_share = share.clamp(f32::MIN_POSITIVE, 1.0);
     }
 
     /// Multiplies every block error read back from now on by `factor`: a corrupted
@@ -407,13 +407,13 @@ impl TileGate for AtlasFeed {
         }
     }
 
-    fn request_errors(&self, view: View, tiles: Vec<TileKey>) {
+    fn request_errors(&self, view: View, tiles: Vec<TileKey>, height_scale: f64) {
         let mut s = self.shared.lock();
         if s.stop || s.failure.is_some() {
             return;
         }
         s.requested += 1;
-        s.request = Some(ErrorsRequest { number: s.requested, view, tiles });
+        s.request = Some(ErrorsRequest { number: s.requested, view, tiles, height_scale });
         drop(s);
         self.shared.work.notify_all();
     }
@@ -500,8 +500,9 @@ fn run(device: &Arc<Device>, shared: &Shared, trace: &Trace) -> VkResult<()> {
             s.hurry &= s.answered < s.requested;
             // After an update of u, the next waits u (1 / share - 1): the errors take at
             // most `share` of the wall time.
-            let share = f64::from(s.update_share);
-            s.next_errors_at = Some(Instant::now() + started.elapsed().mul_f64(1.0 / share - 1.0));
+            // (At most a day: longer is never, and an Instant cannot overflow.)
+            let wait = started.elapsed().as_secs_f64() * (1.0 / f64::from(s.update_share) - 1.0);
+            s.next_errors_at = Some(Instant::now() + std::time::Duration::from_secs_f64(wait.min(86_400.0)));
             drop(s);
             shared.progress.notify_all();
             if let Err(e) = shaded {
@@ -603,6 +604,8 @@ impl Activity<'_> {
     /// publishes them.
     fn shade(&mut self, request: ErrorsRequest) -> VkResult<()> {
         let shared = self.shared;
+        // The terrain's heights as the traversal scales them now.
+        let grid = Grid { height_scale: request.height_scale, ..shared.grid };
         let started = Instant::now();
         let tiles: Vec<(TileKey, u32, u32)> = {
             let s = shared.lock();
@@ -618,23 +621,24 @@ impl Activity<'_> {
             return Ok(());
         }
         let g = self.generation + 1;
-        let (anchor, cam) = request.view.relative(&shared.grid);
+        let (anchor, cam) = request.view.relative(&grid);
         let d = &self.device.raw;
         // SAFETY: `cmd` belongs to this thread's pool and its last submission was waited
         // for (begin resets it).
         unsafe { crate::vk::begin_one_time(d, self.cmd)? };
-        self.passes.record(self.cmd, &shared.grid, &tiles, (anchor, &cam), shared.unorm16);
+        self.passes.record(self.cmd, &grid, &tiles, (anchor, &cam), shared.unorm16);
         // SAFETY: recording, as above.
         unsafe { d.end_command_buffer(self.cmd).vk("vkEndCommandBuffer")? };
         submit_and_wait(self.device, shared, self.cmd, g)?;
         self.generation = g;
-        let (blocks, shaded) = self.passes.read(&shared.grid, &tiles)?;
+        let (blocks, shaded) = self.passes.read(&grid, &tiles)?;
         let mut s = shared.lock();
         let scale = s.scale_errors;
         let errors = TileErrors {
             generation: g,
             position: request.view.position,
             kappa: cam.kappa(),
+            height_scale: grid.height_scale,
             gpu_ms: shaded.gpu_ms,
             tiles: blocks.into_iter().map(|(k, b)| (k, b.into_iter().map(|e| e * scale).collect())).collect(),
         };

@@ -2,7 +2,7 @@
 //! generation, one fragment pass a tile shades the errors of its blocks
 //! (`glsl/tile_errors.frag`: every group's `D * height_scale * kappa / distance`, the
 //! largest a block) into its cell of an R32F target, and only the cells shaded are copied
-//! to a host-visible buffer: 4 bytes a block, 256 a tile. Owned and recorded by the
+//! to a host-visible buffer, one after another: 4 bytes a block, 256 a tile. Owned and recorded by the
 //! errors thread ([`crate::errors::atlas`]), which waits for each generation before the
 //! next, so one target and one readback buffer serve every generation.
 //!
@@ -24,6 +24,11 @@ use std::sync::Arc;
 /// Cells of the target along x and y: one a tile shaded, as many as the atlas has layers
 /// at most ([`super::atlas::MAX_LAYERS`]).
 const CELLS: [u32; 2] = [64, 32];
+
+/// The first texel of the `i`-th tile's cell (`n` blocks a side), row by row.
+fn cell_of(i: usize, n: u32) -> [u32; 2] {
+    [(i as u32 % CELLS[0]) * n, (i as u32 / CELLS[0]) * n]
+}
 
 const WRITTEN: ImageUse = (
     vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT,
@@ -177,7 +182,7 @@ impl AtlasPasses {
             d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, self.pipeline.handle);
             d.cmd_bind_descriptor_sets(cmd, vk::PipelineBindPoint::GRAPHICS, self.layout.handle, 0, &[self.set], &[]);
             for (i, &(key, layer, slot)) in tiles.iter().enumerate() {
-                let cell = [(i as u32 % CELLS[0]) * n, (i as u32 / CELLS[0]) * n];
+                let cell = cell_of(i, n);
                 let span = grid.tile_span(key.level) as i64;
                 let push = TileErrorsPush {
                     tile: [layer as i32, i32::from(key.level), i32::from(unorm16), slot as i32],
@@ -215,27 +220,26 @@ impl AtlasPasses {
             }
             d.cmd_end_rendering(cmd);
             image_barrier(d, cmd, self.target.handle, range, WRITTEN, COPY_SOURCE);
-            let region = vk::BufferImageCopy::default()
-                .image_subresource(vk::ImageSubresourceLayers {
-                    aspect_mask: vk::ImageAspectFlags::COLOR,
-                    mip_level: 0,
-                    base_array_layer: 0,
-                    layer_count: 1,
+            // The cells shaded and nothing else, one after another: 4 bytes a block.
+            let regions: Vec<vk::BufferImageCopy> = (0..tiles.len())
+                .map(|i| {
+                    let cell = cell_of(i, n);
+                    vk::BufferImageCopy::default()
+                        .buffer_offset((i as u32 * n * n * 4) as u64)
+                        .image_subresource(vk::ImageSubresourceLayers {
+                            aspect_mask: vk::ImageAspectFlags::COLOR,
+                            mip_level: 0,
+                            base_array_layer: 0,
+                            layer_count: 1,
+                        })
+                        .image_offset(vk::Offset3D { x: cell[0] as i32, y: cell[1] as i32, z: 0 })
+                        .image_extent(vk::Extent3D { width: n, height: n, depth: 1 })
                 })
-                .image_extent(vk::Extent3D { width, height: rows, depth: 1 });
-            d.cmd_copy_image_to_buffer(
-                cmd,
-                self.target.handle,
-                vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
-                self.readback.handle,
-                &[region],
-            );
-            host_read_barrier(
-                d,
-                cmd,
-                self.readback.handle,
-                (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_WRITE),
-            );
+                .collect();
+            let src = vk::ImageLayout::TRANSFER_SRC_OPTIMAL;
+            d.cmd_copy_image_to_buffer(cmd, self.target.handle, src, self.readback.handle, &regions);
+            let written = (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_WRITE);
+            host_read_barrier(d, cmd, self.readback.handle, written);
             if let Some((q, buffer)) = &self.queries {
                 d.cmd_write_timestamp2(cmd, vk::PipelineStageFlags2::BOTTOM_OF_PIPE, q.handle, 1);
                 q.record_copy(cmd, 0, 2, buffer.handle, 0);
@@ -246,18 +250,16 @@ impl AtlasPasses {
     /// The block errors of `tiles` (as recorded), once the generation has finished: per
     /// tile, its cell row-major; and what the generation shaded.
     pub(crate) fn read(&self, grid: &Grid, tiles: &[(TileKey, u32, u32)]) -> VkResult<(Vec<TileBlocks>, Shaded)> {
-        let n = self.per_side as usize;
-        let width = self.target.extent.width as usize;
+        let cell = (self.per_side * self.per_side) as usize;
         let bytes = self.readback.mapped()?;
-        let at = |x: usize, y: usize| {
-            let i = (y * width + x) * 4;
-            f32::from_le_bytes([bytes[i], bytes[i + 1], bytes[i + 2], bytes[i + 3]])
-        };
-        let mut out = Vec::with_capacity(tiles.len());
-        for (i, &(key, _, _)) in tiles.iter().enumerate() {
-            let (cx, cy) = ((i % CELLS[0] as usize) * n, (i / CELLS[0] as usize) * n);
-            out.push((key, (0..n * n).map(|b| at(cx + b % n, cy + b / n)).collect()));
-        }
+        let out = tiles
+            .iter()
+            .enumerate()
+            .map(|(i, &(key, _, _))| {
+                let at = &bytes[i * cell * 4..(i + 1) * cell * 4];
+                (key, at.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect())
+            })
+            .collect();
         let gpu_ms = match &self.queries {
             Some((q, buffer)) => {
                 let t = buffer.mapped()?;
@@ -266,11 +268,10 @@ impl AtlasPasses {
             }
             None => None,
         };
-        let rows = tiles.len().div_ceil(CELLS[0] as usize) * n;
         let shaded = Shaded {
             tiles: tiles.len() as u64,
             groups: (tiles.len() * grid.tile_quads * grid.tile_quads) as u64,
-            bytes_read_back: (rows * width * 4) as u64,
+            bytes_read_back: (tiles.len() * cell * 4) as u64,
             gpu_ms,
         };
         Ok((out, shaded))

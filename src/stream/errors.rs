@@ -20,8 +20,10 @@ pub struct TileErrors {
     pub generation: u64,
     /// The camera the errors were computed for (world, f64).
     pub position: DVec3,
-    /// The `kappa` (pixels per unit of tangent) they were computed with.
+    /// The `kappa` (pixels per unit of tangent) and the height scale (world units a raw
+    /// unit: the exaggeration changes it) they were computed with.
     pub kappa: f32,
+    pub height_scale: f64,
     /// The generation's GPU time, when the device has timestamps.
     pub gpu_ms: Option<f64>,
     /// Per tile shaded: the errors of the blocks of its own level, row-major,

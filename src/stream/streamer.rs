@@ -64,7 +64,7 @@ pub trait TileGate: Send {
     fn wait(&self);
     /// Asks the errors activity for the block errors of `tiles` at `view` (replacing a
     /// request not started yet). A gate without an errors activity ignores it.
-    fn request_errors(&self, _view: View, _tiles: Vec<TileKey>) {}
+    fn request_errors(&self, _view: View, _tiles: Vec<TileKey>, _height_scale: f64) {}
     /// The newest finished generation of block errors, if any.
     fn errors(&self) -> Option<Arc<TileErrors>> {
         None
@@ -79,6 +79,8 @@ pub struct ErrorsRequest {
     pub number: u64,
     pub view: View,
     pub tiles: Vec<TileKey>,
+    /// The terrain's height scale now (the exaggeration changes it).
+    pub height_scale: f64,
 }
 
 pub struct Streamer {
@@ -114,8 +116,9 @@ pub struct Streamer {
     /// New errors are asked for once the camera has moved this fraction of the distance
     /// to the nearest block since they were computed (`--refresh-at`).
     pub refresh_at: f32,
-    /// The last request for errors: the camera, the tiles, the tiles held then.
-    errors_asked: Option<(glam::DVec3, Vec<TileKey>, usize)>,
+    /// The last request for errors: the camera, the tiles, the tiles held then, the
+    /// height scale's bits.
+    errors_asked: Option<(glam::DVec3, Vec<TileKey>, usize, u64)>,
 }
 
 impl Streamer {
@@ -317,12 +320,12 @@ impl Streamer {
         tiles.sort();
         // The same request again would get the same answer (a tile not resident when it
         // was shaded may be now: the tiles held are part of it).
-        let asked = (view.position, tiles.clone(), self.cache.len());
+        let asked = (view.position, tiles.clone(), self.cache.len(), self.grid.height_scale.to_bits());
         if self.errors_asked.as_ref() == Some(&asked) {
             return;
         }
         self.errors_asked = Some(asked);
-        gate.request_errors(*view, tiles);
+        gate.request_errors(*view, tiles, self.grid.height_scale);
     }
 
     fn request(&mut self, mut wanted: Vec<(TileKey, f32)>) {

@@ -41,6 +41,19 @@ impl View {
         View { position, forward, fovy: fovy_deg.to_radians(), width, height, near }
     }
 
+    /// The view as a terrain held whole sees it (sample (0, 0) at the world's origin, f32):
+    /// for audits against the terrain in memory.
+    pub fn absolute(&self) -> Camera {
+        Camera {
+            position: self.position.as_vec3(),
+            forward: self.forward,
+            fovy: self.fovy,
+            width: self.width,
+            height: self.height,
+            near: self.near,
+        }
+    }
+
     /// The sample nearest the camera (the origin of the relative frame) and the camera
     /// relative to it. A camera off the terrain takes the terrain's sample nearest it:
     /// the frame's offsets stay within the terrain's samples (i32 on the GPU), however far
@@ -99,6 +112,20 @@ pub struct Selected {
     pub d: f32,
     pub lo: f32,
     pub hi: f32,
+    /// Its error came from the errors activity's generation (`Some(true)`), or could have
+    /// and came from its tile's summary (`Some(false)`: no generation shaded its tile, or
+    /// the camera may have come inside its distance); `None`: LOD 0 (never split), the top
+    /// tile's coarser blocks, or no generation at all.
+    pub from_errors: Option<bool>,
+}
+
+impl Selection {
+    /// Drawn blocks whose error came from the errors activity, and drawn blocks that
+    /// could have taken it from there and took their tile summary's.
+    pub fn drawn_bounded_by(&self) -> (usize, usize) {
+        let count = |v: bool| self.blocks.iter().filter(|b| b.from_errors == Some(v)).count();
+        (count(true), count(false))
+    }
 }
 
 /// One frame's selection.
@@ -372,14 +399,18 @@ impl<'a> Traverser<'a> {
                 continue;
             }
             let mut error_px = block_error_px(grid.height_scale, &self.cam, &s, (min, max), delta);
-            match self.gpu_error_px(key, (lod, bx, bz), (min, max)) {
+            let from_errors = match self.gpu_error_px(key, (lod, bx, bz), (min, max)) {
                 Some(gpu) => {
                     error_px = error_px.min(gpu);
                     self.out.errors_from_gpu += 1;
+                    Some(true)
                 }
-                None if lod > 0 && lod == u32::from(key.level) => self.out.errors_from_tiles += 1,
-                None => {}
-            }
+                None if lod > 0 && lod == u32::from(key.level) => {
+                    self.out.errors_from_tiles += 1;
+                    self.errors.is_some().then_some(false)
+                }
+                None => None,
+            };
             let should_split = lod > 0
                 && match self.lod {
                     StreamedLod::Error => error_px > delta,
@@ -424,6 +455,7 @@ impl<'a> Traverser<'a> {
                 d: s.d,
                 lo: s.lo,
                 hi: s.hi,
+                from_errors,
             });
         }
     }
@@ -433,7 +465,9 @@ impl<'a> Traverser<'a> {
     /// the top tile's coarser ones), or the camera may have come inside its distance.
     fn gpu_error_px(&mut self, key: TileKey, (lod, bx, bz): (u32, u32, u32), bbox: (Vec3, Vec3)) -> Option<f32> {
         let (errors, old, moved) = self.errors?;
-        if lod != u32::from(key.level) || lod == 0 {
+        // Heights scaled otherwise since (the exaggeration): every group's error and box
+        // changed; the generation bounds nothing.
+        if lod != u32::from(key.level) || lod == 0 || errors.height_scale != self.grid.height_scale {
             return None;
         }
         let per_side = self.grid.tile_quads / BLOCK_QUADS;

@@ -421,8 +421,9 @@ impl FrameTimer {
     }
 }
 
-/// Records a copy of a whole colour image (in TRANSFER_SRC_OPTIMAL) into `buffer`, then
-/// a barrier that makes the bytes visible to the host after the submission's fence.
+/// Records a copy of a colour image's first `extent` texels (from its top left corner;
+/// the whole image when `extent` is its size; in TRANSFER_SRC_OPTIMAL) into `buffer`,
+/// then a barrier that makes the bytes visible to the host after the submission's fence.
 ///
 /// # Safety
 /// `cmd` is recording and the image is in TRANSFER_SRC_OPTIMAL; `buffer` must hold `extent` texels of the image's format.
