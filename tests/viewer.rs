@@ -753,3 +753,39 @@ fn the_streamed_viewer_exaggerates_heights_as_in_memory() {
     assert!(near, "the same start view: {start_mem} against {start_str}");
     assert!(same < 10.0 && same * 2.0 < other, "RMSE {same:.2} (at 1: {other:.2})");
 }
+
+/// Raising the exaggeration live (X, three times: 3.375) in the viewer of a terrain
+/// drawn from tiles selects what a start at that exaggeration selects: the errors
+/// activity's generation at the old heights bounds nothing at the new ones, and a new one
+/// is asked for (it drew 168 blocks against 295 when the old generation was still taken).
+#[test]
+fn the_streamed_viewer_refines_for_an_exaggeration_changed_live() {
+    let ps = common::data("puget_sound/ps_height_1k.png");
+    let p = ps.to_str().unwrap();
+    let camera = ["--camera", "30000,3000,30000", "--look-at", "90000,0,90000"];
+    let mut fresh_args = vec![p, "--stream", "--size", "320x180", "--frames", "40", "--no-hud", "--validation", "on"];
+    fresh_args.extend(camera);
+    fresh_args.extend(["--exaggeration", "3.375"]);
+    let fresh = clean_run(&fresh_args);
+    let view = format!("'{p}' --stream --size 320x180 --no-hud --validation on {}", camera.join(" "));
+    let steps = r#"wait_frames 3
+xdotool key x
+wait_frames 1
+xdotool key x
+wait_frames 1
+xdotool key x
+wait_frames 40
+xdotool key Escape
+"#;
+    let mut checked = false;
+    xdotool_session("stream-exaggeration", &view, steps, "", |_, ok, stdout, stderr| {
+        assert!(ok, "streamed viewer under xdotool failed: {stderr}\n{stdout}");
+        let live: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
+        assert_eq!(live["validation_messages"], 0, "{stderr}");
+        assert_eq!(live["exaggeration"].as_f64(), Some(3.375), "{live}");
+        let (a, b) = (live["last_blocks"].as_f64().unwrap(), fresh["last_blocks"].as_f64().unwrap());
+        assert!((a - b).abs() <= 0.1 * b, "live {a} blocks, fresh {b}: {live} {fresh}");
+        checked = true;
+    });
+    assert!(checked);
+}
