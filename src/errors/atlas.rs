@@ -62,9 +62,8 @@ struct State {
     stop: bool,
     failure: Option<String>,
     uploaded: Uploaded,
-    /// The deviation slot of the tile each layer holds, and the slots no layer holds.
-    deviation_slot: Vec<Option<u32>>,
-    free_slots: Vec<u32>,
+    /// The deviation slot of the tile each layer holds.
+    slots: DeviationSlots,
     /// The newest request for block errors not started yet, and the number of the last
     /// one made and of the last one answered (shaded, or found nothing to shade).
     request: Option<ErrorsRequest>,
@@ -81,6 +80,37 @@ struct State {
     update_share: f32,
     next_errors_at: Option<Instant>,
     hurry: bool,
+}
+
+/// Which slot of deviations the tile in each layer of heights holds (tiles above level 0
+/// only, while a slot is free): a layer's new tile takes over from its old one, whose
+/// slot is freed first.
+#[derive(Clone, Debug, PartialEq, Eq)]
+struct DeviationSlots {
+    of_layer: Vec<Option<u32>>,
+    free: Vec<u32>,
+}
+
+impl DeviationSlots {
+    fn new(layers: usize, slots: u32) -> Self {
+        DeviationSlots { of_layer: vec![None; layers], free: (0..slots).rev().collect() }
+    }
+
+    /// A new tile in `layer`: the old one's slot is freed, and the new one takes a free
+    /// slot if it `wants` one (it has a `D`).
+    fn place(&mut self, layer: usize, wants: bool) -> Option<u32> {
+        if let Some(old) = self.of_layer[layer].take() {
+            self.free.push(old);
+        }
+        if wants {
+            self.of_layer[layer] = self.free.pop();
+        }
+        self.of_layer[layer]
+    }
+
+    fn of(&self, layer: usize) -> Option<u32> {
+        self.of_layer[layer]
+    }
 }
 
 /// What the errors generations over the atlas shaded, in all.
@@ -251,8 +281,7 @@ impl HeightAtlas {
                 stop: false,
                 failure: None,
                 uploaded: Uploaded::default(),
-                deviation_slot: vec![None; layers as usize],
-                free_slots: (0..slots).rev().collect(),
+                slots: DeviationSlots::new(layers as usize, slots),
                 request: None,
                 requested: 0,
                 answered: 0,
@@ -528,7 +557,7 @@ impl Activity<'_> {
         let (mut back, mut placed, mut dropped) = (Vec::new(), Vec::new(), Vec::new());
         {
             let mut s = shared.lock();
-            let State { layers, released, deviation_slot, free_slots, .. } = &mut *s;
+            let State { layers, released, slots, .. } = &mut *s;
             for (tile, bytes) in batch {
                 let key = tile.key;
                 if layers.find(key).is_some() {
@@ -538,15 +567,9 @@ impl Activity<'_> {
                 } else if let Some(layer) = layers.claim(key, g, completed, |t| !released.contains(&t)) {
                     // Let go once, read again into another layer: held from now on.
                     released.remove(&key);
-                    // The layer's old tile leaves its slot; a tile with a D takes one if
-                    // one is free (the errors passes that read the old one were waited for).
-                    if let Some(old) = deviation_slot[layer].take() {
-                        free_slots.push(old);
-                    }
-                    if key.level > 0 {
-                        deviation_slot[layer] = free_slots.pop();
-                    }
-                    placed.push((tile.clone(), layer, deviation_slot[layer]));
+                    // The errors passes that read the layer's old deviations were waited for.
+                    let slot = slots.place(layer, key.level > 0);
+                    placed.push((tile.clone(), layer, slot));
                     back.push((tile, bytes));
                 } else {
                     dropped.push(key);
@@ -612,7 +635,7 @@ impl Activity<'_> {
             let resident = |k: &TileKey| {
                 let i = s.layers.find(*k)?;
                 let held = matches!(s.layers.layer(i), crate::errors::handoff::Layer::Resident { .. });
-                let slot = s.deviation_slot[i]?;
+                let slot = s.slots.of(i)?;
                 (held && !s.released.contains(k)).then_some((*k, i as u32, slot))
             };
             request.tiles.iter().filter(|k| k.level > 0).filter_map(resident).take(AtlasPasses::capacity()).collect()
@@ -829,6 +852,36 @@ pub fn texels(heights: &Heights, unorm16: bool, dst: &mut [u8]) -> Result<(), St
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Under random placements: no two layers ever hold one slot, every slot is held or
+    /// free (never both, never lost), a tile that wants one gets one whenever one is free,
+    /// and one that does not gets none.
+    #[test]
+    fn a_deviation_slot_is_held_by_one_layer_at_a_time_and_never_lost() {
+        let (layers, slots) = (12usize, 5u32);
+        let mut d = DeviationSlots::new(layers, slots);
+        let mut state = 0x9e37_79b9_7f4a_7c15u64;
+        let mut next = |n: u64| {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            state % n
+        };
+        let (mut granted, mut refused) = (0, 0);
+        for _ in 0..20_000 {
+            let (layer, wants) = (next(layers as u64) as usize, next(3) > 0);
+            let free_before = d.free.len() + usize::from(d.of(layer).is_some());
+            let got = d.place(layer, wants);
+            assert_eq!(got.is_some(), wants && free_before > 0, "{d:?}");
+            granted += usize::from(got.is_some());
+            refused += usize::from(wants && got.is_none());
+            let mut held: Vec<u32> = d.of_layer.iter().flatten().copied().collect();
+            held.extend(&d.free);
+            held.sort();
+            assert_eq!(held, (0..slots).collect::<Vec<_>>(), "a slot held twice or lost: {d:?}");
+        }
+        assert!(granted > 1000 && refused > 100, "{granted} granted, {refused} refused");
+    }
 
     /// The half float stored for a deviation is never below it and is the least such:
     /// the one below it (where there is one) is below the value. Across the normal and
