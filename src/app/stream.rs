@@ -679,8 +679,6 @@ pub(crate) fn errors_over_atlas(
     let range = top_tiles(&mut streamer, &archive.meta)?;
     let atlas = HeightAtlas::new(device, &grid, u64::from(gpu_mb) << 20).map_err(|e| InputError(e.to_string()))?;
     streamer.attach(Box::new(atlas.feed()), HeightAtlas::cache_tiles(atlas.layer_count()));
-    // Every move asks: each repeat is a generation.
-    streamer.refresh_at = 0.0;
     let (w, h) = camera.frustum.size.unwrap_or((1280, 720));
     crate::app::cli::check_image_size(device, "--size", (w, h))?;
     let near = near_plane_for(grid.spacing[0].min(grid.spacing[1]) as f32);
@@ -692,12 +690,16 @@ pub(crate) fn errors_over_atlas(
         View::look_at(p, look_at.as_dvec3(), camera.frustum.fovy, w, h, near)
     };
     let (_, first) = settle(&mut streamer, |_| view(0), 1.0);
-    // From here: the repeats' own generations (a view of no terrain asks for none).
+    // Whatever the last settling frame asked for is shaded before the repeats start.
+    streamer.settle();
+    // From here: the repeats' own generations, one each (none if no tile the view
+    // reaches has a level above 0).
     let before = atlas.shaded();
     let mut times = vec![];
     for i in 1..=repeat {
         let (g, t) = (atlas.shaded().generations, Instant::now());
-        streamer.frame(&view(i), None, 1.0, 1.0);
+        let sel = streamer.frame(&view(i), None, 1.0, 1.0);
+        streamer.ask_errors(&view(i), &sel);
         streamer.settle();
         if atlas.shaded().generations > g {
             times.push(t.elapsed().as_secs_f64() * 1e3);

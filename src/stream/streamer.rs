@@ -302,13 +302,22 @@ impl Streamer {
     /// than [`Streamer::refresh_at`] of some block's distance since. The tiles: those the selection visited, and the finer tiles
     /// of its drawn blocks that are held (where it splits next).
     fn request_errors(&mut self, view: &View, sel: &Selection, errors: Option<&TileErrors>) {
-        let Some(gate) = self.gate.as_ref().filter(|_| self.lod == StreamedLod::Error) else { return };
+        if self.lod != StreamedLod::Error {
+            return;
+        }
         // A move of `refresh_at` of a block's distance grows its error by 1 / (1 - it).
         let refresh = 1.0 / (1.0 - self.refresh_at.clamp(0.0, 0.99));
         let needed = errors.is_none() || sel.errors_from_tiles > 0 || sel.errors_stale_worst > refresh;
-        if !needed {
-            return;
+        if needed {
+            self.ask_errors(view, sel);
         }
+    }
+
+    /// Asks the errors activity for a generation at `view` over the tiles `sel` (made at
+    /// that view) reaches, needed or not (`errors` runs generations so), unless the same
+    /// was asked last. Nothing without an errors activity.
+    pub fn ask_errors(&mut self, view: &View, sel: &Selection) {
+        let Some(gate) = self.gate.as_ref() else { return };
         let mut tiles: HashSet<TileKey> = sel.used.iter().copied().filter(|k| k.level > 0).collect();
         for b in sel.blocks.iter().filter(|b| b.lod > 1) {
             let finer = super::cache::serving_tile(&self.grid, b.lod - 1, 2 * b.bx, 2 * b.bz);
