@@ -731,6 +731,8 @@ fn bench_runs_a_path_over_an_archive_drawn_streamed() {
     // took and their GPU time, the selection's time as the traversal's; and its plot.
     assert!(summary["error_updates"].as_u64().is_some_and(|u| u > 0), "{summary}");
     assert!(summary["median_error_update_ms"].as_f64().is_some_and(|t| t > 0.0), "{summary}");
+    // Blocks were selected from them.
+    assert!(summary["mean_blocks_bounded_by_errors"].as_f64().is_some_and(|b| b > 1.0), "{summary}");
     assert!(summary["median_traverse_ms"].as_f64().is_some_and(|t| t > 0.0), "{summary}");
     assert!(out.join("plot.png").exists());
     // The terrain's facts, as every bench summary has them (synthetic: 30 m, 0.1 m a unit).

@@ -357,6 +357,9 @@ struct Run {
     /// (ms): what `avg_fps` divides by. The frames' own times leave out the GPU work of
     /// the last frames in flight, which a short run would count as free.
     wall_ms: Option<f64>,
+    /// Drawn blocks whose error came from the errors activity's generation over the
+    /// atlas, summed over the frames (terrains drawn from tiles).
+    bounded_by_errors: u64,
 }
 
 /// Colour RMSE of each frame against the one before; frames may finish out of order
@@ -505,6 +508,7 @@ impl Bench<'_> {
             warmup_ms: None,
             rss: Vec::new(),
             wall_ms: None,
+            bounded_by_errors: 0,
         };
         let mut timed_from: Option<Instant> = None;
         let mut draw = draw_thread(&self.args.common, self.trace.clone(), Some(&self.s.device))?;
@@ -1328,6 +1332,8 @@ fn bench_streamed(
         "deferred_frames": deferred_frames,
         "morph": args.common.lod.morph.on(),
         "mean_morphing_blocks": morphing as f64 / drawn.max(1) as f64,
+        // Of the blocks drawn a frame, those whose error came from the errors activity.
+        "mean_blocks_bounded_by_errors": run.bounded_by_errors as f64 / drawn.max(1) as f64,
         "traversal_threads": streamer.threads(),
         "frames_over_bound": stats.frames_over_bound,
         "worst_factor": stats.worst_factor,
@@ -1434,7 +1440,7 @@ impl StreamedPath<'_> {
         // The errors activity's generations shaded during the run and their GPU times;
         // the one each frame took and the frame that first took it.
         let shaded_before = gpu.errors_shaded();
-        let (mut taken, mut taken_at) = (0u64, 0u64);
+        let (mut taken, mut taken_at, mut bounded_by_errors) = (0u64, 0u64, 0u64);
         for i in 0..self.frames {
             if self.signals.requested() {
                 break;
@@ -1477,6 +1483,7 @@ impl StreamedPath<'_> {
                 error_update_ms: sel.errors_gpu_ms,
                 ..Row::default()
             };
+            bounded_by_errors += sel.drawn_bounded_by().0 as u64;
             if sel.errors_generation > 0 {
                 if taken != sel.errors_generation {
                     (taken, taken_at) = (sel.errors_generation, i);
@@ -1513,6 +1520,7 @@ impl StreamedPath<'_> {
             // Counted as generations: `error_updates` is how many the run shaded.
             generations: (shaded_before.generations..shaded.generations).collect(),
             update_gpu_ms,
+            bounded_by_errors,
             interrupted: self.signals.requested(),
             warmup_ms,
             rss: Vec::new(),
