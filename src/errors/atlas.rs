@@ -201,6 +201,11 @@ impl HeightAtlas {
         groups * groups * 2
     }
 
+    /// Staging bytes of one tile: its heights, then its deviations.
+    fn staged_bytes(grid: &Grid) -> usize {
+        (Self::height_layer_bytes(grid) + Self::deviation_slot_bytes(grid)) as usize
+    }
+
     /// What one layer costs of the budget: its heights and its share of a slot of
     /// deviations ([`DEVIATION_SHARE`]).
     pub fn layer_bytes(grid: &Grid) -> u64 {
@@ -579,8 +584,7 @@ impl Activity<'_> {
                 released.retain(|k| layers.find(*k).is_some());
             }
         }
-        let layer_bytes =
-            (HeightAtlas::height_layer_bytes(&shared.grid) + HeightAtlas::deviation_slot_bytes(&shared.grid)) as usize;
+        let layer_bytes = HeightAtlas::staged_bytes(&shared.grid);
         if !placed.is_empty() {
             let need = (layer_bytes * placed.len()) as u64;
             if self.staging.as_ref().is_none_or(|b| b.size < need) {
@@ -705,8 +709,7 @@ fn upload(
     let texel = if shared.unorm16 { 2 } else { 4 };
     let height_bytes = (shared.side * shared.side) as usize * texel;
     let groups = shared.grid.tile_quads as u32;
-    let layer_bytes =
-        (HeightAtlas::height_layer_bytes(&shared.grid) + HeightAtlas::deviation_slot_bytes(&shared.grid)) as usize;
+    let layer_bytes = HeightAtlas::staged_bytes(&shared.grid);
     let layer_of = |base_array_layer: u32| vk::ImageSubresourceLayers {
         aspect_mask: vk::ImageAspectFlags::COLOR,
         mip_level: 0,
