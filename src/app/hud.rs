@@ -107,6 +107,36 @@ pub struct Readout {
     pub place: Option<Place>,
     /// The colour ramp's legend (no base texture).
     pub legend: Option<Legend>,
+    /// A terrain drawn from tiles: what its cache, atlas and errors did.
+    pub tiles: Option<TilesReadout>,
+}
+
+/// The figures of a terrain drawn from tiles through a bounded cache: whether frames met
+/// the bound (a block that should split is drawn as it is while its finer tile is read),
+/// and what the cache, the atlas and the errors activity over it did.
+#[derive(Debug, Default, Clone)]
+pub struct TilesReadout {
+    /// Frames drawn (this one included), and those with a block over the bound.
+    pub frames: u64,
+    pub frames_over_bound: u64,
+    /// The largest factor over delta of a block drawn over the bound so far.
+    pub worst_factor: f32,
+    /// Whether this frame is within the bound.
+    pub within_bound: bool,
+    /// Tiles held in the host cache, its MB and budget.
+    pub held: usize,
+    pub cache_mb: f64,
+    pub cache_budget_mb: u32,
+    pub loaded: u64,
+    pub evicted: u64,
+    pub failed: u64,
+    pub read_mb: f64,
+    pub atlas_layers: u32,
+    pub uploaded: u64,
+    /// The errors activity's last generation over the atlas, if any yet.
+    pub errors: Option<crate::errors::atlas_passes::Shaded>,
+    /// Blocks drawn whose bound came from the errors activity's generation.
+    pub blocks_bounded_by_errors: usize,
 }
 
 /// The panel's map section.
@@ -237,7 +267,7 @@ pub fn build_ui(
 }
 
 /// The panel's window, top left, `body` in a scroll area that fits the window.
-pub(crate) fn panel_window(ctx: &egui::Context, title: &str, body: impl FnOnce(&mut egui::Ui)) {
+fn panel_window(ctx: &egui::Context, title: &str, body: impl FnOnce(&mut egui::Ui)) {
     egui::Window::new(title).default_pos([8.0, 8.0]).default_width(270.0).auto_sized().show(ctx, |ui| {
         ui.set_max_width(270.0);
         // Scrolls when the window is too small to show it whole (title bar and margins
@@ -249,7 +279,7 @@ pub(crate) fn panel_window(ctx: &egui::Context, title: &str, body: impl FnOnce(&
 }
 
 /// The key-help overlay (F1) listing `keys`, while `show_help`.
-pub(crate) fn keys_window(ctx: &egui::Context, show_help: &mut bool, keys: &[(&str, &str)]) {
+fn keys_window(ctx: &egui::Context, show_help: &mut bool, keys: &[(&str, &str)]) {
     if *show_help {
         egui::Window::new("Keys")
             .anchor(egui::Align2::CENTER_CENTER, [0.0, 0.0])
@@ -281,8 +311,10 @@ fn panel(ui: &mut egui::Ui, r: &Readout, history: &FrameHistory, now: f64, c: &m
             ui.monospace(v);
             ui.end_row();
         };
-        row("GPU frame", r.gpu_frame_ms.map_or("- (no timestamps)".into(), |m| format!("{m:.1} ms")));
-        row("draw waits", format!("{:.1} slot, {:.1} queue ms", r.waits_ms.0, r.waits_ms.1));
+        if r.tiles.is_none() {
+            row("GPU frame", r.gpu_frame_ms.map_or("- (no timestamps)".into(), |m| format!("{m:.1} ms")));
+            row("draw waits", format!("{:.1} slot, {:.1} queue ms", r.waits_ms.0, r.waits_ms.1));
+        }
         row("triangles", r.triangles.to_string());
         row("draw calls", format!("{} ({} blocks)", r.draw_calls, r.blocks));
         row(
@@ -309,6 +341,9 @@ fn panel(ui: &mut egui::Ui, r: &Readout, history: &FrameHistory, now: f64, c: &m
         row("above ground", format!("{:.0}", r.above_ground));
         row("ground speed", format!("{:.0}/s", r.ground_speed));
     });
+    if let Some(t) = &r.tiles {
+        tiles_section(ui, t);
+    }
     if let Some(p) = &r.place {
         map_section(ui, p, &mut c.go_to);
     }
@@ -317,14 +352,22 @@ fn panel(ui: &mut egui::Ui, r: &Readout, history: &FrameHistory, now: f64, c: &m
     }
     ui.separator();
     delta_slider(ui, &mut c.delta);
-    ui.horizontal(|ui| {
-        ui.label("errors");
-        ui.radio_value(&mut c.mode, ErrorMode::Strict, "strict");
-        ui.radio_value(&mut c.mode, ErrorMode::Paper, "paper");
+    // Not drawn yet for a terrain drawn from tiles: shown, and said so.
+    let memory = r.tiles.is_none();
+    const NOT_ON_TILES: &str = "not drawn yet for a terrain drawn from tiles";
+    ui.add_enabled_ui(memory, |ui| {
+        ui.horizontal(|ui| {
+            ui.label("errors");
+            ui.radio_value(&mut c.mode, ErrorMode::Strict, "strict");
+            ui.radio_value(&mut c.mode, ErrorMode::Paper, "paper");
+        })
+        .response
+        .on_disabled_hover_text(NOT_ON_TILES);
     });
     ui.horizontal(|ui| {
         ui.checkbox(&mut c.morph, "morph");
-        ui.checkbox(&mut c.occlusion, "occlusion culling");
+        ui.add_enabled(memory, egui::Checkbox::new(&mut c.occlusion, "occlusion culling"))
+            .on_disabled_hover_text(NOT_ON_TILES);
         ui.checkbox(&mut c.frozen, "freeze blocks");
     });
     ui.horizontal(|ui| {
@@ -339,7 +382,8 @@ fn panel(ui: &mut egui::Ui, r: &Readout, history: &FrameHistory, now: f64, c: &m
     if c.colour_by_lod {
         lod_legend(ui);
     }
-    exaggeration_slider(ui, &mut c.exaggeration, "errors recomputed on release");
+    let when = if memory { "errors recomputed on release" } else { "at once" };
+    exaggeration_slider(ui, &mut c.exaggeration, when);
     fog_slider(ui, &mut c.fog_density, ranges.fog_default);
     let mut shadows = c.sun.is_some();
     ui.horizontal(|ui| {
@@ -368,8 +412,43 @@ fn panel(ui: &mut egui::Ui, r: &Readout, history: &FrameHistory, now: f64, c: &m
     });
 }
 
+/// The panel's rows for a terrain drawn from tiles.
+fn tiles_section(ui: &mut egui::Ui, t: &TilesReadout) {
+    ui.separator();
+    let bound = if t.within_bound { "within" } else { "OVER" };
+    ui.colored_label(
+        if t.within_bound { Color32::LIGHT_GREEN } else { Color32::from_rgb(255, 170, 60) },
+        format!("this frame: {bound} the bound"),
+    )
+    .on_hover_text("over: a block that should split was drawn as it is, its finer tile not read yet");
+    egui::Grid::new("tiles").num_columns(2).show(ui, |ui| {
+        let mut row = |k: &str, v: String| {
+            ui.label(k);
+            ui.monospace(v);
+            ui.end_row();
+        };
+        row("over the bound", format!("{} of {} frames", t.frames_over_bound, t.frames));
+        // A block far over the bound next to the camera reaches huge factors.
+        let worst =
+            if t.worst_factor < 1e4 { format!("{:.2}", t.worst_factor) } else { format!("{:.2e}", t.worst_factor) };
+        row("worst", format!("{worst} x delta"));
+        row("tiles held", format!("{} ({:.0} of {} MB)", t.held, t.cache_mb, t.cache_budget_mb));
+        row("tiles read", format!("{} ({:.0} MB)", t.loaded, t.read_mb));
+        row("evicted", t.evicted.to_string());
+        row("failed reads", t.failed.to_string());
+        row("atlas", format!("{} layers, {} uploads", t.atlas_layers, t.uploaded));
+        // Short rows: the panel's width is what a drag beside it must leave free.
+        if let Some(e) = &t.errors {
+            row("errors", format!("{} tiles, {:.2} M groups", e.tiles, e.groups as f64 / 1e6));
+            let gpu = e.gpu_ms.map_or(String::new(), |ms| format!(", {ms:.1} ms"));
+            row("read back", format!("{:.1} KB{gpu}", e.bytes_read_back as f64 / 1024.0));
+            row("by errors", format!("{} blocks", t.blocks_bounded_by_errors));
+        }
+    });
+}
+
 /// The colour-by-LOD view's palette, level by level.
-pub(crate) fn lod_legend(ui: &mut egui::Ui) {
+fn lod_legend(ui: &mut egui::Ui) {
     ui.horizontal_wrapped(|ui| {
         ui.label("LOD");
         for (i, col) in LOD_PALETTE.iter().enumerate() {
@@ -388,7 +467,7 @@ pub(crate) fn lod_legend(ui: &mut egui::Ui) {
 
 /// The vertical exaggeration, over [`EXAGGERATION_RANGE`]; `when` says when a change
 /// takes effect.
-pub(crate) fn exaggeration_slider(ui: &mut egui::Ui, exaggeration: &mut f32, when: &str) {
+fn exaggeration_slider(ui: &mut egui::Ui, exaggeration: &mut f32, when: &str) {
     ui.horizontal(|ui| {
         ui.label("vertical x");
         let range = EXAGGERATION_RANGE[0]..=EXAGGERATION_RANGE[1];
@@ -409,7 +488,7 @@ pub(crate) fn exaggeration_key(code: winit::keyboard::KeyCode, exaggeration: f32
     }
 }
 
-pub(crate) fn delta_slider(ui: &mut egui::Ui, delta: &mut f32) {
+fn delta_slider(ui: &mut egui::Ui, delta: &mut f32) {
     ui.horizontal(|ui| {
         ui.label("delta (px)");
         ui.add(egui::Slider::new(delta, 0.0625..=64.0).logarithmic(true).clamping(egui::SliderClamping::Edits));
@@ -418,7 +497,7 @@ pub(crate) fn delta_slider(ui: &mut egui::Ui, delta: &mut f32) {
 
 /// The fog density, in multiples of the default haze `default` (a range that does not
 /// follow the value).
-pub(crate) fn fog_slider(ui: &mut egui::Ui, density: &mut f32, default: f32) {
+fn fog_slider(ui: &mut egui::Ui, density: &mut f32, default: f32) {
     ui.horizontal(|ui| {
         ui.label("fog");
         let mut haze = *density / default.max(f32::MIN_POSITIVE);
@@ -436,7 +515,7 @@ pub(crate) fn fog_slider(ui: &mut egui::Ui, density: &mut f32, default: f32) {
     });
 }
 
-pub(crate) fn speed_slider(ui: &mut egui::Ui, speed: &mut f32, (lo, hi): (f32, f32)) {
+fn speed_slider(ui: &mut egui::Ui, speed: &mut f32, (lo, hi): (f32, f32)) {
     ui.horizontal(|ui| {
         ui.label("speed");
         ui.add(
@@ -609,7 +688,7 @@ pub fn map_section(ui: &mut egui::Ui, p: &Place, go_to: &mut Option<[f64; 2]>) {
 }
 
 /// Swatches of the colour ramp with the heights they stand for.
-pub(crate) fn legend(ui: &mut egui::Ui, l: &Legend) {
+fn legend(ui: &mut egui::Ui, l: &Legend) {
     use crate::gpu::layout::{RAMP_COLOURS, RAMP_SNOW, RAMP_SNOW_FROM, RAMP_STOPS, RAMP_TOP_M, WATER_COLOUR};
     let metres = |u: f32| if l.absolute { u * RAMP_TOP_M } else { l.range_m[0] + u * (l.range_m[1] - l.range_m[0]) };
     let rgb = |c: [f32; 3]| {
@@ -635,7 +714,7 @@ pub(crate) fn legend(ui: &mut egui::Ui, l: &Legend) {
     });
 }
 
-pub(crate) fn plot(ui: &mut egui::Ui, name: &str, points: Vec<(f64, f32)>, now: f64, colour: Color32) {
+fn plot(ui: &mut egui::Ui, name: &str, points: Vec<(f64, f32)>, now: f64, colour: Color32) {
     let (rect, _) = ui.allocate_exact_size(Vec2::new(ui.available_width(), 44.0), Sense::hover());
     let painter = ui.painter_at(rect);
     painter.rect_filled(rect, 2.0, Color32::from_black_alpha(140));
@@ -830,9 +909,8 @@ impl Hud {
         })
     }
 
-    /// [`Hud::prepare`] with another panel: `build(ctx, visible, help, history, now)`
-    /// builds it (the streamed viewer's, [`crate::app::stream_panel`]).
-    pub fn prepare_with(
+    /// [`Hud::prepare`] with the panel built by `build(ctx, visible, help, history, now)`.
+    fn prepare_with(
         &mut self,
         window: &Window,
         mut build: impl FnMut(&egui::Context, bool, &mut bool, &FrameHistory, f64),
@@ -1052,12 +1130,24 @@ mod tests {
     /// `scroll` points over the panel in the second pass; `shrunk`: the first passes on
     /// a 400 x 300 screen (a window made small, then large again).
     fn run_on(screen: Vec2, show: bool, click_on: Result<&str, Pos2>, scroll: f32, shrunk: bool) -> (Controls, usize) {
+        let readout = Readout { ranges: Ranges { fog_default: 0.1, speed: (1.0, 100.0) }, ..Readout::default() };
+        run_with(&readout, screen, show, click_on, scroll, shrunk)
+    }
+
+    /// As [`run_on`] with the panel showing `readout`.
+    fn run_with(
+        readout: &Readout,
+        screen: Vec2,
+        show: bool,
+        click_on: Result<&str, Pos2>,
+        scroll: f32,
+        shrunk: bool,
+    ) -> (Controls, usize) {
         // A second apart, so that smoothed scrolling has finished before the click.
         const PASSES: usize = 20;
         use egui::epaint::Shape as S;
         let ctx = egui::Context::default();
         let mut c = controls();
-        let readout = Readout { ranges: Ranges { fog_default: 0.1, speed: (1.0, 100.0) }, ..Readout::default() };
         let mut h = FrameHistory::default();
         for i in 0..30 {
             h.push(i as f64 * 0.1, 16.0);
@@ -1097,7 +1187,7 @@ mod tests {
                 ..Default::default()
             };
             let mut help = false;
-            let mut out = ctx.run_ui(input, |ui| build_ui(ui.ctx(), show, &mut help, &readout, &h, 3.0, &mut c));
+            let mut out = ctx.run_ui(input, |ui| build_ui(ui.ctx(), show, &mut help, readout, &h, 3.0, &mut c));
             out.textures_delta.clear(); // nothing to upload headless
             shapes = out.shapes.len();
             if let Ok(text) = click_on {
@@ -1252,5 +1342,29 @@ mod tests {
         // Wireframe is greyed out on a device without it (the readout's default).
         let (c, _) = run(true, Ok("wireframe"));
         assert_eq!(c, controls());
+    }
+
+    /// A terrain drawn from tiles: the same panel with the tiles' rows; every control
+    /// works but the error mode and occlusion culling, which are shown disabled.
+    #[test]
+    fn the_panel_of_a_terrain_drawn_from_tiles_disables_what_tiles_do_not_draw() {
+        let tiles = TilesReadout { frames: 7, frames_over_bound: 2, worst_factor: 1.5, ..TilesReadout::default() };
+        let readout = Readout {
+            ranges: Ranges { fog_default: 0.1, speed: (1.0, 100.0) },
+            wireframe_available: true,
+            tiles: Some(tiles),
+            ..Readout::default()
+        };
+        let screen = Vec2::new(1280.0, 1400.0);
+        let click = |text| run_with(&readout, screen, true, Ok(text), 0.0, false).0;
+        assert_eq!(click("2 of 7 frames"), controls(), "the tiles' rows are shown");
+        assert_eq!(click("paper"), controls(), "no paper error mode over tiles");
+        assert_eq!(click("occlusion culling"), controls(), "no occlusion culling over tiles");
+        assert_eq!(click("morph"), Controls { morph: false, ..controls() });
+        assert_eq!(click("freeze blocks"), Controls { frozen: true, ..controls() });
+        assert_eq!(click("wireframe"), Controls { wireframe: true, ..controls() });
+        assert_eq!(click("deferred shading"), Controls { deferred: false, ..controls() });
+        assert_eq!(click("sun shadows and occlusion"), Controls { sun: None, ..controls() });
+        assert_eq!(click("Home"), Controls { go_home: true, ..controls() });
     }
 }

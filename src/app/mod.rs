@@ -16,7 +16,6 @@ pub mod prepare;
 pub mod quality;
 pub mod signals;
 pub mod stream;
-pub mod stream_panel;
 pub mod stream_view;
 pub mod timeline;
 pub mod viewer;

@@ -101,8 +101,9 @@ pub(crate) struct GpuFrames {
     pub range: HeightRange,
     /// Exponential fog density per world unit.
     pub fog: f32,
-    /// Unit vector towards the sun ([`GpuFrames::sun`]).
+    /// Unit vector towards the sun ([`GpuFrames::sun`]), and the sun asked for.
     light: glam::Vec3,
+    sun: Option<Sun>,
     /// Blocks tinted by their LOD.
     pub colour_by_lod: bool,
     /// Edges only (the viewer's F).
@@ -203,6 +204,7 @@ impl GpuFrames {
             range,
             fog: 0.0,
             light: Sun::DEFAULT.direction(),
+            sun: None,
             colour_by_lod: false,
             wireframe: false,
             background: None,
@@ -311,6 +313,7 @@ impl GpuFrames {
     /// (`--sun`; with none, from the default direction without them, as in memory).
     pub fn sun(&mut self, sun: Option<Sun>) -> anyhow::Result<()> {
         self.light = sun.unwrap_or(Sun::DEFAULT).direction();
+        self.sun = sun;
         if self.no_shadows.is_none() {
             self.lighting.set_sun(sun)?;
             if sun.is_some() {
@@ -318,6 +321,18 @@ impl GpuFrames {
             }
         }
         Ok(())
+    }
+
+    /// The sun the frames are lit by ([`GpuFrames::sun`]), and how long its lighting map
+    /// took (ms).
+    pub fn lit_sun(&self) -> (Option<Sun>, f64) {
+        (self.sun, self.lighting.map.last_ms())
+    }
+
+    /// Whether deferred shading is asked for (a frame may still shade forward:
+    /// [`GpuFrames::deferred`] says what the last one did).
+    pub fn deferred_asked(&self) -> bool {
+        self.renderer.pixels() == crate::draw::blocks::PixelPass::Deferred
     }
 
     /// Redraws the lighting map for heights at `scale` world units per raw unit (the

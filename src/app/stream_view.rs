@@ -4,18 +4,16 @@
 //! tile has not arrived are drawn as they are and the frame is counted over the bound),
 //! uploads the new tiles into the atlas and draws from it into the swapchain image.
 //!
-//! It has the in-memory viewer's camera controls ([`Controller`]) and a panel of its own
-//! ([`crate::app::stream_panel`]: frames over the bound, tiles held and read, delta, fog,
-//! speed, exaggeration and LOD colours; H hides it, F1 shows the keys); shading is plain
-//! (the in-memory colours without textures or shadows; blocks morph), and the window title
-//! carries the main figures too.
+//! It has the in-memory viewer's camera controls ([`Controller`]), keys and panel
+//! ([`crate::app::hud`], with its tiles section: frames over the bound, tiles held and
+//! read, the errors over the atlas; the error mode and occlusion culling shown disabled);
+//! the window title carries the main figures too.
 
 use crate::app::cli::{check_messages, CommonArgs, Degraded, Interrupted};
 use crate::app::controls::{delta_key, flyover_time, ground_hit, Controller, Ground};
-use crate::app::hud::{Hud, Legend, Place};
+use crate::app::hud::{Controls, Hud, Legend, Place, Ranges, Readout, TilesReadout};
 use crate::app::outputs::save_png;
 use crate::app::stream::{top_tiles, GpuFrames};
-use crate::app::stream_panel::{build_stream_ui, StreamControls, StreamReadout};
 use crate::app::window_loop::{WindowApp, WindowState, Windowed};
 use crate::draw::streamed::WindowImage;
 use crate::input::archive::Archive;
@@ -119,6 +117,8 @@ struct Run {
     cursor_place: Option<serde_json::Value>,
     /// Vertical exaggeration at exit.
     exaggeration: f32,
+    /// The sun the frames were lit by at exit (azimuth, elevation), if any.
+    final_sun: Option<[f32; 2]>,
     /// Swapchains made again after the window's size changed.
     resizes: u64,
     start_position: [f32; 3],
@@ -158,6 +158,10 @@ struct App {
     delta: f32,
     /// Vertical exaggeration over the archive's (or `--height-scale`'s) scale.
     exaggeration: f32,
+    /// The sun asked for (the panel); the lighting map follows when no slider is held.
+    sun: Option<crate::draw::lighting::Sun>,
+    /// Horizontal speed over the last frame (world units per second), for the panel.
+    ground_speed: f32,
     true_height_scale: f64,
     /// Every frame's camera and look-at point, with `--record-path`.
     flight: Vec<(Vec3, Vec3)>,
@@ -263,10 +267,11 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
         anyhow::anyhow!("cannot open a window ({e}); is DISPLAY set? Use `vkterrain render` for headless output")
     })?;
     event_loop.set_control_flow(ControlFlow::Poll);
-    eprintln!(
-        "keys: W/S A/D Q/E move, drag to look, Shift faster, wheel speed, G walk, Home start, [ ] delta, Z/X \
-         exaggeration, N morph, O orbit, Space freeze, F wireframe, L LOD colours, P screenshot, H panel, F1 help, Esc quit"
-    );
+    // The same table as the panel's key help (F1), as the in-memory viewer prints it.
+    eprintln!("keys:");
+    for (k, what) in crate::app::hud::KEYS {
+        eprintln!("  {k:<13} {what}");
+    }
     let ctl = Controller::new(position, f, l / 60.0, args.walk);
     let home = (ctl.position, ctl.yaw, ctl.pitch);
     let now = Instant::now();
@@ -283,6 +288,8 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
         home,
         delta: args.common.lod.delta,
         exaggeration: args.exaggeration,
+        sun: args.common.sun.0,
+        ground_speed: 0.0,
         true_height_scale,
         flight: Vec::new(),
         win: WindowState::new(interrupted, args.frames, args.screenshot.clone(), args.resizes.clone()),
@@ -323,6 +330,7 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
     (run.final_morph, run.frozen, run.orbiting) =
         (app.streamer.morph.is_some(), app.frozen.is_some(), app.ctl.orbit.is_some());
     run.wireframe = app.gpu.as_ref().is_some_and(|g| g.frames.wireframe);
+    run.final_sun = app.gpu.as_ref().and_then(|g| g.frames.lit_sun().0).map(|s| [s.azimuth, s.elevation]);
     // As the in-memory viewer's: the height scale drawn at exit (exaggerated).
     run.terrain.height_scale_m = app.grid.height_scale as f32;
     run.exaggeration = app.exaggeration;
@@ -433,6 +441,7 @@ impl App {
             self.ctl.update(&HeldGround(&self.streamer), dt);
         }
         let velocity = (self.ctl.position - before) / dt.max(1e-6);
+        self.ground_speed = glam::Vec2::new(velocity.x, velocity.z).length();
         let Some(gpu) = self.gpu.as_ref() else { return Ok(()) };
         let extent = gpu.swapchain.extent;
         let view = self.view(extent.width, extent.height);
@@ -551,43 +560,61 @@ impl App {
         let report = gpu.frames.report();
         let [wx, wz] = self.grid.world_extent().map(|e| e as f32);
         let l = wx.max(wz);
-        let readout = StreamReadout {
-            blocks: self.run.last_blocks,
-            triangles: self.run.last_triangles,
+        let errors = gpu.frames.errors_shaded();
+        let tiles = TilesReadout {
             // This frame included, as in the count over the bound.
             frames: self.run.frames + 1,
             frames_over_bound: self.run.frames_over_bound,
             worst_factor: self.run.worst_factor,
             within_bound: sel.within_bound(),
-            tiles_held: self.streamer.cache.len(),
+            held: self.streamer.cache.len(),
             cache_mb: self.streamer.cache.bytes() as f64 / f64::from(1u32 << 20),
             cache_budget_mb: self.args.cache_mb,
-            tiles_loaded: s.tiles_loaded,
-            tiles_evicted: s.tiles_evicted,
-            tiles_failed: s.tiles_failed,
+            loaded: s.tiles_loaded,
+            evicted: s.tiles_evicted,
+            failed: s.tiles_failed,
             read_mb: s.bytes_read as f64 / f64::from(1u32 << 20),
             atlas_layers: report["atlas_layers"].as_u64().unwrap_or(0) as u32,
-            uploaded_tiles: report["tiles_uploaded"].as_u64().unwrap_or(0),
-            errors: gpu.frames.errors_shaded().last,
+            uploaded: report["tiles_uploaded"].as_u64().unwrap_or(0),
+            errors: errors.last,
             blocks_bounded_by_errors: sel.drawn_bounded_by().0,
+        };
+        let (lit_sun, lighting_ms) = gpu.frames.lit_sun();
+        let mut readout = Readout {
+            triangles: self.run.last_triangles,
+            draw_calls: gpu.frames.draw_calls,
+            blocks: self.run.last_blocks,
+            generations: errors.generations,
+            update_ms: errors.last.and_then(|e| e.gpu_ms),
+            // Over tiles the errors thread finishes each generation before the next.
+            in_flight: (u64::from(errors.generations > 0), true),
             device: gpu.frames.device.name.clone(),
             queue_mode: gpu.frames.device.queue_mode.as_str().into(),
-            camera: if self.args.flyover {
+            camera_mode: if self.args.flyover {
                 "flyover"
             } else if self.ctl.walk {
                 "walk"
+            } else if self.ctl.orbit.is_some() {
+                "orbit"
             } else {
                 "fly"
             },
             position: p,
             above_ground: p.y - HeldGround(&self.streamer).height(p.x, p.z),
+            ground_speed: self.ground_speed,
             panel_ms: gpu.hud.last_ms,
-            legend: Some(Legend { absolute: self.range.absolute, range_m: self.range.world }),
-            place: None,
-            fog_default: crate::lod::view::default_fog(l),
-            speed_range: (l / 6000.0, l / 6.0),
+            lighting_ms,
+            lit_sun,
+            wireframe_available: gpu.frames.device.features.wireframe,
+            ranges: Ranges { fog_default: crate::lod::view::default_fog(l), speed: (l / 6000.0, l / 6.0) },
+            legend: self
+                .textures
+                .base
+                .is_none()
+                .then_some(Legend { absolute: self.range.absolute, range_m: self.range.world }),
+            tiles: Some(tiles),
+            ..Readout::default()
         };
-        let mut readout = readout;
         if let Some(geo) = &self.geo {
             // One march along the cursor's ray a frame, for the panel and the exit figures.
             let ground = HeldGround(&self.streamer);
@@ -609,39 +636,80 @@ impl App {
             let t = gpu.hud.now();
             gpu.hud.history.push(t, ms);
         }
-        let before = StreamControls {
-            delta: self.delta,
-            fog_density: gpu.frames.fog,
-            speed: self.ctl.speed,
-            exaggeration: self.exaggeration,
-            colour_by_lod: gpu.frames.colour_by_lod,
-            go_home: false,
-            go_to: None,
-        };
+        let before = self.controls();
         let mut after = before;
-        gpu.hud.prepare_with(&window, |ctx, visible, help, history, now| {
-            build_stream_ui(ctx, visible, help, &readout, history, now, &mut after)
-        })?;
+        let gpu = self.gpu.as_mut().expect("checked above");
+        gpu.hud.prepare(&window, &readout, &mut after)?;
         if after != before {
-            self.delta = after.delta;
-            gpu.frames.fog = after.fog_density;
-            self.ctl.speed = after.speed;
-            self.set_exaggeration(after.exaggeration)?;
-            if let Some(g) = self.gpu.as_mut() {
-                g.frames.colour_by_lod = after.colour_by_lod;
-            }
-            if after.go_home {
-                self.go_home();
-            }
-            if let (Some([lat, lon]), Some(geo)) = (after.go_to, &self.geo) {
-                // The camera stays where it is; the panel's box keeps what was typed.
-                match go_to(geo, &self.streamer, self.ctl.position, lat, lon) {
-                    Ok(at) => (self.ctl.position, self.ctl.orbit) = (at, None),
-                    Err(e) => eprintln!("vkterrain: note: go-to {e}"),
-                }
+            self.apply(after)?;
+        }
+        // The lighting map is redrawn once the sun's sliders are let go.
+        let gpu = self.gpu.as_mut().expect("checked above");
+        if gpu.frames.lit_sun().0 != self.sun && !gpu.hud.pointer_busy() {
+            gpu.frames.sun(self.sun)?;
+        }
+        Ok(())
+    }
+
+    /// The state the panel and the keys both change.
+    fn controls(&self) -> Controls {
+        let gpu = self.gpu.as_ref();
+        Controls {
+            delta: self.delta,
+            mode: crate::lod::gie::ErrorMode::Strict,
+            morph: self.streamer.morph.is_some(),
+            occlusion: false,
+            frozen: self.frozen.is_some() || self.freeze_next,
+            wireframe: gpu.is_some_and(|g| g.frames.wireframe),
+            colour_by_lod: gpu.is_some_and(|g| g.frames.colour_by_lod),
+            deferred: gpu.is_some_and(|g| g.frames.deferred_asked()),
+            fog_density: gpu.map_or(self.fog, |g| g.frames.fog),
+            speed: self.ctl.speed,
+            go_home: false,
+            sun: self.sun,
+            go_to: None,
+            exaggeration: self.exaggeration,
+        }
+    }
+
+    /// What the panel changed (the error mode and occlusion culling are not drawn over
+    /// tiles yet: the panel shows them disabled).
+    fn apply(&mut self, c: Controls) -> anyhow::Result<()> {
+        if c.frozen != (self.frozen.is_some() || self.freeze_next) {
+            self.freeze_next = c.frozen;
+            self.frozen = None;
+        }
+        self.delta = c.delta;
+        self.set_morph(c.morph);
+        if let Some(g) = self.gpu.as_mut() {
+            g.frames.wireframe = c.wireframe;
+            g.frames.colour_by_lod = c.colour_by_lod;
+            g.frames.fog = c.fog_density;
+            use crate::draw::blocks::PixelPass;
+            g.frames.set_pixels(if c.deferred { PixelPass::Deferred } else { PixelPass::Forward });
+        }
+        self.ctl.speed = c.speed;
+        self.sun = c.sun;
+        self.set_exaggeration(c.exaggeration)?;
+        if c.go_home {
+            self.go_home();
+        }
+        if let (Some([lat, lon]), Some(geo)) = (c.go_to, &self.geo) {
+            // The camera stays where it is; the panel's box keeps what was typed.
+            match go_to(geo, &self.streamer, self.ctl.position, lat, lon) {
+                Ok(at) => (self.ctl.position, self.ctl.orbit) = (at, None),
+                Err(e) => eprintln!("vkterrain: note: go-to {e}"),
             }
         }
         Ok(())
+    }
+
+    /// Geomorphing on or off from the next frame.
+    fn set_morph(&mut self, on: bool) {
+        if on != self.streamer.morph.is_some() {
+            let setting = if on { crate::app::cli::OnOff::On } else { crate::app::cli::OnOff::Off };
+            self.streamer.morph = crate::app::stream::morph_rule(setting);
+        }
     }
 
     /// Draws heights `exaggeration` times the archive's scale from the next frame: the
@@ -728,12 +796,7 @@ impl App {
                 self.screenshots_asked += 1;
                 self.win.screenshot_next = Some(crate::app::outputs::next_free_screenshot());
             }
-            KeyCode::KeyN => {
-                self.streamer.morph = match self.streamer.morph {
-                    Some(_) => None,
-                    None => crate::app::stream::morph_rule(crate::app::cli::OnOff::On),
-                }
-            }
+            KeyCode::KeyN => self.set_morph(self.streamer.morph.is_none()),
             KeyCode::KeyO => {
                 // Around the ground point under the cursor (ahead when the cursor is
                 // outside the window), from the tiles held.

@@ -523,6 +523,11 @@ impl StreamedRenderer {
         self.pixels = pixels;
     }
 
+    /// The shading asked for ([`StreamedRenderer::set_pixels`]).
+    pub fn pixels(&self) -> PixelPass {
+        self.pixels
+    }
+
     /// Whether the frame seen by `view` is shaded deferred: asked for, with flat normals
     /// (the tile's heights are out of the deferred pass's reach), not coloured by LOD (the
     /// block that drew a pixel is not kept), with the lighting map's heights (the sea
