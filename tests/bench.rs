@@ -374,12 +374,36 @@ fn a_compare_stopped_part_way_reports_no_ratios() {
 /// Runs a bench with an injected fault; it must exit with 1 (not hang, not panic), one
 /// error line naming the stage and the Vulkan result, both threads joined.
 fn faulted(fault: &str, needles: &[&str]) {
+    faulted_on(&|dir: &Path| small_field_args(dir), fault, needles);
+}
+
+/// The small field's arguments (blocks of 9 vertices), the field written into `dir`.
+fn small_field_args(dir: &Path) -> Vec<String> {
+    let field = small_field(dir).display().to_string();
+    ["--raw-size", "257x257", "--spacing", "10", "--block", "9"].iter().fold(vec![field], |mut v, a| {
+        v.push(a.to_string());
+        v
+    })
+}
+
+/// A 1025 x 1025 PNG drawn from its tiles (`--stream`; cut into tiles in memory), written
+/// into `dir`: enough tiles above level 0 for the errors activity to shade generations.
+fn tiled_field_args(dir: &Path) -> Vec<String> {
+    let png = common::hills_png(dir, 1025).display().to_string();
+    vec![png, "--stream".into()]
+}
+
+/// [`faulted`] on the terrain `terrain(dir)` gives.
+fn faulted_on(terrain: &dyn Fn(&Path) -> Vec<String>, fault: &str, needles: &[&str]) {
     let tmp = TempDir::new("fault");
     let out = tmp.path().join("out");
-    let field = small_field(tmp.path());
-    let args = ["bench", "--heightmap", field.to_str().unwrap(), "--raw-size", "257x257", "--spacing", "10"];
-    let rest = ["--block", "9", "--size", "160x120", "--frames", "200", "--validation", "on", "--inject-fault", fault];
-    let mut child = spawn(&[&args[..], &rest].concat(), &out, std::process::Stdio::piped());
+    let mut args: Vec<String> = vec!["bench".into()];
+    args.extend(terrain(tmp.path()));
+    args.extend(
+        ["--size", "160x120", "--frames", "200", "--validation", "on", "--inject-fault", fault].map(String::from),
+    );
+    let args: Vec<&str> = args.iter().map(String::as_str).collect();
+    let mut child = spawn(&args, &out, std::process::Stdio::piped());
     let start = std::time::Instant::now();
     while child.try_wait().unwrap().is_none() {
         assert!(start.elapsed() < std::time::Duration::from_secs(60), "{fault}: the run hangs");
@@ -389,13 +413,53 @@ fn faulted(fault: &str, needles: &[&str]) {
     let stderr = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(1), "{fault}: {stderr}");
     assert!(!stderr.contains("panicked"), "{stderr}");
+    // The error is the last line (set-up lines come before it).
     let line = stderr
         .lines()
+        .rev()
         .find(|l| l.starts_with("vkterrain:") && !l.contains("queue mode") && !l.starts_with("vkterrain: note:"))
         .expect("an error line");
     for n in needles {
         assert!(line.contains(n), "{fault}: '{line}' does not mention '{n}'");
     }
+}
+
+/// The faults of the tests above over a terrain drawn from tiles: the errors activity
+/// over the atlas losing the device at its second generation, the draw running out of
+/// memory, each failing the run with the stage named; a stop during `--compare`'s
+/// `--lod full` run reports no ratios; a generation never reached fails the run.
+#[test]
+fn faults_over_tiles_fail_as_in_memory() {
+    faulted_on(&tiled_field_args, "errors-device-lost:2", &["errors activity", "generation 2", "ERROR_DEVICE_LOST"]);
+    faulted_on(&tiled_field_args, "draw-out-of-memory:3", &["draw thread, frame 3", "ERROR_OUT_OF_DEVICE_MEMORY"]);
+    let tmp = TempDir::new("tilestop");
+    let run = |fault: &str, extra: &[&str]| {
+        let out = tmp.path().join("out");
+        let _ = std::fs::remove_dir_all(&out);
+        let o = Command::new(env!("CARGO_BIN_EXE_vkterrain"))
+            .arg("bench")
+            .args(tiled_field_args(tmp.path()))
+            .args(["--size", "160x120", "--frames", "12", "--validation", "on", "--inject-fault", fault])
+            .args(extra)
+            .arg("--out")
+            .arg(&out)
+            .env("RUST_LOG", "error")
+            .output()
+            .unwrap();
+        (o.status.code(), String::from_utf8_lossy(&o.stderr).to_string(), out)
+    };
+    let (code, stderr, out) = run("interrupt-full:3", &["--compare"]);
+    assert_eq!(code, Some(130), "{stderr}");
+    assert!(stderr.contains("interrupted: partial results"), "{stderr}");
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
+    assert_eq!(summary["interrupted"], true);
+    assert!(summary.get("compare").is_none(), "{}", summary["compare"]);
+    assert_eq!(summary["frames"], 12);
+    assert_eq!(summary["validation_messages"], 0);
+    let (code, stderr, _) = run("errors-device-lost:100000", &[]);
+    assert_eq!(code, Some(2), "{stderr}");
+    assert!(stderr.contains("never reached, the run started"), "{stderr}");
 }
 
 #[test]

@@ -946,7 +946,7 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     if let Some((archive, _)) =
         crate::app::stream::streamed_archive(&args.common.terrain, args.streamed.stream, max_side)?
     {
-        return bench_streamed(args, device, archive, poses, frames, &signals);
+        return bench_streamed(args, device, archive, (poses, frames, fault), &signals);
     }
     args.streamed.note_unused();
     let s = Session::with_device(device, &args.common.terrain, args.common.block, Some(&args.textures))?;
@@ -1202,16 +1202,12 @@ fn bench_streamed(
     args: &BenchArgs,
     device: Arc<crate::vk::Device>,
     archive: Arc<crate::input::archive::Archive>,
-    poses: Option<Vec<(Vec3, Vec3)>>,
-    frames: u64,
+    (poses, frames, fault): (Option<Vec<(Vec3, Vec3)>>, u64, Option<Fault>),
     signals: &super::signals::Stop,
 ) -> anyhow::Result<()> {
     use crate::app::stream::{atlas_bound_streamer, streamed_grid, top_tiles, GpuFrames};
     use crate::stream::traverse::View;
-    args.common.refuse_untiled(&[
-        ("--raycast", args.raycast != crate::draw::raycast::Raycast::Off),
-        ("--inject-fault", args.inject_fault.is_some()),
-    ])?;
+    args.common.refuse_untiled(&[("--raycast", args.raycast != crate::draw::raycast::Raycast::Off)])?;
     let size = args.common.view.frustum.size.unwrap_or((640, 480));
     crate::app::cli::check_image_size(&device, "--size", size)?;
     crate::app::outputs::output_dir("--out", &args.out)?;
@@ -1270,6 +1266,9 @@ fn bench_streamed(
     gpu.sun(args.common.sun.0)?;
     // As the in-memory bench: frames are drawn, not read back.
     gpu.read_back = false;
+    if let Some(Fault::ErrorsDeviceLost(n)) = fault {
+        gpu.inject_device_lost_at(n);
+    }
     let started_all = Instant::now();
     let path = StreamedPath {
         frames,
@@ -1279,6 +1278,7 @@ fn bench_streamed(
         camera: &camera,
         trace: &trace,
         signals,
+        fault,
     };
     let fly = |streamer: &mut crate::stream::streamer::Streamer, gpu: &mut GpuFrames, how, name: &str| {
         path.fly(streamer, gpu, how, name)
@@ -1319,6 +1319,11 @@ fn bench_streamed(
         }
         _ => None,
     };
+    // A failure after the last frame drawn fails the run too.
+    if let Some(failure) = gpu.failure() {
+        anyhow::bail!(failure);
+    }
+    let generations_shaded = gpu.errors_shaded().generations;
     // The in-memory bench's summary, then what frames from tiles add.
     let mut summary = summarize(&run);
     let streamed = json!({
@@ -1379,6 +1384,13 @@ fn bench_streamed(
     if signals.requested() {
         return Err(Interrupted::by(signals, format!("partial results in {}", args.out.display())).into());
     }
+    if let Some(Fault::ErrorsDeviceLost(g)) = fault {
+        // Reached, it would have failed the run above.
+        return Err(InputError(format!(
+            "--inject-fault errors-device-lost:{g}: never reached, the run started {generations_shaded} generations"
+        ))
+        .into());
+    }
     if let Some(failure) = &streamer_failure {
         return Err(
             Degraded(format!("tiles could not be read (first: {failure}); frames drawn without their data")).into()
@@ -1396,6 +1408,8 @@ struct StreamedPath<'a> {
     camera: &'a dyn Fn(u64) -> (Vec3, Vec3, f64),
     trace: &'a Trace,
     signals: &'a crate::app::signals::Stop,
+    /// A fault injected for tests (`--inject-fault`): the draw fails, or a stop is asked for.
+    fault: Option<Fault>,
 }
 
 /// How a [`StreamedPath`] run chooses its blocks: the LOD rule, or selections to draw
@@ -1442,8 +1456,19 @@ impl StreamedPath<'_> {
         let shaded_before = gpu.errors_shaded();
         let (mut taken, mut taken_at, mut bounded_by_errors) = (0u64, 0u64, 0u64);
         for i in 0..self.frames {
+            if name == "full" && self.fault == Some(Fault::InterruptFull(i)) {
+                self.signals.flag().store(true, std::sync::atomic::Ordering::SeqCst);
+            }
             if self.signals.requested() {
                 break;
+            }
+            if name == "streamed" && self.fault == Some(Fault::DrawOutOfMemory(i)) {
+                return Err(crate::vk::VkError::Call {
+                    call: "vkAllocateMemory (injected fault)",
+                    result: ash::vk::Result::ERROR_OUT_OF_DEVICE_MEMORY,
+                    trace: String::new(),
+                })
+                .map_err(|e| anyhow::anyhow!("draw thread, frame {i}: {e}"));
             }
             let t0 = Instant::now();
             let v = (self.view)(i);

@@ -363,6 +363,17 @@ impl GpuFrames {
         })
     }
 
+    /// Why the errors activity stopped, if it failed.
+    pub fn failure(&self) -> Option<String> {
+        self.atlas.failure()
+    }
+
+    /// Test hook: the errors activity fails as if the device were lost at block-error
+    /// generation `n` (`--inject-fault errors-device-lost:N`).
+    pub fn inject_device_lost_at(&self, n: u64) {
+        self.atlas.inject_device_lost_at(n);
+    }
+
     /// The largest share of wall time the errors generations take (`--update-share`).
     pub fn set_update_share(&self, share: f32) {
         self.atlas.set_update_share(share);

@@ -74,6 +74,8 @@ struct State {
     shaded: ErrorsShaded,
     /// Every block error read back is multiplied by this (1; tests corrupt it).
     scale_errors: f32,
+    /// Test hook: block-error generation number this fails with ERROR_DEVICE_LOST (0: never).
+    device_lost_at: u64,
     /// The largest share of wall time the errors generations take (`--update-share`),
     /// when the next may start, and whether a settle waits for the request (it starts
     /// at once then).
@@ -293,6 +295,7 @@ impl HeightAtlas {
                 errors: None,
                 shaded: ErrorsShaded::default(),
                 scale_errors: 1.0,
+                device_lost_at: 0,
                 update_share: DEFAULT_UPDATE_SHARE,
                 next_errors_at: None,
                 hurry: false,
@@ -309,7 +312,8 @@ impl HeightAtlas {
                 move || {
                     if let Err(e) = run(&device, &shared, &trace) {
                         let mut s = shared.lock();
-                        s.failure = Some(format!("atlas uploads: {e}"));
+                        // The thread is the errors activity: its first pass uploads tiles.
+                        s.failure = Some(format!("errors activity: {e}"));
                         s.busy = 0;
                         drop(s);
                         shared.progress.notify_all();
@@ -390,6 +394,13 @@ impl HeightAtlas {
     #[doc(hidden)]
     pub fn corrupt_errors(&self, factor: f32) {
         self.shared.lock().scale_errors = factor;
+    }
+
+    /// Test hook: the errors thread fails as if the device were lost when it is about to
+    /// submit block-error generation `n` (counted from 1, as [`ErrorsShaded::generations`]).
+    #[doc(hidden)]
+    pub fn inject_device_lost_at(&self, n: u64) {
+        self.shared.lock().device_lost_at = n;
     }
 
     /// Why the errors thread stopped, if it failed: frames drawn from then on fail.
@@ -648,6 +659,14 @@ impl Activity<'_> {
             return Ok(());
         }
         let g = self.generation + 1;
+        let nth = {
+            let s = shared.lock();
+            (s.shaded.generations + 1, s.device_lost_at)
+        };
+        if nth.0 == nth.1 {
+            let lost = Err::<(), _>(vk::Result::ERROR_DEVICE_LOST).vk("vkQueueSubmit2 (injected fault)");
+            return lost.map_err(|e| VkError::Thread { stage: format!("generation {}", nth.0), cause: Box::new(e) });
+        }
         let (anchor, cam) = request.view.relative(&grid);
         let d = &self.device.raw;
         // SAFETY: `cmd` belongs to this thread's pool and its last submission was waited
