@@ -946,7 +946,7 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     if let Some((archive, _)) =
         crate::app::stream::streamed_archive(&args.common.terrain, args.streamed.stream, max_side)?
     {
-        return bench_streamed(args, device, archive, (poses, frames, fault), &signals);
+        return bench_streamed(args, device, archive, poses, frames, fault, &signals);
     }
     args.streamed.note_unused();
     let s = Session::with_device(device, &args.common.terrain, args.common.block, Some(&args.textures))?;
@@ -1202,7 +1202,9 @@ fn bench_streamed(
     args: &BenchArgs,
     device: Arc<crate::vk::Device>,
     archive: Arc<crate::input::archive::Archive>,
-    (poses, frames, fault): (Option<Vec<(Vec3, Vec3)>>, u64, Option<Fault>),
+    poses: Option<Vec<(Vec3, Vec3)>>,
+    frames: u64,
+    fault: Option<Fault>,
     signals: &super::signals::Stop,
 ) -> anyhow::Result<()> {
     use crate::app::stream::{atlas_bound_streamer, streamed_grid, top_tiles, GpuFrames};
