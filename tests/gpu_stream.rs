@@ -735,6 +735,15 @@ fn bench_runs_a_path_over_an_archive_drawn_streamed() {
     assert!(summary["mean_blocks_bounded_by_errors"].as_f64().is_some_and(|b| b > 1.0), "{summary}");
     assert!(summary["median_traverse_ms"].as_f64().is_some_and(|t| t > 0.0), "{summary}");
     assert!(out.join("plot.png").exists());
+    // Fidelity as in memory: three views along the path, four deltas each, against the
+    // full-resolution frame; a larger delta draws fewer triangles, none more than full.
+    let fidelity = summary["fidelity"].as_array().unwrap_or_else(|| panic!("no fidelity: {summary}"));
+    assert_eq!(fidelity.len(), 12, "{summary}");
+    for view in fidelity.chunks(4) {
+        let f = |i: usize, k: &str| view[i][k].as_f64().unwrap();
+        assert!((0..4).all(|i| f(i, "rmse").is_finite() && f(i, "triangles") <= f(i, "full_triangles")), "{view:?}");
+        assert!(f(3, "triangles") < f(0, "triangles") && f(0, "delta") == 0.5 && f(3, "delta") == 5.0, "{view:?}");
+    }
     // The terrain's facts, as every bench summary has them (synthetic: 30 m, 0.1 m a unit).
     assert_eq!(summary["samples"], serde_json::json!([1025, 1025]), "{summary}");
     assert_eq!(

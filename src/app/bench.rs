@@ -1213,9 +1213,6 @@ fn bench_streamed(
     let size = args.common.view.frustum.size.unwrap_or((640, 480));
     crate::app::cli::check_image_size(&device, "--size", size)?;
     crate::app::outputs::output_dir("--out", &args.out)?;
-    if !args.no_fidelity {
-        eprintln!("vkterrain: note: a streamed bench measures no fidelity against --lod full yet");
-    }
     // The three threads' work: each frame's selection and drawing, the IO thread's reads,
     // the atlas's uploads (CPU tracks only: streamed frames take no timestamps).
     let trace_path = args.out.join("trace.json");
@@ -1321,6 +1318,10 @@ fn bench_streamed(
         }
         _ => None,
     };
+    let fidelity = match !args.no_fidelity && !signals.requested() {
+        true => Some(path.fidelity(&mut streamer, &mut gpu)?),
+        false => None,
+    };
     // A failure after the last frame drawn fails the run too.
     if let Some(failure) = gpu.failure() {
         anyhow::bail!(failure);
@@ -1371,6 +1372,9 @@ fn bench_streamed(
     if let Some(p) = popped {
         summary["popping"] = p;
     }
+    if let Some(f) = fidelity {
+        summary["fidelity"] = f;
+    }
     let streamer_failure = streamer.first_failure.clone();
     crate::app::outputs::TerrainFacts::of_archive(&archive.meta, &args.common.terrain.frame).merge_into(&mut summary);
     drop(gpu);
@@ -1419,6 +1423,39 @@ struct StreamedPath<'a> {
 type FlyHow<'a> = (LodChoice, Option<&'a [crate::stream::traverse::Selection]>, bool, bool);
 
 impl StreamedPath<'_> {
+    /// As in memory ([`fidelity`]): RMSE against the full-resolution image at three fixed
+    /// views along the path, for delta = 0.5, 1, 2, 5, each frame settled (its tiles read,
+    /// its errors from the errors activity).
+    fn fidelity(
+        &self,
+        streamer: &mut crate::stream::streamer::Streamer,
+        gpu: &mut crate::app::stream::GpuFrames,
+    ) -> anyhow::Result<Value> {
+        let (lod, read_back) = (streamer.lod, gpu.read_back);
+        gpu.read_back = true;
+        let mut out = Vec::new();
+        for frac in [0.0f64, 0.5, 0.9] {
+            let i = ((self.frames - 1) as f64 * frac).round() as u64;
+            let (view, time_s) = ((self.view)(i), (self.camera)(i).2);
+            streamer.lod = crate::app::stream::streamed_lod(LodChoice::Full);
+            let (_, sel) = crate::app::stream::settle(streamer, |_| view, 1.0);
+            gpu.draw(streamer, self.grid, &view, &sel, None)?;
+            let (full, full_triangles) = (std::mem::take(&mut gpu.last), gpu.triangles);
+            streamer.lod = crate::app::stream::streamed_lod(LodChoice::Error);
+            for delta in [0.5f32, 1.0, 2.0, 5.0] {
+                let (_, sel) = crate::app::stream::settle(streamer, |_| view, delta);
+                gpu.draw(streamer, self.grid, &view, &sel, None)?;
+                let (rmse, share) = image_difference(&full, &gpu.last);
+                out.push(json!({
+                    "time_s": time_s, "delta": delta, "rmse": rmse, "share_off_by_more_than_16": share,
+                    "triangles": gpu.triangles, "full_triangles": full_triangles,
+                }));
+            }
+        }
+        (streamer.lod, gpu.read_back) = (lod, read_back);
+        Ok(Value::Array(out))
+    }
+
     /// One run along the path with the blocks `lod` chooses, or `replay`'s selections
     /// drawn again with none made (the ceiling); its frames, rows in the one frames.csv
     /// schema every bench writes (what frames from tiles do not have, such as error
