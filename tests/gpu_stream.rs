@@ -430,15 +430,20 @@ fn render_draws_an_archive_streamed_within_the_bound() {
         (vec!["--error-mode", "paper"], "--error-mode paper"),
         // Over tiles the errors activity runs one generation at a time.
         (vec!["--error-pacing", "free"], "--error-pacing free"),
-        // Occlusion culling asked for by name: not done on frames from tiles (off is).
-        (vec!["--occlusion", "on"], "--occlusion on"),
     ] {
         let o = render(&extra);
         let err = String::from_utf8_lossy(&o.stderr);
         assert_eq!(o.status.code(), Some(2), "{extra:?}: {err}");
         assert!(err.contains(named) && err.contains("s.pmtiles") && err.contains("streamed"), "{err}");
     }
-    assert!(render(&["--occlusion", "off"]).status.success());
+    // Occlusion culling as in memory: on by default, off when asked (its report null).
+    assert!(r["occlusion"]["tested"].as_u64().is_some_and(|t| t > 0), "{r}");
+    let o = render(&["--occlusion", "off"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let off: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert!(off["occlusion"].is_null(), "{off}");
+    let o = render(&["--occlusion", "on"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     // The errors activity's refresh and share of the wall time apply to tiles too.
     let o = render(&["--refresh-at", "0.2", "--update-share", "0.5", "--error-pacing", "paced"]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
@@ -1353,4 +1358,102 @@ fn a_raw_file_larger_than_one_image_is_drawn_from_tiles() {
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!((r["streamed"].as_bool(), r["validation_messages"].as_u64()), (Some(true), Some(0)), "{r}");
+}
+
+/// Occlusion culling over tiles (SPEC section 10, from the tiles' summaries): at low,
+/// horizon-level poses over the rough field and over a cliff with thin pillars (a plain
+/// hidden behind the cliff's edge, the pillars' tops showing over it), the frame drawn
+/// without the hidden blocks and parts is the frame drawn whole, bit for bit, under
+/// validation. Mutations of the sweep's rule (occluders at their blocks' highest drawn
+/// height; parts tested at their lowest vertex) hide visible terrain, and the frames
+/// differ.
+#[test]
+fn streamed_occlusion_culling_hides_nothing_visible() {
+    use vkterrain::lod::occlusion::Rule;
+    let cliff_pillars = common::field(513, 513, 2.0, |x, z| {
+        let wobble = ((z as f32) * 0.3).sin() * 0.5;
+        if x < 256 {
+            60.0 + wobble
+        } else if x % 9 == 4 && z % 9 == 4 {
+            80.0
+        } else {
+            wobble
+        }
+    });
+    let device = common::gpu();
+    let (mut hidden, mut parts, mut poses, mut culled_poses) = (0usize, 0usize, 0usize, 0usize);
+    let mut caught = [0usize; 2];
+    for (name, hf) in [("rough", common::rough()), ("cliff with pillars", cliff_pillars)] {
+        let dir = TempDir::new("gpu-stream-occlusion");
+        let archive = common::archive_of(&hf, &dir);
+        let grid = Grid::from_meta(&archive.meta);
+        let mut s = Streamer::new(archive, grid, 1 << 30);
+        let atlas = HeightAtlas::new(&device, &grid, 64 << 20).unwrap();
+        let lit = OwnLighting::everything_lit(&device).unwrap();
+        s.attach(Box::new(atlas.feed()), HeightAtlas::cache_tiles(atlas.layer_count()));
+        let mut renderer = StreamedRenderer::new(&device, draw::layout(&grid), 160, 120).unwrap();
+        let all = draw::layout(&grid).all_parts();
+        let (wx, wz) = hf.world_extent();
+        let mut rng = 0x9e37_79b9_7f4a_7c15_u64;
+        let mut next = || {
+            rng = rng.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            (rng >> 11) as f64 / (1u64 << 53) as f64
+        };
+        for i in 0..48 {
+            let (x, z) = (f64::from(wx) * (0.05 + 0.9 * next()), f64::from(wz) * (0.05 + 0.9 * next()));
+            let ground = f64::from(hf.surface_height(x as f32, z as f32));
+            let p = DVec3::new(x, ground + f64::from(hf.spacing.min()) + 30.0 * next(), z);
+            let (yaw, pitch) = (next() * std::f64::consts::TAU, 0.05 - 0.5 * next());
+            let dir = DVec3::new(yaw.cos() * pitch.cos(), pitch.sin(), yaw.sin() * pitch.cos());
+            let view = View::look_at(p, p + dir * 100.0, 30.0 + 40.0 * next() as f32, 160, 120, 0.1);
+            let sel = settled(&mut s, &view);
+            let whole = draw::stitched_blocks(&grid, &s.cache, &sel);
+            let fv = frame_view(&grid, &view, &lit);
+            let cull = |rule: Rule| {
+                let mut blocks = whole.clone();
+                let mut masks = Vec::new();
+                let drawable = |t| atlas.holds(t);
+                let culled = &sel.frustum_culled;
+                let r = draw::cull(
+                    &grid,
+                    &s.cache,
+                    (fv.anchor, &fv.cam),
+                    (&mut blocks, culled),
+                    &drawable,
+                    (rule, &mut masks),
+                );
+                (blocks, r)
+            };
+            let (culled, report) = cull(Rule::Sound);
+            poses += 1;
+            parts += whole.len() * all.count_ones() as usize;
+            if report.skipped.is_some() {
+                continue;
+            }
+            culled_poses += 1;
+            hidden += report.hidden_parts;
+            assert_eq!(whole.len() - culled.len(), report.hidden, "{name} pose {i}: blocks hidden whole are not drawn");
+            let (a_px, _) = renderer.render(&atlas, &fv, &whole).unwrap();
+            let (b_px, _) = renderer.render(&atlas, &fv, &culled).unwrap();
+            let differing = a_px.chunks(4).zip(b_px.chunks(4)).filter(|(a, b)| a != b).count();
+            assert_eq!(
+                differing, 0,
+                "{name} pose {i}: {} parts hidden changed {differing} pixels",
+                report.hidden_parts
+            );
+            for (k, rule) in [Rule::OccluderTop, Rule::PartBottom].into_iter().enumerate() {
+                let (mutated, _) = cull(rule);
+                let (c_px, _) = renderer.render(&atlas, &fv, &mutated).unwrap();
+                caught[k] += usize::from(c_px != a_px);
+            }
+        }
+    }
+    eprintln!(
+        "occlusion over tiles: {hidden} of {parts} parts hidden at {culled_poses} of {poses} poses culled; \
+         mutations caught at {caught:?} poses"
+    );
+    assert!(culled_poses * 2 > poses, "culling ran at {culled_poses} of {poses} poses");
+    assert!(hidden * 10 > parts, "{hidden} of {parts} parts hidden: the poses test little");
+    assert!(caught.iter().all(|&c| c >= 5), "mutations changed too few frames: {caught:?}");
+    common::finish(device);
 }

@@ -1263,6 +1263,7 @@ fn bench_streamed(
     let m = &archive.meta;
     gpu.set_textures(&args.textures.load_over(&m.georef, (m.width, m.height))?, &args.textures)?;
     gpu.sun(args.common.sun.0)?;
+    gpu.occlusion = args.common.occlusion != Some(crate::app::cli::OnOff::Off);
     // As the in-memory bench: frames are drawn, not read back.
     gpu.read_back = false;
     if let Some(Fault::ErrorsDeviceLost(n)) = fault {
@@ -1473,6 +1474,10 @@ impl StreamedPath<'_> {
     ) -> anyhow::Result<(Run, Vec<crate::stream::traverse::Selection>, crate::stream::streamer::StreamStats)> {
         streamer.lod = crate::app::stream::streamed_lod(lod);
         gpu.read_back = pop;
+        // A replay draws what culling left of the run it replays, with no sweep of its own.
+        let occlusion = gpu.occlusion;
+        gpu.occlusion &= replay.is_none();
+        gpu.new_run();
         // As a viewer would: the first view's tiles are read before the run (for every
         // run: `--lod full` needs other tiles than the bound's); the run's own figures
         // from here, what the first view read returned apart.
@@ -1523,6 +1528,10 @@ impl StreamedPath<'_> {
             let t1 = Instant::now();
             self.trace.complete(DRAW_TID, "select (traversal over held tiles)", t0, t1, json!({"frame": i}));
             gpu.draw(streamer, self.grid, &v, &sel, None)?;
+            let culled = gpu.last_occlusion.filter(|o| o.skipped.is_none());
+            // What culling hid stays hidden when the frame is drawn again (the ceiling
+            // draws the run's own blocks with no selection work).
+            let masks = std::mem::take(&mut gpu.culled_masks);
             self.trace.complete(
                 DRAW_TID,
                 "frame",
@@ -1545,6 +1554,8 @@ impl StreamedPath<'_> {
                 tiles_held: Some(streamer.cache.len()),
                 error_generation: sel.errors_generation,
                 error_update_ms: sel.errors_gpu_ms,
+                occluded: culled.map(|o| o.hidden),
+                occluded_parts: culled.map(|o| (o.hidden_parts, o.tested_parts)),
                 ..Row::default()
             };
             bounded_by_errors += sel.drawn_bounded_by().0 as u64;
@@ -1571,10 +1582,15 @@ impl StreamedPath<'_> {
             }
             rows.push(row);
             if keep {
+                let mut sel = sel;
+                for (b, m) in sel.stitched.iter_mut().zip(&masks) {
+                    b.hidden_parts |= m;
+                }
                 kept.push(sel);
             }
             progress.tick(i + 1);
         }
+        gpu.occlusion = occlusion;
         let shaded = gpu.errors_shaded();
         let mut update_gpu_ms = shaded.gpu_ms;
         let update_gpu_ms = update_gpu_ms.split_off(shaded_before.gpu_ms.len().min(update_gpu_ms.len()));

@@ -382,8 +382,6 @@ impl CommonArgs {
         let shared = [
             ("--error-mode paper", self.error_mode.mode != crate::lod::gie::ErrorMode::Strict),
             ("--block (tiles fix k = 33)", self.block.k != 33),
-            // Asked for by name: frames from tiles draw every block the frustum keeps.
-            ("--occlusion on", self.occlusion == Some(OnOff::On)),
             // Over tiles the errors thread waits for each generation before the next.
             ("--error-pacing free", self.error_pacing == crate::errors::activity::Pacing::Free),
         ];

@@ -366,8 +366,7 @@ fn panel(ui: &mut egui::Ui, r: &Readout, history: &FrameHistory, now: f64, c: &m
     });
     ui.horizontal(|ui| {
         ui.checkbox(&mut c.morph, "morph");
-        ui.add_enabled(memory, egui::Checkbox::new(&mut c.occlusion, "occlusion culling"))
-            .on_disabled_hover_text(NOT_ON_TILES);
+        ui.checkbox(&mut c.occlusion, "occlusion culling");
         ui.checkbox(&mut c.frozen, "freeze blocks");
     });
     ui.horizontal(|ui| {
@@ -1345,7 +1344,7 @@ mod tests {
     }
 
     /// A terrain drawn from tiles: the same panel with the tiles' rows; every control
-    /// works but the error mode and occlusion culling, which are shown disabled.
+    /// works but the error mode, which is shown disabled.
     #[test]
     fn the_panel_of_a_terrain_drawn_from_tiles_disables_what_tiles_do_not_draw() {
         let tiles = TilesReadout { frames: 7, frames_over_bound: 2, worst_factor: 1.5, ..TilesReadout::default() };
@@ -1359,7 +1358,7 @@ mod tests {
         let click = |text| run_with(&readout, screen, true, Ok(text), 0.0, false).0;
         assert_eq!(click("2 of 7 frames"), controls(), "the tiles' rows are shown");
         assert_eq!(click("paper"), controls(), "no paper error mode over tiles");
-        assert_eq!(click("occlusion culling"), controls(), "no occlusion culling over tiles");
+        assert_eq!(click("occlusion culling"), Controls { occlusion: false, ..controls() });
         assert_eq!(click("morph"), Controls { morph: false, ..controls() });
         assert_eq!(click("freeze blocks"), Controls { frozen: true, ..controls() });
         assert_eq!(click("wireframe"), Controls { wireframe: true, ..controls() });

@@ -110,6 +110,15 @@ pub(crate) struct GpuFrames {
     pub wireframe: bool,
     /// A plain background instead of the sky.
     pub background: Option<[f32; 3]>,
+    /// Occlusion culling (`--occlusion`, the viewer's C key): hidden blocks and parts are
+    /// not drawn; when the sweep runs ([`crate::lod::occlusion::Probe`]), what the last
+    /// frame's did, each block's hidden parts (in the selection's order; empty when not
+    /// culled), and the blocks hidden whole over every frame.
+    pub occlusion: bool,
+    probe: crate::lod::occlusion::Probe,
+    pub last_occlusion: Option<crate::lod::block::OcclusionReport>,
+    pub culled_masks: Vec<u16>,
+    occluded_blocks: u64,
     frames: u64,
     /// Frames where some block's tile found no atlas layer (those blocks not drawn).
     pub frames_missing_blocks: u64,
@@ -208,6 +217,11 @@ impl GpuFrames {
             colour_by_lod: false,
             wireframe: false,
             background: None,
+            occlusion: true,
+            probe: Default::default(),
+            last_occlusion: None,
+            culled_masks: Vec::new(),
+            occluded_blocks: 0,
             frames: 0,
             frames_missing_blocks: 0,
             blocks: 0,
@@ -267,6 +281,20 @@ impl GpuFrames {
             anyhow::bail!(failure);
         }
         let (anchor, cam) = view.relative(grid);
+        self.culled_masks.clear();
+        self.last_occlusion = None;
+        if self.occlusion {
+            let (atlas, cache, masks) = (&self.atlas, &streamer.cache, &mut self.culled_masks);
+            let tpp = crate::stream::draw::layout(grid).triangles_per_part();
+            let report = self.probe.run(blocks.len(), tpp, || {
+                let drawable = |t| atlas.holds(t);
+                let culled = &sel.frustum_culled;
+                let rule = (crate::lod::occlusion::Rule::Sound, masks);
+                crate::stream::draw::cull(grid, cache, (anchor, &cam), (&mut blocks, culled), &drawable, rule)
+            });
+            self.occluded_blocks += report.hidden as u64;
+            self.last_occlusion = Some(report);
+        }
         crate::stream::draw::hide_parts_outside(grid, &streamer.cache, anchor, &cam, &mut blocks);
         let fv = FrameView {
             grid,
@@ -307,6 +335,12 @@ impl GpuFrames {
         });
         self.trace.complete(DRAW_TID, "draw (record, submit, wait)", t0, Instant::now(), args);
         Ok(())
+    }
+
+    /// Occlusion culling starts afresh, as a new run's frames do (the sweep runs on the
+    /// next frame whatever the last run's paid).
+    pub fn new_run(&mut self) {
+        self.probe = Default::default();
     }
 
     /// Lights the frames from `sun`'s direction with its shadows and ambient occlusion
@@ -397,6 +431,8 @@ impl GpuFrames {
             "tiles_without_a_layer": up.dropped,
             "frames_missing_blocks": self.frames_missing_blocks,
             "hidden_parts_per_frame": self.hidden_parts_total as f64 / self.frames.max(1) as f64,
+            "occlusion": self.occlusion,
+            "occluded_blocks_per_frame": self.occluded_blocks as f64 / self.frames.max(1) as f64,
             "draw_ms_per_frame": 1e3 * self.drawing.as_secs_f64() / self.frames.max(1) as f64,
             "errors": self.errors_report(),
             "lighting": {
@@ -862,6 +898,7 @@ pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
     gpu.fog = f.fog;
     gpu.colour_by_lod = f.colour_by_lod;
     gpu.background = f.background;
+    gpu.occlusion = f.common.occlusion != Some(crate::app::cli::OnOff::Off);
     gpu.sun(f.common.sun.0)?;
     gpu.draw(&streamer, &grid, &view, &sel, None)?;
     exit_if_stopped(f.stop);
@@ -875,6 +912,8 @@ pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
         "triangles": gpu.triangles,
         "hidden_parts": gpu.hidden_parts,
         "hidden_triangles": gpu.hidden_parts * crate::stream::draw::layout(&grid).triangles_per_part(),
+        // What occlusion culling did (as in memory: null when off).
+        "occlusion": gpu.last_occlusion,
         "draw_calls": gpu.draw_calls,
         "within_bound": sel.within_bound() && !missing,
         "blocks_over_bound": sel.over_bound,

@@ -6,7 +6,7 @@
 //!
 //! It has the in-memory viewer's camera controls ([`Controller`]), keys and panel
 //! ([`crate::app::hud`], with its tiles section: frames over the bound, tiles held and
-//! read, the errors over the atlas; the error mode and occlusion culling shown disabled);
+//! read, the errors over the atlas; the error mode shown disabled);
 //! the window title carries the main figures too.
 
 use crate::app::cli::{check_messages, CommonArgs, Degraded, Interrupted};
@@ -390,6 +390,7 @@ impl App {
         frames.fog = self.fog;
         frames.set_textures(&self.textures, &self.args.textures)?;
         frames.sun(self.args.common.sun.0)?;
+        frames.occlusion = self.args.common.occlusion != Some(crate::app::cli::OnOff::Off);
         self.gpu = Some(WindowGpu { hud, acquired, swapchain, frames, surface });
         self.win.window = Some(window);
         Ok(())
@@ -583,6 +584,7 @@ impl App {
         let mut readout = Readout {
             triangles: self.run.last_triangles,
             draw_calls: gpu.frames.draw_calls,
+            occlusion: gpu.frames.last_occlusion.filter(|_| gpu.frames.occlusion),
             blocks: self.run.last_blocks,
             generations: errors.generations,
             update_ms: errors.last.and_then(|e| e.gpu_ms),
@@ -658,7 +660,7 @@ impl App {
             delta: self.delta,
             mode: crate::lod::gie::ErrorMode::Strict,
             morph: self.streamer.morph.is_some(),
-            occlusion: false,
+            occlusion: gpu.is_some_and(|g| g.frames.occlusion),
             frozen: self.frozen.is_some() || self.freeze_next,
             wireframe: gpu.is_some_and(|g| g.frames.wireframe),
             colour_by_lod: gpu.is_some_and(|g| g.frames.colour_by_lod),
@@ -672,8 +674,8 @@ impl App {
         }
     }
 
-    /// What the panel changed (the error mode and occlusion culling are not drawn over
-    /// tiles yet: the panel shows them disabled).
+    /// What the panel changed (the error mode is not drawn over tiles yet: the panel
+    /// shows it disabled).
     fn apply(&mut self, c: Controls) -> anyhow::Result<()> {
         if c.frozen != (self.frozen.is_some() || self.freeze_next) {
             self.freeze_next = c.frozen;
@@ -682,6 +684,7 @@ impl App {
         self.delta = c.delta;
         self.set_morph(c.morph);
         if let Some(g) = self.gpu.as_mut() {
+            g.frames.occlusion = c.occlusion;
             g.frames.wireframe = c.wireframe;
             g.frames.colour_by_lod = c.colour_by_lod;
             g.frames.fog = c.fog_density;
@@ -816,10 +819,14 @@ impl App {
                     }
                 }
             }
-            KeyCode::KeyM | KeyCode::KeyC => eprintln!(
-                "vkterrain: note: {} is not drawn yet for a terrain drawn from tiles",
-                if code == KeyCode::KeyM { "M (the paper's error mode)" } else { "C (occlusion culling)" }
-            ),
+            KeyCode::KeyC => {
+                if let Some(g) = self.gpu.as_mut() {
+                    g.frames.occlusion = !g.frames.occlusion;
+                }
+            }
+            KeyCode::KeyM => {
+                eprintln!("vkterrain: note: M (the paper's error mode) is not drawn yet for a terrain drawn from tiles")
+            }
             _ => {}
         }
     }

@@ -184,6 +184,9 @@ pub enum Skipped {
     /// Not run this frame: the last run hid too little to pay for itself
     /// (`occlusion::Probe`).
     Paused,
+    /// A drawn block's tile is not held (a terrain drawn from tiles): its surface is
+    /// not known to be drawn.
+    TileMissing,
 }
 
 impl Skipped {
@@ -194,6 +197,7 @@ impl Skipped {
             Skipped::NearPlaneLow => "near plane at the ground",
             Skipped::CoarseBesideCulled => "coarse block beside a culled one",
             Skipped::Paused => "paused: hid too little",
+            Skipped::TileMissing => "a drawn block's tile not held",
         }
     }
 }

@@ -110,17 +110,28 @@ impl Probe {
         cam: &Camera,
         t: &mut Traversal,
     ) -> OcclusionReport {
+        let tested = t.blocks.len();
+        let report = self.run(tested, layout.triangles_per_part(), || cull(hf, mm, caches, layout, cam, t));
+        t.occlusion = Some(report);
+        report
+    }
+
+    /// Runs `sweep` (over `tested` blocks) if this frame is due, else reports it paused;
+    /// learns from the result whether the next frame sweeps.
+    pub fn run(
+        &mut self,
+        tested: usize,
+        triangles_per_part: u64,
+        sweep: impl FnOnce() -> OcclusionReport,
+    ) -> OcclusionReport {
         if self.paused_for > 0 {
             self.paused_for -= 1;
-            let report =
-                OcclusionReport { tested: t.blocks.len(), skipped: Some(Skipped::Paused), ..Default::default() };
-            t.occlusion = Some(report);
-            return report;
+            return OcclusionReport { tested, skipped: Some(Skipped::Paused), ..Default::default() };
         }
         let started = std::time::Instant::now();
-        let report = cull(hf, mm, caches, layout, cam, t);
+        let report = sweep();
         let sweep_ms = started.elapsed().as_secs_f64() * 1e3;
-        let paid = Self::pays(&report, sweep_ms, self.timing.map(|t| t.1), layout.triangles_per_part());
+        let paid = Self::pays(&report, sweep_ms, self.timing.map(|t| t.1), triangles_per_part);
         self.paused_for = if paid { 0 } else { Self::pause_after(sweep_ms, self.timing.map(|t| t.0)) - 1 };
         report
     }
@@ -158,13 +169,13 @@ pub fn drawn_range(
     [lo, hi]
 }
 
-/// A block's footprint in world x and z (f64: angles and distances are taken in f64).
-#[derive(Clone, Copy, Debug)]
-struct Rect {
-    x0: f64,
-    z0: f64,
-    x1: f64,
-    z1: f64,
+/// A footprint on the ground, world x and z (f64: angles and distances are taken in f64).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Rect {
+    pub x0: f64,
+    pub z0: f64,
+    pub x1: f64,
+    pub z1: f64,
 }
 
 impl Rect {
@@ -268,70 +279,46 @@ struct Occluder {
     lo: f64,
 }
 
-/// The occluders of drawn block `b`: its footprint in 4 x 4 cells of the min/max pyramid
-/// (or cells one parent quad wide, for blocks of fewer quads), each under its lowest
-/// sample. Over an interior cell the drawn surface is the cell's own quads, morphed
+/// The occluder cells of drawn block `b`: its footprint in 4 x 4 cells of the min/max
+/// pyramid (or cells one parent quad wide, for blocks of fewer quads), each under its
+/// lowest sample. Over an interior cell the drawn surface is the cell's own quads, morphed
 /// towards the parent's triangles, whose vertices are the cell's samples (the cells are
 /// aligned to the parent's grid); over a cell along an edge stitched to a coarser block
 /// the fan triangles reach further along the edge, so the cell takes the block's whole
 /// drawn minimum there.
-fn occluders<'a>(
+fn cells<'a>(
     hf: &'a Heightfield,
     mm: &'a MinMaxPyramid,
     layout: &BlockLayout,
     b: &'a DrawBlock,
     block_lo: f32,
-    extent: &Rect,
-    (cx, cz): (f64, f64),
-) -> impl Iterator<Item = Occluder> + 'a {
+) -> impl Iterator<Item = (Rect, f64)> + 'a {
     let level = (layout.m + b.lod).saturating_sub(2).max(b.lod + 1).min(layout.m + b.lod);
     let per_side = 1u32 << (layout.m + b.lod - level);
     let size = (1u64 << level) as f64;
     let hs = hf.height_scale;
-    let extent = *extent;
-    (0..per_side * per_side).filter_map(move |g| {
+    (0..per_side * per_side).map(move |g| {
         let (gx, gz) = (g % per_side, g / per_side);
         let (x, z) = (b.bx * per_side + gx, b.bz * per_side + gz);
         let (x0, z0) = (x as f64 * size * hf.spacing.x as f64, z as f64 * size * hf.spacing.z as f64);
-        let rect = Rect {
-            x0,
-            z0,
-            x1: (x0 + size * hf.spacing.x as f64).min(extent.x1),
-            z1: (z0 + size * hf.spacing.z as f64).min(extent.z1),
-        };
-        if rect.x1 <= rect.x0 || rect.z1 <= rect.z0 {
-            return None;
-        }
+        let rect = Rect { x0, z0, x1: x0 + size * hf.spacing.x as f64, z1: z0 + size * hf.spacing.z as f64 };
         let mut lo = mm.get(level, x as usize, z as usize)[0] * hs;
         let on_edge = [gz == 0, gx == per_side - 1, gz == per_side - 1, gx == 0];
         if (0..4).any(|e| on_edge[e] && b.coarser[e] > 0) {
             lo = lo.min(block_lo);
         }
-        let (near, far) = rect.distances(cx, cz);
-        Some(Occluder { rect, near, far, lo: lo as f64 })
+        (rect, lo as f64)
     })
 }
 
-/// The boxes of `b`'s parts ([`part_boxes`]) as the sweep tests them, each with its bit
-/// of `DrawBlock::hidden_parts`: its footprint under its highest vertex.
-fn part_queries<'a>(
-    hf: &'a Heightfield,
-    mm: &'a MinMaxPyramid,
-    layout: &BlockLayout,
-    b: &'a DrawBlock,
-    (cx, cz): (f64, f64),
-    rule: Rule,
-) -> impl Iterator<Item = (Query, u16)> + 'a {
-    let top = if rule == Rule::PartBottom { 0 } else { 1 };
-    let hs = hf.height_scale as f64;
-    let (sx, sz) = (hf.spacing.x as f64, hf.spacing.z as f64);
-    part_boxes(mm, layout, b).map(move |pb| {
-        let (x0, z0) = (pb.x0 as f64 * sx, pb.z0 as f64 * sz);
-        let size = pb.size as f64;
-        let rect = Rect { x0, z0, x1: x0 + size * sx, z1: z0 + size * sz };
-        let (near, far) = rect.distances(cx, cz);
-        (Query { rect, near, far, hi: pb.raw[top] as f64 * hs }, pb.bit)
-    })
+/// A part's box as the sweep tests it ([`SweptBlock::parts`]): its square of samples
+/// `(x0, z0, size)` with spacing `(sx, sz)` from sample `origin`, and its raw heights
+/// scaled by `hs`.
+pub fn part_of(pb: &crate::lod::block::PartBox, origin: [i64; 2], (sx, sz): (f64, f64), hs: f64) -> SweptPart {
+    let (x0, z0) = ((pb.x0 - origin[0]) as f64 * sx, (pb.z0 - origin[1]) as f64 * sz);
+    let size = pb.size as f64;
+    let rect = Rect { x0, z0, x1: x0 + size * sx, z1: z0 + size * sz };
+    SweptPart { rect, range: [pb.raw[0] as f64 * hs, pb.raw[1] as f64 * hs], bit: pb.bit }
 }
 
 /// Moves the blocks of `t` that no pixel can see into `t.occluded` (keeping their
@@ -416,10 +403,11 @@ pub fn hidden_parts_with(
     if hf.void_mask.is_some() {
         return Err(Skipped::Holes);
     }
-    let [cells, rows] = layout.cells().map(|c| c as i64);
+    let [cells_x, rows] = layout.cells().map(|c| c as i64);
     let coarse_beside = |k: &DrawBlock| {
         k.cells_across().into_iter().any(|(x, z)| {
-            let lod = if x < 0 || z < 0 || x >= cells || z >= rows { -1 } else { t.lod_map[(z * cells + x) as usize] };
+            let lod =
+                if x < 0 || z < 0 || x >= cells_x || z >= rows { -1 } else { t.lod_map[(z * cells_x + x) as usize] };
             lod >= 0 && lod as u32 >= k.lod + layout.m
         })
     };
@@ -428,42 +416,118 @@ pub fn hidden_parts_with(
     }
     let (ex, ez) = hf.world_extent();
     let extent = Rect { x0: 0.0, z0: 0.0, x1: ex as f64, z1: ez as f64 };
+    let [sx, sz] = [hf.spacing.x as f64, hf.spacing.z as f64];
+    let hs = hf.height_scale as f64;
+    let blocks: Vec<SweptBlock> = t
+        .blocks
+        .iter()
+        .map(|b| {
+            let s = layout.block_samples(b.lod) as f64;
+            let (ox, oz) = (b.bx as f64 * s, b.bz as f64 * s);
+            let rect = Rect { x0: ox * sx, z0: oz * sz, x1: (ox + s) * sx, z1: (oz + s) * sz };
+            let [lo, hi] = drawn_range(hf, mm, caches, layout, b);
+            SweptBlock {
+                rect,
+                range: [lo as f64, hi as f64],
+                cells: cells(hf, mm, layout, b, lo).collect(),
+                parts: part_boxes(mm, layout, b).map(|pb| part_of(&pb, [0, 0], (sx, sz), hs)).collect(),
+            }
+        })
+        .collect();
+    // A frustum-culled block's box is outside the frustum, so the near plane over it is
+    // above its highest sample or below its lowest.
+    let culled: Vec<(Rect, f64)> = t
+        .frustum_culled
+        .iter()
+        .map(|k| block_aabb(hf, mm, layout, k.lod, k.bx, k.bz))
+        .map(|(min, max)| {
+            (Rect { x0: min.x as f64, z0: min.z as f64, x1: max.x as f64, z1: max.z as f64 }, min.y as f64)
+        })
+        .collect();
+    let top_over = |i: usize, area: &Rect| top_over(hf, layout, &t.blocks[i], area, blocks[i].range[1]);
+    let frame =
+        SweptFrame { extent, blocks: &blocks, culled: &culled, all_parts: layout.all_parts(), top_over: &top_over };
+    sweep(cam, &frame, rule)
+}
+
+/// One drawn block as the sweep sees it, whatever holds its heights: world units, in the
+/// frame the camera's position is given in.
+#[derive(Clone, Debug)]
+pub struct SweptBlock {
+    /// Its footprint, and the lowest and highest points of everything drawn over it.
+    pub rect: Rect,
+    pub range: [f64; 2],
+    /// Cells of its footprint, each with a height the drawn surface over it never dips
+    /// under (the occluders).
+    pub cells: Vec<(Rect, f64)>,
+    /// Its parts that can be left out alone.
+    pub parts: Vec<SweptPart>,
+}
+
+/// A part of a drawn block: its footprint, the lowest and highest of its triangles'
+/// vertices, and its bit of [`DrawBlock::hidden_parts`].
+#[derive(Clone, Copy, Debug)]
+pub struct SweptPart {
+    pub rect: Rect,
+    pub range: [f64; 2],
+    pub bit: u16,
+}
+
+/// A frame as the sweep sees it.
+pub struct SweptFrame<'a> {
+    /// The terrain's true extent (nothing beyond it is shown).
+    pub extent: Rect,
+    pub blocks: &'a [SweptBlock],
+    /// The frustum-culled blocks: footprint and lowest sample.
+    pub culled: &'a [(Rect, f64)],
+    /// Every bit of a block's parts ([`BlockLayout::all_parts`]): the whole block.
+    pub all_parts: u16,
+    /// The highest drawn point of block `i` over an area its footprint meets (its whole
+    /// range's top where nothing finer is known).
+    pub top_over: &'a dyn Fn(usize, &Rect) -> f64,
+}
+
+/// Per block of `frame`, its hidden parts (bits of `DrawBlock::hidden_parts`; every bit
+/// of the block's own parts: the whole block is hidden), by `rule`; or why the frame
+/// cannot be culled (the camera off the extent, or the near plane at the ground).
+pub fn sweep(cam: &Camera, frame: &SweptFrame, rule: Rule) -> Result<Vec<u16>, Skipped> {
+    let extent = frame.extent;
     let c = cam.position.as_dvec3();
     if !(c.x > extent.x0 && c.x < extent.x1 && c.z > extent.z0 && c.z < extent.z1) {
         return Err(Skipped::CameraOutside);
     }
-    let [sx, sz] = [hf.spacing.x as f64, hf.spacing.z as f64];
-    let mut occ = Vec::with_capacity(t.blocks.len() * 16);
+    let clip = |r: &Rect| {
+        let r =
+            Rect { x0: r.x0.max(extent.x0), z0: r.z0.max(extent.z0), x1: r.x1.min(extent.x1), z1: r.z1.min(extent.z1) };
+        (r.x1 > r.x0 && r.z1 > r.z0).then_some(r)
+    };
+    let mut occ = Vec::with_capacity(frame.blocks.len() * 16);
     // Each block's whole box, then its parts' boxes; `owners` says whose each is and the
     // bits of `hidden_parts` it hides.
-    let mut parts = Vec::with_capacity(t.blocks.len() * 16);
-    let all = layout.all_parts();
-    let queries: Vec<Query> = t
-        .blocks
-        .iter()
-        .enumerate()
-        .map(|(i, b)| {
-            let s = layout.block_samples(b.lod) as f64;
-            let (ox, oz) = (b.bx as f64 * s, b.bz as f64 * s);
-            let rect = Rect { x0: ox * sx, z0: oz * sz, x1: (ox + s) * sx, z1: (oz + s) * sz };
-            let (near, far) = rect.distances(c.x, c.z);
-            let [lo, hi] = drawn_range(hf, mm, caches, layout, b);
-            if rule == Rule::OccluderTop {
-                let r = Rect { x1: rect.x1.min(extent.x1), z1: rect.z1.min(extent.z1), ..rect };
-                if r.x1 > r.x0 && r.z1 > r.z0 {
-                    let (near, far) = r.distances(c.x, c.z);
-                    occ.push(Occluder { rect: r, near, far, lo: hi as f64 });
-                }
-            } else {
-                occ.extend(occluders(hf, mm, layout, b, lo, &extent, (c.x, c.z)));
-            }
-            parts.extend(part_queries(hf, mm, layout, b, (c.x, c.z), rule).map(|(q, bit)| (q, i, bit)));
-            Query { rect, near, far, hi: hi as f64 }
-        })
-        .collect();
-    let owners: Vec<(usize, u16)> =
-        (0..queries.len()).map(|i| (i, all)).chain(parts.iter().map(|p| (p.1, p.2))).collect();
-    let queries: Vec<Query> = queries.into_iter().chain(parts.into_iter().map(|p| p.0)).collect();
+    let mut parts = Vec::with_capacity(frame.blocks.len() * 16);
+    let mut queries = Vec::with_capacity(frame.blocks.len() * 17);
+    let mut owners = Vec::with_capacity(frame.blocks.len() * 17);
+    for (i, b) in frame.blocks.iter().enumerate() {
+        let (near, far) = b.rect.distances(c.x, c.z);
+        let occluder = |(r, lo): (Rect, f64)| {
+            let (near, far) = r.distances(c.x, c.z);
+            Occluder { rect: r, near, far, lo }
+        };
+        if rule == Rule::OccluderTop {
+            occ.extend(clip(&b.rect).map(|r| occluder((r, b.range[1]))));
+        } else {
+            occ.extend(b.cells.iter().filter_map(|(r, lo)| clip(r).map(|r| occluder((r, *lo)))));
+        }
+        let top = if rule == Rule::PartBottom { 0 } else { 1 };
+        parts.extend(b.parts.iter().map(|p| {
+            let (near, far) = p.rect.distances(c.x, c.z);
+            (Query { rect: p.rect, near, far, hi: p.range[top] }, i, p.bit)
+        }));
+        queries.push(Query { rect: b.rect, near, far, hi: b.range[1] });
+        owners.push((i, frame.all_parts));
+    }
+    owners.extend(parts.iter().map(|p| (p.1, p.2)));
+    queries.extend(parts.into_iter().map(|p| p.0));
 
     // The near plane's corners, and how far from the camera they reach across the ground.
     let (right, up) = cam.basis();
@@ -475,22 +539,14 @@ pub fn hidden_parts_with(
     let near_low = corners.iter().map(|p| p.y).fold(f64::INFINITY, f64::min);
     let near_box = Rect { x0: c.x - reach, z0: c.z - reach, x1: c.x + reach, z1: c.z + reach };
     let touches = |r: &Rect| r.x0 <= near_box.x1 && r.x1 >= near_box.x0 && r.z0 <= near_box.z1 && r.z1 >= near_box.z0;
-    let drawn_top = t
-        .blocks
-        .iter()
-        .zip(&queries[..t.blocks.len()])
-        .filter(|(_, i)| touches(&i.rect))
-        .map(|(b, i)| top_over(hf, layout, b, &near_box, i.hi))
+    let drawn_top = (0..frame.blocks.len())
+        .filter(|&i| touches(&frame.blocks[i].rect))
+        .map(|i| (frame.top_over)(i, &near_box))
         .fold(f64::NEG_INFINITY, f64::max);
     // A frustum-culled block's box is outside the frustum, so the near plane over it is
     // above its highest sample or below its lowest: above its lowest rules out the latter.
-    let culled_low = t
-        .frustum_culled
-        .iter()
-        .map(|k| block_aabb(hf, mm, layout, k.lod, k.bx, k.bz))
-        .filter(|(min, max)| touches(&Rect { x0: min.x as f64, z0: min.z as f64, x1: max.x as f64, z1: max.z as f64 }))
-        .map(|(min, _)| min.y as f64)
-        .fold(f64::NEG_INFINITY, f64::max);
+    let culled_low =
+        frame.culled.iter().filter(|(r, _)| touches(r)).map(|&(_, low)| low).fold(f64::NEG_INFINITY, f64::max);
     let under_near = drawn_top.max(culled_low);
     if under_near >= near_low {
         return Err(Skipped::NearPlaneLow);
@@ -550,7 +606,7 @@ pub fn hidden_parts_with(
             }
         }
     }
-    let mut masks = vec![0u16; t.blocks.len()];
+    let mut masks = vec![0u16; frame.blocks.len()];
     assert_eq!(owners.len(), hidden.len(), "one owner per query");
     for (&(block, bits), _) in owners.iter().zip(&hidden).filter(|(_, &h)| h) {
         masks[block] |= bits;

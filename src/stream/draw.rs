@@ -8,9 +8,13 @@ pub use super::cache::{layout, Resident};
 use super::cache::{HostCache, SUB};
 use super::traverse::{square_of_samples_box, Selection};
 use super::{Grid, TileKey};
-use crate::lod::block::{part_boxes_by, DrawBlock, PartBox, PART_FRUSTUM_MARGIN_PX};
+use crate::lod::block::{
+    part_boxes_by, DrawBlock, OcclusionReport, PartBox, Skipped, CORNER_UNRESOLVED, PART_FRUSTUM_MARGIN_PX,
+};
 use crate::lod::camera::Camera;
-use crate::lod::traversal::{stitch_blocks, SparseLods};
+use crate::lod::occlusion::{part_of, Rect, Rule, SweptBlock, SweptFrame};
+use crate::lod::stitch::{coarser_sides, strip_departure};
+use crate::lod::traversal::{stitch_blocks, LodAt, SparseLods};
 
 /// A block to draw and where its heights are: the tile it is drawn from.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -32,7 +36,14 @@ pub fn stitched_blocks(grid: &Grid, cache: &HostCache, sel: &Selection) -> Vec<S
         stitch_blocks(&Resident { grid, cache }, &layout, &mut blocks, &lods);
         blocks
     };
-    blocks.into_iter().zip(&sel.blocks).map(|(block, s)| StreamedBlock { block, tile: s.tile }).collect()
+    // Blocks occlusion culling hid whole in a frame drawn again (a bench's ceiling) stay out.
+    let all = layout(grid).all_parts();
+    blocks
+        .into_iter()
+        .zip(&sel.blocks)
+        .filter(|(block, _)| block.hidden_parts != all)
+        .map(|(block, s)| StreamedBlock { block, tile: s.tile })
+        .collect()
 }
 
 /// The parts of a streamed block that can be left out alone, with their boxes
@@ -98,4 +109,140 @@ pub fn hide_parts_outside_by(
         sb.block.hidden_parts |= outside;
     }
     hidden
+}
+
+/// A frustum-culled block of a selection ([`Selection::frustum_culled`]): LOD, place and
+/// lowest sample (raw).
+pub type CulledBlock = (u32, u32, u32, f32);
+
+/// Per block of `blocks` (the drawn blocks of a selection whose frustum-culled blocks are
+/// `culled`, [`Selection::frustum_culled`]), its parts that no pixel can see for `cam`
+/// (relative to sample `anchor`), by occlusion culling's sweep
+/// ([`crate::lod::occlusion::sweep`], its argument in that module), from the tiles'
+/// summaries: a block's drawn range is its squares' heights widened by its stitched
+/// strips and resolved corners, and each square of its footprint occludes under its
+/// lowest height (under the block's lowest where it lies along an edge stitched to a
+/// coarser block, or holds a resolved corner). Skipped, with the reason, where the
+/// argument needs what the tiles cannot show: a drawn block whose tile is not held (or
+/// not `drawable`: its surface would be missing), or a drawn block beside a culled one `m`
+/// or more LODs coarser.
+pub fn hidden_parts(
+    grid: &Grid,
+    cache: &HostCache,
+    (anchor, cam): ([i64; 2], &Camera),
+    (blocks, culled): (&[StreamedBlock], &[CulledBlock]),
+    drawable: &dyn Fn(TileKey) -> bool,
+    rule: Rule,
+) -> Result<Vec<u16>, Skipped> {
+    let layout = layout(grid);
+    let drawn: Vec<DrawBlock> = blocks.iter().map(|b| b.block).collect();
+    let lods = SparseLods::new(&layout, &drawn);
+    let coarse_beside = |&(lod, bx, bz, _): &CulledBlock| {
+        DrawBlock::new(lod, bx, bz).cells_across().into_iter().any(|(x, z)| {
+            let l = lods.lod_at(x, z, lod);
+            l >= 0 && l as u32 >= lod + layout.m
+        })
+    };
+    if culled.iter().any(coarse_beside) {
+        return Err(Skipped::CoarseBesideCulled);
+    }
+    let (sx, sz, hs) = (grid.spacing[0], grid.spacing[1], grid.height_scale);
+    // Samples from `anchor`, in world units.
+    let rect = |x0: i64, z0: i64, size: i64| {
+        let (x, z) = ((x0 - anchor[0]) as f64 * sx, (z0 - anchor[1]) as f64 * sz);
+        Rect { x0: x, z0: z, x1: x + size as f64 * sx, z1: z + size as f64 * sz }
+    };
+    let extent = {
+        let r = rect(0, 0, 0);
+        Rect { x1: r.x0 + (grid.width - 1) as f64 * sx, z1: r.z0 + (grid.height - 1) as f64 * sz, ..r }
+    };
+    let l = &layout;
+    let mut swept = Vec::with_capacity(blocks.len());
+    for sb in blocks {
+        let b = &sb.block;
+        let tile = cache.peek(sb.tile).filter(|_| drawable(sb.tile)).ok_or(Skipped::TileMissing)?;
+        let s = tile.block(grid, b.lod, b.bx, b.bz);
+        let (mut lo, mut hi) = (s.min, s.max);
+        if coarser_sides(b) != 0 {
+            let d = strip_departure(&Resident { grid, cache }, l, b);
+            (lo, hi) = (lo.min(d.lo), hi.max(d.hi));
+        }
+        let corners: Vec<(usize, f32)> = (0..4)
+            .filter(|&c| b.corner_raw[c] != CORNER_UNRESOLVED)
+            .map(|c| (c, f32::from_bits(b.corner_raw[c])))
+            .collect();
+        for &(_, h) in &corners {
+            (lo, hi) = (lo.min(h), hi.max(h));
+        }
+        let size = (super::cache::BLOCK_QUADS << b.lod) as i64;
+        let (ox, oz) = (i64::from(b.bx) * size, i64::from(b.bz) * size);
+        let square = size / SUB as i64;
+        let last = SUB - 1;
+        let corner_square = [(0, 0), (last, 0), (last, last), (0, last)];
+        let cells = (0..SUB * SUB)
+            .map(|i| {
+                let (qx, qz) = (i % SUB, i / SUB);
+                let on_edge = [qz == 0, qx == last, qz == last, qx == 0];
+                let mut cell_lo = s.squares[i].min;
+                if (0..4).any(|e| on_edge[e] && b.coarser[e] > 0)
+                    || corners.iter().any(|&(c, _)| corner_square[c] == (qx, qz))
+                {
+                    cell_lo = cell_lo.min(lo);
+                }
+                (rect(ox + qx as i64 * square, oz + qz as i64 * square, square), f64::from(cell_lo) * hs)
+            })
+            .collect();
+        let parts = part_boxes(grid, cache, sb).ok_or(Skipped::TileMissing)?;
+        swept.push(SweptBlock {
+            rect: rect(ox, oz, size),
+            range: [f64::from(lo) * hs, f64::from(hi) * hs],
+            cells,
+            parts: parts.iter().map(|pb| part_of(pb, anchor, (sx, sz), hs)).collect(),
+        });
+    }
+    let culled: Vec<(Rect, f64)> = culled
+        .iter()
+        .map(|&(lod, bx, bz, min)| {
+            let size = (super::cache::BLOCK_QUADS << lod) as i64;
+            (rect(i64::from(bx) * size, i64::from(bz) * size, size), f64::from(min) * hs)
+        })
+        .collect();
+    let top_over = |i: usize, _: &Rect| swept[i].range[1];
+    let frame =
+        SweptFrame { extent, blocks: &swept, culled: &culled, all_parts: layout.all_parts(), top_over: &top_over };
+    crate::lod::occlusion::sweep(cam, &frame, rule)
+}
+
+/// Occlusion culling of a frame's `blocks` ([`hidden_parts`]): the hidden parts of each
+/// are left out (`DrawBlock::hidden_parts`), and blocks hidden whole are not drawn; says
+/// what it did, and each block's hidden parts in `masks` (empty when skipped).
+pub fn cull(
+    grid: &Grid,
+    cache: &HostCache,
+    view: ([i64; 2], &Camera),
+    (blocks, culled): (&mut Vec<StreamedBlock>, &[CulledBlock]),
+    drawable: &dyn Fn(TileKey) -> bool,
+    (rule, masks_out): (Rule, &mut Vec<u16>),
+) -> OcclusionReport {
+    let all = layout(grid).all_parts();
+    let mut report = OcclusionReport {
+        tested: blocks.len(),
+        tested_parts: blocks.len() * all.count_ones() as usize,
+        ..Default::default()
+    };
+    match hidden_parts(grid, cache, view, (blocks, culled), drawable, rule) {
+        Err(why) => report.skipped = Some(why),
+        Ok(masks) => {
+            report.hidden = masks.iter().filter(|&&m| m == all).count();
+            report.hidden_parts = masks.iter().map(|m| m.count_ones() as usize).sum();
+            masks_out.clone_from(&masks);
+            let mut masks = masks.into_iter();
+            blocks.retain_mut(|b| {
+                let m = masks.next().expect("a mask per block");
+                b.block.hidden_parts |= m;
+                m != all
+            });
+        }
+    }
+    report
 }

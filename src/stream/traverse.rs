@@ -141,8 +141,10 @@ pub struct Selection {
     /// Blocks drawn over the bound and the largest error / delta among them.
     pub over_bound: usize,
     pub worst_factor: f32,
-    /// Blocks outside the view frustum.
+    /// Blocks outside the view frustum, and each one's LOD, place and lowest sample (raw
+    /// units: occlusion culling checks the near plane against them).
     pub culled: usize,
+    pub frustum_culled: Vec<(u32, u32, u32, f32)>,
     /// The top tile was held (else nothing is drawn and the frame is over the bound).
     pub complete: bool,
     /// The blocks as drawn: stitched to their neighbours (empty for a selection made
@@ -396,6 +398,7 @@ impl<'a> Traverser<'a> {
             let (min, max) = block_box(grid, self.anchor, lod, bx, bz, s.min, s.max);
             if !self.frustum.intersects_aabb(min, max) {
                 self.out.culled += 1;
+                self.out.frustum_culled.push((lod, bx, bz, s.min));
                 continue;
             }
             let mut error_px = block_error_px(grid.height_scale, &self.cam, &s, (min, max), delta);
