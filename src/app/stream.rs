@@ -79,8 +79,7 @@ pub(crate) fn morph_rule(morph: OnOff) -> Option<MorphRule> {
 /// What a viewer or `render` says when it opens `shown` streamed.
 pub(crate) fn streamed_banner(shown: &str, m: &Meta, cache_mb: u32, gpu_mb: u32) -> String {
     format!(
-        "vkterrain: {shown}: {} x {} samples, {} tile levels, drawn streamed (cache {cache_mb} MB, atlas {gpu_mb} MB); \
-         no occlusion culling yet",
+        "vkterrain: {shown}: {} x {} samples, {} tile levels, drawn streamed (cache {cache_mb} MB, atlas {gpu_mb} MB)",
         m.width,
         m.height,
         m.top_level + 1,
