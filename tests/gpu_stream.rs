@@ -426,16 +426,21 @@ fn render_draws_an_archive_streamed_within_the_bound() {
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let forward: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!((&forward["pixels"], &forward["gpu"]["validation_messages"]), (&"forward".into(), &0.into()));
-    for (extra, named) in [
-        (vec!["--error-mode", "paper"], "--error-mode paper"),
-        // Over tiles the errors activity runs one generation at a time.
-        (vec!["--error-pacing", "free"], "--error-pacing free"),
-    ] {
-        let o = render(&extra);
-        let err = String::from_utf8_lossy(&o.stderr);
-        assert_eq!(o.status.code(), Some(2), "{extra:?}: {err}");
-        assert!(err.contains(named) && err.contains("s.pmtiles") && err.contains("streamed"), "{err}");
-    }
+    // The paper's error mode: its blocks chosen by the errors activity's estimate,
+    // fewer than the bound's (a per-vertex estimate, not a bound).
+    let strict: serde_json::Value = serde_json::from_slice(&render(&[]).stdout).unwrap();
+    let o = render(&["--error-mode", "paper"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let paper: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!((paper["error_mode"].as_str(), paper["validation_messages"].as_u64()), (Some("paper"), Some(0)));
+    assert!(paper["blocks_bounded_by_errors"].as_u64().unwrap() > 10, "{paper}");
+    let fewer = paper["blocks"].as_u64().unwrap() < strict["blocks"].as_u64().unwrap();
+    assert!(fewer, "{paper} against {strict}");
+    // Over tiles the errors activity runs one generation at a time.
+    let o = render(&["--error-pacing", "free"]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(err.contains("--error-pacing free") && err.contains("s.pmtiles") && err.contains("streamed"), "{err}");
     // Occlusion culling as in memory: on by default, off when asked (its report null).
     assert!(r["occlusion"]["tested"].as_u64().is_some_and(|t| t > 0), "{r}");
     let o = render(&["--occlusion", "off"]);
@@ -1455,5 +1460,73 @@ fn streamed_occlusion_culling_hides_nothing_visible() {
     assert!(culled_poses * 2 > poses, "culling ran at {culled_poses} of {poses} poses");
     assert!(hidden * 10 > parts, "{hidden} of {parts} parts hidden: the poses test little");
     assert!(caught.iter().all(|&c| c >= 5), "mutations changed too few frames: {caught:?}");
+    common::finish(device);
+}
+
+/// The paper's error mode over the atlas (eqs. 2-4, SPEC 4 and 8): with every tile held,
+/// a generation's per-block errors (each tile's blocks one LOD coarser than it, the top
+/// tile's every coarser LOD, nested over the finer levels on the CPU) are the in-memory
+/// reference's (`lod::gie`, which the in-memory errors activity matches) block for block
+/// at three views; the selection takes them (the same blocks as in memory's paper
+/// selection, morph off); a readback corrupted to a quarter selects fewer blocks.
+#[test]
+fn paper_errors_over_the_atlas_are_the_in_memory_ones() {
+    use vkterrain::lod::gie::{block_errors, group_errors, ErrorMode, ErrorParams};
+    use vkterrain::lod::traversal::{traverse, BlockCaches, LodSelect};
+    use vkterrain::stream::traverse::StreamedLod;
+    let hf = common::rough();
+    let mm = vkterrain::lod::pyramid::MinMaxPyramid::build(&hf);
+    let layout = vkterrain::lod::block::BlockLayout::of(&hf, 33).unwrap();
+    let dir = TempDir::new("gpu-stream-paper");
+    let archive = common::archive_of(&hf, &dir);
+    let grid = Grid::from_meta(&archive.meta);
+    let device = common::gpu();
+    let mut s = Streamer::new(archive, grid, 1 << 30);
+    let atlas = HeightAtlas::new(&device, &grid, 64 << 20).unwrap();
+    s.attach(Box::new(atlas.feed()), HeightAtlas::cache_tiles(atlas.layer_count()));
+    s.morph = None;
+    // Every tile held: full resolution seen from high above.
+    let (wx, wz) = hf.world_extent();
+    let centre = DVec3::new(f64::from(wx) / 2.0, 0.0, f64::from(wz) / 2.0);
+    s.lod = StreamedLod::Full;
+    settled(&mut s, &View::look_at(centre + DVec3::new(0.0, 20000.0, 1.0), centre, 60.0, 320, 240, 1.0));
+    assert_eq!(s.cache.len(), 16 + 4 + 1, "every tile held");
+    s.lod = StreamedLod::Error;
+    s.error_mode = ErrorMode::Paper;
+    let (mut compared, mut worst, mut blocks) = (0usize, 0.0f64, Vec::new());
+    for (i, view) in views().iter().enumerate() {
+        let sel = settled_with_errors(&mut s, view);
+        let errors = atlas.feed().errors().expect("a generation");
+        assert_eq!((errors.mode, errors.position), (ErrorMode::Paper, view.position), "pose {i}");
+        let cam = view.absolute();
+        let want = block_errors(&group_errors(&hf, &mm, &ErrorParams::new(&cam, ErrorMode::Paper)), layout.m);
+        assert_eq!(errors.paper.len(), (0..5).map(|j| 1 << (2 * j)).sum::<usize>(), "pose {i}: every block");
+        for (&(lod, bx, bz), &got) in &errors.paper {
+            let w = f64::from(want.get(lod, bx as usize, bz as usize));
+            let rel = (f64::from(got) - w).abs() / w.max(1e-6);
+            assert!(rel < 1e-3, "pose {i}: block {lod} ({bx}, {bz}): {got} against {w}");
+            worst = worst.max(rel);
+            compared += 1;
+        }
+        // The blocks the in-memory paper selection draws.
+        let select = LodSelect::errors(&want, cam.position, 1.0, ErrorMode::Paper).with_morph(false);
+        let mem = traverse(&hf, &mm, &BlockCaches::default(), &layout, &cam, select);
+        let key = |l: u32, x: u32, z: u32| (l, x, z);
+        let mut ours: Vec<_> = sel.blocks.iter().map(|b| key(b.lod, b.bx, b.bz)).collect();
+        let mut theirs: Vec<_> = mem.blocks.iter().chain(&mem.occluded).map(|b| key(b.lod, b.bx, b.bz)).collect();
+        ours.sort();
+        theirs.sort();
+        assert_eq!(ours, theirs, "pose {i}: the selections differ");
+        assert!(sel.errors_from_gpu > 0 && sel.errors_from_tiles == 0, "pose {i}: {sel:?}");
+        blocks.push(sel.blocks.len());
+    }
+    eprintln!("{compared} paper block errors compared, worst relative difference {worst:.2e}; blocks {blocks:?}");
+    // Corrupted to a quarter: never more blocks, fewer in all.
+    atlas.corrupt_errors(0.25);
+    let corrupted: Vec<usize> = views().iter().map(|view| settled_with_errors(&mut s, view).blocks.len()).collect();
+    assert!(corrupted.iter().zip(&blocks).all(|(c, b)| c <= b), "{corrupted:?} corrupted, {blocks:?} not");
+    assert!(corrupted.iter().sum::<usize>() < blocks.iter().sum(), "{corrupted:?} corrupted, {blocks:?} not");
+    assert_eq!(atlas.failure(), None);
+    drop((s, atlas));
     common::finish(device);
 }

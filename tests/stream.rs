@@ -962,6 +962,8 @@ fn the_traversal_takes_the_smaller_of_the_gpu_errors_and_the_tiles_bound() {
     let view = poses()[0];
     let cpu = settled(&mut s, &view, 12);
     let per_tile = (grid.tile_quads / BLOCK_QUADS).pow(2);
+    const STRICT: (StreamedLod, f32, vkterrain::lod::gie::ErrorMode) =
+        (StreamedLod::Error, DELTA, vkterrain::lod::gie::ErrorMode::Strict);
     let errors_of = |value: f32, position: DVec3| TileErrors {
         generation: 7,
         position,
@@ -969,10 +971,11 @@ fn the_traversal_takes_the_smaller_of_the_gpu_errors_and_the_tiles_bound() {
         height_scale: grid.height_scale,
         gpu_ms: None,
         tiles: s.cache.tiles().iter().filter(|t| t.key.level > 0).map(|t| (t.key, vec![value; per_tile])).collect(),
+        ..TileErrors::default()
     };
-    let with = |e: &TileErrors| select_by(&grid, &s.cache, &view, (StreamedLod::Error, DELTA), 1.0, None, Some(e));
+    let with = |e: &TileErrors| select_by(&grid, &s.cache, &view, STRICT, 1.0, None, Some(e));
     let lods = |sel: &Selection| sel.blocks.iter().map(|b| (b.lod, b.bx, b.bz)).collect::<Vec<_>>();
-    let plain = select_by(&grid, &s.cache, &view, (StreamedLod::Error, DELTA), 1.0, None, None);
+    let plain = select_by(&grid, &s.cache, &view, STRICT, 1.0, None, None);
     assert_eq!((plain.errors_from_gpu, plain.errors_generation), (0, 0));
     // Larger than every tile bound: the same blocks, each taken from the generation.
     let large = with(&errors_of(1e30, view.position));

@@ -577,8 +577,7 @@ fn the_viewer_flies_over_an_archive_drawn_streamed() {
         .env("RUST_LOG", "error")
         .output()
         .unwrap();
-    let refused =
-        viewer(&["--heightmap", archive.to_str().unwrap(), "--stream", "--error-mode", "paper", "--frames", "1"]);
+    let refused = viewer(&["--heightmap", archive.to_str().unwrap(), "--stream", "--block", "17", "--frames", "1"]);
     let view = format!("--heightmap '{}' --stream --size 480x360 --validation on --cache-mb 64", archive.display());
     // The drag starts right of the panel (top left), which would take it.
     let steps = r#"xdotool key bracketright
@@ -625,11 +624,11 @@ xdotool key Escape
         assert_eq!(json["exaggeration"], 1.5, "X: {json}");
         assert!(json["samples"].is_array() && json["spacing_m"].is_array(), "the terrain's facts: {json}");
         assert_eq!(json["gpu"]["frames_missing_blocks"], 0, "{json}");
-        // N stopped the morph, Space froze the selection, O orbits, F draws edges; M says
-        // why it does nothing.
+        // N stopped the morph, Space froze the selection, O orbits, F draws edges, M
+        // switched to the paper's error mode.
         let keys = ["final_morph", "frozen", "orbiting", "wireframe"].map(|k| json[k].as_bool());
         assert_eq!(keys, [Some(false), Some(true), Some(true), Some(true)], "N, Space, O, F: {json}");
-        assert!(stderr.contains("M (the paper's error mode) is not drawn yet"), "M: {stderr}");
+        assert_eq!(json["final_error_mode"], "paper", "M: {json}");
         let img = image::open(tmp.join("vkterrain-1.png")).unwrap().to_rgba8();
         assert_eq!(img.dimensions(), (480, 360));
         let terrain = common::terrain_pixels(&img);
@@ -704,7 +703,7 @@ xdotool key Escape
     }
     let err = String::from_utf8_lossy(&refused.stderr);
     assert_eq!(refused.status.code(), Some(2), "{err}");
-    assert!(err.contains("--error-mode paper") && err.contains("streamed"), "{err}");
+    assert!(err.contains("--block") && err.contains("streamed"), "{err}");
 }
 
 /// `--exaggeration` over an archive drawn streamed draws what the in-memory viewer draws

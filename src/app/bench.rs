@@ -1222,6 +1222,7 @@ fn bench_streamed(
     let layers = device.properties.limits.max_image_array_layers;
     let mut streamer = atlas_bound_streamer(archive.clone(), grid, cache_mb, gpu_mb, layers, &trace)?;
     streamer.morph = crate::app::stream::morph_rule(args.common.lod.morph.setting);
+    streamer.error_mode = args.common.error_mode.mode;
     streamer.refresh_at = args.common.refresh_at;
     streamer.lod = crate::app::stream::streamed_lod(args.lod);
     crate::app::stream::streamer_threads(&mut streamer, args.common.lod.traversal_threads, Some(&device))?;

@@ -380,7 +380,6 @@ impl CommonArgs {
     /// given).
     pub fn refuse_untiled(&self, more: &[(&'static str, bool)]) -> Result<(), InputError> {
         let shared = [
-            ("--error-mode paper", self.error_mode.mode != crate::lod::gie::ErrorMode::Strict),
             ("--block (tiles fix k = 33)", self.block.k != 33),
             // Over tiles the errors thread waits for each generation before the next.
             ("--error-pacing free", self.error_pacing == crate::errors::activity::Pacing::Free),

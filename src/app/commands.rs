@@ -101,7 +101,6 @@ pub struct ErrorsArgs {
 /// generation), and their cost as JSON.
 fn errors_over_tiles(args: &ErrorsArgs, device: Arc<Device>, archive: Arc<Archive>) -> anyhow::Result<()> {
     let refused = [
-        ("--error-mode paper", args.error_mode.mode != crate::lod::gie::ErrorMode::Strict),
         ("--block (tiles fix k = 33)", args.block.k != 33),
         ("--dump (the block-error pyramid of a terrain in one image)", args.dump.is_some()),
     ];
@@ -113,7 +112,7 @@ fn errors_over_tiles(args: &ErrorsArgs, device: Arc<Device>, archive: Arc<Archiv
         &device,
         &args.terrain.frame,
         &args.view,
-        args.repeat,
+        (args.repeat, args.error_mode.mode),
         (cache_mb, gpu_mb),
     )?;
     let mut out = r;

@@ -352,17 +352,11 @@ fn panel(ui: &mut egui::Ui, r: &Readout, history: &FrameHistory, now: f64, c: &m
     }
     ui.separator();
     delta_slider(ui, &mut c.delta);
-    // Not drawn yet for a terrain drawn from tiles: shown, and said so.
     let memory = r.tiles.is_none();
-    const NOT_ON_TILES: &str = "not drawn yet for a terrain drawn from tiles";
-    ui.add_enabled_ui(memory, |ui| {
-        ui.horizontal(|ui| {
-            ui.label("errors");
-            ui.radio_value(&mut c.mode, ErrorMode::Strict, "strict");
-            ui.radio_value(&mut c.mode, ErrorMode::Paper, "paper");
-        })
-        .response
-        .on_disabled_hover_text(NOT_ON_TILES);
+    ui.horizontal(|ui| {
+        ui.label("errors");
+        ui.radio_value(&mut c.mode, ErrorMode::Strict, "strict");
+        ui.radio_value(&mut c.mode, ErrorMode::Paper, "paper");
     });
     ui.horizontal(|ui| {
         ui.checkbox(&mut c.morph, "morph");
@@ -1343,10 +1337,9 @@ mod tests {
         assert_eq!(c, controls());
     }
 
-    /// A terrain drawn from tiles: the same panel with the tiles' rows; every control
-    /// works but the error mode, which is shown disabled.
+    /// A terrain drawn from tiles: the same panel with the tiles' rows, and every control.
     #[test]
-    fn the_panel_of_a_terrain_drawn_from_tiles_disables_what_tiles_do_not_draw() {
+    fn the_panel_of_a_terrain_drawn_from_tiles_has_every_control() {
         let tiles = TilesReadout { frames: 7, frames_over_bound: 2, worst_factor: 1.5, ..TilesReadout::default() };
         let readout = Readout {
             ranges: Ranges { fog_default: 0.1, speed: (1.0, 100.0) },
@@ -1357,7 +1350,7 @@ mod tests {
         let screen = Vec2::new(1280.0, 1400.0);
         let click = |text| run_with(&readout, screen, true, Ok(text), 0.0, false).0;
         assert_eq!(click("2 of 7 frames"), controls(), "the tiles' rows are shown");
-        assert_eq!(click("paper"), controls(), "no paper error mode over tiles");
+        assert_eq!(click("paper"), Controls { mode: ErrorMode::Paper, ..controls() });
         assert_eq!(click("occlusion culling"), Controls { occlusion: false, ..controls() });
         assert_eq!(click("morph"), Controls { morph: false, ..controls() });
         assert_eq!(click("freeze blocks"), Controls { frozen: true, ..controls() });

@@ -731,12 +731,13 @@ pub(crate) fn errors_over_atlas(
     device: &Arc<Device>,
     frame: &crate::app::cli::FrameArgs,
     camera: &crate::app::cli::CameraArgs,
-    repeat: u64,
+    (repeat, mode): (u64, crate::lod::gie::ErrorMode),
     (cache_mb, gpu_mb): (u32, u32),
 ) -> anyhow::Result<serde_json::Value> {
     let grid = streamed_grid(archive, frame);
     let layers = device.properties.limits.max_image_array_layers;
     let mut streamer = atlas_bound_streamer(archive.clone(), grid, cache_mb, gpu_mb, layers, &Trace::off())?;
+    streamer.error_mode = mode;
     let range = top_tiles(&mut streamer, &archive.meta)?;
     let atlas = HeightAtlas::new(device, &grid, u64::from(gpu_mb) << 20).map_err(|e| InputError(e.to_string()))?;
     streamer.attach(Box::new(atlas.feed()), HeightAtlas::cache_tiles(atlas.layer_count()));
@@ -778,7 +779,7 @@ pub(crate) fn errors_over_atlas(
         "streamed": true,
         "grid": [grid.width, grid.height],
         "block": 33,
-        "error_mode": "strict",
+        "error_mode": mode.as_str(),
         "atlas_layers": atlas.layer_count(),
         "tiles_held": streamer.cache.len(),
         "blocks_bounded_by_errors": first.drawn_bounded_by().0,
@@ -865,6 +866,7 @@ pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
     let layers = f.device.properties.limits.max_image_array_layers;
     let mut streamer = atlas_bound_streamer(f.archive.clone(), grid, f.cache_mb, f.gpu_mb, layers, &Trace::off())?;
     streamer.morph = morph_rule(f.common.lod.morph.setting);
+    streamer.error_mode = f.common.error_mode.mode;
     streamer.refresh_at = f.common.refresh_at;
     streamer.lod = streamed_lod(f.lod);
     streamer_threads(&mut streamer, f.common.lod.traversal_threads, Some(&f.device))?;
@@ -923,6 +925,7 @@ pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
         "blocks_bounded_by_tiles": sel.drawn_bounded_by().1,
         "errors_generation": sel.errors_generation,
         "lod": format!("{:?}", f.lod).to_lowercase(),
+        "error_mode": f.common.error_mode.mode.as_str(),
         "shading": StreamedRenderer::shading_name(f.normals),
         // What drew the frame: forward where asked, or where deferred cannot (see
         // StreamedRenderer::deferred).

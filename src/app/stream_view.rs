@@ -6,7 +6,7 @@
 //!
 //! It has the in-memory viewer's camera controls ([`Controller`]), keys and panel
 //! ([`crate::app::hud`], with its tiles section: frames over the bound, tiles held and
-//! read, the errors over the atlas; the error mode shown disabled);
+//! read, the errors over the atlas);
 //! the window title carries the main figures too.
 
 use crate::app::cli::{check_messages, CommonArgs, Degraded, Interrupted};
@@ -102,8 +102,9 @@ struct Run {
     final_yaw: f32,
     final_pitch: f32,
     final_delta: f32,
-    /// Whether blocks morphed at exit (N turns it off and on).
+    /// Whether blocks morphed at exit (N turns it off and on), and the error mode (M).
     final_morph: bool,
+    final_error_mode: &'static str,
     /// Whether a frozen selection was drawn at exit (Space).
     frozen: bool,
     /// Whether the camera orbited a ground point at exit (O).
@@ -225,6 +226,7 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
     let mut streamer =
         crate::app::stream::atlas_bound_streamer(archive.clone(), grid, args.cache_mb, args.gpu_mb, layers, &trace)?;
     streamer.morph = crate::app::stream::morph_rule(args.common.lod.morph.setting);
+    streamer.error_mode = args.common.error_mode.mode;
     streamer.refresh_at = args.common.refresh_at;
     let range = top_tiles(&mut streamer, &archive.meta)?;
     let near = near_plane_for(grid.spacing[0].min(grid.spacing[1]) as f32);
@@ -330,6 +332,7 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
     (run.final_morph, run.frozen, run.orbiting) =
         (app.streamer.morph.is_some(), app.frozen.is_some(), app.ctl.orbit.is_some());
     run.wireframe = app.gpu.as_ref().is_some_and(|g| g.frames.wireframe);
+    run.final_error_mode = app.streamer.error_mode.as_str();
     run.final_sun = app.gpu.as_ref().and_then(|g| g.frames.lit_sun().0).map(|s| [s.azimuth, s.elevation]);
     // As the in-memory viewer's: the height scale drawn at exit (exaggerated).
     run.terrain.height_scale_m = app.grid.height_scale as f32;
@@ -658,7 +661,7 @@ impl App {
         let gpu = self.gpu.as_ref();
         Controls {
             delta: self.delta,
-            mode: crate::lod::gie::ErrorMode::Strict,
+            mode: self.streamer.error_mode,
             morph: self.streamer.morph.is_some(),
             occlusion: gpu.is_some_and(|g| g.frames.occlusion),
             frozen: self.frozen.is_some() || self.freeze_next,
@@ -674,14 +677,14 @@ impl App {
         }
     }
 
-    /// What the panel changed (the error mode is not drawn over tiles yet: the panel
-    /// shows it disabled).
+    /// What the panel changed.
     fn apply(&mut self, c: Controls) -> anyhow::Result<()> {
         if c.frozen != (self.frozen.is_some() || self.freeze_next) {
             self.freeze_next = c.frozen;
             self.frozen = None;
         }
         self.delta = c.delta;
+        self.streamer.error_mode = c.mode;
         self.set_morph(c.morph);
         if let Some(g) = self.gpu.as_mut() {
             g.frames.occlusion = c.occlusion;
@@ -825,7 +828,9 @@ impl App {
                 }
             }
             KeyCode::KeyM => {
-                eprintln!("vkterrain: note: M (the paper's error mode) is not drawn yet for a terrain drawn from tiles")
+                use crate::lod::gie::ErrorMode;
+                let m = &mut self.streamer.error_mode;
+                *m = if *m == ErrorMode::Strict { ErrorMode::Paper } else { ErrorMode::Strict };
             }
             _ => {}
         }

@@ -167,6 +167,7 @@ struct RunStats {
     final_pitch: f32,
     final_delta: f32,
     final_morph: bool,
+    final_error_mode: &'static str,
     /// Where the camera started, and how far (radians of yaw) dragging the mouse turned it.
     start_position: [f32; 3],
     mouse_turn: f32,
@@ -467,6 +468,7 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
     (app.stats.final_yaw, app.stats.final_pitch) = (app.ctl.yaw, app.ctl.pitch);
     app.stats.final_delta = app.delta;
     app.stats.final_morph = app.draw.morph;
+    app.stats.final_error_mode = app.mode.as_str();
     app.stats.start_position = app.home.0.to_array();
     app.stats.interrupted = stop.requested();
     crate::out!("{}", serde_json::to_string(&app.stats)?)?;

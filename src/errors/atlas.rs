@@ -14,6 +14,7 @@
 
 use crate::errors::atlas_passes::{AtlasPasses, Shaded};
 use crate::errors::handoff::AtlasLayers;
+use crate::lod::gie::ErrorMode;
 use crate::stream::cache::{Heights, TileData};
 use crate::stream::errors::TileErrors;
 use crate::stream::streamer::{ErrorsRequest, TileGate};
@@ -452,13 +453,13 @@ impl TileGate for AtlasFeed {
         }
     }
 
-    fn request_errors(&self, view: View, tiles: Vec<TileKey>, height_scale: f64) {
+    fn request_errors(&self, view: View, tiles: Vec<TileKey>, height_scale: f64, mode: ErrorMode) {
         let mut s = self.shared.lock();
         if s.stop || s.failure.is_some() {
             return;
         }
         s.requested += 1;
-        s.request = Some(ErrorsRequest { number: s.requested, view, tiles, height_scale });
+        s.request = Some(ErrorsRequest { number: s.requested, view, tiles, height_scale, mode });
         drop(s);
         self.shared.work.notify_all();
     }
@@ -645,15 +646,20 @@ impl Activity<'_> {
         // The terrain's heights as the traversal scales them now.
         let grid = Grid { height_scale: request.height_scale, ..shared.grid };
         let started = Instant::now();
+        let paper = request.mode == ErrorMode::Paper;
         let tiles: Vec<(TileKey, u32, u32)> = {
             let s = shared.lock();
             let resident = |k: &TileKey| {
                 let i = s.layers.find(*k)?;
                 let held = matches!(s.layers.layer(i), crate::errors::handoff::Layer::Resident { .. });
-                let slot = s.slots.of(i)?;
+                // Strict mode reads the tile's D; the paper's only its heights.
+                let slot = if paper { s.slots.of(i).unwrap_or(0) } else { s.slots.of(i)? };
                 (held && !s.released.contains(k)).then_some((*k, i as u32, slot))
             };
-            request.tiles.iter().filter(|k| k.level > 0).filter_map(resident).take(AtlasPasses::capacity()).collect()
+            // Strict: tiles with a D (above level 0). Paper: every tile below the top
+            // level's coarsest block (a tile gives the blocks one LOD above its own).
+            let shaded = |k: &&TileKey| if paper { grid.tile_quads >= 64 } else { k.level > 0 };
+            request.tiles.iter().filter(shaded).filter_map(resident).take(AtlasPasses::capacity()).collect()
         };
         if tiles.is_empty() {
             return Ok(());
@@ -672,22 +678,37 @@ impl Activity<'_> {
         // SAFETY: `cmd` belongs to this thread's pool and its last submission was waited
         // for (begin resets it).
         unsafe { crate::vk::begin_one_time(d, self.cmd)? };
-        self.passes.record(self.cmd, &grid, &tiles, (anchor, &cam), shared.unorm16);
+        self.passes.record(self.cmd, &grid, &tiles, (anchor, &cam), (shared.unorm16, request.mode));
         // SAFETY: recording, as above.
         unsafe { d.end_command_buffer(self.cmd).vk("vkEndCommandBuffer")? };
         submit_and_wait(self.device, shared, self.cmd, g)?;
         self.generation = g;
-        let (blocks, shaded) = self.passes.read(&grid, &tiles)?;
-        let mut s = shared.lock();
-        let scale = s.scale_errors;
+        let (blocks, shaded) = self.passes.read(&grid, &tiles, request.mode)?;
+        let scale = shared.lock().scale_errors;
+        let tiles: foldhash::HashMap<TileKey, Vec<f32>> =
+            blocks.into_iter().map(|(k, b)| (k, b.into_iter().map(|e| e * scale).collect())).collect();
+        let paper = match request.mode {
+            ErrorMode::Paper => {
+                use crate::stream::errors::{nested_paper_errors, paper_own_errors};
+                let n = grid.tile_quads / crate::stream::cache::BLOCK_QUADS;
+                let own = tiles.iter().flat_map(|(&k, cell)| paper_own_errors(k, cell, n, grid.top)).collect();
+                nested_paper_errors(&own)
+            }
+            ErrorMode::Strict => Default::default(),
+        };
+        // Strict mode's per-tile blocks; the paper's are in `paper`.
+        let tiles = if request.mode == ErrorMode::Strict { tiles } else { Default::default() };
         let errors = TileErrors {
             generation: g,
             position: request.view.position,
             kappa: cam.kappa(),
             height_scale: grid.height_scale,
             gpu_ms: shaded.gpu_ms,
-            tiles: blocks.into_iter().map(|(k, b)| (k, b.into_iter().map(|e| e * scale).collect())).collect(),
+            tiles,
+            mode: request.mode,
+            paper,
         };
+        let mut s = shared.lock();
         s.layers.finish(g);
         s.finished = g;
         s.errors = Some(Arc::new(errors));

@@ -1,8 +1,10 @@
 //! The errors activity's passes over the atlas (SPEC 4 and 8, "Residency"): per
 //! generation, one fragment pass a tile shades the errors of its blocks
 //! (`glsl/tile_errors.frag`: every group's `D * height_scale * kappa / distance`, the
-//! largest a block) into its cell of an R32F target, and only the cells shaded are copied
-//! to a host-visible buffer, one after another: 4 bytes a block, 256 a tile. Owned and recorded by the
+//! largest a block; in the paper's mode `glsl/tile_paper.frag`, the blocks one LOD
+//! coarser, from their dropped vertices) into its cell of an R32F target, and only the
+//! cells shaded are copied to a host-visible buffer, one after another: 4 bytes a block,
+//! 256 a tile. Owned and recorded by the
 //! errors thread ([`crate::errors::atlas`]), which waits for each generation before the
 //! next, so one target and one readback buffer serve every generation.
 //!
@@ -14,6 +16,8 @@
 use crate::gpu::layout::{self as layout, TileErrorsPush};
 use crate::gpu::shaders;
 use crate::lod::camera::Camera;
+use crate::lod::gie::ErrorMode;
+use crate::stream::errors::{paper_offset, paper_steps};
 use crate::stream::{Grid, TileKey};
 use crate::vk::{
     host_read_barrier, image_barrier, vk, Buffer, DescriptorPool, DescriptorSetLayout, Device, GraphicsPipeline,
@@ -51,7 +55,9 @@ pub struct Shaded {
 
 pub(crate) struct AtlasPasses {
     device: Arc<Device>,
+    /// Strict mode's pass (`tile_errors.frag`) and the paper's (`tile_paper.frag`).
     pipeline: GraphicsPipeline,
+    paper: GraphicsPipeline,
     layout: PipelineLayout,
     _set_layout: DescriptorSetLayout,
     _pool: DescriptorPool,
@@ -78,15 +84,13 @@ impl AtlasPasses {
             ],
         )?;
         let pl = PipelineLayout::new(device, &set_layout, std::mem::size_of::<TileErrorsPush>() as u32, frag)?;
-        let pipeline = GraphicsPipeline::new(
-            device,
-            &GraphicsPipelineDesc::fullscreen_pass(
-                shaders::PASS_VERT,
-                shaders::TILE_ERRORS_FRAG,
-                vk::Format::R32_SFLOAT,
-                &pl,
-            ),
-        )?;
+        let pass = |frag| {
+            GraphicsPipeline::new(
+                device,
+                &GraphicsPipelineDesc::fullscreen_pass(shaders::PASS_VERT, frag, vk::Format::R32_SFLOAT, &pl),
+            )
+        };
+        let (pipeline, paper) = (pass(shaders::TILE_ERRORS_FRAG)?, pass(shaders::TILE_PAPER_FRAG)?);
         let pool = DescriptorPool::new(device, 1, &[(sampled, 2)])?;
         let set = pool.allocate(&set_layout)?;
         let sampler = Sampler::new(device, vk::Filter::NEAREST, vk::SamplerAddressMode::CLAMP_TO_EDGE)?;
@@ -126,6 +130,7 @@ impl AtlasPasses {
         Ok(AtlasPasses {
             device: device.clone(),
             pipeline,
+            paper,
             layout: pl,
             _set_layout: set_layout,
             _pool: pool,
@@ -143,8 +148,28 @@ impl AtlasPasses {
         (CELLS[0] * CELLS[1]) as usize
     }
 
+    /// Texels a side of a tile's cell that `mode` reads back: strict mode, one a block of
+    /// the tile's own level; the paper's, the whole cell ([`Self::passes_of`]).
+    fn shaded_side(&self, _mode: ErrorMode) -> u32 {
+        self.per_side
+    }
+
+    /// The draws that shade tile `key` (of a grid whose top level is `top`) in `mode`:
+    /// where in its cell along x, blocks a side, and the push constants' `tile.w`. Strict
+    /// mode: the blocks of the tile's own level, its slot of deviations. The paper's: the
+    /// blocks `k` LODs coarser, `k` from 1 ([`paper_steps`], [`paper_offset`]).
+    fn passes_of(&self, key: TileKey, slot: u32, top: u8, mode: ErrorMode) -> Vec<(u32, u32, i32)> {
+        let n = self.per_side;
+        match mode {
+            ErrorMode::Strict => vec![(0, n, slot as i32)],
+            ErrorMode::Paper => (1..=paper_steps(key, top, n as usize))
+                .map(|k| (paper_offset(n as usize, k) as u32, n >> k, k as i32))
+                .collect(),
+        }
+    }
+
     /// Records the shading of `tiles` (each with its layer of heights and its slot of
-    /// deviations, at most [`Self::capacity`])
+    /// deviations, at most [`Self::capacity`]) in `mode`
     /// for the camera `cam`, relative to sample `anchor`, into `cmd` (recording), and the
     /// copy of their cells to the readback buffer.
     pub(crate) fn record(
@@ -153,11 +178,14 @@ impl AtlasPasses {
         grid: &Grid,
         tiles: &[(TileKey, u32, u32)],
         (anchor, cam): ([i64; 2], &Camera),
-        unorm16: bool,
+        (unorm16, mode): (bool, ErrorMode),
     ) {
         assert!(!tiles.is_empty() && tiles.len() <= Self::capacity(), "{} tiles to shade", tiles.len());
         let d = &self.device.raw;
         let n = self.per_side;
+        // The texels of a cell shaded and read back: its first `m x m`.
+        let m = self.shaded_side(mode);
+        let pipeline = if mode == ErrorMode::Paper { &self.paper } else { &self.pipeline };
         let rows = (tiles.len() as u32).div_ceil(CELLS[0]) * n;
         let width = self.target.extent.width;
         let area = vk::Rect2D { offset: vk::Offset2D::default(), extent: vk::Extent2D { width, height: rows } };
@@ -179,44 +207,47 @@ impl AtlasPasses {
             }
             image_barrier(d, cmd, self.target.handle, range, discarded, WRITTEN);
             d.cmd_begin_rendering(cmd, &info);
-            d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, self.pipeline.handle);
+            d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, pipeline.handle);
             d.cmd_bind_descriptor_sets(cmd, vk::PipelineBindPoint::GRAPHICS, self.layout.handle, 0, &[self.set], &[]);
             for (i, &(key, layer, slot)) in tiles.iter().enumerate() {
                 let cell = cell_of(i, n);
                 let span = grid.tile_span(key.level) as i64;
-                let push = TileErrorsPush {
-                    tile: [layer as i32, i32::from(key.level), i32::from(unorm16), slot as i32],
-                    origin: [
-                        (i64::from(key.tx) * span - anchor[0]) as i32,
-                        (i64::from(key.tz) * span - anchor[1]) as i32,
-                        cell[0] as i32,
-                        cell[1] as i32,
-                    ],
-                    camera: [cam.position.x, cam.position.y, cam.position.z, cam.kappa()],
-                    params: [grid.spacing[0] as f32, grid.height_scale as f32, cam.near, grid.spacing[1] as f32],
-                };
-                let rect = vk::Rect2D {
-                    offset: vk::Offset2D { x: cell[0] as i32, y: cell[1] as i32 },
-                    extent: vk::Extent2D { width: n, height: n },
-                };
-                let viewport = vk::Viewport {
-                    x: cell[0] as f32,
-                    y: cell[1] as f32,
-                    width: n as f32,
-                    height: n as f32,
-                    min_depth: 0.0,
-                    max_depth: 1.0,
-                };
-                d.cmd_set_viewport(cmd, 0, &[viewport]);
-                d.cmd_set_scissor(cmd, 0, &[rect]);
-                d.cmd_push_constants(
-                    cmd,
-                    self.layout.handle,
-                    vk::ShaderStageFlags::FRAGMENT,
-                    0,
-                    bytemuck::bytes_of(&push),
-                );
-                d.cmd_draw(cmd, 3, 1, 0, 0);
+                for (offset, side, w) in self.passes_of(key, slot, grid.top, mode) {
+                    let at = [cell[0] + offset, cell[1]];
+                    let push = TileErrorsPush {
+                        tile: [layer as i32, i32::from(key.level), i32::from(unorm16), w],
+                        origin: [
+                            (i64::from(key.tx) * span - anchor[0]) as i32,
+                            (i64::from(key.tz) * span - anchor[1]) as i32,
+                            at[0] as i32,
+                            at[1] as i32,
+                        ],
+                        camera: [cam.position.x, cam.position.y, cam.position.z, cam.kappa()],
+                        params: [grid.spacing[0] as f32, grid.height_scale as f32, cam.near, grid.spacing[1] as f32],
+                    };
+                    let rect = vk::Rect2D {
+                        offset: vk::Offset2D { x: at[0] as i32, y: at[1] as i32 },
+                        extent: vk::Extent2D { width: side, height: side },
+                    };
+                    let viewport = vk::Viewport {
+                        x: at[0] as f32,
+                        y: at[1] as f32,
+                        width: side as f32,
+                        height: side as f32,
+                        min_depth: 0.0,
+                        max_depth: 1.0,
+                    };
+                    d.cmd_set_viewport(cmd, 0, &[viewport]);
+                    d.cmd_set_scissor(cmd, 0, &[rect]);
+                    d.cmd_push_constants(
+                        cmd,
+                        self.layout.handle,
+                        vk::ShaderStageFlags::FRAGMENT,
+                        0,
+                        bytemuck::bytes_of(&push),
+                    );
+                    d.cmd_draw(cmd, 3, 1, 0, 0);
+                }
             }
             d.cmd_end_rendering(cmd);
             image_barrier(d, cmd, self.target.handle, range, WRITTEN, COPY_SOURCE);
@@ -225,7 +256,7 @@ impl AtlasPasses {
                 .map(|i| {
                     let cell = cell_of(i, n);
                     vk::BufferImageCopy::default()
-                        .buffer_offset((i as u32 * n * n * 4) as u64)
+                        .buffer_offset((i as u32 * m * m * 4) as u64)
                         .image_subresource(vk::ImageSubresourceLayers {
                             aspect_mask: vk::ImageAspectFlags::COLOR,
                             mip_level: 0,
@@ -233,7 +264,7 @@ impl AtlasPasses {
                             layer_count: 1,
                         })
                         .image_offset(vk::Offset3D { x: cell[0] as i32, y: cell[1] as i32, z: 0 })
-                        .image_extent(vk::Extent3D { width: n, height: n, depth: 1 })
+                        .image_extent(vk::Extent3D { width: m, height: m, depth: 1 })
                 })
                 .collect();
             let src = vk::ImageLayout::TRANSFER_SRC_OPTIMAL;
@@ -247,10 +278,16 @@ impl AtlasPasses {
         }
     }
 
-    /// The block errors of `tiles` (as recorded), once the generation has finished: per
-    /// tile, its cell row-major; and what the generation shaded.
-    pub(crate) fn read(&self, grid: &Grid, tiles: &[(TileKey, u32, u32)]) -> VkResult<(Vec<TileBlocks>, Shaded)> {
-        let cell = (self.per_side * self.per_side) as usize;
+    /// The block errors of `tiles` (as recorded in `mode`), once the generation has
+    /// finished: per tile, its cell row-major; and what the generation shaded.
+    pub(crate) fn read(
+        &self,
+        grid: &Grid,
+        tiles: &[(TileKey, u32, u32)],
+        mode: ErrorMode,
+    ) -> VkResult<(Vec<TileBlocks>, Shaded)> {
+        let m = self.shaded_side(mode) as usize;
+        let cell = m * m;
         let bytes = self.readback.mapped()?;
         let out = tiles
             .iter()
@@ -268,9 +305,15 @@ impl AtlasPasses {
             }
             None => None,
         };
+        // 32 x 32 groups a block shaded.
+        let blocks: u32 = tiles
+            .iter()
+            .flat_map(|&(key, _, slot)| self.passes_of(key, slot, grid.top, mode))
+            .map(|(_, side, _)| side * side)
+            .sum();
         let shaded = Shaded {
             tiles: tiles.len() as u64,
-            groups: (tiles.len() * grid.tile_quads * grid.tile_quads) as u64,
+            groups: u64::from(blocks) * 32 * 32,
             bytes_read_back: (tiles.len() * cell * 4) as u64,
             gpu_ms,
         };

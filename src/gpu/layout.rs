@@ -185,7 +185,9 @@ gpu_block! {
     /// Constants of one tile's block errors over the atlas (`tile_errors.frag`).
     push_constant TileErrorsPush as tile_errors_pc {
         /// atlas layer, the tile's level (its vertices are `2^level` samples apart), the
-        /// heights are unorm16 (1) or float (0), the layer of its deviations.
+        /// heights are unorm16 (1) or float (0); w: the layer of its deviations (strict
+        /// mode, `tile_errors.frag`), or how many LODs coarser than the tile the blocks
+        /// shaded are (the paper's, `tile_paper.frag`).
         tile: [i32; 4] => "ivec4",
         /// the tile's first vertex in samples from the camera's anchor (x, z), the cell's
         /// first texel in the target (x, y).

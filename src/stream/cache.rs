@@ -429,6 +429,11 @@ impl HostCache {
         std::mem::take(&mut self.evicted)
     }
 
+    /// The keys of every tile held, in no order.
+    pub fn keys(&self) -> impl Iterator<Item = TileKey> + '_ {
+        self.held.keys().copied()
+    }
+
     /// Every tile held, coarsest first (each after its parent).
     pub fn tiles(&self) -> Vec<Arc<TileData>> {
         let mut t: Vec<Arc<TileData>> = self.held.values().map(|h| h.data.clone()).collect();

@@ -10,6 +10,7 @@
 
 use super::TileKey;
 use crate::lod::camera::distance_to_aabb;
+use crate::lod::gie::ErrorMode;
 use foldhash::HashMap;
 use glam::{DVec3, Vec3};
 
@@ -27,8 +28,72 @@ pub struct TileErrors {
     /// The generation's GPU time, when the device has timestamps.
     pub gpu_ms: Option<f64>,
     /// Per tile shaded: the errors of the blocks of its own level, row-major,
-    /// `(tile_quads / 32)^2` of them.
+    /// `(tile_quads / 32)^2` of them (strict mode; the paper's is in `paper`).
     pub tiles: HashMap<TileKey, Vec<f32>>,
+    /// The mode they were computed in.
+    pub mode: ErrorMode,
+    /// The paper's mode: each block's error with the max over the finer levels shaded
+    /// (eq. 4, [`nested_paper_errors`]), by (LOD, x, z).
+    pub paper: HashMap<(u32, u32, u32), f32>,
+}
+
+/// Where along x in a tile's cell (`n` texels a side) the paper's blocks `k` LODs
+/// coarser than the tile begin: `n >> k` a side each, one after another (`n / 2` at 0,
+/// `n / 4` at `n / 2`, ...), so that the top tile's every coarser LOD fits its cell.
+pub fn paper_offset(n: usize, k: u32) -> usize {
+    (1..k).map(|j| n >> j).sum()
+}
+
+/// How many LODs coarser than tile `key` the paper's passes shade: one, and for the top
+/// tile (level `top`) every LOD up to its single block (`n` blocks of its own level a
+/// side), whose dropped vertices no other tile holds.
+pub fn paper_steps(key: TileKey, top: u8, n: usize) -> u32 {
+    if key.level == top {
+        n.trailing_zeros()
+    } else {
+        1
+    }
+}
+
+/// The paper's own errors (eqs. 2-3, without the finer levels) of the blocks tile `key`'s
+/// cell holds, row-major with `n` texels a side ([`paper_offset`]), by (LOD, x, z).
+pub fn paper_own_errors(key: TileKey, cell: &[f32], n: usize, top: u8) -> Vec<((u32, u32, u32), f32)> {
+    let mut out = Vec::new();
+    for k in 1..=paper_steps(key, top, n) {
+        let (side, offset) = (n >> k, paper_offset(n, k));
+        let lod = u32::from(key.level) + k;
+        for j in 0..side {
+            for i in 0..side {
+                let (bx, bz) = (key.tx as usize * side + i, key.tz as usize * side + j);
+                out.push(((lod, bx as u32, bz as u32), cell[j * n + offset + i]));
+            }
+        }
+    }
+    out
+}
+
+/// The paper's block errors with eq. 4's max over finer levels, from each block's `own`
+/// error shaded: a block's error is the largest of its own and its descendants' (through
+/// levels not shaded too). A block whose own error was not shaded has none, whatever its
+/// descendants' (its dropped vertices are unknown).
+pub fn nested_paper_errors(own: &HashMap<(u32, u32, u32), f32>) -> HashMap<(u32, u32, u32), f32> {
+    let Some(top) = own.keys().map(|k| k.0).max() else { return HashMap::default() };
+    // Level by level upward: the largest known under each block, whether or not its own
+    // error is known.
+    let mut under: HashMap<(u32, u32, u32), f32> = HashMap::default();
+    for lod in 1..=top {
+        let mut level: HashMap<(u32, u32, u32), f32> = HashMap::default();
+        for (&k, &e) in own.iter().filter(|(k, _)| k.0 == lod) {
+            level.insert(k, e);
+        }
+        for (&(l, bx, bz), &e) in under.iter().filter(|(k, _)| k.0 == lod - 1) {
+            let parent = level.entry((l + 1, bx / 2, bz / 2)).or_insert(e);
+            *parent = parent.max(e);
+        }
+        under.extend(level);
+    }
+    under.retain(|k, _| own.contains_key(k));
+    under
 }
 
 impl TileErrors {
@@ -55,6 +120,44 @@ pub fn stale_factor(old_camera: Vec3, moved: f32, (min, max): (Vec3, Vec3)) -> O
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Eq. 4 across tiles: a block's error is the largest of its own and its descendants'
+    /// shaded, through levels not shaded; one whose own error was not shaded has none.
+    /// And where a tile's cell holds them.
+    #[test]
+    fn paper_errors_nest_over_the_finer_levels_shaded() {
+        let key = |level, tx, tz| TileKey { level, tx, tz };
+        // Cells of 4 texels a side: a tile gives 2 x 2 blocks one LOD coarser; the top
+        // tile (level 2) also 1 block two LODs coarser, at texel 2 of its first row.
+        let cell = |values: [f32; 4], extra: f32| {
+            let mut c = vec![f32::NAN; 16];
+            (c[0], c[1], c[4], c[5], c[2]) = (values[0], values[1], values[2], values[3], extra);
+            c
+        };
+        let mut own: HashMap<(u32, u32, u32), f32> = HashMap::default();
+        for (k, values, extra) in [
+            (key(0, 0, 0), [1.0, 5.0, 2.0, 0.5], 0.0),
+            (key(1, 0, 0), [3.0, 0.0, 0.0, 0.0], 0.0),
+            (key(2, 0, 0), [0.25, 0.0, 0.0, 0.0], 0.125),
+        ] {
+            own.extend(paper_own_errors(k, &cell(values, extra), 4, 2));
+        }
+        assert_eq!(own.len(), 4 + 4 + 4 + 1, "{own:?}");
+        assert_eq!((own[&(1, 1, 0)], own[&(1, 0, 1)], own[&(4, 0, 0)]), (5.0, 2.0, 0.125));
+        let n = nested_paper_errors(&own);
+        // LOD 2 block (0, 0) holds LOD 1 blocks (0..2, 0..2): its own 3, their largest 5.
+        assert_eq!(n[&(2, 0, 0)], 5.0);
+        assert_eq!(n[&(2, 1, 0)], 0.0, "no shaded children: its own");
+        assert_eq!((n[&(3, 0, 0)], n[&(4, 0, 0)]), (5.0, 5.0), "through every level");
+        // Without the level-1 tile, LOD 2 blocks have no error, and LOD 3 still sees the
+        // LOD 1 blocks under it.
+        own.retain(|k, _| k.0 != 2);
+        let n = nested_paper_errors(&own);
+        assert!(!n.contains_key(&(2, 0, 0)));
+        assert_eq!(n[&(3, 0, 0)], 5.0);
+        assert_eq!(n.len(), 4 + 4 + 1);
+        assert_eq!((paper_offset(8, 1), paper_offset(8, 2), paper_offset(8, 3)), (0, 4, 6));
+    }
 
     /// The factor bounds the growth of `1 / distance` for every point of the box and
     /// every camera within `moved` of the old one (sampled), and is `None` where a camera

@@ -9,6 +9,7 @@ use super::morph;
 use super::traverse::{select_by, Selection, StreamedLod, StripCache, View};
 use super::{Grid, TileKey};
 use crate::lod::block::TraversalPool;
+use crate::lod::gie::ErrorMode;
 use crate::lod::morph::MorphRule;
 use foldhash::{HashMap, HashMapExt, HashSet, HashSetExt};
 use std::sync::atomic::AtomicBool;
@@ -64,7 +65,7 @@ pub trait TileGate: Send {
     fn wait(&self);
     /// Asks the errors activity for the block errors of `tiles` at `view` (replacing a
     /// request not started yet). A gate without an errors activity ignores it.
-    fn request_errors(&self, _view: View, _tiles: Vec<TileKey>, _height_scale: f64) {}
+    fn request_errors(&self, _view: View, _tiles: Vec<TileKey>, _height_scale: f64, _mode: ErrorMode) {}
     /// The newest finished generation of block errors, if any.
     fn errors(&self) -> Option<Arc<TileErrors>> {
         None
@@ -81,7 +82,13 @@ pub struct ErrorsRequest {
     pub tiles: Vec<TileKey>,
     /// The terrain's height scale now (the exaggeration changes it).
     pub height_scale: f64,
+    /// The error mode to shade in (`--error-mode`).
+    pub mode: ErrorMode,
 }
+
+/// What a request for errors was made for: the camera, the tiles, the tiles held then,
+/// the height scale's bits and the mode (the same again gets the same answer).
+type ErrorsAsked = (glam::DVec3, Vec<TileKey>, usize, (u64, ErrorMode));
 
 pub struct Streamer {
     pub grid: Grid,
@@ -104,6 +111,9 @@ pub struct Streamer {
     pub morph: Option<MorphRule>,
     /// How blocks choose their LOD (`--lod`); only the bound's selection morphs.
     pub lod: StreamedLod,
+    /// The error the bound's selection compares with delta (`--error-mode`): strict, or
+    /// the paper's estimate from the errors activity where it has one.
+    pub error_mode: ErrorMode,
     /// The GPU atlas's way in, once attached.
     gate: Option<Box<dyn TileGate>>,
     /// Tiles sent through the gate and not back yet (not asked for again).
@@ -118,7 +128,7 @@ pub struct Streamer {
     pub refresh_at: f32,
     /// The last request for errors: the camera, the tiles, the tiles held then, the
     /// height scale's bits.
-    errors_asked: Option<(glam::DVec3, Vec<TileKey>, usize, u64)>,
+    errors_asked: Option<ErrorsAsked>,
 }
 
 impl Streamer {
@@ -143,6 +153,7 @@ impl Streamer {
             strips: StripCache::with_entries(1 << 15),
             morph: Some(MorphRule::Bounded),
             lod: StreamedLod::Error,
+            error_mode: ErrorMode::Strict,
             gate: None,
             gated: HashSet::new(),
             pool: TraversalPool::default(),
@@ -263,12 +274,13 @@ impl Streamer {
         self.take(arrived);
         self.cache.begin_frame();
         self.stats.frames += 1;
-        let errors = self.gate.as_ref().and_then(|g| g.errors());
+        // A generation of the other mode bounds nothing here.
+        let errors = self.gate.as_ref().and_then(|g| g.errors()).filter(|e| e.mode == self.error_mode);
         let mut sel = select_by(
             &self.grid,
             &self.cache,
             view,
-            (self.lod, delta),
+            (self.lod, delta, self.error_mode),
             prefetch,
             Some(&self.strips),
             errors.as_deref(),
@@ -281,7 +293,8 @@ impl Streamer {
         self.cache.mark_kept(sel.kept.iter().copied());
         let mut wanted = sel.wanted.clone();
         if let Some(a) = ahead {
-            let next = select_by(&self.grid, &self.cache, a, (self.lod, delta), prefetch, None, errors.as_deref());
+            let rule = (self.lod, delta, self.error_mode);
+            let next = select_by(&self.grid, &self.cache, a, rule, prefetch, None, errors.as_deref());
             self.cache.mark_kept(next.used.iter().chain(&next.kept).copied());
             // Below every tile the current frame needs.
             wanted.extend(next.wanted.iter().map(|&(k, p)| (k, p.min(1.0) * 0.5)));
@@ -318,7 +331,12 @@ impl Streamer {
     /// was asked last. Nothing without an errors activity.
     pub fn ask_errors(&mut self, view: &View, sel: &Selection) {
         let Some(gate) = self.gate.as_ref() else { return };
-        let mut tiles: HashSet<TileKey> = sel.used.iter().copied().filter(|k| k.level > 0).collect();
+        let mut tiles: HashSet<TileKey> = match self.error_mode {
+            ErrorMode::Strict => sel.used.iter().copied().filter(|k| k.level > 0).collect(),
+            // A block's paper error takes the max over every finer level (eq. 4): every
+            // tile held, so that each block's descendants that are resident count.
+            ErrorMode::Paper => self.cache.keys().collect(),
+        };
         for b in sel.blocks.iter().filter(|b| b.lod > 1) {
             let finer = super::cache::serving_tile(&self.grid, b.lod - 1, 2 * b.bx, 2 * b.bz);
             if self.cache.contains(finer) {
@@ -329,12 +347,13 @@ impl Streamer {
         tiles.sort();
         // The same request again would get the same answer (a tile not resident when it
         // was shaded may be now: the tiles held are part of it).
-        let asked = (view.position, tiles.clone(), self.cache.len(), self.grid.height_scale.to_bits());
+        let asked =
+            (view.position, tiles.clone(), self.cache.len(), (self.grid.height_scale.to_bits(), self.error_mode));
         if self.errors_asked.as_ref() == Some(&asked) {
             return;
         }
         self.errors_asked = Some(asked);
-        gate.request_errors(*view, tiles, self.grid.height_scale);
+        gate.request_errors(*view, tiles, self.grid.height_scale, self.error_mode);
     }
 
     fn request(&mut self, mut wanted: Vec<(TileKey, f32)>) {

@@ -17,6 +17,7 @@ use super::{Grid, TileKey};
 use crate::lod::block::DrawBlock;
 use crate::lod::block_cache::BoundedCache;
 use crate::lod::camera::{angular_factor, distance_to_aabb, world_to_pixels, Camera};
+use crate::lod::gie::ErrorMode;
 use crate::lod::stitch::{strip_departure, StripDeviation};
 use crate::lod::traversal::{stitch_blocks, LodAt, SparseLods};
 use foldhash::{HashSet, HashSetExt};
@@ -295,7 +296,7 @@ pub fn select(
     prefetch: f32,
     strips: Option<&StripCache>,
 ) -> Selection {
-    select_by(grid, cache, view, (StreamedLod::Error, delta), prefetch, strips, None)
+    select_by(grid, cache, view, (StreamedLod::Error, delta, ErrorMode::Strict), prefetch, strips, None)
 }
 
 /// [`select`] with the LOD chosen by `lod`. Under [`StreamedLod::Full`] and
@@ -312,7 +313,7 @@ pub fn select_by(
     grid: &Grid,
     cache: &HostCache,
     view: &View,
-    (lod, delta): (StreamedLod, f32),
+    (lod, delta, mode): (StreamedLod, f32, ErrorMode),
     prefetch: f32,
     strips: Option<&StripCache>,
     errors: Option<&TileErrors>,
@@ -326,6 +327,7 @@ pub fn select_by(
     }
     let mut t = Traverser::new(grid, cache, view, delta, prefetch);
     t.lod = lod;
+    t.mode = mode;
     if let Some(e) = errors {
         let [ax, az] = grid.world_xz(t.anchor[0] as f64, t.anchor[1] as f64);
         let old = e.position - DVec3::new(ax, 0.0, az);
@@ -348,6 +350,8 @@ struct Traverser<'a> {
     cache: &'a HostCache,
     delta: f32,
     lod: StreamedLod,
+    /// Strict (a bound) or the paper's estimate where the errors activity gives one.
+    mode: ErrorMode,
     prefetch: f32,
     anchor: [i64; 2],
     cam: Camera,
@@ -370,6 +374,7 @@ impl<'a> Traverser<'a> {
             cache,
             delta,
             lod: StreamedLod::Error,
+            mode: ErrorMode::Strict,
             prefetch,
             anchor,
             frustum: cam.frustum(),
@@ -402,13 +407,26 @@ impl<'a> Traverser<'a> {
                 continue;
             }
             let mut error_px = block_error_px(grid.height_scale, &self.cam, &s, (min, max), delta);
-            let from_errors = match self.gpu_error_px(key, (lod, bx, bz), (min, max)) {
+            // Strict: the smaller of two bounds. The paper's estimate replaces the
+            // summary's bound where the errors activity has one (its finer tile held).
+            let (gpu, could) = match self.mode {
+                ErrorMode::Strict => {
+                    (self.gpu_error_px(key, (lod, bx, bz), (min, max)), lod > 0 && lod == u32::from(key.level))
+                }
+                ErrorMode::Paper => (
+                    self.paper_error_px((lod, bx, bz), (min, max)),
+                    lod > 0
+                        && lod <= u32::from(grid.top) + 1
+                        && cache.contains(serving_tile(grid, lod - 1, 2 * bx, 2 * bz)),
+                ),
+            };
+            let from_errors = match gpu {
                 Some(gpu) => {
-                    error_px = error_px.min(gpu);
+                    error_px = if self.mode == ErrorMode::Paper { gpu } else { error_px.min(gpu) };
                     self.out.errors_from_gpu += 1;
                     Some(true)
                 }
-                None if lod > 0 && lod == u32::from(key.level) => {
+                None if could => {
                     self.out.errors_from_tiles += 1;
                     self.errors.is_some().then_some(false)
                 }
@@ -483,6 +501,21 @@ impl<'a> Traverser<'a> {
         Some(raw * stale * kappa * angular_factor(&self.cam, bbox.0, bbox.1, self.delta))
     }
 
+    /// The paper's error of block `(lod, bx, bz)` (box `bbox`) from the errors
+    /// activity's generation ([`TileErrors::paper`]: eq. 4 over the finer levels shaded),
+    /// corrected for the camera's move and its `kappa`; no angular factor (the paper's
+    /// per-vertex distance stands for the projection).
+    fn paper_error_px(&mut self, (lod, bx, bz): (u32, u32, u32), bbox: (Vec3, Vec3)) -> Option<f32> {
+        let (errors, old, moved) = self.errors?;
+        if errors.height_scale != self.grid.height_scale {
+            return None;
+        }
+        let raw = errors.paper.get(&(lod, bx, bz)).copied().filter(|e| e.is_finite())?;
+        let stale = stale_factor(old, moved, bbox)?;
+        self.out.errors_stale_worst = self.out.errors_stale_worst.max(stale);
+        Some(raw * stale * self.cam.kappa() / errors.kappa)
+    }
+
     /// Stitches the selection as drawn and splits the coarser neighbours of blocks whose
     /// stitched strip exceeds delta or meets them in a T-junction, in place (their
     /// descendants visited like any block), until none is left; what cannot split leaves
@@ -513,7 +546,9 @@ impl<'a> Traverser<'a> {
                 let boxed = block_box(grid, self.anchor, b.lod, b.bx, b.bz, lo, hi);
                 for (e, (nx, nz)) in b.cells_across().into_iter().enumerate() {
                     let px = strip_error_px(grid.height_scale, &self.cam, &s, (e, &dep), boxed, delta);
-                    let over = self.lod == StreamedLod::Error && dep.edge[e] > 0.0 && px > delta;
+                    // The paper's mode has no strip term (as in memory): T-junctions only.
+                    let strict = self.lod == StreamedLod::Error && self.mode == ErrorMode::Strict;
+                    let over = strict && dep.edge[e] > 0.0 && px > delta;
                     let t_junction = b.coarser[e] > b.stride() << layout.m;
                     if !(over || t_junction) {
                         continue;
