@@ -158,6 +158,7 @@ pub fn hidden_parts(
     };
     let l = &layout;
     let mut swept = Vec::with_capacity(blocks.len());
+    let mut tops = Vec::with_capacity(blocks.len());
     for sb in blocks {
         let b = &sb.block;
         let tile = cache.peek(sb.tile).filter(|_| drawable(sb.tile)).ok_or(Skipped::TileMissing)?;
@@ -179,19 +180,24 @@ pub fn hidden_parts(
         let square = size / SUB as i64;
         let last = SUB - 1;
         let corner_square = [(0, 0), (last, 0), (last, last), (0, last)];
-        let cells = (0..SUB * SUB)
+        // Per square: its footprint and the heights the drawn surface over it keeps to
+        // (the block's whole range along a stitched edge or at a resolved corner).
+        let squares: Vec<(Rect, f64, f64)> = (0..SUB * SUB)
             .map(|i| {
                 let (qx, qz) = (i % SUB, i / SUB);
                 let on_edge = [qz == 0, qx == last, qz == last, qx == 0];
-                let mut cell_lo = s.squares[i].min;
+                let (mut cell_lo, mut cell_hi) = (s.squares[i].min, s.squares[i].max);
                 if (0..4).any(|e| on_edge[e] && b.coarser[e] > 0)
                     || corners.iter().any(|&(c, _)| corner_square[c] == (qx, qz))
                 {
-                    cell_lo = cell_lo.min(lo);
+                    (cell_lo, cell_hi) = (cell_lo.min(lo), cell_hi.max(hi));
                 }
-                (rect(ox + qx as i64 * square, oz + qz as i64 * square, square), f64::from(cell_lo) * hs)
+                let r = rect(ox + qx as i64 * square, oz + qz as i64 * square, square);
+                (r, f64::from(cell_lo) * hs, f64::from(cell_hi) * hs)
             })
             .collect();
+        let cells = squares.iter().map(|&(r, lo, _)| (r, lo)).collect();
+        tops.push(squares.into_iter().map(|(r, _, hi)| (r, hi)).collect::<Vec<_>>());
         let parts = part_boxes(grid, cache, sb).ok_or(Skipped::TileMissing)?;
         swept.push(SweptBlock {
             rect: rect(ox, oz, size),
@@ -207,7 +213,12 @@ pub fn hidden_parts(
             (rect(i64::from(bx) * size, i64::from(bz) * size, size), f64::from(min) * hs)
         })
         .collect();
-    let top_over = |i: usize, _: &Rect| swept[i].range[1];
+    // The highest drawn point over an area: its squares' that meet it.
+    let meets = |a: &Rect, b: &Rect| a.x0 <= b.x1 && a.x1 >= b.x0 && a.z0 <= b.z1 && a.z1 >= b.z0;
+    let top_over = |i: usize, area: &Rect| {
+        let squares: &Vec<(Rect, f64)> = &tops[i];
+        squares.iter().filter(|(r, _)| meets(r, area)).map(|&(_, hi)| hi).fold(f64::NEG_INFINITY, f64::max)
+    };
     let frame =
         SweptFrame { extent, blocks: &swept, culled: &culled, all_parts: layout.all_parts(), top_over: &top_over };
     crate::lod::occlusion::sweep(cam, &frame, rule)
