@@ -1214,7 +1214,7 @@ fn bench_streamed(
     crate::app::cli::check_image_size(&device, "--size", size)?;
     crate::app::outputs::output_dir("--out", &args.out)?;
     // The three threads' work: each frame's selection and drawing, the IO thread's reads,
-    // the atlas's uploads (CPU tracks only: streamed frames take no timestamps).
+    // the atlas's uploads (CPU tracks; each frame's GPU time is in frames.csv).
     let trace_path = args.out.join("trace.json");
     let trace = Trace::to_file(&trace_path).map_err(|e| anyhow::anyhow!("{}: {e}", trace_path.display()))?;
     let grid = streamed_grid(&archive, &args.common.terrain.frame);
@@ -1548,6 +1548,7 @@ impl StreamedPath<'_> {
                 triangles: gpu.triangles,
                 draw_calls: gpu.draw_calls,
                 blocks: gpu.blocks,
+                gpu_ms: gpu.gpu_ms,
                 morphing: sel.morphing,
                 hidden_parts: gpu.hidden_parts,
                 over_bound: sel.over_bound > 0,

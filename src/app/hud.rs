@@ -311,8 +311,9 @@ fn panel(ui: &mut egui::Ui, r: &Readout, history: &FrameHistory, now: f64, c: &m
             ui.monospace(v);
             ui.end_row();
         };
+        row("GPU frame", r.gpu_frame_ms.map_or("- (no timestamps)".into(), |m| format!("{m:.1} ms")));
+        // Frames from tiles are waited for one by one: no slot to wait for.
         if r.tiles.is_none() {
-            row("GPU frame", r.gpu_frame_ms.map_or("- (no timestamps)".into(), |m| format!("{m:.1} ms")));
             row("draw waits", format!("{:.1} slot, {:.1} queue ms", r.waits_ms.0, r.waits_ms.1));
         }
         row("triangles", r.triangles.to_string());

@@ -127,6 +127,8 @@ pub(crate) struct GpuFrames {
     pub triangles: u64,
     pub hidden_parts: u64,
     pub draw_calls: u64,
+    /// The last frame's GPU time (timestamps), when the device has them.
+    pub gpu_ms: Option<f64>,
     /// Whether the last frame was shaded deferred, and how many were.
     pub deferred: bool,
     pub deferred_frames: u64,
@@ -227,6 +229,7 @@ impl GpuFrames {
             triangles: 0,
             hidden_parts: 0,
             draw_calls: 0,
+            gpu_ms: None,
             deferred: false,
             deferred_frames: 0,
             hidden_parts_total: 0,
@@ -322,6 +325,9 @@ impl GpuFrames {
         self.triangles = stats.triangles;
         self.hidden_parts = stats.hidden_parts;
         self.draw_calls = stats.draw_calls;
+        self.gpu_ms = stats.gpu_ms;
+        // What a triangle costs the GPU now: whether the next sweep pays is judged by it.
+        self.probe.observe(stats.gpu_ms, stats.triangles);
         self.deferred = stats.deferred;
         self.deferred_frames += u64::from(stats.deferred);
         self.hidden_parts_total += stats.hidden_parts;
@@ -916,6 +922,7 @@ pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
         // What occlusion culling did (as in memory: null when off).
         "occlusion": gpu.last_occlusion,
         "draw_calls": gpu.draw_calls,
+        "gpu_ms": gpu.gpu_ms,
         "within_bound": sel.within_bound() && !missing,
         "blocks_over_bound": sel.over_bound,
         "worst_factor": sel.worst_factor,

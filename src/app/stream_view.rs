@@ -588,6 +588,7 @@ impl App {
             triangles: self.run.last_triangles,
             draw_calls: gpu.frames.draw_calls,
             occlusion: gpu.frames.last_occlusion.filter(|_| gpu.frames.occlusion),
+            gpu_frame_ms: gpu.frames.gpu_ms,
             blocks: self.run.last_blocks,
             generations: errors.generations,
             update_ms: errors.last.and_then(|e| e.gpu_ms),

@@ -35,12 +35,13 @@ use crate::stream::Grid;
 use crate::stream::TileKey;
 use crate::vk::{
     begin_one_time, image_barrier, vk, Buffer, CommandPool, DepthMode, DescriptorPool, DescriptorSetLayout, Device,
-    Fence, GraphicsPipeline, GraphicsPipelineDesc, Image, PipelineLayout, Sampler, VkError, VkResult, VkResultExt,
+    Fence, FrameTimer, GraphicsPipeline, GraphicsPipelineDesc, Image, PipelineLayout, Sampler, VkError, VkResult,
+    VkResultExt,
 };
 use std::sync::Arc;
 
 /// What a streamed frame drew.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct StreamedStats {
     pub blocks: usize,
     /// Blocks left out because their tile had no atlas layer (counted over the bound by
@@ -56,6 +57,8 @@ pub struct StreamedStats {
     pub draw_calls: u64,
     /// Shaded deferred (each pixel once) rather than forward.
     pub deferred: bool,
+    /// The frame's GPU time, when the queue has timestamps.
+    pub gpu_ms: Option<f64>,
 }
 
 pub struct StreamedRenderer {
@@ -64,6 +67,8 @@ pub struct StreamedRenderer {
     frame: u64,
     cmd: vk::CommandBuffer,
     fence: Fence,
+    /// The frame's timestamps (none where the queue has no timestamp bits).
+    timer: Option<FrameTimer>,
     commands: CommandPool,
     /// The pipelines for each colour format drawn to (the offscreen target's, a
     /// window's swapchain's).
@@ -290,6 +295,7 @@ impl StreamedRenderer {
             frame: 0,
             cmd,
             fence: Fence::new(device, true)?,
+            timer: FrameTimer::new(device)?,
             commands,
             pipelines: vec![(COLOR_FORMAT, pipelines)],
             pipeline_layout,
@@ -692,6 +698,9 @@ impl StreamedRenderer {
         // `submit_and_wait`.
         unsafe {
             begin_one_time(&d, cmd)?;
+            if let Some(t) = &self.timer {
+                t.begin(&d, cmd);
+            }
             attachment_barriers(&d, cmd, color, last_use, depth);
             d.cmd_begin_rendering(cmd, &rendering);
             d.cmd_set_viewport(cmd, 0, &[viewport]);
@@ -746,9 +755,14 @@ impl StreamedRenderer {
                 }
                 Dest::Offscreen => self.target.set_read_back(false),
             }
+            if let Some(t) = &self.timer {
+                t.end(&d, cmd);
+            }
         }
         stats.deferred = deferred;
         self.submit_and_wait(atlas, generation, window.map(|w| (w.acquired, w.done)))?;
+        // The frame was waited for: its timestamps are in the buffer.
+        stats.gpu_ms = self.timer.as_ref().map(|t| t.read().map(|r| r.1)).transpose()?;
         Ok(stats)
     }
 

@@ -20,8 +20,8 @@ use crate::lod::gie::ErrorMode;
 use crate::stream::errors::{paper_offset, paper_steps};
 use crate::stream::{Grid, TileKey};
 use crate::vk::{
-    host_read_barrier, image_barrier, vk, Buffer, DescriptorPool, DescriptorSetLayout, Device, GraphicsPipeline,
-    GraphicsPipelineDesc, Image, ImageUse, PipelineLayout, QueryPool, Sampler, VkResult, COPY_SOURCE,
+    host_read_barrier, image_barrier, vk, Buffer, DescriptorPool, DescriptorSetLayout, Device, FrameTimer,
+    GraphicsPipeline, GraphicsPipelineDesc, Image, ImageUse, PipelineLayout, Sampler, VkResult, COPY_SOURCE,
 };
 use std::sync::Arc;
 
@@ -65,7 +65,7 @@ pub(crate) struct AtlasPasses {
     _sampler: Sampler,
     target: Image,
     readback: Buffer,
-    queries: Option<(QueryPool, Buffer)>,
+    timer: Option<FrameTimer>,
     /// Blocks a tile side (`tile_quads / 32`): a cell's side in texels.
     per_side: u32,
 }
@@ -114,19 +114,7 @@ impl AtlasPasses {
             vk::BufferUsageFlags::TRANSFER_DST,
             gpu_allocator::MemoryLocation::GpuToCpu,
         )?;
-        let queries = match QueryPool::timestamps(device, 2)? {
-            Some(q) => Some((
-                q,
-                Buffer::new(
-                    device,
-                    "block errors timestamps",
-                    16,
-                    vk::BufferUsageFlags::TRANSFER_DST,
-                    gpu_allocator::MemoryLocation::GpuToCpu,
-                )?,
-            )),
-            None => None,
-        };
+        let timer = FrameTimer::new(device)?;
         Ok(AtlasPasses {
             device: device.clone(),
             pipeline,
@@ -138,7 +126,7 @@ impl AtlasPasses {
             _sampler: sampler,
             target,
             readback,
-            queries,
+            timer,
             per_side,
         })
     }
@@ -201,9 +189,8 @@ impl AtlasPasses {
         // generation before recording the next (so the target and readback are idle);
         // every object outlives the submission; each cell lies inside the target.
         unsafe {
-            if let Some((q, _)) = &self.queries {
-                d.cmd_reset_query_pool(cmd, q.handle, 0, 2);
-                d.cmd_write_timestamp2(cmd, vk::PipelineStageFlags2::TOP_OF_PIPE, q.handle, 0);
+            if let Some(t) = &self.timer {
+                t.begin(d, cmd);
             }
             image_barrier(d, cmd, self.target.handle, range, discarded, WRITTEN);
             d.cmd_begin_rendering(cmd, &info);
@@ -271,9 +258,8 @@ impl AtlasPasses {
             d.cmd_copy_image_to_buffer(cmd, self.target.handle, src, self.readback.handle, &regions);
             let written = (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_WRITE);
             host_read_barrier(d, cmd, self.readback.handle, written);
-            if let Some((q, buffer)) = &self.queries {
-                d.cmd_write_timestamp2(cmd, vk::PipelineStageFlags2::BOTTOM_OF_PIPE, q.handle, 1);
-                q.record_copy(cmd, 0, 2, buffer.handle, 0);
+            if let Some(t) = &self.timer {
+                t.end(d, cmd);
             }
         }
     }
@@ -297,14 +283,7 @@ impl AtlasPasses {
                 (key, at.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect())
             })
             .collect();
-        let gpu_ms = match &self.queries {
-            Some((q, buffer)) => {
-                let t = buffer.mapped()?;
-                let tick = |i: usize| u64::from_le_bytes(t[i * 8..i * 8 + 8].try_into().expect("8 bytes"));
-                Some(q.ms([tick(0), tick(1)]))
-            }
-            None => None,
-        };
+        let gpu_ms = self.timer.as_ref().map(|t| t.read().map(|r| r.1)).transpose()?;
         // 32 x 32 groups a block shaded.
         let blocks: u32 = tiles
             .iter()
