@@ -337,9 +337,12 @@ fn render_draws_an_archive_streamed_within_the_bound() {
     assert!(e["generations"] == 2 && e["update_ms"].as_f64().unwrap() > 0.0, "{e}");
     // Only the cells shaded are read back: 8 x 8 blocks of 4 bytes a tile.
     assert_eq!(e["readback_bytes"].as_u64(), e["tiles_shaded"].as_u64().map(|t| t * 256), "{e}");
-    let o = cli(&["errors", a, "--stream", "--dump", p]);
-    assert_eq!(o.status.code(), Some(2), "{}", String::from_utf8_lossy(&o.stderr));
-    assert!(String::from_utf8_lossy(&o.stderr).contains("--dump"));
+    // `--dump` in the in-memory layout: a value for every block of a tile shaded.
+    let dump = dir.path().join("e.f32");
+    let o = cli(&["errors", a, "--stream", "--dump", dump.to_str().unwrap(), "--validation", "on"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let floats = std::fs::read(&dump).unwrap().len() / 4;
+    assert_eq!(floats, (1..=5).map(|j| 1 << (2 * (5 - j))).sum::<usize>(), "LODs 1 to 5 of a 1025^2 archive");
     // Shadows from a lighting map of the terrain's own size, made from the finest tiles.
     let lighting = &r["gpu"]["lighting"];
     assert_eq!(
@@ -1506,7 +1509,8 @@ fn paper_errors_over_the_atlas_are_the_in_memory_ones() {
         let cam = view.absolute();
         let want = block_errors(&group_errors(&hf, &mm, &ErrorParams::new(&cam, ErrorMode::Paper)), layout.m);
         assert_eq!(errors.paper.len(), (0..5).map(|j| 1 << (2 * j)).sum::<usize>(), "pose {i}: every block");
-        for (&(lod, bx, bz), &got) in &errors.paper {
+        for (&(lod, bx, bz), &(got, whole)) in &errors.paper {
+            assert!(whole, "pose {i}: every tile held, block {lod} ({bx}, {bz}) not whole");
             let w = f64::from(want.get(lod, bx as usize, bz as usize));
             let rel = (f64::from(got) - w).abs() / w.max(1e-6);
             assert!(rel < 1e-3, "pose {i}: block {lod} ({bx}, {bz}): {got} against {w}");
@@ -1534,4 +1538,33 @@ fn paper_errors_over_the_atlas_are_the_in_memory_ones() {
     assert_eq!(atlas.failure(), None);
     drop((s, atlas));
     common::finish(device);
+}
+
+/// `errors --dump` over tiles writes the in-memory dump's layout: in the paper's mode the
+/// same values as the file's own dump in memory (Puget Sound 1k, one camera), for every
+/// block the view's generation shaded with every level under it (the others hold NaN).
+#[test]
+fn an_errors_dump_over_tiles_is_the_files_in_the_paper_mode() {
+    let dir = TempDir::new("gpu-stream-dump");
+    let ps = common::data("puget_sound/ps_height_1k.png");
+    let dump = |tiles: bool| {
+        let path = dir.path().join(if tiles { "tiles.f32" } else { "memory.f32" });
+        let mut args = vec!["errors", ps.to_str().unwrap(), "--error-mode", "paper", "--validation", "on"];
+        args.extend(["--camera", "60000,4000,150000", "--look-at", "80000,0,60000", "--dump", path.to_str().unwrap()]);
+        if tiles {
+            args.push("--stream");
+        }
+        let o = cli(&args);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let bytes = std::fs::read(&path).unwrap();
+        bytes.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect::<Vec<f32>>()
+    };
+    let (memory, tiles) = (dump(false), dump(true));
+    assert_eq!(memory.len(), tiles.len());
+    let shaded: Vec<(f32, f32)> =
+        tiles.iter().zip(&memory).filter(|(t, _)| !t.is_nan()).map(|(&t, &m)| (t, m)).collect();
+    assert!(shaded.len() * 4 > tiles.len(), "{} of {} blocks shaded", shaded.len(), tiles.len());
+    for (i, &(t, m)) in shaded.iter().enumerate() {
+        assert!((t - m).abs() <= 1e-5 * m.abs().max(1e-6), "block {i}: {t} over tiles, {m} in memory");
+    }
 }

@@ -100,10 +100,7 @@ pub struct ErrorsArgs {
 /// times, each for a camera moved a hundredth of a sample further (so that each is a new
 /// generation), and their cost as JSON.
 fn errors_over_tiles(args: &ErrorsArgs, device: Arc<Device>, archive: Arc<Archive>) -> anyhow::Result<()> {
-    let refused = [
-        ("--block (tiles fix k = 33)", args.block.k != 33),
-        ("--dump (the block-error pyramid of a terrain in one image)", args.dump.is_some()),
-    ];
+    let refused = [("--block (tiles fix k = 33)", args.block.k != 33)];
     crate::app::cli::refuse_on_tiles(&args.terrain.name(), &refused)?;
     let (cache_mb, gpu_mb) = (args.streamed.cache_mb(), args.streamed.gpu_mb());
     eprintln!("{}", crate::app::stream::streamed_banner(&args.terrain.name(), &archive.meta, cache_mb, gpu_mb));
@@ -114,6 +111,7 @@ fn errors_over_tiles(args: &ErrorsArgs, device: Arc<Device>, archive: Arc<Archiv
         &args.view,
         (args.repeat, args.error_mode.mode),
         (cache_mb, gpu_mb),
+        args.dump.as_deref(),
     )?;
     let mut out = r;
     out["validation"] = json!(device.instance.validation);

@@ -739,6 +739,7 @@ pub(crate) fn errors_over_atlas(
     camera: &crate::app::cli::CameraArgs,
     (repeat, mode): (u64, crate::lod::gie::ErrorMode),
     (cache_mb, gpu_mb): (u32, u32),
+    dump: Option<&std::path::Path>,
 ) -> anyhow::Result<serde_json::Value> {
     let grid = streamed_grid(archive, frame);
     let layers = device.properties.limits.max_image_array_layers;
@@ -760,6 +761,8 @@ pub(crate) fn errors_over_atlas(
     let (_, first) = settle(&mut streamer, |_| view(0), 1.0);
     // Whatever the last settling frame asked for is shaded before the repeats start.
     streamer.settle();
+    // The generation at the given camera, as in memory's dump (its first repeat's).
+    let at_start = crate::stream::streamer::TileGate::errors(&atlas.feed());
     // From here: the repeats' own generations, one each (none if no tile the view
     // reaches has a level above 0).
     let before = atlas.shaded();
@@ -777,6 +780,17 @@ pub(crate) fn errors_over_atlas(
         return Err(anyhow::anyhow!("the errors activity stopped: {e}"));
     }
     times.sort_by(f64::total_cmp);
+    if let Some(path) = dump {
+        // In the in-memory dump's layout.
+        let l = crate::stream::draw::layout(&grid);
+        let per_side = grid.tile_quads / crate::stream::cache::BLOCK_QUADS;
+        let errors = at_start.unwrap_or_default();
+        let bytes: Vec<u8> =
+            errors.packed(l.root_lod(), l.roots, per_side).iter().flat_map(|v| v.to_le_bytes()).collect();
+        crate::app::outputs::write_atomic(path, |tmp| {
+            std::fs::write(tmp, &bytes).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))
+        })?;
+    }
     let shaded = atlas.shaded();
     let generations = shaded.generations - before.generations;
     // The last generation's figures, if a repeat shaded one.

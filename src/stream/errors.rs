@@ -33,8 +33,9 @@ pub struct TileErrors {
     /// The mode they were computed in.
     pub mode: ErrorMode,
     /// The paper's mode: each block's error with the max over the finer levels shaded
-    /// (eq. 4, [`nested_paper_errors`]), by (LOD, x, z).
-    pub paper: HashMap<(u32, u32, u32), f32>,
+    /// (eq. 4, [`nested_paper_errors`]), by (LOD, x, z), and whether every level under
+    /// it was shaded (then it is eq. 4's whole value).
+    pub paper: HashMap<(u32, u32, u32), (f32, bool)>,
 }
 
 /// Where along x in a tile's cell (`n` texels a side) the paper's blocks `k` LODs
@@ -74,29 +75,71 @@ pub fn paper_own_errors(key: TileKey, cell: &[f32], n: usize, top: u8) -> Vec<((
 
 /// The paper's block errors with eq. 4's max over finer levels, from each block's `own`
 /// error shaded: a block's error is the largest of its own and its descendants' (through
-/// levels not shaded too). A block whose own error was not shaded has none, whatever its
-/// descendants' (its dropped vertices are unknown).
-pub fn nested_paper_errors(own: &HashMap<(u32, u32, u32), f32>) -> HashMap<(u32, u32, u32), f32> {
+/// levels not shaded too), and whether every block under it was shaded. A block whose
+/// own error was not shaded has none, whatever its descendants' (its dropped vertices
+/// are unknown).
+pub fn nested_paper_errors(own: &HashMap<(u32, u32, u32), f32>) -> HashMap<(u32, u32, u32), (f32, bool)> {
     let Some(top) = own.keys().map(|k| k.0).max() else { return HashMap::default() };
     // Level by level upward: the largest known under each block, whether or not its own
-    // error is known.
-    let mut under: HashMap<(u32, u32, u32), f32> = HashMap::default();
+    // error is known, and how many of its children are whole (shaded, with everything
+    // under them).
+    let mut under: HashMap<(u32, u32, u32), (f32, bool)> = HashMap::default();
     for lod in 1..=top {
-        let mut level: HashMap<(u32, u32, u32), f32> = HashMap::default();
+        let mut level: HashMap<(u32, u32, u32), (f32, u8)> = HashMap::default();
         for (&k, &e) in own.iter().filter(|(k, _)| k.0 == lod) {
-            level.insert(k, e);
+            level.insert(k, (e, 0));
         }
-        for (&(l, bx, bz), &e) in under.iter().filter(|(k, _)| k.0 == lod - 1) {
-            let parent = level.entry((l + 1, bx / 2, bz / 2)).or_insert(e);
-            *parent = parent.max(e);
+        for (&(l, bx, bz), &(e, whole)) in under.iter().filter(|(k, _)| k.0 == lod - 1) {
+            let parent = level.entry((l + 1, bx / 2, bz / 2)).or_insert((e, 0));
+            *parent = (parent.0.max(e), parent.1 + u8::from(whole));
         }
-        under.extend(level);
+        for (k, (e, whole_children)) in level {
+            // LOD 1 blocks have nothing under them.
+            let whole = own.contains_key(&k) && (lod == 1 || whole_children == 4);
+            under.insert(k, (e, whole));
+        }
     }
     under.retain(|k, _| own.contains_key(k));
     under
 }
 
 impl TileErrors {
+    /// The generation's block errors in the in-memory dump's layout (`errors --dump`:
+    /// block LODs 1 to `root_lod` in turn, each row-major over `roots << (root_lod - j)`
+    /// blocks a side), `NaN` where it has none (a tile not shaded; in strict mode the
+    /// top tile's blocks coarser than its level, which the tile's summary bounds; in the
+    /// paper's mode a block with a level under it not shaded).
+    /// `per_side`: blocks of a tile's own level along its side.
+    pub fn packed(&self, root_lod: u32, roots: [usize; 2], per_side: usize) -> Vec<f32> {
+        let side = |j: u32| [roots[0] << (root_lod - j), roots[1] << (root_lod - j)];
+        let start = |j: u32| (1..j).map(|l| side(l)[0] * side(l)[1]).sum::<usize>();
+        let mut out = vec![f32::NAN; start(root_lod + 1)];
+        let mut put = |(lod, bx, bz): (u32, usize, usize), e: f32| {
+            let [w, h] = side(lod);
+            if (1..=root_lod).contains(&lod) && bx < w && bz < h {
+                out[start(lod) + bz * w + bx] = e;
+            }
+        };
+        match self.mode {
+            ErrorMode::Strict => {
+                for (key, values) in &self.tiles {
+                    for (i, &e) in values.iter().enumerate() {
+                        let (bx, bz) =
+                            (key.tx as usize * per_side + i % per_side, key.tz as usize * per_side + i / per_side);
+                        put((u32::from(key.level), bx, bz), e);
+                    }
+                }
+            }
+            // Eq. 4's whole value only: a block with levels under it not shaded holds NaN.
+            ErrorMode::Paper => {
+                for (&(lod, bx, bz), &(e, whole)) in &self.paper {
+                    put((lod, bx as usize, bz as usize), if whole { e } else { f32::NAN });
+                }
+            }
+        }
+        out
+    }
+
     /// The error of block `index` (row-major within its tile) of `tile`'s own level, if
     /// this generation shaded that tile.
     pub fn block(&self, tile: TileKey, index: usize) -> Option<f32> {
@@ -146,15 +189,16 @@ mod tests {
         assert_eq!((own[&(1, 1, 0)], own[&(1, 0, 1)], own[&(4, 0, 0)]), (5.0, 2.0, 0.125));
         let n = nested_paper_errors(&own);
         // LOD 2 block (0, 0) holds LOD 1 blocks (0..2, 0..2): its own 3, their largest 5.
-        assert_eq!(n[&(2, 0, 0)], 5.0);
-        assert_eq!(n[&(2, 1, 0)], 0.0, "no shaded children: its own");
-        assert_eq!((n[&(3, 0, 0)], n[&(4, 0, 0)]), (5.0, 5.0), "through every level");
+        assert_eq!(n[&(2, 0, 0)], (5.0, true));
+        assert_eq!(n[&(2, 1, 0)], (0.0, false), "no shaded children: its own");
+        assert_eq!((n[&(3, 0, 0)], n[&(4, 0, 0)]), ((5.0, false), (5.0, false)), "through every level");
+        assert_eq!(n[&(1, 1, 1)], (0.5, true));
         // Without the level-1 tile, LOD 2 blocks have no error, and LOD 3 still sees the
         // LOD 1 blocks under it.
         own.retain(|k, _| k.0 != 2);
         let n = nested_paper_errors(&own);
         assert!(!n.contains_key(&(2, 0, 0)));
-        assert_eq!(n[&(3, 0, 0)], 5.0);
+        assert_eq!(n[&(3, 0, 0)], (5.0, false));
         assert_eq!(n.len(), 4 + 4 + 1);
         assert_eq!((paper_offset(8, 1), paper_offset(8, 2), paper_offset(8, 3)), (0, 4, 6));
     }

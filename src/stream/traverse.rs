@@ -510,7 +510,7 @@ impl<'a> Traverser<'a> {
         if errors.height_scale != self.grid.height_scale {
             return None;
         }
-        let raw = errors.paper.get(&(lod, bx, bz)).copied().filter(|e| e.is_finite())?;
+        let raw = errors.paper.get(&(lod, bx, bz)).map(|e| e.0).filter(|e| e.is_finite())?;
         let stale = stale_factor(old, moved, bbox)?;
         self.out.errors_stale_worst = self.out.errors_stale_worst.max(stale);
         Some(raw * stale * self.cam.kappa() / errors.kappa)
