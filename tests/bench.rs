@@ -125,6 +125,7 @@ fn short_bench_writes_every_file_with_documented_fields() {
         assert!(!s[key].is_null() || optional, "summary.json lacks {key}: {s}");
     }
     assert_eq!(s["generations_strictly_increasing"], true);
+    assert_eq!(s["error_mode"], "strict");
     // One shared queue: the errors thread paces its submissions, one generation at a time.
     assert_eq!((s["queue_mode"].as_str(), s["most_generations_in_flight"].as_u64()), (Some("shared"), Some(1)));
     assert_eq!((s["pixels"].as_str(), s["shading"].as_str()), (Some("deferred"), Some("gradient-map")));

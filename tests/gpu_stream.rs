@@ -439,6 +439,16 @@ fn render_draws_an_archive_streamed_within_the_bound() {
     assert!(paper["blocks_bounded_by_errors"].as_u64().unwrap() > 10, "{paper}");
     let fewer = paper["blocks"].as_u64().unwrap() < strict["blocks"].as_u64().unwrap();
     assert!(fewer, "{paper} against {strict}");
+    // High above, only blocks coarser than the top tile's level are drawn: their paper
+    // errors come from the top tile's generation too (a review found the frame settled
+    // on the summaries' bound before any generation).
+    let mut args = vec!["render", a, "--stream", "--validation", "on", "--size", "320x240", "--error-mode", "paper"];
+    args.extend(["--camera", "15000,150000,15000", "--look-at", "15000,0,15001", "--out", p]);
+    let o = cli(&args);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let high: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert!(high["errors_generation"].as_u64().unwrap() > 0, "{high}");
+    assert_eq!(high["blocks_bounded_by_errors"], high["blocks"], "{high}");
     // Over tiles the errors activity runs one generation at a time.
     let o = render(&["--error-pacing", "free"]);
     let err = String::from_utf8_lossy(&o.stderr);
@@ -789,6 +799,7 @@ fn bench_runs_a_path_over_an_archive_drawn_streamed() {
         );
     }
     assert_eq!((summary["lod"].as_str(), summary["traversal_threads"].as_u64()), (Some("error"), Some(1)));
+    assert_eq!(summary["error_mode"], "strict", "{summary}");
     // The baselines stream too: full resolution draws more triangles than the bound's
     // blocks, the distance rings another selection; neither morphs.
     let triangles = |extra: &[&str]| {
@@ -1502,7 +1513,10 @@ fn paper_errors_over_the_atlas_are_the_in_memory_ones() {
     s.lod = StreamedLod::Error;
     s.error_mode = ErrorMode::Paper;
     let (mut compared, mut worst, mut blocks) = (0usize, 0.0f64, Vec::new());
-    for (i, view) in views().iter().enumerate() {
+    // And high above, where only blocks coarser than the top tile's level are drawn
+    // (a review found them settled on the summaries' bound, no generation asked for).
+    let high = View::look_at(centre + DVec3::new(0.0, 9000.0, 1.0), centre, 60.0, 320, 240, 1.0);
+    for (i, view) in views().iter().chain([&high]).enumerate() {
         let sel = settled_with_errors(&mut s, view);
         let errors = atlas.feed().errors().expect("a generation");
         assert_eq!((errors.mode, errors.position), (ErrorMode::Paper, view.position), "pose {i}");

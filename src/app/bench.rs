@@ -1123,6 +1123,7 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     drop(s);
     summary["validation_messages"] = json!(messages.count());
     summary["morph"] = json!(args.common.lod.morph.on());
+    summary["error_mode"] = json!(args.common.error_mode.mode.as_str());
     // What was asked for: colour-by-LOD, wireframe, a device without clip distances and
     // cameras beyond `DEFERRED_MAX_SPACINGS` are shaded forward whatever this says.
     summary["pixels"] = json!(value_name(args.pixels));
@@ -1341,6 +1342,7 @@ fn bench_streamed(
         "pixels": value_name(args.pixels),
         "deferred_frames": deferred_frames,
         "morph": args.common.lod.morph.on(),
+        "error_mode": args.common.error_mode.mode.as_str(),
         "mean_morphing_blocks": morphing as f64 / drawn.max(1) as f64,
         // Of the blocks drawn a frame, those whose error came from the errors activity.
         "mean_blocks_bounded_by_errors": run.bounded_by_errors as f64 / drawn.max(1) as f64,

@@ -413,11 +413,11 @@ impl<'a> Traverser<'a> {
                 ErrorMode::Strict => {
                     (self.gpu_error_px(key, (lod, bx, bz), (min, max)), lod > 0 && lod == u32::from(key.level))
                 }
+                // Its dropped vertices are the finer tile's (the top tile's, for blocks
+                // coarser than the top level).
                 ErrorMode::Paper => (
                     self.paper_error_px((lod, bx, bz), (min, max)),
-                    lod > 0
-                        && lod <= u32::from(grid.top) + 1
-                        && cache.contains(serving_tile(grid, lod - 1, 2 * bx, 2 * bz)),
+                    lod > 0 && cache.contains(serving_tile(grid, lod - 1, 2 * bx, 2 * bz)),
                 ),
             };
             let from_errors = match gpu {
