@@ -1582,3 +1582,20 @@ fn an_errors_dump_over_tiles_is_the_files_in_the_paper_mode() {
         assert!((t - m).abs() <= 1e-5 * m.abs().max(1e-6), "block {i}: {t} over tiles, {m} in memory");
     }
 }
+
+/// A budget for tiles (`--cache-mb`, `--gpu-mb`) draws a file that fits one image from
+/// its tiles, as `--stream` does: given, it is honoured, not noted and ignored.
+#[test]
+fn a_budget_for_tiles_draws_a_file_from_them() {
+    let dir = TempDir::new("gpu-stream-budget");
+    let ps = common::data("puget_sound/ps_height_1k.png");
+    let png = dir.path().join("r.png");
+    for (budget, streamed) in [(None, false), (Some("--cache-mb"), true), (Some("--gpu-mb"), true)] {
+        let mut args = vec!["render", ps.to_str().unwrap(), "--size", "96x64", "--out", png.to_str().unwrap()];
+        args.extend(budget.iter().flat_map(|b| [*b, "64"]));
+        let o = cli(&args);
+        assert!(o.status.success(), "{budget:?}: {}", String::from_utf8_lossy(&o.stderr));
+        let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+        assert_eq!(r["streamed"].as_bool().unwrap_or(false), streamed, "{budget:?}: {r}");
+    }
+}

@@ -944,11 +944,10 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     let max_side = || device.max_image_dimension_2d() as usize;
     // The bench polls its own stop handlers (`signals`), not a preparation's.
     if let Some((archive, _)) =
-        crate::app::stream::streamed_archive(&args.common.terrain, args.streamed.stream, max_side)?
+        crate::app::stream::streamed_archive(&args.common.terrain, args.streamed.from_tiles(), max_side)?
     {
         return bench_streamed(args, device, archive, poses, frames, fault, &signals);
     }
-    args.streamed.note_unused();
     let s = Session::with_device(device, &args.common.terrain, args.common.block, Some(&args.textures))?;
     crate::app::outputs::output_dir("--out", &args.out)?;
     let size = args.common.view.frustum.size.unwrap_or((640, 480));

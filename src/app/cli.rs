@@ -497,11 +497,12 @@ pub struct StreamedOptions {
     /// into tiles in memory first. Terrains larger than one image are always drawn so.
     #[arg(long)]
     pub stream: bool,
-    /// Terrains drawn from tiles: host cache budget for decoded tiles, MB [default: 256].
+    /// Host cache budget for decoded tiles, MB [default: 256]; given, the terrain is drawn
+    /// from its tiles (as with --stream).
     #[arg(long = "cache-mb", value_name = "MB", value_parser = clap::value_parser!(u32).range(1..=1_000_000), allow_negative_numbers = true)]
     pub cache_mb_given: Option<u32>,
-    /// Terrains drawn from tiles: GPU atlas budget, MB (one layer a tile, at most 2048
-    /// layers) [default: 256].
+    /// GPU atlas budget, MB (one layer a tile, at most 2048 layers) [default: 256]; given,
+    /// the terrain is drawn from its tiles (as with --stream).
     #[arg(long = "gpu-mb", value_name = "MB", value_parser = clap::value_parser!(u32).range(1..=1_000_000), allow_negative_numbers = true)]
     pub gpu_mb_given: Option<u32>,
 }
@@ -513,11 +514,10 @@ impl StreamedOptions {
     pub fn gpu_mb(&self) -> u32 {
         self.gpu_mb_given.unwrap_or(256)
     }
-    /// When the terrain is drawn in memory: budgets given for nothing are said to be.
-    pub fn note_unused(&self) {
-        if self.cache_mb_given.is_some() || self.gpu_mb_given.is_some() {
-            eprintln!("vkterrain: note: --cache-mb and --gpu-mb are for archives drawn streamed; this terrain is drawn in memory");
-        }
+    /// Whether the terrain is to be drawn from its tiles whatever its size: `--stream`,
+    /// or a budget for them given (it would mean nothing otherwise).
+    pub fn from_tiles(&self) -> bool {
+        self.stream || self.cache_mb_given.is_some() || self.gpu_mb_given.is_some()
     }
 }
 

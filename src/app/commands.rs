@@ -273,11 +273,10 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
     let device = open_device(&args.common.device, args.common.block)?;
     let max_side = || device.max_image_dimension_2d() as usize;
     if let Some((archive, stop)) =
-        crate::app::stream::streamed_archive(&args.common.terrain, args.streamed.stream, max_side)?
+        crate::app::stream::streamed_archive(&args.common.terrain, args.streamed.from_tiles(), max_side)?
     {
         return render_streamed(args, device, archive, stop.as_ref());
     }
-    args.streamed.note_unused();
     let s = Session::with_device(device, &args.common.terrain, args.common.block, Some(&args.textures))?;
     let cam = args.common.view.camera(&s.hf, (1280, 720))?;
     s.check_viewport((cam.width, cam.height))?;
@@ -511,10 +510,11 @@ pub fn errors(args: &ErrorsArgs) -> anyhow::Result<()> {
     check_outputs(&[("--dump", args.dump.as_deref())], &[("--heightmap", args.terrain.heightmap.as_deref())])?;
     let device = open_device(&args.device, args.block)?;
     let max_side = || device.max_image_dimension_2d() as usize;
-    if let Some((archive, _)) = crate::app::stream::streamed_archive(&args.terrain, args.streamed.stream, max_side)? {
+    if let Some((archive, _)) =
+        crate::app::stream::streamed_archive(&args.terrain, args.streamed.from_tiles(), max_side)?
+    {
         return errors_over_tiles(args, device, archive);
     }
-    args.streamed.note_unused();
     let s = Session::with_device(device, &args.terrain, args.block, None)?;
     let cam = args.view.camera(&s.hf, (1280, 720))?;
     let activity = ErrorsActivity::start(&s.device, s.terrain.clone(), s.hf.clone(), s.layout)?;

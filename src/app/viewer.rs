@@ -295,11 +295,11 @@ fn view_archive(args: &ViewArgs, resizes: &[(u64, u32, u32)]) -> anyhow::Result<
     };
     // Without a device the in-memory path says why, as before. The viewer installs its
     // own stop handlers (a preparation's are not needed).
-    let Some((archive, _)) = crate::app::stream::streamed_archive(&args.common.terrain, args.streamed.stream, || {
-        max_side().unwrap_or(usize::MAX)
-    })?
+    let Some((archive, _)) =
+        crate::app::stream::streamed_archive(&args.common.terrain, args.streamed.from_tiles(), || {
+            max_side().unwrap_or(usize::MAX)
+        })?
     else {
-        args.streamed.note_unused();
         return Ok(false);
     };
     args.common.refuse_untiled(&[])?;
