@@ -1207,7 +1207,7 @@ fn bench_streamed(
     fault: Option<Fault>,
     signals: &super::signals::Stop,
 ) -> anyhow::Result<()> {
-    use crate::app::stream::{atlas_bound_streamer, streamed_grid, top_tiles, GpuFrames};
+    use crate::app::stream::{atlas_bound_streamer, streamed_grid, top_tiles};
     use crate::stream::traverse::View;
     args.common.refuse_untiled(&[("--raycast", args.raycast != crate::draw::raycast::Raycast::Off)])?;
     let size = args.common.view.frustum.size.unwrap_or((640, 480));
@@ -1257,19 +1257,7 @@ fn bench_streamed(
         View::look_at(p.as_dvec3(), l.as_dvec3(), fovy, size.0, size.1, near)
     };
     let messages = device.instance.messages.clone();
-    let mut gpu = GpuFrames::new(device.clone(), &mut streamer, gpu_mb, range, size, &trace)?;
-    gpu.set_update_share(args.common.update_share);
-    gpu.set_normals(args.shading);
-    gpu.set_pixels(args.pixels);
-    let m = &archive.meta;
-    gpu.set_textures(&args.textures.load_over(&m.georef, (m.width, m.height))?, &args.textures)?;
-    gpu.sun(args.common.sun.0)?;
-    gpu.occlusion = args.common.occlusion != Some(crate::app::cli::OnOff::Off);
-    // As the in-memory bench: frames are drawn, not read back.
-    gpu.read_back = false;
-    if let Some(Fault::ErrorsDeviceLost(n)) = fault {
-        gpu.inject_device_lost_at(n);
-    }
+    let mut gpu = bench_frames(args, &device, &mut streamer, (gpu_mb, range, size), &archive.meta, (&trace, fault))?;
     let started_all = Instant::now();
     let path = StreamedPath {
         frames,
@@ -1281,12 +1269,9 @@ fn bench_streamed(
         signals,
         fault,
     };
-    let fly = |streamer: &mut crate::stream::streamer::Streamer, gpu: &mut GpuFrames, how, name: &str| {
-        path.fly(streamer, gpu, how, name)
-    };
     let keep = args.compare || args.popping;
     let (mut run, selections, warm_up) =
-        fly(&mut streamer, &mut gpu, (args.lod, None, keep, args.popping), "streamed")?;
+        path.fly(&mut streamer, &mut gpu, (args.lod, None, keep, args.popping), "streamed")?;
     // The main run's drawing (the comparison runs draw on the same renderer).
     let (gpu_report, deferred_frames) = (gpu.report(), gpu.deferred_frames);
     let seconds = run.wall_ms.unwrap_or(0.0) / 1e3;
@@ -1294,36 +1279,7 @@ fn bench_streamed(
     let (_, mean) = sorted_with_mean(run.rows.iter().map(|r| r.frame_ms));
     let morphing: u64 = run.rows.iter().map(|r| r.morphing as u64).sum();
     let stats = streamer.stats.clone();
-    // Comparisons only from runs that went the whole path, as in memory.
-    let full = match keep && !run.interrupted {
-        true => Some(fly(&mut streamer, &mut gpu, (LodChoice::Full, None, false, args.popping), "full")?.0),
-        false => None,
-    }
-    .filter(|r| !r.interrupted);
-    let popped = match (args.popping, &full) {
-        (true, Some(full)) => {
-            let mut p = popping(&mut run.rows, &full.rows);
-            p["morph"] = json!(args.common.lod.morph.on());
-            Some(p)
-        }
-        _ => None,
-    };
-    let compare = match (args.compare, full) {
-        (true, Some(full)) => {
-            let (distance, _, _) = fly(&mut streamer, &mut gpu, (LodChoice::Distance, None, false, false), "distance")?;
-            let replay = (LodChoice::Error, Some(&selections[..]), false, false);
-            let (ceiling, _, _) = fly(&mut streamer, &mut gpu, replay, "ceiling")?;
-            let (again, _, _) = fly(&mut streamer, &mut gpu, replay, "ceiling again")?;
-            write_csv(&args.out.join("ceiling.csv"), &ceiling.rows)?;
-            let whole = [&full, &distance, &ceiling, &again].iter().all(|r| !r.interrupted);
-            whole.then(|| compare_summary(&run, &full, &distance, &ceiling, &again))
-        }
-        _ => None,
-    };
-    let fidelity = match !args.no_fidelity && !signals.requested() {
-        true => Some(path.fidelity(&mut streamer, &mut gpu)?),
-        false => None,
-    };
+    let (compare, popped, fidelity) = path.after_the_run(args, (&mut streamer, &mut gpu), &mut run, &selections)?;
     // A failure after the last frame drawn fails the run too.
     if let Some(failure) = gpu.failure() {
         anyhow::bail!(failure);
@@ -1408,6 +1364,31 @@ fn bench_streamed(
     Ok(())
 }
 
+/// The GPU side of a bench over tiles (the archive's `m`): an atlas of `gpu_mb` MB
+/// attached to `streamer` and frames of `size`, set as `args` asks (shading, textures,
+/// sun, occlusion), drawn and not read back (as in memory), with `fault` injected.
+fn bench_frames(
+    args: &BenchArgs,
+    device: &Arc<crate::vk::Device>,
+    streamer: &mut crate::stream::streamer::Streamer,
+    (gpu_mb, range, size): (u32, crate::draw::streamed::HeightRange, (u32, u32)),
+    m: &crate::input::archive::Meta,
+    (trace, fault): (&Trace, Option<Fault>),
+) -> anyhow::Result<crate::app::stream::GpuFrames> {
+    let mut gpu = crate::app::stream::GpuFrames::new(device.clone(), streamer, gpu_mb, range, size, trace)?;
+    gpu.set_update_share(args.common.update_share);
+    gpu.set_normals(args.shading);
+    gpu.set_pixels(args.pixels);
+    gpu.set_textures(&args.textures.load_over(&m.georef, (m.width, m.height))?, &args.textures)?;
+    gpu.sun(args.common.sun.0)?;
+    gpu.occlusion = args.common.occlusion != Some(crate::app::cli::OnOff::Off);
+    gpu.read_back = false;
+    if let Some(Fault::ErrorsDeviceLost(n)) = fault {
+        gpu.inject_device_lost_at(n);
+    }
+    Ok(gpu)
+}
+
 /// A bench's path over a terrain drawn from tiles: what each of its runs flies.
 struct StreamedPath<'a> {
     frames: u64,
@@ -1426,6 +1407,51 @@ struct StreamedPath<'a> {
 type FlyHow<'a> = (LodChoice, Option<&'a [crate::stream::traverse::Selection]>, bool, bool);
 
 impl StreamedPath<'_> {
+    /// What `args` asks for after the main `run` (its `selections` kept): the `--lod full`
+    /// run that `--compare` and `--popping` compare with, the popping figures, the
+    /// comparison runs (the rings, the ceiling twice: `ceiling.csv`) and the fidelity.
+    /// Comparisons only from runs that went the whole path, as in memory.
+    fn after_the_run(
+        &self,
+        args: &BenchArgs,
+        (streamer, gpu): (&mut crate::stream::streamer::Streamer, &mut crate::app::stream::GpuFrames),
+        run: &mut Run,
+        selections: &[crate::stream::traverse::Selection],
+    ) -> anyhow::Result<(Option<Value>, Option<Value>, Option<Value>)> {
+        let keep = args.compare || args.popping;
+        let full = match keep && !run.interrupted {
+            true => Some(self.fly(streamer, gpu, (LodChoice::Full, None, false, args.popping), "full")?.0),
+            false => None,
+        }
+        .filter(|r| !r.interrupted);
+        let popped = match (args.popping, &full) {
+            (true, Some(full)) => {
+                let mut p = popping(&mut run.rows, &full.rows);
+                p["morph"] = json!(args.common.lod.morph.on());
+                Some(p)
+            }
+            _ => None,
+        };
+        let compare = match (args.compare, full) {
+            (true, Some(full)) => {
+                let (distance, _, _) =
+                    self.fly(streamer, gpu, (LodChoice::Distance, None, false, false), "distance")?;
+                let replay = (LodChoice::Error, Some(selections), false, false);
+                let (ceiling, _, _) = self.fly(streamer, gpu, replay, "ceiling")?;
+                let (again, _, _) = self.fly(streamer, gpu, replay, "ceiling again")?;
+                write_csv(&args.out.join("ceiling.csv"), &ceiling.rows)?;
+                let whole = [&full, &distance, &ceiling, &again].iter().all(|r| !r.interrupted);
+                whole.then(|| compare_summary(run, &full, &distance, &ceiling, &again))
+            }
+            _ => None,
+        };
+        let fidelity = match !args.no_fidelity && !self.signals.requested() {
+            true => Some(self.fidelity(streamer, gpu)?),
+            false => None,
+        };
+        Ok((compare, popped, fidelity))
+    }
+
     /// As in memory ([`fidelity`]): RMSE against the full-resolution image at three fixed
     /// views along the path, for delta = 0.5, 1, 2, 5, each frame settled (its tiles read,
     /// its errors from the errors activity).
