@@ -439,19 +439,10 @@ fn faults_over_tiles_fail_as_in_memory() {
     faulted_on(&tiled_field_args, "draw-out-of-memory:3", &["draw thread, frame 3", "ERROR_OUT_OF_DEVICE_MEMORY"]);
     let tmp = TempDir::new("tilestop");
     let run = |fault: &str, extra: &[&str]| {
-        let out = tmp.path().join("out");
-        let _ = std::fs::remove_dir_all(&out);
-        let o = Command::new(env!("CARGO_BIN_EXE_vkterrain"))
-            .arg("bench")
-            .args(tiled_field_args(tmp.path()))
-            .args(["--size", "160x120", "--frames", "12", "--validation", "on", "--inject-fault", fault])
-            .args(extra)
-            .arg("--out")
-            .arg(&out)
-            .env("RUST_LOG", "error")
-            .output()
-            .unwrap();
-        (o.status.code(), String::from_utf8_lossy(&o.stderr).to_string(), out)
+        let mut args = tiled_field_args(tmp.path());
+        args.extend(["--size", "160x120", "--frames", "12", "--validation", "on"].map(String::from));
+        args.extend(extra.iter().map(|e| e.to_string()));
+        bench_with_fault(tmp.path(), &args, fault)
     };
     let (code, stderr, out) = run("interrupt-full:3", &["--compare"]);
     stopped_in_the_full_run(code, &stderr, &out);
@@ -470,6 +461,22 @@ fn out_of_memory_in_the_draw_thread_fails_cleanly() {
     faulted("draw-out-of-memory:3", &["draw thread, frame 3", "ERROR_OUT_OF_DEVICE_MEMORY"]);
 }
 
+/// `bench ARGS --inject-fault FAULT --out DIR/out` (the output directory made afresh):
+/// its exit code, its stderr and the output directory.
+fn bench_with_fault(dir: &Path, args: &[String], fault: &str) -> (Option<i32>, String, PathBuf) {
+    let out = dir.join("out");
+    let _ = std::fs::remove_dir_all(&out);
+    let o = Command::new(env!("CARGO_BIN_EXE_vkterrain"))
+        .arg("bench")
+        .args(args)
+        .args(["--inject-fault", fault, "--out"])
+        .arg(&out)
+        .env("RUST_LOG", "error")
+        .output()
+        .unwrap();
+    (o.status.code(), String::from_utf8_lossy(&o.stderr).to_string(), out)
+}
+
 /// A fault that could never fire is refused before anything runs (exit 2, nothing
 /// written), and one that the run never reached fails it: a test that injects a fault
 /// must see it happen.
@@ -478,19 +485,15 @@ fn faults_that_never_fire_are_errors() {
     let tmp = TempDir::new("unfired");
     let field = small_field(tmp.path());
     let run = |fault: &str, extra: &[&str]| {
-        let out = tmp.path().join("out");
-        let _ = std::fs::remove_dir_all(&out);
-        let o = Command::new(env!("CARGO_BIN_EXE_vkterrain"))
-            .args(["bench", "--heightmap", field.to_str().unwrap(), "--raw-size", "257x257", "--spacing", "10"])
-            .args(["--block", "9", "--size", "160x120", "--frames", "20", "--no-fidelity", "--inject-fault", fault])
-            .args(extra)
-            .arg("--out")
-            .arg(&out)
-            .env("RUST_LOG", "error")
-            .output()
-            .unwrap();
-        let stderr = String::from_utf8_lossy(&o.stderr).to_string();
-        assert_eq!(o.status.code(), Some(2), "{fault}: {stderr}");
+        let mut args: Vec<String> =
+            ["--heightmap", field.to_str().unwrap(), "--raw-size", "257x257", "--spacing", "10"]
+                .into_iter()
+                .chain(["--block", "9", "--size", "160x120", "--frames", "20", "--no-fidelity"])
+                .map(String::from)
+                .collect();
+        args.extend(extra.iter().map(|e| e.to_string()));
+        let (code, stderr, out) = bench_with_fault(tmp.path(), &args, fault);
+        assert_eq!(code, Some(2), "{fault}: {stderr}");
         assert!(!stderr.contains("panicked"), "{stderr}");
         (stderr, out.exists())
     };

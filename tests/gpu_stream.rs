@@ -1591,7 +1591,8 @@ fn a_budget_for_tiles_draws_a_file_from_them() {
     let ps = common::data("puget_sound/ps_height_1k.png");
     let png = dir.path().join("r.png");
     for (budget, streamed) in [(None, false), (Some("--cache-mb"), true), (Some("--gpu-mb"), true)] {
-        let mut args = vec!["render", ps.to_str().unwrap(), "--size", "96x64", "--out", png.to_str().unwrap()];
+        let mut args = vec!["render", ps.to_str().unwrap(), "--size", "96x64", "--validation", "on"];
+        args.extend(["--out", png.to_str().unwrap()]);
         args.extend(budget.iter().flat_map(|b| [*b, "64"]));
         let o = cli(&args);
         assert!(o.status.success(), "{budget:?}: {}", String::from_utf8_lossy(&o.stderr));
