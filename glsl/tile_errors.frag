@@ -1,6 +1,6 @@
 #version 450
 // The errors activity over the atlas (SPEC 4 and 8): one fragment per block of a tile's
-// own level, the largest over its 32 x 32 groups of strict mode's per-group error,
+// own level, the largest over its QUADS x QUADS groups (QUADS = k - 1, at most 128) of strict mode's per-group error,
 // D * height_scale * kappa / distance(camera, group box). A group is one quad of the
 // tile's LOD mesh; its box spans the quad and the heights its samples and surface can
 // take, its corners' range widened by its D (each sample lies within D of the quad).
@@ -16,7 +16,8 @@ layout(set = 0, binding = TILE_ERRORS_BINDING_HEIGHTS) uniform sampler2DArray he
 layout(set = 0, binding = TILE_ERRORS_BINDING_DEVIATION) uniform sampler2DArray deviation;
 layout(location = 0) out float out_error;
 
-const int QUADS = 32;
+// The most quads a side of a block (k = 129) for the row of corners kept.
+const int MOST_QUADS = 128;
 
 // Vertex v of the tile's square (texel v + 1 of its layer: the border comes first).
 float raw_at(ivec2 v) {
@@ -24,6 +25,7 @@ float raw_at(ivec2 v) {
 }
 
 void main() {
+    int QUADS = tile_errors_pc.shape.x;
     int slot = tile_errors_pc.tile.w;
     int stride = 1 << tile_errors_pc.tile.y;
     ivec2 first = (ivec2(gl_FragCoord.xy) - tile_errors_pc.origin.zw) * QUADS;
@@ -33,7 +35,7 @@ void main() {
     vec3 cam = tile_errors_pc.camera.xyz;
     float kappa = tile_errors_pc.camera.w;
 
-    float row[QUADS + 1];
+    float row[MOST_QUADS + 1];
     for (int i = 0; i <= QUADS; i++) {
         row[i] = raw_at(first + ivec2(i, 0));
     }

@@ -2,7 +2,7 @@
 // The errors activity over the atlas in the paper's mode (eqs. 2-3): one fragment per
 // block k LODs coarser than the tile's level L (k = tile.w: 1 for every tile, 2 and 3
 // too for the top tile, whose coarser blocks no other tile holds), the largest over its
-// 32 x 32 groups of each dropped vertex's interpolation error over its own distance,
+// GROUPS x GROUPS groups (GROUPS = k - 1) of each dropped vertex's interpolation error over its own distance,
 // |H(v) - (H(a) + H(b)) / 2| * height_scale * kappa / max(distance(camera, v), near).
 // A group of LOD L + k spans 2^k x 2^k of the tile's quads: its four corners survive, its
 // five other vertices (b d e f h, 2^(k-1) apart) are dropped and each interpolates two
@@ -16,14 +16,13 @@
 layout(set = 0, binding = TILE_ERRORS_BINDING_HEIGHTS) uniform sampler2DArray heights;
 layout(location = 0) out float out_error;
 
-const int GROUPS = 32;
-
 // Vertex v of the tile's square (texel v + 1 of its layer: the border comes first).
 float raw_at(ivec2 v) {
     return decode_raw(texelFetch(heights, ivec3(v + 1, tile_errors_pc.tile.x), 0).r, tile_errors_pc.tile.z);
 }
 
 void main() {
+    int GROUPS = tile_errors_pc.shape.x;
     int stride = 1 << tile_errors_pc.tile.y;
     // A group's side in the tile's vertices, and half of it.
     int side = 1 << tile_errors_pc.tile.w;

@@ -12,6 +12,7 @@ use vkterrain::app::bench::image_difference;
 use vkterrain::draw::lighting_gpu::OwnLighting;
 use vkterrain::draw::streamed::{FrameView, HeightRange, StreamedRenderer};
 use vkterrain::errors::atlas::HeightAtlas;
+use vkterrain::input::archive::Archive;
 use vkterrain::lod::block::block_vertex;
 use vkterrain::lod::heightfield::Heightfield;
 use vkterrain::stream::cache::TileData;
@@ -19,6 +20,7 @@ use vkterrain::stream::draw::{self, Resident, StreamedBlock};
 use vkterrain::stream::streamer::{Streamer, TileGate};
 use vkterrain::stream::traverse::{Selection, View};
 use vkterrain::stream::Grid;
+use vkterrain::vk::Device;
 
 fn settled(s: &mut Streamer, view: &View) -> Selection {
     for _ in 0..16 {
@@ -1229,7 +1231,8 @@ fn settled_with_errors(s: &mut Streamer, view: &View) -> Selection {
 fn block_errors_oracle(grid: &Grid, tile: &TileData, view: &View) -> Vec<f64> {
     let (anchor, cam) = view.relative(grid);
     let key = tile.key;
-    let (per_side, stride) = (grid.tile_quads / 32, 1i64 << key.level);
+    let (quads, stride) = (grid.block_quads, 1i64 << key.level);
+    let per_side = grid.tile_quads / quads;
     let span = grid.tile_span(key.level) as i64;
     let p = cam.position.as_dvec3();
     let kappa = f64::from(cam.kappa());
@@ -1255,11 +1258,54 @@ fn block_errors_oracle(grid: &Grid, tile: &TileData, view: &View) -> Vec<f64> {
                 z0 + stride as f64 * grid.spacing[1],
             );
             let dist = (min - p).max(p - max).max(DVec3::ZERO).length().max(f64::from(cam.near));
-            let b = (gz / 32) * per_side + gx / 32;
+            let b = (gz / quads) * per_side + gx / quads;
             out[b] = out[b].max(d * grid.height_scale * kappa / dist);
         }
     }
     out
+}
+
+/// Settles each of [`views`] with a generation of errors and compares every block error
+/// read back with [`block_errors_oracle`] (the deviations rounded up to half floats:
+/// never below it, at most 0.1 % above); each selection audits within delta (blocks of
+/// `layout`). Returns the errors compared, the blocks bounded by them, and each view's
+/// blocks.
+fn errors_are_the_oracle(
+    hf: &Heightfield,
+    layout: &vkterrain::lod::block::BlockLayout,
+    s: &mut Streamer,
+    atlas: &HeightAtlas,
+) -> (usize, usize, Vec<usize>) {
+    let grid = s.grid;
+    let k = layout.k();
+    let (mut compared, mut from_gpu, mut blocks) = (0usize, 0usize, Vec::new());
+    for (i, view) in views().iter().enumerate() {
+        let sel = settled_with_errors(s, view);
+        from_gpu += sel.errors_from_gpu;
+        let errors = atlas.feed().errors().expect("a generation");
+        assert_eq!(errors.position, view.position, "k {k}, pose {i}: the errors are this camera's");
+        for (key, got) in &errors.tiles {
+            let tile = s.cache.peek(*key).expect("a shaded tile is held");
+            let want = block_errors_oracle(&grid, tile, view);
+            assert_eq!(got.len(), want.len(), "k {k}, pose {i}: tile {key:?}'s blocks");
+            for (b, (g, w)) in got.iter().zip(&want).enumerate() {
+                let g = f64::from(*g);
+                assert!(
+                    g >= w * (1.0 - 1e-4) && g <= w * 1.001 + 1e-9,
+                    "k {k}, pose {i}: tile {key:?} block {b}: {g} against {w}"
+                );
+                compared += 1;
+            }
+        }
+        let worst = sel
+            .stitched
+            .iter()
+            .map(|b| vkterrain::lod::audit::audit_block(hf, layout, b, &view.absolute()))
+            .fold(0.0f32, f32::max);
+        assert!(worst <= 1.001, "k {k}, pose {i}: a block audits at {worst} px");
+        blocks.push(sel.blocks.len());
+    }
+    (compared, from_gpu, blocks)
 }
 
 /// The errors activity over the atlas (SPEC 4 and 8): a settled frame takes every
@@ -1275,37 +1321,29 @@ fn block_errors_over_the_atlas_are_the_cpu_bound_and_the_selection_comes_from_th
     let hf = common::rough();
     let dir = TempDir::new("gpu-stream-errors");
     let archive = common::archive_of(&hf, &dir);
-    let grid = Grid::from_meta(&archive.meta);
     let layout = BlockLayout::of(&hf, 33).unwrap();
     let device = common::gpu();
+    // The smallest and the largest blocks a tile takes (`--block`), then the paper's.
+    for k in [9, 129] {
+        let grid = Grid::from_meta(&archive.meta).with_block(k).unwrap();
+        let mut s = Streamer::new(archive.clone(), grid, 1 << 30);
+        let atlas = HeightAtlas::new(&device, &grid, 64 << 20).unwrap();
+        s.attach(Box::new(atlas.feed()), HeightAtlas::cache_tiles(atlas.layer_count()));
+        let layout = BlockLayout::of(&hf, k).unwrap();
+        let (compared, from_gpu, _) = errors_are_the_oracle(&hf, &layout, &mut s, &atlas);
+        eprintln!("k {k}: {compared} block errors compared, {from_gpu} blocks bounded by them");
+        // Measured: 7,168 and 52 compared, 417 and 28 blocks bounded by them.
+        assert!(compared >= 40 && from_gpu >= 20, "k {k}: {compared} compared, {from_gpu} bounded by them");
+        assert_eq!(atlas.failure(), None);
+    }
+    let grid = Grid::from_meta(&archive.meta);
     let mut s = Streamer::new(archive, grid, 1 << 30);
     let atlas = HeightAtlas::new(&device, &grid, 64 << 20).unwrap();
     s.attach(Box::new(atlas.feed()), HeightAtlas::cache_tiles(atlas.layer_count()));
     let worst_audit = |sel: &Selection, v: &View| {
         sel.stitched.iter().map(|b| audit_block(&hf, &layout, b, &v.absolute())).fold(0.0f32, f32::max)
     };
-    let (mut compared, mut from_gpu, mut blocks) = (0usize, 0usize, Vec::new());
-    for (i, view) in views().iter().enumerate() {
-        let sel = settled_with_errors(&mut s, view);
-        from_gpu += sel.errors_from_gpu;
-        let errors = atlas.feed().errors().expect("a generation");
-        assert_eq!(errors.position, view.position, "pose {i}: the errors are this camera's");
-        for (key, got) in &errors.tiles {
-            let tile = s.cache.peek(*key).expect("a shaded tile is held");
-            let want = block_errors_oracle(&grid, tile, view);
-            for (b, (g, w)) in got.iter().zip(&want).enumerate() {
-                let g = f64::from(*g);
-                assert!(
-                    g >= w * (1.0 - 1e-4) && g <= w * 1.001 + 1e-9,
-                    "pose {i}: tile {key:?} block {b}: {g} against {w}"
-                );
-                compared += 1;
-            }
-        }
-        let worst = worst_audit(&sel, view);
-        assert!(worst <= 1.001, "pose {i}: a block audits at {worst} px");
-        blocks.push(sel.blocks.len());
-    }
+    let (compared, from_gpu, blocks) = errors_are_the_oracle(&hf, &layout, &mut s, &atlas);
     assert!(compared >= 64 && from_gpu >= 50, "{compared} block errors compared, {from_gpu} blocks bounded by them");
 
     // A descent with one generation, computed at its start: the errors thread may take
@@ -1488,20 +1526,28 @@ fn streamed_occlusion_culling_hides_nothing_visible() {
 /// reference's (`lod::gie`, which the in-memory errors activity matches) block for block
 /// at three views; the selection takes them (the same blocks as in memory's paper
 /// selection, morph off); a readback corrupted to a quarter selects fewer blocks.
+/// For blocks of the paper's k = 33 and of the smallest and largest k a tile takes.
 #[test]
 fn paper_errors_over_the_atlas_are_the_in_memory_ones() {
+    let hf = common::rough();
+    let dir = TempDir::new("gpu-stream-paper");
+    let archive = common::archive_of(&hf, &dir);
+    let device = common::gpu();
+    for k in [33, 9, 129] {
+        paper_errors_match(&hf, &archive, &device, k);
+    }
+    common::finish(device);
+}
+
+fn paper_errors_match(hf: &Heightfield, archive: &Arc<Archive>, device: &Arc<Device>, k: u32) {
     use vkterrain::lod::gie::{block_errors, group_errors, ErrorMode, ErrorParams};
     use vkterrain::lod::traversal::{traverse, BlockCaches, LodSelect};
     use vkterrain::stream::traverse::StreamedLod;
-    let hf = common::rough();
-    let mm = vkterrain::lod::pyramid::MinMaxPyramid::build(&hf);
-    let layout = vkterrain::lod::block::BlockLayout::of(&hf, 33).unwrap();
-    let dir = TempDir::new("gpu-stream-paper");
-    let archive = common::archive_of(&hf, &dir);
-    let grid = Grid::from_meta(&archive.meta);
-    let device = common::gpu();
-    let mut s = Streamer::new(archive, grid, 1 << 30);
-    let atlas = HeightAtlas::new(&device, &grid, 64 << 20).unwrap();
+    let mm = vkterrain::lod::pyramid::MinMaxPyramid::build(hf);
+    let layout = vkterrain::lod::block::BlockLayout::of(hf, k).unwrap();
+    let grid = Grid::from_meta(&archive.meta).with_block(k).unwrap();
+    let mut s = Streamer::new(archive.clone(), grid, 1 << 30);
+    let atlas = HeightAtlas::new(device, &grid, 64 << 20).unwrap();
     s.attach(Box::new(atlas.feed()), HeightAtlas::cache_tiles(atlas.layer_count()));
     s.morph = None;
     // Every tile held: full resolution seen from high above.
@@ -1519,39 +1565,40 @@ fn paper_errors_over_the_atlas_are_the_in_memory_ones() {
     for (i, view) in views().iter().chain([&high]).enumerate() {
         let sel = settled_with_errors(&mut s, view);
         let errors = atlas.feed().errors().expect("a generation");
-        assert_eq!((errors.mode, errors.position), (ErrorMode::Paper, view.position), "pose {i}");
+        assert_eq!((errors.mode, errors.position), (ErrorMode::Paper, view.position), "k {k}, pose {i}");
         let cam = view.absolute();
-        let want = block_errors(&group_errors(&hf, &mm, &ErrorParams::new(&cam, ErrorMode::Paper)), layout.m);
-        assert_eq!(errors.paper.len(), (0..5).map(|j| 1 << (2 * j)).sum::<usize>(), "pose {i}: every block");
+        let want = block_errors(&group_errors(hf, &mm, &ErrorParams::new(&cam, ErrorMode::Paper)), layout.m);
+        let lods = layout.root_lod();
+        assert_eq!(errors.paper.len(), (0..lods).map(|j| 1 << (2 * j)).sum::<usize>(), "k {k}, pose {i}: every block");
         for (&(lod, bx, bz), &(got, whole)) in &errors.paper {
-            assert!(whole, "pose {i}: every tile held, block {lod} ({bx}, {bz}) not whole");
+            assert!(whole, "k {k}, pose {i}: every tile held, block {lod} ({bx}, {bz}) not whole");
             let w = f64::from(want.get(lod, bx as usize, bz as usize));
             let rel = (f64::from(got) - w).abs() / w.max(1e-6);
-            assert!(rel < 1e-3, "pose {i}: block {lod} ({bx}, {bz}): {got} against {w}");
+            assert!(rel < 1e-3, "k {k}, pose {i}: block {lod} ({bx}, {bz}): {got} against {w}");
             worst = worst.max(rel);
             compared += 1;
         }
         // The blocks the in-memory paper selection draws.
         let select = LodSelect::errors(&want, cam.position, 1.0, ErrorMode::Paper).with_morph(false);
-        let mem = traverse(&hf, &mm, &BlockCaches::default(), &layout, &cam, select);
+        let mem = traverse(hf, &mm, &BlockCaches::default(), &layout, &cam, select);
         let key = |l: u32, x: u32, z: u32| (l, x, z);
         let mut ours: Vec<_> = sel.blocks.iter().map(|b| key(b.lod, b.bx, b.bz)).collect();
         let mut theirs: Vec<_> = mem.blocks.iter().chain(&mem.occluded).map(|b| key(b.lod, b.bx, b.bz)).collect();
         ours.sort();
         theirs.sort();
-        assert_eq!(ours, theirs, "pose {i}: the selections differ");
-        assert!(sel.errors_from_gpu > 0 && sel.errors_from_tiles == 0, "pose {i}: {sel:?}");
+        assert_eq!(ours, theirs, "k {k}, pose {i}: the selections differ");
+        assert!(sel.errors_from_gpu > 0 && sel.errors_from_tiles == 0, "k {k}, pose {i}: {sel:?}");
         blocks.push(sel.blocks.len());
     }
-    eprintln!("{compared} paper block errors compared, worst relative difference {worst:.2e}; blocks {blocks:?}");
+    eprintln!(
+        "k {k}: {compared} paper block errors compared, worst relative difference {worst:.2e}; blocks {blocks:?}"
+    );
     // Corrupted to a quarter: never more blocks, fewer in all.
     atlas.corrupt_errors(0.25);
     let corrupted: Vec<usize> = views().iter().map(|view| settled_with_errors(&mut s, view).blocks.len()).collect();
     assert!(corrupted.iter().zip(&blocks).all(|(c, b)| c <= b), "{corrupted:?} corrupted, {blocks:?} not");
     assert!(corrupted.iter().sum::<usize>() < blocks.iter().sum(), "{corrupted:?} corrupted, {blocks:?} not");
     assert_eq!(atlas.failure(), None);
-    drop((s, atlas));
-    common::finish(device);
 }
 
 /// `errors --dump` over tiles writes the in-memory dump's layout: in the paper's mode the

@@ -18,9 +18,7 @@ use vkterrain::lod::heightfield::Heightfield;
 use vkterrain::lod::heightfield::RawSamples;
 use vkterrain::lod::pyramid::MinMaxPyramid;
 use vkterrain::lod::traversal::stitch_selection;
-use vkterrain::stream::cache::{
-    root_lod, serving_tile, Heights, HostCache, Refused, Square, TileData, BLOCK_QUADS, SUB,
-};
+use vkterrain::stream::cache::{root_lod, serving_tile, Heights, HostCache, Refused, Square, TileData, SUB};
 use vkterrain::stream::io::TileSource;
 use vkterrain::stream::streamer::{Streamer, RETRY_FRAMES};
 use vkterrain::stream::traverse::{select, Selection, View};
@@ -85,11 +83,27 @@ fn settled(s: &mut Streamer, view: &View, limit: usize) -> Selection {
     panic!("not settled after {limit} frames");
 }
 
+/// For blocks of the paper's k = 33, the smallest and the largest a tile of 256 quads
+/// takes (`--block`).
 #[test]
 fn tile_summaries_equal_the_full_resolution_oracle() {
     let Fixture { hf, archive, grid, _dir } = fixture("stream-summaries");
-    assert_eq!((grid.top, root_lod(&grid)), (2, 5), "a 1025^2 terrain: three tile levels, root blocks of LOD 5");
     let d = exact_deviation(&hf);
+    for k in [33, 9, 129] {
+        let grid = grid.with_block(k).unwrap();
+        summaries_equal_the_oracle(&hf, &d, &archive, &grid);
+    }
+    for k in [5, 257] {
+        let e = grid.with_block(k).unwrap_err();
+        assert!(e.contains("9 to 129 vertices"), "--block {k}: {e}");
+    }
+}
+
+fn summaries_equal_the_oracle(hf: &Heightfield, d: &[Vec<f32>], archive: &Archive, grid: &Grid) {
+    let (grid, quads) = (*grid, grid.block_quads);
+    // Root blocks of LOD 5 for k = 33.
+    let root = 2 + (256 / quads).trailing_zeros();
+    assert_eq!((grid.top, root_lod(&grid)), (2, root), "a 1025^2 terrain: three tile levels");
     let (mut checked, mut groups_checked) = (0, 0usize);
     for (level, tx, tz) in archive.meta.tiles() {
         let tile = archive.read_tile(level, tx, tz).unwrap().unwrap();
@@ -109,10 +123,10 @@ fn tile_summaries_equal_the_full_resolution_oracle() {
         assert_eq!(data.bytes - narrow.bytes, tile.heights.len() * 2);
         let last = if level == grid.top { root_lod(&grid) } else { u32::from(level) };
         for lod in u32::from(level)..=last {
-            let per = ((grid.tile_quads << level) / (BLOCK_QUADS << lod)) as u32;
+            let per = ((grid.tile_quads << level) / (quads << lod)) as u32;
             for (bx, bz) in (0..per).flat_map(|z| (0..per).map(move |x| (tx * per + x, tz * per + z))) {
                 assert_eq!(serving_tile(&grid, lod, bx, bz), TileKey::new(level, tx, tz));
-                let (size, stride) = ((BLOCK_QUADS << lod) as i64, 1i64 << lod);
+                let (size, stride) = ((quads << lod) as i64, 1i64 << lod);
                 let (ox, oz) = (i64::from(bx) * size, i64::from(bz) * size);
                 let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
                 for z in (oz..=oz + size).step_by(stride as usize) {
@@ -124,23 +138,23 @@ fn tile_summaries_equal_the_full_resolution_oracle() {
                 // D of the whole block and of each of its SUB x SUB squares, from the
                 // in-memory deviations, and each square's heights: its groups' corners
                 // widened by the group's D.
-                let q = BLOCK_QUADS / SUB;
+                let q = quads / SUB;
                 let mut dmax = 0.0f32;
                 let mut squares = [Square { d: 0.0, min: f32::INFINITY, max: f32::NEG_INFINITY }; SUB * SUB];
                 // The edges' rows of groups (north, east, south, west), square by square.
                 let mut edge_d = [[0.0f32; SUB]; 4];
-                for (gx, gz) in (0..BLOCK_QUADS).flat_map(|z| (0..BLOCK_QUADS).map(move |x| (x, z))) {
+                for (gx, gz) in (0..quads).flat_map(|z| (0..quads).map(move |x| (x, z))) {
                     let (cx, cz) = (ox + gx as i64 * stride, oz + gz as i64 * stride);
                     let c = [(0, 0), (1, 0), (0, 1), (1, 1)].map(|(u, v)| hf.raw_at(cx + u * stride, cz + v * stride));
                     let cells = hf.cells(lod.max(1))[0];
                     let g = if lod > 0 {
-                        d[lod as usize - 1][(bz as usize * BLOCK_QUADS + gz) * cells + bx as usize * BLOCK_QUADS + gx]
+                        d[lod as usize - 1][(bz as usize * quads + gz) * cells + bx as usize * quads + gx]
                     } else {
                         0.0
                     };
                     let sq = &mut squares[gz / q * SUB + gx / q];
                     sq.d = sq.d.max(g);
-                    let last = BLOCK_QUADS - 1;
+                    let last = quads - 1;
                     for (e, k, on) in [(0, gx, gz == 0), (1, gz, gx == last), (2, gx, gz == last), (3, gz, gx == 0)] {
                         if on {
                             edge_d[e][k / q] = edge_d[e][k / q].max(g);
@@ -188,33 +202,47 @@ fn tile_summaries_equal_the_full_resolution_oracle() {
         }
     }
     // Every group of LOD 1 and above once (LOD 0 has no D): 1024^2 / 4 + 1024^2 / 16 + ...
-    assert_eq!(groups_checked, (1..=5).map(|l| (1024usize >> l).pow(2)).sum::<usize>());
-    // 16 + 4 tiles of 64 blocks, the top tile's 64 + 16 + 4 + 1.
-    assert_eq!(checked, 16 * 64 + 4 * 64 + 64 + 16 + 4 + 1);
+    assert_eq!(groups_checked, (1..=root).map(|l| (1024usize >> l).pow(2)).sum::<usize>());
+    // 16 + 4 + 1 tiles of (256 / quads)^2 blocks, the top tile's coarser ones too
+    // (16 + 4 + 1 for k = 33).
+    let own = (256 / quads).pow(2);
+    assert_eq!(checked, 21 * own + (1..=(256 / quads).trailing_zeros()).map(|j| own >> (2 * j)).sum::<usize>());
 }
 
 #[test]
 fn settled_frames_keep_the_bound_cover_the_view_and_pass_the_audit() {
     let Fixture { hf, archive, grid, _dir } = fixture("stream-settled");
-    let layout = BlockLayout::of(&hf, 33).unwrap();
     let mm = MinMaxPyramid::build(&hf);
-    let mut s = Streamer::new(archive, grid, 1 << 30);
-    let mut lods = std::collections::BTreeSet::new();
+    // The paper's blocks, then the smallest and the largest a tile takes (`--block`).
+    for k in [33, 9, 129] {
+        let grid = grid.with_block(k).unwrap();
+        let mut s = Streamer::new(archive.clone(), grid, 1 << 30);
+        settled_frames_audit(&hf, &mm, &mut s);
+    }
+}
+
+fn settled_frames_audit(hf: &Heightfield, mm: &MinMaxPyramid, s: &mut Streamer) {
+    let k = s.grid.block_quads as u32 + 1;
+    let layout = BlockLayout::of(hf, k).unwrap();
+    let (mut lods, mut morphing) = (std::collections::BTreeSet::new(), 0);
     for (i, view) in poses().iter().enumerate() {
-        let sel = settled(&mut s, view, 12);
+        let sel = settled(s, view, 12);
         let cam = camera(view);
         let blocks: Vec<DrawBlock> = sel.blocks.iter().map(|b| DrawBlock::new(b.lod, b.bx, b.bz)).collect();
-        check_tiling(&hf, &mm, &layout, &blocks, &cam).unwrap_or_else(|e| panic!("pose {i}: {e}"));
-        assert_eq!(sel.stitched.len(), sel.blocks.len(), "pose {i}: the selection is stitched as drawn");
+        check_tiling(hf, mm, &layout, &blocks, &cam).unwrap_or_else(|e| panic!("k {k}, pose {i}: {e}"));
+        assert_eq!(sel.stitched.len(), sel.blocks.len(), "k {k}, pose {i}: the selection is stitched as drawn");
+        morphing += sel.morphing;
         for (b, block) in sel.blocks.iter().zip(&sel.stitched) {
-            assert!(!b.over && (b.lod == 0 || b.error_px <= DELTA), "pose {i}: {b:?}");
-            let audited = audit_block(&hf, &layout, block, &cam);
-            assert!(audited <= DELTA * 1.001, "pose {i}: block {b:?} audits at {audited} px");
+            assert!(!b.over && (b.lod == 0 || b.error_px <= DELTA), "k {k}, pose {i}: {b:?}");
+            let audited = audit_block(hf, &layout, block, &cam);
+            assert!(audited <= DELTA * 1.001, "k {k}, pose {i}: block {b:?} audits at {audited} px");
             lods.insert(b.lod);
         }
         s.cache.check().unwrap();
     }
-    assert!(lods.len() >= 4, "the poses draw several LODs: {lods:?}");
+    // (Blocks of k = 129 cover the 1025^2 field with LODs 0 to 3.)
+    assert!(lods.len() >= 3, "k {k}: the poses draw several LODs: {lods:?}");
+    assert!(morphing > 50, "k {k}: {morphing} blocks morph over the poses");
     assert_eq!(s.stats.tiles_failed, 0);
 }
 
@@ -315,21 +343,46 @@ fn the_audit_catches_a_selection_that_ignores_the_deviation() {
 /// comes from the bound alone), every drawn block audits within delta on the rough field,
 /// and a good share of the blocks is between its parent's surface and its own. The same
 /// selections with the factors halved, or every block on its parent's surface, audit
-/// over delta: the audit sees the morph.
+/// over delta: the audit sees the morph. For the paper's blocks and the smallest a tile
+/// takes (`--block 9`, whose squares are one quad: half a parent group).
 #[test]
 fn morphed_streamed_frames_audit_within_delta_and_an_underpaid_morph_does_not() {
-    use vkterrain::lod::block::MORPH_ONE;
-    use vkterrain::lod::morph::MorphRule;
-    use vkterrain::stream::morph;
-    use vkterrain::stream::traverse::StripCache;
     let Fixture { hf, archive, grid, _dir } = fixture("stream-morph");
-    let layout = BlockLayout::of(&hf, 33).unwrap();
-    let mut s = Streamer::new(archive, grid, 1 << 30);
     let mut views = poses();
     for i in 0..24 {
         let p = DVec3::new(200.0 + 37.0 * f64::from(i), 130.0, 300.0 + 83.0 * f64::from(i));
         views.push(View::look_at(p, p + DVec3::new(500.0, -40.0, 900.0), 45.0, 320, 240, 1.0));
     }
+    for k in [33, 9] {
+        morphed_frames_audit(&hf, &archive, grid.with_block(k).unwrap(), &views);
+    }
+    // Real terrain, whose deviations gather in a few squares of a block: low views over
+    // Puget Sound 1k (160 m spacing), blocks of k = 9. Measured: a morph that took the
+    // parent groups of only every other one-quad square audits at 1.05 px here, and
+    // passes on the rough field.
+    use vkterrain::input::load::{self, LoadOptions};
+    let hf = load::load(&common::data("puget_sound/ps_height_1k.png"), &LoadOptions::default()).unwrap();
+    let dir = TempDir::new("stream-morph-puget");
+    let archive = common::archive_of(&hf, &dir);
+    let views: Vec<View> = (0..12)
+        .map(|i| {
+            let a = f64::from(i) * std::f64::consts::TAU / 12.0;
+            let p =
+                DVec3::new(80000.0 + 50000.0 * a.cos(), 900.0 + 300.0 * f64::from(i % 3), 80000.0 + 50000.0 * a.sin());
+            View::look_at(p, p + DVec3::new(-a.sin() * 60000.0, -900.0, a.cos() * 60000.0), 60.0, 480, 270, 8.0)
+        })
+        .collect();
+    morphed_frames_audit(&hf, &archive, Grid::from_meta(&archive.meta).with_block(9).unwrap(), &views);
+}
+
+fn morphed_frames_audit(hf: &Heightfield, archive: &Arc<Archive>, grid: Grid, views: &[View]) {
+    use vkterrain::lod::block::MORPH_ONE;
+    use vkterrain::lod::morph::MorphRule;
+    use vkterrain::stream::morph;
+    use vkterrain::stream::traverse::StripCache;
+    let k = grid.block_quads as u32 + 1;
+    let layout = BlockLayout::of(hf, k).unwrap();
+    let mut s = Streamer::new(archive.clone(), grid, 1 << 30);
     let strips = StripCache::with_entries(1 << 14);
     let (mut blocks, mut between, mut worst) = (0usize, 0usize, 0.0f32);
     let (mut underpaid, mut on_parent) = (0.0f32, 0.0f32);
@@ -338,8 +391,8 @@ fn morphed_streamed_frames_audit_within_delta_and_an_underpaid_morph_does_not() 
         let cam = camera(view);
         assert_eq!(sel.stitched.len(), sel.blocks.len());
         for (b, drawn) in sel.blocks.iter().zip(&sel.stitched) {
-            let audited = audit_block(&hf, &layout, drawn, &cam);
-            assert!(audited <= DELTA * 1.001, "view {i}: block {b:?} ({drawn:?}) audits at {audited} px");
+            let audited = audit_block(hf, &layout, drawn, &cam);
+            assert!(audited <= DELTA * 1.001, "k {k}, view {i}: block {b:?} ({drawn:?}) audits at {audited} px");
             worst = worst.max(audited);
             between += usize::from(drawn.morph > 0 && drawn.morph < MORPH_ONE);
         }
@@ -354,14 +407,14 @@ fn morphed_streamed_frames_audit_within_delta_and_an_underpaid_morph_does_not() 
             broken.stitched.iter_mut().for_each(|b| *b = b.unmorphed());
             morph::assign(&grid, &s.cache, &strips, view, DELTA, &mut broken, rule);
             for drawn in &broken.stitched {
-                *worst_broken = worst_broken.max(audit_block(&hf, &layout, drawn, &cam));
+                *worst_broken = worst_broken.max(audit_block(hf, &layout, drawn, &cam));
             }
         }
     }
-    println!("{blocks} blocks, {between} between their parent's surface and their own, worst {worst:.3} px; broken: halved {underpaid:.2} px, on the parent {on_parent:.2} px");
-    assert!(between * 5 > blocks, "{between} of {blocks} blocks morph part way");
-    assert!(underpaid > 1.2 * DELTA, "factors halved audit at {underpaid} px");
-    assert!(on_parent > 1.5 * DELTA, "parents' surfaces audit at {on_parent} px");
+    println!("k {k}: {blocks} blocks, {between} between their parent's surface and their own, worst {worst:.3} px; broken: halved {underpaid:.2} px, on the parent {on_parent:.2} px");
+    assert!(between * 5 > blocks, "k {k}: {between} of {blocks} blocks morph part way");
+    assert!(underpaid > 1.2 * DELTA, "k {k}: factors halved audit at {underpaid} px");
+    assert!(on_parent > 1.5 * DELTA, "k {k}: parents' surfaces audit at {on_parent} px");
 }
 
 /// `--traversal-threads` with streamed frames: the morph terms spread over a pool of
@@ -961,7 +1014,7 @@ fn the_traversal_takes_the_smaller_of_the_gpu_errors_and_the_tiles_bound() {
     let mut s = Streamer::new(archive, grid, 1 << 30);
     let view = poses()[0];
     let cpu = settled(&mut s, &view, 12);
-    let per_tile = (grid.tile_quads / BLOCK_QUADS).pow(2);
+    let per_tile = (grid.tile_quads / grid.block_quads).pow(2);
     const STRICT: (StreamedLod, f32, vkterrain::lod::gie::ErrorMode) =
         (StreamedLod::Error, DELTA, vkterrain::lod::gie::ErrorMode::Strict);
     let errors_of = |value: f32, position: DVec3| TileErrors {

@@ -1217,7 +1217,7 @@ fn bench_streamed(
     // the atlas's uploads (CPU tracks; each frame's GPU time is in frames.csv).
     let trace_path = args.out.join("trace.json");
     let trace = Trace::to_file(&trace_path).map_err(|e| anyhow::anyhow!("{}: {e}", trace_path.display()))?;
-    let grid = streamed_grid(&archive, &args.common.terrain.frame);
+    let grid = streamed_grid(&archive, &args.common.terrain.frame, args.common.block.k)?;
     let (cache_mb, gpu_mb) = (args.streamed.cache_mb(), args.streamed.gpu_mb());
     let layers = device.properties.limits.max_image_array_layers;
     let mut streamer = atlas_bound_streamer(archive.clone(), grid, cache_mb, gpu_mb, layers, &trace)?;

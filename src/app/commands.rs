@@ -100,14 +100,12 @@ pub struct ErrorsArgs {
 /// times, each for a camera moved a hundredth of a sample further (so that each is a new
 /// generation), and their cost as JSON.
 fn errors_over_tiles(args: &ErrorsArgs, device: Arc<Device>, archive: Arc<Archive>) -> anyhow::Result<()> {
-    let refused = [("--block (tiles fix k = 33)", args.block.k != 33)];
-    crate::app::cli::refuse_on_tiles(&args.terrain.name(), &refused)?;
     let (cache_mb, gpu_mb) = (args.streamed.cache_mb(), args.streamed.gpu_mb());
     eprintln!("{}", crate::app::stream::streamed_banner(&args.terrain.name(), &archive.meta, cache_mb, gpu_mb));
     let r = crate::app::stream::errors_over_atlas(
         &archive,
         &device,
-        &args.terrain.frame,
+        (&args.terrain.frame, args.block.k),
         &args.view,
         (args.repeat, args.error_mode.mode),
         (cache_mb, gpu_mb),

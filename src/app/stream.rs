@@ -517,9 +517,14 @@ pub(crate) fn top_tiles(streamer: &mut Streamer, meta: &Meta) -> anyhow::Result<
 }
 
 /// The grid of an archive as the options frame it: `--spacing` and `--height-scale`
-/// override the archive's own, and say so (as the loader does for files).
-pub(crate) fn streamed_grid(archive: &Archive, frame: &crate::app::cli::FrameArgs) -> Grid {
-    let mut grid = Grid::from_meta(&archive.meta);
+/// override the archive's own, and say so (as the loader does for files); blocks of
+/// `block` vertices a side (`--block`).
+pub(crate) fn streamed_grid(
+    archive: &Archive,
+    frame: &crate::app::cli::FrameArgs,
+    block: u32,
+) -> Result<Grid, InputError> {
+    let mut grid = Grid::from_meta(&archive.meta).with_block(block).map_err(InputError)?;
     // (A file prepared on the fly already has them: nothing to say.)
     if let Some(s) = frame.spacing.filter(|s| [f64::from(s.x), f64::from(s.z)] != grid.spacing) {
         eprintln!(
@@ -532,7 +537,7 @@ pub(crate) fn streamed_grid(archive: &Archive, frame: &crate::app::cli::FrameArg
         eprintln!("vkterrain: note: height scale {h} from --height-scale, not the archive's {}", grid.height_scale);
         grid.height_scale = f64::from(h);
     }
-    grid
+    Ok(grid)
 }
 
 /// An archive whose reads (on the IO thread) are recorded in a trace, one span a tile.
@@ -735,13 +740,13 @@ pub fn streamed_archive(
 pub(crate) fn errors_over_atlas(
     archive: &Arc<Archive>,
     device: &Arc<Device>,
-    frame: &crate::app::cli::FrameArgs,
+    (frame, block): (&crate::app::cli::FrameArgs, u32),
     camera: &crate::app::cli::CameraArgs,
     (repeat, mode): (u64, crate::lod::gie::ErrorMode),
     (cache_mb, gpu_mb): (u32, u32),
     dump: Option<&std::path::Path>,
 ) -> anyhow::Result<serde_json::Value> {
-    let grid = streamed_grid(archive, frame);
+    let grid = streamed_grid(archive, frame, block)?;
     let layers = device.properties.limits.max_image_array_layers;
     let mut streamer = atlas_bound_streamer(archive.clone(), grid, cache_mb, gpu_mb, layers, &Trace::off())?;
     streamer.error_mode = mode;
@@ -783,7 +788,7 @@ pub(crate) fn errors_over_atlas(
     if let Some(path) = dump {
         // In the in-memory dump's layout.
         let l = crate::stream::draw::layout(&grid);
-        let per_side = grid.tile_quads / crate::stream::cache::BLOCK_QUADS;
+        let per_side = grid.tile_quads / grid.block_quads;
         let errors = at_start.unwrap_or_default();
         let bytes: Vec<u8> =
             errors.packed(l.root_lod(), l.roots, per_side).iter().flat_map(|v| v.to_le_bytes()).collect();
@@ -798,7 +803,7 @@ pub(crate) fn errors_over_atlas(
     Ok(serde_json::json!({
         "streamed": true,
         "grid": [grid.width, grid.height],
-        "block": 33,
+        "block": grid.block_quads + 1,
         "error_mode": mode.as_str(),
         "atlas_layers": atlas.layer_count(),
         "tiles_held": streamer.cache.len(),
@@ -880,7 +885,7 @@ pub struct ArchiveRender {
 /// drawn from it (plain shading). The frame waits for its tiles, as a viewer's first frame
 /// does; where the cache cannot hold them it is drawn over the bound and says so.
 pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
-    let grid = streamed_grid(&f.archive, &f.common.terrain.frame);
+    let grid = streamed_grid(&f.archive, &f.common.terrain.frame, f.common.block.k)?;
     let (w, h) = f.common.view.frustum.size.unwrap_or((1280, 720));
     crate::app::cli::check_image_size(&f.device, "--size", (w, h))?;
     let layers = f.device.properties.limits.max_image_array_layers;
@@ -1059,7 +1064,7 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
     }
     let shown = args.terrain.name();
     let (archive, _) = streamed_archive(&args.terrain, true, || usize::MAX)?.expect("a terrain drawn from tiles");
-    let grid = streamed_grid(&archive, &args.terrain.frame);
+    let grid = streamed_grid(&archive, &args.terrain.frame, crate::lod::block::DEFAULT_K)?;
     let local_archive = args.terrain.heightmap.as_deref().filter(|p| !archive.held_in_memory() && !is_url(p));
     match (args.cold, local_archive) {
         (false, _) => {}

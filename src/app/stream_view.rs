@@ -208,7 +208,7 @@ fn go_to(geo: &crate::app::geo::Geo, streamer: &Streamer, from: Vec3, lat: f64, 
 /// `vkterrain view` over an archive drawn streamed.
 pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow::Result<()> {
     let shown = args.common.terrain.name();
-    let mut grid = crate::app::stream::streamed_grid(&archive, &args.common.terrain.frame);
+    let mut grid = crate::app::stream::streamed_grid(&archive, &args.common.terrain.frame, args.common.block.k)?;
     let true_height_scale = grid.height_scale;
     // Only the drawn heights scale: the bound (`D * height_scale`) follows.
     grid.height_scale *= f64::from(args.exaggeration);

@@ -658,7 +658,7 @@ impl Activity<'_> {
             };
             // Strict: tiles with a D (above level 0). Paper: every tile below the top
             // level's coarsest block (a tile gives the blocks one LOD above its own).
-            let shaded = |k: &&TileKey| if paper { grid.tile_quads >= 64 } else { k.level > 0 };
+            let shaded = |k: &&TileKey| if paper { grid.tile_quads >= 2 * grid.block_quads } else { k.level > 0 };
             request.tiles.iter().filter(shaded).filter_map(resident).take(AtlasPasses::capacity()).collect()
         };
         if tiles.is_empty() {
@@ -690,7 +690,7 @@ impl Activity<'_> {
         let paper = match request.mode {
             ErrorMode::Paper => {
                 use crate::stream::errors::{nested_paper_errors, paper_own_errors};
-                let n = grid.tile_quads / crate::stream::cache::BLOCK_QUADS;
+                let n = grid.tile_quads / grid.block_quads;
                 let own = tiles.iter().flat_map(|(&k, cell)| paper_own_errors(k, cell, n, grid.top)).collect();
                 nested_paper_errors(&own)
             }

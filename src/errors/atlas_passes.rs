@@ -66,7 +66,7 @@ pub(crate) struct AtlasPasses {
     target: Image,
     readback: Buffer,
     timer: Option<FrameTimer>,
-    /// Blocks a tile side (`tile_quads / 32`): a cell's side in texels.
+    /// Blocks a tile side (`tile_quads / block_quads`): a cell's side in texels.
     per_side: u32,
 }
 
@@ -102,7 +102,7 @@ impl AtlasPasses {
             ],
             &[],
         );
-        let per_side = (grid.tile_quads / crate::stream::cache::BLOCK_QUADS) as u32;
+        let per_side = (grid.tile_quads / grid.block_quads) as u32;
         let extent = vk::Extent2D { width: CELLS[0] * per_side, height: CELLS[1] * per_side };
         let usage = vk::ImageUsageFlags::COLOR_ATTACHMENT | vk::ImageUsageFlags::TRANSFER_SRC;
         let target =
@@ -211,6 +211,7 @@ impl AtlasPasses {
                         ],
                         camera: [cam.position.x, cam.position.y, cam.position.z, cam.kappa()],
                         params: [grid.spacing[0] as f32, grid.height_scale as f32, cam.near, grid.spacing[1] as f32],
+                        shape: [grid.block_quads as i32, 0, 0, 0],
                     };
                     let rect = vk::Rect2D {
                         offset: vk::Offset2D { x: at[0] as i32, y: at[1] as i32 },
@@ -284,7 +285,7 @@ impl AtlasPasses {
             })
             .collect();
         let gpu_ms = self.timer.as_ref().map(|t| t.read().map(|r| r.1)).transpose()?;
-        // 32 x 32 groups a block shaded.
+        // block_quads^2 groups a block shaded.
         let blocks: u32 = tiles
             .iter()
             .flat_map(|&(key, _, slot)| self.passes_of(key, slot, grid.top, mode))
@@ -292,7 +293,7 @@ impl AtlasPasses {
             .sum();
         let shaded = Shaded {
             tiles: tiles.len() as u64,
-            groups: u64::from(blocks) * 32 * 32,
+            groups: u64::from(blocks) * (grid.block_quads * grid.block_quads) as u64,
             bytes_read_back: (tiles.len() * cell * 4) as u64,
             gpu_ms,
         };

@@ -196,6 +196,8 @@ gpu_block! {
         camera: [f32; 4] => "vec4",
         /// spacing x, height_scale, near, spacing z.
         params: [f32; 4] => "vec4",
+        /// x: quads a side of a block (`k - 1`).
+        shape: [i32; 4] => "ivec4",
     }
 }
 

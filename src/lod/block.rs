@@ -74,6 +74,9 @@ impl BlockLayout {
     }
 }
 
+/// Vertices a side of a block unless `--block` says otherwise: the paper's k = 33.
+pub const DEFAULT_K: u32 = 33;
+
 /// Parts along each side of a block of `2^m` quads: the squares occlusion culling hides
 /// one by one, each a contiguous range of the block mesh's indices ([`block_mesh_data`]).
 /// Each part is an even number of quads wide, so a vertex that morphs towards its parent

@@ -11,10 +11,6 @@ use crate::lod::heightfield::RawSamples;
 use foldhash::{HashMap, HashMapExt};
 use std::sync::Arc;
 
-/// Quads a side of a block (`k - 1` for the blocks' k = 33): a tile of its own level
-/// holds `T / BLOCK_QUADS` blocks a side.
-pub const BLOCK_QUADS: usize = 32;
-
 /// What the bound needs of one block of LOD `j`, in raw height units: the range of its
 /// LOD-`j` vertices, `D_j`, the largest deviation of the full-resolution samples from its
 /// surface, and the heights both can take: every sample under the block and every point
@@ -27,7 +23,7 @@ pub struct BlockSummary {
     pub d: f32,
     pub min: f32,
     pub max: f32,
-    /// The same of each of the block's `SUB x SUB` squares (row-major, `BLOCK_QUADS /
+    /// The same of each of the block's `SUB x SUB` squares (row-major, `block_quads /
     /// SUB` groups a side): the traversal bounds each from its own box, as the in-memory
     /// error images bound each group at its own distance ([`crate::stream::traverse`]).
     pub squares: [Square; SUB * SUB],
@@ -51,14 +47,14 @@ pub const SUB: usize = 8;
 
 /// The LOD of the blocks the archive's roots are: one block over the top tile's square.
 pub fn root_lod(grid: &Grid) -> u32 {
-    (grid.tile_span(grid.top) / BLOCK_QUADS).trailing_zeros()
+    (grid.tile_span(grid.top) / grid.block_quads).trailing_zeros()
 }
 
 /// The tile a block of LOD `lod` at block coordinates `(bx, bz)` is drawn from: the tile
 /// of level `lod` that covers it, or the top tile for blocks coarser than the top level.
 pub fn serving_tile(grid: &Grid, lod: u32, bx: u32, bz: u32) -> TileKey {
     let level = lod.min(u32::from(grid.top)) as u8;
-    let per_tile = (grid.tile_span(level) / (BLOCK_QUADS << lod)).max(1) as u32;
+    let per_tile = (grid.tile_span(level) / (grid.block_quads << lod)).max(1) as u32;
     TileKey::new(level, bx / per_tile, bz / per_tile)
 }
 
@@ -106,7 +102,7 @@ pub struct TileData {
     pub heights: Heights,
     /// `D` of the tile's groups, as [`Tile::deviation`].
     pub deviation: Vec<f32>,
-    /// `blocks[j - level]`: row-major, `(8 >> (j - level))^2` for T = 256.
+    /// `blocks[j - level]`: row-major, `(T / block_quads >> (j - level))^2`.
     blocks: Vec<Vec<BlockSummary>>,
     /// Bytes held (heights, deviations, summaries).
     pub bytes: usize,
@@ -122,12 +118,13 @@ impl TileData {
         let level = u32::from(key.level);
         let last = if key.level == grid.top { root_lod(grid) } else { level };
         let vertex = |i: usize, j: usize| tile.heights[(j + 1) * tile.side + i + 1];
+        let quads = grid.block_quads;
         // Where D_j of this tile starts in `tile.deviation` and its side in groups.
         let mut offset = 0usize;
         let mut blocks = Vec::new();
         for j in level..=last {
             let groups = t >> (j - level);
-            let per_side = groups / BLOCK_QUADS;
+            let per_side = groups / quads;
             let stride = 1usize << (j - level);
             let has_d = j > 0;
             if has_d && offset + groups * groups > tile.deviation.len() {
@@ -136,14 +133,14 @@ impl TileData {
             let mut summaries = Vec::with_capacity(per_side * per_side);
             for bz in 0..per_side {
                 for bx in 0..per_side {
-                    let q = BLOCK_QUADS / SUB;
+                    let q = quads / SUB;
                     let mut squares = [Square { d: 0.0, min: f32::INFINITY, max: f32::NEG_INFINITY }; SUB * SUB];
                     let mut edge_d = [[0.0f32; SUB]; 4];
                     let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
-                    for gz in 0..BLOCK_QUADS {
-                        for gx in 0..BLOCK_QUADS {
+                    for gz in 0..quads {
+                        for gx in 0..quads {
                             let corner = |u: usize, v: usize| {
-                                vertex((bx * BLOCK_QUADS + gx + u) * stride, (bz * BLOCK_QUADS + gz + v) * stride)
+                                vertex((bx * quads + gx + u) * stride, (bz * quads + gz + v) * stride)
                             };
                             let c = [corner(0, 0), corner(1, 0), corner(0, 1), corner(1, 1)];
                             let (cmin, cmax) = (
@@ -151,7 +148,7 @@ impl TileData {
                                 c.into_iter().fold(f32::NEG_INFINITY, f32::max),
                             );
                             let g = if has_d {
-                                tile.deviation[offset + (bz * BLOCK_QUADS + gz) * groups + bx * BLOCK_QUADS + gx]
+                                tile.deviation[offset + (bz * quads + gz) * groups + bx * quads + gx]
                             } else {
                                 0.0
                             };
@@ -159,7 +156,7 @@ impl TileData {
                             s.d = s.d.max(g);
                             (s.min, s.max) = (s.min.min(cmin - g), s.max.max(cmax + g));
                             (lo, hi) = (lo.min(cmin), hi.max(cmax));
-                            let last = BLOCK_QUADS - 1;
+                            let last = quads - 1;
                             for (e, on) in [gz == 0, gx == last, gz == last, gx == 0].into_iter().enumerate() {
                                 if on {
                                     let k = if e % 2 == 0 { gx / q } else { gz / q };
@@ -211,7 +208,7 @@ impl TileData {
     /// this tile serves.
     pub fn block(&self, grid: &Grid, lod: u32, bx: u32, bz: u32) -> BlockSummary {
         let j = (lod - u32::from(self.key.level)) as usize;
-        let per_side = (grid.tile_quads >> j) / BLOCK_QUADS;
+        let per_side = (grid.tile_quads >> j) / grid.block_quads;
         let (lx, lz) = (bx as usize - self.key.tx as usize * per_side, bz as usize - self.key.tz as usize * per_side);
         self.blocks[j][lz * per_side + lx]
     }
@@ -222,7 +219,7 @@ impl TileData {
 pub fn tile_bytes_estimate(grid: &Grid, level: u8) -> usize {
     let t = grid.tile_quads;
     let own_d = if level > 0 { t * t } else { 0 };
-    let summaries = (t / BLOCK_QUADS).pow(2) * std::mem::size_of::<BlockSummary>();
+    let summaries = (t / grid.block_quads).pow(2) * std::mem::size_of::<BlockSummary>();
     (t + 3) * (t + 3) * grid.height_bytes + own_d * 4 + summaries + 4096
 }
 
@@ -469,10 +466,10 @@ impl HostCache {
     }
 }
 
-/// The block layout of an archive's grid: blocks of `BLOCK_QUADS + 1` vertices, one
+/// The block layout of an archive's grid: blocks of `block_quads + 1` vertices, one
 /// root block over each top-level tile.
 pub fn layout(grid: &Grid) -> BlockLayout {
-    let m = BLOCK_QUADS.trailing_zeros();
+    let m = grid.block_quads.trailing_zeros();
     let [nx, nz] = grid.tiles_at(grid.top);
     BlockLayout { n: root_lod(grid) + m, m, roots: [nx as usize, nz as usize] }
 }

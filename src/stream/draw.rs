@@ -175,7 +175,7 @@ pub fn hidden_parts(
         for &(_, h) in &corners {
             (lo, hi) = (lo.min(h), hi.max(h));
         }
-        let size = (super::cache::BLOCK_QUADS << b.lod) as i64;
+        let size = (grid.block_quads << b.lod) as i64;
         let (ox, oz) = (i64::from(b.bx) * size, i64::from(b.bz) * size);
         let square = size / SUB as i64;
         let last = SUB - 1;
@@ -209,7 +209,7 @@ pub fn hidden_parts(
     let culled: Vec<(Rect, f64)> = culled
         .iter()
         .map(|&(lod, bx, bz, min)| {
-            let size = (super::cache::BLOCK_QUADS << lod) as i64;
+            let size = (grid.block_quads << lod) as i64;
             (rect(i64::from(bx) * size, i64::from(bz) * size, size), f64::from(min) * hs)
         })
         .collect();

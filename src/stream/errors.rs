@@ -28,7 +28,7 @@ pub struct TileErrors {
     /// The generation's GPU time, when the device has timestamps.
     pub gpu_ms: Option<f64>,
     /// Per tile shaded: the errors of the blocks of its own level, row-major,
-    /// `(tile_quads / 32)^2` of them (strict mode; the paper's is in `paper`).
+    /// `(tile_quads / block_quads)^2` of them (strict mode; the paper's is in `paper`).
     pub tiles: HashMap<TileKey, Vec<f32>>,
     /// The mode they were computed in.
     pub mode: ErrorMode,

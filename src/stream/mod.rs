@@ -63,7 +63,13 @@ pub struct Grid {
     pub origin: [f64; 2],
     /// Bytes a height takes decoded: 2 (16-bit archives) or 4 (float).
     pub height_bytes: usize,
+    /// Quads a side of a block (`k - 1`, `--block`): a tile of its own level holds
+    /// `tile_quads / block_quads` blocks a side.
+    pub block_quads: usize,
 }
+
+/// Quads a side of a block unless `--block` says otherwise (blocks of k = 33, the paper's).
+pub const DEFAULT_BLOCK_QUADS: usize = 32;
 
 impl Grid {
     pub fn from_meta(m: &Meta) -> Self {
@@ -76,7 +82,27 @@ impl Grid {
             height_scale: f64::from(m.height_scale),
             origin: [0.0, 0.0],
             height_bytes: if m.samples == "float32" { 4 } else { 2 },
+            block_quads: DEFAULT_BLOCK_QUADS,
         }
+    }
+
+    /// The same grid drawn with blocks of `k` vertices a side (`--block`). A block is
+    /// summarised as [`cache::SUB`]` x `[`cache::SUB`] squares, so it has at least that
+    /// many quads a side; and the paper's errors of a block one LOD coarser than a tile
+    /// come from that tile's own vertices, so a tile holds at least two blocks a side.
+    pub fn with_block(self, k: u32) -> Result<Self, String> {
+        let m = crate::lod::block::BlockLayout::check(k)?;
+        let quads = 1usize << m;
+        let most = self.tile_quads / 2;
+        if quads < cache::SUB || quads > most {
+            return Err(format!(
+                "--block {k}: a terrain drawn from tiles of {} quads takes blocks of {} to {} vertices a side",
+                self.tile_quads,
+                cache::SUB + 1,
+                most + 1
+            ));
+        }
+        Ok(Grid { block_quads: quads, ..self })
     }
 
     /// World size of the true extent along x and z (from sample 0 to the last).

@@ -33,7 +33,7 @@
 //! only in the factors: the in-memory bound measures each group from its own box and the
 //! edge regions exactly, which the tiles do not hold.
 
-use super::cache::{layout, root_lod, serving_tile, HostCache, Resident, BLOCK_QUADS, SUB};
+use super::cache::{layout, root_lod, serving_tile, HostCache, Resident, SUB};
 use super::traverse::{block_box, square_box, Selection, StripCache, View};
 use super::Grid;
 use crate::lod::block::{map_in_pool, morph_value, DrawBlock, MORPH_ONE};
@@ -113,14 +113,18 @@ pub fn terms(
     let boxed = block_box(grid, anchor, j, bx, bz, lo, hi);
     let scale = grid.height_scale as f32;
     let per_distance = scale * cam.kappa() * angular_factor(cam, boxed.0, boxed.1, delta);
-    // The block's parent groups (LOD j + 1): BLOCK_QUADS / 2 a side from here.
-    let (gx0, gz0) = (bx as usize * BLOCK_QUADS / 2, bz as usize * BLOCK_QUADS / 2);
-    let per_square = BLOCK_QUADS / SUB / 2;
+    // The block's parent groups (LOD j + 1): block_quads / 2 a side from here.
+    let quads = grid.block_quads;
+    let (gx0, gz0) = (bx as usize * quads / 2, bz as usize * quads / 2);
+    // A square is `q` quads a side; its parent groups are those its quads lie in (one
+    // group for half of it when a square is a single quad, as with blocks of k = 9).
+    let q = quads / SUB;
+    let groups = |s: usize| s * q / 2..((s + 1) * q).div_ceil(2);
     let mut out = MorphTerms { terms: Vec::with_capacity(2 * SUB * SUB), parent_px: 0.0 };
     let e0_of = |sx: usize, sz: usize| {
         let mut e0 = 0.0f32;
-        for gz in gz0 + sz * per_square..gz0 + (sz + 1) * per_square {
-            for gx in gx0 + sx * per_square..gx0 + (sx + 1) * per_square {
+        for gz in groups(sz).map(|g| gz0 + g) {
+            for gx in groups(sx).map(|g| gx0 + g) {
                 e0 = e0.max(parent.group_d(grid, j + 1, gx, gz));
             }
         }

@@ -11,7 +11,7 @@
 //! within the bound but above `prefetch * delta` want their finer tile too, at a lower
 //! priority, so that it is there before it is needed.
 
-use super::cache::{layout, root_lod, serving_tile, BlockSummary, HostCache, Resident, BLOCK_QUADS, SUB};
+use super::cache::{layout, root_lod, serving_tile, BlockSummary, HostCache, Resident, SUB};
 use super::errors::{stale_factor, TileErrors};
 use super::{Grid, TileKey};
 use crate::lod::block::DrawBlock;
@@ -180,7 +180,7 @@ impl Selection {
 
 /// Relative world box of block `(lod, bx, bz)` between raw heights `lo` and `hi`.
 pub(super) fn block_box(grid: &Grid, anchor: [i64; 2], lod: u32, bx: u32, bz: u32, lo: f32, hi: f32) -> (Vec3, Vec3) {
-    let size = (BLOCK_QUADS << lod) as i64;
+    let size = (grid.block_quads << lod) as i64;
     square_of_samples_box(grid, anchor, [i64::from(bx) * size, i64::from(bz) * size], size, lo, hi)
 }
 
@@ -392,7 +392,7 @@ impl<'a> Traverser<'a> {
     fn visit(&mut self, mut stack: Vec<(u32, u32, u32)>) {
         let (grid, cache, delta) = (self.grid, self.cache, self.delta);
         while let Some((lod, bx, bz)) = stack.pop() {
-            let size = BLOCK_QUADS << lod;
+            let size = grid.block_quads << lod;
             if bx as usize * size >= grid.width - 1 || bz as usize * size >= grid.height - 1 {
                 continue; // wholly outside the true extent
             }
@@ -491,7 +491,7 @@ impl<'a> Traverser<'a> {
         if lod != u32::from(key.level) || lod == 0 || errors.height_scale != self.grid.height_scale {
             return None;
         }
-        let per_side = self.grid.tile_quads / BLOCK_QUADS;
+        let per_side = self.grid.tile_quads / self.grid.block_quads;
         let (lx, lz) = (bx as usize - key.tx as usize * per_side, bz as usize - key.tz as usize * per_side);
         // Infinite where a group's D is past the half floats' range: no bound then.
         let raw = errors.block(key, lz * per_side + lx).filter(|e| e.is_finite())?;
@@ -694,7 +694,7 @@ mod tests {
     #[test]
     fn a_strip_is_bounded_from_the_squares_along_its_edge() {
         let (side, delta) = (320.0f32, 1.0f32);
-        let quad = side / BLOCK_QUADS as f32;
+        let quad = side / crate::stream::DEFAULT_BLOCK_QUADS as f32;
         let square = |i: usize, d: f32| Square { d, min: 3.0 * i as f32 - d, max: 3.0 * i as f32 + 5.0 + d };
         let (lo, hi, d, departure) = (0.0f32, 3.0 * (SUB * SUB - 1) as f32 + 5.0, 3.0f32, 2.0f32);
         let (mut checked, mut tighter) = (0usize, 0usize);
