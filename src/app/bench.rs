@@ -1209,7 +1209,8 @@ fn bench_streamed(
 ) -> anyhow::Result<()> {
     use crate::app::stream::{atlas_bound_streamer, streamed_grid, top_tiles};
     use crate::stream::traverse::View;
-    args.common.refuse_untiled(&[("--raycast", args.raycast != crate::draw::raycast::Raycast::Off)])?;
+    let raycast = args.raycast != crate::draw::raycast::Raycast::Off;
+    crate::app::cli::refuse_on_tiles(&args.common.terrain.name(), &[("--raycast", raycast)])?;
     let size = args.common.view.frustum.size.unwrap_or((640, 480));
     crate::app::cli::check_image_size(&device, "--size", size)?;
     crate::app::outputs::output_dir("--out", &args.out)?;
@@ -1274,6 +1275,7 @@ fn bench_streamed(
         path.fly(&mut streamer, &mut gpu, (args.lod, None, keep, args.popping), "streamed")?;
     // The main run's drawing (the comparison runs draw on the same renderer).
     let (gpu_report, deferred_frames) = (gpu.report(), gpu.deferred_frames);
+    let most_in_flight = gpu.errors_in_flight();
     let seconds = run.wall_ms.unwrap_or(0.0) / 1e3;
     let drawn = run.rows.len() as u64;
     let (_, mean) = sorted_with_mean(run.rows.iter().map(|r| r.frame_ms));
@@ -1312,6 +1314,7 @@ fn bench_streamed(
         "gpu": gpu_report,
         "device": device.name,
         "queue_mode": device.queue_mode.as_str(),
+        "most_generations_in_flight": most_in_flight,
         "validation": device.instance.validation,
         "validation_messages": device.instance.validation_messages(),
         "path": args.path.to_string(),
@@ -1376,7 +1379,7 @@ fn bench_frames(
     (trace, fault): (&Trace, Option<Fault>),
 ) -> anyhow::Result<crate::app::stream::GpuFrames> {
     let mut gpu = crate::app::stream::GpuFrames::new(device.clone(), streamer, gpu_mb, range, size, trace)?;
-    gpu.set_update_share(args.common.update_share);
+    gpu.pace_errors(&args.common);
     gpu.set_normals(args.shading);
     gpu.set_pixels(args.pixels);
     gpu.set_textures(&args.textures.load_over(&m.georef, (m.width, m.height))?, &args.textures)?;

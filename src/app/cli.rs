@@ -375,21 +375,6 @@ pub struct CommonArgs {
     pub sun: SunArg,
 }
 
-impl CommonArgs {
-    /// Refuses, naming them, the options a terrain drawn from tiles cannot honour yet that
-    /// were given a value other than their default (drawing anyway would ignore them
-    /// silently): the shared ones and the command's own `more` (each with whether it was
-    /// given).
-    pub fn refuse_untiled(&self, more: &[(&'static str, bool)]) -> Result<(), InputError> {
-        let shared = [
-            // Over tiles the errors thread waits for each generation before the next.
-            ("--error-pacing free", self.error_pacing == crate::errors::activity::Pacing::Free),
-        ];
-        let options: Vec<(&str, bool)> = more.iter().chain(&shared).copied().collect();
-        refuse_on_tiles(&self.terrain.name(), &options)
-    }
-}
-
 /// Refuses, naming them, the options of `options` that were given (each with whether
 /// it was) which a terrain drawn from tiles cannot honour yet.
 pub fn refuse_on_tiles(terrain: &str, options: &[(&str, bool)]) -> Result<(), InputError> {

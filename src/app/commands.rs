@@ -412,7 +412,7 @@ fn render_streamed(
     stop: Option<&crate::app::signals::Stop>,
 ) -> anyhow::Result<()> {
     let shown = args.common.terrain.name();
-    args.common.refuse_untiled(&[("--raycast", args.raycast != Raycast::Off)])?;
+    crate::app::cli::refuse_on_tiles(&args.common.terrain.name(), &[("--raycast", args.raycast != Raycast::Off)])?;
     let m = &archive.meta;
     eprintln!("{}", crate::app::stream::streamed_banner(&shown, m, args.streamed.cache_mb(), args.streamed.gpu_mb()));
     let queue_mode = device.queue_mode.as_str();

@@ -413,9 +413,16 @@ impl GpuFrames {
         self.atlas.inject_device_lost_at(n);
     }
 
-    /// The largest share of wall time the errors generations take (`--update-share`).
-    pub fn set_update_share(&self, share: f32) {
-        self.atlas.set_update_share(share);
+    /// How the errors generations are paced: the largest share of wall time they take
+    /// (`--update-share`), and whether two may be in flight (`--error-pacing`).
+    pub fn pace_errors(&self, common: &CommonArgs) {
+        self.atlas.set_update_share(common.update_share);
+        self.atlas.set_pacing(common.error_pacing, &self.device);
+    }
+
+    /// The most generations the errors activity had in flight at once.
+    pub fn errors_in_flight(&self) -> u64 {
+        self.atlas.most_in_flight()
     }
 
     /// What the errors generations shaded so far.
@@ -913,6 +920,7 @@ pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
     settle(&mut streamer, |_| view, f.delta);
     exit_if_stopped(f.stop);
     let mut gpu = GpuFrames::new(f.device.clone(), &mut streamer, f.gpu_mb, range, (w, h), &Trace::off())?;
+    gpu.pace_errors(f.common);
     // Again with the atlas attached: the blocks' errors from the errors activity.
     let (_, sel) = settle(&mut streamer, |_| view, f.delta);
     exit_if_stopped(f.stop);

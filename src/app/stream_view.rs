@@ -389,7 +389,7 @@ impl App {
         let threads = self.args.common.lod.traversal_threads;
         crate::app::stream::streamer_threads(&mut self.streamer, threads, Some(&device))?;
         let mut frames = GpuFrames::new(device, &mut self.streamer, self.args.gpu_mb, self.range, (w, h), &self.trace)?;
-        frames.set_update_share(self.args.common.update_share);
+        frames.pace_errors(&self.args.common);
         frames.fog = self.fog;
         frames.set_textures(&self.textures, &self.args.textures)?;
         frames.sun(self.args.common.sun.0)?;

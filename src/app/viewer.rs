@@ -302,7 +302,6 @@ fn view_archive(args: &ViewArgs, resizes: &[(u64, u32, u32)]) -> anyhow::Result<
     else {
         return Ok(false);
     };
-    args.common.refuse_untiled(&[])?;
     let options = crate::app::stream_view::StreamViewOptions {
         common: args.common.clone(),
         textures: args.textures.clone(),

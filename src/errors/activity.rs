@@ -119,6 +119,18 @@ pub enum Pacing {
     Free,
 }
 
+impl Pacing {
+    /// Whether each submission waits for the one before, on a device whose queues are
+    /// arranged as `queues`.
+    pub fn paced(self, queues: crate::vk::QueueMode) -> bool {
+        match self {
+            Pacing::Auto => queues == crate::vk::QueueMode::Shared,
+            Pacing::Paced => true,
+            Pacing::Free => false,
+        }
+    }
+}
+
 /// Handle held by the draw thread.
 pub struct ErrorsActivity {
     shared: Arc<Shared>,
@@ -158,11 +170,7 @@ impl ErrorsActivity {
                 gpu_allocator::MemoryLocation::GpuToCpu,
             )
         };
-        let paced = match pacing {
-            Pacing::Auto => device.queue_mode == crate::vk::QueueMode::Shared,
-            Pacing::Paced => true,
-            Pacing::Free => false,
-        };
+        let paced = pacing.paced(device.queue_mode);
         let shared = Arc::new(Shared {
             request: Mutex::new(Request { params: None, stop: false }),
             handoff: Mutex::new(HandoffState { protocol: Handoff::default(), slots: [None, None] }),

@@ -43,6 +43,9 @@ pub const DEFAULT_UPDATE_SHARE: f32 = 0.05;
 /// A tile read by the IO thread and the bytes read for it.
 pub type Read = (Arc<TileData>, u64);
 
+/// A tile given a layer of heights and, above level 0, a slot of deviations.
+type Placed = (Arc<TileData>, usize, Option<u32>);
+
 /// What the two threads share, under one lock.
 struct State {
     layers: AtlasLayers<TileKey>,
@@ -83,6 +86,8 @@ struct State {
     update_share: f32,
     next_errors_at: Option<Instant>,
     hurry: bool,
+    /// The most generations the errors thread had in flight at once.
+    most_in_flight: u64,
 }
 
 /// Which slot of deviations the tile in each layer of heights holds (tiles above level 0
@@ -169,6 +174,8 @@ struct Shared {
     generations: TimelineSemaphore,
     /// Frame `f` has completed when this reaches `f` (the draw queue signals it).
     frames: TimelineSemaphore,
+    /// Each generation is waited for before the next is recorded (`--error-pacing`).
+    paced: std::sync::atomic::AtomicBool,
 }
 
 impl Shared {
@@ -300,11 +307,13 @@ impl HeightAtlas {
                 update_share: DEFAULT_UPDATE_SHARE,
                 next_errors_at: None,
                 hurry: false,
+                most_in_flight: 0,
             }),
             work: Condvar::new(),
             progress: Condvar::new(),
             generations: TimelineSemaphore::new(device, 0)?,
             frames: TimelineSemaphore::new(device, 0)?,
+            paced: std::sync::atomic::AtomicBool::new(true),
         });
         let thread = std::thread::Builder::new()
             .name("vkterrain-atlas".into())
@@ -404,6 +413,19 @@ impl HeightAtlas {
         self.shared.lock().device_lost_at = n;
     }
 
+    /// How the errors thread paces its generations (`--error-pacing`), on `device`'s
+    /// queues: paced, each is waited for before the next is recorded; free, two may be
+    /// in flight. Default: paced.
+    pub fn set_pacing(&self, pacing: crate::errors::activity::Pacing, device: &Device) {
+        self.shared.paced.store(pacing.paced(device.queue_mode), std::sync::atomic::Ordering::Relaxed);
+        self.shared.work.notify_all();
+    }
+
+    /// The most generations the errors thread had in flight at once.
+    pub fn most_in_flight(&self) -> u64 {
+        self.shared.lock().most_in_flight
+    }
+
     /// Why the errors thread stopped, if it failed: frames drawn from then on fail.
     pub fn failure(&self) -> Option<String> {
         self.shared.lock().failure.clone()
@@ -492,24 +514,56 @@ const SAMPLED: (vk::PipelineStageFlags2, vk::AccessFlags2, vk::ImageLayout) = (
 
 /// The errors activity's thread for tiles: each batch of tiles handed over is uploaded
 /// as one generation (layers claimed under the lock, heights and deviations copied on
-/// the errors queue, the generation's timeline value waited for on this thread), then
-/// handed back; each request for errors is shaded as one generation over the tiles it
-/// names that are resident ([`AtlasPasses`]), read back and published.
+/// the errors queue), then handed back once the generation has finished; each request
+/// for errors is shaded as one generation over the tiles it names that are resident
+/// ([`AtlasPasses`]), read back and published. Paced, each generation is waited for
+/// before the next is recorded; free (`--error-pacing free`), the next is submitted
+/// while the last runs, two in flight at most, each with its own command buffer,
+/// staging buffer and slot of the passes (`g % 2`).
 struct Activity<'a> {
     device: &'a Arc<Device>,
     shared: &'a Shared,
     trace: &'a Trace,
-    cmd: vk::CommandBuffer,
-    staging: Option<Buffer>,
+    cmds: [vk::CommandBuffer; 2],
+    staging: [Option<Buffer>; 2],
     passes: AtlasPasses,
+    /// The newest generation submitted.
     generation: u64,
+    /// Generations submitted and not yet finished on this thread, oldest first.
+    in_flight: std::collections::VecDeque<InFlight>,
+}
+
+/// A generation submitted: what finishing it hands over.
+struct InFlight {
+    g: u64,
+    started: Instant,
+    work: Work,
+}
+
+enum Work {
+    /// Tiles uploaded (each with its layer and slot of deviations), the tiles handed back
+    /// with them (`count` in all) and those that found no layer.
+    Upload { count: usize, placed: Vec<Placed>, back: Vec<Read>, dropped: Vec<TileKey> },
+    /// Block errors shaded for `request` over `tiles` (key, layer, slot), for the camera
+    /// whose kappa is `kappa`, heights scaled as in `grid`.
+    Shade { request: ErrorsRequest, tiles: Vec<(TileKey, u32, u32)>, grid: Grid, kappa: f32 },
 }
 
 /// The thread's loop: uploads first (the traversal waits for its tiles), then errors.
 fn run(device: &Arc<Device>, shared: &Shared, trace: &Trace) -> VkResult<()> {
     let pool = CommandPool::new(device, device.errors_queue.family)?;
     let passes = AtlasPasses::new(device, &shared.grid, &shared.image, &shared.deviation)?;
-    let mut a = Activity { device, shared, trace, cmd: pool.allocate()?, staging: None, passes, generation: 0 };
+    let cmds = [pool.allocate()?, pool.allocate()?];
+    let mut a = Activity {
+        device,
+        shared,
+        trace,
+        cmds,
+        staging: [None, None],
+        passes,
+        generation: 0,
+        in_flight: Default::default(),
+    };
     let result = loop {
         let (batch, request) = {
             let mut s = shared.lock();
@@ -517,7 +571,8 @@ fn run(device: &Arc<Device>, shared: &Shared, trace: &Trace) -> VkResult<()> {
             // (at once when a settle waits for it); tiles to upload are always due.
             let due =
                 |s: &State| s.request.is_some() && (s.hurry || s.next_errors_at.is_none_or(|t| Instant::now() >= t));
-            while s.todo.is_empty() && !due(&s) && !s.stop {
+            // With a generation in flight, nothing new to do means finishing it.
+            while s.todo.is_empty() && !due(&s) && !s.stop && a.in_flight.is_empty() {
                 s = match s.next_errors_at.filter(|_| s.request.is_some()) {
                     Some(t) => {
                         let wait = t.saturating_duration_since(Instant::now());
@@ -532,44 +587,94 @@ fn run(device: &Arc<Device>, shared: &Shared, trace: &Trace) -> VkResult<()> {
             let request = if due(&s) { s.request.take() } else { None };
             (std::mem::take(&mut s.todo), request)
         };
+        if batch.is_empty() && request.is_none() {
+            if let Err(e) = a.finish_oldest() {
+                break Err(e);
+            }
+            continue;
+        }
         if !batch.is_empty() {
             if let Err(e) = a.upload_batch(batch) {
                 break Err(e);
             }
         }
         if let Some(request) = request {
-            let number = request.number;
-            let started = Instant::now();
-            let shaded = a.shade(request);
-            let mut s = shared.lock();
-            s.answered = number;
-            s.hurry &= s.answered < s.requested;
-            // After an update of u, the next waits u (1 / share - 1): the errors take at
-            // most `share` of the wall time.
-            // (At most a day: longer is never, and an Instant cannot overflow.)
-            let wait = started.elapsed().as_secs_f64() * (1.0 / f64::from(s.update_share) - 1.0);
-            s.next_errors_at = Some(Instant::now() + std::time::Duration::from_secs_f64(wait.min(86_400.0)));
-            drop(s);
-            shared.progress.notify_all();
-            if let Err(e) = shaded {
+            if let Err(e) = a.shade(request) {
                 break Err(e);
             }
         }
     };
-    // The last generation was waited for: the pool and staging may go.
-    pool.free(a.cmd);
+    // Every generation submitted is waited for before the pool and staging go (a lost
+    // device answers at once).
+    let last = a.generation;
+    let _ = shared.generations.wait(last, u64::MAX);
+    a.cmds.into_iter().for_each(|cmd| pool.free(cmd));
     result
 }
 
 impl Activity<'_> {
-    /// Places, uploads and hands back one batch of tiles read.
+    /// Whether each generation is waited for before the next is recorded.
+    fn paced(&self) -> bool {
+        self.shared.paced.load(std::sync::atomic::Ordering::Relaxed)
+    }
+
+    /// Makes room for generation `self.generation + 1`: at most one other in flight (its
+    /// command buffer, staging and slot are the other ones).
+    fn make_room(&mut self) -> VkResult<()> {
+        while self.in_flight.len() >= 2 {
+            self.finish_oldest()?;
+        }
+        Ok(())
+    }
+
+    /// Submits `cmd` (recorded) as generation `g` on the errors queue, to be finished
+    /// with `work`; paced, finishes it at once.
+    fn submit(&mut self, g: u64, started: Instant, work: Work) -> VkResult<()> {
+        let shared = self.shared;
+        let cmd = self.cmds[(g % 2) as usize];
+        let cmds = [vk::CommandBufferSubmitInfo::default().command_buffer(cmd)];
+        let signal = [vk::SemaphoreSubmitInfo::default()
+            .semaphore(shared.generations.handle)
+            .value(g)
+            .stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)];
+        let submit = vk::SubmitInfo2::default().command_buffer_infos(&cmds).signal_semaphore_infos(&signal);
+        self.device.errors_queue.submit(self.device, &[submit], vk::Fence::null())?;
+        self.generation = g;
+        self.in_flight.push_back(InFlight { g, started, work });
+        {
+            let mut s = shared.lock();
+            s.most_in_flight = s.most_in_flight.max(self.in_flight.len() as u64);
+        }
+        if self.paced() {
+            self.finish_oldest()?;
+        }
+        Ok(())
+    }
+
+    /// Waits for the oldest generation in flight and hands over what it did.
+    fn finish_oldest(&mut self) -> VkResult<()> {
+        let Some(InFlight { g, started, work }) = self.in_flight.pop_front() else { return Ok(()) };
+        self.shared.generations.wait(g, u64::MAX)?;
+        match work {
+            Work::Upload { count, placed, back, dropped } => {
+                self.uploaded(Some(g), started, count, (placed, back, dropped));
+                Ok(())
+            }
+            Work::Shade { request, tiles, grid, kappa } => self.shaded(g, started, request, (tiles, grid, kappa)),
+        }
+    }
+
+    /// Places, uploads and (once its generation has finished) hands back one batch of
+    /// tiles read.
     fn upload_batch(&mut self, batch: Vec<Read>) -> VkResult<()> {
         let shared = self.shared;
         let count = batch.len();
         let started = Instant::now();
+        self.make_room()?;
         let g = self.generation + 1;
         // Frames that drew from a layer must have completed before it is rewritten: the
-        // draw queue's timeline, read now (a stale value only protects more).
+        // draw queue's timeline, read now (a stale value only protects more). Errors
+        // generations still in flight keep the layers they read ([`AtlasLayers::claim`]).
         let completed = shared.frames.value()?;
         let (mut back, mut placed, mut dropped) = (Vec::new(), Vec::new(), Vec::new());
         {
@@ -584,7 +689,7 @@ impl Activity<'_> {
                 } else if let Some(layer) = layers.claim(key, g, completed, |t| !released.contains(&t)) {
                     // Let go once, read again into another layer: held from now on.
                     released.remove(&key);
-                    // The errors passes that read the layer's old deviations were waited for.
+                    // The errors passes that read the layer's old deviations have finished.
                     let slot = slots.place(layer, key.level > 0);
                     placed.push((tile.clone(), layer, slot));
                     back.push((tile, bytes));
@@ -596,30 +701,50 @@ impl Activity<'_> {
                 released.retain(|k| layers.find(*k).is_some());
             }
         }
-        let layer_bytes = HeightAtlas::staged_bytes(&shared.grid);
-        if !placed.is_empty() {
-            let need = (layer_bytes * placed.len()) as u64;
-            if self.staging.as_ref().is_none_or(|b| b.size < need) {
-                drop(self.staging.take()); // the old one first: it was waited for
-                self.staging = Some(Buffer::new(
-                    self.device,
-                    "atlas staging",
-                    need,
-                    vk::BufferUsageFlags::TRANSFER_SRC,
-                    gpu_allocator::MemoryLocation::CpuToGpu,
-                )?);
+        if placed.is_empty() {
+            // Nothing to upload: handed back after the generations before it, in order.
+            while !self.in_flight.is_empty() {
+                self.finish_oldest()?;
             }
-            let staging = self.staging.as_mut().expect("made above");
-            upload(self.device, shared, self.cmd, staging, &placed, g)?;
-            self.generation = g;
+            self.uploaded(None, started, count, (placed, back, dropped));
+            return Ok(());
         }
+        let layer_bytes = HeightAtlas::staged_bytes(&shared.grid);
+        let need = (layer_bytes * placed.len()) as u64;
+        let staging = &mut self.staging[(g % 2) as usize];
+        if staging.as_ref().is_none_or(|b| b.size < need) {
+            drop(staging.take()); // the old one first: its generation has finished
+            *staging = Some(Buffer::new(
+                self.device,
+                "atlas staging",
+                need,
+                vk::BufferUsageFlags::TRANSFER_SRC,
+                gpu_allocator::MemoryLocation::CpuToGpu,
+            )?);
+        }
+        let staging = staging.as_mut().expect("made above");
+        upload(self.device, shared, self.cmds[(g % 2) as usize], staging, &placed)?;
+        self.submit(g, started, Work::Upload { count, placed, back, dropped })
+    }
+
+    /// Hands over a batch of `count` tiles: those uploaded as generation `g` (finished)
+    /// into their layers, and those handed back or dropped with them.
+    fn uploaded(
+        &self,
+        g: Option<u64>,
+        started: Instant,
+        count: usize,
+        (placed, back, dropped): (Vec<Placed>, Vec<Read>, Vec<TileKey>),
+    ) {
+        let shared = self.shared;
         // Outside the state's lock: the trace has its own.
-        let args = serde_json::json!({"generation": g, "tiles": count, "uploaded": placed.len(), "without_a_layer": dropped.len()});
+        let args = serde_json::json!({"generation": g.unwrap_or(self.generation), "tiles": count,
+            "uploaded": placed.len(), "without_a_layer": dropped.len()});
         let name = if placed.is_empty() { "tiles back (none to upload)" } else { "upload tiles" };
         self.trace.complete(ERRORS_TID, name, started, Instant::now(), args);
         {
             let mut s = shared.lock();
-            if !placed.is_empty() {
+            if let Some(g) = g {
                 s.layers.finish(g);
                 s.finished = g;
                 s.uploaded.generations += 1;
@@ -634,21 +759,22 @@ impl Activity<'_> {
             s.busy = s.busy.saturating_sub(count);
         }
         shared.progress.notify_all();
-        Ok(())
     }
 
     /// Shades the block errors `request` asks for as one generation, over the tiles it
-    /// names that are resident and not let go (their layers cannot be rewritten before
-    /// this thread's next upload, which comes after this generation has finished), and
-    /// publishes them.
+    /// names that are resident and not let go (their layers are kept until this
+    /// generation has finished: [`AtlasLayers::read_for_errors`]), and publishes them
+    /// once it has.
     fn shade(&mut self, request: ErrorsRequest) -> VkResult<()> {
         let shared = self.shared;
         // The terrain's heights as the traversal scales them now.
         let grid = Grid { height_scale: request.height_scale, ..shared.grid };
         let started = Instant::now();
         let paper = request.mode == ErrorMode::Paper;
+        self.make_room()?;
+        let g = self.generation + 1;
         let tiles: Vec<(TileKey, u32, u32)> = {
-            let s = shared.lock();
+            let mut s = shared.lock();
             let resident = |k: &TileKey| {
                 let i = s.layers.find(*k)?;
                 let held = matches!(s.layers.layer(i), crate::errors::handoff::Layer::Resident { .. });
@@ -659,15 +785,20 @@ impl Activity<'_> {
             // Strict: tiles with a D (above level 0). Paper: every tile below the top
             // level's coarsest block (a tile gives the blocks one LOD above its own).
             let shaded = |k: &&TileKey| if paper { grid.tile_quads >= 2 * grid.block_quads } else { k.level > 0 };
-            request.tiles.iter().filter(shaded).filter_map(resident).take(AtlasPasses::capacity()).collect()
+            let tiles: Vec<_> =
+                request.tiles.iter().filter(shaded).filter_map(resident).take(AtlasPasses::capacity()).collect();
+            for &(_, layer, _) in &tiles {
+                s.layers.read_for_errors(layer as usize, g);
+            }
+            tiles
         };
         if tiles.is_empty() {
+            self.answered(request.number, started);
             return Ok(());
         }
-        let g = self.generation + 1;
         let nth = {
             let s = shared.lock();
-            (s.shaded.generations + 1, s.device_lost_at)
+            (s.shaded.generations + self.shading_in_flight() + 1, s.device_lost_at)
         };
         if nth.0 == nth.1 {
             let lost = Err::<(), _>(vk::Result::ERROR_DEVICE_LOST).vk("vkQueueSubmit2 (injected fault)");
@@ -675,15 +806,32 @@ impl Activity<'_> {
         }
         let (anchor, cam) = request.view.relative(&grid);
         let d = &self.device.raw;
-        // SAFETY: `cmd` belongs to this thread's pool and its last submission was waited
-        // for (begin resets it).
-        unsafe { crate::vk::begin_one_time(d, self.cmd)? };
-        self.passes.record(self.cmd, &grid, &tiles, (anchor, &cam), (shared.unorm16, request.mode));
+        let cmd = self.cmds[(g % 2) as usize];
+        // SAFETY: `cmd` belongs to this thread's pool and its last submission (generation
+        // `g - 2`) has finished (begin resets it).
+        unsafe { crate::vk::begin_one_time(d, cmd)? };
+        self.passes.record(g, cmd, &grid, &tiles, (anchor, &cam), (shared.unorm16, request.mode));
         // SAFETY: recording, as above.
-        unsafe { d.end_command_buffer(self.cmd).vk("vkEndCommandBuffer")? };
-        submit_and_wait(self.device, shared, self.cmd, g)?;
-        self.generation = g;
-        let (blocks, shaded) = self.passes.read(&grid, &tiles, request.mode)?;
+        unsafe { d.end_command_buffer(cmd).vk("vkEndCommandBuffer")? };
+        let kappa = cam.kappa();
+        self.submit(g, started, Work::Shade { request, tiles, grid, kappa })
+    }
+
+    /// Errors generations in flight.
+    fn shading_in_flight(&self) -> u64 {
+        self.in_flight.iter().filter(|f| matches!(f.work, Work::Shade { .. })).count() as u64
+    }
+
+    /// Reads back errors generation `g` (finished) and publishes it.
+    fn shaded(
+        &self,
+        g: u64,
+        started: Instant,
+        request: ErrorsRequest,
+        (tiles, grid, kappa): (Vec<(TileKey, u32, u32)>, Grid, f32),
+    ) -> VkResult<()> {
+        let shared = self.shared;
+        let (blocks, shaded) = self.passes.read(g, &grid, &tiles, request.mode)?;
         let scale = shared.lock().scale_errors;
         let tiles: foldhash::HashMap<TileKey, Vec<f32>> =
             blocks.into_iter().map(|(k, b)| (k, b.into_iter().map(|e| e * scale).collect())).collect();
@@ -701,50 +849,51 @@ impl Activity<'_> {
         let errors = TileErrors {
             generation: g,
             position: request.view.position,
-            kappa: cam.kappa(),
+            kappa,
             height_scale: grid.height_scale,
             gpu_ms: shaded.gpu_ms,
             tiles,
             mode: request.mode,
             paper,
         };
-        let mut s = shared.lock();
-        s.layers.finish(g);
-        s.finished = g;
-        s.errors = Some(Arc::new(errors));
-        s.shaded.add(&shaded);
-        drop(s);
+        {
+            let mut s = shared.lock();
+            s.layers.finish(g);
+            s.finished = g;
+            s.errors = Some(Arc::new(errors));
+            s.shaded.add(&shaded);
+        }
         let args = serde_json::json!({"generation": g, "tiles": shaded.tiles, "groups": shaded.groups,
             "bytes_read_back": shaded.bytes_read_back, "gpu_ms": shaded.gpu_ms});
         self.trace.complete(ERRORS_TID, "block errors", started, Instant::now(), args);
+        self.answered(request.number, started);
         Ok(())
+    }
+
+    /// Request `number` is answered (shaded, or found nothing to shade): a settle waiting
+    /// for it goes on, and the next waits as the share of wall time asks.
+    fn answered(&self, number: u64, started: Instant) {
+        let mut s = self.shared.lock();
+        s.answered = s.answered.max(number);
+        s.hurry &= s.answered < s.requested;
+        // After an update of u, the next waits u (1 / share - 1): the errors take at most
+        // `share` of the wall time. (At most a day: longer is never, and an Instant
+        // cannot overflow.)
+        let wait = started.elapsed().as_secs_f64() * (1.0 / f64::from(s.update_share) - 1.0);
+        s.next_errors_at = Some(Instant::now() + std::time::Duration::from_secs_f64(wait.min(86_400.0)));
+        drop(s);
+        self.shared.progress.notify_all();
     }
 }
 
-/// Submits `cmd` (recorded) as generation `g` on the errors queue and waits for it on
-/// this thread.
-fn submit_and_wait(device: &Arc<Device>, shared: &Shared, cmd: vk::CommandBuffer, g: u64) -> VkResult<()> {
-    let cmds = [vk::CommandBufferSubmitInfo::default().command_buffer(cmd)];
-    let signal = [vk::SemaphoreSubmitInfo::default()
-        .semaphore(shared.generations.handle)
-        .value(g)
-        .stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)];
-    let submit = vk::SubmitInfo2::default().command_buffer_infos(&cmds).signal_semaphore_infos(&signal);
-    device.errors_queue.submit(device, &[submit], vk::Fence::null())?;
-    shared.generations.wait(g, u64::MAX)?;
-    Ok(())
-}
-
-/// Copies `placed` tiles (heights, and the deviations of tiles above level 0) into their
-/// layers as generation `g` on the errors queue, and waits for the generation on this
-/// thread.
+/// Records into `cmd` the copy of `placed` tiles (heights, and the deviations of tiles
+/// above level 0) into their layers.
 fn upload(
     device: &Arc<Device>,
     shared: &Shared,
     cmd: vk::CommandBuffer,
     staging: &mut Buffer,
-    placed: &[(Arc<TileData>, usize, Option<u32>)],
-    g: u64,
+    placed: &[Placed],
 ) -> VkResult<()> {
     let texel = if shared.unorm16 { 2 } else { 4 };
     let height_bytes = (shared.side * shared.side) as usize * texel;
@@ -783,14 +932,17 @@ fn upload(
     }
     let d = &device.raw;
     // The layer's old tile is discarded: the frames that drew it have completed (their
-    // timeline value was read before the layer was claimed), and so have the errors
-    // passes that read it (this thread waited for them).
+    // timeline value was read before the layer was claimed). The errors passes that read
+    // it ran earlier on this queue, so the barrier's first scope (fragment shaders
+    // included) waits for them; `AtlasLayers::claim` also keeps a layer an unfinished
+    // generation reads, so the rule holds whichever queue writes the layer.
     let reused = (SAMPLED.0, vk::AccessFlags2::NONE, vk::ImageLayout::UNDEFINED);
     let written =
         (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_WRITE, vk::ImageLayout::TRANSFER_DST_OPTIMAL);
-    // SAFETY: `cmd` belongs to this thread's pool and its last submission was waited for
-    // (begin resets it); staging and images outlive the wait below; every region lies
-    // inside its layer.
+    // SAFETY: `cmd` belongs to this thread's pool and its last submission (generation
+    // `g - 2`) has finished (begin resets it); staging and images outlive the
+    // generation (finished before the staging is reused or the thread ends); every
+    // region lies inside its layer.
     unsafe {
         crate::vk::begin_one_time(d, cmd)?;
         for (image, layer) in written_layers(shared, placed) {
@@ -808,15 +960,12 @@ fn upload(
         }
         d.end_command_buffer(cmd).vk("vkEndCommandBuffer")?;
     }
-    submit_and_wait(device, shared, cmd, g)
+    Ok(())
 }
 
 /// The layers an upload of `placed` writes: each tile's layer of heights and its slot
 /// of deviations, if it has one.
-fn written_layers<'a>(
-    shared: &'a Shared,
-    placed: &'a [(Arc<TileData>, usize, Option<u32>)],
-) -> impl Iterator<Item = (&'a Image, u32)> + 'a {
+fn written_layers<'a>(shared: &'a Shared, placed: &'a [Placed]) -> impl Iterator<Item = (&'a Image, u32)> + 'a {
     placed.iter().flat_map(move |(_, layer, slot)| {
         std::iter::once((&shared.image, *layer as u32)).chain(slot.map(|s| (&shared.deviation, s)))
     })

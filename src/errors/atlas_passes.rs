@@ -4,9 +4,10 @@
 //! largest a block; in the paper's mode `glsl/tile_paper.frag`, the blocks one LOD
 //! coarser, from their dropped vertices) into its cell of an R32F target, and only the
 //! cells shaded are copied to a host-visible buffer, one after another: 4 bytes a block,
-//! 256 a tile. Owned and recorded by the
-//! errors thread ([`crate::errors::atlas`]), which waits for each generation before the
-//! next, so one target and one readback buffer serve every generation.
+//! 256 a tile. Owned and recorded by the errors thread ([`crate::errors::atlas`]). Two
+//! slots of target, readback buffer and timestamps are used in turn, generation `g` in
+//! slot `g % 2`: with two generations in flight (`--error-pacing free`) each writes its
+//! own, and the thread reads a slot back before the generation after next reuses it.
 //!
 //! Why one fragment a block, not one a group then a reduction as in memory: a group
 //! image over the atlas would take 256 KB a tile shaded (R32F, 256 x 256 groups), as much
@@ -53,6 +54,13 @@ pub struct Shaded {
     pub gpu_ms: Option<f64>,
 }
 
+/// One generation's target, readback buffer and timestamps.
+struct Slot {
+    target: Image,
+    readback: Buffer,
+    timer: Option<FrameTimer>,
+}
+
 pub(crate) struct AtlasPasses {
     device: Arc<Device>,
     /// Strict mode's pass (`tile_errors.frag`) and the paper's (`tile_paper.frag`).
@@ -63,9 +71,7 @@ pub(crate) struct AtlasPasses {
     _pool: DescriptorPool,
     set: vk::DescriptorSet,
     _sampler: Sampler,
-    target: Image,
-    readback: Buffer,
-    timer: Option<FrameTimer>,
+    slots: [Slot; 2],
     /// Blocks a tile side (`tile_quads / block_quads`): a cell's side in texels.
     per_side: u32,
 }
@@ -105,16 +111,19 @@ impl AtlasPasses {
         let per_side = (grid.tile_quads / grid.block_quads) as u32;
         let extent = vk::Extent2D { width: CELLS[0] * per_side, height: CELLS[1] * per_side };
         let usage = vk::ImageUsageFlags::COLOR_ATTACHMENT | vk::ImageUsageFlags::TRANSFER_SRC;
-        let target =
-            Image::new(device, "block errors over the atlas", extent, vk::Format::R32_SFLOAT, 1, usage, false)?;
-        let readback = Buffer::new(
-            device,
-            "block errors readback",
-            u64::from(extent.width) * u64::from(extent.height) * 4,
-            vk::BufferUsageFlags::TRANSFER_DST,
-            gpu_allocator::MemoryLocation::GpuToCpu,
-        )?;
-        let timer = FrameTimer::new(device)?;
+        let slot = |i: usize| -> VkResult<Slot> {
+            let name = format!("block errors over the atlas {i}");
+            let target = Image::new(device, &name, extent, vk::Format::R32_SFLOAT, 1, usage, false)?;
+            let readback = Buffer::new(
+                device,
+                &format!("block errors readback {i}"),
+                u64::from(extent.width) * u64::from(extent.height) * 4,
+                vk::BufferUsageFlags::TRANSFER_DST,
+                gpu_allocator::MemoryLocation::GpuToCpu,
+            )?;
+            Ok(Slot { target, readback, timer: FrameTimer::new(device)? })
+        };
+        let slots = [slot(0)?, slot(1)?];
         Ok(AtlasPasses {
             device: device.clone(),
             pipeline,
@@ -124,9 +133,7 @@ impl AtlasPasses {
             _pool: pool,
             set,
             _sampler: sampler,
-            target,
-            readback,
-            timer,
+            slots,
             per_side,
         })
     }
@@ -157,11 +164,13 @@ impl AtlasPasses {
     }
 
     /// Records the shading of `tiles` (each with its layer of heights and its slot of
-    /// deviations, at most [`Self::capacity`]) in `mode`
+    /// deviations, at most [`Self::capacity`]) in `mode` as generation `g` (into slot
+    /// `g % 2`, whose last generation the caller has read back)
     /// for the camera `cam`, relative to sample `anchor`, into `cmd` (recording), and the
     /// copy of their cells to the readback buffer.
     pub(crate) fn record(
         &self,
+        g: u64,
         cmd: vk::CommandBuffer,
         grid: &Grid,
         tiles: &[(TileKey, u32, u32)],
@@ -175,24 +184,25 @@ impl AtlasPasses {
         let m = self.shaded_side(mode);
         let pipeline = if mode == ErrorMode::Paper { &self.paper } else { &self.pipeline };
         let rows = (tiles.len() as u32).div_ceil(CELLS[0]) * n;
-        let width = self.target.extent.width;
+        let Slot { target, readback, timer } = &self.slots[(g % 2) as usize];
+        let width = target.extent.width;
         let area = vk::Rect2D { offset: vk::Offset2D::default(), extent: vk::Extent2D { width, height: rows } };
         let att = [vk::RenderingAttachmentInfo::default()
-            .image_view(self.target.view)
+            .image_view(target.view)
             .image_layout(vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL)
             .load_op(vk::AttachmentLoadOp::DONT_CARE)
             .store_op(vk::AttachmentStoreOp::STORE)];
         let info = vk::RenderingInfo::default().render_area(area).layer_count(1).color_attachments(&att);
-        let range = self.target.range(0, 1);
+        let range = target.range(0, 1);
         let discarded = (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::NONE, vk::ImageLayout::UNDEFINED);
-        // SAFETY: `cmd` is recording on the errors thread, which waits for each
-        // generation before recording the next (so the target and readback are idle);
+        // SAFETY: `cmd` is recording on the errors thread, which has read back the slot's
+        // last generation before recording this one (so its target and readback are idle);
         // every object outlives the submission; each cell lies inside the target.
         unsafe {
-            if let Some(t) = &self.timer {
+            if let Some(t) = timer {
                 t.begin(d, cmd);
             }
-            image_barrier(d, cmd, self.target.handle, range, discarded, WRITTEN);
+            image_barrier(d, cmd, target.handle, range, discarded, WRITTEN);
             d.cmd_begin_rendering(cmd, &info);
             d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, pipeline.handle);
             d.cmd_bind_descriptor_sets(cmd, vk::PipelineBindPoint::GRAPHICS, self.layout.handle, 0, &[self.set], &[]);
@@ -238,7 +248,7 @@ impl AtlasPasses {
                 }
             }
             d.cmd_end_rendering(cmd);
-            image_barrier(d, cmd, self.target.handle, range, WRITTEN, COPY_SOURCE);
+            image_barrier(d, cmd, target.handle, range, WRITTEN, COPY_SOURCE);
             // The cells shaded and nothing else, one after another: 4 bytes a block.
             let regions: Vec<vk::BufferImageCopy> = (0..tiles.len())
                 .map(|i| {
@@ -256,26 +266,28 @@ impl AtlasPasses {
                 })
                 .collect();
             let src = vk::ImageLayout::TRANSFER_SRC_OPTIMAL;
-            d.cmd_copy_image_to_buffer(cmd, self.target.handle, src, self.readback.handle, &regions);
+            d.cmd_copy_image_to_buffer(cmd, target.handle, src, readback.handle, &regions);
             let written = (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_WRITE);
-            host_read_barrier(d, cmd, self.readback.handle, written);
-            if let Some(t) = &self.timer {
+            host_read_barrier(d, cmd, readback.handle, written);
+            if let Some(t) = timer {
                 t.end(d, cmd);
             }
         }
     }
 
-    /// The block errors of `tiles` (as recorded in `mode`), once the generation has
-    /// finished: per tile, its cell row-major; and what the generation shaded.
+    /// The block errors of `tiles` (as recorded in `mode` for generation `g`), once `g`
+    /// has finished: per tile, its cell row-major; and what the generation shaded.
     pub(crate) fn read(
         &self,
+        g: u64,
         grid: &Grid,
         tiles: &[(TileKey, u32, u32)],
         mode: ErrorMode,
     ) -> VkResult<(Vec<TileBlocks>, Shaded)> {
         let m = self.shaded_side(mode) as usize;
         let cell = m * m;
-        let bytes = self.readback.mapped()?;
+        let Slot { readback, timer, .. } = &self.slots[(g % 2) as usize];
+        let bytes = readback.mapped()?;
         let out = tiles
             .iter()
             .enumerate()
@@ -284,7 +296,7 @@ impl AtlasPasses {
                 (key, at.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect())
             })
             .collect();
-        let gpu_ms = self.timer.as_ref().map(|t| t.read().map(|r| r.1)).transpose()?;
+        let gpu_ms = timer.as_ref().map(|t| t.read().map(|r| r.1)).transpose()?;
         // block_quads^2 groups a block shaded.
         let blocks: u32 = tiles
             .iter()

@@ -117,11 +117,15 @@ impl Handoff {
 /// tiles: the errors activity uploads a tile into a layer as part of generation `g`; the
 /// draw thread draws from it only once `g` is finished (its errors were computed in the
 /// same generation); a layer is reused only after every frame that drew from it has
-/// completed on the GPU (the draw queue's timeline has passed the last such frame). Both
-/// sides read the other's counter and never wait on it.
+/// completed on the GPU (the draw queue's timeline has passed the last such frame), and
+/// every errors generation that read it has finished (with two generations in flight,
+/// an upload may be recorded while the generation before it still shades). Both sides
+/// read the other's counter and never wait on it.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct AtlasLayers<T> {
     layers: Vec<Layer<T>>,
+    /// The newest generation finished.
+    finished: u64,
 }
 
 /// One layer's state.
@@ -133,17 +137,19 @@ pub enum Layer<T> {
         tile: T,
         generation: u64,
     },
-    /// Holds `tile`; `last_frame` is the newest frame that drew from it (0: none).
+    /// Holds `tile`; `last_frame` is the newest frame that drew from it (0: none),
+    /// `errors_read` the newest errors generation that reads it (0: none).
     Resident {
         tile: T,
         generation: u64,
         last_frame: u64,
+        errors_read: u64,
     },
 }
 
 impl<T: Copy + PartialEq + std::fmt::Debug> AtlasLayers<T> {
     pub fn new(layers: usize) -> Self {
-        AtlasLayers { layers: vec![Layer::Free; layers] }
+        AtlasLayers { layers: vec![Layer::Free; layers], finished: 0 }
     }
 
     pub fn layer(&self, i: usize) -> &Layer<T> {
@@ -160,7 +166,8 @@ impl<T: Copy + PartialEq + std::fmt::Debug> AtlasLayers<T> {
 
     /// A layer for `tile` in generation `generation`: a free one, else the resident
     /// layer drawn longest ago among those every frame that drew from has completed
-    /// (`completed_frame`, the draw timeline's value) and that `keep` does not protect.
+    /// (`completed_frame`, the draw timeline's value), that no unfinished errors
+    /// generation reads, and that `keep` does not protect.
     /// `None` when there is none: the tile waits.
     pub fn claim(&mut self, tile: T, generation: u64, completed_frame: u64, keep: impl Fn(T) -> bool) -> Option<usize> {
         assert!(self.find(tile).is_none(), "{tile:?} is in the atlas already");
@@ -170,7 +177,9 @@ impl<T: Copy + PartialEq + std::fmt::Debug> AtlasLayers<T> {
                 .iter()
                 .enumerate()
                 .filter_map(|(i, l)| match l {
-                    Layer::Resident { tile, last_frame, .. } if *last_frame <= completed_frame && !keep(*tile) => {
+                    Layer::Resident { tile, last_frame, errors_read, .. }
+                        if *last_frame <= completed_frame && *errors_read <= self.finished && !keep(*tile) =>
+                    {
                         Some((*last_frame, i))
                     }
                     _ => None,
@@ -183,14 +192,24 @@ impl<T: Copy + PartialEq + std::fmt::Debug> AtlasLayers<T> {
         Some(i)
     }
 
-    /// Generation `g` finished: what it uploaded is drawable.
+    /// Generation `g` finished: what it uploaded is drawable, and what it read may be
+    /// reused.
     pub fn finish(&mut self, g: u64) {
+        self.finished = self.finished.max(g);
         for l in &mut self.layers {
             if let Layer::Uploading { tile, generation } = *l {
                 if generation <= g {
-                    *l = Layer::Resident { tile, generation, last_frame: 0 };
+                    *l = Layer::Resident { tile, generation, last_frame: 0, errors_read: 0 };
                 }
             }
+        }
+    }
+
+    /// Errors generation `g` reads layer `i` (resident): kept until `g` finishes.
+    pub fn read_for_errors(&mut self, i: usize, g: u64) {
+        match &mut self.layers[i] {
+            Layer::Resident { errors_read, .. } => *errors_read = (*errors_read).max(g),
+            l => panic!("generation {g} reads layer {i}, which is not resident: {l:?}"),
         }
     }
 
@@ -381,9 +400,11 @@ mod tests {
         // Frames submitted and not completed: (frame, reads of (layer, tile)).
         let mut frames: std::collections::VecDeque<(u64, Vec<(usize, u32)>)> = Default::default();
         let (mut frame, mut completed, mut seen_completed) = (0u64, 0u64, 0u64);
+        // Errors passes of the open generation, in flight: (layer, tile, generation).
+        let mut error_reads: Vec<(usize, u32, u64)> = Vec::new();
         let mut reuses = 0;
         for _ in 0..steps {
-            match next(7) {
+            match next(8) {
                 // The errors thread claims a layer for a tile not in the atlas.
                 0 => {
                     let tile = next(u64::from(TILES)) as u32;
@@ -398,6 +419,12 @@ mod tests {
                                 "frame {f}, in flight, reads layer {i}: the upload of {tile} overwrites it"
                             );
                         }
+                        for (l, t, g) in &error_reads {
+                            assert!(
+                                *l != i,
+                                "errors generation {g}, in flight, reads {t} in layer {i}: {tile} overwrites it"
+                            );
+                        }
                         reuses += u64::from(!was_free);
                         memory[i] = LayerMemory::Writing(tile);
                         writes.push((i, tile, generation));
@@ -408,11 +435,36 @@ mod tests {
                     let (i, tile, _) = writes.remove(0);
                     memory[i] = LayerMemory::Holds(tile);
                 }
-                // The generation is published once all its uploads are done.
+                // The generation is published once all its uploads are done, and so are its
+                // errors passes: what they read was there all along.
                 2 if writes.iter().all(|w| w.2 > generation) => {
+                    for (l, t, g) in error_reads.drain(..) {
+                        assert_eq!(
+                            memory[l],
+                            LayerMemory::Holds(t),
+                            "errors generation {g}: layer {l} changed under it"
+                        );
+                    }
                     finished = generation;
                     atlas.finish(finished);
                     generation += 1;
+                }
+                // The errors thread shades a few resident tiles in the open generation
+                // (with uploads of the same or the next generation still to come).
+                6 => {
+                    for _ in 0..2 {
+                        let tile = next(u64::from(TILES)) as u32;
+                        let Some(i) = atlas.find(tile) else { continue };
+                        if matches!(atlas.layer(i), Layer::Resident { .. }) {
+                            assert_eq!(
+                                memory[i],
+                                LayerMemory::Holds(tile),
+                                "errors generation {generation} reads layer {i}"
+                            );
+                            atlas.read_for_errors(i, generation);
+                            error_reads.push((i, tile, generation));
+                        }
+                    }
                 }
                 // The draw thread submits a frame drawing a few resident tiles.
                 3 | 4 => {
@@ -472,5 +524,13 @@ mod tests {
         assert_eq!(a.draw(12, 3), None, "generation 2 is not finished");
         a.finish(2);
         assert_eq!(a.draw(12, 3), Some(0));
+        // An errors generation in flight (3) reads tile 12's layer: not reused before 3
+        // finishes, however long ago a frame drew it.
+        a.read_for_errors(0, 3);
+        a.finish(3);
+        a.read_for_errors(0, 4);
+        assert_eq!(a.claim(14, 5, 9, |t| t == 13), None, "generation 4 reads tile 12");
+        a.finish(4);
+        assert_eq!(a.claim(14, 5, 9, |t| t == 13), Some(0));
     }
 }

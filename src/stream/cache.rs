@@ -42,8 +42,7 @@ pub struct Square {
     pub max: f32,
 }
 
-/// Squares a block side whose deviation is kept apart ([`BlockSummary::squares`]).
-pub const SUB: usize = 8;
+pub use super::SUB;
 
 /// The LOD of the blocks the archive's roots are: one block over the top tile's square.
 pub fn root_lod(grid: &Grid) -> u32 {

@@ -71,6 +71,10 @@ pub struct Grid {
 /// Quads a side of a block unless `--block` says otherwise (blocks of k = 33, the paper's).
 pub const DEFAULT_BLOCK_QUADS: usize = 32;
 
+/// Squares a block side whose deviation is kept apart
+/// ([`cache::BlockSummary::squares`]).
+pub const SUB: usize = 8;
+
 impl Grid {
     pub fn from_meta(m: &Meta) -> Self {
         Grid {
@@ -87,18 +91,18 @@ impl Grid {
     }
 
     /// The same grid drawn with blocks of `k` vertices a side (`--block`). A block is
-    /// summarised as [`cache::SUB`]` x `[`cache::SUB`] squares, so it has at least that
+    /// summarised as [`SUB`]` x `[`SUB`] squares, so it has at least that
     /// many quads a side; and the paper's errors of a block one LOD coarser than a tile
     /// come from that tile's own vertices, so a tile holds at least two blocks a side.
     pub fn with_block(self, k: u32) -> Result<Self, String> {
         let m = crate::lod::block::BlockLayout::check(k)?;
         let quads = 1usize << m;
         let most = self.tile_quads / 2;
-        if quads < cache::SUB || quads > most {
+        if quads < SUB || quads > most {
             return Err(format!(
                 "--block {k}: a terrain drawn from tiles of {} quads takes blocks of {} to {} vertices a side",
                 self.tile_quads,
-                cache::SUB + 1,
+                SUB + 1,
                 most + 1
             ));
         }
