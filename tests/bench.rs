@@ -67,6 +67,37 @@ fn bench(out: &Path, extra: &[&str]) -> serde_json::Value {
     summary
 }
 
+/// One summary.json schema and one frames.csv header, whichever way a terrain is drawn:
+/// a file in memory and the same file drawn from its tiles write the same keys (each
+/// filled where it applies: frames over the bound, the tiles' cache and atlas; the
+/// in-memory figures such as the readback a generation, the RSS, the generations' order).
+#[test]
+fn a_bench_in_memory_and_over_tiles_writes_one_schema() {
+    let tmp = TempDir::new("bench-schema");
+    let (memory, tiles) = (tmp.path().join("memory"), tmp.path().join("tiles"));
+    let m = bench(&memory, &["--frames", "3", "--no-fidelity"]);
+    let t = bench(&tiles, &["--frames", "3", "--no-fidelity", "--stream"]);
+    let keys =
+        |v: &serde_json::Value| v.as_object().unwrap().keys().cloned().collect::<std::collections::BTreeSet<_>>();
+    let (km, kt) = (keys(&m), keys(&t));
+    let (only_m, only_t): (Vec<_>, Vec<_>) = (km.difference(&kt).collect(), kt.difference(&km).collect());
+    assert_eq!(km, kt, "only in memory: {only_m:?}; only over tiles: {only_t:?}");
+    for (s, streamed) in [(&m, false), (&t, true)] {
+        assert_eq!(s["streamed"], streamed, "{s}");
+        assert_eq!(s["generations_strictly_increasing"], true, "{s}");
+        assert!(s["heightfield_bytes"].as_u64().is_some_and(|b| b > 0), "{s}");
+        // Over tiles this one-tile field's blocks are bounded by the tile's summary (the
+        // errors activity shades tiles above level 0): no generation, nothing read back.
+        let errors = !streamed;
+        assert_eq!(s["readback_bytes_per_update"].as_u64().map(|b| b > 0), Some(errors), "{s}");
+        assert_eq!(s["mean_blocks_bounded_by_errors"].as_f64().map(|b| b > 0.0), Some(errors), "{s}");
+        assert_eq!(s["validation_counted_after_device_destruction"], true, "{s}");
+    }
+    let header =
+        |dir: &Path| std::fs::read_to_string(dir.join("frames.csv")).unwrap().lines().next().unwrap().to_string();
+    assert_eq!(header(&memory), header(&tiles));
+}
+
 #[test]
 fn short_bench_writes_every_file_with_documented_fields() {
     let tmp = TempDir::new("bench");

@@ -677,6 +677,10 @@ impl Bench<'_> {
             }
         }
         run.wall_ms = timed_from.map(|t| t.elapsed().as_secs_f64() * 1e3);
+        if activity.is_some() {
+            // Every block the traversal selects takes its error from the errors activity.
+            run.bounded_by_errors = run.rows.iter().map(|r| r.blocks as u64).sum();
+        }
         Ok(run)
     }
 }
@@ -745,7 +749,13 @@ fn summarize(run: &Run) -> Value {
     let occluded_part_share = (parts.1 > 0).then(|| parts.0 as f64 / parts.1 as f64);
     let outside = run.rows.iter().fold((0, 0), |a, r| (a.0 + r.outside_parts.0, a.1 + r.outside_parts.1));
     let outside_part_share = (outside.1 > 0).then(|| outside.0 as f64 / outside.1 as f64);
+    let morphing: usize = run.rows.iter().map(|r| r.morphing).sum();
     json!({
+        "seconds": total_s,
+        "mean_frame_ms": ms.iter().sum::<f64>() / n,
+        "mean_morphing_blocks": morphing as f64 / n,
+        // Of the blocks drawn a frame, those whose error came from the errors activity.
+        "mean_blocks_bounded_by_errors": run.bounded_by_errors as f64 / n,
         "occluded_block_share": occluded_share,
         "occluded_part_share": occluded_part_share,
         "outside_part_share": outside_part_share,
@@ -951,6 +961,8 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     let s = Session::with_device(device, &args.common.terrain, args.common.block, Some(&args.textures))?;
     crate::app::outputs::output_dir("--out", &args.out)?;
     let size = args.common.view.frustum.size.unwrap_or((640, 480));
+    let threads =
+        crate::draw::frame::traversal_threads(args.common.lod.traversal_threads, s.device.properties.device_type);
     s.check_viewport(size)?;
     let trace_path = args.out.join("trace.json");
     let trace = Trace::to_file(&trace_path).map_err(|e| anyhow::anyhow!("{}: {e}", trace_path.display()))?;
@@ -1128,8 +1140,19 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     summary["pixels"] = json!(value_name(args.pixels));
     summary["shading"] = json!(value_name(args.shading));
     summary["validation_counted_after_device_destruction"] = json!(true);
-    // Every sample is in memory: no frame lacks its data.
+    // Every sample is in memory: no frame lacks its data, none is over the bound, and no
+    // tile is read, cached or uploaded (the keys a bench over tiles fills: one schema).
     summary["degraded"] = json!(false);
+    summary["first_failure"] = Value::Null;
+    summary["frames_over_bound"] = json!(0);
+    summary["worst_factor"] = json!(1.0);
+    summary["streamed"] = json!(false);
+    summary["terrain"] = json!(args.common.terrain.name());
+    summary["traversal_threads"] = json!(threads);
+    summary["peak_resident_mb"] = json!(crate::app::outputs::peak_resident_mb());
+    for tiles_only in ["cache_mb", "deferred_frames", "gpu", "stream", "warm_up"] {
+        summary[tiles_only] = Value::Null;
+    }
     let text = serde_json::to_string_pretty(&summary)?;
     let path = args.out.join("summary.json");
     write_atomic(&path, |tmp| std::fs::write(tmp, &text).map_err(|e| anyhow::anyhow!("{}: {e}", path.display())))?;
@@ -1259,6 +1282,7 @@ fn bench_streamed(
     };
     let messages = device.instance.messages.clone();
     let mut gpu = bench_frames(args, &device, &mut streamer, (gpu_mb, range, size), &archive.meta, (&trace, fault))?;
+    let rss_start = rss_mib();
     let started_all = Instant::now();
     let path = StreamedPath {
         frames,
@@ -1276,11 +1300,13 @@ fn bench_streamed(
     // The main run's drawing (the comparison runs draw on the same renderer).
     let (gpu_report, deferred_frames) = (gpu.report(), gpu.deferred_frames);
     let most_in_flight = gpu.errors_in_flight();
-    let seconds = run.wall_ms.unwrap_or(0.0) / 1e3;
-    let drawn = run.rows.len() as u64;
-    let (_, mean) = sorted_with_mean(run.rows.iter().map(|r| r.frame_ms));
-    let morphing: u64 = run.rows.iter().map(|r| r.morphing as u64).sum();
     let stats = streamer.stats.clone();
+    // A frame never takes an older generation than the frame before.
+    let mut taken: Vec<u64> = run.rows.iter().map(|r| r.error_generation).filter(|&g| g > 0).collect();
+    taken.dedup();
+    let increasing = taken.windows(2).all(|w| w[0] < w[1]);
+    let shaded = gpu.errors_shaded();
+    let readback_per_update = shaded.bytes_read_back / shaded.generations.max(1);
     let (compare, popped, fidelity) = path.after_the_run(args, (&mut streamer, &mut gpu), &mut run, &selections)?;
     // A failure after the last frame drawn fails the run too.
     if let Some(failure) = gpu.failure() {
@@ -1292,18 +1318,20 @@ fn bench_streamed(
     let streamed = json!({
         "streamed": true,
         "terrain": args.common.terrain.name(),
-        "seconds": seconds,
-        "mean_frame_ms": mean,
         "lod": format!("{:?}", args.lod).to_lowercase(),
         "shading": crate::draw::streamed::StreamedRenderer::shading_name(args.shading),
         "pixels": value_name(args.pixels),
         "deferred_frames": deferred_frames,
         "morph": args.common.lod.morph.on(),
         "error_mode": args.common.error_mode.mode.as_str(),
-        "mean_morphing_blocks": morphing as f64 / drawn.max(1) as f64,
-        // Of the blocks drawn a frame, those whose error came from the errors activity.
-        "mean_blocks_bounded_by_errors": run.bounded_by_errors as f64 / drawn.max(1) as f64,
         "traversal_threads": streamer.threads(),
+        "generations_strictly_increasing": increasing,
+        "readback_bytes_per_update": readback_per_update,
+        "geometry_bytes": crate::app::commands::renderer_geometry_bytes(grid.block_quads as u32 + 1),
+        "heightfield_bytes": gpu.atlas_bytes(),
+        "rss_start_mib": rss_start,
+        "rss_end_mib": rss_mib(),
+        "rss_samples_mib": run.rss,
         "frames_over_bound": stats.frames_over_bound,
         "worst_factor": stats.worst_factor,
         "delta": args.common.lod.delta,
@@ -1342,6 +1370,10 @@ fn bench_streamed(
     drop(gpu);
     drop(device);
     drop(streamer); // joins the IO thread: its last read is in the trace
+                    // Counted with every object destroyed, as in memory: the object tracker's reports of
+                    // leaked objects (at vkDestroyDevice and vkDestroyInstance) count too.
+    summary["validation_messages"] = json!(messages.count());
+    summary["validation_counted_after_device_destruction"] = json!(true);
     trace.finish().map_err(|e| anyhow::anyhow!("{}: {e}", trace_path.display()))?;
     write_csv(&args.out.join("frames.csv"), &run.rows)?;
     plot(&args.out.join("plot.png"), &run.rows, &args.path.to_string())?;

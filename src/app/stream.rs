@@ -420,6 +420,11 @@ impl GpuFrames {
         self.atlas.set_pacing(common.error_pacing, &self.device);
     }
 
+    /// Bytes of the heightfield atlas (heights and deviations) on the device.
+    pub fn atlas_bytes(&self) -> u64 {
+        self.atlas.bytes()
+    }
+
     /// The most generations the errors activity had in flight at once.
     pub fn errors_in_flight(&self) -> u64 {
         self.atlas.most_in_flight()

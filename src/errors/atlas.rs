@@ -343,6 +343,13 @@ impl HeightAtlas {
         self.shared.image.layers
     }
 
+    /// Bytes of its images: every layer of heights and every slot of deviations.
+    pub fn bytes(&self) -> u64 {
+        let grid = &self.shared.grid;
+        u64::from(self.shared.image.layers) * Self::height_layer_bytes(grid)
+            + u64::from(self.shared.deviation.layers) * Self::deviation_slot_bytes(grid)
+    }
+
     pub fn image(&self) -> &Image {
         &self.shared.image
     }
