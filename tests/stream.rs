@@ -93,9 +93,9 @@ fn tile_summaries_equal_the_full_resolution_oracle() {
         let grid = grid.with_block(k).unwrap();
         summaries_equal_the_oracle(&hf, &d, &archive, &grid);
     }
-    for k in [5, 257] {
+    for k in [5, 10, 257, 513] {
         let e = grid.with_block(k).unwrap_err();
-        assert!(e.contains("9 to 129 vertices"), "--block {k}: {e}");
+        assert!(e.contains("blocks of 9, 17, 33, 65, 129 vertices"), "--block {k}: {e}");
     }
 }
 

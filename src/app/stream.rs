@@ -514,7 +514,15 @@ pub(crate) fn top_tiles(streamer: &mut Streamer, meta: &Meta) -> anyhow::Result<
     settle(streamer, |_| overview, f32::MAX);
     let held = top_tiles_range(streamer).is_some();
     let range = height_range(streamer, meta).filter(|_| held).ok_or_else(|| {
-        let why = streamer.first_failure.clone().unwrap_or_else(|| "the cache cannot hold them".into());
+        let why = streamer.first_failure.clone().unwrap_or_else(|| {
+            let grid = &streamer.grid;
+            let top = crate::stream::cache::tile_bytes_estimate(grid, grid.top) as f64 / f64::from(1 << 20);
+            format!(
+                "the cache ({:.0} MB) cannot hold them (the top tile takes about {top:.1} MB decoded with blocks of {} vertices a side)",
+                streamer.cache.budget() as f64 / f64::from(1 << 20),
+                grid.block_quads + 1
+            )
+        });
         anyhow::Error::from(InputError(format!("the archive's top tiles could not be read: {why}")))
     })?;
     if meta.raw_range.is_none() {

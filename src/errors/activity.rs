@@ -525,8 +525,9 @@ fn event_loop(gpu: &ErrorsGpu, s: &Shared, submissions: &mut u64) -> VkResult<()
     }
 }
 
-/// How often the unpaced errors thread looks at host events while it waits for the GPU.
-const HOST_LOOK_NS: u64 = 2_000_000;
+/// How often the unpaced errors thread looks at host events while it waits for the GPU
+/// (over tiles too).
+pub(crate) const HOST_LOOK_NS: u64 = 2_000_000;
 
 /// Submits `f`'s next command buffer. Each submission signals one more on
 /// `s.submissions`; the last also signals generation `f.g` on the timeline.

@@ -12,6 +12,7 @@
 //! from them over the atlas ([`AtlasPasses`]) and publishes each finished generation
 //! ([`TileErrors`]) for the traversal.
 
+use crate::errors::activity::HOST_LOOK_NS;
 use crate::errors::atlas_passes::{AtlasPasses, Shaded};
 use crate::errors::handoff::AtlasLayers;
 use crate::lod::gie::ErrorMode;
@@ -595,7 +596,15 @@ fn run(device: &Arc<Device>, shared: &Shared, trace: &Trace) -> VkResult<()> {
             (std::mem::take(&mut s.todo), request)
         };
         if batch.is_empty() && request.is_none() {
-            if let Err(e) = a.finish_oldest() {
+            // GPU work in flight and nothing new. Paced, nothing may start before it
+            // finishes. Free, wait for it at most `HOST_LOOK_NS`, then look for host work
+            // again (a request that can start a second generation), as the in-memory
+            // errors thread does.
+            let done = match a.in_flight.front() {
+                Some(f) if !a.paced() => shared.generations.wait(f.g, HOST_LOOK_NS),
+                _ => Ok(true),
+            };
+            if let Err(e) = done.and_then(|done| if done { a.finish_oldest() } else { Ok(()) }) {
                 break Err(e);
             }
             continue;

@@ -21,10 +21,14 @@ impl BlockLayout {
     /// The `m` of a block side `k`: `k` must be `2^m + 1` with `m >= 1`, at most 257.
     pub fn check(k: u32) -> Result<u32, String> {
         if k < 3 || !(k - 1).is_power_of_two() {
-            return Err(format!("--block {k}: the block side must be 2^m + 1 (3, 5, 9, 17, 33, 65, ...)"));
+            return Err(format!(
+                "--block {k}: the block side must be 2^m + 1 (3, 5, 9, 17, 33, 65, ...; 9 to 129 for a terrain drawn from tiles)"
+            ));
         }
         if k > 257 {
-            return Err(format!("--block {k}: at most 257 (vertex coordinates are 8-bit)"));
+            return Err(format!(
+                "--block {k}: at most 257 (vertex coordinates are 8-bit; 129 for a terrain drawn from tiles)"
+            ));
         }
         Ok((k - 1).trailing_zeros())
     }

@@ -278,6 +278,11 @@ impl HostCache {
         }
     }
 
+    /// Its byte budget (`--cache-mb`).
+    pub fn budget(&self) -> usize {
+        self.budget
+    }
+
     /// Holds at most `tiles` tiles from now on (each charged at least `budget / tiles`
     /// bytes): a frame draws only from held tiles, so every tile it draws from finds a
     /// layer in an atlas of that many layers. Leaves not used this frame are evicted

@@ -95,15 +95,15 @@ impl Grid {
     /// many quads a side; and the paper's errors of a block one LOD coarser than a tile
     /// come from that tile's own vertices, so a tile holds at least two blocks a side.
     pub fn with_block(self, k: u32) -> Result<Self, String> {
-        let m = crate::lod::block::BlockLayout::check(k)?;
-        let quads = 1usize << m;
         let most = self.tile_quads / 2;
-        if quads < SUB || quads > most {
+        let quads = (k as usize).saturating_sub(1);
+        if !quads.is_power_of_two() || quads < SUB || quads > most {
+            let sides: Vec<String> =
+                (0..).map(|i| (SUB << i) + 1).take_while(|&s| s <= most + 1).map(|s| s.to_string()).collect();
             return Err(format!(
-                "--block {k}: a terrain drawn from tiles of {} quads takes blocks of {} to {} vertices a side",
+                "--block {k}: a terrain drawn from tiles of {} quads takes blocks of {} vertices a side",
                 self.tile_quads,
-                SUB + 1,
-                most + 1
+                sides.join(", ")
             ));
         }
         Ok(Grid { block_quads: quads, ..self })
