@@ -69,6 +69,11 @@ pub struct StreamArgs {
     /// and the traversal's threads (1 without `--gpu-mb`).
     #[command(flatten)]
     pub lod: crate::app::cli::LodArgs,
+    #[command(flatten)]
+    pub block: crate::app::cli::BlockArg,
+    /// With --gpu-mb for the paper's mode: its errors are shaded on the GPU.
+    #[command(flatten)]
+    pub error_mode: crate::app::cli::ErrorModeArg,
 }
 
 /// How a streamer's drawn blocks morph for `--morph`.
@@ -1074,6 +1079,14 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
         )
         .into());
     }
+    let paper = args.error_mode.mode == crate::lod::gie::ErrorMode::Paper;
+    if args.gpu_mb.is_none() && paper {
+        return Err(InputError(
+            "--error-mode paper: the paper's errors are shaded by the errors activity on the GPU: give --gpu-mb too"
+                .into(),
+        )
+        .into());
+    }
     if let Some(out) = &args.out {
         if !crate::app::outputs::is_png(out) {
             return Err(InputError(format!("--out {}: the output must be a .png file", out.display())).into());
@@ -1085,7 +1098,7 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
     }
     let shown = args.terrain.name();
     let (archive, _) = streamed_archive(&args.terrain, true, || usize::MAX)?.expect("a terrain drawn from tiles");
-    let grid = streamed_grid(&archive, &args.terrain.frame, crate::lod::block::DEFAULT_K)?;
+    let grid = streamed_grid(&archive, &args.terrain.frame, args.block.k)?;
     let local_archive = args.terrain.heightmap.as_deref().filter(|p| !archive.held_in_memory() && !is_url(p));
     match (args.cold, local_archive) {
         (false, _) => {}
@@ -1155,6 +1168,7 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
         _ => Streamer::new(archive.clone(), grid, args.cache_mb as usize * (1 << 20)),
     };
     streamer.morph = morph_rule(args.lod.morph.setting);
+    streamer.error_mode = args.error_mode.mode;
     streamer.stop = Some(signals.flag().clone());
     streamer_threads(&mut streamer, args.lod.traversal_threads, device.as_deref())?;
     // The view at frame `f`, and the way it heads.
@@ -1255,6 +1269,8 @@ pub fn stream(args: &StreamArgs) -> anyhow::Result<()> {
         "peak_resident_mb": crate::app::outputs::peak_resident_mb(),
         "blocks_per_frame": blocks as f64 / frames as f64,
         "morph": args.lod.morph.on(),
+        "block": grid.block_quads + 1,
+        "error_mode": args.error_mode.mode.as_str(),
         "morphing_per_frame": morphing as f64 / frames as f64,
         "select_ms_per_frame": 1e3 * selecting.as_secs_f64() / frames as f64,
         "traversal_threads": streamer.threads(),
