@@ -337,6 +337,9 @@ fn render_draws_an_archive_streamed_within_the_bound() {
     assert_eq!((e["streamed"].as_bool(), e["validation_messages"].as_u64()), (Some(true), Some(0)), "{e}");
     assert!(e["tiles_shaded"].as_u64().unwrap() > 0 && e["readback_bytes"].as_u64().unwrap() > 0, "{e}");
     assert!(e["generations"] == 2 && e["update_ms"].as_f64().unwrap() > 0.0, "{e}");
+    // The grid the blocks cover and its roots, as in memory (a review found the samples
+    // reported as the grid, and no roots).
+    assert_eq!((&e["grid"], &e["roots"]), (&serde_json::json!([1025, 1025]), &serde_json::json!([1, 1])), "{e}");
     // Only the cells shaded are read back: 8 x 8 blocks of 4 bytes a tile.
     assert_eq!(e["readback_bytes"].as_u64(), e["tiles_shaded"].as_u64().map(|t| t * 256), "{e}");
     // `--dump` in the in-memory layout: a value for every block of a tile shaded.

@@ -825,9 +825,12 @@ pub(crate) fn errors_over_atlas(
     let generations = shaded.generations - before.generations;
     // The last generation's figures, if a repeat shaded one.
     let last = shaded.last.filter(|_| generations > 0);
+    let layout = crate::stream::draw::layout(&grid);
     Ok(serde_json::json!({
         "streamed": true,
-        "grid": [grid.width, grid.height],
+        // The samples the blocks cover, as every `errors` and `render` reports them.
+        "grid": layout.roots.map(|r| (r << layout.n) + 1),
+        "roots": layout.roots,
         "block": grid.block_quads + 1,
         "error_mode": mode.as_str(),
         "atlas_layers": atlas.layer_count(),
