@@ -304,7 +304,7 @@ fn every_flag_works_on_every_source_or_the_terrain_says_why_not() {
         ("larger than one image", vec![strip.to_str().unwrap().into(), "--raw-size".into(), "16641x300".into()]),
     ];
     let tex = texture.to_str().unwrap().to_string();
-    let render_flags: Vec<Vec<String>> = [
+    let render_flags = owned(&[
         &["--heights", "relative"][..],
         &["--voids", "hole"],
         &["--fovy", "45"],
@@ -336,23 +336,11 @@ fn every_flag_works_on_every_source_or_the_terrain_says_why_not() {
         &["--spacing", "20"],
         &["--height-scale", "0.5"],
         &["--stream"],
-    ]
-    .iter()
-    .map(|f| f.iter().map(|s| s.to_string()).collect())
-    .collect();
-    let errors_flags: Vec<Vec<String>> =
-        [&["--error-mode", "paper"][..], &["--repeat", "2"], &["--dump", &out("dump.bin")], &["--block", "17"]]
-            .iter()
-            .map(|f| f.iter().map(|s| s.to_string()).collect())
-            .collect();
-    let bench_flags: Vec<Vec<String>> = [&["--compare"][..], &["--popping"], &["--path", "rotate360"]]
-        .iter()
-        .map(|f| f.iter().map(|s| s.to_string()).collect())
-        .collect();
-    let stream_flags: Vec<Vec<String>> = [&["--block", "17"][..], &["--error-mode", "paper"]]
-        .iter()
-        .map(|f| f.iter().map(|s| s.to_string()).collect())
-        .collect();
+    ]);
+    let errors_flags =
+        owned(&[&["--error-mode", "paper"][..], &["--repeat", "2"], &["--dump", &out("dump.bin")], &["--block", "17"]]);
+    let bench_flags = owned(&[&["--compare"][..], &["--popping"], &["--path", "rotate360"]]);
+    let stream_flags = owned(&[&["--block", "17"][..], &["--error-mode", "paper"]]);
     let mut runs: Vec<(String, Vec<String>, String)> = Vec::new();
     for (name, source) in &sources {
         for flag in &render_flags {
@@ -440,4 +428,9 @@ fn every_flag_works_on_every_source_or_the_terrain_says_why_not() {
         .collect();
     assert_eq!(path_refusals, expected, "refusals that name the way the terrain is drawn");
     assert!(worked >= 140, "{worked} runs worked");
+}
+
+/// Each flag set of the walk as owned arguments.
+fn owned(sets: &[&[&str]]) -> Vec<Vec<String>> {
+    sets.iter().map(|f| f.iter().map(|s| s.to_string()).collect()).collect()
 }

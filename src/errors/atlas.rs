@@ -14,7 +14,7 @@
 
 use crate::errors::activity::HOST_LOOK_NS;
 use crate::errors::atlas_passes::{AtlasPasses, Shaded};
-use crate::errors::handoff::AtlasLayers;
+use crate::errors::handoff::{AtlasLayers, Handoff};
 use crate::lod::gie::ErrorMode;
 use crate::stream::cache::{Heights, TileData};
 use crate::stream::errors::TileErrors;
@@ -647,7 +647,7 @@ impl Activity<'_> {
     /// with `work`; paced, finishes it at once.
     fn submit(&mut self, g: u64, started: Instant, work: Work) -> VkResult<()> {
         let shared = self.shared;
-        let cmd = self.cmds[(g % 2) as usize];
+        let cmd = self.cmds[Handoff::slot(g)];
         let cmds = [vk::CommandBufferSubmitInfo::default().command_buffer(cmd)];
         let signal = [vk::SemaphoreSubmitInfo::default()
             .semaphore(shared.generations.handle)
@@ -727,7 +727,7 @@ impl Activity<'_> {
         }
         let layer_bytes = HeightAtlas::staged_bytes(&shared.grid);
         let need = (layer_bytes * placed.len()) as u64;
-        let staging = &mut self.staging[(g % 2) as usize];
+        let staging = &mut self.staging[Handoff::slot(g)];
         if staging.as_ref().is_none_or(|b| b.size < need) {
             drop(staging.take()); // the old one first: its generation has finished
             *staging = Some(Buffer::new(
@@ -739,7 +739,7 @@ impl Activity<'_> {
             )?);
         }
         let staging = staging.as_mut().expect("made above");
-        upload(self.device, shared, self.cmds[(g % 2) as usize], staging, &placed)?;
+        upload(self.device, shared, self.cmds[Handoff::slot(g)], staging, &placed)?;
         self.submit(g, started, Work::Upload { count, placed, back, dropped })
     }
 
@@ -798,9 +798,9 @@ impl Activity<'_> {
                 let slot = if paper { s.slots.of(i).unwrap_or(0) } else { s.slots.of(i)? };
                 (held && !s.released.contains(k)).then_some((*k, i as u32, slot))
             };
-            // Strict: tiles with a D (above level 0). Paper: every tile below the top
-            // level's coarsest block (a tile gives the blocks one LOD above its own).
-            let shaded = |k: &&TileKey| if paper { grid.tile_quads >= 2 * grid.block_quads } else { k.level > 0 };
+            // Strict: tiles with a D (above level 0). Paper: every tile (it gives the blocks
+            // one LOD above its own: a tile holds at least two a side, `Grid::with_block`).
+            let shaded = |k: &&TileKey| paper || k.level > 0;
             let tiles: Vec<_> =
                 request.tiles.iter().filter(shaded).filter_map(resident).take(AtlasPasses::capacity()).collect();
             for &(_, layer, _) in &tiles {
@@ -822,7 +822,7 @@ impl Activity<'_> {
         }
         let (anchor, cam) = request.view.relative(&grid);
         let d = &self.device.raw;
-        let cmd = self.cmds[(g % 2) as usize];
+        let cmd = self.cmds[Handoff::slot(g)];
         // SAFETY: `cmd` belongs to this thread's pool and its last submission (generation
         // `g - 2`) has finished (begin resets it).
         unsafe { crate::vk::begin_one_time(d, cmd)? };

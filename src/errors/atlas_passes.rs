@@ -14,6 +14,7 @@
 //! again as the tile's heights and deviations; the block's maximum is taken in the
 //! fragment that computes its groups' errors instead.
 
+use crate::errors::handoff::Handoff;
 use crate::gpu::layout::{self as layout, TileErrorsPush};
 use crate::gpu::shaders;
 use crate::lod::camera::Camera;
@@ -184,7 +185,7 @@ impl AtlasPasses {
         let m = self.shaded_side(mode);
         let pipeline = if mode == ErrorMode::Paper { &self.paper } else { &self.pipeline };
         let rows = (tiles.len() as u32).div_ceil(CELLS[0]) * n;
-        let Slot { target, readback, timer } = &self.slots[(g % 2) as usize];
+        let Slot { target, readback, timer } = &self.slots[Handoff::slot(g)];
         let width = target.extent.width;
         let area = vk::Rect2D { offset: vk::Offset2D::default(), extent: vk::Extent2D { width, height: rows } };
         let att = [vk::RenderingAttachmentInfo::default()
@@ -286,7 +287,7 @@ impl AtlasPasses {
     ) -> VkResult<(Vec<TileBlocks>, Shaded)> {
         let m = self.shaded_side(mode) as usize;
         let cell = m * m;
-        let Slot { readback, timer, .. } = &self.slots[(g % 2) as usize];
+        let Slot { readback, timer, .. } = &self.slots[Handoff::slot(g)];
         let bytes = readback.mapped()?;
         let out = tiles
             .iter()
