@@ -42,8 +42,21 @@ vec3 tile_normal() {
                                heights_from(t + 1), v_texel - vec2(t), step);
 }
 
+// `--voids hole`: whether the point lies in a hole, by terrain_shade.glsl's rule over the
+// vertices of the block's tile (the atlas's second channel is 1 at a void): the bilinear
+// share of voids around it is at least one half. A block coarser than level 0 cuts its
+// holes at its tile's spacing.
+bool in_hole() {
+    vec2 side = vec2(textureSize(heights, 0).xy);
+    ivec2 t = ivec2(floor(v_texel));
+    vec2 f = v_texel - vec2(t);
+    vec4 h = textureGather(heights, vec3((vec2(t) + 1.0) / side, float(v_layer_level.x)), 1);
+    return mix(mix(h.w, h.z, f.x), mix(h.x, h.y, f.x), f.y) >= 0.5;
+}
+
 void main() {
     if (any(greaterThan(v_sample, vec2(frame.extent.xy - 1) + 1e-3))) discard;
+    if (HOLES && in_hole()) discard;
     vec3 n;
     if (NORMALS_FROM_HEIGHTS) {
         n = tile_normal();

@@ -753,3 +753,106 @@ fn a_mosaic_of_tiles_prepares_like_the_whole() {
         .count();
     assert_eq!(leftovers, 0, "a mosaic directory was left in the temporary directory");
 }
+
+/// `--voids hole` from tiles: `prepare --voids hole` keeps which samples were voids, and
+/// a frame drawn from that archive, or from the file cut into tiles, cuts the holes the
+/// file drawn in memory cuts. With every block at LOD 0 (`--lod full`, each drawn from a
+/// level-0 tile, whose mask is the file's) the same pixels show the background and the
+/// exported mesh leaves out the same triangles; at the default LOD a coarser block cuts
+/// its holes at its tile's spacing. Drawn filled, the archive shows no hole; an archive
+/// prepared without the mask refuses `--voids hole`, saying so. Mount Fuji's SRTM tile
+/// has 2,437 voids, most on the high ground.
+#[test]
+fn voids_drawn_as_holes_from_tiles_are_the_holes_drawn_in_memory() {
+    let dir = TempDir::new("archive-holes");
+    let fuji = common::data("srtm3/mt_fuji_90m.tif");
+    let fuji = fuji.to_str().unwrap();
+    let masked = dir.path().join("masked.pmtiles");
+    let plain = dir.path().join("plain.pmtiles");
+    for (out, extra) in [(&masked, &["--voids", "hole"][..]), (&plain, &[][..])] {
+        let o = cli(&[&["prepare", fuji, "--out", out.to_str().unwrap()][..], extra].concat());
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    }
+    // Straight down over the whole tile, the background magenta, no sun (plain colours).
+    let render = |input: &[&str], lod: &str, voids: &str, name: &str| {
+        let png = dir.path().join(format!("{name}.png"));
+        let glb = dir.path().join(format!("{name}.glb"));
+        let view = [
+            "--lod",
+            lod,
+            "--voids",
+            voids,
+            "--camera",
+            "60000,60000,60000",
+            "--look-at",
+            "60000,0,60001",
+            "--size",
+            "480x360",
+            "--background",
+            "1,0,1",
+            "--sun",
+            "off",
+            "--validation",
+            "on",
+        ];
+        let (png_s, glb_s) = (png.to_str().unwrap(), glb.to_str().unwrap());
+        let args = [&["render"][..], input, &view, &["--out", png_s, "--export-mesh", glb_s]].concat();
+        let o = cli(&args);
+        assert!(o.status.success(), "{args:?}: {}", String::from_utf8_lossy(&o.stderr));
+        let json = common::json_in(&String::from_utf8_lossy(&o.stdout));
+        assert_eq!(json["validation_messages"], 0, "{args:?}");
+        assert_eq!(json["voids"], voids, "{args:?}");
+        let img = image::open(&png).unwrap().to_rgba8();
+        let magenta: Vec<bool> = img.pixels().map(|p| p.0 == [255, 0, 255, 255]).collect();
+        (magenta, json["mesh_triangles_in_holes"].as_u64().unwrap_or(0))
+    };
+    let masked = masked.to_str().unwrap();
+    let (filled, _) = render(&[fuji], "full", "fill", "filled");
+    // Holes: background where the filled terrain shows ground.
+    let holes = |m: &[bool]| -> Vec<bool> { m.iter().zip(&filled).map(|(h, f)| *h && !*f).collect() };
+    let count = |h: &[bool]| h.iter().filter(|v| **v).count();
+    let differ = |a: &[bool], b: &[bool]| a.iter().zip(b).filter(|(a, b)| a != b).count();
+    let (memory, memory_cut) = render(&[fuji], "full", "hole", "memory");
+    let memory = holes(&memory);
+    let n = count(&memory);
+    assert!(n > 150 && memory_cut > 1000, "{n} hole pixels, {memory_cut} triangles in holes in memory");
+    for (what, input) in [("the archive", &[masked][..]), ("the file cut into tiles", &[fuji, "--stream"][..])] {
+        let (tiles, cut) = render(input, "full", "hole", "tiles");
+        let tiles = holes(&tiles);
+        let d = differ(&memory, &tiles);
+        println!("{what}, LOD 0: {} hole pixels against {n} in memory, {d} differ", count(&tiles));
+        assert!(d * 50 <= n, "{what}: {d} of {n} hole pixels differ from memory's");
+        assert_eq!(cut, memory_cut, "{what}: triangles left out of the mesh");
+    }
+    let (memory_lod, _) = render(&[fuji], "error", "hole", "memory-lod");
+    let (tiles_lod, _) = render(&[masked], "error", "hole", "tiles-lod");
+    let (memory_lod, tiles_lod) = (holes(&memory_lod), holes(&tiles_lod));
+    let (a, b) = (count(&memory_lod), count(&tiles_lod));
+    // A coarser block's holes lie where the file's are, give or take its tile's spacing.
+    let near = |p: usize, within: i64| {
+        let (x, y) = ((p % 480) as i64, (p / 480) as i64);
+        (-within..=within).any(|dy| {
+            (-within..=within).any(|dx| {
+                let (u, v) = (x + dx, y + dy);
+                (0..480).contains(&u) && (0..360).contains(&v) && memory_lod[(v * 480 + u) as usize]
+            })
+        })
+    };
+    let placed: Vec<usize> = (0..tiles_lod.len()).filter(|&p| tiles_lod[p]).collect();
+    let far: Vec<usize> = (1..6).map(|w| placed.iter().filter(|&&p| !near(p, w)).count()).collect();
+    println!(
+        "default LOD: {b} hole pixels from tiles, {a} in memory, {} differ; from tiles, farther than 1..5 px from memory's: {far:?}",
+        differ(&memory_lod, &tiles_lod)
+    );
+    assert!(b * 2 >= a && b > 100, "{b} hole pixels from tiles against {a} in memory");
+    assert!(far[1] * 10 <= b, "{} of {b} hole pixels from tiles lie over 2 px from memory's", far[1]);
+    let (shown, _) = render(&[masked], "full", "fill", "masked-filled");
+    assert_eq!(count(&holes(&shown)), 0, "an archive drawn filled shows holes");
+    let refused_png = dir.path().join("refused.png");
+    let o = cli(&["render", plain.to_str().unwrap(), "--voids", "hole", "--out", refused_png.to_str().unwrap()]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        o.status.code() == Some(2) && err.contains("plain.pmtiles") && err.contains("2437 voids were filled"),
+        "{err}"
+    );
+}

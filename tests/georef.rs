@@ -244,7 +244,7 @@ fn tall_geographic_rasters_are_reprojected() {
 }
 
 /// The notes say what became of the samples outside a reprojected source: holes in
-/// memory (above), filled and drawn in an archive, which keeps no void mask; `prepare`
+/// memory (above), filled and drawn in an archive prepared without `--voids hole`; `prepare`
 /// says so and never that they are "drawn as holes".
 #[test]
 fn prepare_says_the_samples_outside_a_reprojected_source_are_filled() {

@@ -577,7 +577,7 @@ fn the_viewer_flies_over_an_archive_drawn_streamed() {
         .env("RUST_LOG", "error")
         .output()
         .unwrap();
-    let refused = viewer(&["--heightmap", archive.to_str().unwrap(), "--stream", "--voids", "hole", "--frames", "1"]);
+    let refused = viewer(&["--heightmap", archive.to_str().unwrap(), "--stream", "--raycast", "all", "--frames", "1"]);
     let view = format!("--heightmap '{}' --stream --size 480x360 --validation on --cache-mb 64", archive.display());
     // The drag starts right of the panel (top left), which would take it.
     let steps = r#"xdotool key bracketright
@@ -703,7 +703,7 @@ xdotool key Escape
     }
     let err = String::from_utf8_lossy(&refused.stderr);
     assert_eq!(refused.status.code(), Some(2), "{err}");
-    assert!(err.contains("--voids hole") && err.contains("void mask"), "{err}");
+    assert!(err.contains("--raycast"), "{err}");
 }
 
 /// `--exaggeration` over an archive drawn streamed draws what the in-memory viewer draws

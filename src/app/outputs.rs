@@ -197,9 +197,12 @@ impl TerrainFacts {
         }
     }
 
-    /// The facts an archive's metadata records (voids were filled by `prepare`).
+    /// The facts an archive's metadata records (voids were filled by `prepare`, and are
+    /// drawn as holes where the archive, as opened, keeps their mask).
     pub fn of_meta(m: &crate::input::archive::Meta) -> Self {
-        Self::of_frame(&m.georef, m.spacing, m.height_scale, [m.width, m.height], m.void_samples)
+        let facts = Self::of_frame(&m.georef, m.spacing, m.height_scale, [m.width, m.height], m.void_samples);
+        let voids = if m.void_mask { crate::input::load::VoidMode::Hole } else { facts.voids };
+        TerrainFacts { voids, ..facts }
     }
 
     /// [`TerrainFacts::of_meta`] with `--spacing` and `--height-scale` where `frame`

@@ -37,6 +37,28 @@ pub struct PrepareArgs {
     /// 8193^2 samples always are). Voids are then refused, not filled.
     #[arg(long)]
     pub windows: bool,
+    /// What the archive keeps of the input's voids (nodata samples): `fill` fills them
+    /// smoothly, drawn as terrain; `hole` fills them too (for the LOD bound) and records
+    /// which they were, so that `--voids hole` can cut them out of the picture. Needs
+    /// the input read whole (not with --windows, nor over 8193^2 samples).
+    #[arg(long, value_enum, default_value_t = VoidMode::Fill)]
+    pub voids: VoidMode,
+}
+
+/// `--voids hole` over an archive (`shown` in messages) needs the mask of its voids, if
+/// it had any: refused, saying how to keep them, where `prepare` filled them without one.
+pub(crate) fn check_void_mask(
+    shown: &str,
+    meta: &crate::input::archive::Meta,
+    voids: VoidMode,
+) -> Result<(), InputError> {
+    if voids == VoidMode::Hole && !meta.void_mask && meta.void_samples > 0 {
+        return Err(InputError(format!(
+            "{shown}: --voids hole: the archive's {} voids were filled when it was prepared, and where they were was not kept (prepare it from its source with --voids hole)",
+            meta.void_samples
+        )));
+    }
+    Ok(())
 }
 
 /// Inputs larger than this are read window by window (in memory they would take about
@@ -203,6 +225,7 @@ pub(crate) fn tiles_of_file(
         frame: terrain.frame,
         raw_size: terrain.raw_size,
         windows: false,
+        voids: terrain.voids,
     };
     let (_, archive, stop) = prepare_archive(&args, Output::Memory, &|| {})?;
     Ok((archive.expect("cut in memory"), stop))
@@ -303,7 +326,11 @@ fn prepare_archive(
     let from_archive;
     let (source, frame): (&dyn Source, Frame) = match (&input, args.synthetic) {
         (Some(path), None) if crate::input::archive::Archive::sniff(path) => {
-            archive = crate::input::archive::Archive::open(path).map_err(|e| named(e.to_string()))?;
+            let mut opened = crate::input::archive::Archive::open(path).map_err(|e| named(e.to_string()))?;
+            check_void_mask(&path.display().to_string(), &opened.meta, args.voids)?;
+            // With `fill`, the voids stay filled and no mask goes on.
+            opened.meta.void_mask &= args.voids == VoidMode::Hole;
+            archive = opened;
             let m = &archive.meta;
             let mut georef = m.georef.clone();
             // What this run declares is no longer assumed, nor what the archive said.
@@ -335,6 +362,9 @@ fn prepare_archive(
             from_archive = FromArchive::new(&archive);
             (&from_archive, frame)
         }
+        (_, Some(_)) if args.voids == VoidMode::Hole => {
+            return Err(InputError("--voids hole: the synthetic terrain has no voids".into()).into());
+        }
         (_, Some(side)) => {
             synthetic = Synthetic { side: side as usize };
             let frame = Frame {
@@ -350,6 +380,14 @@ fn prepare_archive(
                 void_samples: 0,
             };
             (&synthetic, frame)
+        }
+        (Some(path), None) if args.voids == VoidMode::Hole && windowed(path, args.windows)? => {
+            return Err(named(format!(
+                "{}: --voids hole needs the file read whole, to find its voids (not with --windows, nor over {} samples)",
+                path.display(),
+                IN_MEMORY_SAMPLES
+            ))
+            .into());
         }
         (Some(path), None) if windowed(path, args.windows)? => {
             let reader = WindowReader::open(path).map_err(|e| named(e.to_string()))?;
@@ -381,8 +419,8 @@ fn prepare_archive(
                 heights: args.frame.heights,
                 raw_size: args.raw_size.map(|(w, h)| (w as usize, h as usize)),
                 max_grid_side: None,
-                voids: VoidMode::Fill,
-                no_holes: true,
+                voids: args.voids,
+                no_holes: args.voids == VoidMode::Fill,
             };
             loaded = load::load(path, &opts).map_err(|e| named(e.to_string()))?;
             for line in crate::input::describe(&loaded) {

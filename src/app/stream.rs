@@ -173,7 +173,8 @@ impl GpuFrames {
             if device.queue_mode == crate::vk::QueueMode::Shared { "shared" } else { "errors" },
         );
         streamer.attach(Box::new(atlas.feed()), HeightAtlas::cache_tiles(atlas.layer_count()));
-        let renderer = StreamedRenderer::new(&device, crate::stream::draw::layout(grid), size.0, size.1)?;
+        let mut renderer = StreamedRenderer::new(&device, crate::stream::draw::layout(grid), size.0, size.1)?;
+        renderer.set_holes(grid.holes);
         let t0 = Instant::now();
         let (lighting, no_shadows) = match crate::draw::streamed::lighting_heights(
             streamer.source().as_ref(),
@@ -701,9 +702,7 @@ pub fn streamed_archive(
         if !stream {
             return Ok(None);
         }
-        if hole {
-            return Err(InputError("--voids hole: the built-in terrain has no voids".into()).into());
-        }
+        // (The built-in terrain has no voids: `--voids hole` changes nothing.)
         return Ok(Some((Arc::new(crate::app::prepare::tiles_of_builtin(terrain)?), None)));
     };
     // Before anything opens it (sniffing the archive, reading a raster's header): a FIFO
@@ -727,18 +726,9 @@ pub fn streamed_archive(
         if !(stream || too_big()) {
             return Ok(None);
         }
-        if hole {
-            return Err(InputError(format!(
-                "{}: --voids hole: a terrain drawn from tiles has its voids filled (tiles keep no void mask)",
-                path.display()
-            ))
-            .into());
-        }
+        // Cut with its void mask when voids are drawn as holes.
         let (archive, stop) = crate::app::prepare::tiles_of_file(path, terrain)?;
         return Ok(Some((Arc::new(archive), Some(stop))));
-    }
-    if hole {
-        return Ok(None); // refused by the loader, naming the archive
     }
     if terrain.raw_size.is_some() {
         return Err(InputError(format!(
@@ -748,7 +738,12 @@ pub fn streamed_archive(
         .into());
     }
     let mut archive = Archive::open(path).map_err(|e| InputError(e.to_string()))?;
-    if !stream && (archive.grid_side() <= 4096 || archive.grid_side() <= max_side()) {
+    crate::app::prepare::check_void_mask(&crate::input::archive::bytes::shown(path), &archive.meta, terrain.voids)?;
+    // Drawn with its voids filled: the tiles' masks are left unread.
+    archive.meta.void_mask &= hole;
+    // With `--voids hole` an archive is drawn from its tiles whatever its size: in memory
+    // an archive's voids are filled.
+    if !stream && !hole && (archive.grid_side() <= 4096 || archive.grid_side() <= max_side()) {
         return Ok(None);
     }
     let shown = crate::input::archive::bytes::shown(path);
@@ -1012,10 +1007,11 @@ pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
             let [wx, wz] = grid.world_xz(x as f64, z as f64);
             [wx as f32, (f64::from(raw) * grid.height_scale) as f32, wz as f32]
         };
+        let hole = |x: i64, z: i64| resident.is_hole(x, z);
         let surface = crate::lod::mesh::MeshSurface {
             last: [grid.width as i64 - 1, grid.height as i64 - 1],
             world: &world,
-            hole: None,
+            hole: grid.holes.then_some(&hole as &dyn Fn(i64, i64) -> bool),
         };
         crate::lod::mesh::drawn_mesh_of(&resident, &layout, &drawn, &surface)
     });

@@ -87,6 +87,9 @@ pub struct StreamedRenderer {
     window_depth: Option<Image>,
     /// Where the terrain pipelines' normals come from.
     normals: NormalSource,
+    /// Voids are cut out of the picture (`--voids hole`): shaded forward, where a hole
+    /// shows what is behind it.
+    holes: bool,
     /// Deferred (the default) or forward shading.
     pixels: PixelPass,
     /// The blocks' depth pass of deferred frames (None without shaderClipDistance:
@@ -150,6 +153,7 @@ impl FramePipelines {
         format: vk::Format,
         normals: NormalSource,
         (base, detail): (bool, bool),
+        holes: bool,
     ) -> VkResult<Self> {
         let sky = super::blocks::sky_pipeline(device, layout, format)?;
         let textures = [(layout::SPEC_BASE_TEXTURE, base), (layout::SPEC_DETAIL_TEXTURE, detail)];
@@ -171,11 +175,11 @@ impl FramePipelines {
                 specialization: &textures,
             },
         )?;
-        let terrain = terrain_pipeline(device, layout, format, normals, textures, vk::PolygonMode::FILL)?;
+        let terrain = terrain_pipeline(device, layout, format, (normals, holes), textures, vk::PolygonMode::FILL)?;
         let wireframe = device
             .features
             .wireframe
-            .then(|| terrain_pipeline(device, layout, format, normals, textures, vk::PolygonMode::LINE))
+            .then(|| terrain_pipeline(device, layout, format, (normals, holes), textures, vk::PolygonMode::LINE))
             .transpose()?;
         Ok(FramePipelines { terrain, sky, shade, wireframe })
     }
@@ -183,12 +187,12 @@ impl FramePipelines {
 
 /// The terrain pipeline of streamed frames for colour attachments of `format`, its
 /// normals from `normals` (stream.frag: the surface's derivatives for the gradient map,
-/// which streamed tiles do not bring, or the tile's heights).
+/// which streamed tiles do not bring, or the tile's heights), cutting holes if `holes`.
 fn terrain_pipeline(
     device: &Arc<Device>,
     layout: &PipelineLayout,
     format: vk::Format,
-    normals: NormalSource,
+    (normals, holes): (NormalSource, bool),
     [base, detail]: [(u32, bool); 2],
     polygon_mode: vk::PolygonMode,
 ) -> VkResult<GraphicsPipeline> {
@@ -207,7 +211,12 @@ fn terrain_pipeline(
             // through it, not its underside (the same mesh, the same winding).
             cull_back: true,
             layout,
-            specialization: &[(layout::SPEC_NORMALS_FROM_HEIGHTS, normals == NormalSource::Heights), base, detail],
+            specialization: &[
+                (layout::SPEC_NORMALS_FROM_HEIGHTS, normals == NormalSource::Heights),
+                (layout::SPEC_HOLES, holes),
+                base,
+                detail,
+            ],
         },
     )
 }
@@ -240,8 +249,14 @@ impl StreamedRenderer {
         )?;
         let push = std::mem::size_of::<BlockPush>() as u32;
         let pipeline_layout = PipelineLayout::new(device, &set_layout, push, vertex)?;
-        let pipelines =
-            FramePipelines::new(device, &pipeline_layout, COLOR_FORMAT, NormalSource::default(), (false, false))?;
+        let pipelines = FramePipelines::new(
+            device,
+            &pipeline_layout,
+            COLOR_FORMAT,
+            NormalSource::default(),
+            (false, false),
+            false,
+        )?;
         let depth_pipeline = depth_pass_pipeline(device, &pipeline_layout, shaders::STREAM_DEPTH_VERT)?;
         // The capture hook writes from the vertex stage: only where the device allows it.
         let capture = if device.features.vertex_stores {
@@ -309,6 +324,7 @@ impl StreamedRenderer {
             target: Target::new(device, width, height)?,
             window_depth: None,
             normals: NormalSource::default(),
+            holes: false,
             pixels: PixelPass::default(),
             depth_pipeline,
             textures,
@@ -499,7 +515,7 @@ impl StreamedRenderer {
             return Ok(handles(p));
         }
         let textures = (self.textures.has_base, self.textures.has_detail);
-        let p = FramePipelines::new(&self.device, &self.pipeline_layout, format, self.normals, textures)?;
+        let p = FramePipelines::new(&self.device, &self.pipeline_layout, format, self.normals, textures, self.holes)?;
         let h = handles(&p);
         self.pipelines.push((format, p));
         Ok(h)
@@ -520,6 +536,15 @@ impl StreamedRenderer {
     pub fn set_normals(&mut self, normals: NormalSource) {
         if normals != self.normals {
             self.normals = normals;
+            self.pipelines.clear();
+        }
+    }
+
+    /// Cuts voids out of the picture from now on (`--voids hole`; the atlas says which
+    /// samples are voids); before the first frame, as [`StreamedRenderer::set_normals`].
+    pub fn set_holes(&mut self, holes: bool) {
+        if holes != self.holes {
+            self.holes = holes;
             self.pipelines.clear();
         }
     }
@@ -553,6 +578,7 @@ impl StreamedRenderer {
         );
         self.pixels == PixelPass::Deferred
             && self.normals == NormalSource::GradientMap
+            && !self.holes
             && self.depth_pipeline.is_some()
             && !view.colour_by_lod
             && !view.wireframe

@@ -200,10 +200,11 @@ pub struct AtlasFeed {
 }
 
 impl HeightAtlas {
-    /// Bytes of one layer of heights: a tile's heights with their one-sample border.
+    /// Bytes of one layer of heights: a tile's heights with their one-sample border
+    /// (and with holes, whether each is a void).
     fn height_layer_bytes(grid: &Grid) -> u64 {
         let side = (grid.tile_quads + 3) as u64;
-        side * side * grid.height_bytes as u64
+        side * side * grid.atlas_texel_bytes() as u64
     }
 
     /// Bytes of one slot of deviations: a tile's groups' `D` (half floats).
@@ -256,7 +257,14 @@ impl HeightAtlas {
                 "--gpu-mb: {budget_bytes} bytes hold no atlas layer ({layer_bytes} bytes a tile)"
             )));
         }
-        let format = if unorm16 { vk::Format::R16_UNORM } else { vk::Format::R32_SFLOAT };
+        // With holes, a second channel says whether the height is a void (every shader
+        // reads heights from the first).
+        let format = match (unorm16, grid.holes) {
+            (true, false) => vk::Format::R16_UNORM,
+            (false, false) => vk::Format::R32_SFLOAT,
+            (true, true) => vk::Format::R16G16_UNORM,
+            (false, true) => vk::Format::R32G32_SFLOAT,
+        };
         let usage =
             vk::ImageUsageFlags::SAMPLED | vk::ImageUsageFlags::TRANSFER_DST | vk::ImageUsageFlags::TRANSFER_SRC;
         let extent = vk::Extent2D { width: side, height: side };
@@ -911,8 +919,7 @@ fn upload(
     staging: &mut Buffer,
     placed: &[Placed],
 ) -> VkResult<()> {
-    let texel = if shared.unorm16 { 2 } else { 4 };
-    let height_bytes = (shared.side * shared.side) as usize * texel;
+    let height_bytes = (shared.side * shared.side) as usize * shared.grid.atlas_texel_bytes();
     let groups = shared.grid.tile_quads as u32;
     let layer_bytes = HeightAtlas::staged_bytes(&shared.grid);
     let layer_of = |base_array_layer: u32| vk::ImageSubresourceLayers {
@@ -927,7 +934,8 @@ fn upload(
         for (i, (tile, layer, slot)) in placed.iter().enumerate() {
             let at = &mut dst[i * layer_bytes..][..layer_bytes];
             let (h, dev) = at.split_at_mut(height_bytes);
-            texels(&tile.heights, shared.unorm16, h)
+            let voids = shared.grid.holes.then_some(tile.voids.as_deref());
+            texels(&tile.heights, voids, shared.unorm16, h)
                 .map_err(|e| VkError::Setup(format!("tile {:?}: {e}", tile.key)))?;
             heights.push(
                 vk::BufferImageCopy::default()
@@ -1033,25 +1041,36 @@ pub fn f16_value(h: u16) -> f32 {
 }
 
 /// A tile's heights as the atlas's texels: 16-bit integers for R16_UNORM (exact: the
-/// shader rounds `texel * 65535` back), f32 otherwise.
-pub fn texels(heights: &Heights, unorm16: bool, dst: &mut [u8]) -> Result<(), String> {
-    let n = dst.len() / if unorm16 { 2 } else { 4 };
+/// shader rounds `texel * 65535` back), f32 otherwise. With `voids` (an atlas with
+/// holes; `Some(None)` for a tile without any), each height is followed by 1 (65535 in
+/// 16 bits) where it is a void, else 0.
+pub fn texels(heights: &Heights, voids: Option<Option<&[bool]>>, unorm16: bool, dst: &mut [u8]) -> Result<(), String> {
+    let width = if unorm16 { 2 } else { 4 };
+    let channels = if voids.is_some() { 2 } else { 1 };
+    let n = dst.len() / (width * channels);
     let count = match heights {
         Heights::Unorm16(v) => v.len(),
         Heights::Float32(v) => v.len(),
     };
-    if count != n {
+    if count != n || voids.flatten().is_some_and(|v| v.len() != n) {
         return Err(format!("{count} heights for a layer of {n}"));
     }
     for i in 0..n {
         let h = heights.get(i);
-        if unorm16 {
-            if h.fract() != 0.0 || !(0.0..=65535.0).contains(&h) {
-                return Err(format!("height {h} in a 16-bit archive"));
+        let at = &mut dst[i * width * channels..][..width * channels];
+        if unorm16 && (h.fract() != 0.0 || !(0.0..=65535.0).contains(&h)) {
+            return Err(format!("height {h} in a 16-bit archive"));
+        }
+        let void = voids.map(|v| v.is_some_and(|v| v[i]));
+        for (c, value) in std::iter::once(h).chain(void.map(|v| if v { 1.0 } else { 0.0 })).enumerate() {
+            let texel = &mut at[c * width..][..width];
+            if unorm16 {
+                // A void's 1.0 is 65535 in the second channel.
+                let units = if c == 0 { value } else { value * 65535.0 };
+                texel.copy_from_slice(&(units as u16).to_ne_bytes());
+            } else {
+                texel.copy_from_slice(&value.to_ne_bytes());
             }
-            dst[2 * i..2 * i + 2].copy_from_slice(&(h as u16).to_ne_bytes());
-        } else {
-            dst[4 * i..4 * i + 4].copy_from_slice(&h.to_ne_bytes());
         }
     }
     Ok(())
@@ -1089,6 +1108,29 @@ mod tests {
             assert_eq!(held, (0..slots).collect::<Vec<_>>(), "a slot held twice or lost: {d:?}");
         }
         assert!(granted > 1000 && refused > 100, "{granted} granted, {refused} refused");
+    }
+
+    /// With holes each height is followed by its void flag (1.0, or 65535 in 16 bits); a
+    /// tile without a mask writes 0 there; a mask of the wrong size is refused.
+    #[test]
+    fn texels_with_holes_interleave_heights_and_void_flags() {
+        let heights = Heights::Unorm16(vec![7, 65535, 0]);
+        let mut dst = [0u8; 12];
+        texels(&heights, Some(Some(&[false, true, false])), true, &mut dst).unwrap();
+        let words: Vec<u16> = dst.chunks(2).map(|c| u16::from_ne_bytes([c[0], c[1]])).collect();
+        assert_eq!(words, [7, 0, 65535, 65535, 0, 0]);
+        texels(&heights, Some(None), true, &mut dst).unwrap();
+        let words: Vec<u16> = dst.chunks(2).map(|c| u16::from_ne_bytes([c[0], c[1]])).collect();
+        assert_eq!(words, [7, 0, 65535, 0, 0, 0]);
+        let floats = Heights::Float32(vec![-2.5, 1e6]);
+        let mut dst = [0u8; 16];
+        texels(&floats, Some(Some(&[true, false])), false, &mut dst).unwrap();
+        let values: Vec<f32> = dst.chunks(4).map(|c| f32::from_ne_bytes(c.try_into().unwrap())).collect();
+        assert_eq!(values, [-2.5, 1.0, 1e6, 0.0]);
+        assert!(texels(&floats, Some(Some(&[true])), false, &mut dst).is_err());
+        let mut plain = [0u8; 8];
+        texels(&floats, None, false, &mut plain).unwrap();
+        assert_eq!(f32::from_ne_bytes(plain[4..].try_into().unwrap()), 1e6);
     }
 
     /// The half float stored for a deviation is never below it and is the least such:

@@ -248,7 +248,8 @@ pub const SPEC_DETAIL_TEXTURE: u32 = 2;
 pub const SPEC_COLOUR_BY_LOD: u32 = 3;
 /// gie.frag: strict mode (else the paper's eqs. 2-4).
 pub const SPEC_STRICT_ERRORS: u32 = 4;
-/// terrain.frag: voids are drawn as holes (`--voids hole`; flags in the gradient map).
+/// terrain.frag and stream.frag: voids are drawn as holes (`--voids hole`; flags in the
+/// gradient map in memory, the atlas's second channel over tiles).
 pub const SPEC_HOLES: u32 = 5;
 
 pub const SPEC_CONSTANTS: &[SpecConstant] = &[

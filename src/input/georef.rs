@@ -968,7 +968,7 @@ pub fn decide(
             if outside_holes {
                 "drawn as holes (filled only for the LOD bound)"
             } else {
-                "filled from the nearest data and drawn (an archive keeps no void mask)"
+                "filled from the nearest data and drawn (an archive keeps them with --voids hole)"
             }
         ));
     }

@@ -21,7 +21,7 @@ pub struct LoadOptions {
     pub max_grid_side: Option<usize>,
     /// What voids (nodata) become.
     pub voids: VoidMode,
-    /// The caller keeps no void mask (an archive): every void and every sample outside a
+    /// The caller keeps no void mask (an archive prepared with `--voids fill`): every void and every sample outside a
     /// reprojected source is filled and drawn, and the notes say so.
     pub no_holes: bool,
 }

@@ -101,6 +101,8 @@ struct Run<'a> {
     height_scale: f32,
     /// Lowest and highest raw height read so far (every sample is in some leaf window).
     range: Mutex<[f32; 2]>,
+    /// Whether tiles keep which of their vertices are voids ([`Source::has_void_mask`]).
+    holes: bool,
 }
 
 /// The largest world coordinate an archive holds (extent and heights): what the
@@ -211,6 +213,7 @@ fn write_tiles(
         stop,
         height_scale: frame.height_scale,
         range: Mutex::new([f32::INFINITY, f32::NEG_INFINITY]),
+        holes: source.has_void_mask(),
     };
     run.build(top, 0, 0)?;
     let meta = Meta {
@@ -232,6 +235,7 @@ fn write_tiles(
         source: source.name(),
         tiles: 0,
         raw_range: Some(run.range.into_inner().expect("range lock")),
+        void_mask: run.holes,
     };
     let prepared = Prepared {
         width,
@@ -408,7 +412,20 @@ impl Run<'_> {
         heights: Vec<f32>,
         deviation: Vec<f32>,
     ) -> Result<(), PrepareError> {
-        let tile = Tile { level, tx, tz, side: TILE_QUADS + 3, heights, deviation };
+        let side = TILE_QUADS + 3;
+        // Which of the tile's vertices (its border included) are voids: the samples its
+        // heights are, read at its stride. Only a tile with one keeps a mask.
+        let voids = if self.holes {
+            let step = 1i64 << level;
+            let span = TILE_QUADS as i64 * step;
+            let mut mask = Vec::new();
+            let (x0, z0) = (i64::from(tx) * span - step, i64::from(tz) * span - step);
+            self.source.voids(x0, z0, side, side, step as usize, &mut mask).map_err(PrepareError::Source)?;
+            mask.contains(&true).then_some(mask)
+        } else {
+            None
+        };
+        let tile = Tile { level, tx, tz, side, heights, deviation, voids };
         let payload = tile::encode(&tile, self.samples);
         self.raw_bytes.fetch_add(payload.len() as u64, Ordering::Relaxed);
         let compressed = pmtiles::zstd(&payload);

@@ -15,6 +15,18 @@ pub trait Source: Sync {
     /// Samples `(x0 + i stride, z0 + j stride)` for `i < nx`, `j < nz`, row-major into
     /// `out` (replaced), raw units.
     fn read(&self, x0: i64, z0: i64, nx: usize, nz: usize, stride: usize, out: &mut Vec<f32>) -> Result<(), String>;
+    /// Whether the source says which samples were voids, for the archive to keep
+    /// (`--voids hole`); without it [`Source::voids`] is never asked.
+    fn has_void_mask(&self) -> bool {
+        false
+    }
+    /// Which of the samples [`Source::read`] gives for the same arguments were voids.
+    fn voids(&self, x0: i64, z0: i64, nx: usize, nz: usize, stride: usize, out: &mut Vec<bool>) -> Result<(), String> {
+        let _ = (x0, z0, stride);
+        out.clear();
+        out.resize(nx * nz, false);
+        Ok(())
+    }
 }
 
 /// Clamped coordinates `c0 + i stride` for `i < count` along an axis of `len` samples.
@@ -48,6 +60,19 @@ impl Source for InMemory<'_> {
         out.clear();
         for z in axis(z0, nz, stride, hf.height) {
             out.extend(axis(x0, nx, stride, hf.width).map(|x| hf.raw[z * gw + x]));
+        }
+        Ok(())
+    }
+
+    fn has_void_mask(&self) -> bool {
+        self.0.void_mask.is_some()
+    }
+
+    fn voids(&self, x0: i64, z0: i64, nx: usize, nz: usize, stride: usize, out: &mut Vec<bool>) -> Result<(), String> {
+        let hf = self.0;
+        out.clear();
+        for z in axis(z0, nz, stride, hf.height) {
+            out.extend(axis(x0, nx, stride, hf.width).map(|x| hf.is_hole(x as i64, z as i64)));
         }
         Ok(())
     }
@@ -216,12 +241,39 @@ impl Source for FromArchive<'_> {
     }
 
     fn read(&self, x0: i64, z0: i64, nx: usize, nz: usize, stride: usize, out: &mut Vec<f32>) -> Result<(), String> {
+        out.clear();
+        out.reserve(nx * nz);
+        self.each_sample(x0, z0, nx, nz, stride, |tile, i| out.push(tile.heights[i]))
+    }
+
+    fn has_void_mask(&self) -> bool {
+        self.archive.meta.void_mask
+    }
+
+    fn voids(&self, x0: i64, z0: i64, nx: usize, nz: usize, stride: usize, out: &mut Vec<bool>) -> Result<(), String> {
+        out.clear();
+        out.reserve(nx * nz);
+        // A tile without a mask has no voids.
+        self.each_sample(x0, z0, nx, nz, stride, |tile, i| out.push(tile.voids.as_ref().is_some_and(|v| v[i])))
+    }
+}
+
+impl FromArchive<'_> {
+    /// Calls `f(tile, index)` for each sample [`Source::read`] gives, in its order: the
+    /// tile holding it and its index among the tile's `side^2` values.
+    fn each_sample(
+        &self,
+        x0: i64,
+        z0: i64,
+        nx: usize,
+        nz: usize,
+        stride: usize,
+        mut f: impl FnMut(&crate::input::archive::tile::Tile, usize),
+    ) -> Result<(), String> {
         let m = &self.archive.meta;
         let (w, h) = (m.width, m.height);
         // The coarsest level whose vertices are every `stride`-th sample.
         let level = (stride.trailing_zeros() as u8).min(m.top_level);
-        out.clear();
-        out.reserve(nx * nz);
         let mut current: Option<((u8, u32, u32), std::sync::Arc<crate::input::archive::tile::Tile>)> = None;
         for z in axis(z0, nz, stride, h) {
             for x in axis(x0, nx, stride, w) {
@@ -238,7 +290,7 @@ impl Source for FromArchive<'_> {
                 }
                 let tile = &current.as_ref().expect("just set").1;
                 let (i, j) = ((x - tx * span) >> l, (z - tz * span) >> l);
-                out.push(tile.heights[(j + 1) * tile.side + i + 1]);
+                f(tile, (j + 1) * tile.side + i + 1);
             }
         }
         Ok(())

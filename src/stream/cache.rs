@@ -101,6 +101,8 @@ pub struct TileData {
     pub heights: Heights,
     /// `D` of the tile's groups, as [`Tile::deviation`].
     pub deviation: Vec<f32>,
+    /// Which samples (as `heights`) are voids drawn as holes, as [`Tile::voids`].
+    pub voids: Option<Vec<bool>>,
     /// `blocks[j - level]`: row-major, `(T / block_quads >> (j - level))^2`.
     blocks: Vec<Vec<BlockSummary>>,
     /// Bytes held (heights, deviations, summaries).
@@ -177,17 +179,23 @@ impl TileData {
             }
             blocks.push(summaries);
         }
-        let (side, heights, deviation) = (tile.side, Heights::compact(tile.heights), tile.deviation);
+        let (side, heights, deviation, voids) = (tile.side, Heights::compact(tile.heights), tile.deviation, tile.voids);
         let bytes = heights.bytes()
             + deviation.len() * 4
+            + voids.as_ref().map_or(0, Vec::len)
             + blocks.iter().map(|b| b.len() * std::mem::size_of::<BlockSummary>()).sum::<usize>()
             + std::mem::size_of::<Self>();
-        Ok(TileData { key, side, heights, deviation, blocks, bytes })
+        Ok(TileData { key, side, heights, deviation, voids, blocks, bytes })
     }
 
     /// Raw height of vertex `(i, j)` of the tile's square (its own level's spacing).
     pub fn vertex(&self, i: usize, j: usize) -> f32 {
         self.heights.get((j + 1) * self.side + i + 1)
+    }
+
+    /// Whether vertex `(i, j)` of the tile's square is a void drawn as a hole.
+    pub fn void(&self, i: usize, j: usize) -> bool {
+        self.voids.as_ref().is_some_and(|v| v[(j + 1) * self.side + i + 1])
     }
 
     /// `D` of group `(gx, gz)` (terrain group coordinates) of LOD `lod`, which this tile
@@ -219,7 +227,8 @@ pub fn tile_bytes_estimate(grid: &Grid, level: u8) -> usize {
     let t = grid.tile_quads;
     let own_d = if level > 0 { t * t } else { 0 };
     let summaries = (t / grid.block_quads).pow(2) * std::mem::size_of::<BlockSummary>();
-    (t + 3) * (t + 3) * grid.height_bytes + own_d * 4 + summaries + 4096
+    let voids = if grid.holes { (t + 3) * (t + 3) } else { 0 };
+    (t + 3) * (t + 3) * grid.height_bytes + voids + own_d * 4 + summaries + 4096
 }
 
 /// Why a tile was not taken into the cache.
@@ -489,10 +498,11 @@ pub struct Resident<'a> {
     pub cache: &'a HostCache,
 }
 
-impl RawSamples for Resident<'_> {
-    fn raw_at(&self, x: i64, z: i64) -> f32 {
+impl Resident<'_> {
+    /// The finest held tile whose vertices include sample `(x, z)`, and the vertex.
+    fn holding(&self, x: i64, z: i64) -> Option<(&TileData, usize, usize)> {
         if x < 0 || z < 0 {
-            return f32::NAN;
+            return None;
         }
         let finest = (x.trailing_zeros().min(z.trailing_zeros()) as u8).min(self.grid.top);
         for level in (0..=finest).rev() {
@@ -504,11 +514,24 @@ impl RawSamples for Resident<'_> {
                     let key = TileKey::new(level, tx as u32, tz as u32);
                     if let Some(tile) = self.cache.peek(key) {
                         let (i, j) = ((x - tx * span) >> level, (z - tz * span) >> level);
-                        return tile.vertex(i as usize, j as usize);
+                        return Some((tile, i as usize, j as usize));
                     }
                 }
             }
         }
-        f32::NAN
+        None
+    }
+
+    /// Whether sample `(x, z)` is a void drawn as a hole, as the held tiles say (`false`
+    /// where none holds it; samples beyond the true extent repeat its edge, as heights).
+    pub fn is_hole(&self, x: i64, z: i64) -> bool {
+        let (x, z) = (x.clamp(0, self.grid.width as i64 - 1), z.clamp(0, self.grid.height as i64 - 1));
+        self.holding(x, z).is_some_and(|(tile, i, j)| tile.void(i, j))
+    }
+}
+
+impl RawSamples for Resident<'_> {
+    fn raw_at(&self, x: i64, z: i64) -> f32 {
+        self.holding(x, z).map_or(f32::NAN, |(tile, i, j)| tile.vertex(i, j))
     }
 }

@@ -134,6 +134,10 @@ pub fn hidden_parts(
     drawable: &dyn Fn(TileKey) -> bool,
     rule: Rule,
 ) -> Result<Vec<u16>, Skipped> {
+    // A hole shows what is behind it: no surface is known to hide anything.
+    if grid.holes {
+        return Err(Skipped::Holes);
+    }
     let layout = layout(grid);
     let drawn: Vec<DrawBlock> = blocks.iter().map(|b| b.block).collect();
     let lods = SparseLods::new(&layout, &drawn);

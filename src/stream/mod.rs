@@ -66,6 +66,8 @@ pub struct Grid {
     /// Quads a side of a block (`k - 1`, `--block`): a tile of its own level holds
     /// `tile_quads / block_quads` blocks a side.
     pub block_quads: usize,
+    /// Voids are drawn as holes (`--voids hole`): tiles say which vertices are voids.
+    pub holes: bool,
 }
 
 /// Quads a side of a block unless `--block` says otherwise (blocks of k = 33, the paper's).
@@ -87,7 +89,14 @@ impl Grid {
             origin: [0.0, 0.0],
             height_bytes: if m.samples == "float32" { 4 } else { 2 },
             block_quads: DEFAULT_BLOCK_QUADS,
+            holes: m.void_mask,
         }
+    }
+
+    /// Bytes of one texel of the heightfield atlas: a height, and with holes beside it
+    /// whether it is a void (a second channel of the same format).
+    pub fn atlas_texel_bytes(&self) -> usize {
+        self.height_bytes * if self.holes { 2 } else { 1 }
     }
 
     /// The same grid drawn with blocks of `k` vertices a side (`--block`). A block is

@@ -61,6 +61,11 @@ pub struct Meta {
     /// (their top tiles' range is used instead, and said so).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub raw_range: Option<[f32; 2]>,
+    /// Whether the tiles say which of their vertices were voids (`prepare --voids
+    /// hole`), so that they can be drawn as holes. Also cleared in an archive opened to
+    /// draw its voids filled.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub void_mask: bool,
 }
 
 impl Meta {
@@ -336,10 +341,14 @@ impl Archive {
         self.file.read_at(&mut buf, start.expect("checked")).map_err(|e| err(format!("read failed: {e}")))?;
         let samples = self.meta.sample_format().expect("checked at open");
         let side = self.meta.tile_quads + 3;
-        let limit = tile::payload_len(samples, side, self.deviations(level));
+        let limit = tile::payload_len(samples, side, self.deviations(level), true);
         let payload = pmtiles::unzstd(&buf, limit)
             .map_err(|e| err(format!("does not decompress ({e}): the archive is corrupt")))?;
-        let tile = tile::decode(&payload, samples, level, tx, tz, side, self.deviations(level)).map_err(err)?;
+        let mut tile = tile::decode(&payload, samples, level, tx, tz, side, self.deviations(level)).map_err(err)?;
+        if !self.meta.void_mask {
+            // Drawn with its voids filled: the mask, if any, is not wanted.
+            tile.voids = None;
+        }
         Ok((Some(tile), u64::from(e.length)))
     }
 
@@ -713,6 +722,7 @@ mod tests {
             source: "test".into(),
             tiles: 1,
             raw_range: Some([-3.0, 7.5]),
+            void_mask: false,
         };
         let json = serde_json::to_value(&meta).unwrap();
         assert_eq!(json["raw_range"], serde_json::json!([-3.0, 7.5]));

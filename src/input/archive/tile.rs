@@ -1,10 +1,13 @@
 //! One tile's payload (SPEC section 8): the LOD-`t` vertices of its square with a
 //! one-vertex border, and the camera-independent part of the bound for its own level,
-//! `D_t` of each of its LOD-`t` groups. Little-endian, versioned, with a CRC-32 of the
-//! body; the container compresses each payload.
+//! `D_t` of each of its LOD-`t` groups; in a tile with voids drawn as holes (`prepare
+//! --voids hole`), which of its vertices are voids. Little-endian, versioned, with a
+//! CRC-32 of the body; the container compresses each payload.
 
-/// Payload layout version; readers refuse others.
+/// Payload layout version of a tile without a void mask (every tile before masks).
 pub const TILE_VERSION: u16 = 1;
+/// Layout version of a tile with a void mask: version 1's body, then one bit a vertex.
+pub const TILE_VERSION_VOIDS: u16 = 2;
 const MAGIC: &[u8; 4] = b"VKTT";
 const HEAD: usize = 24;
 
@@ -28,6 +31,9 @@ pub struct Tile {
     pub side: usize,
     pub heights: Vec<f32>,
     pub deviation: Vec<f32>,
+    /// Which of the `side x side` vertices are voids (row-major, the border included),
+    /// where the tile has any and its archive keeps them; `None` otherwise.
+    pub voids: Option<Vec<bool>>,
 }
 
 impl Tile {
@@ -37,9 +43,15 @@ impl Tile {
     }
 }
 
-/// Bytes of a payload with `side^2` heights and `deviations` values of `D`.
-pub fn payload_len(samples: Samples, side: usize, deviations: usize) -> usize {
-    HEAD + side * side * sample_bytes(samples) + deviations * 4
+/// Bytes of a payload with `side^2` heights and `deviations` values of `D`, and a void
+/// mask if `voids`.
+pub fn payload_len(samples: Samples, side: usize, deviations: usize, voids: bool) -> usize {
+    HEAD + side * side * sample_bytes(samples) + deviations * 4 + if voids { mask_bytes(side) } else { 0 }
+}
+
+/// Bytes of a void mask: one bit a vertex, the lowest bit first.
+fn mask_bytes(side: usize) -> usize {
+    (side * side).div_ceil(8)
 }
 
 fn sample_bytes(samples: Samples) -> usize {
@@ -72,9 +84,18 @@ pub fn encode(tile: &Tile, samples: Samples) -> Vec<u8> {
     for d in &tile.deviation {
         body.extend_from_slice(&d.to_le_bytes());
     }
+    if let Some(voids) = &tile.voids {
+        assert_eq!(voids.len(), n, "tile voids");
+        let mut mask = vec![0u8; mask_bytes(tile.side)];
+        for (i, _) in voids.iter().enumerate().filter(|(_, v)| **v) {
+            mask[i / 8] |= 1 << (i % 8);
+        }
+        body.extend_from_slice(&mask);
+    }
+    let version = if tile.voids.is_some() { TILE_VERSION_VOIDS } else { TILE_VERSION };
     let mut out = Vec::with_capacity(HEAD + body.len());
     out.extend_from_slice(MAGIC);
-    out.extend_from_slice(&TILE_VERSION.to_le_bytes());
+    out.extend_from_slice(&version.to_le_bytes());
     out.push(samples as u8);
     out.push(tile.level);
     out.extend_from_slice(&tile.tx.to_le_bytes());
@@ -105,9 +126,12 @@ pub fn decode(
     }
     let u32_at = |i: usize| u32::from_le_bytes(payload[i..i + 4].try_into().expect("4 bytes"));
     let version = u16::from_le_bytes([payload[4], payload[5]]);
-    if version != TILE_VERSION {
-        return Err(format!("tile layout version {version} (this build reads {TILE_VERSION})"));
+    if version != TILE_VERSION && version != TILE_VERSION_VOIDS {
+        return Err(format!(
+            "tile layout version {version} (this build reads {TILE_VERSION} and {TILE_VERSION_VOIDS})"
+        ));
     }
+    let has_voids = version == TILE_VERSION_VOIDS;
     let got = (payload[7], u32_at(8), u32_at(12));
     if got != (level, tx, tz) {
         return Err(format!(
@@ -123,11 +147,12 @@ pub fn decode(
         return Err("checksum mismatch (the tile's data is corrupt)".into());
     }
     let width = sample_bytes(samples);
-    let expected = payload_len(samples, side, deviations) - HEAD;
+    let expected = payload_len(samples, side, deviations, has_voids) - HEAD;
     if body.len() != expected {
         return Err(format!("body of {} bytes, expected {expected}", body.len()));
     }
-    let (hb, db) = body.split_at(side * side * width);
+    let (hb, rest) = body.split_at(side * side * width);
+    let (db, mb) = rest.split_at(deviations * 4);
     let mut heights = Vec::with_capacity(side * side);
     for row in hb.chunks(side * width) {
         let mut prev = 0u32;
@@ -147,7 +172,8 @@ pub fn decode(
         }
     }
     let deviation = db.chunks(4).map(|v| f32::from_le_bytes(v.try_into().expect("4 bytes"))).collect();
-    Ok(Tile { level, tx, tz, side, heights, deviation })
+    let voids = has_voids.then(|| (0..side * side).map(|i| mb[i / 8] & (1 << (i % 8)) != 0).collect());
+    Ok(Tile { level, tx, tz, side, heights, deviation, voids })
 }
 
 #[cfg(test)]
@@ -163,7 +189,7 @@ mod tests {
             })
             .collect();
         let deviation = if level == 0 { vec![] } else { (0..64).map(|i| i as f32 * 0.125).collect() };
-        Tile { level, tx: 3, tz: 9, side, heights, deviation }
+        Tile { level, tx: 3, tz: 9, side, heights, deviation, voids: None }
     }
 
     #[test]
@@ -174,6 +200,25 @@ mod tests {
                 let bytes = encode(&t, samples);
                 assert_eq!(decode(&bytes, samples, level, 3, 9, 11, if level == 0 { 0 } else { 64 }).unwrap(), t);
             }
+        }
+    }
+
+    /// A mask of 121 bits (not a whole number of bytes) with a void at each end and
+    /// one inside comes back bit for bit; a tile without one stays version 1.
+    #[test]
+    fn a_void_mask_round_trips_and_only_a_tile_with_one_changes_version() {
+        let plain = sample(2, Samples::Unorm16);
+        assert_eq!(u16::from_le_bytes([encode(&plain, Samples::Unorm16)[4], encode(&plain, Samples::Unorm16)[5]]), 1);
+        let mut t = plain;
+        t.voids = Some((0..121).map(|i| i == 0 || i == 120 || i == 37).collect());
+        let bytes = encode(&t, Samples::Unorm16);
+        assert_eq!(u16::from_le_bytes([bytes[4], bytes[5]]), TILE_VERSION_VOIDS);
+        let back = decode(&bytes, Samples::Unorm16, 2, 3, 9, 11, 64).unwrap();
+        assert_eq!(back, t);
+        for i in 0..bytes.len() {
+            let mut bad = bytes.clone();
+            bad[i] ^= 0x04;
+            assert!(decode(&bad, Samples::Unorm16, 2, 3, 9, 11, 64).is_err(), "flipped byte {i} accepted");
         }
     }
 
