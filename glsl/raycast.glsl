@@ -1,17 +1,36 @@
-// What the ray-cast block's two stages share: heights, the min/max pyramid (raw units,
-// cells with both ends included: a bound of every sample, so of every vertex the block
-// draws), and the block's resolved corners.
+// What the ray-cast block's two stages share: heights, the raw height ranges of a block
+// and of its cells of quads, and the block's resolved corners. In memory the ranges come
+// from the min/max pyramid (raw units, cells with both ends included: a bound of every
+// sample, so of every vertex the block draws); over the atlas (HEIGHTS_ATLAS) a cell's is
+// the block's, which comes with the block (its vertices' range, its corners included).
 
 #include "common.glsl"
 
+#ifdef HEIGHTS_ATLAS
+layout(set = 0, binding = TERRAIN_BINDING_HEIGHTS) uniform sampler2DArray heights;
+
+// Raw height of vertex `q` of `block`, from its tile (origin, level, layer) in the atlas.
+float block_vertex_raw(ivec4 block, ivec4 tile, ivec2 q) {
+    ivec2 s = block.xy + q * block.z;
+    return decode_raw(texelFetch(heights, ivec3(((s - tile.xy) >> tile.z) + 1, tile.w), 0).r, frame.flags.x);
+}
+
+vec2 cell_raw_range(ivec4 block, vec4 corners, vec2 block_range, ivec2 q, int quads) {
+    return block_range;
+}
+#else
 layout(set = 0, binding = TERRAIN_BINDING_HEIGHTS) uniform sampler2D heights;
 layout(set = 0, binding = TERRAIN_BINDING_MINMAX) uniform sampler2D minmax;
+
+float block_vertex_raw(ivec4 block, ivec4 tile, ivec2 q) {
+    return decode_raw(texelFetch(heights, block.xy + q * block.z, 0).r, frame.flags.x);
+}
 
 // Min/max raw height of the cell of `quads` x `quads` quads of `block` (origin x, z in
 // samples, stride, LOD) whose first quad is `q`, its resolved corners included (a corner
 // on a coarser neighbour's edge is drawn at that edge's height, which the samples need
 // not bound).
-vec2 cell_raw_range(ivec4 block, vec4 corners, ivec2 q, int quads) {
+vec2 cell_raw_range(ivec4 block, vec4 corners, vec2 block_range, ivec2 q, int quads) {
     int level = block.w + findMSB(quads);
     ivec2 s = block.xy + q * block.z;
     vec2 mm = texelFetch(minmax, s >> level, level - 1).rg;
@@ -24,6 +43,8 @@ vec2 cell_raw_range(ivec4 block, vec4 corners, ivec2 q, int quads) {
     return mm;
 }
 
-vec2 block_raw_range(ivec4 block, vec4 corners) {
-    return cell_raw_range(block, corners, ivec2(0), frame.extent.w - 1);
+#endif
+
+vec2 block_raw_range(ivec4 block, vec4 corners, vec2 block_range) {
+    return cell_raw_range(block, corners, block_range, ivec2(0), frame.extent.w - 1);
 }

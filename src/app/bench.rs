@@ -1232,8 +1232,6 @@ fn bench_streamed(
 ) -> anyhow::Result<()> {
     use crate::app::stream::{atlas_bound_streamer, streamed_grid, top_tiles};
     use crate::stream::traverse::View;
-    let raycast = args.raycast != crate::draw::raycast::Raycast::Off;
-    crate::app::cli::refuse_on_tiles(&args.common.terrain.name(), &[("--raycast", raycast)])?;
     let size = args.common.view.frustum.size.unwrap_or((640, 480));
     crate::app::cli::check_image_size(&device, "--size", size)?;
     crate::app::outputs::output_dir("--out", &args.out)?;
@@ -1417,6 +1415,7 @@ fn bench_frames(
     gpu.set_textures(&args.textures.load_over(&m.georef, (m.width, m.height))?, &args.textures)?;
     gpu.sun(args.common.sun.0)?;
     gpu.occlusion = args.common.occlusion != Some(crate::app::cli::OnOff::Off);
+    gpu.raycast = args.raycast;
     gpu.read_back = false;
     if let Some(Fault::ErrorsDeviceLost(n)) = fault {
         gpu.inject_device_lost_at(n);
@@ -1504,7 +1503,7 @@ impl StreamedPath<'_> {
             streamer.lod = crate::app::stream::streamed_lod(LodChoice::Full);
             let (_, sel) = crate::app::stream::settle(streamer, |_| view, 1.0);
             gpu.draw(streamer, self.grid, &view, &sel, None)?;
-            let (full, full_triangles) = (std::mem::take(&mut gpu.last), gpu.triangles);
+            let (full, full_triangles) = (std::mem::take(&mut gpu.last), gpu.drawn.triangles);
             streamer.lod = crate::app::stream::streamed_lod(LodChoice::Error);
             for delta in [0.5f32, 1.0, 2.0, 5.0] {
                 let (_, sel) = crate::app::stream::settle(streamer, |_| view, delta);
@@ -1512,7 +1511,7 @@ impl StreamedPath<'_> {
                 let (rmse, share) = image_difference(&full, &gpu.last);
                 out.push(json!({
                     "time_s": time_s, "delta": delta, "rmse": rmse, "share_off_by_more_than_16": share,
-                    "triangles": gpu.triangles, "full_triangles": full_triangles,
+                    "triangles": gpu.drawn.triangles, "full_triangles": full_triangles,
                 }));
             }
         }
@@ -1607,12 +1606,14 @@ impl StreamedPath<'_> {
                 time_s: (self.camera)(i).2,
                 frame_ms: t0.elapsed().as_secs_f64() * 1e3,
                 traverse_ms: (t1 - t0).as_secs_f64() * 1e3,
-                triangles: gpu.triangles,
-                draw_calls: gpu.draw_calls,
-                blocks: gpu.blocks,
-                gpu_ms: gpu.gpu_ms,
+                triangles: gpu.drawn.triangles,
+                draw_calls: gpu.drawn.draw_calls,
+                blocks: gpu.drawn.blocks,
+                gpu_ms: gpu.drawn.gpu_ms,
                 morphing: sel.morphing,
-                hidden_parts: gpu.hidden_parts,
+                hidden_parts: gpu.drawn.hidden_parts,
+                raycast_blocks: gpu.drawn.raycast_blocks,
+                raycast_pixels: gpu.drawn.raycast_pixels,
                 over_bound: sel.over_bound > 0,
                 worst_factor: Some(sel.worst_factor),
                 tiles_held: Some(streamer.cache.len()),

@@ -375,19 +375,6 @@ pub struct CommonArgs {
     pub sun: SunArg,
 }
 
-/// Refuses, naming them, the options of `options` that were given (each with whether
-/// it was) which a terrain drawn from tiles cannot honour yet.
-pub fn refuse_on_tiles(terrain: &str, options: &[(&str, bool)]) -> Result<(), InputError> {
-    let refused: Vec<&str> = options.iter().filter_map(|&(name, set)| set.then_some(name)).collect();
-    if refused.is_empty() {
-        return Ok(());
-    }
-    Err(InputError(format!(
-        "{terrain} is drawn streamed (tiles through a bounded cache), which does not take {} yet",
-        refused.join(", ")
-    )))
-}
-
 impl TerrainArgs {
     /// The terrain given as TERRAIN becomes `heightmap`, the one field the commands read.
     pub fn take_terrain(&mut self) {

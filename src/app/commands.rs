@@ -304,23 +304,7 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
         Ok((drawn, t.elapsed().as_secs_f64() * 1e3))
     })?;
     let ((pixels, stats), frame_ms) = frame.submitted;
-    if args.raycast != Raycast::Off && stats.raycast_blocks == 0 && stats.draw_calls > 0 {
-        let forward = args.pixels == crate::draw::blocks::PixelPass::Forward
-            || args.colour_by_lod
-            || args.common.terrain.voids == crate::input::load::VoidMode::Hole;
-        let why = if forward {
-            "blocks are ray-cast in frames shaded deferred only, and --pixels forward, --colour-by-lod and \
-             --voids hole shade forward"
-        } else {
-            "a block is cast only when it is not morphing, meets no coarser neighbour and lies inside the \
-             terrain's extent, in a frame shaded deferred (a camera too far for the depth pass shades forward); \
-             --morph off leaves more blocks to cast"
-        };
-        eprintln!(
-            "vkterrain: note: --raycast {}: no block of this view was ray-cast: {why}",
-            crate::app::cli::value_name(args.raycast)
-        );
-    }
+    note_if_nothing_was_cast(args, stats.raycast_blocks, stats.draw_calls);
     let trav = frame.traversal.expect("render traverses");
     let generation = frame.taken.unwrap_or_default();
     let errors_ms = activity.is_some().then_some(frame.feed_ms);
@@ -403,6 +387,28 @@ fn audit_into(out: &mut serde_json::Value, a: &audit::AuditResult, delta: f32) {
     out["uncovered_samples"] = json!(a.uncovered);
 }
 
+/// Says why, when `--raycast` was asked for and a frame of `draw_calls` ray-cast no block.
+fn note_if_nothing_was_cast(args: &RenderArgs, raycast_blocks: u64, draw_calls: u64) {
+    if args.raycast == Raycast::Off || raycast_blocks > 0 || draw_calls == 0 {
+        return;
+    }
+    let forward = args.pixels == crate::draw::blocks::PixelPass::Forward
+        || args.colour_by_lod
+        || args.common.terrain.voids == crate::input::load::VoidMode::Hole;
+    let why = if forward {
+        "blocks are ray-cast in frames shaded deferred only, and --pixels forward, --colour-by-lod and \
+         --voids hole shade forward"
+    } else {
+        "a block is cast only when it is not morphing, meets no coarser neighbour and lies inside the \
+         terrain's extent, in a frame shaded deferred (a camera too far for the depth pass shades forward); \
+         --morph off leaves more blocks to cast"
+    };
+    eprintln!(
+        "vkterrain: note: --raycast {}: no block of this view was ray-cast: {why}",
+        crate::app::cli::value_name(args.raycast)
+    );
+}
+
 /// `render` over an archive drawn streamed ([`crate::app::stream::render_archive`]).
 /// `stop`: the signal handlers a preparation on the fly left (obeyed between steps).
 fn render_streamed(
@@ -412,7 +418,6 @@ fn render_streamed(
     stop: Option<&crate::app::signals::Stop>,
 ) -> anyhow::Result<()> {
     let shown = args.common.terrain.name();
-    crate::app::cli::refuse_on_tiles(&args.common.terrain.name(), &[("--raycast", args.raycast != Raycast::Off)])?;
     let m = &archive.meta;
     eprintln!("{}", crate::app::stream::streamed_banner(&shown, m, args.streamed.cache_mb(), args.streamed.gpu_mb()));
     let queue_mode = device.queue_mode.as_str();
@@ -433,8 +438,11 @@ fn render_streamed(
         normals: args.shading,
         pixels: args.pixels,
         textures: &args.textures,
+        raycast: args.raycast,
     })?;
     let mut out = r.report;
+    let count = |key: &str| out[key].as_u64().unwrap_or(0);
+    note_if_nothing_was_cast(args, count("raycast_blocks"), count("draw_calls"));
     if args.audit {
         // Offline, against every sample (SPEC 8): the whole terrain in memory, which the
         // streamed path itself never holds.

@@ -184,6 +184,12 @@ impl Source for Named<'_> {
     fn read(&self, x0: i64, z0: i64, nx: usize, nz: usize, stride: usize, out: &mut Vec<f32>) -> Result<(), String> {
         self.0.read(x0, z0, nx, nz, stride, out).map_err(|e| e.replace(&self.2, &self.1))
     }
+    fn has_void_mask(&self) -> bool {
+        self.0.has_void_mask()
+    }
+    fn voids(&self, x0: i64, z0: i64, nx: usize, nz: usize, stride: usize, out: &mut Vec<bool>) -> Result<(), String> {
+        self.0.voids(x0, z0, nx, nz, stride, out).map_err(|e| e.replace(&self.2, &self.1))
+    }
 }
 
 /// A private directory for the mosaic's VRT, removed with it.
@@ -446,6 +452,7 @@ fn prepare_archive(
         std::process::exit(stop.exit_code());
     }
     let (w, h) = source.size();
+    let holes = source.has_void_mask();
     crate::prepare::check_frame(&source.name(), &frame, w, h).map_err(|e| InputError(e.to_string()))?;
     let into = if to_file { args.out.display().to_string() } else { "tiles in memory".into() };
     eprintln!("vkterrain: preparing {} ({w} x {h} samples) into {into}", source.name());
@@ -491,14 +498,16 @@ fn prepare_archive(
         "report": report,
         "peak_resident_mb": peak,
     });
-    crate::app::outputs::TerrainFacts::of_frame(
+    let facts = crate::app::outputs::TerrainFacts::of_frame(
         &frame.georef,
         frame.spacing,
         frame.height_scale,
         [w, h],
         frame.void_samples,
-    )
-    .merge_into(&mut json);
+    );
+    // The archive keeps where the voids were: they can be drawn as holes.
+    let voids = if holes { VoidMode::Hole } else { facts.voids };
+    crate::app::outputs::TerrainFacts { voids, ..facts }.merge_into(&mut json);
     eprintln!(
         "vkterrain: {}: {} tiles ({} distinct) in {} levels, {:.1} MB ({:.0}% of {:.1} MB uncompressed), {:.1} s, peak resident {}",
         if to_file { format!("wrote {}", args.out.display()) } else { format!("cut {}", source.name()) },

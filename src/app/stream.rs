@@ -126,17 +126,14 @@ pub(crate) struct GpuFrames {
     frames: u64,
     /// Frames where some block's tile found no atlas layer (those blocks not drawn).
     pub frames_missing_blocks: u64,
-    /// Blocks, triangles, parts left out (outside the frustum) and draws of the last
-    /// frame drawn.
-    pub blocks: usize,
-    pub triangles: u64,
-    pub hidden_parts: u64,
-    pub draw_calls: u64,
-    /// The last frame's GPU time (timestamps), when the device has them.
-    pub gpu_ms: Option<f64>,
-    /// Whether the last frame was shaded deferred, and how many were.
-    pub deferred: bool,
+    /// What the last frame drew: blocks, triangles, parts left out (outside the
+    /// frustum), draws, ray-cast blocks, its GPU time (timestamps, when the device has
+    /// them), whether it was shaded deferred.
+    pub drawn: crate::draw::streamed::StreamedStats,
+    /// Frames shaded deferred.
     pub deferred_frames: u64,
+    /// Blocks drawn by rays (`--raycast`; [`crate::stream::draw::choose_raycast`]).
+    pub raycast: crate::draw::raycast::Raycast,
     /// Parts left out over every frame drawn.
     hidden_parts_total: u64,
     drawing: Duration,
@@ -231,13 +228,9 @@ impl GpuFrames {
             occluded_blocks: 0,
             frames: 0,
             frames_missing_blocks: 0,
-            blocks: 0,
-            triangles: 0,
-            hidden_parts: 0,
-            draw_calls: 0,
-            gpu_ms: None,
-            deferred: false,
+            drawn: Default::default(),
             deferred_frames: 0,
+            raycast: crate::draw::raycast::Raycast::Off,
             hidden_parts_total: 0,
             drawing: Duration::ZERO,
             last: Vec::new(),
@@ -304,6 +297,14 @@ impl GpuFrames {
             self.last_occlusion = Some(report);
         }
         crate::stream::draw::hide_parts_outside(grid, &streamer.cache, anchor, &cam, &mut blocks);
+        let mut raycast_pixels = 0.0;
+        if self.raycast != crate::draw::raycast::Raycast::Off {
+            let under = sees_the_underside(grid, streamer, view.position, self.range.world[1]);
+            let ring = self.renderer.ring_triangles();
+            let choice = (self.raycast, ring, under);
+            raycast_pixels =
+                crate::stream::draw::choose_raycast(grid, &streamer.cache, (anchor, &cam), &mut blocks, choice);
+        }
         let fv = FrameView {
             grid,
             anchor,
@@ -327,14 +328,9 @@ impl GpuFrames {
         };
         self.frames_missing_blocks += (stats.missing > 0) as u64;
         self.frames += 1;
-        self.blocks = stats.blocks;
-        self.triangles = stats.triangles;
-        self.hidden_parts = stats.hidden_parts;
-        self.draw_calls = stats.draw_calls;
-        self.gpu_ms = stats.gpu_ms;
+        self.drawn = crate::draw::streamed::StreamedStats { raycast_pixels, ..stats };
         // What a triangle costs the GPU now: whether the next sweep pays is judged by it.
         self.probe.observe(stats.gpu_ms, stats.triangles);
-        self.deferred = stats.deferred;
         self.deferred_frames += u64::from(stats.deferred);
         self.hidden_parts_total += stats.hidden_parts;
         self.drawing += t0.elapsed();
@@ -869,6 +865,8 @@ pub struct ArchiveFrame<'a> {
     pub pixels: crate::draw::blocks::PixelPass,
     /// Base and detail textures (`--texture`, `--detail`).
     pub textures: &'a crate::app::cli::TextureArgs,
+    /// Blocks drawn by rays (`--raycast`).
+    pub raycast: crate::draw::raycast::Raycast,
 }
 
 /// The streamed rule for a `--lod` choice (the in-memory rings' factor).
@@ -948,6 +946,7 @@ pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
     gpu.fog = f.fog;
     gpu.colour_by_lod = f.colour_by_lod;
     gpu.background = f.background;
+    gpu.raycast = f.raycast;
     gpu.occlusion = f.common.occlusion != Some(crate::app::cli::OnOff::Off);
     gpu.sun(f.common.sun.0)?;
     gpu.draw(&streamer, &grid, &view, &sel, None)?;
@@ -958,14 +957,16 @@ pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
         "height": h,
         "streamed": true,
         "delta": f.delta,
-        "blocks": gpu.blocks,
-        "triangles": gpu.triangles,
-        "hidden_parts": gpu.hidden_parts,
-        "hidden_triangles": gpu.hidden_parts * crate::stream::draw::layout(&grid).triangles_per_part(),
+        "blocks": gpu.drawn.blocks,
+        "triangles": gpu.drawn.triangles,
+        "hidden_parts": gpu.drawn.hidden_parts,
+        "hidden_triangles": gpu.drawn.hidden_parts * crate::stream::draw::layout(&grid).triangles_per_part(),
         // What occlusion culling did (as in memory: null when off).
         "occlusion": gpu.last_occlusion,
-        "draw_calls": gpu.draw_calls,
-        "gpu_ms": gpu.gpu_ms,
+        "draw_calls": gpu.drawn.draw_calls,
+        "raycast": crate::app::cli::value_name(f.raycast),
+        "raycast_blocks": gpu.drawn.raycast_blocks,
+        "gpu_ms": gpu.drawn.gpu_ms,
         "within_bound": sel.within_bound() && !missing,
         "blocks_over_bound": sel.over_bound,
         "worst_factor": sel.worst_factor,
@@ -979,7 +980,7 @@ pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
         "shading": StreamedRenderer::shading_name(f.normals),
         // What drew the frame: forward where asked, or where deferred cannot (see
         // StreamedRenderer::deferred).
-        "pixels": if gpu.deferred { "deferred" } else { "forward" },
+        "pixels": if gpu.drawn.deferred { "deferred" } else { "forward" },
         "morph": f.common.lod.morph.on(),
         "morphing": sel.morphing,
         "traversal_threads": streamer.threads(),
@@ -1020,6 +1021,25 @@ pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
     report["grid"] = serde_json::json!(layout.roots.map(|r| (r << layout.n) + 1));
     report["roots"] = serde_json::json!(layout.roots);
     Ok(ArchiveRender { width: w, height: h, pixels, report, drawn, layout, view, mesh })
+}
+
+/// Whether a camera at `p` can see the surface from below, as the in-memory ray-caster
+/// asks (`BlocksRenderer::raycast_choice`): under the ground (the highest of the four
+/// samples around it, from the held tiles), or beyond the terrain's edge lower than its
+/// top (`top`, world units), looking in through the cut edge.
+fn sees_the_underside(grid: &Grid, streamer: &Streamer, p: DVec3, top: f32) -> bool {
+    let [sx, sz] = grid.sample_of(p.x, p.z);
+    let beyond = sx < 0.0 || sz < 0.0 || sx > (grid.width - 1) as f64 || sz > (grid.height - 1) as f64;
+    if beyond {
+        return p.y < f64::from(top);
+    }
+    let corners = [(sx.floor(), sz.floor()), (sx.ceil(), sz.floor()), (sx.floor(), sz.ceil()), (sx.ceil(), sz.ceil())];
+    let ground = corners.into_iter().filter_map(|(x, z)| {
+        let [wx, wz] = grid.world_xz(x, z);
+        streamer.ground(wx, wz)
+    });
+    // Before any tile is held, assume the worst: nothing is ray-cast.
+    ground.fold(None, |m: Option<f64>, g| Some(m.map_or(g, |m| m.max(g)))).is_none_or(|g| p.y < g)
 }
 
 /// A frame rate the flight can be paced at: 0.1 to 10,000 frames a second.

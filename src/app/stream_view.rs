@@ -542,8 +542,8 @@ impl App {
         self.trace.complete(DRAW_TID, "frame", now, Instant::now(), frame);
         self.trace.counter("tiles held", self.streamer.cache.len() as u64);
         self.run.frames += 1;
-        self.run.last_blocks = gpu.frames.blocks;
-        self.run.last_triangles = gpu.frames.triangles;
+        self.run.last_blocks = gpu.frames.drawn.blocks;
+        self.run.last_triangles = gpu.frames.drawn.triangles;
         self.fps_frames += 1;
         if let Some(path) = &self.args.frame_counter {
             let frames = self.run.frames.to_string();
@@ -586,9 +586,9 @@ impl App {
         let (lit_sun, lighting_ms) = gpu.frames.lit_sun();
         let mut readout = Readout {
             triangles: self.run.last_triangles,
-            draw_calls: gpu.frames.draw_calls,
+            draw_calls: gpu.frames.drawn.draw_calls,
             occlusion: gpu.frames.last_occlusion.filter(|_| gpu.frames.occlusion),
-            gpu_frame_ms: gpu.frames.gpu_ms,
+            gpu_frame_ms: gpu.frames.drawn.gpu_ms,
             blocks: self.run.last_blocks,
             generations: errors.generations,
             update_ms: errors.last.and_then(|e| e.gpu_ms),

@@ -283,6 +283,32 @@ pub fn depth_pass_pipeline(
     Ok(Some(GraphicsPipeline::new(device, &desc)?))
 }
 
+/// The ray-cast blocks' pipeline (`raycast_vert.glsl`, `raycast_frag.glsl`): depth only,
+/// for deferred frames, from the shaders `(vert, frag)` of the frame's heights.
+pub fn raycast_pipeline(
+    device: &Arc<Device>,
+    layout: &PipelineLayout,
+    (vert, frag): (&'static [u8], &'static [u8]),
+) -> VkResult<GraphicsPipeline> {
+    GraphicsPipeline::new(
+        device,
+        &GraphicsPipelineDesc {
+            vert,
+            frag: Some(frag),
+            rasterizer_discard: false,
+            vertex_attribute: None,
+            color_format: None,
+            depth_format: Some(DEPTH_FORMAT),
+            depth: DepthMode::TestWrite,
+            polygon_mode: vk::PolygonMode::FILL,
+            // The vertex stage keeps the box's far faces only.
+            cull_back: false,
+            layout,
+            specialization: &[],
+        },
+    )
+}
+
 /// A depth attachment that the deferred shading pass also samples.
 pub fn depth_target(device: &Arc<Device>, name: &str, extent: vk::Extent2D) -> VkResult<Image> {
     let usage = vk::ImageUsageFlags::DEPTH_STENCIL_ATTACHMENT | vk::ImageUsageFlags::SAMPLED;
@@ -459,25 +485,7 @@ impl BlocksRenderer {
         let sky_pipeline = sky_pipeline(device, &pipeline_layout, color_format)?;
         let depth_pipeline = depth_pass_pipeline(device, &pipeline_layout, shaders::TERRAIN_DEPTH_VERT)?;
         let raycast_pipeline = (depth_pipeline.as_ref())
-            .map(|_| {
-                GraphicsPipeline::new(
-                    device,
-                    &GraphicsPipelineDesc {
-                        vert: shaders::RAYCAST_VERT,
-                        frag: Some(shaders::RAYCAST_FRAG),
-                        rasterizer_discard: false,
-                        vertex_attribute: None,
-                        color_format: None,
-                        depth_format: Some(DEPTH_FORMAT),
-                        depth: DepthMode::TestWrite,
-                        polygon_mode: vk::PolygonMode::FILL,
-                        // raycast.vert keeps the box's far faces only.
-                        cull_back: false,
-                        layout: &pipeline_layout,
-                        specialization: &[],
-                    },
-                )
-            })
+            .map(|_| raycast_pipeline(device, &pipeline_layout, (shaders::RAYCAST_VERT, shaders::RAYCAST_FRAG)))
             .transpose()?;
         let n = frames_in_flight.max(1) as u32;
         let pool = DescriptorPool::new(device, n, &[(sampler, 7 * n), (vk::DescriptorType::UNIFORM_BUFFER, n)])?;
@@ -969,6 +977,7 @@ impl BlocksRenderer {
         }
         let choice = self.raycast_choice(hf, cam, shading.raycast);
         let stats = self.record_frame(slot, cmd, pipelines, dest, blocks, shading, &choice, overlay);
+        drop(choice);
         // SAFETY: as above.
         unsafe {
             if let Some(t) = &self.offscreen[slot].timer {
@@ -1001,14 +1010,8 @@ impl BlocksRenderer {
         let (wx, wz) = hf.world_extent();
         let beyond = p.x < 0.0 || p.z < 0.0 || p.x > wx || p.z > wz;
         let under = p.y < hf.surface_height(p.x, p.z) || (beyond && p.y < self.ranges.top() * hf.height_scale);
-        raycast::Choice {
-            mode: if under { Raycast::Off } else { mode },
-            layout: &self.layout,
-            hf,
-            ranges: &self.ranges,
-            cam,
-            ring_triangles: self.mesh.ring_count as u64 / 3,
-        }
+        let mode = if under { Raycast::Off } else { mode };
+        raycast::Choice::in_memory((mode, cam), &self.layout, hf, &self.ranges, self.mesh.ring_count as u64 / 3)
     }
 
     /// Stats of the frame submitted from `slot` and not yet waited for (its GPU time

@@ -87,25 +87,52 @@ impl BlockRanges {
     }
 }
 
-/// Which blocks one frame ray-casts: everything the choice needs.
+/// A block's box in the camera's frame (min, max corners).
+pub type WorldBox<'a> = Box<dyn Fn(&DrawBlock) -> (Vec3, Vec3) + 'a>;
+
+/// Which blocks one frame ray-casts: everything the choice needs, whatever holds the
+/// heights (memory: [`Choice::in_memory`]; tiles: `stream::draw::raycast_ranges`).
 pub struct Choice<'a> {
     pub mode: Raycast,
     pub layout: &'a BlockLayout,
-    pub hf: &'a Heightfield,
-    pub ranges: &'a BlockRanges,
+    /// The true extent in samples.
+    pub extent: [u32; 2],
+    /// A block's box in the camera's frame: its samples' extent and raw height range.
+    pub world_box: WorldBox<'a>,
     pub cam: &'a Camera,
     /// Triangles of a block's outer ring, which a ray-cast block still rasterizes.
     pub ring_triangles: u64,
 }
 
-impl Choice<'_> {
-    fn extent(&self) -> [u32; 2] {
-        [self.hf.width as u32, self.hf.height as u32]
+impl<'a> Choice<'a> {
+    /// The choice over `hf` in memory, its blocks' ranges from `ranges`.
+    pub fn in_memory(
+        (mode, cam): (Raycast, &'a Camera),
+        layout: &'a BlockLayout,
+        hf: &'a Heightfield,
+        ranges: &'a BlockRanges,
+        ring_triangles: u64,
+    ) -> Self {
+        let world_box = move |b: &DrawBlock| {
+            let (ox, oz) = b.origin(layout);
+            let side = layout.block_samples(b.lod) as i64;
+            let [lo, hi] = ranges.get(layout, b);
+            let hs = hf.height_scale;
+            hf.world_box(ox as i64, oz as i64, ox as i64 + side, oz as i64 + side, [lo * hs, hi * hs])
+        };
+        Choice {
+            mode,
+            layout,
+            extent: [hf.width as u32, hf.height as u32],
+            world_box: Box::new(world_box),
+            cam,
+            ring_triangles,
+        }
     }
 
     /// Whether `b` is ray-cast.
     pub fn casts(&self, b: &DrawBlock) -> bool {
-        let ok = || eligible(self.layout, b, self.extent());
+        let ok = || eligible(self.layout, b, self.extent);
         match self.mode {
             Raycast::Off => false,
             Raycast::Checkerboard => (b.bx + b.bz).is_multiple_of(2) && ok(),
@@ -119,12 +146,7 @@ impl Choice<'_> {
 
     /// Pixels `b`'s box covers ([`box_pixels`]).
     pub fn box_pixels(&self, b: &DrawBlock) -> f64 {
-        let (ox, oz) = b.origin(self.layout);
-        let side = self.layout.block_samples(b.lod) as i64;
-        let [lo, hi] = self.ranges.get(self.layout, b);
-        let hs = self.hf.height_scale;
-        let (min, max) =
-            self.hf.world_box(ox as i64, oz as i64, ox as i64 + side, oz as i64 + side, [lo * hs, hi * hs]);
+        let (min, max) = (self.world_box)(b);
         box_pixels(self.cam, min, max)
     }
 }
@@ -266,7 +288,7 @@ mod tests {
         let ranges = BlockRanges::of(&hf, &layout);
         let far = Camera::look_at(Vec3::new(-4000.0, 20.0, 16.0), Vec3::new(16.0, 5.0, 16.0), 45.0, 1280, 720, 0.1);
         let near = Camera::look_at(Vec3::new(-10.0, 20.0, 16.0), Vec3::new(16.0, 5.0, 16.0), 45.0, 1280, 720, 0.1);
-        let choice = |mode, cam| Choice { mode, layout: &layout, hf: &hf, ranges: &ranges, cam, ring_triangles: 248 };
+        let choice = |mode, cam| Choice::in_memory((mode, cam), &layout, &hf, &ranges, 248);
         let (a, b) = (DrawBlock::new(0, 0, 0), DrawBlock::new(0, 1, 0));
         assert!(choice(Raycast::Checkerboard, &near).casts(&a));
         assert!(!choice(Raycast::Checkerboard, &near).casts(&b));

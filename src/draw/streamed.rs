@@ -57,6 +57,10 @@ pub struct StreamedStats {
     pub draw_calls: u64,
     /// Shaded deferred (each pixel once) rather than forward.
     pub deferred: bool,
+    /// Blocks drawn by rays (`--raycast`: only in deferred frames), and the pixels of
+    /// their boxes, the rays cast (set by the caller that chose them).
+    pub raycast_blocks: u64,
+    pub raycast_pixels: f64,
     /// The frame's GPU time, when the queue has timestamps.
     pub gpu_ms: Option<f64>,
 }
@@ -95,6 +99,8 @@ pub struct StreamedRenderer {
     /// The blocks' depth pass of deferred frames (None without shaderClipDistance:
     /// frames are then shaded forward).
     depth_pipeline: Option<GraphicsPipeline>,
+    /// Ray-cast blocks' depth, in deferred frames (`--raycast`).
+    raycast_pipeline: Option<GraphicsPipeline>,
     /// The base and detail textures (`--texture`, `--detail`), stretched over the terrain
     /// as in memory, their sampler, and the detail's tiling and weight.
     textures: TextureImages,
@@ -258,6 +264,12 @@ impl StreamedRenderer {
             false,
         )?;
         let depth_pipeline = depth_pass_pipeline(device, &pipeline_layout, shaders::STREAM_DEPTH_VERT)?;
+        let raycast_pipeline = (depth_pipeline.as_ref())
+            .map(|_| {
+                let shaders = (shaders::STREAM_RAYCAST_VERT, shaders::STREAM_RAYCAST_FRAG);
+                super::blocks::raycast_pipeline(device, &pipeline_layout, shaders)
+            })
+            .transpose()?;
         // The capture hook writes from the vertex stage: only where the device allows it.
         let capture = if device.features.vertex_stores {
             let l = DescriptorSetLayout::new(
@@ -327,6 +339,7 @@ impl StreamedRenderer {
             holes: false,
             pixels: PixelPass::default(),
             depth_pipeline,
+            raycast_pipeline,
             textures,
             texture_sampler: Sampler::new(device, vk::Filter::LINEAR, vk::SamplerAddressMode::REPEAT)?,
             detail_tiling: 0.0,
@@ -395,7 +408,12 @@ impl StreamedRenderer {
     /// Push constants of each block that has an atlas layer, recording that frame
     /// `self.frame` draws from it; the count of blocks without one; the generation the
     /// frame waits for (`Self::submit_and_wait`).
-    fn pushes(&self, atlas: &HeightAtlas, blocks: &[StreamedBlock]) -> (Vec<(BlockPush, u16)>, usize, u64) {
+    #[allow(clippy::type_complexity)]
+    fn pushes(
+        &self,
+        atlas: &HeightAtlas,
+        blocks: &[StreamedBlock],
+    ) -> (Vec<(BlockPush, u16, Option<[f32; 2]>)>, usize, u64) {
         let mut out = Vec::with_capacity(blocks.len());
         let mut missing = 0;
         let side = atlas.side();
@@ -427,7 +445,7 @@ impl StreamedRenderer {
                     layer as i32,
                 ],
             };
-            out.push((push, b.hidden_parts));
+            out.push((push, b.hidden_parts, sb.raycast));
         }
         (out, missing, generation)
     }
@@ -547,6 +565,11 @@ impl StreamedRenderer {
             self.holes = holes;
             self.pipelines.clear();
         }
+    }
+
+    /// Triangles of a block's outer ring, which a ray-cast block still rasterizes.
+    pub fn ring_triangles(&self) -> u64 {
+        u64::from(self.mesh.ring_count / 3)
     }
 
     /// Deferred (the default) or forward shading from now on (`--pixels`).
@@ -742,19 +765,42 @@ impl StreamedRenderer {
             );
             d.cmd_bind_vertex_buffers(cmd, 0, &[self.mesh.vertices.handle], &[0]);
             d.cmd_bind_index_buffer(cmd, self.mesh.indices.handle, 0, self.mesh.index_type);
-            for (p, hidden) in &pushes {
-                d.cmd_push_constants(
-                    cmd,
-                    self.pipeline_layout.handle,
-                    vk::ShaderStageFlags::VERTEX,
-                    0,
-                    bytemuck::bytes_of(p),
-                );
+            let push = |p: &BlockPush| {
+                let bytes = bytemuck::bytes_of(p);
+                d.cmd_push_constants(cmd, self.pipeline_layout.handle, vk::ShaderStageFlags::VERTEX, 0, bytes);
+            };
+            // Rays write depth only: in deferred frames (as in memory).
+            let raycast = self.raycast_pipeline.as_ref().filter(|_| deferred);
+            let cast = |c: &Option<[f32; 2]>| raycast.is_some() && c.is_some();
+            for (p, hidden, _) in pushes.iter().filter(|(_, _, c)| !cast(c)) {
+                push(p);
                 // Parts outside the frustum left out, as in memory.
                 let [hidden, triangles, draws] = draw_visible_parts(&d, cmd, &self.mesh, &self.layout, *hidden);
                 stats.hidden_parts += hidden;
                 stats.triangles += triangles;
                 stats.draw_calls += draws;
+            }
+            if let Some(raycast) = raycast {
+                // As in memory: each ray-cast block's outer ring as triangles, then the
+                // rays, after every rasterized triangle.
+                let cast_blocks = || pushes.iter().filter(|(_, _, c)| cast(c));
+                for (p, _, _) in cast_blocks() {
+                    push(p);
+                    d.cmd_draw_indexed(cmd, self.mesh.ring_count, 1, self.mesh.ring_first, 0, 0);
+                    stats.triangles += u64::from(self.mesh.ring_count / 3);
+                    stats.draw_calls += 1;
+                }
+                d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, raycast.handle);
+                for (p, _, range) in cast_blocks() {
+                    // The block's range rides in the morph's unused lanes: a ray-cast
+                    // block does not morph (raycast_vert.glsl).
+                    let [lo, hi] = range.expect("a ray-cast block has its range");
+                    push(&BlockPush { morph: [p.morph[0], lo, hi, 0.0], ..*p });
+                    // The box: 6 faces of 2 triangles, made by the vertex stage.
+                    d.cmd_draw(cmd, 36, 1, 0, 0);
+                    stats.raycast_blocks += 1;
+                    stats.draw_calls += 1;
+                }
             }
             if deferred {
                 begin_shading_pass(&d, cmd, depth, area, &color_att);
@@ -836,7 +882,7 @@ impl StreamedRenderer {
                 cmd,
                 (pipeline, pipeline_layout, set),
                 &self.mesh,
-                &pushes.iter().map(|(p, _)| *p).collect::<Vec<_>>(),
+                &pushes.iter().map(|(p, _, _)| *p).collect::<Vec<_>>(),
                 positions.handle,
             )?;
         }

@@ -1,0 +1,5 @@
+#version 450
+// Ray-cast blocks over the atlas (streamed frames): raycast_frag.glsl.
+#extension GL_GOOGLE_include_directive : require
+#define HEIGHTS_ATLAS
+#include "raycast_frag.glsl"
