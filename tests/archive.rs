@@ -758,8 +758,10 @@ fn a_mosaic_of_tiles_prepares_like_the_whole() {
 /// a frame drawn from that archive, or from the file cut into tiles, cuts the holes the
 /// file drawn in memory cuts. With every block at LOD 0 (`--lod full`, each drawn from a
 /// level-0 tile, whose mask is the file's) the same pixels show the background and the
-/// exported mesh leaves out the same triangles; at the default LOD a coarser block cuts
-/// its holes at its tile's spacing. Drawn filled, the archive shows no hole; an archive
+/// exported mesh leaves out the same triangles. At the default LOD the blocks holding a
+/// void are drawn at LOD 0 (a coarser tile's flags cover their vertices' neighbourhoods,
+/// so they find them): the holes are memory's give or take the selections' outlines,
+/// and the mesh leaves out at least the triangles `--lod full` does. Drawn filled, the archive shows no hole; an archive
 /// prepared without the mask refuses `--voids hole`, saying so. Mount Fuji's SRTM tile
 /// has 2,437 voids, most on the high ground.
 #[test]
@@ -824,8 +826,8 @@ fn voids_drawn_as_holes_from_tiles_are_the_holes_drawn_in_memory() {
         assert!(d * 50 <= n, "{what}: {d} of {n} hole pixels differ from memory's");
         assert_eq!(cut, memory_cut, "{what}: triangles left out of the mesh");
     }
-    let (memory_lod, _) = render(&[fuji], "error", "hole", "memory-lod");
-    let (tiles_lod, _) = render(&[masked], "error", "hole", "tiles-lod");
+    let (memory_lod, memory_lod_cut) = render(&[fuji], "error", "hole", "memory-lod");
+    let (tiles_lod, tiles_lod_cut) = render(&[masked], "error", "hole", "tiles-lod");
     let (memory_lod, tiles_lod) = (holes(&memory_lod), holes(&tiles_lod));
     let (a, b) = (count(&memory_lod), count(&tiles_lod));
     // A coarser block's holes lie where the file's are, give or take its tile's spacing.
@@ -841,11 +843,15 @@ fn voids_drawn_as_holes_from_tiles_are_the_holes_drawn_in_memory() {
     let placed: Vec<usize> = (0..tiles_lod.len()).filter(|&p| tiles_lod[p]).collect();
     let far: Vec<usize> = (1..6).map(|w| placed.iter().filter(|&&p| !near(p, w)).count()).collect();
     println!(
-        "default LOD: {b} hole pixels from tiles, {a} in memory, {} differ; from tiles, farther than 1..5 px from memory's: {far:?}",
+        "default LOD: {b} hole pixels from tiles, {a} in memory, {} differ; from tiles, farther than 1..5 px from memory's: {far:?}; mesh triangles in holes {tiles_lod_cut} from tiles, {memory_lod_cut} in memory",
         differ(&memory_lod, &tiles_lod)
     );
-    assert!(b * 2 >= a && b > 100, "{b} hole pixels from tiles against {a} in memory");
-    assert!(far[1] * 10 <= b, "{} of {b} hole pixels from tiles lie over 2 px from memory's", far[1]);
+    // (Pixels at the terrain's far edge, whose outline differs between selections,
+    // count as holes here too: a few lie farther.)
+    assert!(b * 10 >= a * 9 && b * 10 <= a * 11, "{b} hole pixels from tiles against {a} in memory");
+    assert!(far[1] * 20 <= b, "{} of {b} hole pixels from tiles lie over 2 px from memory's", far[1]);
+    // Blocks holding voids are drawn at LOD 0, whose tiles the mesh's holes come from.
+    assert!(tiles_lod_cut >= memory_cut, "{tiles_lod_cut} mesh triangles in holes at the default LOD");
     let (shown, _) = render(&[masked], "full", "fill", "masked-filled");
     assert_eq!(count(&holes(&shown)), 0, "an archive drawn filled shows holes");
     let refused_png = dir.path().join("refused.png");

@@ -20,7 +20,10 @@ pub trait Source: Sync {
     fn has_void_mask(&self) -> bool {
         false
     }
-    /// Which of the samples [`Source::read`] gives for the same arguments were voids.
+    /// Which of the samples [`Source::read`] gives for the same arguments were voids; at
+    /// a stride `s` above 1, whether a void lies within `s - 1` samples of each along
+    /// both axes (a coarser tile's flag covers its vertex's neighbourhood, so that a
+    /// block holding a void is known from any tile that serves it).
     fn voids(&self, x0: i64, z0: i64, nx: usize, nz: usize, stride: usize, out: &mut Vec<bool>) -> Result<(), String> {
         let _ = (x0, z0, stride);
         out.clear();
@@ -71,8 +74,16 @@ impl Source for InMemory<'_> {
     fn voids(&self, x0: i64, z0: i64, nx: usize, nz: usize, stride: usize, out: &mut Vec<bool>) -> Result<(), String> {
         let hf = self.0;
         out.clear();
+        // Each sample's neighbourhood, clamped to the true extent. Voids are few: the
+        // scan reads every sample of a coarse tile's area about four times (8193^2:
+        // a few seconds over every level).
+        let r = stride as i64 - 1;
+        let near = |c: usize, len: usize| (c as i64 - r).max(0)..=(c as i64 + r).min(len as i64 - 1);
         for z in axis(z0, nz, stride, hf.height) {
-            out.extend(axis(x0, nx, stride, hf.width).map(|x| hf.is_hole(x as i64, z as i64)));
+            out.extend(
+                axis(x0, nx, stride, hf.width)
+                    .map(|x| near(z, hf.height).any(|zz| near(x, hf.width).any(|xx| hf.is_hole(xx, zz)))),
+            );
         }
         Ok(())
     }

@@ -31,6 +31,10 @@ pub struct BlockSummary {
     /// over each square it crosses: a stitched strip's samples deviate from the block's
     /// own surface by no more ([`crate::stream::traverse`]).
     pub edge_d: [[f32; SUB]; 4],
+    /// A void drawn as a hole lies in the block's area, as its tile's mask says (a
+    /// coarser tile's flags each cover their vertex's neighbourhood): the traversal draws
+    /// it at LOD 0, whose tile holds the voids exactly.
+    pub voids: bool,
 }
 
 /// A square of a block: the largest `D_j` of its groups and the heights its samples and
@@ -171,7 +175,12 @@ impl TileData {
                     let d = fold(|s| s.d, f32::max, 0.0);
                     let (min, max) =
                         (fold(|s| s.min, f32::min, f32::INFINITY), fold(|s| s.max, f32::max, f32::NEG_INFINITY));
-                    summaries.push(BlockSummary { lo, hi, d, min, max, squares, edge_d });
+                    let span = quads * stride;
+                    let voids = tile.voids.as_ref().is_some_and(|v| {
+                        (bz * span..=(bz + 1) * span)
+                            .any(|j| (bx * span..=(bx + 1) * span).any(|i| v[(j + 1) * tile.side + i + 1]))
+                    });
+                    summaries.push(BlockSummary { lo, hi, d, min, max, squares, edge_d, voids });
                 }
             }
             if has_d {
@@ -505,7 +514,7 @@ impl Resident<'_> {
             return None;
         }
         let finest = (x.trailing_zeros().min(z.trailing_zeros()) as u8).min(self.grid.top);
-        for level in (0..=finest).rev() {
+        for level in 0..=finest {
             let span = self.grid.tile_span(level) as i64;
             // A sample on a tile border is in both tiles; either will do.
             let candidates = |c: i64| [Some(c / span), (c % span == 0 && c > 0).then(|| c / span - 1)];

@@ -442,7 +442,10 @@ impl<'a> Traverser<'a> {
                 };
             let finer = (lod > 0).then(|| serving_tile(grid, lod - 1, 2 * bx, 2 * bz));
             let finer_held = finer.is_some_and(|k| cache.contains(k));
-            let stitching = self.forced.contains(&(lod, bx, bz));
+            // Forced to split: for a finer neighbour's stitching, or, with holes, to draw a
+            // block holding voids at LOD 0, whose tile has them exactly (a coarser tile's
+            // cut holes only approximately). Neither is over the bound when it cannot.
+            let stitching = self.forced.contains(&(lod, bx, bz)) || (grid.holes && s.voids && lod > 0);
             if (should_split || stitching) && finer_held {
                 for (cx, cz) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
                     stack.push((lod - 1, 2 * bx + cx, 2 * bz + cz));
@@ -634,7 +637,8 @@ mod tests {
             for i in 0..SUB * SUB {
                 let mut squares = std::array::from_fn(|j| square(j, 0.0));
                 squares[i] = square(i, d);
-                let s = BlockSummary { lo, hi, d, min: lo - d, max: hi + d, squares, edge_d: [[d; SUB]; 4] };
+                let s =
+                    BlockSummary { lo, hi, d, min: lo - d, max: hi + d, squares, edge_d: [[d; SUB]; 4], voids: false };
                 let bound = block_error_px(1.0, cam, &s, (min, max), delta);
                 let whole = d * world_to_pixels(cam, min, max, delta);
                 assert!(bound <= whole, "never looser than the whole block's");
@@ -716,7 +720,7 @@ mod tests {
                     // Only this square's part of the edge's row deviates.
                     let mut edge_d = [[0.0; SUB]; 4];
                     edge_d[e][k] = d;
-                    let s = BlockSummary { lo, hi, d, min: lo - d, max: hi + d, squares, edge_d };
+                    let s = BlockSummary { lo, hi, d, min: lo - d, max: hi + d, squares, edge_d, voids: false };
                     let bound = strip_error_px(1.0, cam, &s, (e, &dep), (min, max), delta);
                     let whole = (d + departure) * world_to_pixels(cam, min, max, delta);
                     assert!(bound <= whole);
