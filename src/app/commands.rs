@@ -304,7 +304,10 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
         Ok((drawn, t.elapsed().as_secs_f64() * 1e3))
     })?;
     let ((pixels, stats), frame_ms) = frame.submitted;
-    note_if_nothing_was_cast(args, stats.raycast_blocks, stats.draw_calls);
+    let forward = args.pixels == crate::draw::blocks::PixelPass::Forward
+        || args.colour_by_lod
+        || args.common.terrain.voids == crate::input::load::VoidMode::Hole;
+    note_if_nothing_was_cast(args, forward, stats.raycast_blocks, stats.draw_calls);
     let trav = frame.traversal.expect("render traverses");
     let generation = frame.taken.unwrap_or_default();
     let errors_ms = activity.is_some().then_some(frame.feed_ms);
@@ -387,17 +390,15 @@ fn audit_into(out: &mut serde_json::Value, a: &audit::AuditResult, delta: f32) {
     out["uncovered_samples"] = json!(a.uncovered);
 }
 
-/// Says why, when `--raycast` was asked for and a frame of `draw_calls` ray-cast no block.
-fn note_if_nothing_was_cast(args: &RenderArgs, raycast_blocks: u64, draw_calls: u64) {
+/// Says why, when `--raycast` was asked for and a frame of `draw_calls` ray-cast no block
+/// (`forward`: the frame was shaded forward).
+fn note_if_nothing_was_cast(args: &RenderArgs, forward: bool, raycast_blocks: u64, draw_calls: u64) {
     if args.raycast == Raycast::Off || raycast_blocks > 0 || draw_calls == 0 {
         return;
     }
-    let forward = args.pixels == crate::draw::blocks::PixelPass::Forward
-        || args.colour_by_lod
-        || args.common.terrain.voids == crate::input::load::VoidMode::Hole;
     let why = if forward {
-        "blocks are ray-cast in frames shaded deferred only, and --pixels forward, --colour-by-lod and \
-         --voids hole shade forward"
+        "blocks are ray-cast in frames shaded deferred only, and this one was shaded forward (--pixels \
+         forward, --colour-by-lod and --voids hole shade forward, and from tiles --shading heights)"
     } else {
         "a block is cast only when it is not morphing, meets no coarser neighbour and lies inside the \
          terrain's extent, in a frame shaded deferred (a camera too far for the depth pass shades forward); \
@@ -442,7 +443,8 @@ fn render_streamed(
     })?;
     let mut out = r.report;
     let count = |key: &str| out[key].as_u64().unwrap_or(0);
-    note_if_nothing_was_cast(args, count("raycast_blocks"), count("draw_calls"));
+    let forward = out["pixels"] == "forward";
+    note_if_nothing_was_cast(args, forward, count("raycast_blocks"), count("draw_calls"));
     if args.audit {
         // Offline, against every sample (SPEC 8): the whole terrain in memory, which the
         // streamed path itself never holds.

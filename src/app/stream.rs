@@ -302,8 +302,7 @@ impl GpuFrames {
             let under = sees_the_underside(grid, streamer, view.position, self.range.world[1]);
             let ring = self.renderer.ring_triangles();
             let choice = (self.raycast, ring, under);
-            raycast_pixels =
-                crate::stream::draw::choose_raycast(grid, &streamer.cache, (anchor, &cam), &mut blocks, choice);
+            raycast_pixels = choose_raycast(grid, &streamer.cache, (anchor, &cam), &mut blocks, choice);
         }
         let fv = FrameView {
             grid,
@@ -1021,6 +1020,59 @@ pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
     report["grid"] = serde_json::json!(layout.roots.map(|r| (r << layout.n) + 1));
     report["roots"] = serde_json::json!(layout.roots);
     Ok(ArchiveRender { width: w, height: h, pixels, report, drawn, layout, view, mesh })
+}
+
+/// Marks the blocks of a frame that are ray-cast with `mode` (`--raycast`), by the
+/// in-memory rule ([`crate::draw::raycast::Choice`]): blocks that neither morph nor
+/// follow a coarser edge, inside the true extent, whose boxes (their vertices' range,
+/// from their tile's summary) are cheap enough in rays for `auto`. `under`: the camera
+/// can see the surface from below, which rays do not reproduce: none is ray-cast.
+/// Returns the pixels the chosen blocks' boxes cover (the rays a deferred frame casts).
+fn choose_raycast(
+    grid: &Grid,
+    cache: &crate::stream::cache::HostCache,
+    (anchor, cam): ([i64; 2], &crate::lod::camera::Camera),
+    blocks: &mut [crate::stream::draw::StreamedBlock],
+    (mode, ring_triangles, under): (crate::draw::raycast::Raycast, u64, bool),
+) -> f64 {
+    use crate::draw::raycast::{Choice, Raycast};
+    if mode == Raycast::Off || under {
+        return 0.0;
+    }
+    let layout = crate::stream::draw::layout(grid);
+    // The range of a block's vertices and resolved corners; `None` before its tile is held.
+    let range = |b: &crate::lod::block::DrawBlock| {
+        let tile = cache.peek(crate::stream::cache::serving_tile(grid, b.lod, b.bx, b.bz))?;
+        let s = tile.block(grid, b.lod, b.bx, b.bz);
+        let corners = b.corner_raw.map(f32::from_bits);
+        Some(corners.into_iter().fold([s.lo, s.hi], |[lo, hi], c| [lo.min(c), hi.max(c)]))
+    };
+    let world_box = |b: &crate::lod::block::DrawBlock| {
+        let (ox, oz) = b.origin(&layout);
+        let side = layout.block_samples(b.lod) as i64;
+        let [lo, hi] = range(b).unwrap_or([0.0, 0.0]).map(|h| (f64::from(h) * grid.height_scale) as f32);
+        let at = |x: i64, z: i64| {
+            [((x - anchor[0]) as f64 * grid.spacing[0]) as f32, ((z - anchor[1]) as f64 * grid.spacing[1]) as f32]
+        };
+        let ([x0, z0], [x1, z1]) = (at(ox as i64, oz as i64), at(ox as i64 + side, oz as i64 + side));
+        (glam::Vec3::new(x0, lo, z0), glam::Vec3::new(x1, hi, z1))
+    };
+    let choice = Choice {
+        mode,
+        layout: &layout,
+        extent: [grid.width as u32, grid.height as u32],
+        world_box: Box::new(world_box),
+        cam,
+        ring_triangles,
+    };
+    let mut pixels = 0.0;
+    for b in blocks.iter_mut() {
+        if choice.casts(&b.block) {
+            b.raycast = range(&b.block);
+            pixels += choice.box_pixels(&b.block);
+        }
+    }
+    pixels
 }
 
 /// Whether a camera at `p` can see the surface from below, as the in-memory ray-caster
