@@ -5,18 +5,7 @@
 // tests it against quadtree::block_vertex, bit for bit). Needs `heights`, `frame` and
 // `block_pc` declared by the includer.
 
-#ifdef HEIGHTS_ATLAS
-// Streamed frames: `heights` is the atlas (sampler2DArray); the block's tile holds every
-// 2^level-th sample from its origin, behind a one-sample border. Clamped into the layer:
-// only the morph's neighbours of a coarser neighbour's edge vertex can fall outside the
-// tile, and streamed blocks never morph those edges (their factor 1 ignores them;
-// src/stream/morph.rs).
-float raw_at(ivec2 s) {
-    ivec3 t = ivec3(((s - block_pc.tile.xy) >> block_pc.tile.z) + 1, block_pc.tile.w);
-    t.xy = clamp(t.xy, ivec2(0), ivec2(frame.anchor.z - 1));
-    return decode_raw(texelFetch(heights, t, 0).r, frame.flags.x);
-}
-#else
+#ifndef HEIGHTS_ATLAS
 float raw_at(ivec2 s) {
     return decode_raw(texelFetch(heights, s, 0).r, frame.flags.x);
 }
@@ -114,9 +103,25 @@ vec3 place_block_vertex(ivec2 local) {
         }
     }
 
+#ifdef HEIGHTS_ATLAS
+    // Streamed frames: `heights` is the atlas (sampler2DArray); the block's tile holds
+    // every 2^level-th sample from its origin, behind a one-sample border, and s and d
+    // are multiples of that spacing. The vertex's texel is found once (a vertex of the
+    // block lies in its tile); its morph neighbours' are clamped into the layer: only
+    // those of a coarser neighbour's edge vertex can fall outside the tile, and streamed
+    // blocks never morph those edges (their factor 1 ignores them; src/stream/morph.rs).
+    ivec2 t = ((s - block_pc.tile.xy) >> block_pc.tile.z) + 1;
+    ivec2 dt = d >> block_pc.tile.z;
+    ivec2 hi = ivec2(frame.anchor.z - 1);
+    float raw = decode_raw(texelFetch(heights, ivec3(t, block_pc.tile.w), 0).r, frame.flags.x);
+    float below = decode_raw(texelFetch(heights, ivec3(max(t - dt, ivec2(0)), block_pc.tile.w), 0).r, frame.flags.x);
+    float above = decode_raw(texelFetch(heights, ivec3(min(t + dt, hi), block_pc.tile.w), 0).r, frame.flags.x);
+#else
     float raw = raw_at(s);
+    float below = raw_at(s - d), above = raw_at(s + d);
+#endif
     placed_sample_raw = raw;
-    precise float p = (raw_at(s - d) + raw_at(s + d)) * 0.5;
+    precise float p = (below + above) * 0.5;
     float h = given ? given_raw : (d == ivec2(0) ? raw : morph_raw(p, raw, f));
     // Integer sample coordinates relative to the anchor before any float (SPEC 8): a
     // shared vertex gets the same bits in every block, whatever the distance to the

@@ -35,6 +35,21 @@ vec3 normal_from_gathers(vec4 a, vec4 b, vec4 c, vec4 d, vec2 f, vec2 step) {
     return normal_of(mix(mix(g00, g10, f.x), mix(g01, g11, f.x), f.y));
 }
 
+// What a shader needs of one sample: its gradient (central differences of world
+// heights) and whether it lies at sea level. The gradient map (Heightfield::gradient_map)
+// holds both in one texel: two 16-bit signed units (world gradient = units * `scale` /
+// 32767), the sea flag in the lowest bit of z.
+struct Sample {
+    vec2 gradient;
+    bool sea;
+};
+
+Sample from_texel(uint t, float scale) {
+    int x_units = int(t << 16) >> 16;
+    int z_units = int(t) >> 16;
+    return Sample(vec2(float(x_units & ~1), float(z_units & ~1)) * (scale / 32767.0), (z_units & 1) != 0);
+}
+
 // The light on a surface of unit normal `n` (both renderers): the ambient share
 // `light.w` scaled by the open sky `sun_ao.g`, the sun from `light.xyz` by its
 // visibility `sun_ao.r` (the lighting map, lighting.frag).

@@ -5,11 +5,11 @@
 // where no block was drawn. At four triangles a pixel, shading each fragment drawn
 // (stream.frag) ran the shader about once a triangle.
 //
-// What depth does not give comes from the lighting map's heights, every
-// frame.spacing.w-th sample (the terrain's own samples up to 2049^2): the normal and the
-// sea share as memory takes them from its samples (central differences at the four held
-// samples around the point, interpolated; the bilinear share of those at or below sea
-// level). Where those samples are too coarse for the pixel (two held ones more than two
+// What depth does not give comes from the gradient map of the lighting map's heights,
+// every frame.spacing.w-th sample (the terrain's own samples up to 2049^2), as memory
+// takes it from its own gradient map: the normal (the gradients of the four held samples
+// around the point, interpolated) and the sea share (the bilinear share of those at or
+// below sea level), in one gather. Where those samples are too coarse for the pixel (two held ones more than two
 // pixels apart: close views of terrains over 2049^2) they come from the surface as drawn
 // instead: the normal from the points drawn at the neighbouring pixels, the sea from the
 // drawn height.
@@ -23,7 +23,7 @@
 #include "stream_shade.glsl"
 
 layout(set = 0, binding = TERRAIN_BINDING_DEPTH) uniform sampler2D depth;
-layout(set = 0, binding = STREAM_BINDING_HELD_HEIGHTS) uniform sampler2D held;
+layout(set = 0, binding = TERRAIN_BINDING_GRADIENTS) uniform usampler2D gradients;
 layout(location = 0) in vec2 v_ndc;
 layout(location = 0) out vec4 out_color;
 
@@ -76,13 +76,6 @@ vec3 drawn_normal(ivec2 px, vec3 p) {
     return n.y < 0.0 ? -n : n;
 }
 
-// World heights of the 2 x 2 held texels from texel `t` on, in gather order (clamped at
-// the edges).
-vec4 held_from(ivec2 t) {
-    vec4 raw = textureGather(held, (vec2(t) + 1.0) / vec2(textureSize(held, 0)));
-    return (frame.flags.x != 0 ? round(raw * 65535.0) : raw) * frame.terrain.y;
-}
-
 void main() {
     ivec2 px = ivec2(gl_FragCoord.xy);
     float z = texelFetch(depth, px, 0).r;
@@ -106,17 +99,19 @@ void main() {
         vec2 q = at / stride;
         ivec2 t = ivec2(floor(q));
         vec2 f = q - vec2(t);
-        vec4 h = held_from(t); // (0,1) (1,1) (1,0) (0,0) from t
-        vec3 n = normal_from_gathers(held_from(t - 1), held_from(t + ivec2(1, -1)), held_from(t + ivec2(-1, 1)),
-                                     held_from(t + 1), f, frame.spacing.xy * stride);
-        vec4 flags = vec4(lessThanEqual(h, vec4(frame.texturing.w)));
-        float sea = mix(mix(flags.w, flags.z, f.x), mix(flags.x, flags.y, f.x), f.y);
+        // Gather order: (0,1), (1,1), (1,0), (0,0) from t (clamped at the far edge).
+        uvec4 g = textureGather(gradients, (vec2(t) + 1.0) / vec2(textureSize(gradients, 0)));
+        Sample s00 = from_texel(g.w, frame.texturing.z), s10 = from_texel(g.z, frame.texturing.z);
+        Sample s01 = from_texel(g.x, frame.texturing.z), s11 = from_texel(g.y, frame.texturing.z);
+        vec3 n = normal_of(mix(mix(s00.gradient, s10.gradient, f.x), mix(s01.gradient, s11.gradient, f.x), f.y));
+        float sea = mix(mix(float(s00.sea), float(s10.sea), f.x), mix(float(s01.sea), float(s11.sea), f.x), f.y);
         // Where two held samples lie more than two pixels apart (a pixel spans under half
         // as many samples), from the surface as drawn: its normal, and water up to sea
         // level (within depth's precision there) fading out over one sample's rise above
         // it, as the share of the samples around a point fades over a sample.
-        float near = stride > 1.0 ? 1.0 - smoothstep(0.25 * stride, 0.5 * stride, spanned) : 0.0;
-        if (near > 0.0) {
+        // (COARSE_GRADIENTS: a specialization constant, true when stride > 1.)
+        float near = COARSE_GRADIENTS ? 1.0 - smoothstep(0.25 * stride, 0.5 * stride, spanned) : 0.0;
+        if (COARSE_GRADIENTS && near > 0.0) {
             float precision_m = 1e-6 * length(p - frame.camera_fog.xyz);
             float above = p.y - frame.texturing.w - precision_m;
             float sample_rise = rise / max(spanned, 1e-6);

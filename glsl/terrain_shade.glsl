@@ -15,28 +15,14 @@ float world_height(ivec2 s) {
     return decode_raw(texelFetch(heights, s, 0).r, frame.flags.x) * frame.terrain.y;
 }
 
-// What the shader needs of one sample: its gradient (central differences of world
-// heights) and whether it lies at sea level (world height <= frame.texturing.w). By
-// default both come from the gradient map (Heightfield::gradient_map: two 16-bit signed
-// units per texel, the sea flag in the lowest bit of z), the four samples around a pixel
-// in one gather; `--shading heights` computes them from five height fetches each, the
-// first wave's shading, for comparison. The choice is a specialization constant:
-// llvmpipe runs both sides of a uniform branch.
-struct Sample {
-    vec2 gradient;
-    bool sea;
-};
-
+// A sample's gradient and sea flag (common.glsl's Sample). By default both come from
+// the gradient map, the four samples around a pixel in one gather; `--shading heights`
+// computes them from five height fetches each, for comparison. The choice is a
+// specialization constant: llvmpipe runs both sides of a uniform branch.
 Sample from_heights(ivec2 s) {
     vec2 g = central_gradient(world_height(s + ivec2(1, 0)), world_height(s - ivec2(1, 0)),
                               world_height(s + ivec2(0, 1)), world_height(s - ivec2(0, 1)), frame.spacing.xy);
     return Sample(g, world_height(s) <= frame.texturing.w);
-}
-
-Sample from_texel(uint t) {
-    int x_units = int(t << 16) >> 16;
-    int z_units = int(t) >> 16;
-    return Sample(vec2(float(x_units & ~1), float(z_units & ~1)) * (frame.texturing.z / 32767.0), (z_units & 1) != 0);
 }
 
 // `--voids hole`: whether the surface point `world` lies in a hole, the bilinear share of
@@ -73,10 +59,10 @@ vec3 shade_terrain(vec3 world, int lod) {
         // Texels i0 and i0 + 1 on each axis (clamped at the far edge): the coordinate is
         // midway between their centres. Gather order: (0,1), (1,1), (1,0), (0,0).
         uvec4 t = textureGather(gradients, (vec2(i0) + 1.0) / vec2(textureSize(gradients, 0)));
-        s00 = from_texel(t.w);
-        s10 = from_texel(t.z);
-        s01 = from_texel(t.x);
-        s11 = from_texel(t.y);
+        s00 = from_texel(t.w, frame.texturing.z);
+        s10 = from_texel(t.z, frame.texturing.z);
+        s01 = from_texel(t.x, frame.texturing.z);
+        s11 = from_texel(t.y, frame.texturing.z);
     }
     vec3 n = normal_of(mix(mix(s00.gradient, s10.gradient, f.x), mix(s01.gradient, s11.gradient, f.x), f.y));
 

@@ -72,7 +72,7 @@ fn check_strided(
     stride: usize,
     suns: &[Sun],
 ) {
-    let mut own = OwnLighting::new(device, every(hf, stride), stride, [hf.width, hf.height], None).unwrap();
+    let mut own = OwnLighting::new(device, every(hf, stride), stride, [hf.width, hf.height], None, 0.0).unwrap();
     assert!(own.map.read().unwrap().iter().all(|&t| t == [255, 255]), "{name}: without a sun everything is lit");
     for &sun in suns {
         own.set_sun(Some(sun)).unwrap();

@@ -179,7 +179,10 @@ impl GpuFrames {
             "the archive",
             streamer.stop.as_deref(),
         ) {
-            Ok(Some((hf, stride))) => (OwnLighting::new(&device, hf, stride, [grid.width, grid.height], None)?, None),
+            Ok(Some((hf, stride))) => {
+                let sea = crate::lod::heightfield::sea_level(range.absolute, range.world);
+                (OwnLighting::new(&device, hf, stride, [grid.width, grid.height], None, sea)?, None)
+            }
             Ok(None) => {
                 let why = format!(
                     "a {} x {} terrain is too long and narrow for one lighting map: frames without shadows",

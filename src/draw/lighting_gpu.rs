@@ -245,11 +245,18 @@ impl LightingMap {
 
 /// A lighting map made from heights it holds itself: every `stride`-th sample of a
 /// terrain that is not in one image (streamed frames), uploaded once into an image of its
-/// own on the draw queue's family.
+/// own on the draw queue's family; and the gradient map of those samples, which the
+/// deferred pass shades from as memory does from its own (one gather a pixel instead of
+/// five).
 pub struct OwnLighting {
-    /// First: its descriptor set reads `heights` through `_nearest`.
+    /// First: its descriptor set reads `_heights` through `_nearest` at every redraw.
     pub map: LightingMap,
-    heights: Image,
+    _heights: Image,
+    gradients: Image,
+    /// [`Heightfield::gradient_map`]'s scale per unit of height scale (as
+    /// [`crate::gpu::terrain::TerrainGpu::gradient_scale_per_unit`]: exaggeration keeps
+    /// the map).
+    gradient_scale_per_unit: f32,
     _nearest: Sampler,
     hf: Heightfield,
     stride: usize,
@@ -260,20 +267,33 @@ pub struct OwnLighting {
 
 impl OwnLighting {
     /// The map of the terrain of `extent` samples whose every `stride`-th sample `hf`
-    /// holds ([`LightingSource::every`]), for `sun`.
+    /// holds ([`LightingSource::every`]), for `sun`; water at world heights up to
+    /// `sea_level` (at `hf`'s height scale).
     pub fn new(
         device: &Arc<Device>,
         hf: Heightfield,
         stride: usize,
         extent: [usize; 2],
         sun: Option<Sun>,
+        sea_level: f32,
     ) -> VkResult<Self> {
         let pool = CommandPool::new(device, device.draw_queue.family)?;
         let (heights, _) = crate::gpu::terrain::heights_image(device, &pool, &hf, "lighting heights", false)?;
+        let (gradients, scale) = crate::gpu::terrain::gradients_image(device, &pool, &hf, sea_level)?;
         let nearest = Sampler::new(device, vk::Filter::NEAREST, vk::SamplerAddressMode::CLAMP_TO_EDGE)?;
         let src = LightingSource::every(&hf, stride, extent);
         let map = LightingMap::of_source(device, &src, (heights.view, nearest.handle), sun, MAX_LIGHTING_SIDE)?;
-        Ok(OwnLighting { map, heights, _nearest: nearest, hf, stride, extent, holds_heights: true })
+        Ok(OwnLighting {
+            map,
+            _heights: heights,
+            gradients,
+            gradient_scale_per_unit: scale / hf.height_scale,
+            _nearest: nearest,
+            hf,
+            stride,
+            extent,
+            holds_heights: true,
+        })
     }
 
     /// A map that lights everything (no shadows, the whole sky open): for frames with
@@ -281,7 +301,7 @@ impl OwnLighting {
     pub fn everything_lit(device: &Arc<Device>) -> VkResult<Self> {
         let flat = Heightfield::embed("flat", 3, 3, &[0.0; 9], HeightFormat::Float32, 1.0, 1.0)
             .map_err(|e| crate::vk::VkError::Setup(e.to_string()))?;
-        Ok(OwnLighting { holds_heights: false, ..Self::new(device, flat, 1, [3, 3], None)? })
+        Ok(OwnLighting { holds_heights: false, ..Self::new(device, flat, 1, [3, 3], None, 0.0)? })
     }
 
     /// Whether the map was made from the terrain's heights, which
@@ -290,10 +310,15 @@ impl OwnLighting {
         self.holds_heights
     }
 
-    /// The map's heights image (R16_UNORM or R32_SFLOAT, raw units), read in
-    /// SHADER_READ_ONLY_OPTIMAL.
-    pub fn heights_view(&self) -> vk::ImageView {
-        self.heights.view
+    /// The gradient map of the held samples ([`Heightfield::gradient_map`], R32_UINT),
+    /// read in SHADER_READ_ONLY_OPTIMAL.
+    pub fn gradients_view(&self) -> vk::ImageView {
+        self.gradients.view
+    }
+
+    /// The scale of [`Self::gradients_view`]'s units at the current height scale.
+    pub fn gradient_scale(&self) -> f32 {
+        self.gradient_scale_per_unit * self.hf.height_scale
     }
 
     pub fn source(&self) -> LightingSource<'_> {

@@ -7,8 +7,9 @@
 //! tile (streamed tiles bring no gradient map); sun shadows and ambient occlusion from a
 //! lighting map made as in memory from the tiles of a coarser level
 //! ([`lighting_heights`]). Deferred by default, as in memory: the blocks write depth
-//! only, then one pass shades each pixel once, its normal from the points drawn beside
-//! it and its sea share from the lighting map's heights (`glsl/stream_shade.frag`;
+//! only, then one pass shades each pixel once, its normal and sea share from the
+//! gradient map of the lighting map's heights, or up close over a terrain held coarser
+//! than its samples from the points drawn beside it (`glsl/stream_shade.frag`;
 //! `--pixels forward`, the colour-by-LOD view and `--shading heights` shade every
 //! fragment as it is drawn). Frames go offscreen (read back) or into a window's
 //! swapchain image.
@@ -75,8 +76,9 @@ pub struct StreamedRenderer {
     timer: Option<FrameTimer>,
     commands: CommandPool,
     /// The pipelines for each colour format drawn to (the offscreen target's, a
-    /// window's swapchain's).
-    pipelines: Vec<(vk::Format, FramePipelines)>,
+    /// window's swapchain's) and gradient map (of every sample, or coarser:
+    /// [`FramePipelines::new`]'s `coarse`).
+    pipelines: Vec<((vk::Format, bool), FramePipelines)>,
     pipeline_layout: PipelineLayout,
     /// The capture hook's pipeline, layout, set and set layout.
     capture: Option<(GraphicsPipeline, PipelineLayout, vk::DescriptorSet, DescriptorSetLayout)>,
@@ -160,9 +162,14 @@ impl FramePipelines {
         normals: NormalSource,
         (base, detail): (bool, bool),
         holes: bool,
+        coarse: bool,
     ) -> VkResult<Self> {
         let sky = super::blocks::sky_pipeline(device, layout, format)?;
         let textures = [(layout::SPEC_BASE_TEXTURE, base), (layout::SPEC_DETAIL_TEXTURE, detail)];
+        // The deferred pass's shading from the surface as drawn, where the gradient map's
+        // samples are coarser than a pixel, exists only when they can be: llvmpipe runs
+        // both sides of a branch, and that side was a third of the pass.
+        let shade_spec = [textures[0], textures[1], (layout::SPEC_COARSE_GRADIENTS, coarse)];
         // Over the whole target, with the depth attached read-only (as the viewer's
         // panel, drawn in the same rendering, expects), as in memory.
         let shade = GraphicsPipeline::new(
@@ -178,7 +185,7 @@ impl FramePipelines {
                 polygon_mode: vk::PolygonMode::FILL,
                 cull_back: false,
                 layout,
-                specialization: &textures,
+                specialization: &shade_spec,
             },
         )?;
         let terrain = terrain_pipeline(device, layout, format, (normals, holes), textures, vk::PolygonMode::FILL)?;
@@ -236,7 +243,7 @@ impl StreamedRenderer {
         // both sets (the capture set's unread), as lavapipe reads every bound descriptor.
         let shading = [
             (layout::TERRAIN_BINDING_LIGHTING, sampled, fragment),
-            (layout::STREAM_BINDING_HELD_HEIGHTS, sampled, fragment),
+            (layout::TERRAIN_BINDING_GRADIENTS, sampled, fragment),
             (layout::TERRAIN_BINDING_BASE, sampled, fragment),
             (layout::TERRAIN_BINDING_DETAIL, sampled, fragment),
         ];
@@ -261,6 +268,7 @@ impl StreamedRenderer {
             COLOR_FORMAT,
             NormalSource::default(),
             (false, false),
+            false,
             false,
         )?;
         let depth_pipeline = depth_pass_pipeline(device, &pipeline_layout, shaders::STREAM_DEPTH_VERT)?;
@@ -324,7 +332,7 @@ impl StreamedRenderer {
             fence: Fence::new(device, true)?,
             timer: FrameTimer::new(device)?,
             commands,
-            pipelines: vec![(COLOR_FORMAT, pipelines)],
+            pipelines: vec![((COLOR_FORMAT, false), pipelines)],
             pipeline_layout,
             capture,
             pool,
@@ -387,10 +395,11 @@ impl StreamedRenderer {
                 view.lighting.source().stride as f32,
             ],
             light: [light.x, light.y, light.z, 0.25],
+            // z: the held samples' gradient map's scale (stream_shade.frag).
             texturing: [
                 self.detail_tiling,
                 self.detail_weight,
-                0.0,
+                view.lighting.gradient_scale(),
                 crate::lod::heightfield::sea_level(absolute, world),
             ],
             extent: [grid.width as i32, grid.height as i32, 0, self.layout.k() as i32],
@@ -460,7 +469,7 @@ impl StreamedRenderer {
             &[
                 (layout::TERRAIN_BINDING_HEIGHTS, atlas.image().view, self.sampler.handle),
                 (layout::TERRAIN_BINDING_LIGHTING, view.lighting.map.image.view, view.lighting.map.sampler.handle),
-                (layout::STREAM_BINDING_HELD_HEIGHTS, view.lighting.heights_view(), self.sampler.handle),
+                (layout::TERRAIN_BINDING_GRADIENTS, view.lighting.gradients_view(), self.sampler.handle),
                 (layout::TERRAIN_BINDING_BASE, self.textures.base.view, self.texture_sampler.handle),
                 (layout::TERRAIN_BINDING_DETAIL, self.textures.detail.view, self.texture_sampler.handle),
             ],
@@ -521,21 +530,23 @@ impl StreamedRenderer {
         self.fence.wait(u64::MAX)
     }
 
-    /// The pipelines for colour attachments of `format`, made the first time.
-    fn pipeline(&mut self, format: vk::Format) -> VkResult<PipelineHandles> {
+    /// The pipelines for colour attachments of `format` and a gradient map coarser than
+    /// the terrain's samples (`coarse`), made the first time.
+    fn pipeline(&mut self, format: vk::Format, coarse: bool) -> VkResult<PipelineHandles> {
         let handles = |p: &FramePipelines| PipelineHandles {
             terrain: p.terrain.handle,
             sky: p.sky.handle,
             shade: p.shade.handle,
             wireframe: p.wireframe.as_ref().map_or(vk::Pipeline::null(), |w| w.handle),
         };
-        if let Some((_, p)) = self.pipelines.iter().find(|(f, _)| *f == format) {
+        if let Some((_, p)) = self.pipelines.iter().find(|(key, _)| *key == (format, coarse)) {
             return Ok(handles(p));
         }
         let textures = (self.textures.has_base, self.textures.has_detail);
-        let p = FramePipelines::new(&self.device, &self.pipeline_layout, format, self.normals, textures, self.holes)?;
+        let (device, layout) = (&self.device, &self.pipeline_layout);
+        let p = FramePipelines::new(device, layout, format, self.normals, textures, self.holes, coarse)?;
         let h = handles(&p);
-        self.pipelines.push((format, p));
+        self.pipelines.push(((format, coarse), p));
         Ok(h)
     }
 
@@ -677,7 +688,7 @@ impl StreamedRenderer {
         let (pushes, missing, generation) = self.pushes(atlas, blocks);
         let mut stats = StreamedStats { blocks: pushes.len(), missing, ..StreamedStats::default() };
         let format = window.map_or(COLOR_FORMAT, |w| w.format);
-        let pipelines = self.pipeline(format)?;
+        let pipelines = self.pipeline(format, view.lighting.source().stride > 1)?;
         let deferred = self.deferred(view);
         let d = self.device.raw.clone();
         let cmd = self.cmd;

@@ -83,10 +83,6 @@ pub const TERRAIN_BINDING_DEPTH: u32 = 7;
 /// mip L-1), the errors activity's [`GIE_BINDING_MINMAX`] image, read-only.
 pub const TERRAIN_BINDING_MINMAX: u32 = 8;
 
-/// Streamed frames' deferred pass (stream_shade.frag): the lighting map's heights (every
-/// stride-th sample of the terrain), for the sea share around each pixel's point.
-pub const STREAM_BINDING_HELD_HEIGHTS: u32 = 9;
-
 /// Lighting pass: the heightfield, texelFetch only.
 pub const LIGHTING_BINDING_HEIGHTS: u32 = 0;
 
@@ -251,6 +247,9 @@ pub const SPEC_STRICT_ERRORS: u32 = 4;
 /// terrain.frag and stream.frag: voids are drawn as holes (`--voids hole`; flags in the
 /// gradient map in memory, the atlas's second channel over tiles).
 pub const SPEC_HOLES: u32 = 5;
+/// stream_shade.frag: the gradient map holds every few samples only (terrains over
+/// 2049^2), so that pixels spanning less than a held sample take the surface as drawn.
+pub const SPEC_COARSE_GRADIENTS: u32 = 6;
 
 pub const SPEC_CONSTANTS: &[SpecConstant] = &[
     SpecConstant { group: "TerrainSpec", name: "NORMALS_FROM_HEIGHTS", id: SPEC_NORMALS_FROM_HEIGHTS },
@@ -258,6 +257,7 @@ pub const SPEC_CONSTANTS: &[SpecConstant] = &[
     SpecConstant { group: "TerrainSpec", name: "DETAIL_TEXTURE", id: SPEC_DETAIL_TEXTURE },
     SpecConstant { group: "TerrainSpec", name: "COLOUR_BY_LOD", id: SPEC_COLOUR_BY_LOD },
     SpecConstant { group: "TerrainSpec", name: "HOLES", id: SPEC_HOLES },
+    SpecConstant { group: "TerrainSpec", name: "COARSE_GRADIENTS", id: SPEC_COARSE_GRADIENTS },
     SpecConstant { group: "GieSpec", name: "STRICT_ERRORS", id: SPEC_STRICT_ERRORS },
 ];
 
@@ -278,7 +278,6 @@ pub const GLSL_CONSTANTS: &[(&str, u32)] = &[
     ("TILE_ERRORS_BINDING_DEVIATION", TILE_ERRORS_BINDING_DEVIATION),
     ("TERRAIN_BINDING_LIGHTING", TERRAIN_BINDING_LIGHTING),
     ("TERRAIN_BINDING_DEPTH", TERRAIN_BINDING_DEPTH),
-    ("STREAM_BINDING_HELD_HEIGHTS", STREAM_BINDING_HELD_HEIGHTS),
     ("TERRAIN_BINDING_MINMAX", TERRAIN_BINDING_MINMAX),
     ("LIGHTING_BINDING_HEIGHTS", LIGHTING_BINDING_HEIGHTS),
     ("SUN_MAX_STEPS", SUN_MAX_STEPS),

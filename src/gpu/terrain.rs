@@ -112,15 +112,13 @@ impl TerrainGpu {
         upload(device, &pool, &deviation, &dev_mips)?;
 
         let sea_level = hf.sea_level(mm.range());
-        let (grads, gradient_scale) = hf.gradient_map(sea_level);
-        let gradients = Image::new(device, "gradient map", extent(gw, gh), vk::Format::R32_UINT, 1, usage, false)?;
-        upload(device, &pool, &gradients, &[bytemuck::cast_slice(&grads)])?;
+        let (gradients, gradient_scale) = gradients_image(device, &pool, hf, sea_level)?;
 
         let textures = TextureImages::new(device, &pool, base, detail)?;
         let total = height_bytes
             + mips.iter().map(|m| m.len()).sum::<usize>()
             + mm.dev.iter().map(|l| l.len() * 4).sum::<usize>()
-            + grads.len() * 4;
+            + (gw * gh) as usize * 4;
         Ok(TerrainGpu {
             heights,
             minmax,
@@ -157,6 +155,23 @@ pub fn heights_image(
     let image = Image::new(device, name, vk::Extent2D { width: gw, height: gh }, format, 1, usage, shared)?;
     upload(device, pool, &image, &[&bytes])?;
     Ok((image, bytes.len()))
+}
+
+/// `hf`'s gradient map ([`Heightfield::gradient_map`] with water up to `sea_level`) as
+/// an R32_UINT image, one gather bringing four samples, uploaded; and its scale.
+pub fn gradients_image(
+    device: &Arc<Device>,
+    pool: &CommandPool,
+    hf: &Heightfield,
+    sea_level: f32,
+) -> VkResult<(Image, f32)> {
+    let [gw, gh] = hf.grid().map(|v| v as u32);
+    let (texels, scale) = hf.gradient_map(sea_level);
+    let usage = vk::ImageUsageFlags::SAMPLED | vk::ImageUsageFlags::TRANSFER_DST;
+    let extent = vk::Extent2D { width: gw, height: gh };
+    let image = Image::new(device, "gradient map", extent, vk::Format::R32_UINT, 1, usage, false)?;
+    upload(device, pool, &image, &[bytemuck::cast_slice(&texels)])?;
+    Ok((image, scale))
 }
 
 /// Uploads every mip level of `image` and leaves it in SHADER_READ_ONLY_OPTIMAL.
