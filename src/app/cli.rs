@@ -474,8 +474,9 @@ pub struct StreamedOptions {
     /// from its tiles (as with --stream).
     #[arg(long = "cache-mb", value_name = "MB", value_parser = clap::value_parser!(u32).range(1..=1_000_000), allow_negative_numbers = true)]
     pub cache_mb_given: Option<u32>,
-    /// GPU atlas budget, MB (one layer a tile, at most 2048 layers) [default: 256]; given,
-    /// the terrain is drawn from its tiles (as with --stream).
+    /// GPU atlas budget, MB (one layer a tile, at most 2048 layers) [default: every tile
+    /// of the terrain when there are at most 2048, else 256]; given, the terrain is drawn
+    /// from its tiles (as with --stream).
     #[arg(long = "gpu-mb", value_name = "MB", value_parser = clap::value_parser!(u32).range(1..=1_000_000), allow_negative_numbers = true)]
     pub gpu_mb_given: Option<u32>,
 }
@@ -484,8 +485,11 @@ impl StreamedOptions {
     pub fn cache_mb(&self) -> u32 {
         self.cache_mb_given.unwrap_or(256)
     }
-    pub fn gpu_mb(&self) -> u32 {
-        self.gpu_mb_given.unwrap_or(256)
+    /// The atlas budget for the terrain of `m`: as given, or by default every tile when
+    /// they fit the atlas's layers ([`crate::errors::atlas::HeightAtlas::default_budget_mb`]).
+    pub fn gpu_mb(&self, m: &crate::input::archive::Meta) -> u32 {
+        let grid = crate::stream::Grid::from_meta(m);
+        self.gpu_mb_given.unwrap_or_else(|| crate::errors::atlas::HeightAtlas::default_budget_mb(&grid))
     }
     /// Whether the terrain is to be drawn from its tiles whatever its size: `--stream`,
     /// or a budget for them given (it would mean nothing otherwise).

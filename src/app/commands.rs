@@ -100,7 +100,7 @@ pub struct ErrorsArgs {
 /// times, each for a camera moved a hundredth of a sample further (so that each is a new
 /// generation), and their cost as JSON.
 fn errors_over_tiles(args: &ErrorsArgs, device: Arc<Device>, archive: Arc<Archive>) -> anyhow::Result<()> {
-    let (cache_mb, gpu_mb) = (args.streamed.cache_mb(), args.streamed.gpu_mb());
+    let (cache_mb, gpu_mb) = (args.streamed.cache_mb(), args.streamed.gpu_mb(&archive.meta));
     eprintln!("{}", crate::app::stream::streamed_banner(&args.terrain.name(), &archive.meta, cache_mb, gpu_mb));
     let r = crate::app::stream::errors_over_atlas(
         &archive,
@@ -420,7 +420,8 @@ fn render_streamed(
 ) -> anyhow::Result<()> {
     let shown = args.common.terrain.name();
     let m = &archive.meta;
-    eprintln!("{}", crate::app::stream::streamed_banner(&shown, m, args.streamed.cache_mb(), args.streamed.gpu_mb()));
+    let gpu_mb = args.streamed.gpu_mb(m);
+    eprintln!("{}", crate::app::stream::streamed_banner(&shown, m, args.streamed.cache_mb(), gpu_mb));
     let queue_mode = device.queue_mode.as_str();
     let messages = device.instance.messages.clone();
     let r = crate::app::stream::render_archive(crate::app::stream::ArchiveFrame {
@@ -430,7 +431,7 @@ fn render_streamed(
         delta: args.common.lod.delta,
         fog: args.fog,
         cache_mb: args.streamed.cache_mb(),
-        gpu_mb: args.streamed.gpu_mb(),
+        gpu_mb,
         colour_by_lod: args.colour_by_lod,
         background: args.background.as_deref().map(parse_background).transpose()?,
         export_mesh: args.export_mesh.is_some(),
@@ -486,7 +487,7 @@ fn render_streamed(
         let why = format!(
             "the budgets (--cache-mb {}, --gpu-mb {}) cannot hold the tiles this view needs",
             args.streamed.cache_mb(),
-            args.streamed.gpu_mb()
+            gpu_mb
         );
         eprintln!(
             "vkterrain: WARNING: the frame is over the bound ({} blocks, worst {:.2}x delta): {why}",

@@ -312,7 +312,7 @@ fn view_archive(args: &ViewArgs, resizes: &[(u64, u32, u32)]) -> anyhow::Result<
         frame_counter: args.frame_counter.clone(),
         walk: args.walk,
         cache_mb: args.streamed.cache_mb(),
-        gpu_mb: args.streamed.gpu_mb(),
+        gpu_mb: args.streamed.gpu_mb(&archive.meta),
         no_hud: args.no_hud,
         flyover: args.flyover,
         go_to: args.go_to,

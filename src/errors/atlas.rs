@@ -32,6 +32,10 @@ use std::time::Instant;
 
 /// The most layers an atlas takes, whatever the budget (llvmpipe's limit).
 pub const MAX_LAYERS: u32 = 2048;
+
+/// The atlas budget, MB, of a terrain with more tiles than [`MAX_LAYERS`] when none is
+/// given ([`HeightAtlas::default_budget_mb`]).
+pub const DEFAULT_BUDGET_MB: u32 = 256;
 /// Layers of heights per slot of deviations: tiles above level 0, the only ones with a
 /// `D`, are about a quarter of a quadtree's and a third of what a flight holds. A tile
 /// that finds no slot is drawn, its blocks bounded by its summary alone.
@@ -222,6 +226,19 @@ impl HeightAtlas {
     /// deviations ([`DEVIATION_SHARE`]).
     pub fn layer_bytes(grid: &Grid) -> u64 {
         Self::height_layer_bytes(grid) + Self::deviation_slot_bytes(grid).div_ceil(u64::from(DEVIATION_SHARE))
+    }
+
+    /// The default atlas budget for `grid`, MB: every tile of the terrain when they fit
+    /// [`MAX_LAYERS`] (a file that fits in memory is then drawn wholly resident, never
+    /// over the bound for want of a layer: an f32 8193^2 is 1,365 tiles), and at
+    /// least [`DEFAULT_BUDGET_MB`]; that much for a terrain with more tiles.
+    pub fn default_budget_mb(grid: &Grid) -> u32 {
+        let tiles: u64 = (0..=grid.top).map(|l| grid.tiles_at(l).iter().map(|&n| u64::from(n)).product::<u64>()).sum();
+        if tiles > u64::from(MAX_LAYERS) {
+            return DEFAULT_BUDGET_MB;
+        }
+        let mb = (tiles * Self::layer_bytes(grid)).div_ceil(1 << 20);
+        (mb as u32).max(DEFAULT_BUDGET_MB)
     }
 
     /// The layers an atlas of `budget_bytes` has on a device allowing `device_limit`
@@ -1083,6 +1100,36 @@ mod tests {
     /// Under random placements: no two layers ever hold one slot, every slot is held or
     /// free (never both, never lost), a tile that wants one gets one whenever one is free,
     /// and one that does not gets none.
+    /// The default budget holds every tile of the largest terrain whose tiles fit the
+    /// layers (f32 8193^2, 16-bit and with holes alike), not one layer short; a terrain
+    /// with more tiles gets the fixed default.
+    #[test]
+    fn the_default_budget_holds_every_tile_when_they_fit_the_layers() {
+        let grid = |side: usize, height_bytes: usize, holes: bool| Grid {
+            width: side,
+            height: side,
+            tile_quads: 256,
+            top: ((side - 1) / 256).trailing_zeros() as u8,
+            spacing: [1.0, 1.0],
+            height_scale: 1.0,
+            origin: [0.0, 0.0],
+            height_bytes,
+            block_quads: 32,
+            holes,
+        };
+        for (side, bytes, holes, tiles) in
+            [(8193, 4, false, 1365), (8193, 2, false, 1365), (8193, 4, true, 1365), (1025, 2, false, 21)]
+        {
+            let g = grid(side, bytes, holes);
+            let mb = HeightAtlas::default_budget_mb(&g);
+            let layers = HeightAtlas::layers_for(&g, u64::from(mb) << 20, MAX_LAYERS);
+            assert!(layers >= tiles, "{side}^2 x {bytes} bytes, holes {holes}: {mb} MB hold {layers} of {tiles} tiles");
+            assert!(mb >= DEFAULT_BUDGET_MB);
+        }
+        // 16385^2: 5,461 tiles, more than the layers.
+        assert_eq!(HeightAtlas::default_budget_mb(&grid(16385, 4, false)), DEFAULT_BUDGET_MB);
+    }
+
     #[test]
     fn a_deviation_slot_is_held_by_one_layer_at_a_time_and_never_lost() {
         let (layers, slots) = (12usize, 5u32);
