@@ -308,16 +308,19 @@ fn scales_beyond_single_precision() {
     std::fs::write(&spike, samples.iter().flat_map(|v| v.to_le_bytes()).collect::<Vec<u8>>()).unwrap();
     let p = spike.to_str().unwrap();
     let raw = ["--raw-size", "129x129", "--spacing", "1", "--height-scale", "1"];
-    let args: Vec<&str> = ["render", "--heightmap", p].iter().copied().chain(raw).collect();
-    fails_cleanly(&args, &["spike.f32", "beyond"]);
     let flat = s.path("flat.f32");
     std::fs::write(&flat, vec![0u8; 129 * 129 * 4]).unwrap();
     let f = flat.to_str().unwrap();
-    fails_cleanly(
-        &["render", "--heightmap", f, "--raw-size", "129x129", "--spacing", "1e17", "--height-scale", "1"],
-        &["flat.f32", "--spacing"],
-    );
-    fails_cleanly(&["render", "--camera", "1e13,0,0"], &["camera", "beyond"]);
+    // In memory and from its tiles alike.
+    for tiles in [&[][..], &["--stream"][..]] {
+        let args: Vec<&str> =
+            ["render", "--heightmap", p].iter().copied().chain(raw).chain(tiles.iter().copied()).collect();
+        fails_cleanly(&args, &["spike.f32", "beyond"]);
+        let far = ["render", "--heightmap", f, "--raw-size", "129x129", "--spacing", "1e17", "--height-scale", "1"];
+        fails_cleanly(&[&far[..], tiles].concat(), &["flat.f32", "--spacing"]);
+        fails_cleanly(&[&["render", "--camera", "1e13,0,0"][..], tiles].concat(), &["camera", "beyond"]);
+        fails_cleanly(&[&["render", "--size", "20000x100"][..], tiles].concat(), &["--size", "maxImageDimension2D"]);
+    }
 }
 
 /// Output paths are checked before any work: a directory, a missing directory, a pipe.

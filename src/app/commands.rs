@@ -269,6 +269,11 @@ pub fn render(args: &RenderArgs) -> anyhow::Result<()> {
     }
     let shading = args.textures.shade(shading);
     let device = open_device(&args.common.device, args.common.block)?;
+    // Before the terrain is opened (or cut into tiles): a size no image can have is
+    // refused whatever is drawn.
+    if let Some(size) = args.common.view.frustum.size {
+        crate::app::cli::check_image_size(&device, "--size", size)?;
+    }
     let max_side = || device.max_image_dimension_2d() as usize;
     if let Some((archive, stop)) =
         crate::app::stream::streamed_archive(&args.common.terrain, args.streamed.from_tiles(), max_side)?

@@ -81,10 +81,11 @@ pub(crate) fn morph_rule(morph: OnOff) -> Option<MorphRule> {
     (morph == OnOff::On).then_some(MorphRule::Bounded)
 }
 
-/// What a viewer or `render` says when it opens `shown` streamed.
+/// What a viewer or `render` says when it opens `shown` streamed: a note, as the notes
+/// on a file's georeferencing (an error line is the only other kind).
 pub(crate) fn streamed_banner(shown: &str, m: &Meta, cache_mb: u32, gpu_mb: u32) -> String {
     format!(
-        "vkterrain: {shown}: {} x {} samples, {} tile levels, drawn streamed (cache {cache_mb} MB, atlas {gpu_mb} MB)",
+        "vkterrain: note: {shown}: {} x {} samples, {} tile levels, drawn from its tiles (cache {cache_mb} MB, atlas {gpu_mb} MB)",
         m.width,
         m.height,
         m.top_level + 1,

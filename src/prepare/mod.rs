@@ -122,7 +122,7 @@ pub fn check_frame(name: &str, frame: &Frame, width: usize, height: usize) -> Re
     let extent = [sx * (width - 1) as f64, sz * (height - 1) as f64];
     if extent.iter().any(|e| *e > MAX_WORLD) || hs > MAX_WORLD {
         return Err(PrepareError::Source(format!(
-            "{name}: {width} x {height} samples at spacing {sx:e} x {sz:e} span {:e} x {:e} world units, height scale {hs:e}: both must stay within {:e}",
+            "{name}: {width} x {height} samples at spacing {sx:e} x {sz:e} span {:e} x {:e} world units, height scale {hs:e}: beyond {:e} world units (single-precision positions; give --spacing or --height-scale)",
             extent[0], extent[1], crate::lod::heightfield::MAX_WORLD
         )));
     }
@@ -323,7 +323,7 @@ impl Run<'_> {
             let x = (x0 - 1 + (i % w) as i64).clamp(0, self.width as i64 - 1);
             let z = (z0 - 1 + (i / w) as i64).clamp(0, self.height as i64 - 1);
             return Err(PrepareError::Source(format!(
-                "{}: the sample at column {x}, row {z} is {} ({:e} world units with height scale {:e}): heights must stay within {:e}",
+                "{}: the sample at column {x}, row {z} is {} ({:e} world units with height scale {:e}): beyond {:e} world units (single-precision positions)",
                 self.source.name(),
                 window[i],
                 world(window[i]),
