@@ -1240,7 +1240,7 @@ fn bench_streamed(
     let trace_path = args.out.join("trace.json");
     let trace = Trace::to_file(&trace_path).map_err(|e| anyhow::anyhow!("{}: {e}", trace_path.display()))?;
     let grid = streamed_grid(&archive, &args.common.terrain.frame, args.common.block.k)?;
-    let (cache_mb, gpu_mb) = (args.streamed.cache_mb(), args.streamed.gpu_mb(&archive.meta));
+    let (cache_mb, gpu_mb) = (args.streamed.cache_mb(&archive.meta), args.streamed.gpu_mb(&archive.meta));
     let layers = device.properties.limits.max_image_array_layers;
     let mut streamer = atlas_bound_streamer(archive.clone(), grid, cache_mb, gpu_mb, layers, &trace)?;
     streamer.morph = crate::app::stream::morph_rule(args.common.lod.morph.setting);

@@ -462,6 +462,9 @@ impl CameraArgs {
     }
 }
 
+/// The host cache budget, MB, of a terrain when none is given, at least.
+pub const DEFAULT_CACHE_MB: u32 = 256;
+
 /// How an archive is drawn streamed (`render`, `view`): forced, and the budgets.
 #[derive(Args, Debug, Clone, Copy)]
 pub struct StreamedOptions {
@@ -470,20 +473,32 @@ pub struct StreamedOptions {
     /// into tiles in memory first. Terrains larger than one image are always drawn so.
     #[arg(long)]
     pub stream: bool,
-    /// Host cache budget for decoded tiles, MB [default: 256]; given, the terrain is drawn
-    /// from its tiles (as with --stream).
+    /// Host cache budget for decoded tiles, MB [default: 256, or every tile of a terrain
+    /// the atlas holds whole]; given, the terrain is drawn from its tiles (as with
+    /// --stream).
     #[arg(long = "cache-mb", value_name = "MB", value_parser = clap::value_parser!(u32).range(1..=1_000_000), allow_negative_numbers = true)]
     pub cache_mb_given: Option<u32>,
     /// GPU atlas budget, MB (one layer a tile, at most 2048 layers) [default: every tile
-    /// of the terrain when there are at most 2048, else 256]; given, the terrain is drawn
-    /// from its tiles (as with --stream).
+    /// of the terrain when they fit, else 256]; given, the terrain is drawn from its tiles
+    /// (as with --stream).
     #[arg(long = "gpu-mb", value_name = "MB", value_parser = clap::value_parser!(u32).range(1..=1_000_000), allow_negative_numbers = true)]
     pub gpu_mb_given: Option<u32>,
 }
 
 impl StreamedOptions {
-    pub fn cache_mb(&self) -> u32 {
-        self.cache_mb_given.unwrap_or(256)
+    /// The host cache budget for the terrain of `m`: as given, or by default 256 MB, and
+    /// every tile decoded when the atlas holds them all ([`Self::gpu_mb`]), so that such a
+    /// terrain is wholly resident.
+    pub fn cache_mb(&self, m: &crate::input::archive::Meta) -> u32 {
+        self.cache_mb_given.unwrap_or_else(|| {
+            let grid = crate::stream::Grid::from_meta(m);
+            let tiles = |l: u8| grid.tiles_at(l).iter().map(|&n| n as usize).product::<usize>();
+            let all: usize =
+                (0..=grid.top).map(|l| tiles(l) * crate::stream::cache::tile_bytes_estimate(&grid, l)).sum();
+            let held = (0..=grid.top).map(tiles).sum::<usize>() <= crate::errors::atlas::MAX_LAYERS as usize;
+            let mb = if held { all.div_ceil(1 << 20) as u32 } else { 0 };
+            mb.max(DEFAULT_CACHE_MB)
+        })
     }
     /// The atlas budget for the terrain of `m`: as given, or by default every tile when
     /// they fit the atlas's layers ([`crate::errors::atlas::HeightAtlas::default_budget_mb`]).

@@ -100,7 +100,7 @@ pub struct ErrorsArgs {
 /// times, each for a camera moved a hundredth of a sample further (so that each is a new
 /// generation), and their cost as JSON.
 fn errors_over_tiles(args: &ErrorsArgs, device: Arc<Device>, archive: Arc<Archive>) -> anyhow::Result<()> {
-    let (cache_mb, gpu_mb) = (args.streamed.cache_mb(), args.streamed.gpu_mb(&archive.meta));
+    let (cache_mb, gpu_mb) = (args.streamed.cache_mb(&archive.meta), args.streamed.gpu_mb(&archive.meta));
     eprintln!("{}", crate::app::stream::streamed_banner(&args.terrain.name(), &archive.meta, cache_mb, gpu_mb));
     let r = crate::app::stream::errors_over_atlas(
         &archive,
@@ -426,7 +426,7 @@ fn render_streamed(
     let shown = args.common.terrain.name();
     let m = &archive.meta;
     let gpu_mb = args.streamed.gpu_mb(m);
-    eprintln!("{}", crate::app::stream::streamed_banner(&shown, m, args.streamed.cache_mb(), gpu_mb));
+    eprintln!("{}", crate::app::stream::streamed_banner(&shown, m, args.streamed.cache_mb(m), gpu_mb));
     let queue_mode = device.queue_mode.as_str();
     let messages = device.instance.messages.clone();
     let r = crate::app::stream::render_archive(crate::app::stream::ArchiveFrame {
@@ -435,7 +435,7 @@ fn render_streamed(
         common: &args.common,
         delta: args.common.lod.delta,
         fog: args.fog,
-        cache_mb: args.streamed.cache_mb(),
+        cache_mb: args.streamed.cache_mb(m),
         gpu_mb,
         colour_by_lod: args.colour_by_lod,
         background: args.background.as_deref().map(parse_background).transpose()?,
@@ -491,7 +491,7 @@ fn render_streamed(
     if !out["within_bound"].as_bool().unwrap_or(false) {
         let why = format!(
             "the budgets (--cache-mb {}, --gpu-mb {}) cannot hold the tiles this view needs",
-            args.streamed.cache_mb(),
+            args.streamed.cache_mb(&archive.meta),
             gpu_mb
         );
         eprintln!(

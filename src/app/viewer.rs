@@ -311,7 +311,7 @@ fn view_archive(args: &ViewArgs, resizes: &[(u64, u32, u32)]) -> anyhow::Result<
         screenshot: args.screenshot.clone(),
         frame_counter: args.frame_counter.clone(),
         walk: args.walk,
-        cache_mb: args.streamed.cache_mb(),
+        cache_mb: args.streamed.cache_mb(&archive.meta),
         gpu_mb: args.streamed.gpu_mb(&archive.meta),
         no_hud: args.no_hud,
         flyover: args.flyover,

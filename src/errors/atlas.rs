@@ -229,16 +229,18 @@ impl HeightAtlas {
     }
 
     /// The default atlas budget for `grid`, MB: every tile of the terrain when they fit
-    /// [`MAX_LAYERS`] (a file that fits in memory is then drawn wholly resident, never
-    /// over the bound for want of a layer: an f32 8193^2 is 1,365 tiles), and at
-    /// least [`DEFAULT_BUDGET_MB`]; that much for a terrain with more tiles.
+    /// [`MAX_LAYERS`] with the layers that take tiles on their way in
+    /// ([`Self::cache_tiles`]): a file that fits in memory is then drawn wholly resident,
+    /// never over the bound for want of a layer (an f32 8193^2 is 1,365 tiles), and a
+    /// small one takes no more than it needs. [`DEFAULT_BUDGET_MB`] for a terrain with
+    /// more tiles.
     pub fn default_budget_mb(grid: &Grid) -> u32 {
         let tiles: u64 = (0..=grid.top).map(|l| grid.tiles_at(l).iter().map(|&n| u64::from(n)).product::<u64>()).sum();
-        if tiles > u64::from(MAX_LAYERS) {
+        let Some(layers) = (tiles..=u64::from(MAX_LAYERS)).find(|&l| Self::cache_tiles(l as u32) as u64 >= tiles)
+        else {
             return DEFAULT_BUDGET_MB;
-        }
-        let mb = (tiles * Self::layer_bytes(grid)).div_ceil(1 << 20);
-        (mb as u32).max(DEFAULT_BUDGET_MB)
+        };
+        (layers * Self::layer_bytes(grid)).div_ceil(1 << 20) as u32
     }
 
     /// The layers an atlas of `budget_bytes` has on a device allowing `device_limit`
@@ -1101,8 +1103,9 @@ mod tests {
     /// free (never both, never lost), a tile that wants one gets one whenever one is free,
     /// and one that does not gets none.
     /// The default budget holds every tile of the largest terrain whose tiles fit the
-    /// layers (f32 8193^2, 16-bit and with holes alike), not one layer short; a terrain
-    /// with more tiles gets the fixed default.
+    /// layers (f32 8193^2, 16-bit and with holes alike), not one layer short, and a small
+    /// terrain's about as many layers as it has tiles; a terrain with more tiles gets the
+    /// fixed default.
     #[test]
     fn the_default_budget_holds_every_tile_when_they_fit_the_layers() {
         let grid = |side: usize, height_bytes: usize, holes: bool| Grid {
@@ -1117,14 +1120,24 @@ mod tests {
             block_quads: 32,
             holes,
         };
-        for (side, bytes, holes, tiles) in
-            [(8193, 4, false, 1365), (8193, 2, false, 1365), (8193, 4, true, 1365), (1025, 2, false, 21)]
-        {
+        for (side, bytes, holes, tiles) in [
+            (8193, 4, false, 1365),
+            (8193, 2, false, 1365),
+            (8193, 4, true, 1365),
+            (1025, 2, false, 21),
+            (257, 2, false, 1),
+        ] {
             let g = grid(side, bytes, holes);
             let mb = HeightAtlas::default_budget_mb(&g);
             let layers = HeightAtlas::layers_for(&g, u64::from(mb) << 20, MAX_LAYERS);
-            assert!(layers >= tiles, "{side}^2 x {bytes} bytes, holes {holes}: {mb} MB hold {layers} of {tiles} tiles");
-            assert!(mb >= DEFAULT_BUDGET_MB);
+            let held = HeightAtlas::cache_tiles(layers);
+            assert!(held >= tiles, "{side}^2 x {bytes} bytes, holes {holes}: {mb} MB hold {held} of {tiles} tiles");
+            // And not a megabyte more than that.
+            let fewer = HeightAtlas::layers_for(&g, u64::from(mb - 1) << 20, MAX_LAYERS);
+            assert!(
+                mb == 1 || HeightAtlas::cache_tiles(fewer) < tiles,
+                "{side}^2: {mb} MB is more than the tiles need"
+            );
         }
         // 16385^2: 5,461 tiles, more than the layers.
         assert_eq!(HeightAtlas::default_budget_mb(&grid(16385, 4, false)), DEFAULT_BUDGET_MB);
