@@ -48,8 +48,8 @@ pub struct StreamArgs {
     /// Ground speed, world units a second (a low-flying jet: 300 m/s).
     #[arg(long, default_value_t = 300.0, value_parser = crate::app::cli::positive, allow_negative_numbers = true)]
     pub speed: f32,
-    /// Viewport, WIDTHxHEIGHT.
-    #[arg(long, default_value = "640x480", value_parser = crate::app::cli::parse_size, allow_hyphen_values = true)]
+    /// Viewport size in pixels.
+    #[arg(long, value_name = "WxH", default_value = "640x480", value_parser = crate::app::cli::parse_size, allow_hyphen_values = true)]
     pub size: (u32, u32),
     /// Drop the archive from the page cache first (posix_fadvise DONTNEED), so that the
     /// flight reads from the disk.
