@@ -144,6 +144,36 @@ fn the_streamed_viewer_resizes_and_writes_a_screenshot() {
     assert_eq!((img.width(), img.height()), (240, 200), "the screenshot has the resized window's size");
 }
 
+/// The exit line has one schema whatever the terrain is drawn from: the same keys in
+/// memory and from tiles, each figure measured where it applies (null where it does
+/// not: no tiles in memory).
+#[test]
+fn the_viewer_writes_one_exit_line_in_memory_and_from_tiles() {
+    let ps = common::data("puget_sound/ps_height_1k.png");
+    let run = |extra: &[&str]| {
+        let mut args = vec![ps.to_str().unwrap(), "--frames", "8", "--flyover", "--size", "160x120"];
+        args.extend(["--validation", "on", "--refresh-at", "0"]);
+        args.extend(extra);
+        clean_run(&args)
+    };
+    let (memory, tiles) = (run(&[]), run(&["--stream"]));
+    let keys =
+        |v: &serde_json::Value| v.as_object().unwrap().keys().cloned().collect::<std::collections::BTreeSet<_>>();
+    let (km, kt) = (keys(&memory), keys(&tiles));
+    let (only_m, only_t): (Vec<_>, Vec<_>) = (km.difference(&kt).collect(), kt.difference(&km).collect());
+    assert_eq!(km, kt, "only in memory: {only_m:?}; only from tiles: {only_t:?}");
+    for (j, streamed) in [(&memory, false), (&tiles, true)] {
+        assert_eq!(j["streamed"], streamed, "{j}");
+        assert_eq!(j["frames"], 8, "{j}");
+        assert!(j["error_generations"].as_u64().unwrap() > 0, "{j}");
+        assert!(j["last_draw_calls"].as_u64().unwrap() > 0 && j["last_triangles"].as_u64().unwrap() > 0, "{j}");
+        assert_eq!(j["geometry_bytes"], memory["geometry_bytes"], "{j}");
+        assert_eq!(j["stream"].is_object(), streamed, "{j}");
+        assert_eq!(j["gpu"].is_object(), streamed, "{j}");
+    }
+    assert_eq!(memory["frames_over_bound"], 0);
+}
+
 #[test]
 fn viewer_rejects_bad_options_without_opening_a_window() {
     let out = viewer(&["--detail", "missing.png", "--detail-weight", "2"]);

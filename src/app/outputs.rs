@@ -282,3 +282,95 @@ pub fn median(v: &[f64]) -> Option<f64> {
     s.sort_by(f64::total_cmp);
     (!s.is_empty()).then(|| percentile(&s, 0.5))
 }
+
+/// What a viewer run did, printed as one JSON line at exit: the same fields whatever the
+/// terrain is drawn from (null where a figure does not apply: no tiles read in memory).
+#[derive(Default, serde::Serialize)]
+pub struct ViewerReport {
+    /// Drawn from tiles (a terrain larger than one image, `--stream`, a budget given).
+    pub streamed: bool,
+    pub frames: u64,
+    pub seconds: f64,
+    pub avg_fps: f64,
+    /// Swapchains made again after the window's size changed.
+    pub resizes: u64,
+    /// Error generations handed to the draw thread, and the most in flight at once
+    /// (`--error-pacing`).
+    pub error_generations: u64,
+    pub most_generations_in_flight: u64,
+    /// Frames drawn with a block over the bound (its tile not held yet; never in memory),
+    /// and the worst factor over it.
+    pub frames_over_bound: u64,
+    pub worst_factor: f32,
+    /// The last frame's triangles, draw calls and blocks.
+    pub last_triangles: u64,
+    pub last_draw_calls: u64,
+    pub last_blocks: usize,
+    /// Bytes of the one block mesh every block is drawn from.
+    pub geometry_bytes: u64,
+    pub device: String,
+    pub queue_mode: String,
+    /// Validation messages (null when validation was off).
+    pub validation_messages: Option<u64>,
+    #[serde(flatten)]
+    pub camera: ViewerCamera,
+    #[serde(flatten)]
+    pub state: ViewerState,
+    pub screenshot: Option<String>,
+    /// Frames drawn with the panel.
+    pub hud_frames: u64,
+    /// The tiles read and held, and the GPU side of frames drawn from tiles.
+    pub stream: Option<crate::stream::streamer::StreamStats>,
+    pub gpu: Option<serde_json::Value>,
+    /// The first tile that could not be read: frames were drawn coarser than their data
+    /// (`degraded`, exit code 3).
+    pub first_failure: Option<String>,
+    pub degraded: bool,
+    /// Ended by a signal (Ctrl-C, SIGTERM), not by the window or --frames.
+    pub interrupted: bool,
+    /// Where the terrain is and its scale.
+    #[serde(flatten)]
+    pub terrain: TerrainFacts,
+}
+
+/// Where the viewer's camera went ([`ViewerReport`]).
+#[derive(Default, serde::Serialize)]
+pub struct ViewerCamera {
+    /// The camera's latitude and longitude at exit, and the ground point under the
+    /// cursor (latitude, longitude, ground height in metres, world position), when the
+    /// terrain is georeferenced.
+    pub camera_lat_lon: Option<[f64; 2]>,
+    pub cursor_place: Option<serde_json::Value>,
+    /// Position, yaw and pitch (radians) at exit, and where the camera started.
+    pub final_position: [f32; 3],
+    pub final_yaw: f32,
+    pub final_pitch: f32,
+    pub start_position: [f32; 3],
+    /// Yaw turned by dragging the mouse; of it, in orbit mode; the largest change of the
+    /// distance to the orbit's centre while orbiting (relative); how far pressing O
+    /// turned the camera to face the point under the cursor.
+    pub mouse_turn: f32,
+    pub orbit_turn: f32,
+    pub orbit_drift: f32,
+    pub orbit_aim_turn: f32,
+    /// Whether the camera orbited a ground point at exit (O).
+    pub orbiting: bool,
+}
+
+/// What the keys and the panel left set at exit ([`ViewerReport`]).
+#[derive(Default, serde::Serialize)]
+pub struct ViewerState {
+    pub final_delta: f32,
+    /// Geomorphing (N) and the error mode (M).
+    pub final_morph: bool,
+    pub final_error_mode: &'static str,
+    /// A frozen selection drawn (Space), edges only (F).
+    pub frozen: bool,
+    pub wireframe: bool,
+    /// Vertical exaggeration.
+    pub exaggeration: f32,
+    /// The sun the frames were lit by (azimuth, elevation), if any.
+    pub final_sun: Option<[f32; 2]>,
+    /// Whether the panel was shown.
+    pub hud_visible: bool,
+}

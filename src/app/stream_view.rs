@@ -86,63 +86,6 @@ struct WindowGpu {
     surface: Surface,
 }
 
-/// What the run did, printed as JSON at exit.
-#[derive(Default, serde::Serialize)]
-struct Run {
-    streamed: bool,
-    frames: u64,
-    seconds: f64,
-    avg_fps: f64,
-    /// Frames drawn with a block over the bound (its tile not held yet).
-    frames_over_bound: u64,
-    worst_factor: f32,
-    last_blocks: usize,
-    last_triangles: u64,
-    final_position: [f32; 3],
-    final_yaw: f32,
-    final_pitch: f32,
-    final_delta: f32,
-    /// Whether blocks morphed at exit (N turns it off and on), and the error mode (M).
-    final_morph: bool,
-    final_error_mode: &'static str,
-    /// Whether a frozen selection was drawn at exit (Space).
-    frozen: bool,
-    /// Whether the camera orbited a ground point at exit (O).
-    orbiting: bool,
-    /// Whether the frames were drawn as edges at exit (F).
-    wireframe: bool,
-    /// The camera's latitude and longitude at exit, and the ground point under the
-    /// cursor (latitude, longitude, ground height in metres, world position), when the
-    /// terrain is georeferenced: as the in-memory viewer's.
-    camera_lat_lon: Option<[f64; 2]>,
-    cursor_place: Option<serde_json::Value>,
-    /// Vertical exaggeration at exit.
-    exaggeration: f32,
-    /// The sun the frames were lit by at exit (azimuth, elevation), if any.
-    final_sun: Option<[f32; 2]>,
-    /// Swapchains made again after the window's size changed.
-    resizes: u64,
-    start_position: [f32; 3],
-    mouse_turn: f32,
-    screenshot: Option<String>,
-    /// Frames drawn with the panel, and whether it was shown at the end.
-    hud_frames: u64,
-    hud_visible: bool,
-    stream: Option<crate::stream::streamer::StreamStats>,
-    gpu: Option<serde_json::Value>,
-    device: String,
-    queue_mode: String,
-    validation_messages: Option<u64>,
-    first_failure: Option<String>,
-    /// Tiles failed to read: frames were drawn coarser than their data (exit code 3).
-    degraded: bool,
-    /// Ended by a signal (Ctrl-C, SIGTERM), not by the window or --frames.
-    interrupted: bool,
-    /// Where the terrain is and its scale, as the in-memory viewer's exit line says.
-    #[serde(flatten)]
-    terrain: crate::app::outputs::TerrainFacts,
-}
-
 struct App {
     args: StreamViewOptions,
     /// Where the terrain is on the map (georeferenced terrains only).
@@ -181,7 +124,7 @@ struct App {
     /// Space was pressed: the next frame's selection is frozen.
     freeze_next: bool,
     trace: Trace,
-    run: Run,
+    run: crate::app::outputs::ViewerReport,
 }
 
 /// The viewer's start (and Home) view over a terrain known by its extent and heights: as
@@ -277,6 +220,8 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
     let ctl = Controller::new(position, f, l / 60.0, args.walk);
     let home = (ctl.position, ctl.yaw, ctl.pitch);
     let now = Instant::now();
+    // The one block mesh's bytes, as the in-memory viewer reports them.
+    let geometry_bytes = crate::app::commands::renderer_geometry_bytes(grid.block_quads as u32 + 1);
     let app = App {
         args: args.clone(),
         geo,
@@ -305,11 +250,12 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
         frozen: None,
         freeze_next: false,
         trace: trace.clone(),
-        run: Run {
+        run: crate::app::outputs::ViewerReport {
             streamed: true,
             worst_factor: 1.0,
-            start_position: position.to_array(),
-            exaggeration: args.exaggeration,
+            camera: crate::app::outputs::ViewerCamera { start_position: position.to_array(), ..Default::default() },
+            state: crate::app::outputs::ViewerState { exaggeration: args.exaggeration, ..Default::default() },
+            geometry_bytes,
             terrain: crate::app::outputs::TerrainFacts::of_archive(&archive.meta, &args.common.terrain.frame),
             ..Default::default()
         },
@@ -327,24 +273,26 @@ pub fn view_streamed(args: &StreamViewOptions, archive: Arc<Archive>) -> anyhow:
     let mut run = std::mem::take(&mut app.run);
     run.seconds = secs;
     run.avg_fps = run.frames as f64 / secs.max(1e-9);
-    run.final_position = app.ctl.position.to_array();
-    (run.final_yaw, run.final_pitch, run.final_delta) = (app.ctl.yaw, app.ctl.pitch, app.delta);
-    (run.final_morph, run.frozen, run.orbiting) =
+    run.camera.final_position = app.ctl.position.to_array();
+    (run.camera.final_yaw, run.camera.final_pitch, run.state.final_delta) = (app.ctl.yaw, app.ctl.pitch, app.delta);
+    (run.state.final_morph, run.state.frozen, run.camera.orbiting) =
         (app.streamer.morph.is_some(), app.frozen.is_some(), app.ctl.orbit.is_some());
-    run.wireframe = app.gpu.as_ref().is_some_and(|g| g.frames.wireframe);
-    run.final_error_mode = app.streamer.error_mode.as_str();
-    run.final_sun = app.gpu.as_ref().and_then(|g| g.frames.lit_sun().0).map(|s| [s.azimuth, s.elevation]);
+    run.state.wireframe = app.gpu.as_ref().is_some_and(|g| g.frames.wireframe);
+    run.state.final_error_mode = app.streamer.error_mode.as_str();
+    run.state.final_sun = app.gpu.as_ref().and_then(|g| g.frames.lit_sun().0).map(|s| [s.azimuth, s.elevation]);
     // As the in-memory viewer's: the height scale drawn at exit (exaggerated).
     run.terrain.height_scale_m = app.grid.height_scale as f32;
-    run.exaggeration = app.exaggeration;
+    run.state.exaggeration = app.exaggeration;
     run.stream = Some(app.streamer.stats.clone());
     run.first_failure = app.streamer.first_failure.clone();
     run.degraded = run.first_failure.is_some();
     run.interrupted = stop.requested();
     let messages = app.gpu.as_ref().map(|g| g.frames.device.instance.messages.clone());
     if let Some(g) = &app.gpu {
-        run.hud_visible = g.hud.visible;
+        run.state.hud_visible = g.hud.visible;
         run.gpu = Some(g.frames.report());
+        run.error_generations = g.frames.errors_shaded().generations;
+        run.most_generations_in_flight = g.frames.errors_in_flight();
         let instance = &g.frames.device.instance;
         run.validation_messages = instance.validation.then(|| instance.validation_messages());
     }
@@ -443,6 +391,10 @@ impl App {
             self.ctl.fly_over(&HeldGround(&self.streamer), self.range.world[1], t);
         } else {
             self.ctl.update(&HeldGround(&self.streamer), dt);
+            if let Some((pivot, radius)) = self.ctl.orbit {
+                let drift = ((self.ctl.position - pivot).length() - radius).abs() / radius;
+                self.run.camera.orbit_drift = self.run.camera.orbit_drift.max(drift);
+            }
         }
         let velocity = (self.ctl.position - before) / dt.max(1e-6);
         self.ground_speed = glam::Vec2::new(velocity.x, velocity.z).length();
@@ -544,6 +496,7 @@ impl App {
         self.run.frames += 1;
         self.run.last_blocks = gpu.frames.drawn.blocks;
         self.run.last_triangles = gpu.frames.drawn.triangles;
+        self.run.last_draw_calls = gpu.frames.drawn.draw_calls;
         self.fps_frames += 1;
         if let Some(path) = &self.args.frame_counter {
             let frames = self.run.frames.to_string();
@@ -631,8 +584,8 @@ impl App {
             let cursor = self.win.cursor.map(|_| ground_hit(&ground, p, ray)).filter(inside);
             let place = Place::of(geo, &self.ctl, &ground, cursor, (size.1, fovy), self.exaggeration);
             readout.place = Some(place);
-            self.run.camera_lat_lon = geo.lat_lon(p.x, p.z);
-            self.run.cursor_place = cursor.and_then(|q| {
+            self.run.camera.camera_lat_lon = geo.lat_lon(p.x, p.z);
+            self.run.camera.cursor_place = cursor.and_then(|q| {
                 let [lat, lon] = geo.lat_lon(q.x, q.z)?;
                 let ground_m = q.y / self.exaggeration;
                 Some(serde_json::json!({ "lat": lat, "lon": lon, "ground_m": ground_m, "world": [q.x, q.y, q.z] }))
@@ -809,7 +762,10 @@ impl App {
                 // outside the window), from the tiles held.
                 let size = self.win.window.as_ref().map_or((0, 0), |w| (w.inner_size().width, w.inner_size().height));
                 let ray = self.ctl.cursor_ray(self.win.cursor, size, self.args.common.view.frustum.fovy);
-                self.ctl.toggle_orbit(&HeldGround(&self.streamer), ray);
+                let turned = self.ctl.toggle_orbit(&HeldGround(&self.streamer), ray);
+                if self.ctl.orbit.is_some() {
+                    self.run.camera.orbit_aim_turn = turned;
+                }
             }
             KeyCode::Space => {
                 self.freeze_next = self.frozen.is_none();
@@ -860,7 +816,10 @@ impl WindowApp for App {
     }
 
     fn turned(&mut self, turned: f32) {
-        self.run.mouse_turn += turned;
+        self.run.camera.mouse_turn += turned;
+        if self.ctl.orbit.is_some() {
+            self.run.camera.orbit_turn += turned;
+        }
     }
 
     fn frames_drawn(&self) -> u64 {

@@ -134,60 +134,6 @@ impl Drop for Gpu {
     }
 }
 
-#[derive(Default, serde::Serialize)]
-struct RunStats {
-    frames: u64,
-    seconds: f64,
-    avg_fps: f64,
-    resizes: u64,
-    error_generations: u64,
-    /// Most error generations in flight at once (`--error-pacing`).
-    most_generations_in_flight: u64,
-    last_triangles: u64,
-    last_draw_calls: u64,
-    last_blocks: usize,
-    queue_mode: String,
-    device: String,
-    geometry_bytes: u64,
-    /// Where the terrain is, its scale and the voids filled at load.
-    #[serde(flatten)]
-    terrain: crate::app::outputs::TerrainFacts,
-    /// The last panel's map readout: the camera's latitude and longitude, and the terrain
-    /// point under the cursor (latitude, longitude, ground height in metres, world
-    /// position), when the terrain is georeferenced.
-    camera_lat_lon: Option<[f64; 2]>,
-    /// Vertical exaggeration at exit.
-    exaggeration: f32,
-    cursor_place: Option<serde_json::Value>,
-    validation_messages: u64,
-    screenshot: Option<String>,
-    /// State at exit: camera position, yaw and pitch (radians), delta, geomorphing.
-    final_position: [f32; 3],
-    final_yaw: f32,
-    final_pitch: f32,
-    final_delta: f32,
-    final_morph: bool,
-    final_error_mode: &'static str,
-    /// Where the camera started, and how far (radians of yaw) dragging the mouse turned it.
-    start_position: [f32; 3],
-    mouse_turn: f32,
-    /// Yaw turned by dragging in orbit mode, and the largest change of the distance to
-    /// the orbit's centre while turning (relative).
-    orbit_turn: f32,
-    orbit_drift: f32,
-    /// How far (yaw, radians) pressing O turned the camera to face the point under the cursor.
-    orbit_aim_turn: f32,
-    /// Whether the panel was shown at exit, and in how many frames it was drawn.
-    hud_visible: bool,
-    hud_frames: u64,
-    /// The sun of the lighting map at exit (azimuth, elevation), if any.
-    final_sun: Option<[f32; 2]>,
-    /// Ended by a signal (Ctrl-C, SIGTERM), not by the window or --frames.
-    interrupted: bool,
-    /// Frames drawn without their data (never, in memory).
-    degraded: bool,
-}
-
 struct App {
     args: ViewArgs,
     hf: Arc<Heightfield>,
@@ -241,7 +187,7 @@ struct App {
     blocks: Vec<DrawBlock>,
     /// P presses not yet served.
     screenshots_asked: u64,
-    stats: RunStats,
+    stats: crate::app::outputs::ViewerReport,
 }
 
 impl PresentMode {
@@ -421,9 +367,9 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
         last_occlusion: None,
         blocks: Vec::new(),
         screenshots_asked: 0,
-        stats: RunStats::default(),
+        stats: crate::app::outputs::ViewerReport::default(),
     };
-    app.stats.exaggeration = args.exaggeration;
+    app.stats.state.exaggeration = args.exaggeration;
     if let Some([lat, lon]) = args.go_to {
         if app.geo.is_none() {
             return Err(InputError(format!(
@@ -462,13 +408,17 @@ pub fn view(args: &ViewArgs) -> anyhow::Result<()> {
     app.stats.frames = app.frame;
     app.stats.seconds = secs;
     app.stats.avg_fps = app.frame as f64 / secs.max(1e-9);
-    app.stats.validation_messages = validation.unwrap_or(0);
-    app.stats.final_position = app.ctl.position.to_array();
-    (app.stats.final_yaw, app.stats.final_pitch) = (app.ctl.yaw, app.ctl.pitch);
-    app.stats.final_delta = app.delta;
-    app.stats.final_morph = app.draw.morph;
-    app.stats.final_error_mode = app.mode.as_str();
-    app.stats.start_position = app.home.0.to_array();
+    app.stats.validation_messages = Some(validation.unwrap_or(0));
+    app.stats.camera.final_position = app.ctl.position.to_array();
+    (app.stats.camera.final_yaw, app.stats.camera.final_pitch) = (app.ctl.yaw, app.ctl.pitch);
+    app.stats.state.final_delta = app.delta;
+    app.stats.state.final_morph = app.draw.morph;
+    app.stats.state.final_error_mode = app.mode.as_str();
+    app.stats.camera.start_position = app.home.0.to_array();
+    app.stats.camera.orbiting = app.ctl.orbit.is_some();
+    (app.stats.state.frozen, app.stats.state.wireframe) = (app.frozen.is_some(), app.shading.wireframe);
+    // In memory every block is within the bound (no tile to wait for).
+    app.stats.worst_factor = 1.0;
     app.stats.interrupted = stop.requested();
     crate::out!("{}", serde_json::to_string(&app.stats)?)?;
     if let Some(n) = validation.filter(|&n| n > 0) {
@@ -573,7 +523,7 @@ impl App {
             self.ground_speed = if dt > 0.0 { Vec3::new(moved.x, 0.0, moved.z).length() / dt } else { 0.0 };
             if let Some((pivot, radius)) = self.ctl.orbit {
                 let drift = ((self.ctl.position - pivot).length() - radius).abs() / radius;
-                self.stats.orbit_drift = self.stats.orbit_drift.max(drift);
+                self.stats.camera.orbit_drift = self.stats.camera.orbit_drift.max(drift);
             }
         }
         let target = self.ctl.position + self.ctl.forward();
@@ -719,8 +669,8 @@ impl App {
         self.trace.instant(DRAW_TID, "submit (draw queue)", json!({"frame": self.frame}));
         self.slot_frames[slot_index] = Some(self.frame);
         let stats = gpu.renderer.pending(slot_index).unwrap_or_default();
-        self.stats.hud_visible = gpu.hud.visible;
-        self.stats.final_sun = gpu.renderer.lighting().sun().map(|s| [s.azimuth, s.elevation]);
+        self.stats.state.hud_visible = gpu.hud.visible;
+        self.stats.state.final_sun = gpu.renderer.lighting().sun().map(|s| [s.azimuth, s.elevation]);
         if gpu.hud.visible {
             self.stats.hud_frames += 1;
         }
@@ -885,7 +835,7 @@ impl App {
         self.draw.feed.reset();
         self.hf = hf;
         self.stats.terrain = crate::app::outputs::TerrainFacts::of(&self.hf);
-        self.stats.exaggeration = self.exaggeration;
+        self.stats.state.exaggeration = self.exaggeration;
         Ok(())
     }
 
@@ -958,8 +908,8 @@ impl App {
         let cursor = self.geo.as_ref().and(self.cursor_ground());
         readout.place = self.place(cursor);
         if let Some(geo) = &self.geo {
-            self.stats.camera_lat_lon = geo.lat_lon(p.x, p.z);
-            self.stats.cursor_place = cursor.and_then(|q| {
+            self.stats.camera.camera_lat_lon = geo.lat_lon(p.x, p.z);
+            self.stats.camera.cursor_place = cursor.and_then(|q| {
                 let [lat, lon] = geo.lat_lon(q.x, q.z)?;
                 let ground_m = q.y / self.exaggeration;
                 Some(serde_json::json!({ "lat": lat, "lon": lon, "ground_m": ground_m, "world": [q.x, q.y, q.z] }))
@@ -1070,7 +1020,7 @@ impl App {
                 let ray = self.cursor_ray();
                 let turned = self.ctl.toggle_orbit(&*self.hf, ray);
                 if self.ctl.orbit.is_some() {
-                    self.stats.orbit_aim_turn = turned;
+                    self.stats.camera.orbit_aim_turn = turned;
                 }
             }
             // One screenshot per frame, however fast P is pressed.
@@ -1123,9 +1073,9 @@ impl WindowApp for App {
     }
 
     fn turned(&mut self, turned: f32) {
-        self.stats.mouse_turn += turned;
+        self.stats.camera.mouse_turn += turned;
         if self.ctl.orbit.is_some() {
-            self.stats.orbit_turn += turned;
+            self.stats.camera.orbit_turn += turned;
         }
     }
 
