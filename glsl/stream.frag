@@ -1,8 +1,10 @@
 #version 450
 // Streamed frames' blocks shaded as they are drawn (forward: `--pixels forward`, the
-// colour-by-LOD view, `--shading heights`; the default is deferred: stream_depth.vert,
-// then stream_shade.frag) by stream_shade.glsl. Normals: by default from the surface's
-// own derivatives (flat per triangle); with NORMALS_FROM_HEIGHTS (`--shading heights`)
+// colour-by-LOD view, `--shading heights`, holes; the default is deferred:
+// stream_depth.vert, then stream_shade.frag) by stream_shade.glsl. Normals and water: by
+// default as the deferred pass takes them (the held samples' gradient map) when those
+// samples are the terrain's own, else from the surface's own derivatives (flat per
+// triangle) and the vertices' sea share; with NORMALS_FROM_HEIGHTS (`--shading heights`)
 // as in memory (terrain_shade.glsl: central differences at the four samples around the
 // point, interpolated) from the heights of the tile the block is drawn from (its
 // vertices, every 2^level-th sample, often finer than the block's, and its border):
@@ -58,11 +60,15 @@ void main() {
     if (any(greaterThan(v_sample, vec2(frame.extent.xy - 1) + 1e-3))) discard;
     if (HOLES && in_hole()) discard;
     vec3 n;
+    float sea = v_sea;
     if (NORMALS_FROM_HEIGHTS) {
         n = tile_normal();
+    } else if (!COARSE_GRADIENTS) {
+        // The held samples are the terrain's: as the deferred pass, and memory.
+        n = held_normal(v_sample, sea);
     } else {
         n = normalize(cross(dFdy(v_relative), dFdx(v_relative)));
         if (n.y < 0.0) n = -n;
     }
-    out_color = vec4(streamed_colour(v_relative, v_sample, n, v_sea, v_lod), 1.0);
+    out_color = vec4(streamed_colour(v_relative, v_sample, n, sea, v_lod), 1.0);
 }

@@ -23,7 +23,6 @@
 #include "stream_shade.glsl"
 
 layout(set = 0, binding = TERRAIN_BINDING_DEPTH) uniform sampler2D depth;
-layout(set = 0, binding = TERRAIN_BINDING_GRADIENTS) uniform usampler2D gradients;
 layout(location = 0) in vec2 v_ndc;
 layout(location = 0) out vec4 out_color;
 
@@ -96,15 +95,8 @@ void main() {
     } else {
         float stride = frame.spacing.w;
         // From the held samples, as memory from its own.
-        vec2 q = at / stride;
-        ivec2 t = ivec2(floor(q));
-        vec2 f = q - vec2(t);
-        // Gather order: (0,1), (1,1), (1,0), (0,0) from t (clamped at the far edge).
-        uvec4 g = textureGather(gradients, (vec2(t) + 1.0) / vec2(textureSize(gradients, 0)));
-        Sample s00 = from_texel(g.w, frame.texturing.z), s10 = from_texel(g.z, frame.texturing.z);
-        Sample s01 = from_texel(g.x, frame.texturing.z), s11 = from_texel(g.y, frame.texturing.z);
-        vec3 n = normal_of(mix(mix(s00.gradient, s10.gradient, f.x), mix(s01.gradient, s11.gradient, f.x), f.y));
-        float sea = mix(mix(float(s00.sea), float(s10.sea), f.x), mix(float(s01.sea), float(s11.sea), f.x), f.y);
+        float sea;
+        vec3 n = held_normal(at, sea);
         // Where two held samples lie more than two pixels apart (a pixel spans under half
         // as many samples), from the surface as drawn: its normal, and water up to sea
         // level (within depth's precision there) fading out over one sample's rise above

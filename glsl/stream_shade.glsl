@@ -10,6 +10,24 @@
 // ramp.glsl.
 
 layout(set = 0, binding = TERRAIN_BINDING_LIGHTING) uniform sampler2D lighting;
+layout(set = 0, binding = TERRAIN_BINDING_GRADIENTS) uniform usampler2D gradients;
+
+// The normal and the sea share at the point `at` (samples from the terrain's origin) from
+// the gradient map of the lighting map's heights (every frame.spacing.w-th sample), as
+// memory takes them from its own gradient map (terrain_shade.glsl): the gradients of the
+// four held samples around the point interpolated, and the bilinear share of those at or
+// below sea level, in one gather.
+vec3 held_normal(vec2 at, out float sea) {
+    vec2 q = at / frame.spacing.w;
+    ivec2 t = ivec2(floor(q));
+    vec2 f = q - vec2(t);
+    // Gather order: (0,1), (1,1), (1,0), (0,0) from t (clamped at the far edge).
+    uvec4 g = textureGather(gradients, (vec2(t) + 1.0) / vec2(textureSize(gradients, 0)));
+    Sample s00 = from_texel(g.w, frame.texturing.z), s10 = from_texel(g.z, frame.texturing.z);
+    Sample s01 = from_texel(g.x, frame.texturing.z), s11 = from_texel(g.y, frame.texturing.z);
+    sea = mix(mix(float(s00.sea), float(s10.sea), f.x), mix(float(s01.sea), float(s11.sea), f.x), f.y);
+    return normal_of(mix(mix(s00.gradient, s10.gradient, f.x), mix(s01.gradient, s11.gradient, f.x), f.y));
+}
 layout(set = 0, binding = TERRAIN_BINDING_BASE) uniform sampler2D base_tex;
 layout(set = 0, binding = TERRAIN_BINDING_DETAIL) uniform sampler2D detail_tex;
 

@@ -1229,6 +1229,12 @@ fn deferred_streamed_frames_are_shaded_as_in_memory() {
         // centres on the true extent's edge may fall either way.
         assert!(bd.abs_diff(bf) * 500 <= (320 * 240), "{camera}: background pixels {bd} deferred, {bf} forward");
         assert!(rmse < most_rmse && far < most_far, "{camera}: RMSE {rmse:.2}, {:.2} % over 16 levels", 100.0 * far);
+        // Where the held samples are the terrain's, forward frames shade from them too.
+        if held_stride == 1 {
+            let (forward_far, wf) = (difference(&memory, &forward).1, water(&forward));
+            assert!(forward_rmse < most_rmse && forward_far < most_far, "{camera}: forward RMSE {forward_rmse:.2}");
+            assert!(wf.abs_diff(wm) * 10 <= wm.max(100), "{camera}: water pixels {wf} forward, {wm} in memory");
+        }
         assert!(wd.abs_diff(wm) * 10 <= wm.max(100), "{camera}: water pixels {wd} deferred, {wm} in memory");
     }
     // From 2 x 10^5 spacings out, depth no longer gives the points forward shading shades

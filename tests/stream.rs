@@ -687,6 +687,45 @@ fn the_host_cache_keeps_its_rules_under_random_use() {
     }
 }
 
+/// A cache limited to as many tiles as an archive has (an atlas with a layer for each)
+/// holds every one of them, whatever the budget's remainder over that count; and never
+/// one more than the limit, however large the budget.
+#[test]
+fn a_cache_limited_to_every_tile_holds_every_tile() {
+    let Fixture { hf: _, archive, grid, _dir } = fixture("stream-cache-limit");
+    let mut tiles: Vec<Arc<TileData>> = archive
+        .meta
+        .tiles()
+        .map(|(l, x, z)| Arc::new(TileData::new(&grid, archive.read_tile(l, x, z).unwrap().unwrap()).unwrap()))
+        .collect();
+    // Parents first (the cache is ancestor-closed).
+    tiles.sort_by_key(|t| std::cmp::Reverse(t.key.level));
+    let n = tiles.len();
+    let largest = tiles.iter().map(|t| t.bytes).max().unwrap();
+    // Budgets that leave a remainder over n (n - 1 of them: 1 to n - 1 bytes), and a huge one.
+    for budget in [n * largest + 1, n * largest + n - 1, 1000 * n * largest] {
+        let mut cache = HostCache::new(grid, budget);
+        cache.limit_tiles(n);
+        for t in &tiles {
+            assert!(t.bytes.max(cache.floor()) <= cache.room(true, t.key.parent(grid.top)), "budget {budget}");
+            cache.insert(t.clone(), true).unwrap_or_else(|e| panic!("budget {budget}, {:?}: {e:?}", t.key));
+        }
+        assert!(tiles.iter().all(|t| cache.contains(t.key)), "budget {budget}");
+        cache.check().unwrap();
+        // One tile fewer: the last one in is refused for want of a layer (nothing can be
+        // evicted: every tile was used this frame).
+        let mut fewer = HostCache::new(grid, budget);
+        fewer.limit_tiles(n - 1);
+        let keys: Vec<TileKey> = tiles.iter().map(|t| t.key).collect();
+        for (i, t) in tiles.iter().enumerate() {
+            let r = fewer.insert(t.clone(), true);
+            let held: Vec<TileKey> = keys[..=i].iter().copied().filter(|&k| fewer.contains(k)).collect();
+            fewer.mark_used(held);
+            assert_eq!(r.is_ok(), i < n - 1, "budget {budget}, tile {i} of {n}: {r:?}");
+        }
+    }
+}
+
 /// A source whose chosen tiles fail (a damaged tile, a file gone): the frames degrade to
 /// coarser blocks, counted, the failure is reported once with the tile, and the tile is
 /// asked for again after RETRY_FRAMES.

@@ -474,7 +474,7 @@ pub struct StreamedOptions {
     #[arg(long)]
     pub stream: bool,
     /// Host cache budget for decoded tiles, MB [default: 256, or every tile of a terrain
-    /// the atlas holds whole]; given, the terrain is drawn from its tiles (as with
+    /// the default atlas holds whole]; given, the terrain is drawn from its tiles (as with
     /// --stream).
     #[arg(long = "cache-mb", value_name = "MB", value_parser = clap::value_parser!(u32).range(1..=1_000_000), allow_negative_numbers = true)]
     pub cache_mb_given: Option<u32>,
@@ -487,16 +487,20 @@ pub struct StreamedOptions {
 
 impl StreamedOptions {
     /// The host cache budget for the terrain of `m`: as given, or by default 256 MB, and
-    /// every tile decoded when the atlas holds them all ([`Self::gpu_mb`]), so that such a
-    /// terrain is wholly resident.
+    /// when the default atlas holds every tile ([`Self::gpu_mb`]) enough for every tile
+    /// too, so that such a terrain is wholly resident. The cache charges each tile at
+    /// least its share of the budget (one share a layer: `HostCache::limit_tiles`), so
+    /// that is the tiles times the largest a tile takes: a tile of a coarser level with
+    /// its `D`, or the top one with every coarser LOD's.
     pub fn cache_mb(&self, m: &crate::input::archive::Meta) -> u32 {
         self.cache_mb_given.unwrap_or_else(|| {
             let grid = crate::stream::Grid::from_meta(m);
-            let tiles = |l: u8| grid.tiles_at(l).iter().map(|&n| n as usize).product::<usize>();
-            let all: usize =
-                (0..=grid.top).map(|l| tiles(l) * crate::stream::cache::tile_bytes_estimate(&grid, l)).sum();
-            let held = (0..=grid.top).map(tiles).sum::<usize>() <= crate::errors::atlas::MAX_LAYERS as usize;
-            let mb = if held { all.div_ceil(1 << 20) as u32 } else { 0 };
+            let tiles: usize =
+                (0..=grid.top).map(|l| grid.tiles_at(l).iter().map(|&n| n as usize).product::<usize>()).sum();
+            let whole = self.gpu_mb_given.is_none() && tiles <= crate::errors::atlas::MAX_LAYERS as usize;
+            let t = grid.tile_quads;
+            let largest = crate::stream::cache::tile_bytes_estimate(&grid, grid.top.max(1)) + (t * t * 4).div_ceil(3);
+            let mb = if whole { (tiles * largest).div_ceil(1 << 20) as u32 } else { 0 };
             mb.max(DEFAULT_CACHE_MB)
         })
     }

@@ -188,24 +188,26 @@ impl FramePipelines {
                 specialization: &shade_spec,
             },
         )?;
-        let terrain = terrain_pipeline(device, layout, format, (normals, holes), textures, vk::PolygonMode::FILL)?;
+        let spec = (normals, holes, coarse);
+        let terrain = terrain_pipeline(device, layout, format, spec, textures, vk::PolygonMode::FILL)?;
         let wireframe = device
             .features
             .wireframe
-            .then(|| terrain_pipeline(device, layout, format, (normals, holes), textures, vk::PolygonMode::LINE))
+            .then(|| terrain_pipeline(device, layout, format, spec, textures, vk::PolygonMode::LINE))
             .transpose()?;
         Ok(FramePipelines { terrain, sky, shade, wireframe })
     }
 }
 
 /// The terrain pipeline of streamed frames for colour attachments of `format`, its
-/// normals from `normals` (stream.frag: the surface's derivatives for the gradient map,
-/// which streamed tiles do not bring, or the tile's heights), cutting holes if `holes`.
+/// normals from `normals` (stream.frag: for the gradient map, the held samples' when they
+/// are the terrain's, else the surface's derivatives (`coarse`); or the tile's heights),
+/// cutting holes if `holes`.
 fn terrain_pipeline(
     device: &Arc<Device>,
     layout: &PipelineLayout,
     format: vk::Format,
-    (normals, holes): (NormalSource, bool),
+    (normals, holes, coarse): (NormalSource, bool, bool),
     [base, detail]: [(u32, bool); 2],
     polygon_mode: vk::PolygonMode,
 ) -> VkResult<GraphicsPipeline> {
@@ -227,6 +229,7 @@ fn terrain_pipeline(
             specialization: &[
                 (layout::SPEC_NORMALS_FROM_HEIGHTS, normals == NormalSource::Heights),
                 (layout::SPEC_HOLES, holes),
+                (layout::SPEC_COARSE_GRADIENTS, coarse),
                 base,
                 detail,
             ],

@@ -247,8 +247,9 @@ pub const SPEC_STRICT_ERRORS: u32 = 4;
 /// terrain.frag and stream.frag: voids are drawn as holes (`--voids hole`; flags in the
 /// gradient map in memory, the atlas's second channel over tiles).
 pub const SPEC_HOLES: u32 = 5;
-/// stream_shade.frag: the gradient map holds every few samples only (terrains over
-/// 2049^2), so that pixels spanning less than a held sample take the surface as drawn.
+/// stream_shade.frag and stream.frag: the gradient map holds every few samples only
+/// (terrains over 2049^2), so that pixels spanning less than a held sample take the
+/// surface as drawn (and forward frames each triangle's own normal).
 pub const SPEC_COARSE_GRADIENTS: u32 = 6;
 
 pub const SPEC_CONSTANTS: &[SpecConstant] = &[

@@ -271,9 +271,10 @@ struct Held {
 pub struct HostCache {
     grid: Grid,
     budget: usize,
-    /// Bytes a tile is charged at least ([`HostCache::limit_tiles`]): so that the cache
-    /// never holds more tiles than the GPU atlas has layers.
+    /// Bytes a tile is charged at least ([`HostCache::limit_tiles`]), and the most tiles
+    /// held: so that the cache never holds more tiles than the GPU atlas has layers.
     floor: usize,
+    max_tiles: usize,
     bytes: usize,
     frame: u64,
     held: HashMap<TileKey, Held>,
@@ -288,6 +289,7 @@ impl HostCache {
             grid,
             budget: budget_bytes,
             floor: 0,
+            max_tiles: usize::MAX,
             bytes: 0,
             frame: 0,
             held: HashMap::new(),
@@ -302,13 +304,17 @@ impl HostCache {
     }
 
     /// Holds at most `tiles` tiles from now on (each charged at least `budget / tiles`
-    /// bytes): a frame draws only from held tiles, so every tile it draws from finds a
-    /// layer in an atlas of that many layers. Leaves not used this frame are evicted
-    /// until the charged bytes fit again.
+    /// bytes, rounded down so that `tiles` tiles no larger fit: rounded up, the last one
+    /// never did; the count is checked too, for a budget whose remainder over `tiles`
+    /// exceeds that share, which real tiles of 100 KB and more never meet): a frame
+    /// draws only from held tiles, so every tile it draws from finds a layer in an atlas
+    /// of that many layers. Leaves not used this frame are evicted until the tiles fit
+    /// again.
     pub fn limit_tiles(&mut self, tiles: usize) {
-        self.floor = self.budget.div_ceil(tiles.max(1));
+        self.max_tiles = tiles.max(1);
+        self.floor = self.budget / self.max_tiles;
         self.bytes = self.held.values().map(|h| self.charge(&h.data)).sum();
-        while self.bytes > self.budget {
+        while self.bytes > self.budget || self.held.len() > self.max_tiles {
             let frame = self.frame;
             let victim = self
                 .evictable(true, None)
@@ -392,7 +398,9 @@ impl HostCache {
     /// tile with that parent (`needed`: a frame needs it now, so prefetched tiles may go too).
     pub fn room(&self, needed: bool, parent: Option<TileKey>) -> usize {
         let evictable: usize = self.evictable(needed, parent).map(|(_, h)| self.charge(&h.data)).sum();
-        self.budget.saturating_sub(self.bytes) + evictable
+        // With as many tiles as allowed, only what an eviction frees.
+        let free = if self.held.len() < self.max_tiles { self.budget.saturating_sub(self.bytes) } else { 0 };
+        free + evictable
     }
 
     /// Takes a tile in, evicting least recently used leaves not used this frame (and not
@@ -410,7 +418,7 @@ impl HostCache {
                 return Err(Refused::NoParent);
             }
         }
-        while self.bytes + self.charge(&data) > self.budget {
+        while self.bytes + self.charge(&data) > self.budget || self.held.len() >= self.max_tiles {
             let frame = self.frame;
             let victim = self
                 .evictable(needed, parent)
