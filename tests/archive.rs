@@ -505,7 +505,7 @@ fn prepare_and_check_refuse_what_would_destroy_hang_or_mislead() {
     let png = d.join("x.png");
     refused(&["prepare", "--synthetic", "65", "--out", png.to_str().unwrap()], &["x.png", ".pmtiles"]);
     for (flag, value) in [("--height-scale", "1e30"), ("--spacing", "1e30")] {
-        refused(&["prepare", "--synthetic", "65", flag, value, "--out", x], &["within 1e12"]);
+        refused(&["prepare", "--synthetic", "65", flag, value, "--out", x], &["beyond 1e12"]);
     }
     let left: Vec<_> = std::fs::read_dir(d).unwrap().flatten().map(|e| e.file_name()).collect();
     assert_eq!(left.len(), 4, "nothing new beside the inputs: {left:?}");

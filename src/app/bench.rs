@@ -1317,7 +1317,7 @@ fn bench_streamed(
         "streamed": true,
         "terrain": args.common.terrain.name(),
         "lod": format!("{:?}", args.lod).to_lowercase(),
-        "shading": crate::draw::streamed::StreamedRenderer::shading_name(args.shading),
+        "shading": value_name(args.shading),
         "pixels": value_name(args.pixels),
         "deferred_frames": deferred_frames,
         "morph": args.common.lod.morph.on(),

@@ -980,7 +980,7 @@ pub fn render_archive(f: ArchiveFrame) -> anyhow::Result<ArchiveRender> {
         "errors_generation": sel.errors_generation,
         "lod": format!("{:?}", f.lod).to_lowercase(),
         "error_mode": f.common.error_mode.mode.as_str(),
-        "shading": StreamedRenderer::shading_name(f.normals),
+        "shading": crate::app::cli::value_name(f.normals),
         // What drew the frame: forward where asked, or where deferred cannot (see
         // StreamedRenderer::deferred).
         "pixels": if gpu.drawn.deferred { "deferred" } else { "forward" },

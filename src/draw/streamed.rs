@@ -553,18 +553,10 @@ impl StreamedRenderer {
         Ok(h)
     }
 
-    /// How `normals` is drawn in streamed frames, by name (`shading` in the JSON): the
-    /// default, [`NormalSource::GradientMap`], is drawn flat (each triangle's own normal).
-    pub fn shading_name(normals: NormalSource) -> &'static str {
-        match normals {
-            NormalSource::GradientMap => "flat",
-            NormalSource::Heights => "heights",
-        }
-    }
-
     /// Normals from `normals` from now on (`--shading`; [`NormalSource::GradientMap`], the
-    /// default, takes them from the surface's derivatives: streamed tiles bring no gradient
-    /// map). Before the first frame: the pipelines of the other source are destroyed.
+    /// default, takes them from the held samples' gradient map, and where those are
+    /// coarser than the terrain's up close from the surface as drawn). Before the first
+    /// frame: the pipelines of the other source are destroyed.
     pub fn set_normals(&mut self, normals: NormalSource) {
         if normals != self.normals {
             self.normals = normals;
