@@ -146,6 +146,17 @@ Walk walk_from(float t, int size, ivec2 lo, ivec2 hi) {
     return w;
 }
 
+// Into the next cell, across the nearer of its two next edges.
+void advance(inout Walk w) {
+    if (w.next.x < w.next.y) {
+        w.cell.x += w.step.x;
+        w.next.x += w.delta.x;
+    } else {
+        w.cell.y += w.step.y;
+        w.next.y += w.delta.y;
+    }
+}
+
 // The ray's parameters entering and leaving the box (entering clamped to 0).
 vec2 box_span(vec3 bmin, vec3 bmax) {
     vec3 inv = 1.0 / ray_d;
@@ -220,24 +231,12 @@ void main() {
                 float s_out = min(min(inner.next.x, inner.next.y), t_out);
                 best = min(best, quad_hit(inner.cell, s, s_out));
                 if (best < 1e29) break;
-                if (inner.next.x < inner.next.y) {
-                    inner.cell.x += inner.step.x;
-                    inner.next.x += inner.delta.x;
-                } else {
-                    inner.cell.y += inner.step.y;
-                    inner.next.y += inner.delta.y;
-                }
+                advance(inner);
                 s = s_out;
                 if (any(lessThan(inner.cell, first)) || any(greaterThan(inner.cell, first + coarse - 1))) break;
             }
         }
-        if (outer.next.x < outer.next.y) {
-            outer.cell.x += outer.step.x;
-            outer.next.x += outer.delta.x;
-        } else {
-            outer.cell.y += outer.step.y;
-            outer.next.y += outer.delta.y;
-        }
+        advance(outer);
         t = t_out;
         if (any(lessThan(outer.cell, ivec2(0))) || any(greaterThan(outer.cell, ivec2(cells - 1)))) break;
     }
